@@ -1,0 +1,167 @@
+//! Reading and validating DeepRacer track files (`.npy`, `(N, 6)` float64).
+//!
+//! The columns are `[center_x, center_y, inner_x, inner_y, outer_x, outer_y]` in metres.
+//! Parsing of the numpy container is `npyz`'s job; this module checks what DeepRacer's
+//! simulator assumes of the numbers and says exactly which row or column is wrong.
+
+use crate::TrackError;
+use crate::geometry::P2;
+use npyz::{DType, Order, TypeChar};
+
+/// The raw rows of a track file, validated: at least 3 finite rows, no zero-length
+/// centre-line segment (other than a whole row repeated, which DeepRacer's own files do),
+/// no border crossing the centre line.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TrackRows {
+    /// Centre line, one point per row.
+    pub center: Vec<P2>,
+    /// Inner border (the driver's left when driving a CCW file forwards).
+    pub inner: Vec<P2>,
+    /// Outer border.
+    pub outer: Vec<P2>,
+}
+
+impl TrackRows {
+    /// Number of rows (points) in the file.
+    pub fn len(&self) -> usize {
+        self.center.len()
+    }
+
+    /// True when there are no rows (never true for validated rows).
+    pub fn is_empty(&self) -> bool {
+        self.center.is_empty()
+    }
+
+    /// Whether row `i` repeats row `i - 1` in all six values. DeepRacer's own files do this
+    /// (e.g. `AWS_track` row 187); shapely keeps such points, and so do we, so that
+    /// waypoint indices match what reward functions see.
+    pub fn repeats_previous(&self, i: usize) -> bool {
+        i > 0
+            && (self.center[i] - self.center[i - 1]).norm() <= CLOSE_EPS
+            && (self.inner[i] - self.inner[i - 1]).norm() <= CLOSE_EPS
+            && (self.outer[i] - self.outer[i - 1]).norm() <= CLOSE_EPS
+    }
+
+    /// Rows that repeat the previous row exactly (kept, as DeepRacer keeps them).
+    pub fn repeated_rows(&self) -> Vec<usize> {
+        (1..self.len()).filter(|&i| self.repeats_previous(i)).collect()
+    }
+
+    /// A closed loop repeats its first row as its last, as every DeepRacer loop file does.
+    pub fn is_closed(&self) -> bool {
+        let n = self.len();
+        n > 1
+            && (self.center[0] - self.center[n - 1]).norm() < CLOSE_EPS
+            && (self.inner[0] - self.inner[n - 1]).norm() < CLOSE_EPS
+            && (self.outer[0] - self.outer[n - 1]).norm() < CLOSE_EPS
+    }
+}
+
+/// Two rows closer than this are the same point (DeepRacer's sanitising epsilon).
+const CLOSE_EPS: f64 = 1e-9;
+
+/// Parse and validate the bytes of a `.npy` track file. `origin` names the file in errors.
+pub fn parse_track_npy(bytes: &[u8], origin: &str) -> Result<TrackRows, TrackError> {
+    let bad = |msg: String| TrackError::Invalid { origin: origin.to_string(), msg };
+    let npy = npyz::NpyFile::new(bytes).map_err(|e| bad(format!("not a numpy .npy file: {e}")))?;
+    match npy.dtype() {
+        DType::Plain(ts) if ts.type_char() == TypeChar::Float && ts.size_field() == 8 => {}
+        other => {
+            return Err(bad(format!(
+                "dtype is {}, expected float64 ('<f8')",
+                describe_dtype(&other)
+            )));
+        }
+    }
+    let shape = npy.shape().to_vec();
+    if shape.len() != 2 || shape[1] != 6 {
+        return Err(bad(format!(
+            "shape is {shape:?}, expected (N, 6): centre x,y, inner x,y, outer x,y per row"
+        )));
+    }
+    let n = shape[0] as usize;
+    let order = npy.order();
+    let flat: Vec<f64> = npy
+        .into_vec()
+        .map_err(|e| bad(format!("truncated or unreadable data: {e}")))?;
+    if flat.len() != n * 6 {
+        return Err(bad(format!("holds {} values, the header promises {}", flat.len(), n * 6)));
+    }
+    let at = |row: usize, col: usize| match order {
+        Order::C => flat[row * 6 + col],
+        Order::Fortran => flat[col * n + row],
+    };
+    const COLS: [&str; 6] = ["center_x", "center_y", "inner_x", "inner_y", "outer_x", "outer_y"];
+    for row in 0..n {
+        for (col, name) in COLS.iter().enumerate() {
+            let v = at(row, col);
+            if !v.is_finite() {
+                return Err(bad(format!("row {row} column {col} ({name}) is {v}, expected a finite number")));
+            }
+        }
+    }
+    let rows = TrackRows {
+        center: (0..n).map(|r| P2::new(at(r, 0), at(r, 1))).collect(),
+        inner: (0..n).map(|r| P2::new(at(r, 2), at(r, 3))).collect(),
+        outer: (0..n).map(|r| P2::new(at(r, 4), at(r, 5))).collect(),
+    };
+    validate_rows(&rows).map_err(bad)?;
+    Ok(rows)
+}
+
+fn describe_dtype(dtype: &DType) -> String {
+    match dtype {
+        DType::Plain(ts) => format!("'{ts}'"),
+        DType::Array(..) => "a nested array type".to_string(),
+        DType::Record(..) => "a structured (record) type".to_string(),
+    }
+}
+
+/// The checks that make rows usable as a track, with the offending row named.
+pub fn validate_rows(rows: &TrackRows) -> Result<(), String> {
+    let n = rows.len();
+    if rows.inner.len() != n || rows.outer.len() != n {
+        return Err("centre, inner and outer columns differ in length".to_string());
+    }
+    let distinct = if rows.is_closed() { n - 1 } else { n };
+    if distinct < 3 {
+        return Err(format!("has {n} rows ({distinct} distinct points), expected at least 3"));
+    }
+    for i in 1..n {
+        if (rows.center[i] - rows.center[i - 1]).norm() <= CLOSE_EPS && !rows.repeats_previous(i) {
+            return Err(format!(
+                "row {i} repeats row {}'s centre point with different borders: a zero-length centre-line segment",
+                i - 1
+            ));
+        }
+    }
+    for (border, name) in [(&rows.inner, "inner"), (&rows.outer, "outer")] {
+        if let Some((b, c)) = first_crossing(border, &rows.center) {
+            return Err(format!(
+                "the {name} border segment starting at row {b} crosses the centre line segment starting at row {c}"
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// The first pair (border segment, centre segment) that properly intersect.
+fn first_crossing(border: &[P2], center: &[P2]) -> Option<(usize, usize)> {
+    for b in 0..border.len().saturating_sub(1) {
+        let (b0, b1) = (border[b], border[b + 1]);
+        if (b1 - b0).norm() <= CLOSE_EPS {
+            continue; // a repeated border point draws nothing
+        }
+        let (bmin, bmax) = (b0.inf(&b1), b0.sup(&b1));
+        for c in 0..center.len() - 1 {
+            let (c0, c1) = (center[c], center[c + 1]);
+            if c0.x.max(c1.x) < bmin.x || c0.x.min(c1.x) > bmax.x || c0.y.max(c1.y) < bmin.y || c0.y.min(c1.y) > bmax.y {
+                continue;
+            }
+            if crate::geometry::segments_intersect(b0, b1, c0, c1) {
+                return Some((b, c));
+            }
+        }
+    }
+    None
+}
