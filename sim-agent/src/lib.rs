@@ -1,1 +1,2 @@
-//! x
+//! The simulator.
+pub mod car;
