@@ -1,1 +1,33 @@
-fn main(){}
+//! `coordinator`: Paddock's user-facing command.
+//!
+//! Today: the track catalog (`tracks list|show|import`), reward validation
+//! (`reward validate`), and the scripted driver (`drive`). Training, jobs and the cluster
+//! arrive with later issues.
+
+mod cli;
+mod drive;
+mod tracks_cmd;
+
+use clap::Parser;
+
+fn main() {
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn,coordinator=info,sim_agent=info".into()))
+        .with_writer(std::io::stderr)
+        .init();
+    let cli = cli::Cli::parse();
+    let result = match cli.command {
+        cli::Command::Tracks { command } => tracks_cmd::run(command),
+        cli::Command::Reward { command } => match command {
+            cli::RewardCommand::Validate(args) => drive::validate(args),
+        },
+        cli::Command::Drive(args) => drive::drive(args),
+    };
+    match result {
+        Ok(code) => std::process::exit(code),
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            std::process::exit(2);
+        }
+    }
+}

@@ -117,9 +117,7 @@ impl Car {
                 .additional_mass_properties(MassProperties::new(Vector::ZERO, m, inertia))
                 .can_sleep(false),
         );
-        let rear_x = params.front_axle_x - params.wheelbase;
-        let half = params.track_width / 2.0;
-        let wheel_xy = [[rear_x, half], [params.front_axle_x, half], [rear_x, -half], [params.front_axle_x, -half]];
+        let wheel_xy = wheel_layout(params);
         let mut vehicle = DynamicRayCastVehicleController::new(chassis);
         vehicle.index_up_axis = 2;
         vehicle.index_forward_axis = 0;
@@ -218,12 +216,28 @@ impl Car {
     /// Wheel centres in the world plane: left rear, left front, right rear, right front
     /// (DeepRacer's `LINK_NAMES` order).
     pub fn wheel_points(&self, state: &CarState) -> [[f64; 2]; 4] {
-        let (c, s) = (state.yaw.cos(), state.yaw.sin());
-        self.wheel_xy.map(|[x, y]| [state.x + c * x - s * y, state.y + s * x + c * y])
+        place(&self.wheel_xy, state.x, state.y, state.yaw)
     }
 
     /// The car's parameters.
     pub fn params(&self) -> &CarParams {
         &self.params
     }
+}
+
+/// Wheel centres in the chassis frame: left rear, left front, right rear, right front.
+pub fn wheel_layout(params: &CarParams) -> [[f64; 2]; 4] {
+    let rear_x = params.front_axle_x - params.wheelbase;
+    let half = params.track_width / 2.0;
+    [[rear_x, half], [params.front_axle_x, half], [rear_x, -half], [params.front_axle_x, -half]]
+}
+
+/// Wheel centres in the world plane for a car origin at (x, y) with yaw `yaw`.
+pub fn wheel_points_at(params: &CarParams, x: f64, y: f64, yaw: f64) -> [[f64; 2]; 4] {
+    place(&wheel_layout(params), x, y, yaw)
+}
+
+fn place(layout: &[[f64; 2]; 4], x: f64, y: f64, yaw: f64) -> [[f64; 2]; 4] {
+    let (c, s) = (yaw.cos(), yaw.sin());
+    layout.map(|[wx, wy]| [x + c * wx - s * wy, y + s * wx + c * wy])
 }

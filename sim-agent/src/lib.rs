@@ -1,2 +1,53 @@
-//! The simulator.
+//! The simulator, a plain library: no transport, testable without a network.
+//!
+//! - [`car`]: the rapier car.
+//! - [`env`]: one environment, DeepRacer's step loop and episode rules.
+//! - [`params`]: reward `params` from a pose.
+//! - [`reward`] and [`python`]: built-in and Python reward functions.
+//! - [`obs`]: the state vector and lidar.
+//! - [`vec_env`]: many environments on all cores.
+//! - [`driver`]: a scripted pure-pursuit driver.
+//! - [`simtrace`]: DeepRacer's sim-trace CSV, for the community's analysis notebooks.
+//! - [`validate`]: DeepRacer's "Validate" for reward files, and more.
+//! - [`config`]: the configuration struct and its loader.
+//!
+//! Architecture invariant: nothing here opens a socket. The `sim-agent` binary's network
+//! role is a thin shell added by the cluster issue.
+
 pub mod car;
+pub mod config;
+pub mod driver;
+pub mod env;
+pub mod obs;
+pub mod params;
+pub mod python;
+pub mod reward;
+pub mod simtrace;
+pub mod validate;
+pub mod vec_env;
+
+pub use config::SimConfig;
+pub use env::{Env, EnvSpec, EpisodeStatus, EvalRules, Mode, StepOutcome};
+pub use reward::{BuiltinReward, RewardError, RewardFn};
+pub use vec_env::VecEnv;
+
+impl Env {
+    /// The reward of the step [`Env::advance`] just ran, by any reward function (Python
+    /// rewards use slot 0); 0 on the `prepare` step.
+    pub fn reward_with(&self, reward: &mut RewardFn) -> Result<f64, RewardError> {
+        if !self.needs_reward() {
+            return Ok(0.0);
+        }
+        match reward {
+            RewardFn::Builtin(b) => reward::check_reward(b.reward(self.params()), self.params()),
+            RewardFn::Python(py) => py.call(0, self.episode(), self.track(), self.params()),
+        }
+    }
+
+    /// One step with any reward function.
+    pub fn step_with(&mut self, action: policy::Action, reward: &mut RewardFn) -> Result<StepOutcome, RewardError> {
+        self.advance(action);
+        let r = self.reward_with(reward)?;
+        Ok(self.finish(r))
+    }
+}

@@ -1,1 +1,179 @@
-fn main(){}
+//! The `sim-agent` binary. Today it has one subcommand, `bench`, which measures the
+//! simulator; the network role (serving a coordinator over Zenoh) comes with the cluster issue.
+
+use anyhow::{Context, Result};
+use clap::{Parser, Subcommand};
+use indicatif::{ProgressBar, ProgressStyle};
+use policy::Action;
+use sim_agent::config::{ObservationKind, load_config};
+use sim_agent::driver::PurePursuit;
+use sim_agent::{EnvSpec, RewardFn, SimConfig, VecEnv};
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use tracks::{Direction, P2};
+
+#[derive(Parser)]
+#[command(name = "sim-agent", version, about = "Paddock's simulator agent")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Measure env steps/s (1 and 2 threads, built-in and Python reward) and query cost.
+    Bench(BenchArgs),
+}
+
+#[derive(clap::Args)]
+struct BenchArgs {
+    /// World to drive.
+    #[arg(long, default_value = "reinvent_base")]
+    world: String,
+    /// Environments in the vector.
+    #[arg(long, default_value_t = 64)]
+    envs: usize,
+    /// Seconds to measure each configuration.
+    #[arg(long, default_value_t = 5.0)]
+    seconds: f64,
+    /// Python reward file for the Python rows.
+    #[arg(long, default_value = "examples/rewards/follow_center_line.py")]
+    python_reward: PathBuf,
+    /// Thread counts to measure.
+    #[arg(long, value_delimiter = ',', default_value = "1,2")]
+    threads: Vec<usize>,
+    /// Simulator configuration file (TOML).
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Override a configuration key (`key=value`, repeatable).
+    #[arg(long = "set")]
+    sets: Vec<String>,
+}
+
+fn main() {
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()))
+        .with_writer(std::io::stderr)
+        .init();
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Bench(args) => bench(args),
+    };
+    if let Err(e) = result {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
+}
+
+fn bench(args: BenchArgs) -> Result<()> {
+    let cfg: SimConfig = load_config(args.config.as_deref(), &args.sets)?;
+    let world = tracks::world(&args.world)?;
+    let spec = EnvSpec::from_world(&world, Direction::Forward);
+    println!("# sim-agent bench: world {}, {} envs, {:.0} s per row, observation {:?}", args.world, args.envs, args.seconds, cfg.observation.kind);
+    println!();
+    println!("| reward | threads | env steps/s | vs 1 thread | episodes | mean progress at episode end |");
+    println!("|---|---|---|---|---|---|");
+    let rewards: Vec<(String, Box<dyn Fn() -> Result<RewardFn>>)> = vec![
+        ("built-in center_line".into(), Box::new(|| Ok(RewardFn::Builtin(sim_agent::BuiltinReward::CenterLine)))),
+        (format!("python {}", args.python_reward.display()), {
+            let p = args.python_reward.clone();
+            Box::new(move || RewardFn::from_spec(&p.display().to_string()).context("loading the Python reward"))
+        }),
+    ];
+    let cfg = Arc::new(cfg);
+    for (name, make) in &rewards {
+        let mut base = None;
+        for &threads in &args.threads {
+            let r = run_vec(&spec, &cfg, args.envs, threads, make()?, args.seconds)?;
+            let ratio = base.map(|b: f64| format!("{:.2}×", r.steps_per_s / b)).unwrap_or_else(|| "1.00×".into());
+            base.get_or_insert(r.steps_per_s);
+            println!("| {name} | {threads} | {:.0} | {ratio} | {} | {:.1} |", r.steps_per_s, r.episodes, r.mean_progress);
+        }
+    }
+    println!();
+    query_bench(&world.track(Direction::Forward), args.seconds.min(2.0));
+    if cfg.observation.kind != ObservationKind::Lidar {
+        let mut lidar_cfg = (*cfg).clone();
+        lidar_cfg.observation.kind = ObservationKind::StateLidar;
+        let r = run_vec(&spec, &Arc::new(lidar_cfg), args.envs, *args.threads.last().unwrap_or(&1), RewardFn::Builtin(sim_agent::BuiltinReward::CenterLine), args.seconds.min(2.0))?;
+        println!();
+        println!("state + {}-ray lidar, built-in reward, {} threads: {:.0} env steps/s", cfg.observation.lidar_rays, args.threads.last().unwrap_or(&1), r.steps_per_s);
+    }
+    Ok(())
+}
+
+struct RunResult {
+    steps_per_s: f64,
+    episodes: usize,
+    mean_progress: f64,
+}
+
+fn run_vec(spec: &EnvSpec, cfg: &Arc<SimConfig>, n: usize, threads: usize, reward: RewardFn, seconds: f64) -> Result<RunResult> {
+    let mut vec = VecEnv::new(vec![spec.clone(); n], cfg.clone(), 7, reward, threads)?;
+    let driver = PurePursuit::default();
+    let mut actions: Vec<Action> = vec.envs().iter().map(|e| driver.act(e)).collect();
+    let bar = ProgressBar::new((seconds * 1000.0) as u64)
+        .with_style(ProgressStyle::with_template("{msg} [{bar:30}] {elapsed}").expect("template"))
+        .with_message(format!("{threads} thread(s)"));
+    let (mut stepped, mut episodes, mut progress_sum) = (0u64, 0usize, 0.0);
+    let mut in_env = Duration::ZERO;
+    let wall = Instant::now();
+    while wall.elapsed().as_secs_f64() < seconds {
+        let t = Instant::now();
+        let outcomes = vec.step(&actions)?;
+        in_env += t.elapsed();
+        for o in outcomes {
+            if o.done {
+                episodes += 1;
+                progress_sum += o.progress;
+            }
+        }
+        stepped += n as u64;
+        for (a, e) in actions.iter_mut().zip(vec.envs()) {
+            *a = driver.act(e);
+        }
+        bar.set_position(wall.elapsed().as_millis() as u64);
+    }
+    bar.finish_and_clear();
+    Ok(RunResult {
+        steps_per_s: stepped as f64 / in_env.as_secs_f64(),
+        episodes,
+        mean_progress: if episodes > 0 { progress_sum / episodes as f64 } else { f64::NAN },
+    })
+}
+
+fn query_bench(track: &tracks::Track, seconds: f64) {
+    // Points along a lap, jittered across the road: what a driving car asks for.
+    let pts: Vec<P2> = (0..4096)
+        .map(|i| {
+            let (p, h) = track.pose_at(track.length() * i as f64 / 4096.0);
+            let off = ((i * 7919) % 101) as f64 / 100.0 - 0.5;
+            P2::new(p.x - off * 0.6 * h.sin(), p.y + off * 0.6 * h.cos())
+        })
+        .collect();
+    let time = |f: &dyn Fn(P2) -> f64| {
+        let t = Instant::now();
+        let mut n = 0u64;
+        let mut sink = 0.0;
+        while t.elapsed().as_secs_f64() < seconds {
+            for &p in &pts {
+                sink += f(p);
+            }
+            n += pts.len() as u64;
+        }
+        std::hint::black_box(sink);
+        t.elapsed().as_secs_f64() * 1e9 / n as f64
+    };
+    const WHEELS: [(f64, f64); 4] = [(-0.08, 0.08), (0.08, 0.08), (-0.08, -0.08), (0.08, -0.08)];
+    let fast = time(&|p| {
+        let on = WHEELS.iter().filter(|(dx, dy)| track.on_road(P2::new(p.x + dx, p.y + dy))).count();
+        track.query(p).ndist + on as f64
+    });
+    let scan = time(&|p| {
+        let on = WHEELS.iter().filter(|(dx, dy)| track.on_road_scan(P2::new(p.x + dx, p.y + dy))).count();
+        track.query_scan(p).ndist + on as f64
+    });
+    println!("track queries per step (projection, closest waypoints, width, left/right, 4 wheel road tests), one core:");
+    println!("grid {fast:.0} ns; full scan (reference) {scan:.0} ns; grid is {:.1}× faster", scan / fast);
+}

@@ -394,6 +394,43 @@ impl Track {
         even_odd_contains(&self.road_edges, p)
     }
 
+    /// Lidar: for each ray angle (radians, world frame) from `origin`, the distance to the
+    /// nearest border (inner or outer), or `range` when none is that close. Writes `out`.
+    pub fn border_distances(&self, origin: P2, angles: &[f64], range: f64, out: &mut [f64]) {
+        let near = |a: &P2, b: &P2| {
+            let lo = a.inf(b);
+            let hi = a.sup(b);
+            lo.x <= origin.x + range && hi.x >= origin.x - range && lo.y <= origin.y + range && hi.y >= origin.y - range
+        };
+        let mut segs: Vec<(P2, P2)> = Vec::with_capacity(64);
+        for line in [&self.inner, &self.outer] {
+            for w in line.points().windows(2) {
+                if near(&w[0], &w[1]) {
+                    segs.push((w[0], w[1]));
+                }
+            }
+        }
+        for (angle, out) in angles.iter().zip(out.iter_mut()) {
+            let d = nalgebra::Vector2::new(angle.cos(), angle.sin());
+            let mut best = range;
+            for &(a, b) in &segs {
+                // origin + t d = a + u (b - a), t in [0, best], u in [0, 1].
+                let e = b - a;
+                let denom = d.x * e.y - d.y * e.x;
+                if denom.abs() < 1e-12 {
+                    continue;
+                }
+                let w = a - origin;
+                let t = (w.x * e.y - w.y * e.x) / denom;
+                let u = (w.x * d.y - w.y * d.x) / denom;
+                if t >= 0.0 && t < best && (0.0..=1.0).contains(&u) {
+                    best = t;
+                }
+            }
+            *out = best;
+        }
+    }
+
     /// Pose on the centre line at distance `along`: the point and the direction of travel
     /// (forward difference, as DeepRacer's `interpolate_pose`).
     pub fn pose_at(&self, along: f64) -> (P2, f64) {

@@ -1,0 +1,121 @@
+//! The command line, as clap types. Subcommand and flag names are part of the interface.
+
+use clap::{Args, Parser, Subcommand};
+use std::path::PathBuf;
+
+/// Paddock: train DeepRacer-style cars on your own machines.
+#[derive(Parser)]
+#[command(name = "coordinator", version, about)]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Subcommand)]
+pub enum Command {
+    /// The built-in worlds and your own track files.
+    Tracks {
+        #[command(subcommand)]
+        command: TracksCommand,
+    },
+    /// Reward functions.
+    Reward {
+        #[command(subcommand)]
+        command: RewardCommand,
+    },
+    /// Drive laps with the scripted pure-pursuit driver and print each lap.
+    Drive(DriveArgs),
+}
+
+#[derive(Subcommand)]
+pub enum TracksCommand {
+    /// Every built-in world: name, length, width, direction, surface.
+    List {
+        /// Print JSON instead of a table.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Figures for one track (a built-in name or a .npy file).
+    Show {
+        /// World name or path to a DeepRacer .npy file.
+        name: String,
+        /// Draw the track top-down into this PNG file.
+        #[arg(long)]
+        png: Option<PathBuf>,
+    },
+    /// Validate a DeepRacer .npy track file and print its figures.
+    Import {
+        /// The .npy file.
+        file: PathBuf,
+        /// Name to show (default: the file's stem).
+        #[arg(long)]
+        name: Option<String>,
+        /// Draw the track top-down into this PNG file.
+        #[arg(long)]
+        png: Option<PathBuf>,
+    },
+}
+
+#[derive(Subcommand)]
+pub enum RewardCommand {
+    /// Compile a reward file and call it on states sampled along a track; exit 0 only if it passed.
+    Validate(ValidateArgs),
+}
+
+#[derive(Args)]
+pub struct ValidateArgs {
+    /// A DeepRacer reward file (Python), or builtin:NAME.
+    pub file: String,
+    /// Track to sample states on (built-in name or .npy path).
+    #[arg(long, default_value = "reinvent_base")]
+    pub track: String,
+    /// Drive the track in reverse (DeepRacer's REVERSE_DIR).
+    #[arg(long)]
+    pub reversed: bool,
+    /// model_metadata.json whose action space supplies speed and steering.
+    #[arg(long)]
+    pub model_metadata: Option<PathBuf>,
+    /// Positions sampled along the track.
+    #[arg(long, default_value_t = 60)]
+    pub positions: usize,
+}
+
+#[derive(Args)]
+pub struct DriveArgs {
+    /// Track (built-in world name or .npy path).
+    #[arg(long, default_value = "reinvent_base")]
+    pub track: String,
+    /// Laps (evaluation trials from the start line).
+    #[arg(long, default_value_t = 3)]
+    pub laps: u32,
+    /// Reward: a DeepRacer Python file or builtin:NAME (center_line, stay_inside).
+    #[arg(long, default_value = "builtin:center_line")]
+    pub reward: String,
+    /// Drive the track in reverse.
+    #[arg(long)]
+    pub reversed: bool,
+    /// Off-track resets a lap survives (each costs the penalty).
+    #[arg(long, default_value_t = 10)]
+    pub resets: u32,
+    /// Time penalty per reset (s).
+    #[arg(long, default_value_t = 2.0)]
+    pub penalty: f64,
+    /// The driver's top speed (m/s).
+    #[arg(long, default_value_t = 2.5)]
+    pub max_speed: f64,
+    /// Random seed (actuator noise).
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Draw the track with the driven path into this PNG file.
+    #[arg(long)]
+    pub png: Option<PathBuf>,
+    /// Write a DeepRacer sim-trace CSV of every step.
+    #[arg(long)]
+    pub simtrace: Option<PathBuf>,
+    /// Simulator configuration file (TOML; see config/default.toml).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Override a configuration key (`key=value`, repeatable), e.g. --set noise.steering_deg=0.
+    #[arg(long = "set")]
+    pub sets: Vec<String>,
+}

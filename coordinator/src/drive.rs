@@ -1,0 +1,120 @@
+//! `coordinator drive` (the scripted driver) and `coordinator reward validate`.
+
+use crate::cli::{DriveArgs, ValidateArgs};
+use crate::tracks_cmd::{draw, resolve_world};
+use anyhow::{Context, Result};
+use indicatif::{ProgressBar, ProgressStyle};
+use policy::{ActionSpace, ModelMetadata};
+use sim_agent::config::load_config;
+use sim_agent::driver::PurePursuit;
+use sim_agent::simtrace::{ActionTaken, SimTraceWriter};
+use sim_agent::validate::validate_reward;
+use sim_agent::{Env, EnvSpec, EvalRules, Mode, RewardFn, SimConfig};
+use std::io::BufWriter;
+use std::sync::Arc;
+use tracks::{Direction, P2};
+
+fn direction(reversed: bool) -> Direction {
+    if reversed { Direction::Reversed } else { Direction::Forward }
+}
+
+pub fn drive(args: DriveArgs) -> Result<i32> {
+    let cfg: SimConfig = load_config(args.config.as_deref(), &args.sets)?;
+    let world = resolve_world(&args.track)?;
+    let mut reward = RewardFn::from_spec(&args.reward)?;
+    let spec = EnvSpec::from_world(&world, direction(args.reversed));
+    let rules = EvalRules { max_resets: args.resets, penalty_s: args.penalty, time_limit_s: None };
+    let mut env = Env::new(spec, Arc::new(cfg), Mode::Evaluation(rules), args.seed, 0.0)?;
+    let driver = PurePursuit { max_speed: args.max_speed, ..PurePursuit::default() };
+    tracing::info!(world = %world.name, surface = world.surface.name(), reward = %reward.describe(), laps = args.laps, "driving");
+    println!(
+        "driving {} ({}, {}, {:.3} m) with the pure-pursuit driver, reward {}",
+        world.name,
+        world.surface.name(),
+        if args.reversed { "reversed" } else { "forward" },
+        env.track().length(),
+        reward.describe()
+    );
+    let mut trace = match &args.simtrace {
+        Some(p) => Some(SimTraceWriter::new(BufWriter::new(std::fs::File::create(p).with_context(|| format!("creating {}", p.display()))?))?),
+        None => None,
+    };
+    let bar = ProgressBar::new(args.laps as u64).with_style(ProgressStyle::with_template("lap {pos}/{len} [{bar:30}] {msg}").expect("template"));
+    let mut path: Vec<P2> = Vec::new();
+    let mut completed = 0;
+    for lap in 1..=args.laps {
+        env.reset();
+        loop {
+            let action = driver.act(&env);
+            env.advance(action);
+            let r = env.reward_with(&mut reward)?;
+            let params = env.params().clone();
+            let o = env.finish(r);
+            path.push(P2::new(params.x, params.y));
+            if let Some(t) = trace.as_mut() {
+                let wall = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs_f64()).unwrap_or(0.0);
+                t.row(lap as u64 - 1, env.track(), &params, ActionTaken::Continuous(action), &o, wall)?;
+            }
+            bar.set_message(format!("progress {:.1} %", o.progress));
+            if o.done {
+                let time = o.lap_time.map(|t| format!("{t:.2} s")).unwrap_or_else(|| "-".into());
+                bar.suspend(|| {
+                    println!(
+                        "lap {lap}: {:<12} time {time:>8}  steps {:>5}  progress {:>6.1} %  off-track {:>2}  reward {:>8.1}",
+                        o.status.label(),
+                        o.steps,
+                        o.progress,
+                        o.resets + u32::from(o.status == sim_agent::EpisodeStatus::OffTrack),
+                        o.episode_reward
+                    )
+                });
+                if o.status == sim_agent::EpisodeStatus::LapComplete {
+                    completed += 1;
+                }
+                break;
+            }
+        }
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    println!("{completed} of {} laps completed", args.laps);
+    if let Some(t) = trace {
+        t.finish()?;
+        println!("sim-trace    {}", args.simtrace.as_ref().expect("set").display());
+    }
+    if let Some(png) = &args.png {
+        draw(&world, png, &path)?;
+    }
+    Ok(0)
+}
+
+pub fn validate(args: ValidateArgs) -> Result<i32> {
+    let world = resolve_world(&args.track)?;
+    let track = world.track(direction(args.reversed));
+    let space = match &args.model_metadata {
+        Some(p) => ModelMetadata::load(p)?.action_space,
+        None => ActionSpace::Continuous { steering_angle: (-30.0, 30.0), speed: (0.5, 4.0) },
+    };
+    let mut reward = match RewardFn::from_spec(&args.file) {
+        Ok(r) => r,
+        Err(e) => {
+            println!("FAILED: {e}");
+            return Ok(1);
+        }
+    };
+    println!("validating {} on {} ({})", reward.describe(), world.name, if args.reversed { "reversed" } else { "forward" });
+    match validate_reward(&mut reward, &track, &space, args.positions) {
+        Ok(report) => {
+            for (kind, mean) in &report.mean_by_kind {
+                println!("  {kind:<22} mean reward {mean:.4}");
+            }
+            println!("{} calls: min {:.4}, mean {:.4}, max {:.4}", report.calls, report.min, report.mean, report.max);
+            println!("PASSED");
+            Ok(0)
+        }
+        Err(e) => {
+            println!("FAILED: {e}");
+            Ok(1)
+        }
+    }
+}

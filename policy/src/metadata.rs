@@ -1,0 +1,304 @@
+//! `model_metadata.json`, parsed as DeepRacer's simapp parses it
+//! (`markov/boto/s3/files/model_metadata.py::parse_model_metadata`, §2.1 of the reference).
+
+use serde_json::{Map, Value};
+use std::path::Path;
+
+/// DeepRacer's steering limit (degrees either way); the simulator clamps commands to it.
+pub const MAX_STEERING_DEG: f64 = 30.0;
+/// DeepRacer's lowest commanded speed (m/s).
+pub const MIN_SPEED: f64 = 0.1;
+/// DeepRacer's highest commanded speed (m/s).
+pub const MAX_SPEED: f64 = 4.0;
+
+/// A concrete command: what the car is asked to do for one step.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Action {
+    /// Steering angle in degrees, + = left.
+    pub steering_angle: f64,
+    /// Speed in m/s.
+    pub speed: f64,
+}
+
+/// The actions a model chooses from.
+#[derive(Clone, Debug, PartialEq)]
+pub enum ActionSpace {
+    /// A list of actions; the network's output index picks one.
+    Discrete(Vec<Action>),
+    /// Ranges; the network acts in [-1, 1]² and is rescaled linearly to [low, high].
+    Continuous {
+        /// Steering range (degrees): (low, high).
+        steering_angle: (f64, f64),
+        /// Speed range (m/s): (low, high).
+        speed: (f64, f64),
+    },
+}
+
+impl ActionSpace {
+    /// Number of network outputs: discrete actions, or 2 means for a continuous space.
+    pub fn dim(&self) -> usize {
+        match self {
+            ActionSpace::Discrete(a) => a.len(),
+            ActionSpace::Continuous { .. } => 2,
+        }
+    }
+
+    /// The discrete action at `index`.
+    pub fn discrete(&self, index: usize) -> Option<Action> {
+        match self {
+            ActionSpace::Discrete(a) => a.get(index).copied(),
+            ActionSpace::Continuous { .. } => None,
+        }
+    }
+
+    /// Map a network output in [-1, 1]² (clipped) to a continuous action
+    /// (`ScalableBoxActionSpace`: linear rescale).
+    pub fn scale(&self, unit: [f64; 2]) -> Option<Action> {
+        match *self {
+            ActionSpace::Continuous { steering_angle: (sl, sh), speed: (vl, vh) } => {
+                let lerp = |u: f64, lo: f64, hi: f64| lo + (u.clamp(-1.0, 1.0) + 1.0) * 0.5 * (hi - lo);
+                Some(Action { steering_angle: lerp(unit[0], sl, sh), speed: lerp(unit[1], vl, vh) })
+            }
+            ActionSpace::Discrete(_) => None,
+        }
+    }
+}
+
+/// Sensors DeepRacer knows (`sensor` list).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Sensor {
+    /// The front camera (grayscale 160×120).
+    FrontFacingCamera,
+    /// The left camera of the stereo pair, alone.
+    LeftCamera,
+    /// Both cameras as two channels.
+    StereoCameras,
+    /// Version-1 legacy camera name.
+    Observation,
+    /// 64-ray LiDAR.
+    Lidar,
+    /// 8 binary sectors.
+    SectorLidar,
+    /// Sectors × values per sector.
+    DiscretizedSectorLidar,
+}
+
+impl Sensor {
+    fn parse(s: &str) -> Option<Sensor> {
+        Some(match s {
+            "FRONT_FACING_CAMERA" => Sensor::FrontFacingCamera,
+            "LEFT_CAMERA" => Sensor::LeftCamera,
+            "STEREO_CAMERAS" => Sensor::StereoCameras,
+            "observation" => Sensor::Observation,
+            "LIDAR" => Sensor::Lidar,
+            "SECTOR_LIDAR" => Sensor::SectorLidar,
+            "DISCRETIZED_SECTOR_LIDAR" => Sensor::DiscretizedSectorLidar,
+            _ => return None,
+        })
+    }
+
+    fn is_camera(self) -> bool {
+        matches!(self, Sensor::FrontFacingCamera | Sensor::LeftCamera | Sensor::StereoCameras | Sensor::Observation)
+    }
+}
+
+/// DeepRacer's network names.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum NeuralNetwork {
+    /// 3-layer CNN (the default).
+    DeepConvolutionalNetworkShallow,
+    /// 5-layer CNN.
+    DeepConvolutionalNetwork,
+    /// The deeper CNN.
+    DeepConvolutionalNetworkDeep,
+}
+
+/// `training_algorithm`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TrainingAlgorithm {
+    /// Clipped PPO (the default).
+    ClippedPpo,
+    /// Soft actor-critic (continuous action spaces only).
+    Sac,
+}
+
+/// A parsed `model_metadata.json`. Unknown keys are kept so that writing it back loses nothing.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ModelMetadata {
+    /// The actions.
+    pub action_space: ActionSpace,
+    /// Sensors (defaults to `["observation"]` for version-1 files without the key).
+    pub sensor: Vec<Sensor>,
+    /// Network topology.
+    pub neural_network: NeuralNetwork,
+    /// Algorithm.
+    pub training_algorithm: TrainingAlgorithm,
+    /// Simapp version (parsed as a number by DeepRacer).
+    pub version: f64,
+    /// The file as read, for round-tripping.
+    pub raw: Map<String, Value>,
+}
+
+/// Why a `model_metadata.json` was refused.
+#[derive(Debug, thiserror::Error)]
+#[error("{origin}: {msg}")]
+pub struct MetadataError {
+    /// The file.
+    pub origin: String,
+    /// What is wrong, naming the field.
+    pub msg: String,
+}
+
+impl ModelMetadata {
+    /// Read and parse a file.
+    pub fn load(path: &Path) -> Result<ModelMetadata, MetadataError> {
+        let origin = path.display().to_string();
+        let text = std::fs::read_to_string(path).map_err(|e| MetadataError { origin: origin.clone(), msg: e.to_string() })?;
+        ModelMetadata::parse(&text, &origin)
+    }
+
+    /// Parse JSON text; `origin` names it in errors.
+    pub fn parse(text: &str, origin: &str) -> Result<ModelMetadata, MetadataError> {
+        let err = |msg: String| MetadataError { origin: origin.to_string(), msg };
+        let value: Value = serde_json::from_str(text).map_err(|e| err(format!("not valid JSON: {e}")))?;
+        let Value::Object(raw) = value else {
+            return Err(err("expected a JSON object at the top level".into()));
+        };
+        let kind = match raw.get("action_space_type") {
+            None => "discrete".to_string(),
+            Some(Value::String(s)) => s.trim().to_lowercase(),
+            Some(other) => return Err(err(format!("field 'action_space_type' is {other}, expected \"discrete\" or \"continuous\""))),
+        };
+        let space = raw.get("action_space").ok_or_else(|| err("no action space defined (field 'action_space' is missing)".into()))?;
+        let action_space = match kind.as_str() {
+            "discrete" => parse_discrete(space).map_err(err)?,
+            "continuous" => parse_continuous(space).map_err(err)?,
+            other => return Err(err(format!("field 'action_space_type' is \"{other}\", expected \"discrete\" or \"continuous\""))),
+        };
+        let training_algorithm = match raw.get("training_algorithm").map(|v| v.as_str()) {
+            None => TrainingAlgorithm::ClippedPpo,
+            Some(Some(s)) if s.trim().eq_ignore_ascii_case("clipped_ppo") => TrainingAlgorithm::ClippedPpo,
+            Some(Some(s)) if s.trim().eq_ignore_ascii_case("sac") => TrainingAlgorithm::Sac,
+            Some(_) => return Err(err("field 'training_algorithm' must be \"clipped_ppo\" or \"sac\"".into())),
+        };
+        if training_algorithm == TrainingAlgorithm::Sac && matches!(action_space, ActionSpace::Discrete(_)) {
+            return Err(err("training_algorithm \"sac\" needs a continuous action space".into()));
+        }
+        let neural_network = match raw.get("neural_network").map(|v| v.as_str()) {
+            None | Some(Some("DEEP_CONVOLUTIONAL_NETWORK_SHALLOW")) => NeuralNetwork::DeepConvolutionalNetworkShallow,
+            Some(Some("DEEP_CONVOLUTIONAL_NETWORK")) => NeuralNetwork::DeepConvolutionalNetwork,
+            Some(Some("DEEP_CONVOLUTIONAL_NETWORK_DEEP")) => NeuralNetwork::DeepConvolutionalNetworkDeep,
+            Some(_) => {
+                return Err(err("field 'neural_network' must be one of DEEP_CONVOLUTIONAL_NETWORK_SHALLOW, DEEP_CONVOLUTIONAL_NETWORK, DEEP_CONVOLUTIONAL_NETWORK_DEEP".into()));
+            }
+        };
+        let version = match raw.get("version") {
+            None => 1.0,
+            Some(Value::Number(n)) => n.as_f64().unwrap_or(1.0),
+            Some(Value::String(s)) => s.trim().parse().map_err(|_| err(format!("field 'version' is \"{s}\", expected a number")))?,
+            Some(other) => return Err(err(format!("field 'version' is {other}, expected a number"))),
+        };
+        let sensor = match raw.get("sensor") {
+            None if version < 2.0 => vec![Sensor::Observation],
+            None => return Err(err(format!("field 'sensor' is required for version {version}"))),
+            Some(Value::Array(items)) => items
+                .iter()
+                .map(|v| v.as_str().and_then(Sensor::parse).ok_or_else(|| err(format!("field 'sensor' has unknown sensor {v}"))))
+                .collect::<Result<Vec<_>, _>>()?,
+            Some(other) => return Err(err(format!("field 'sensor' is {other}, expected a list of sensor names"))),
+        };
+        let cameras = sensor.iter().filter(|s| s.is_camera()).count();
+        let lidars = sensor.len() - cameras;
+        if cameras != 1 || lidars > 1 {
+            return Err(err(format!("field 'sensor' needs exactly one camera and at most one lidar, got {sensor:?}")));
+        }
+        Ok(ModelMetadata { action_space, sensor, neural_network, training_algorithm, version, raw })
+    }
+}
+
+fn number(v: &Value, field: &str) -> Result<f64, String> {
+    v.as_f64().filter(|x| x.is_finite()).ok_or_else(|| format!("field '{field}' is {v}, expected a number"))
+}
+
+fn parse_discrete(space: &Value) -> Result<ActionSpace, String> {
+    let Value::Array(items) = space else {
+        return Err("field 'action_space' must be a list of {steering_angle, speed} for a discrete action space".into());
+    };
+    if items.is_empty() {
+        return Err("field 'action_space' is an empty list".into());
+    }
+    let mut actions = Vec::with_capacity(items.len());
+    for (i, item) in items.iter().enumerate() {
+        let get = |k: &str| {
+            item.get(k).ok_or_else(|| format!("action_space[{i}] has no '{k}'")).and_then(|v| number(v, &format!("action_space[{i}].{k}")))
+        };
+        actions.push(Action { steering_angle: get("steering_angle")?, speed: get("speed")? });
+    }
+    Ok(ActionSpace::Discrete(actions))
+}
+
+fn parse_continuous(space: &Value) -> Result<ActionSpace, String> {
+    let range = |k: &str| -> Result<(f64, f64), String> {
+        let r = space.get(k).ok_or_else(|| format!("continuous 'action_space' has no '{k}'"))?;
+        let get = |b: &str| {
+            r.get(b).ok_or_else(|| format!("action_space.{k} has no '{b}'")).and_then(|v| number(v, &format!("action_space.{k}.{b}")))
+        };
+        let (lo, hi) = (get("low")?, get("high")?);
+        if lo >= hi {
+            return Err(format!("action_space.{k}: low ({lo}) must be less than high ({hi})"));
+        }
+        Ok((lo, hi))
+    };
+    if !space.is_object() {
+        return Err("field 'action_space' must be an object {steering_angle:{low,high}, speed:{low,high}} for a continuous action space".into());
+    }
+    Ok(ActionSpace::Continuous { steering_angle: range("steering_angle")?, speed: range("speed")? })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn drfc_defaults_parse() {
+        let d = ModelMetadata::parse(
+            r#"{"action_space":[{"steering_angle":-30,"speed":0.6},{"steering_angle":0,"speed":0.6,"index":1}],
+                "sensor":["FRONT_FACING_CAMERA"],"neural_network":"DEEP_CONVOLUTIONAL_NETWORK_SHALLOW",
+                "training_algorithm":"clipped_ppo","action_space_type":"discrete","version":"5"}"#,
+            "m.json",
+        )
+        .unwrap();
+        assert_eq!(d.action_space.dim(), 2);
+        assert_eq!(d.action_space.discrete(1), Some(Action { steering_angle: 0.0, speed: 0.6 }));
+        assert_eq!(d.version, 5.0);
+        let c = ModelMetadata::parse(
+            r#"{"action_space":{"speed":{"high":2,"low":1},"steering_angle":{"high":30,"low":-30}},
+                "sensor":["FRONT_FACING_CAMERA"],"action_space_type":"continuous","version":"5"}"#,
+            "c.json",
+        )
+        .unwrap();
+        assert_eq!(c.action_space.scale([-1.0, 1.0]), Some(Action { steering_angle: -30.0, speed: 2.0 }));
+        assert_eq!(c.action_space.scale([0.0, 0.0]), Some(Action { steering_angle: 0.0, speed: 1.5 }));
+        let v1 = ModelMetadata::parse(r#"{"action_space":[{"steering_angle":0,"speed":1}]}"#, "v1.json").unwrap();
+        assert_eq!(v1.sensor, vec![Sensor::Observation]);
+    }
+
+    #[test]
+    fn bad_files_name_the_field() {
+        let cases = [
+            ("[]", "expected a JSON object"),
+            ("{}", "field 'action_space' is missing"),
+            (r#"{"action_space":[{"speed":1}]}"#, "action_space[0] has no 'steering_angle'"),
+            (r#"{"action_space":[{"steering_angle":"x","speed":1}]}"#, "action_space[0].steering_angle"),
+            (r#"{"action_space":{"speed":{"low":2,"high":1},"steering_angle":{"low":-1,"high":1}},"action_space_type":"continuous"}"#, "low (2) must be less than high (1)"),
+            (r#"{"action_space":[{"steering_angle":0,"speed":1}],"action_space_type":"weird"}"#, "action_space_type"),
+            (r#"{"action_space":[{"steering_angle":0,"speed":1}],"version":"4"}"#, "'sensor' is required"),
+            (r#"{"action_space":[{"steering_angle":0,"speed":1}],"version":"4","sensor":["LIDAR"]}"#, "exactly one camera"),
+            (r#"{"action_space":[{"steering_angle":0,"speed":1}],"training_algorithm":"sac"}"#, "needs a continuous"),
+        ];
+        for (text, want) in cases {
+            let e = ModelMetadata::parse(text, "bad.json").expect_err(want).to_string();
+            assert!(e.starts_with("bad.json: ") && e.contains(want), "{want}: {e}");
+        }
+    }
+}

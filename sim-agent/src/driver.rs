@@ -1,0 +1,55 @@
+//! A scripted driver: pure pursuit along the centre line, with speed from the curvature
+//! ahead. It stands in for a policy until the learner exists, and is the benchmark's load.
+
+use crate::env::Env;
+use policy::Action;
+
+/// Pure-pursuit settings.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PurePursuit {
+    /// Top speed on straights (m/s).
+    pub max_speed: f64,
+    /// Lowest speed in the tightest corner (m/s).
+    pub min_speed: f64,
+    /// Lateral acceleration the speed plan allows (m/s²).
+    pub lateral_accel: f64,
+    /// Look-ahead distance at rest (m); grows with speed.
+    pub lookahead: f64,
+}
+
+impl Default for PurePursuit {
+    fn default() -> Self {
+        PurePursuit { max_speed: 2.5, min_speed: 0.8, lateral_accel: 3.0, lookahead: 0.35 }
+    }
+}
+
+impl PurePursuit {
+    /// The command for the env's current state.
+    pub fn act(&self, env: &Env) -> Action {
+        let track = env.track();
+        let car = env.car_state();
+        let wheelbase = env.config().car.wheelbase;
+        let rear_offset = wheelbase - env.config().car.front_axle_x;
+        let (c, s) = (car.yaw.cos(), car.yaw.sin());
+        let rear = tracks::P2::new(car.x - rear_offset * c, car.y - rear_offset * s);
+        let along = track.center().project(rear).along;
+        let ld = self.lookahead + 0.2 * car.forward_speed.max(0.0);
+        let (target, _) = track.pose_at(along + ld);
+        let (dx, dy) = (target.x - rear.x, target.y - rear.y);
+        let alpha = (-s * dx + c * dy).atan2(c * dx + s * dy);
+        let dist = dx.hypot(dy).max(1e-6);
+        let steer = (2.0 * wheelbase * alpha.sin() / dist).atan().to_degrees();
+        // Slow for the sharpest curvature within the next 1.5 m.
+        let mut kappa: f64 = 0.0;
+        let step = 0.25;
+        let mut prev_dir = track.pose_at(along).1;
+        for k in 1..=6 {
+            let dir = track.pose_at(along + k as f64 * step).1;
+            let turn = tracks::wrap_degrees((dir - prev_dir).to_degrees()).to_radians();
+            kappa = kappa.max(turn.abs() / step);
+            prev_dir = dir;
+        }
+        let speed = if kappa > 1e-6 { (self.lateral_accel / kappa).sqrt() } else { self.max_speed };
+        Action { steering_angle: steer, speed: speed.clamp(self.min_speed, self.max_speed) }
+    }
+}

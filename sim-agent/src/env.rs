@@ -1,0 +1,410 @@
+//! One environment: a car on a world, DeepRacer's step loop and episode rules.
+//!
+//! A step is split in two so that rewards computed elsewhere (Python, under one GIL for a
+//! whole batch) fit in: [`Env::advance`] runs the physics, computes the params and applies
+//! the reset rules; [`Env::finish`] takes the reward and closes the step. [`Env::step`]
+//! does both with a built-in reward.
+//!
+//! Rules (§6.1–6.2 of the reference): the first step of an episode is DeepRacer's `prepare`
+//! step (reward 0, reward function not called); then `lap_complete` at progress 100,
+//! `off_track` when all four wheels are off, `reversed` after 15 steps of falling progress,
+//! `immobilized` after 15 steps of moving under 0.3 mm. Training ends an episode on any of
+//! them and moves the next start 5 % along the track. Evaluation starts each trial at the
+//! start line and may reset an off-track car with a time penalty instead of ending.
+
+use crate::car::Car;
+use crate::config::{ObservationKind, SimConfig};
+use crate::params::{EpisodeClock, Pose, RewardParams, compute_params};
+use crate::reward::{BuiltinReward, RewardError, check_reward};
+use policy::{Action, MAX_SPEED, MAX_STEERING_DEG, MIN_SPEED};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, StandardNormal};
+use std::sync::Arc;
+use tracks::Track;
+
+/// DeepRacer's `episode_status` values (sim-trace labels).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum EpisodeStatus {
+    /// The first step of an episode.
+    Prepare,
+    /// Driving.
+    InProgress,
+    /// All four wheels off the road.
+    OffTrack,
+    /// Progress fell for too many steps in a row.
+    Reversed,
+    /// The car stopped moving.
+    Immobilized,
+    /// Progress reached 100.
+    LapComplete,
+    /// The race's time limit ran out.
+    TimeUp,
+}
+
+impl EpisodeStatus {
+    /// The label DeepRacer's sim-trace writes.
+    pub fn label(self) -> &'static str {
+        match self {
+            EpisodeStatus::Prepare => "prepare",
+            EpisodeStatus::InProgress => "in_progress",
+            EpisodeStatus::OffTrack => "off_track",
+            EpisodeStatus::Reversed => "reversed",
+            EpisodeStatus::Immobilized => "immobilized",
+            EpisodeStatus::LapComplete => "lap_complete",
+            EpisodeStatus::TimeUp => "time_up",
+        }
+    }
+}
+
+/// Training or evaluation rules.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Mode {
+    /// First failure ends the episode; starts move round-robin along the track.
+    Training,
+    /// Trials from the start line.
+    Evaluation(EvalRules),
+}
+
+/// Evaluation rules (DeepRacer's evaluation worker; defaults are its values).
+#[derive(Clone, Debug, PartialEq)]
+pub struct EvalRules {
+    /// Off-track/reversed/immobilised events a trial survives: the car is put back on the
+    /// centre line where it left and pays `penalty_s` (DeepRacer's `NUMBER_OF_RESETS`).
+    pub max_resets: u32,
+    /// Time penalty per reset (s) (`OFF_TRACK_PENALTY`).
+    pub penalty_s: f64,
+    /// A race: keep lapping until this much time has passed (the 4-minute race is 240 s),
+    /// counting laps; `None` ends each trial at its first lap.
+    pub time_limit_s: Option<f64>,
+}
+
+impl Default for EvalRules {
+    fn default() -> Self {
+        EvalRules { max_resets: 0, penalty_s: 2.0, time_limit_s: None }
+    }
+}
+
+/// What a finished step reports.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StepOutcome {
+    /// This step's reward.
+    pub reward: f64,
+    /// The episode ended at this step (terminated or truncated).
+    pub done: bool,
+    /// Ended by the step cap, not by a rule.
+    pub truncated: bool,
+    /// The step's `episode_status`.
+    pub status: EpisodeStatus,
+    /// Progress (%) after the step.
+    pub progress: f64,
+    /// Steps in the episode so far (the `prepare` step included).
+    pub steps: u64,
+    /// Simulation time since the episode started, penalties included (s).
+    pub sim_time: f64,
+    /// A lap was completed at this step; its time (s, penalties included).
+    pub lap_time: Option<f64>,
+    /// Sum of rewards in the episode so far.
+    pub episode_reward: f64,
+    /// Off-track (and reversed/immobilised) resets in the episode so far.
+    pub resets: u32,
+    /// Laps completed in the episode so far.
+    pub laps: u32,
+}
+
+/// The parts of a world an environment needs.
+#[derive(Clone, Debug)]
+pub struct EnvSpec {
+    /// Track geometry for the driving direction.
+    pub track: Arc<Track>,
+    /// Tyre–surface friction.
+    pub friction: f64,
+}
+
+impl EnvSpec {
+    /// From a catalog world and a direction.
+    pub fn from_world(world: &tracks::World, direction: tracks::Direction) -> EnvSpec {
+        EnvSpec { track: Arc::new(world.track(direction)), friction: world.surface.friction() }
+    }
+}
+
+/// One environment.
+pub struct Env {
+    spec: EnvSpec,
+    cfg: Arc<SimConfig>,
+    mode: Mode,
+    car: Car,
+    rng: ChaCha8Rng,
+    dt: f64,
+    episode: u64,
+    next_start: f64,
+    start_ndist: f64,
+    clock: EpisodeClock,
+    lap_start_time: f64,
+    pose: Pose,
+    executed_steer_deg: f64,
+    reverse_count: u32,
+    immobile_count: u32,
+    resets: u32,
+    laps: u32,
+    episode_reward: f64,
+    pending: Option<Pending>,
+    done: bool,
+}
+
+struct Pending {
+    params: RewardParams,
+    status: EpisodeStatus,
+    ends: bool,
+    truncated: bool,
+    lap_time: Option<f64>,
+    prepare: bool,
+}
+
+/// Why an environment could not be built.
+#[derive(Debug, thiserror::Error)]
+pub enum EnvError {
+    /// The configuration asks for something that does not exist yet or is out of range.
+    #[error("{0}")]
+    Config(String),
+}
+
+impl Env {
+    /// An environment seeded with `seed`; its first training start is at `first_start`
+    /// (a fraction of the track) and moves round-robin from there.
+    pub fn new(spec: EnvSpec, cfg: Arc<SimConfig>, mode: Mode, seed: u64, first_start: f64) -> Result<Env, EnvError> {
+        if cfg.observation.kind == ObservationKind::Camera {
+            return Err(EnvError::Config(
+                "observation kind 'camera' needs the renderer, which is not part of Paddock yet; use state, lidar or state_lidar".into(),
+            ));
+        }
+        if !(cfg.control_hz > 0.0) || cfg.physics_substeps == 0 {
+            return Err(EnvError::Config("control_hz must be positive and physics_substeps at least 1".into()));
+        }
+        let dt = 1.0 / cfg.control_hz;
+        let car = Car::new(&cfg.car, spec.friction, dt / cfg.physics_substeps as f64);
+        let mut env = Env {
+            spec,
+            cfg,
+            mode,
+            car,
+            rng: ChaCha8Rng::seed_from_u64(seed),
+            dt,
+            episode: 0,
+            next_start: first_start.rem_euclid(1.0),
+            start_ndist: 0.0,
+            clock: EpisodeClock { start_ndist: 0.0, prev_progress: 0.0, steps: 0, sim_time: 0.0 },
+            lap_start_time: 0.0,
+            pose: Pose { x: 0.0, y: 0.0, yaw: 0.0 },
+            executed_steer_deg: 0.0,
+            reverse_count: 0,
+            immobile_count: 0,
+            resets: 0,
+            laps: 0,
+            episode_reward: 0.0,
+            pending: None,
+            done: true,
+        };
+        env.reset();
+        Ok(env)
+    }
+
+    /// Start a new episode.
+    pub fn reset(&mut self) {
+        let start = match self.mode {
+            Mode::Training => {
+                let s = self.next_start;
+                self.next_start = (self.next_start + self.cfg.episode.round_robin_advance).rem_euclid(1.0);
+                s
+            }
+            Mode::Evaluation(_) => 0.0,
+        };
+        self.episode += 1;
+        self.start_ndist = start;
+        self.place_on_centre_line(start);
+        self.clock = EpisodeClock { start_ndist: start, prev_progress: 0.0, steps: 0, sim_time: 0.0 };
+        self.lap_start_time = 0.0;
+        self.reverse_count = 0;
+        self.immobile_count = 0;
+        self.resets = 0;
+        self.laps = 0;
+        self.episode_reward = 0.0;
+        self.pending = None;
+        self.done = false;
+    }
+
+    fn place_on_centre_line(&mut self, ndist: f64) {
+        let track = &self.spec.track;
+        let (p, heading) = track.pose_at(ndist * track.length());
+        self.car.reset(p.x, p.y, heading);
+        self.pose = Pose { x: p.x, y: p.y, yaw: heading };
+        self.executed_steer_deg = 0.0;
+    }
+
+    /// Run the physics for one control step and judge it. Call [`Env::finish`] next.
+    pub fn advance(&mut self, action: Action) {
+        assert!(!self.done, "advance() on a finished episode: call reset()");
+        let noise = &self.cfg.noise;
+        let n1: f64 = StandardNormal.sample(&mut self.rng);
+        let n2: f64 = StandardNormal.sample(&mut self.rng);
+        // DeepRacer's send_action clamps to the car's limits; noise is Paddock's actuator model.
+        let steer = (action.steering_angle + noise.steering_deg * n1).clamp(-MAX_STEERING_DEG, MAX_STEERING_DEG);
+        let speed = (action.speed * (1.0 + noise.speed_fraction * n2)).clamp(MIN_SPEED, MAX_SPEED);
+        let steer_rad = steer.to_radians();
+        for _ in 0..self.cfg.physics_substeps {
+            self.car.step(steer_rad, speed);
+        }
+        self.executed_steer_deg = steer;
+        let state = self.car.state();
+        let last = self.pose;
+        self.pose = Pose { x: state.x, y: state.y, yaw: state.yaw };
+        self.clock.steps += 1;
+        self.clock.sim_time += self.dt;
+        let wheels = self.car.wheel_points(&state);
+        let params = compute_params(&self.spec.track, &self.pose, &wheels, action, &self.clock);
+
+        let prepare = self.clock.steps == 1;
+        let ep = &self.cfg.episode;
+        let mut status = if prepare { EpisodeStatus::Prepare } else { EpisodeStatus::InProgress };
+        if !prepare {
+            let moved = ((self.pose.x - last.x).powi(2) + (self.pose.y - last.y).powi(2)).sqrt();
+            self.immobile_count = if moved <= ep.immobilized_distance { self.immobile_count + 1 } else { 0 };
+            self.reverse_count = if params.progress < self.clock.prev_progress { self.reverse_count + 1 } else { 0 };
+            status = if params.progress >= 100.0 {
+                EpisodeStatus::LapComplete
+            } else if params.is_offtrack {
+                EpisodeStatus::OffTrack
+            } else if self.immobile_count >= ep.immobilized_steps {
+                EpisodeStatus::Immobilized
+            } else if self.reverse_count >= ep.reverse_steps {
+                EpisodeStatus::Reversed
+            } else {
+                EpisodeStatus::InProgress
+            };
+        }
+        let lap_time = (status == EpisodeStatus::LapComplete).then(|| self.clock.sim_time - self.lap_start_time);
+        let mut ends = match status {
+            EpisodeStatus::Prepare | EpisodeStatus::InProgress => false,
+            EpisodeStatus::LapComplete => !matches!(&self.mode, Mode::Evaluation(r) if r.time_limit_s.is_some()),
+            EpisodeStatus::OffTrack | EpisodeStatus::Reversed | EpisodeStatus::Immobilized => match &self.mode {
+                Mode::Training => true,
+                Mode::Evaluation(r) => self.resets >= r.max_resets,
+            },
+            EpisodeStatus::TimeUp => true,
+        };
+        if let Mode::Evaluation(EvalRules { time_limit_s: Some(limit), .. }) = self.mode {
+            if !ends && self.clock.sim_time >= limit {
+                status = EpisodeStatus::TimeUp;
+                ends = true;
+            }
+        }
+        let truncated = !ends && self.clock.steps >= ep.max_steps;
+        self.pending = Some(Pending { params, status, ends: ends || truncated, truncated, lap_time, prepare });
+    }
+
+    /// The params of the step [`Env::advance`] just ran.
+    pub fn params(&self) -> &RewardParams {
+        &self.pending.as_ref().expect("advance() first").params
+    }
+
+    /// Whether that step calls the reward function (every step but `prepare`).
+    pub fn needs_reward(&self) -> bool {
+        !self.pending.as_ref().expect("advance() first").prepare
+    }
+
+    /// Close the step with its reward (ignored on the `prepare` step, whose reward is 0).
+    pub fn finish(&mut self, reward: f64) -> StepOutcome {
+        let p = self.pending.take().expect("advance() first");
+        let reward = if p.prepare { 0.0 } else { reward };
+        self.episode_reward += reward;
+        let progress = p.params.progress;
+        // DeepRacer: prev_progress = 0 after a completed lap, else this step's progress.
+        self.clock.prev_progress = if progress >= 100.0 { 0.0 } else { progress };
+        if p.status == EpisodeStatus::LapComplete {
+            self.laps += 1;
+            self.lap_start_time = self.clock.sim_time;
+        }
+        let failed = matches!(p.status, EpisodeStatus::OffTrack | EpisodeStatus::Reversed | EpisodeStatus::Immobilized);
+        if failed && !p.ends {
+            // Evaluation reset: back on the centre line where progress last stood, plus the penalty.
+            let penalty = match &self.mode {
+                Mode::Evaluation(r) => r.penalty_s,
+                Mode::Training => 0.0,
+            };
+            self.resets += 1;
+            let prev = self.clock.prev_progress;
+            let back = self.start_ndist + prev.max(0.0) / 100.0;
+            self.place_on_centre_line(back.rem_euclid(1.0));
+            self.clock.sim_time += penalty;
+            self.reverse_count = 0;
+            self.immobile_count = 0;
+        }
+        self.done = p.ends;
+        StepOutcome {
+            reward,
+            done: p.ends,
+            truncated: p.truncated,
+            status: p.status,
+            progress,
+            steps: self.clock.steps,
+            sim_time: self.clock.sim_time,
+            lap_time: p.lap_time,
+            episode_reward: self.episode_reward,
+            resets: self.resets,
+            laps: self.laps,
+        }
+    }
+
+    /// `advance` + a built-in reward + `finish`.
+    pub fn step(&mut self, action: Action, reward: BuiltinReward) -> Result<StepOutcome, RewardError> {
+        self.advance(action);
+        let r = if self.needs_reward() { check_reward(reward.reward(self.params()), self.params())? } else { 0.0 };
+        Ok(self.finish(r))
+    }
+
+    /// Whether the episode has ended (call [`Env::reset`]).
+    pub fn is_done(&self) -> bool {
+        self.done
+    }
+
+    /// The track.
+    pub fn track(&self) -> &Arc<Track> {
+        &self.spec.track
+    }
+
+    /// Episode counter (1 for the first episode); the key reward hosts cache per-episode data by.
+    pub fn episode(&self) -> u64 {
+        self.episode
+    }
+
+    /// The car origin's pose.
+    pub fn pose(&self) -> Pose {
+        self.pose
+    }
+
+    /// The car's full planar state.
+    pub fn car_state(&self) -> crate::car::CarState {
+        self.car.state()
+    }
+
+    /// The steering (degrees) the car executed last step (after noise and clamping).
+    pub fn executed_steering_deg(&self) -> f64 {
+        self.executed_steer_deg
+    }
+
+    /// Progress at the end of the last finished step.
+    pub fn progress(&self) -> f64 {
+        self.clock.prev_progress
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &SimConfig {
+        &self.cfg
+    }
+
+    /// Normalised distance of this episode's start.
+    pub fn start_ndist(&self) -> f64 {
+        self.start_ndist
+    }
+}

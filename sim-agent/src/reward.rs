@@ -1,0 +1,141 @@
+//! Reward functions: DeepRacer Python files run unmodified by embedded CPython
+//! ([`crate::python`]), and built-in Rust rewards for speed.
+//!
+//! Whatever computes it, a reward is checked as DeepRacer's simapp checks it
+//! (`RewardFunctionError`): a number, finite, within ±1e5. Anything else stops the run
+//! with the step's params; it never reaches training.
+
+use crate::params::RewardParams;
+use crate::python::PythonReward;
+use std::path::Path;
+
+/// DeepRacer's bound on a reward's magnitude.
+pub const REWARD_LIMIT: f64 = 1e5;
+
+/// Built-in rewards, in Rust.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum BuiltinReward {
+    /// DeepRacer's sample "follow the centre line" (markers at 10/25/50 % of the width).
+    CenterLine,
+    /// DeepRacer's sample "stay inside the two borders".
+    StayInside,
+}
+
+impl BuiltinReward {
+    /// All built-ins with their names.
+    pub const ALL: [(BuiltinReward, &'static str); 2] =
+        [(BuiltinReward::CenterLine, "center_line"), (BuiltinReward::StayInside, "stay_inside")];
+
+    /// Evaluate for one step's params.
+    #[inline]
+    pub fn reward(self, p: &RewardParams) -> f64 {
+        match self {
+            BuiltinReward::CenterLine => {
+                let w = p.track_width;
+                let d = p.distance_from_center;
+                if d <= 0.1 * w {
+                    1.0
+                } else if d <= 0.25 * w {
+                    0.5
+                } else if d <= 0.5 * w {
+                    0.1
+                } else {
+                    1e-3
+                }
+            }
+            BuiltinReward::StayInside => {
+                if p.all_wheels_on_track && (0.5 * p.track_width - p.distance_from_center) >= 0.05 {
+                    1.0
+                } else {
+                    1e-3
+                }
+            }
+        }
+    }
+}
+
+/// A reward function of either kind.
+pub enum RewardFn {
+    /// Computed in Rust, in parallel with the physics.
+    Builtin(BuiltinReward),
+    /// A DeepRacer `reward_function(params)` in Python.
+    Python(Box<PythonReward>),
+}
+
+impl RewardFn {
+    /// `builtin:NAME` (or a bare built-in name) selects a built-in; anything else is a Python file.
+    pub fn from_spec(spec: &str) -> Result<RewardFn, RewardError> {
+        let name = spec.strip_prefix("builtin:").unwrap_or(spec);
+        if let Some((b, _)) = BuiltinReward::ALL.iter().find(|(_, n)| *n == name) {
+            return Ok(RewardFn::Builtin(*b));
+        }
+        if spec.starts_with("builtin:") {
+            let known: Vec<&str> = BuiltinReward::ALL.iter().map(|(_, n)| *n).collect();
+            return Err(RewardError::Load { origin: spec.into(), msg: format!("no built-in reward '{name}'; known: {}", known.join(", ")) });
+        }
+        Ok(RewardFn::Python(Box::new(PythonReward::load(Path::new(spec))?)))
+    }
+
+    /// A short description for logs.
+    pub fn describe(&self) -> String {
+        match self {
+            RewardFn::Builtin(b) => format!("built-in {}", BuiltinReward::ALL.iter().find(|(x, _)| x == b).map(|(_, n)| *n).unwrap_or("?")),
+            RewardFn::Python(p) => format!("python {}", p.path().display()),
+        }
+    }
+}
+
+/// Why a reward could not be computed. The run stops on any of these.
+#[derive(Debug, thiserror::Error)]
+pub enum RewardError {
+    /// The reward file could not be read or compiled, or lacks `reward_function`.
+    #[error("{origin}: {msg}")]
+    Load {
+        /// The file.
+        origin: String,
+        /// What went wrong (with the traceback for Python errors).
+        msg: String,
+    },
+    /// `reward_function` raised.
+    #[error("reward function raised an exception at step {step}:\n{traceback}\nparams: {params}")]
+    Raised {
+        /// The step (`params['steps']`).
+        step: f64,
+        /// Python's formatted traceback.
+        traceback: String,
+        /// The params of that step, as JSON (waypoints left out).
+        params: String,
+    },
+    /// `reward_function` returned something that is not an acceptable reward.
+    #[error("reward function returned {value} at step {step}: {why}\nparams: {params}")]
+    BadValue {
+        /// The step.
+        step: f64,
+        /// What it returned (Python repr or the number).
+        value: String,
+        /// Why it is refused.
+        why: String,
+        /// The params of that step, as JSON.
+        params: String,
+    },
+}
+
+/// Check a returned number as DeepRacer does.
+pub fn check_reward(value: f64, params: &RewardParams) -> Result<f64, RewardError> {
+    let why = if value.is_nan() {
+        "NaN is not a reward"
+    } else if value.is_infinite() {
+        "an infinite reward is not allowed"
+    } else if value.abs() > REWARD_LIMIT {
+        "outside DeepRacer's limit of [-1e5, 1e5]"
+    } else {
+        return Ok(value);
+    };
+    Err(RewardError::BadValue { step: params.steps, value: format!("{value}"), why: why.into(), params: params_json(params) })
+}
+
+/// Params as compact JSON for error reports.
+pub fn params_json(params: &RewardParams) -> String {
+    serde_json::to_string(params).unwrap_or_else(|e| format!("<unprintable params: {e}>"))
+}

@@ -1,0 +1,142 @@
+//! N environments stepped together on all cores, each with its own seed.
+//!
+//! Physics, params, rules, built-in rewards and observations run in parallel (rayon); a
+//! Python reward is called for the whole batch between the parallel phases, under one GIL
+//! acquisition. Finished episodes reset automatically; the step's outcome still reports
+//! the episode that ended. Same seed, same actions ⇒ same bits, whatever the thread count.
+
+use crate::config::SimConfig;
+use crate::env::{Env, EnvError, EnvSpec, Mode, StepOutcome};
+use crate::obs::{obs_dim, observe};
+use crate::reward::{RewardError, RewardFn, check_reward};
+use policy::Action;
+use rayon::prelude::*;
+use std::sync::Arc;
+
+/// The seed of environment `index` in a vector seeded with `seed`.
+pub fn env_seed(seed: u64, index: usize) -> u64 {
+    seed ^ (index as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+}
+
+/// A vector of environments.
+pub struct VecEnv {
+    envs: Vec<Env>,
+    reward: RewardFn,
+    dim: usize,
+    obs: Vec<f32>,
+    outcomes: Vec<StepOutcome>,
+    rewards: Vec<f64>,
+    pool: rayon::ThreadPool,
+}
+
+impl VecEnv {
+    /// `specs[i]` is environment i's world; starts are spread evenly round the track.
+    pub fn new(specs: Vec<EnvSpec>, cfg: Arc<SimConfig>, seed: u64, reward: RewardFn, threads: usize) -> Result<VecEnv, EnvError> {
+        let n = specs.len();
+        let envs = specs
+            .into_iter()
+            .enumerate()
+            .map(|(i, spec)| Env::new(spec, cfg.clone(), Mode::Training, env_seed(seed, i), i as f64 / n as f64))
+            .collect::<Result<Vec<_>, _>>()?;
+        let dim = obs_dim(&cfg.observation);
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads.max(1))
+            .build()
+            .map_err(|e| EnvError::Config(format!("thread pool: {e}")))?;
+        let mut v = VecEnv { envs, reward, dim, obs: vec![0.0; n * dim], outcomes: Vec::with_capacity(n), rewards: Vec::with_capacity(n), pool };
+        let VecEnv { envs, obs, .. } = &mut v;
+        for (e, o) in envs.iter().zip(obs.chunks_mut(dim.max(1))) {
+            observe(e, o);
+        }
+        Ok(v)
+    }
+
+    /// Number of environments.
+    pub fn len(&self) -> usize {
+        self.envs.len()
+    }
+
+    /// True when there are none.
+    pub fn is_empty(&self) -> bool {
+        self.envs.is_empty()
+    }
+
+    /// Observation length per environment.
+    pub fn obs_dim(&self) -> usize {
+        self.dim
+    }
+
+    /// Current observations, `len() × obs_dim()` values, environment-major.
+    pub fn observations(&self) -> &[f32] {
+        &self.obs
+    }
+
+    /// The environments (read-only).
+    pub fn envs(&self) -> &[Env] {
+        &self.envs
+    }
+
+    /// Step every environment with its action. A reward error stops the batch.
+    pub fn step(&mut self, actions: &[Action]) -> Result<&[StepOutcome], RewardError> {
+        assert_eq!(actions.len(), self.envs.len(), "one action per environment");
+        let VecEnv { envs, reward, dim, obs, outcomes, rewards, pool } = self;
+        let dim = (*dim).max(1);
+        outcomes.clear();
+        outcomes.resize(envs.len(), placeholder());
+        pool.install(|| -> Result<(), RewardError> {
+            match reward {
+                RewardFn::Builtin(b) => {
+                    let b = *b;
+                    envs.par_iter_mut().zip(actions).zip(outcomes.par_iter_mut()).zip(obs.par_chunks_mut(dim)).try_for_each(
+                        |(((e, a), out), o)| {
+                            e.advance(*a);
+                            let r = if e.needs_reward() { check_reward(b.reward(e.params()), e.params())? } else { 0.0 };
+                            *out = close(e, r, o);
+                            Ok(())
+                        },
+                    )
+                }
+                RewardFn::Python(py) => {
+                    envs.par_iter_mut().zip(actions).for_each(|(e, a)| e.advance(*a));
+                    rewards.clear();
+                    py.call_batch(
+                        envs.iter().enumerate().filter(|(_, e)| e.needs_reward()).map(|(i, e)| (i, e.episode(), &**e.track(), e.params())),
+                        rewards,
+                    )?;
+                    let mut next = rewards.iter();
+                    let per_env: Vec<f64> = envs.iter().map(|e| if e.needs_reward() { *next.next().expect("one per call") } else { 0.0 }).collect();
+                    envs.par_iter_mut().zip(per_env).zip(outcomes.par_iter_mut()).zip(obs.par_chunks_mut(dim)).for_each(
+                        |(((e, r), out), o)| *out = close(e, r, o),
+                    );
+                    Ok(())
+                }
+            }
+        })?;
+        Ok(outcomes)
+    }
+}
+
+fn close(e: &mut Env, reward: f64, obs: &mut [f32]) -> StepOutcome {
+    let out = e.finish(reward);
+    if out.done {
+        e.reset();
+    }
+    observe(e, obs);
+    out
+}
+
+fn placeholder() -> StepOutcome {
+    StepOutcome {
+        reward: 0.0,
+        done: false,
+        truncated: false,
+        status: crate::env::EpisodeStatus::Prepare,
+        progress: 0.0,
+        steps: 0,
+        sim_time: 0.0,
+        lap_time: None,
+        episode_reward: 0.0,
+        resets: 0,
+        laps: 0,
+    }
+}
