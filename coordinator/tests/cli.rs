@@ -1,0 +1,170 @@
+//! The real `coordinator` binary, run in a temporary directory (issue 2's commands).
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn coordinator(dir: &Path, args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_coordinator")).args(args).current_dir(dir).output().expect("runs")
+}
+
+fn stdout(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+fn repo(rel: &str) -> String {
+    let p: PathBuf = [env!("CARGO_MANIFEST_DIR"), "..", rel].iter().collect();
+    p.canonicalize().unwrap().display().to_string()
+}
+
+/// A numpy v1.0 `<f8` file of `(N, 6)` rows, written by hand.
+fn write_npy(path: &Path, rows: &[[f64; 6]]) {
+    let mut header = format!("{{'descr': '<f8', 'fortran_order': False, 'shape': ({}, 6), }}", rows.len());
+    header.push_str(&" ".repeat((64 - (11 + header.len()) % 64) % 64));
+    header.push('\n');
+    let mut out = b"\x93NUMPY\x01\x00".to_vec();
+    out.extend((header.len() as u16).to_le_bytes());
+    out.extend(header.as_bytes());
+    out.extend(rows.iter().flatten().flat_map(|v| v.to_le_bytes()));
+    std::fs::write(path, out).unwrap();
+}
+
+/// A clockwise circle of radius `r` and width `w` with `n` segments.
+fn circle_rows(r: f64, w: f64, n: usize) -> Vec<[f64; 6]> {
+    (0..=n)
+        .map(|i| {
+            let a = -std::f64::consts::TAU * (i % n) as f64 / n as f64;
+            let (c, s) = (a.cos(), a.sin());
+            [r * c, r * s, (r - w / 2.0) * c, (r - w / 2.0) * s, (r + w / 2.0) * c, (r + w / 2.0) * s]
+        })
+        .collect()
+}
+
+#[test]
+fn tracks_list_shows_every_world_with_its_figures() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = coordinator(dir.path(), &["tracks", "list"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = stdout(&o);
+    let lines: Vec<&str> = out.lines().collect();
+    assert_eq!(lines.len(), 20, "header + 19 worlds:\n{out}");
+    let base = lines.iter().find(|l| l.starts_with("reinvent_base ")).unwrap();
+    let cols: Vec<&str> = base.split_whitespace().collect();
+    assert_eq!(cols, ["reinvent_base", "17.709", "0.762", "ccw", "asphalt"]);
+    assert!(out.contains("reinvent_wood") && out.contains("wood"));
+    assert!(out.lines().any(|l| l.starts_with("Straight_track") && l.contains("open")));
+    let j = coordinator(dir.path(), &["tracks", "list", "--json"]);
+    let v: serde_json::Value = serde_json::from_slice(&j.stdout).unwrap();
+    assert_eq!(v.as_array().unwrap().len(), 19);
+}
+
+#[test]
+fn tracks_show_prints_figures_and_draws_a_png() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = coordinator(dir.path(), &["tracks", "show", "reInvent2019_track", "--png", "t.png"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = stdout(&o);
+    assert!(out.contains("length       23.118 m"), "{out}");
+    assert!(out.contains("repeated     rows [39]"), "{out}");
+    let png = std::fs::read(dir.path().join("t.png")).unwrap();
+    assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n");
+    assert!(png.len() > 10_000);
+    let bad = coordinator(dir.path(), &["tracks", "show", "no_such_world"]);
+    assert!(!bad.status.success());
+    assert!(stderr(&bad).contains("no built-in world named 'no_such_world'"), "{}", stderr(&bad));
+}
+
+#[test]
+fn tracks_import_measures_a_users_file_and_refuses_a_broken_one() {
+    let dir = tempfile::tempdir().unwrap();
+    let (r, w, n) = (2.5, 0.9, 90);
+    write_npy(&dir.path().join("my_circle.npy"), &circle_rows(r, w, n));
+    let o = coordinator(dir.path(), &["tracks", "import", "my_circle.npy"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = stdout(&o);
+    let want = 2.0 * n as f64 * r * (std::f64::consts::PI / n as f64).sin();
+    assert!(out.contains(&format!("length       {want:.3} m")), "{want}\n{out}");
+    assert!(out.contains("width        min 0.900 m, mean 0.900 m, max 0.900 m"), "{out}");
+    assert!(out.contains("direction    cw"), "{out}");
+    // A shipped file, imported like a user's.
+    let o = coordinator(dir.path(), &["tracks", "import", &repo("tracks/data/Bowtie_track.npy")]);
+    assert!(stdout(&o).contains("length       17.428 m"), "{}", stdout(&o));
+    // A user's file can be driven on.
+    let d = coordinator(dir.path(), &["drive", "--track", "my_circle.npy", "--laps", "1"]);
+    assert!(d.status.success() && stdout(&d).contains("1 of 1 laps completed"), "{}{}", stdout(&d), stderr(&d));
+    // Broken: a NaN in row 3.
+    let mut rows = circle_rows(r, w, n);
+    rows[3][1] = f64::NAN;
+    write_npy(&dir.path().join("broken.npy"), &rows);
+    let b = coordinator(dir.path(), &["tracks", "import", "broken.npy"]);
+    assert!(!b.status.success());
+    assert!(stderr(&b).contains("broken.npy: row 3 column 1 (center_y) is NaN"), "{}", stderr(&b));
+}
+
+#[test]
+fn reward_validate_passes_deepracers_samples_and_fails_broken_files() {
+    let dir = tempfile::tempdir().unwrap();
+    for f in ["follow_center_line.py", "stay_inside_two_borders.py", "prevent_zig_zag.py", "point_in_the_right_direction.py"] {
+        let o = coordinator(dir.path(), &["reward", "validate", &repo(&format!("examples/rewards/{f}"))]);
+        assert!(o.status.success(), "{f}: {}{}", stdout(&o), stderr(&o));
+        assert!(stdout(&o).contains("PASSED") && stdout(&o).contains("min "), "{}", stdout(&o));
+    }
+    for (f, want) in [
+        ("raises_key_error.py", "KeyError: 'distance_from_centre'"),
+        ("nan_off_track.py", "returned NaN"),
+        ("returns_string.py", "(str)"),
+        ("too_large.py", "[-1e5, 1e5]"),
+        ("syntax_error.py", "SyntaxError"),
+    ] {
+        let o = coordinator(dir.path(), &["reward", "validate", &repo(&format!("tests/data/rewards/{f}"))]);
+        assert_eq!(o.status.code(), Some(1), "{f}");
+        assert!(stdout(&o).contains("FAILED") && stdout(&o).contains(want), "{f}: {}", stdout(&o));
+    }
+    // A model_metadata.json's discrete actions feed the sampled states.
+    std::fs::write(
+        dir.path().join("model_metadata.json"),
+        r#"{"action_space":[{"steering_angle":-20,"speed":1},{"steering_angle":20,"speed":1}],"sensor":["FRONT_FACING_CAMERA"],"version":"5"}"#,
+    )
+    .unwrap();
+    let o = coordinator(
+        dir.path(),
+        &["reward", "validate", &repo("examples/rewards/prevent_zig_zag.py"), "--model-metadata", "model_metadata.json", "--track", "Oval_track"],
+    );
+    assert!(o.status.success(), "{}", stdout(&o));
+    assert!(stdout(&o).contains("max 0.8000"), "steering 20 > 15 is penalised: {}", stdout(&o));
+}
+
+#[test]
+fn drive_prints_each_lap_and_writes_a_simtrace() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = coordinator(
+        dir.path(),
+        &["drive", "--track", "reinvent_base", "--laps", "2", "--reward", &repo("examples/rewards/follow_center_line.py"), "--simtrace", "trace.csv", "--png", "lap.png"],
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = stdout(&o);
+    let laps: Vec<&str> = out.lines().filter(|l| l.starts_with("lap ")).collect();
+    assert_eq!(laps.len(), 2, "{out}");
+    for l in laps {
+        assert!(l.contains("lap_complete") && l.contains("progress  100.0 %") && l.contains("off-track  0"), "{l}");
+    }
+    assert!(out.contains("2 of 2 laps completed"));
+    let trace = std::fs::read_to_string(dir.path().join("trace.csv")).unwrap();
+    let mut lines = trace.lines();
+    assert_eq!(lines.next().unwrap().split(',').count(), 19);
+    let first: Vec<&str> = lines.next().unwrap().split(',').collect();
+    assert_eq!((first[0], first[1], first[8], first[9], first[15]), ("0", "1.0", "0.0", "False", "prepare"));
+    assert!(trace.lines().filter(|l| l.contains(",lap_complete,")).count() == 2);
+    assert!(dir.path().join("lap.png").exists());
+}
+
+#[test]
+fn drive_refuses_a_bad_override_naming_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = coordinator(dir.path(), &["drive", "--set", "noise.steerin_deg=0"]);
+    assert!(!o.status.success());
+    assert!(stderr(&o).contains("steerin_deg"), "{}", stderr(&o));
+}

@@ -1,0 +1,139 @@
+//! Unmodified DeepRacer reward files in embedded CPython: every key, every failure mode.
+
+use policy::Action;
+use sim_agent::config::SimConfig;
+use sim_agent::driver::PurePursuit;
+use sim_agent::{BuiltinReward, Env, EnvSpec, EvalRules, Mode, RewardError, RewardFn, VecEnv};
+use std::path::PathBuf;
+use std::sync::Arc;
+use tracks::Direction;
+
+fn data(name: &str) -> String {
+    let p: PathBuf = [env!("CARGO_MANIFEST_DIR"), "..", "tests", "data", "rewards", name].iter().collect();
+    p.display().to_string()
+}
+
+fn example(name: &str) -> String {
+    let p: PathBuf = [env!("CARGO_MANIFEST_DIR"), "..", "examples", "rewards", name].iter().collect();
+    p.display().to_string()
+}
+
+fn base() -> EnvSpec {
+    EnvSpec::from_world(&tracks::world("reinvent_base").unwrap(), Direction::Forward)
+}
+
+/// Drive one evaluation lap with the pure-pursuit driver; return the rewards or the first error.
+fn lap(reward: &str) -> Result<Vec<f64>, RewardError> {
+    let mut r = RewardFn::from_spec(reward)?;
+    let mut env = Env::new(base(), Arc::new(SimConfig::default()), Mode::Evaluation(EvalRules::default()), 5, 0.0).unwrap();
+    let driver = PurePursuit::default();
+    let mut rewards = Vec::new();
+    loop {
+        let o = env.step_with(driver.act(&env), &mut r)?;
+        rewards.push(o.reward);
+        if o.done {
+            return Ok(rewards);
+        }
+    }
+}
+
+#[test]
+fn a_file_checking_every_key_and_type_runs_a_whole_lap() {
+    let rewards = lap(&data("checks_every_key.py")).unwrap();
+    assert!(rewards.len() > 100);
+    assert_eq!(rewards[0], 0.0, "prepare step");
+    assert!(rewards[1..].iter().all(|&r| r == 1.0));
+}
+
+#[test]
+fn the_python_sample_and_the_builtin_give_the_same_rewards() {
+    let py = lap(&example("follow_center_line.py")).unwrap();
+    let rs = lap("builtin:center_line").unwrap();
+    assert_eq!(py, rs);
+}
+
+#[test]
+fn a_raising_reward_stops_with_its_traceback_and_the_params() {
+    let err = lap(&data("raises_key_error.py")).unwrap_err();
+    let RewardError::Raised { step, traceback, params } = &err else { panic!("{err}") };
+    assert_eq!(*step, 2.0, "the first rewarded step");
+    assert!(traceback.contains("Traceback (most recent call last)"), "{traceback}");
+    assert!(traceback.contains("raises_key_error.py\", line 3"), "{traceback}");
+    assert!(traceback.contains("KeyError: 'distance_from_centre'"), "{traceback}");
+    assert!(params.contains("\"distance_from_center\":"), "{params}");
+}
+
+#[test]
+fn bad_return_values_stop_the_run_naming_the_value() {
+    for (file, want) in [
+        ("returns_nan.py", "returned NaN"),
+        ("returns_string.py", "returned '1.0' (str)"),
+        ("returns_none.py", "returned None (NoneType)"),
+        ("too_large.py", "outside DeepRacer's limit"),
+    ] {
+        let err = lap(&data(file)).unwrap_err();
+        assert!(matches!(err, RewardError::BadValue { .. }), "{file}: {err}");
+        assert!(err.to_string().contains(want), "{file}: {err}");
+    }
+}
+
+#[test]
+fn files_that_cannot_load_say_why() {
+    for (file, want) in [
+        ("syntax_error.py", "SyntaxError"),
+        ("no_function.py", "defines no reward_function(params)"),
+        ("does_not_exist.py", "does_not_exist.py"),
+    ] {
+        let err = RewardFn::from_spec(&data(file)).err().expect(file).to_string();
+        assert!(err.contains(want), "{file}: {err}");
+    }
+    let err = RewardFn::from_spec("builtin:nope").err().unwrap().to_string();
+    assert!(err.contains("center_line"), "{err}");
+}
+
+#[test]
+fn waypoints_are_built_once_per_episode() {
+    let mut r = RewardFn::from_spec(&data("waypoint_lists.py")).unwrap();
+    let mut env = Env::new(base(), Arc::new(SimConfig::default()), Mode::Training, 5, 0.0).unwrap();
+    let mut last_per_episode = Vec::new();
+    for episode in 1..=3 {
+        let mut last = 0.0;
+        for _ in 0..40 {
+            let o = env.step_with(Action { steering_angle: 0.0, speed: 1.0 }, &mut r).unwrap();
+            if o.steps > 1 {
+                last = o.reward;
+                assert_eq!(o.reward, episode as f64, "one list for the whole episode");
+            }
+            if o.done {
+                break;
+            }
+        }
+        last_per_episode.push(last);
+        env.reset();
+    }
+    assert_eq!(last_per_episode, vec![1.0, 2.0, 3.0]);
+}
+
+#[test]
+fn helper_modules_beside_the_reward_file_import() {
+    let rewards = lap(&data("uses_helper.py")).unwrap();
+    assert!(rewards[1..].iter().any(|&r| r == 1.0));
+}
+
+#[test]
+fn python_rewards_in_the_vector_env_match_the_builtin_bit_for_bit() {
+    let run = |reward: RewardFn| {
+        let specs = vec![base(); 3];
+        let mut v = VecEnv::new(specs, Arc::new(SimConfig::default()), 11, reward, 2).unwrap();
+        let driver = PurePursuit::default();
+        let mut all = Vec::new();
+        for _ in 0..200 {
+            let actions: Vec<Action> = v.envs().iter().map(|e| driver.act(e)).collect();
+            all.extend(v.step(&actions).unwrap().iter().map(|o| o.reward.to_bits()));
+        }
+        all
+    };
+    let py = run(RewardFn::from_spec(&example("follow_center_line.py")).unwrap());
+    let rs = run(RewardFn::Builtin(BuiltinReward::CenterLine));
+    assert_eq!(py, rs);
+}
