@@ -36,10 +36,13 @@ pub fn drive(args: DriveArgs) -> Result<i32> {
         reward.describe()
     );
     let mut trace = match &args.simtrace {
-        Some(p) => Some(SimTraceWriter::new(BufWriter::new(std::fs::File::create(p).with_context(|| format!("creating {}", p.display()))?))?),
+        Some(p) => Some(SimTraceWriter::new(BufWriter::new(
+            std::fs::File::create(p).with_context(|| format!("creating {}", p.display()))?,
+        ))?),
         None => None,
     };
-    let bar = ProgressBar::new(args.laps as u64).with_style(ProgressStyle::with_template("lap {pos}/{len} [{bar:30}] {msg}").expect("template"));
+    let bar = ProgressBar::new(args.laps as u64)
+        .with_style(ProgressStyle::with_template("lap {pos}/{len} [{bar:30}] {msg}").expect("template"));
     let mut path: Vec<P2> = Vec::new();
     let mut completed = 0;
     for lap in 1..=args.laps {
@@ -52,7 +55,10 @@ pub fn drive(args: DriveArgs) -> Result<i32> {
             let o = env.finish(r);
             path.push(P2::new(params.x, params.y));
             if let Some(t) = trace.as_mut() {
-                let wall = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs_f64()).unwrap_or(0.0);
+                let wall = std::time::SystemTime::now()
+                    .duration_since(std::time::UNIX_EPOCH)
+                    .map(|d| d.as_secs_f64())
+                    .unwrap_or(0.0);
                 t.row(lap as u64 - 1, env.track(), &params, ActionTaken::Continuous(action), &o, wall)?;
             }
             bar.set_message(format!("progress {:.1} %", o.progress));
@@ -102,7 +108,12 @@ pub fn validate(args: ValidateArgs) -> Result<i32> {
             return Ok(1);
         }
     };
-    println!("validating {} on {} ({})", reward.describe(), world.name, if args.reversed { "reversed" } else { "forward" });
+    println!(
+        "validating {} on {} ({})",
+        reward.describe(),
+        world.name,
+        if args.reversed { "reversed" } else { "forward" }
+    );
     match validate_reward(&mut reward, &track, &space, args.positions) {
         Ok(report) => {
             for (kind, mean) in &report.mean_by_kind {

@@ -37,7 +37,14 @@ pub fn run(command: TracksCommand) -> Result<i32> {
                 println!("{:<26} {:>10} {:>9} {:>9}  {}", "NAME", "LENGTH m", "WIDTH m", "DIRECTION", "SURFACE");
                 for w in &worlds {
                     let s = TrackSummary::of(&w.name, &w.rows);
-                    println!("{:<26} {:>10.3} {:>9.3} {:>9}  {}", w.name, s.length, s.mean_width, s.direction, w.surface.name());
+                    println!(
+                        "{:<26} {:>10.3} {:>9.3} {:>9}  {}",
+                        w.name,
+                        s.length,
+                        s.mean_width,
+                        s.direction,
+                        w.surface.name()
+                    );
                 }
             }
             Ok(0)
@@ -53,7 +60,8 @@ pub fn run(command: TracksCommand) -> Result<i32> {
         }
         TracksCommand::Import { file, name, png } => {
             let rows = tracks::load_npy(&file)?;
-            let name = name.unwrap_or_else(|| file.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default());
+            let name =
+                name.unwrap_or_else(|| file.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default());
             print_summary(&TrackSummary::of(&name, &rows));
             println!("valid: use it with --track {}", file.display());
             if let Some(png) = png {

@@ -107,7 +107,9 @@ fn tracks_import_measures_a_users_file_and_refuses_a_broken_one() {
 #[test]
 fn reward_validate_passes_deepracers_samples_and_fails_broken_files() {
     let dir = tempfile::tempdir().unwrap();
-    for f in ["follow_center_line.py", "stay_inside_two_borders.py", "prevent_zig_zag.py", "point_in_the_right_direction.py"] {
+    for f in
+        ["follow_center_line.py", "stay_inside_two_borders.py", "prevent_zig_zag.py", "point_in_the_right_direction.py"]
+    {
         let o = coordinator(dir.path(), &["reward", "validate", &repo(&format!("examples/rewards/{f}"))]);
         assert!(o.status.success(), "{f}: {}{}", stdout(&o), stderr(&o));
         assert!(stdout(&o).contains("PASSED") && stdout(&o).contains("min "), "{}", stdout(&o));
@@ -131,7 +133,15 @@ fn reward_validate_passes_deepracers_samples_and_fails_broken_files() {
     .unwrap();
     let o = coordinator(
         dir.path(),
-        &["reward", "validate", &repo("examples/rewards/prevent_zig_zag.py"), "--model-metadata", "model_metadata.json", "--track", "Oval_track"],
+        &[
+            "reward",
+            "validate",
+            &repo("examples/rewards/prevent_zig_zag.py"),
+            "--model-metadata",
+            "model_metadata.json",
+            "--track",
+            "Oval_track",
+        ],
     );
     assert!(o.status.success(), "{}", stdout(&o));
     assert!(stdout(&o).contains("max 0.8000"), "steering 20 > 15 is penalised: {}", stdout(&o));
@@ -142,7 +152,19 @@ fn drive_prints_each_lap_and_writes_a_simtrace() {
     let dir = tempfile::tempdir().unwrap();
     let o = coordinator(
         dir.path(),
-        &["drive", "--track", "reinvent_base", "--laps", "2", "--reward", &repo("examples/rewards/follow_center_line.py"), "--simtrace", "trace.csv", "--png", "lap.png"],
+        &[
+            "drive",
+            "--track",
+            "reinvent_base",
+            "--laps",
+            "2",
+            "--reward",
+            &repo("examples/rewards/follow_center_line.py"),
+            "--simtrace",
+            "trace.csv",
+            "--png",
+            "lap.png",
+        ],
     );
     assert!(o.status.success(), "{}", stderr(&o));
     let out = stdout(&o);

@@ -1,1 +1,3 @@
-//! deploy
+//! The on-car agent: subscribes to published models, verifies, hot-swaps, drives.
+//!
+//! Empty on purpose until its issue; it will depend on `policy` and `protocol` only.

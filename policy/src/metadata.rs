@@ -153,7 +153,8 @@ impl ModelMetadata {
     /// Read and parse a file.
     pub fn load(path: &Path) -> Result<ModelMetadata, MetadataError> {
         let origin = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|e| MetadataError { origin: origin.clone(), msg: e.to_string() })?;
+        let text =
+            std::fs::read_to_string(path).map_err(|e| MetadataError { origin: origin.clone(), msg: e.to_string() })?;
         ModelMetadata::parse(&text, &origin)
     }
 
@@ -167,13 +168,23 @@ impl ModelMetadata {
         let kind = match raw.get("action_space_type") {
             None => "discrete".to_string(),
             Some(Value::String(s)) => s.trim().to_lowercase(),
-            Some(other) => return Err(err(format!("field 'action_space_type' is {other}, expected \"discrete\" or \"continuous\""))),
+            Some(other) => {
+                return Err(err(format!(
+                    "field 'action_space_type' is {other}, expected \"discrete\" or \"continuous\""
+                )));
+            }
         };
-        let space = raw.get("action_space").ok_or_else(|| err("no action space defined (field 'action_space' is missing)".into()))?;
+        let space = raw
+            .get("action_space")
+            .ok_or_else(|| err("no action space defined (field 'action_space' is missing)".into()))?;
         let action_space = match kind.as_str() {
             "discrete" => parse_discrete(space).map_err(err)?,
             "continuous" => parse_continuous(space).map_err(err)?,
-            other => return Err(err(format!("field 'action_space_type' is \"{other}\", expected \"discrete\" or \"continuous\""))),
+            other => {
+                return Err(err(format!(
+                    "field 'action_space_type' is \"{other}\", expected \"discrete\" or \"continuous\""
+                )));
+            }
         };
         let training_algorithm = match raw.get("training_algorithm").map(|v| v.as_str()) {
             None => TrainingAlgorithm::ClippedPpo,
@@ -195,7 +206,9 @@ impl ModelMetadata {
         let version = match raw.get("version") {
             None => 1.0,
             Some(Value::Number(n)) => n.as_f64().unwrap_or(1.0),
-            Some(Value::String(s)) => s.trim().parse().map_err(|_| err(format!("field 'version' is \"{s}\", expected a number")))?,
+            Some(Value::String(s)) => {
+                s.trim().parse().map_err(|_| err(format!("field 'version' is \"{s}\", expected a number")))?
+            }
             Some(other) => return Err(err(format!("field 'version' is {other}, expected a number"))),
         };
         let sensor = match raw.get("sensor") {
@@ -203,7 +216,11 @@ impl ModelMetadata {
             None => return Err(err(format!("field 'sensor' is required for version {version}"))),
             Some(Value::Array(items)) => items
                 .iter()
-                .map(|v| v.as_str().and_then(Sensor::parse).ok_or_else(|| err(format!("field 'sensor' has unknown sensor {v}"))))
+                .map(|v| {
+                    v.as_str()
+                        .and_then(Sensor::parse)
+                        .ok_or_else(|| err(format!("field 'sensor' has unknown sensor {v}")))
+                })
                 .collect::<Result<Vec<_>, _>>()?,
             Some(other) => return Err(err(format!("field 'sensor' is {other}, expected a list of sensor names"))),
         };
@@ -230,7 +247,9 @@ fn parse_discrete(space: &Value) -> Result<ActionSpace, String> {
     let mut actions = Vec::with_capacity(items.len());
     for (i, item) in items.iter().enumerate() {
         let get = |k: &str| {
-            item.get(k).ok_or_else(|| format!("action_space[{i}] has no '{k}'")).and_then(|v| number(v, &format!("action_space[{i}].{k}")))
+            item.get(k)
+                .ok_or_else(|| format!("action_space[{i}] has no '{k}'"))
+                .and_then(|v| number(v, &format!("action_space[{i}].{k}")))
         };
         actions.push(Action { steering_angle: get("steering_angle")?, speed: get("speed")? });
     }
@@ -241,7 +260,9 @@ fn parse_continuous(space: &Value) -> Result<ActionSpace, String> {
     let range = |k: &str| -> Result<(f64, f64), String> {
         let r = space.get(k).ok_or_else(|| format!("continuous 'action_space' has no '{k}'"))?;
         let get = |b: &str| {
-            r.get(b).ok_or_else(|| format!("action_space.{k} has no '{b}'")).and_then(|v| number(v, &format!("action_space.{k}.{b}")))
+            r.get(b)
+                .ok_or_else(|| format!("action_space.{k} has no '{b}'"))
+                .and_then(|v| number(v, &format!("action_space.{k}.{b}")))
         };
         let (lo, hi) = (get("low")?, get("high")?);
         if lo >= hi {
@@ -290,10 +311,16 @@ mod tests {
             ("{}", "field 'action_space' is missing"),
             (r#"{"action_space":[{"speed":1}]}"#, "action_space[0] has no 'steering_angle'"),
             (r#"{"action_space":[{"steering_angle":"x","speed":1}]}"#, "action_space[0].steering_angle"),
-            (r#"{"action_space":{"speed":{"low":2,"high":1},"steering_angle":{"low":-1,"high":1}},"action_space_type":"continuous"}"#, "low (2) must be less than high (1)"),
+            (
+                r#"{"action_space":{"speed":{"low":2,"high":1},"steering_angle":{"low":-1,"high":1}},"action_space_type":"continuous"}"#,
+                "low (2) must be less than high (1)",
+            ),
             (r#"{"action_space":[{"steering_angle":0,"speed":1}],"action_space_type":"weird"}"#, "action_space_type"),
             (r#"{"action_space":[{"steering_angle":0,"speed":1}],"version":"4"}"#, "'sensor' is required"),
-            (r#"{"action_space":[{"steering_angle":0,"speed":1}],"version":"4","sensor":["LIDAR"]}"#, "exactly one camera"),
+            (
+                r#"{"action_space":[{"steering_angle":0,"speed":1}],"version":"4","sensor":["LIDAR"]}"#,
+                "exactly one camera",
+            ),
             (r#"{"action_space":[{"steering_angle":0,"speed":1}],"training_algorithm":"sac"}"#, "needs a continuous"),
         ];
         for (text, want) in cases {

@@ -104,7 +104,9 @@ impl Car {
         world.gravity = Vector::new(0.0, 0.0, -9.81);
         world.integration_parameters.dt = dt as f32;
         world.insert_collider(
-            ColliderBuilder::cuboid(1000.0, 1000.0, 0.5).translation(Vector::new(0.0, 0.0, -0.5)).friction(friction as f32),
+            ColliderBuilder::cuboid(1000.0, 1000.0, 0.5)
+                .translation(Vector::new(0.0, 0.0, -0.5))
+                .friction(friction as f32),
             None,
         );
         let m = params.mass as f32;
@@ -148,10 +150,8 @@ impl Car {
     /// Place the car at rest at (x, y) facing `yaw`.
     pub fn reset(&mut self, x: f64, y: f64, yaw: f64) {
         let body = &mut self.world.bodies[self.chassis];
-        let pose = Pose::from_parts(
-            Vector::new(x as f32, y as f32, self.ride_height),
-            Rotation::from_rotation_z(yaw as f32),
-        );
+        let pose =
+            Pose::from_parts(Vector::new(x as f32, y as f32, self.ride_height), Rotation::from_rotation_z(yaw as f32));
         body.set_position(pose, true);
         body.set_linvel(Vector::ZERO, true);
         body.set_angvel(Vector::ZERO, true);
@@ -172,10 +172,7 @@ impl Car {
         } else {
             let radius = self.params.wheelbase / steer_rad.tan(); // signed, + = left turn
             let half = self.params.track_width / 2.0;
-            (
-                (self.params.wheelbase / (radius - half)).atan(),
-                (self.params.wheelbase / (radius + half)).atan(),
-            )
+            ((self.params.wheelbase / (radius - half)).atan(), (self.params.wheelbase / (radius + half)).atan())
         };
         for (i, w) in self.vehicle.wheels_mut().iter_mut().enumerate() {
             match i {

@@ -166,7 +166,8 @@ where
 {
     let mut table: toml::Table = match file {
         Some(path) => {
-            let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io { path: path.display().to_string(), source })?;
+            let text = std::fs::read_to_string(path)
+                .map_err(|source| ConfigError::Io { path: path.display().to_string(), source })?;
             parse_toml(&text, &path.display().to_string())?
         }
         None => toml::Table::try_from(T::default()).expect("defaults serialise"),

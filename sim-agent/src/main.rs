@@ -70,7 +70,10 @@ fn bench(args: BenchArgs) -> Result<()> {
     let cfg: SimConfig = load_config(args.config.as_deref(), &args.sets)?;
     let world = tracks::world(&args.world)?;
     let spec = EnvSpec::from_world(&world, Direction::Forward);
-    println!("# sim-agent bench: world {}, {} envs, {:.0} s per row, observation {:?}", args.world, args.envs, args.seconds, cfg.observation.kind);
+    println!(
+        "# sim-agent bench: world {}, {} envs, {:.0} s per row, observation {:?}",
+        args.world, args.envs, args.seconds, cfg.observation.kind
+    );
     println!();
     println!("| reward | threads | env steps/s | vs 1 thread | episodes | mean progress at episode end |");
     println!("|---|---|---|---|---|---|");
@@ -88,17 +91,34 @@ fn bench(args: BenchArgs) -> Result<()> {
             let r = run_vec(&spec, &cfg, args.envs, threads, make()?, args.seconds)?;
             let ratio = base.map(|b: f64| format!("{:.2}×", r.steps_per_s / b)).unwrap_or_else(|| "1.00×".into());
             base.get_or_insert(r.steps_per_s);
-            println!("| {name} | {threads} | {:.0} | {ratio} | {} | {:.1} |", r.steps_per_s, r.episodes, r.mean_progress);
+            println!(
+                "| {name} | {threads} | {:.0} | {ratio} | {} | {:.1} |",
+                r.steps_per_s, r.episodes, r.mean_progress
+            );
         }
     }
+    println!();
+    breakdown(&spec, &cfg, &args.python_reward, args.seconds.min(2.0))?;
     println!();
     query_bench(&world.track(Direction::Forward), args.seconds.min(2.0));
     if cfg.observation.kind != ObservationKind::Lidar {
         let mut lidar_cfg = (*cfg).clone();
         lidar_cfg.observation.kind = ObservationKind::StateLidar;
-        let r = run_vec(&spec, &Arc::new(lidar_cfg), args.envs, *args.threads.last().unwrap_or(&1), RewardFn::Builtin(sim_agent::BuiltinReward::CenterLine), args.seconds.min(2.0))?;
+        let r = run_vec(
+            &spec,
+            &Arc::new(lidar_cfg),
+            args.envs,
+            *args.threads.last().unwrap_or(&1),
+            RewardFn::Builtin(sim_agent::BuiltinReward::CenterLine),
+            args.seconds.min(2.0),
+        )?;
         println!();
-        println!("state + {}-ray lidar, built-in reward, {} threads: {:.0} env steps/s", cfg.observation.lidar_rays, args.threads.last().unwrap_or(&1), r.steps_per_s);
+        println!(
+            "state + {}-ray lidar, built-in reward, {} threads: {:.0} env steps/s",
+            cfg.observation.lidar_rays,
+            args.threads.last().unwrap_or(&1),
+            r.steps_per_s
+        );
     }
     Ok(())
 }
@@ -109,7 +129,14 @@ struct RunResult {
     mean_progress: f64,
 }
 
-fn run_vec(spec: &EnvSpec, cfg: &Arc<SimConfig>, n: usize, threads: usize, reward: RewardFn, seconds: f64) -> Result<RunResult> {
+fn run_vec(
+    spec: &EnvSpec,
+    cfg: &Arc<SimConfig>,
+    n: usize,
+    threads: usize,
+    reward: RewardFn,
+    seconds: f64,
+) -> Result<RunResult> {
     let mut vec = VecEnv::new(vec![spec.clone(); n], cfg.clone(), 7, reward, threads)?;
     let driver = PurePursuit::default();
     let mut actions: Vec<Action> = vec.envs().iter().map(|e| driver.act(e)).collect();
@@ -143,6 +170,74 @@ fn run_vec(spec: &EnvSpec, cfg: &Arc<SimConfig>, n: usize, threads: usize, rewar
     })
 }
 
+/// Time `f` repeatedly for about `seconds`; nanoseconds per call.
+fn per_call(seconds: f64, mut f: impl FnMut()) -> f64 {
+    let t = Instant::now();
+    let mut n = 0u64;
+    while t.elapsed().as_secs_f64() < seconds {
+        for _ in 0..256 {
+            f();
+        }
+        n += 256;
+    }
+    t.elapsed().as_secs_f64() * 1e9 / n as f64
+}
+
+/// Where one env step's time goes, on one core.
+fn breakdown(spec: &EnvSpec, cfg: &Arc<SimConfig>, python: &std::path::Path, seconds: f64) -> Result<()> {
+    use sim_agent::car::Car;
+    use sim_agent::params::{EpisodeClock, compute_params};
+    let dt = 1.0 / cfg.control_hz / cfg.physics_substeps as f64;
+    let mut car = Car::new(&cfg.car, spec.friction, dt);
+    let (p, h) = spec.track.pose_at(0.0);
+    car.reset(p.x, p.y, h);
+    let mut k = 0u64;
+    let physics = per_call(seconds, || {
+        k += 1;
+        let steer = if k % 200 < 100 { 0.2 } else { -0.2 };
+        for _ in 0..cfg.physics_substeps {
+            car.step(steer, 1.5);
+        }
+    });
+    let mut env = sim_agent::Env::new(spec.clone(), cfg.clone(), sim_agent::Mode::Training, 1, 0.0)?;
+    let driver = PurePursuit::default();
+    for _ in 0..40 {
+        env.step(driver.act(&env), sim_agent::BuiltinReward::CenterLine)?;
+    }
+    let pose = env.pose();
+    let wheels = sim_agent::car::wheel_points_at(&cfg.car, pose.x, pose.y, pose.yaw);
+    let clock = EpisodeClock { start_ndist: 0.0, prev_progress: 10.0, steps: 40, sim_time: 2.0 };
+    let action = Action { steering_angle: 5.0, speed: 2.0 };
+    let params_ns = per_call(seconds, || {
+        std::hint::black_box(compute_params(env.track(), &pose, &wheels, action, &clock));
+    });
+    let mut obs = vec![0.0f32; sim_agent::obs::obs_dim(&cfg.observation)];
+    let obs_ns = per_call(seconds, || sim_agent::obs::observe(&env, &mut obs));
+    let params = compute_params(env.track(), &pose, &wheels, action, &clock);
+    let builtin_ns = per_call(seconds, || {
+        std::hint::black_box(sim_agent::BuiltinReward::CenterLine.reward(&params));
+    });
+    let mut py = sim_agent::python::PythonReward::load(python)?;
+    let track = env.track().clone();
+    let python_ns = per_call(seconds, || {
+        std::hint::black_box(py.call(0, 1, &track, &params).expect("reward"));
+    });
+    let driver_ns = per_call(seconds, || {
+        std::hint::black_box(driver.act(&env));
+    });
+    println!("where one env step's time goes (one core, ns per step):");
+    println!();
+    println!("| part | ns |");
+    println!("|---|---|");
+    println!("| physics ({} rapier substeps) | {physics:.0} |", cfg.physics_substeps);
+    println!("| params + rules (track queries, 4 wheel tests) | {params_ns:.0} |");
+    println!("| observation ({:?}) | {obs_ns:.0} |", cfg.observation.kind);
+    println!("| built-in reward | {builtin_ns:.0} |");
+    println!("| Python reward call (GIL taken per call here; batched in the vector env) | {python_ns:.0} |");
+    println!("| pure-pursuit driver (not counted in env steps/s) | {driver_ns:.0} |");
+    Ok(())
+}
+
 fn query_bench(track: &tracks::Track, seconds: f64) {
     // Points along a lap, jittered across the road: what a driving car asks for.
     let pts: Vec<P2> = (0..4096)
@@ -174,6 +269,8 @@ fn query_bench(track: &tracks::Track, seconds: f64) {
         let on = WHEELS.iter().filter(|(dx, dy)| track.on_road_scan(P2::new(p.x + dx, p.y + dy))).count();
         track.query_scan(p).ndist + on as f64
     });
-    println!("track queries per step (projection, closest waypoints, width, left/right, 4 wheel road tests), one core:");
+    println!(
+        "track queries per step (projection, closest waypoints, width, left/right, 4 wheel road tests), one core:"
+    );
     println!("grid {fast:.0} ns; full scan (reference) {scan:.0} ns; grid is {:.1}× faster", scan / fast);
 }

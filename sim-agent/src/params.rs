@@ -89,7 +89,13 @@ pub struct EpisodeClock {
 }
 
 /// Compute every params key for a pose. `wheels` are the four wheel centres.
-pub fn compute_params(track: &Track, pose: &Pose, wheels: &[[f64; 2]; 4], action: Action, clock: &EpisodeClock) -> RewardParams {
+pub fn compute_params(
+    track: &Track,
+    pose: &Pose,
+    wheels: &[[f64; 2]; 4],
+    action: Action,
+    clock: &EpisodeClock,
+) -> RewardParams {
     let front = pose.front();
     let q = track.query(front);
     let progress = compute_progress(q.ndist - clock.start_ndist, clock.prev_progress);

@@ -45,9 +45,8 @@ impl PythonReward {
             }
             let module = pyo3::types::PyModule::from_code(py, &code, &file_name, &module_name)
                 .map_err(|e| load_err(format!("could not compile or run the file:\n{}", format_traceback(py, &e))))?;
-            let func = module
-                .getattr("reward_function")
-                .map_err(|_| load_err("defines no reward_function(params)".into()))?;
+            let func =
+                module.getattr("reward_function").map_err(|_| load_err("defines no reward_function(params)".into()))?;
             if !func.is_callable() {
                 return Err(load_err("reward_function is not callable".into()));
             }
@@ -86,8 +85,19 @@ impl PythonReward {
         Python::attach(|py| self.call_one(py, slot, key, track, params))
     }
 
-    fn call_one(&mut self, py: Python<'_>, slot: usize, key: u64, track: &Track, p: &RewardParams) -> Result<f64, RewardError> {
-        let internal = |e: PyErr| RewardError::Raised { step: p.steps, traceback: format_traceback(py, &e), params: params_json(p) };
+    fn call_one(
+        &mut self,
+        py: Python<'_>,
+        slot: usize,
+        key: u64,
+        track: &Track,
+        p: &RewardParams,
+    ) -> Result<f64, RewardError> {
+        let internal = |e: PyErr| RewardError::Raised {
+            step: p.steps,
+            traceback: format_traceback(py, &e),
+            params: params_json(p),
+        };
         if self.waypoints.len() <= slot {
             self.waypoints.resize_with(slot + 1, || None);
         }
@@ -128,7 +138,12 @@ fn bad_type(result: &Bound<'_, PyAny>, p: &RewardParams) -> RewardError {
 }
 
 /// Set every params key on `d` (all keys, every call, as DeepRacer's fresh deep copy would).
-fn fill_dict<'py>(py: Python<'py>, d: &Bound<'py, PyDict>, p: &RewardParams, waypoints: &Bound<'py, PyList>) -> PyResult<()> {
+fn fill_dict<'py>(
+    py: Python<'py>,
+    d: &Bound<'py, PyDict>,
+    p: &RewardParams,
+    waypoints: &Bound<'py, PyList>,
+) -> PyResult<()> {
     use pyo3::intern;
     d.set_item(intern!(py, "all_wheels_on_track"), p.all_wheels_on_track)?;
     d.set_item(intern!(py, "x"), p.x)?;

@@ -45,11 +45,7 @@ impl BuiltinReward {
                 }
             }
             BuiltinReward::StayInside => {
-                if p.all_wheels_on_track && (0.5 * p.track_width - p.distance_from_center) >= 0.05 {
-                    1.0
-                } else {
-                    1e-3
-                }
+                if p.all_wheels_on_track && (0.5 * p.track_width - p.distance_from_center) >= 0.05 { 1.0 } else { 1e-3 }
             }
         }
     }
@@ -72,7 +68,10 @@ impl RewardFn {
         }
         if spec.starts_with("builtin:") {
             let known: Vec<&str> = BuiltinReward::ALL.iter().map(|(_, n)| *n).collect();
-            return Err(RewardError::Load { origin: spec.into(), msg: format!("no built-in reward '{name}'; known: {}", known.join(", ")) });
+            return Err(RewardError::Load {
+                origin: spec.into(),
+                msg: format!("no built-in reward '{name}'; known: {}", known.join(", ")),
+            });
         }
         Ok(RewardFn::Python(Box::new(PythonReward::load(Path::new(spec))?)))
     }
@@ -80,7 +79,9 @@ impl RewardFn {
     /// A short description for logs.
     pub fn describe(&self) -> String {
         match self {
-            RewardFn::Builtin(b) => format!("built-in {}", BuiltinReward::ALL.iter().find(|(x, _)| x == b).map(|(_, n)| *n).unwrap_or("?")),
+            RewardFn::Builtin(b) => {
+                format!("built-in {}", BuiltinReward::ALL.iter().find(|(x, _)| x == b).map(|(_, n)| *n).unwrap_or("?"))
+            }
             RewardFn::Python(p) => format!("python {}", p.path().display()),
         }
     }
@@ -132,7 +133,12 @@ pub fn check_reward(value: f64, params: &RewardParams) -> Result<f64, RewardErro
     } else {
         return Ok(value);
     };
-    Err(RewardError::BadValue { step: params.steps, value: format!("{value}"), why: why.into(), params: params_json(params) })
+    Err(RewardError::BadValue {
+        step: params.steps,
+        value: format!("{value}"),
+        why: why.into(),
+        params: params_json(params),
+    })
 }
 
 /// Params as compact JSON for error reports.

@@ -49,7 +49,15 @@ impl<W: Write> SimTraceWriter<W> {
     }
 
     /// One step's row. `episode` is the episode counter (evaluation: the trial).
-    pub fn row(&mut self, episode: u64, track: &Track, p: &RewardParams, action: ActionTaken, o: &StepOutcome, wall_clock: f64) -> std::io::Result<()> {
+    pub fn row(
+        &mut self,
+        episode: u64,
+        track: &Track,
+        p: &RewardParams,
+        action: ActionTaken,
+        o: &StepOutcome,
+        wall_clock: f64,
+    ) -> std::io::Result<()> {
         let [prev, next] = p.closest_waypoints;
         let wp = track.waypoints();
         let here = P2::new(p.x, p.y);

@@ -24,11 +24,17 @@ pub struct ValidationReport {
 }
 
 /// The kinds of state sampled, by lateral offset (fraction of the half width) and heading.
-pub const SAMPLE_KINDS: [&str; 5] = ["centre line", "near the left border", "near the right border", "off track", "facing backwards"];
+pub const SAMPLE_KINDS: [&str; 5] =
+    ["centre line", "near the left border", "near the right border", "off track", "facing backwards"];
 
 /// Call `reward` on sampled states of `track`. Actions come from `space` (all discrete
 /// actions, or the corners and middle of a continuous range).
-pub fn validate_reward(reward: &mut RewardFn, track: &Track, space: &ActionSpace, positions: usize) -> Result<ValidationReport, RewardError> {
+pub fn validate_reward(
+    reward: &mut RewardFn,
+    track: &Track,
+    space: &ActionSpace,
+    positions: usize,
+) -> Result<ValidationReport, RewardError> {
     let car = CarParams::default();
     let actions: Vec<Action> = match space {
         ActionSpace::Discrete(a) => a.clone(),
@@ -51,17 +57,27 @@ pub fn validate_reward(reward: &mut RewardFn, track: &Track, space: &ActionSpace
         let half = q.track_width / 2.0;
         let normal = (-dir.sin(), dir.cos()); // left of the driving direction
         // (lateral offset in m, heading offset in rad) per kind.
-        let kinds = [(0.0, 0.0), (0.8 * half, 0.15), (-0.8 * half, -0.15), (half + 0.35, 0.0), (0.0, std::f64::consts::PI)];
+        let kinds =
+            [(0.0, 0.0), (0.8 * half, 0.15), (-0.8 * half, -0.15), (half + 0.35, 0.0), (0.0, std::f64::consts::PI)];
         for (k, &(offset, dyaw)) in kinds.iter().enumerate() {
             for (j, &action) in actions.iter().enumerate() {
                 let yaw = dir + dyaw;
                 // Put the reference point (0.14 m ahead) at the sampled place.
                 let fx = c.x + offset * normal.0;
                 let fy = c.y + offset * normal.1;
-                let pose = Pose { x: fx - crate::params::FRONT_OFFSET * yaw.cos(), y: fy - crate::params::FRONT_OFFSET * yaw.sin(), yaw };
+                let pose = Pose {
+                    x: fx - crate::params::FRONT_OFFSET * yaw.cos(),
+                    y: fy - crate::params::FRONT_OFFSET * yaw.sin(),
+                    yaw,
+                };
                 let wheels = wheel_points_at(&car, pose.x, pose.y, pose.yaw);
                 let progress_here = 100.0 * along / len;
-                let clock = EpisodeClock { start_ndist: 0.0, prev_progress: (progress_here - 0.5).max(0.0), steps: 2 + (i * actions.len() + j) as u64, sim_time: 0.0 };
+                let clock = EpisodeClock {
+                    start_ndist: 0.0,
+                    prev_progress: (progress_here - 0.5).max(0.0),
+                    steps: 2 + (i * actions.len() + j) as u64,
+                    sim_time: 0.0,
+                };
                 let mut params = compute_params(track, &pose, &wheels, action, &clock);
                 params.sim_time = params.steps / 15.0;
                 let r = match reward {

@@ -31,7 +31,13 @@ pub struct VecEnv {
 
 impl VecEnv {
     /// `specs[i]` is environment i's world; starts are spread evenly round the track.
-    pub fn new(specs: Vec<EnvSpec>, cfg: Arc<SimConfig>, seed: u64, reward: RewardFn, threads: usize) -> Result<VecEnv, EnvError> {
+    pub fn new(
+        specs: Vec<EnvSpec>,
+        cfg: Arc<SimConfig>,
+        seed: u64,
+        reward: RewardFn,
+        threads: usize,
+    ) -> Result<VecEnv, EnvError> {
         let n = specs.len();
         let envs = specs
             .into_iter()
@@ -43,7 +49,15 @@ impl VecEnv {
             .num_threads(threads.max(1))
             .build()
             .map_err(|e| EnvError::Config(format!("thread pool: {e}")))?;
-        let mut v = VecEnv { envs, reward, dim, obs: vec![0.0; n * dim], outcomes: Vec::with_capacity(n), rewards: Vec::with_capacity(n), pool };
+        let mut v = VecEnv {
+            envs,
+            reward,
+            dim,
+            obs: vec![0.0; n * dim],
+            outcomes: Vec::with_capacity(n),
+            rewards: Vec::with_capacity(n),
+            pool,
+        };
         let VecEnv { envs, obs, .. } = &mut v;
         for (e, o) in envs.iter().zip(obs.chunks_mut(dim.max(1))) {
             observe(e, o);
@@ -87,27 +101,38 @@ impl VecEnv {
             match reward {
                 RewardFn::Builtin(b) => {
                     let b = *b;
-                    envs.par_iter_mut().zip(actions).zip(outcomes.par_iter_mut()).zip(obs.par_chunks_mut(dim)).try_for_each(
-                        |(((e, a), out), o)| {
+                    envs.par_iter_mut()
+                        .zip(actions)
+                        .zip(outcomes.par_iter_mut())
+                        .zip(obs.par_chunks_mut(dim))
+                        .try_for_each(|(((e, a), out), o)| {
                             e.advance(*a);
-                            let r = if e.needs_reward() { check_reward(b.reward(e.params()), e.params())? } else { 0.0 };
+                            let r =
+                                if e.needs_reward() { check_reward(b.reward(e.params()), e.params())? } else { 0.0 };
                             *out = close(e, r, o);
                             Ok(())
-                        },
-                    )
+                        })
                 }
                 RewardFn::Python(py) => {
                     envs.par_iter_mut().zip(actions).for_each(|(e, a)| e.advance(*a));
                     rewards.clear();
                     py.call_batch(
-                        envs.iter().enumerate().filter(|(_, e)| e.needs_reward()).map(|(i, e)| (i, e.episode(), &**e.track(), e.params())),
+                        envs.iter()
+                            .enumerate()
+                            .filter(|(_, e)| e.needs_reward())
+                            .map(|(i, e)| (i, e.episode(), &**e.track(), e.params())),
                         rewards,
                     )?;
                     let mut next = rewards.iter();
-                    let per_env: Vec<f64> = envs.iter().map(|e| if e.needs_reward() { *next.next().expect("one per call") } else { 0.0 }).collect();
-                    envs.par_iter_mut().zip(per_env).zip(outcomes.par_iter_mut()).zip(obs.par_chunks_mut(dim)).for_each(
-                        |(((e, r), out), o)| *out = close(e, r, o),
-                    );
+                    let per_env: Vec<f64> = envs
+                        .iter()
+                        .map(|e| if e.needs_reward() { *next.next().expect("one per call") } else { 0.0 })
+                        .collect();
+                    envs.par_iter_mut()
+                        .zip(per_env)
+                        .zip(outcomes.par_iter_mut())
+                        .zip(obs.par_chunks_mut(dim))
+                        .for_each(|(((e, r), out), o)| *out = close(e, r, o));
                     Ok(())
                 }
             }

@@ -41,7 +41,10 @@ fn low_speed_turning_matches_the_bicycle_model_within_5_percent_on_every_surface
             let (v, r) = circle(surface, steer, speed);
             let want = bicycle_radius(steer);
             let ratio = r / want;
-            assert!((ratio - 1.0).abs() < 0.05, "{surface:?} steer {steer} speed {speed}: radius {r:.3} vs bicycle {want:.3}");
+            assert!(
+                (ratio - 1.0).abs() < 0.05,
+                "{surface:?} steer {steer} speed {speed}: radius {r:.3} vs bicycle {want:.3}"
+            );
             assert!((v - speed).abs() < 0.05 * speed, "{surface:?}: speed {v} vs {speed}");
         }
     }

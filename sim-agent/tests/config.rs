@@ -1,7 +1,7 @@
 //! The configuration: the shipped default file is the defaults; overrides and errors.
 
-use sim_agent::config::{ObservationKind, load_config, parse_toml};
 use sim_agent::SimConfig;
+use sim_agent::config::{ObservationKind, load_config, parse_toml};
 use std::path::PathBuf;
 
 fn default_file() -> PathBuf {

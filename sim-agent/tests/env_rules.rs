@@ -11,10 +11,14 @@ const REWARD: BuiltinReward = BuiltinReward::CenterLine;
 
 /// A circular loop (CCW): centre radius `r`, width `w`, `n` segments.
 fn circle(r: f64, w: f64, n: usize) -> TrackRows {
-    let ring = |rad: f64| (0..=n).map(|i| {
-        let a = std::f64::consts::TAU * (i % n) as f64 / n as f64;
-        P2::new(rad * a.cos(), rad * a.sin())
-    }).collect::<Vec<_>>();
+    let ring = |rad: f64| {
+        (0..=n)
+            .map(|i| {
+                let a = std::f64::consts::TAU * (i % n) as f64 / n as f64;
+                P2::new(rad * a.cos(), rad * a.sin())
+            })
+            .collect::<Vec<_>>()
+    };
     TrackRows { center: ring(r), inner: ring(r - w / 2.0), outer: ring(r + w / 2.0) }
 }
 
@@ -69,7 +73,8 @@ fn driving_straight_into_a_corner_ends_off_track_in_training() {
 
 #[test]
 fn pure_pursuit_completes_a_lap_with_progress_100_and_a_lap_time() {
-    let mut env = Env::new(base(), Arc::new(SimConfig::default()), Mode::Evaluation(EvalRules::default()), 3, 0.0).unwrap();
+    let mut env =
+        Env::new(base(), Arc::new(SimConfig::default()), Mode::Evaluation(EvalRules::default()), 3, 0.0).unwrap();
     let driver = PurePursuit::default();
     let steps = run_until_done(&mut env, |e| driver.act(e));
     let last = steps.last().unwrap();

@@ -25,7 +25,8 @@ fn base() -> EnvSpec {
 /// Drive one evaluation lap with the pure-pursuit driver; return the rewards or the first error.
 fn lap(reward: &str) -> Result<Vec<f64>, RewardError> {
     let mut r = RewardFn::from_spec(reward)?;
-    let mut env = Env::new(base(), Arc::new(SimConfig::default()), Mode::Evaluation(EvalRules::default()), 5, 0.0).unwrap();
+    let mut env =
+        Env::new(base(), Arc::new(SimConfig::default()), Mode::Evaluation(EvalRules::default()), 5, 0.0).unwrap();
     let driver = PurePursuit::default();
     let mut rewards = Vec::new();
     loop {

@@ -16,7 +16,8 @@ fn specs(n: usize) -> Vec<EnvSpec> {
 /// Run `steps` steps with the pure-pursuit driver (a bit of steering wobble so that some
 /// cars leave the road); return every observation and reward bit.
 fn trace(seed: u64, threads: usize, cfg: SimConfig, steps: usize) -> (Vec<u32>, Vec<u64>) {
-    let mut v = VecEnv::new(specs(6), Arc::new(cfg), seed, RewardFn::Builtin(BuiltinReward::CenterLine), threads).unwrap();
+    let mut v =
+        VecEnv::new(specs(6), Arc::new(cfg), seed, RewardFn::Builtin(BuiltinReward::CenterLine), threads).unwrap();
     let driver = PurePursuit::default();
     let (mut obs, mut rewards) = (Vec::new(), Vec::new());
     for k in 0..steps {
@@ -48,7 +49,9 @@ fn same_seed_same_bits_on_one_and_two_threads() {
 
 #[test]
 fn episodes_end_and_restart_inside_the_vector() {
-    let mut v = VecEnv::new(specs(4), Arc::new(SimConfig::default()), 1, RewardFn::Builtin(BuiltinReward::CenterLine), 2).unwrap();
+    let mut v =
+        VecEnv::new(specs(4), Arc::new(SimConfig::default()), 1, RewardFn::Builtin(BuiltinReward::CenterLine), 2)
+            .unwrap();
     let mut done = 0;
     for _ in 0..200 {
         // Full left lock: every car leaves the road soon.

@@ -2,11 +2,11 @@
 //! with a surface and lighting.
 //!
 //! The track files are byte-exact copies of DeepRacer simapp's `bundle/routes/*.npy`
-//! (Apache-2.0; `tracks/data/SOURCE.md` and `tracks/data/LICENSE-NOTICE.md`).
+//! (Apache-2.0; `tracks/data/SOURCE.md` and `tracks/data/NOTICE.md`).
 
+use crate::TrackError;
 use crate::geometry::{Direction, Track};
 use crate::npy::{TrackRows, parse_track_npy};
-use crate::TrackError;
 use serde::{Deserialize, Serialize};
 
 /// What the car drives on: sets the tyres' grip now and the look in the camera later.
@@ -99,11 +99,7 @@ struct Entry {
 
 macro_rules! world {
     ($name:literal, $surface:ident) => {
-        Entry {
-            name: $name,
-            bytes: include_bytes!(concat!("../data/", $name, ".npy")),
-            surface: Surface::$surface,
-        }
+        Entry { name: $name, bytes: include_bytes!(concat!("../data/", $name, ".npy")), surface: Surface::$surface }
     };
 }
 

@@ -262,10 +262,7 @@ impl Track {
         ndists.push(1.0);
         // Polygon(outer, [inner]) for loops; outer + flipped inner for open tracks.
         let road_edges: Vec<(P2, P2)> = if closed {
-            [&rows.outer, &rows.inner]
-                .into_iter()
-                .flat_map(|r| r.windows(2).map(|w| (w[0], w[1])))
-                .collect()
+            [&rows.outer, &rows.inner].into_iter().flat_map(|r| r.windows(2).map(|w| (w[0], w[1]))).collect()
         } else {
             let mut ring: Vec<P2> = rows.outer.clone();
             ring.extend(rows.inner.iter().rev());
@@ -385,7 +382,8 @@ impl Track {
     /// Whether `p` is strictly inside the road polygon.
     #[inline]
     pub fn on_road(&self, p: P2) -> bool {
-        let grid = self.road_grid.get_or_init(|| PolygonGrid::build_from_edges(&self.road_edges, GRID_MARGIN, ROAD_CELL));
+        let grid =
+            self.road_grid.get_or_init(|| PolygonGrid::build_from_edges(&self.road_edges, GRID_MARGIN, ROAD_CELL));
         grid.contains(p).unwrap_or_else(|| even_odd_contains(&self.road_edges, p))
     }
 

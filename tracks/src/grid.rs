@@ -49,10 +49,7 @@ impl GridFrame {
 
     fn bounds(&self, idx: usize) -> (P2, P2) {
         let (ix, iy) = (idx % self.nx, idx / self.nx);
-        let lo = P2::new(
-            self.origin.x + ix as f64 * self.cell,
-            self.origin.y + iy as f64 * self.cell,
-        );
+        let lo = P2::new(self.origin.x + ix as f64 * self.cell, self.origin.y + iy as f64 * self.cell);
         (lo, P2::new(lo.x + self.cell, lo.y + self.cell))
     }
 
@@ -84,10 +81,7 @@ impl SegmentGrid {
             let mut best_max = f64::MAX;
             for s in 0..nseg {
                 let (a, b) = (pts[s], pts[s + 1]);
-                let dmax = corners
-                    .iter()
-                    .map(|&q| point_segment_distance(q, a, b))
-                    .fold(0.0, f64::max);
+                let dmax = corners.iter().map(|&q| point_segment_distance(q, a, b)).fold(0.0, f64::max);
                 best_max = best_max.min(dmax);
                 dmin[s] = segment_box_distance(a, b, lo, hi, &corners);
             }

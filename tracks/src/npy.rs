@@ -67,23 +67,16 @@ pub fn parse_track_npy(bytes: &[u8], origin: &str) -> Result<TrackRows, TrackErr
     match npy.dtype() {
         DType::Plain(ts) if ts.type_char() == TypeChar::Float && ts.size_field() == 8 => {}
         other => {
-            return Err(bad(format!(
-                "dtype is {}, expected float64 ('<f8')",
-                describe_dtype(&other)
-            )));
+            return Err(bad(format!("dtype is {}, expected float64 ('<f8')", describe_dtype(&other))));
         }
     }
     let shape = npy.shape().to_vec();
     if shape.len() != 2 || shape[1] != 6 {
-        return Err(bad(format!(
-            "shape is {shape:?}, expected (N, 6): centre x,y, inner x,y, outer x,y per row"
-        )));
+        return Err(bad(format!("shape is {shape:?}, expected (N, 6): centre x,y, inner x,y, outer x,y per row")));
     }
     let n = shape[0] as usize;
     let order = npy.order();
-    let flat: Vec<f64> = npy
-        .into_vec()
-        .map_err(|e| bad(format!("truncated or unreadable data: {e}")))?;
+    let flat: Vec<f64> = npy.into_vec().map_err(|e| bad(format!("truncated or unreadable data: {e}")))?;
     if flat.len() != n * 6 {
         return Err(bad(format!("holds {} values, the header promises {}", flat.len(), n * 6)));
     }
@@ -155,7 +148,8 @@ fn first_crossing(border: &[P2], center: &[P2]) -> Option<(usize, usize)> {
         let (bmin, bmax) = (b0.inf(&b1), b0.sup(&b1));
         for c in 0..center.len() - 1 {
             let (c0, c1) = (center[c], center[c + 1]);
-            if c0.x.max(c1.x) < bmin.x || c0.x.min(c1.x) > bmax.x || c0.y.max(c1.y) < bmin.y || c0.y.min(c1.y) > bmax.y {
+            if c0.x.max(c1.x) < bmin.x || c0.x.min(c1.x) > bmax.x || c0.y.max(c1.y) < bmin.y || c0.y.min(c1.y) > bmax.y
+            {
                 continue;
             }
             if crate::geometry::segments_intersect(b0, b1, c0, c1) {

@@ -61,7 +61,10 @@ fn bad_files_are_refused_naming_what_is_wrong() {
         (b"not numpy at all".to_vec(), "not a numpy .npy file"),
         (npy_bytes("<f4", &[5, 6], &f4), "expected float64"),
         (npy_bytes("<f8", &[5, 5], &five), "expected (N, 6)"),
-        (npy_bytes("<f8", &[30], &good.iter().flatten().flat_map(|v| v.to_le_bytes()).collect::<Vec<_>>()), "expected (N, 6)"),
+        (
+            npy_bytes("<f8", &[30], &good.iter().flatten().flat_map(|v| v.to_le_bytes()).collect::<Vec<_>>()),
+            "expected (N, 6)",
+        ),
         (f8_rows(&nan), "row 2 column 3 (inner_y) is NaN"),
         (f8_rows(&inf), "row 1 column 4 (outer_x) is inf"),
         (f8_rows(&good[..2]), "expected at least 3"),

@@ -76,10 +76,7 @@ fn grid_queries_agree_with_full_scans_on_every_track() {
                 let along = rng.random_range(0.0..t.length());
                 let (c, h) = t.pose_at(along);
                 let reach = if i % 10 == 0 { 4.0 } else { 1.0 };
-                let p = P2::new(
-                    c.x + rng.random_range(-reach..reach) - 0.0 * h,
-                    c.y + rng.random_range(-reach..reach),
-                );
+                let p = P2::new(c.x + rng.random_range(-reach..reach) - 0.0 * h, c.y + rng.random_range(-reach..reach));
                 let (fast, slow) = (t.query(p), t.query_scan(p));
                 assert_eq!(fast, slow, "{name} {dir:?} at {p:?}");
                 assert_eq!(t.on_road(p), t.on_road_scan(p), "{name} {dir:?} on_road at {p:?}");
