@@ -100,6 +100,10 @@ pub struct DriveArgs {
     /// Time penalty per reset (s).
     #[arg(long, default_value_t = 2.0)]
     pub penalty: f64,
+    /// A timed race instead of separate laps: keep lapping until this many seconds of race
+    /// time have passed (DeepRacer's 4-minute race is 240), printing every lap.
+    #[arg(long)]
+    pub time_limit: Option<f64>,
     /// The driver's top speed (m/s).
     #[arg(long, default_value_t = 2.5)]
     pub max_speed: f64,

@@ -23,7 +23,9 @@ pub fn drive(args: DriveArgs) -> Result<i32> {
     let world = resolve_world(&args.track)?;
     let mut reward = RewardFn::from_spec(&args.reward)?;
     let spec = EnvSpec::from_world(&world, direction(args.reversed));
-    let rules = EvalRules { max_resets: args.resets, penalty_s: args.penalty, time_limit_s: None };
+    let rules = EvalRules { max_resets: args.resets, penalty_s: args.penalty, time_limit_s: args.time_limit };
+    // A timed race is one long trial.
+    let trials = if args.time_limit.is_some() { 1 } else { args.laps };
     let mut env = Env::new(spec, Arc::new(cfg), Mode::Evaluation(rules), args.seed, 0.0)?;
     let driver = PurePursuit { max_speed: args.max_speed, ..PurePursuit::default() };
     tracing::info!(world = %world.name, surface = world.surface.name(), reward = %reward.describe(), laps = args.laps, "driving");
@@ -41,11 +43,12 @@ pub fn drive(args: DriveArgs) -> Result<i32> {
         ))?),
         None => None,
     };
-    let bar = ProgressBar::new(args.laps as u64)
+    let bar = ProgressBar::new(trials as u64)
         .with_style(ProgressStyle::with_template("lap {pos}/{len} [{bar:30}] {msg}").expect("template"));
     let mut path: Vec<P2> = Vec::new();
     let mut completed = 0;
-    for lap in 1..=args.laps {
+    let mut race_laps = 0;
+    for lap in 1..=trials {
         env.reset();
         loop {
             let action = driver.act(&env);
@@ -62,6 +65,15 @@ pub fn drive(args: DriveArgs) -> Result<i32> {
                 t.row(lap as u64 - 1, env.track(), &params, ActionTaken::Continuous(action), &o, wall)?;
             }
             bar.set_message(format!("progress {:.1} %", o.progress));
+            if let (Some(_), Some(t)) = (args.time_limit, o.lap_time) {
+                race_laps += 1;
+                bar.suspend(|| {
+                    println!(
+                        "race lap {race_laps}: time {t:>8.2} s  race time {:>8.2} s  resets so far {}",
+                        o.sim_time, o.resets
+                    )
+                });
+            }
             if o.done {
                 let time = o.lap_time.map(|t| format!("{t:.2} s")).unwrap_or_else(|| "-".into());
                 bar.suspend(|| {
@@ -83,7 +95,11 @@ pub fn drive(args: DriveArgs) -> Result<i32> {
         bar.inc(1);
     }
     bar.finish_and_clear();
-    println!("{completed} of {} laps completed", args.laps);
+    if args.time_limit.is_some() {
+        println!("{race_laps} laps in the timed race");
+    } else {
+        println!("{completed} of {} laps completed", args.laps);
+    }
     if let Some(t) = trace {
         t.finish()?;
         println!("sim-trace    {}", args.simtrace.as_ref().expect("set").display());

@@ -184,6 +184,17 @@ fn drive_prints_each_lap_and_writes_a_simtrace() {
 }
 
 #[test]
+fn drive_races_against_the_clock() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = coordinator(dir.path(), &["drive", "--time-limit", "30"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = stdout(&o);
+    let laps = out.lines().filter(|l| l.starts_with("race lap ")).count();
+    assert!(laps >= 2, "{out}");
+    assert!(out.contains("time_up") && out.contains(&format!("{laps} laps in the timed race")), "{out}");
+}
+
+#[test]
 fn drive_refuses_a_bad_override_naming_it() {
     let dir = tempfile::tempdir().unwrap();
     let o = coordinator(dir.path(), &["drive", "--set", "noise.steerin_deg=0"]);

@@ -7,6 +7,7 @@
 //! Architecture invariant: no physics, no transport, no Python here.
 
 mod metadata;
+pub mod nn;
 
 pub use metadata::{
     Action, ActionSpace, MAX_SPEED, MAX_STEERING_DEG, MIN_SPEED, MetadataError, ModelMetadata, NeuralNetwork, Sensor,

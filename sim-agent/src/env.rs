@@ -13,7 +13,7 @@
 //! start line and may reset an off-track car with a time penalty instead of ending.
 
 use crate::car::Car;
-use crate::config::{ObservationKind, SimConfig};
+use crate::config::{NoiseConfig, ObservationKind, SimConfig};
 use crate::params::{EpisodeClock, Pose, RewardParams, compute_params};
 use crate::reward::{BuiltinReward, RewardError, check_reward};
 use policy::{Action, MAX_SPEED, MAX_STEERING_DEG, MIN_SPEED};
@@ -120,12 +120,14 @@ pub struct EnvSpec {
     pub track: Arc<Track>,
     /// Tyre–surface friction.
     pub friction: f64,
+    /// This world's actuator noise, overriding the configuration's.
+    pub noise: Option<NoiseConfig>,
 }
 
 impl EnvSpec {
     /// From a catalog world and a direction.
     pub fn from_world(world: &tracks::World, direction: tracks::Direction) -> EnvSpec {
-        EnvSpec { track: Arc::new(world.track(direction)), friction: world.surface.friction() }
+        EnvSpec { track: Arc::new(world.track(direction)), friction: world.surface.friction(), noise: None }
     }
 }
 
@@ -245,7 +247,7 @@ impl Env {
     /// Run the physics for one control step and judge it. Call [`Env::finish`] next.
     pub fn advance(&mut self, action: Action) {
         assert!(!self.done, "advance() on a finished episode: call reset()");
-        let noise = &self.cfg.noise;
+        let noise = self.spec.noise.as_ref().unwrap_or(&self.cfg.noise);
         let n1: f64 = StandardNormal.sample(&mut self.rng);
         let n2: f64 = StandardNormal.sample(&mut self.rng);
         // DeepRacer's send_action clamps to the car's limits; noise is Paddock's actuator model.

@@ -23,7 +23,7 @@ fn circle(r: f64, w: f64, n: usize) -> TrackRows {
 }
 
 fn spec_of(track: Track, friction: f64) -> EnvSpec {
-    EnvSpec { track: Arc::new(track), friction }
+    EnvSpec { track: Arc::new(track), friction, noise: None }
 }
 
 fn quiet() -> SimConfig {
@@ -189,6 +189,18 @@ fn params_use_the_point_ahead_and_the_commanded_action() {
     let mut env = Env::new(rev, Arc::new(quiet()), Mode::Training, 9, 0.0).unwrap();
     env.advance(a);
     assert!(env.params().is_reversed);
+}
+
+#[test]
+fn a_world_can_carry_its_own_noise() {
+    let mut spec = base();
+    spec.noise = Some(sim_agent::config::NoiseConfig { steering_deg: 0.0, speed_fraction: 0.0 });
+    // The configuration asks for a lot of noise; the world's own setting wins.
+    let mut cfg = SimConfig::default();
+    cfg.noise.steering_deg = 10.0;
+    let mut env = Env::new(spec, Arc::new(cfg), Mode::Training, 3, 0.0).unwrap();
+    env.advance(Action { steering_angle: 7.0, speed: 1.0 });
+    assert_eq!(env.executed_steering_deg(), 7.0);
 }
 
 #[test]

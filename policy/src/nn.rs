@@ -1,0 +1,443 @@
+//! A small neural-network core on faer: dense, conv2d (im2col + GEMM), ReLU and input
+//! scaling, forward over a batch and backward, with all parameters in one flat vector.
+//!
+//! Activations are row-major `batch × features`; images are NHWC (as DeepRacer's
+//! channels-last Keras layers), so a conv output is already "flattened" for the dense
+//! layer that follows. Every GEMM goes through faer ([`gemm`]).
+
+use faer::{Accum, MatMut, MatRef, Par};
+use rand::Rng;
+use rand_distr::{Distribution, Normal};
+
+/// `dst (m×n) = op(a) (m×k) · op(b) (k×n)` (+ `dst` when `accumulate`), all row-major.
+/// `a_t`: `a` is stored as `k×m`; `b_t`: `b` is stored as `n×k`.
+#[allow(clippy::too_many_arguments)]
+pub fn gemm(
+    dst: &mut [f32],
+    m: usize,
+    n: usize,
+    k: usize,
+    a: &[f32],
+    a_t: bool,
+    b: &[f32],
+    b_t: bool,
+    accumulate: bool,
+    par: Par,
+) {
+    debug_assert_eq!(dst.len(), m * n);
+    let lhs =
+        if a_t { MatRef::from_row_major_slice(a, k, m).transpose() } else { MatRef::from_row_major_slice(a, m, k) };
+    let rhs =
+        if b_t { MatRef::from_row_major_slice(b, n, k).transpose() } else { MatRef::from_row_major_slice(b, k, n) };
+    let out = MatMut::from_row_major_slice_mut(dst, m, n);
+    let beta = if accumulate { Accum::Add } else { Accum::Replace };
+    faer::linalg::matmul::matmul(out, beta, lhs, rhs, 1.0f32, par);
+}
+
+/// One layer of a sequential network.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Layer {
+    /// Multiply every input by a constant (DeepRacer's in-graph `/255`).
+    Scale {
+        /// Features in (= out).
+        size: usize,
+        /// The factor.
+        factor: f32,
+    },
+    /// `y = x Wᵀ + b`; `W` is `out × in`.
+    Dense {
+        /// Inputs.
+        inp: usize,
+        /// Outputs.
+        out: usize,
+        /// Offset of `W` in the parameter vector (then `b`, `out` values).
+        offset: usize,
+    },
+    /// 2-D convolution, padding `valid`, NHWC; weights `filters × (k·k·c)` in (ky, kx, c) order.
+    Conv2d {
+        /// Input height, width, channels.
+        input: [usize; 3],
+        /// Filters (output channels).
+        filters: usize,
+        /// Kernel side.
+        kernel: usize,
+        /// Stride.
+        stride: usize,
+        /// Offset of the weights (then `filters` biases).
+        offset: usize,
+    },
+    /// `max(0, x)`.
+    Relu {
+        /// Features.
+        size: usize,
+    },
+}
+
+impl Layer {
+    /// Features per sample going in.
+    pub fn in_size(&self) -> usize {
+        match *self {
+            Layer::Scale { size, .. } | Layer::Relu { size } => size,
+            Layer::Dense { inp, .. } => inp,
+            Layer::Conv2d { input: [h, w, c], .. } => h * w * c,
+        }
+    }
+
+    /// Features per sample coming out.
+    pub fn out_size(&self) -> usize {
+        match *self {
+            Layer::Scale { size, .. } | Layer::Relu { size } => size,
+            Layer::Dense { out, .. } => out,
+            Layer::Conv2d { .. } => {
+                let [oh, ow] = self.conv_out();
+                oh * ow * self.filters()
+            }
+        }
+    }
+
+    fn filters(&self) -> usize {
+        match *self {
+            Layer::Conv2d { filters, .. } => filters,
+            _ => 0,
+        }
+    }
+
+    /// Output height and width of a convolution.
+    pub fn conv_out(&self) -> [usize; 2] {
+        match *self {
+            Layer::Conv2d { input: [h, w, _], kernel, stride, .. } => {
+                [(h - kernel) / stride + 1, (w - kernel) / stride + 1]
+            }
+            _ => [0, 0],
+        }
+    }
+
+    /// Parameters this layer owns.
+    pub fn param_count(&self) -> usize {
+        match *self {
+            Layer::Dense { inp, out, .. } => inp * out + out,
+            Layer::Conv2d { input: [_, _, c], filters, kernel, .. } => filters * kernel * kernel * c + filters,
+            _ => 0,
+        }
+    }
+}
+
+/// A sequential network: layers and one flat parameter vector.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Net {
+    /// The layers, in order.
+    pub layers: Vec<Layer>,
+    /// All parameters.
+    pub params: Vec<f32>,
+}
+
+/// What a forward pass keeps for the backward pass.
+#[derive(Default, Debug)]
+pub struct Tape {
+    /// Input of every layer, then the final output.
+    acts: Vec<Vec<f32>>,
+    /// im2col matrices of the conv layers (empty for others).
+    cols: Vec<Vec<f32>>,
+    batch: usize,
+}
+
+impl Tape {
+    /// The network's output of the last forward pass (`batch × out`).
+    pub fn output(&self) -> &[f32] {
+        self.acts.last().map(|v| v.as_slice()).unwrap_or(&[])
+    }
+}
+
+/// Building blocks for [`Net::new`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum LayerSpec {
+    /// Scale inputs by a factor.
+    Scale(f32),
+    /// Dense layer with this many outputs.
+    Dense(usize),
+    /// Conv layer: (filters, kernel, stride).
+    Conv(usize, usize, usize),
+    /// ReLU.
+    Relu,
+}
+
+/// Input shape: a flat vector, or an NHWC image.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum InputShape {
+    /// `n` features.
+    Flat(usize),
+    /// Height, width, channels.
+    Image(usize, usize, usize),
+}
+
+impl Net {
+    /// Build a network; weights are drawn with He-normal scaling from `rng`, biases zero.
+    /// `last_std`, when given, is the standard deviation of the final dense layer's weights
+    /// (DeepRacer's heads use small initial weights).
+    pub fn new(input: InputShape, specs: &[LayerSpec], last_std: Option<f32>, rng: &mut impl Rng) -> Net {
+        let mut layers = Vec::new();
+        let mut offset = 0;
+        let (mut flat, mut image) = match input {
+            InputShape::Flat(n) => (n, None),
+            InputShape::Image(h, w, c) => (h * w * c, Some([h, w, c])),
+        };
+        for spec in specs {
+            let layer = match *spec {
+                LayerSpec::Scale(factor) => Layer::Scale { size: flat, factor },
+                LayerSpec::Relu => Layer::Relu { size: flat },
+                LayerSpec::Dense(out) => {
+                    image = None;
+                    Layer::Dense { inp: flat, out, offset }
+                }
+                LayerSpec::Conv(filters, kernel, stride) => {
+                    let input = image.expect("a conv layer needs an image input");
+                    Layer::Conv2d { input, filters, kernel, stride, offset }
+                }
+            };
+            offset += layer.param_count();
+            flat = layer.out_size();
+            if let Layer::Conv2d { filters, .. } = layer {
+                let [oh, ow] = layer.conv_out();
+                image = Some([oh, ow, filters]);
+            }
+            layers.push(layer);
+        }
+        let mut params = vec![0.0f32; offset];
+        let last_dense = layers.iter().rposition(|l| matches!(l, Layer::Dense { .. }));
+        for (i, layer) in layers.iter().enumerate() {
+            let (fan_in, n_w, off) = match *layer {
+                Layer::Dense { inp, out, offset } => (inp, inp * out, offset),
+                Layer::Conv2d { input: [_, _, c], filters, kernel, offset, .. } => {
+                    (kernel * kernel * c, filters * kernel * kernel * c, offset)
+                }
+                _ => continue,
+            };
+            let std = match last_std {
+                Some(s) if Some(i) == last_dense => s,
+                _ => (2.0 / fan_in as f32).sqrt(),
+            };
+            let normal = Normal::new(0.0f32, std).expect("finite std");
+            for p in &mut params[off..off + n_w] {
+                *p = normal.sample(rng);
+            }
+        }
+        Net { layers, params }
+    }
+
+    /// Features per sample in.
+    pub fn in_size(&self) -> usize {
+        self.layers.first().map(|l| l.in_size()).unwrap_or(0)
+    }
+
+    /// Features per sample out.
+    pub fn out_size(&self) -> usize {
+        self.layers.last().map(|l| l.out_size()).unwrap_or(0)
+    }
+
+    /// Forward a batch (`batch × in`), keeping what backward needs in `tape`.
+    pub fn forward(&self, x: &[f32], batch: usize, tape: &mut Tape, par: Par) {
+        assert_eq!(x.len(), batch * self.in_size(), "input size");
+        tape.acts.resize_with(self.layers.len() + 1, Vec::new);
+        tape.cols.resize_with(self.layers.len(), Vec::new);
+        tape.batch = batch;
+        tape.acts[0].clear();
+        tape.acts[0].extend_from_slice(x);
+        for (i, layer) in self.layers.iter().enumerate() {
+            let (before, after) = tape.acts.split_at_mut(i + 1);
+            let inp = &before[i];
+            let out = &mut after[0];
+            out.resize(batch * layer.out_size(), 0.0);
+            match *layer {
+                Layer::Scale { factor, .. } => {
+                    for (o, v) in out.iter_mut().zip(inp) {
+                        *o = v * factor;
+                    }
+                }
+                Layer::Relu { .. } => {
+                    for (o, v) in out.iter_mut().zip(inp) {
+                        *o = v.max(0.0);
+                    }
+                }
+                Layer::Dense { inp: n_in, out: n_out, offset } => {
+                    let w = &self.params[offset..offset + n_in * n_out];
+                    let b = &self.params[offset + n_in * n_out..offset + n_in * n_out + n_out];
+                    for row in out.chunks_mut(n_out) {
+                        row.copy_from_slice(b);
+                    }
+                    gemm(out, batch, n_out, n_in, inp, false, w, true, true, par);
+                }
+                Layer::Conv2d { filters, offset, .. } => {
+                    let kkc = layer.param_count() / filters - 1;
+                    let [oh, ow] = layer.conv_out();
+                    let rows = batch * oh * ow;
+                    let cols = &mut tape.cols[i];
+                    im2col(layer, inp, batch, cols);
+                    let w = &self.params[offset..offset + filters * kkc];
+                    let b = &self.params[offset + filters * kkc..offset + filters * kkc + filters];
+                    for row in out.chunks_mut(filters) {
+                        row.copy_from_slice(b);
+                    }
+                    gemm(out, rows, filters, kkc, cols, false, w, true, true, par);
+                }
+            }
+        }
+    }
+
+    /// Backward from `d_out` (`batch × out`, gradient of the loss wrt the output) through
+    /// the last forward pass: adds parameter gradients into `grad` (same layout as `params`).
+    /// The input gradient is not computed (nothing upstream needs it).
+    pub fn backward(&self, tape: &Tape, d_out: &[f32], grad: &mut [f32], par: Par) {
+        let batch = tape.batch;
+        assert_eq!(d_out.len(), batch * self.out_size());
+        assert_eq!(grad.len(), self.params.len());
+        let mut d = d_out.to_vec();
+        let mut d_prev = Vec::new();
+        for (i, layer) in self.layers.iter().enumerate().rev() {
+            let inp = &tape.acts[i];
+            let need_dx = self.layers[..i].iter().any(|l| l.param_count() > 0);
+            match *layer {
+                Layer::Scale { factor, .. } => {
+                    if !need_dx {
+                        break;
+                    }
+                    d.iter_mut().for_each(|v| *v *= factor);
+                    continue;
+                }
+                Layer::Relu { .. } => {
+                    for (g, x) in d.iter_mut().zip(inp) {
+                        if *x <= 0.0 {
+                            *g = 0.0;
+                        }
+                    }
+                    continue;
+                }
+                Layer::Dense { inp: n_in, out: n_out, offset } => {
+                    let (gw, gb) = grad[offset..offset + n_in * n_out + n_out].split_at_mut(n_in * n_out);
+                    // dW (out × in) += dᵀ (out × batch) · x (batch × in)
+                    gemm(gw, n_out, n_in, batch, &d, true, inp, false, true, par);
+                    for row in d.chunks(n_out) {
+                        for (g, v) in gb.iter_mut().zip(row) {
+                            *g += v;
+                        }
+                    }
+                    if need_dx {
+                        d_prev.resize(batch * n_in, 0.0);
+                        let w = &self.params[offset..offset + n_in * n_out];
+                        gemm(&mut d_prev, batch, n_in, n_out, &d, false, w, false, false, par);
+                    }
+                }
+                Layer::Conv2d { filters, offset, .. } => {
+                    let kkc = layer.param_count() / filters - 1;
+                    let [oh, ow] = layer.conv_out();
+                    let rows = batch * oh * ow;
+                    let cols = &tape.cols[i];
+                    let (gw, gb) = grad[offset..offset + filters * kkc + filters].split_at_mut(filters * kkc);
+                    gemm(gw, filters, kkc, rows, &d, true, cols, false, true, par);
+                    for row in d.chunks(filters) {
+                        for (g, v) in gb.iter_mut().zip(row) {
+                            *g += v;
+                        }
+                    }
+                    if need_dx {
+                        let w = &self.params[offset..offset + filters * kkc];
+                        let mut d_cols = vec![0.0f32; rows * kkc];
+                        gemm(&mut d_cols, rows, kkc, filters, &d, false, w, false, false, par);
+                        d_prev.clear();
+                        d_prev.resize(batch * layer.in_size(), 0.0);
+                        col2im(layer, &d_cols, batch, &mut d_prev);
+                    }
+                }
+            }
+            if !need_dx {
+                break;
+            }
+            std::mem::swap(&mut d, &mut d_prev);
+        }
+    }
+}
+
+/// Unfold NHWC input patches into rows: `(batch·oh·ow) × (k·k·c)`.
+fn im2col(layer: &Layer, x: &[f32], batch: usize, cols: &mut Vec<f32>) {
+    let Layer::Conv2d { input: [h, w, c], kernel: k, stride: s, .. } = *layer else { unreachable!() };
+    let [oh, ow] = layer.conv_out();
+    let kkc = k * k * c;
+    cols.resize(batch * oh * ow * kkc, 0.0);
+    let mut r = 0;
+    for n in 0..batch {
+        let img = &x[n * h * w * c..(n + 1) * h * w * c];
+        for oy in 0..oh {
+            for ox in 0..ow {
+                let row = &mut cols[r * kkc..(r + 1) * kkc];
+                for ky in 0..k {
+                    let src = ((oy * s + ky) * w + ox * s) * c;
+                    row[ky * k * c..(ky + 1) * k * c].copy_from_slice(&img[src..src + k * c]);
+                }
+                r += 1;
+            }
+        }
+    }
+}
+
+/// The adjoint of [`im2col`]: scatter-add patch gradients back into the input gradient.
+fn col2im(layer: &Layer, d_cols: &[f32], batch: usize, dx: &mut [f32]) {
+    let Layer::Conv2d { input: [h, w, c], kernel: k, stride: s, .. } = *layer else { unreachable!() };
+    let [oh, ow] = layer.conv_out();
+    let kkc = k * k * c;
+    let mut r = 0;
+    for n in 0..batch {
+        let img = &mut dx[n * h * w * c..(n + 1) * h * w * c];
+        for oy in 0..oh {
+            for ox in 0..ow {
+                let row = &d_cols[r * kkc..(r + 1) * kkc];
+                for ky in 0..k {
+                    let dst = ((oy * s + ky) * w + ox * s) * c;
+                    for (d, v) in img[dst..dst + k * c].iter_mut().zip(&row[ky * k * c..(ky + 1) * k * c]) {
+                        *d += v;
+                    }
+                }
+                r += 1;
+            }
+        }
+    }
+}
+
+/// Adam (DeepRacer's settings: β1 0.9, β2 0.999, ε 1e-5).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Adam {
+    /// Learning rate.
+    pub lr: f32,
+    /// First-moment decay.
+    pub beta1: f32,
+    /// Second-moment decay.
+    pub beta2: f32,
+    /// Denominator epsilon.
+    pub eps: f32,
+    m: Vec<f32>,
+    v: Vec<f32>,
+    t: u32,
+}
+
+impl Adam {
+    /// An optimiser for `n` parameters.
+    pub fn new(n: usize, lr: f32) -> Adam {
+        Adam { lr, beta1: 0.9, beta2: 0.999, eps: 1e-5, m: vec![0.0; n], v: vec![0.0; n], t: 0 }
+    }
+
+    /// One step: `params -= lr · m̂ / (√v̂ + ε)`.
+    pub fn step(&mut self, params: &mut [f32], grad: &[f32]) {
+        self.t += 1;
+        let (b1, b2) = (self.beta1, self.beta2);
+        let c1 = 1.0 - b1.powi(self.t as i32);
+        let c2 = 1.0 - b2.powi(self.t as i32);
+        for (((p, g), m), v) in params.iter_mut().zip(grad).zip(&mut self.m).zip(&mut self.v) {
+            *m = b1 * *m + (1.0 - b1) * g;
+            *v = b2 * *v + (1.0 - b2) * g * g;
+            *p -= self.lr * (*m / c1) / ((*v / c2).sqrt() + self.eps);
+        }
+    }
+
+    /// Steps taken.
+    pub fn steps(&self) -> u32 {
+        self.t
+    }
+}

@@ -1,0 +1,138 @@
+//! Every layer's backward pass against finite differences, alone and stacked.
+
+use faer::Par;
+use policy::nn::{Adam, InputShape, LayerSpec, Net, Tape};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+/// L = Σ c·y with fixed random c: dL/dy = c.
+fn loss(net: &Net, x: &[f32], batch: usize, c: &[f32]) -> f64 {
+    let mut tape = Tape::default();
+    net.forward(x, batch, &mut tape, Par::Seq);
+    tape.output().iter().zip(c).map(|(y, c)| *y as f64 * *c as f64).sum()
+}
+
+fn check(input: InputShape, specs: &[LayerSpec], batch: usize, seed: u64) {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let mut net = Net::new(input, specs, None, &mut rng);
+    // Non-zero biases so ReLUs sit away from their kink for most units.
+    for p in net.params.iter_mut() {
+        *p += rng.random_range(-0.05..0.05);
+    }
+    let x: Vec<f32> = (0..batch * net.in_size()).map(|_| rng.random_range(-1.0..1.0)).collect();
+    let c: Vec<f32> = (0..batch * net.out_size()).map(|_| rng.random_range(-1.0..1.0)).collect();
+    let mut tape = Tape::default();
+    net.forward(&x, batch, &mut tape, Par::Seq);
+    let mut grad = vec![0.0f32; net.params.len()];
+    net.backward(&tape, &c, &mut grad, Par::Seq);
+    let h = 2e-3f32;
+    let mut checked = 0;
+    let mut bad = Vec::new();
+    for _ in 0..200 {
+        let i = rng.random_range(0..net.params.len());
+        let orig = net.params[i];
+        net.params[i] = orig + h;
+        let up = loss(&net, &x, batch, &c);
+        net.params[i] = orig - h;
+        let down = loss(&net, &x, batch, &c);
+        net.params[i] = orig;
+        let numeric = (up - down) / (2.0 * h as f64);
+        let analytic = grad[i] as f64;
+        checked += 1;
+        // f32 rounding in the loss limits the difference quotient to about 1e-3 absolute.
+        if (numeric - analytic).abs() > 1.5e-3 + 2e-2 * analytic.abs() {
+            bad.push((i, numeric, analytic));
+        }
+    }
+    // A ReLU kink inside ±h can spoil a rare difference quotient; a wrong backward spoils most.
+    assert!(
+        bad.len() <= checked / 50,
+        "{specs:?}: {} of {checked} gradients disagree: {:?}",
+        bad.len(),
+        &bad[..bad.len().min(5)]
+    );
+}
+
+#[test]
+fn dense_layer() {
+    check(InputShape::Flat(7), &[LayerSpec::Dense(5)], 4, 1);
+}
+
+#[test]
+fn mlp_with_relus() {
+    check(
+        InputShape::Flat(9),
+        &[LayerSpec::Dense(16), LayerSpec::Relu, LayerSpec::Dense(16), LayerSpec::Relu, LayerSpec::Dense(3)],
+        6,
+        2,
+    );
+}
+
+#[test]
+fn conv_layer_with_stride() {
+    check(InputShape::Image(9, 11, 2), &[LayerSpec::Conv(4, 3, 2)], 3, 3);
+}
+
+#[test]
+fn scaled_conv_stack_into_dense_as_deepracer_builds_it() {
+    check(
+        InputShape::Image(20, 24, 1),
+        &[
+            LayerSpec::Scale(1.0 / 255.0 * 200.0),
+            LayerSpec::Conv(4, 4, 2),
+            LayerSpec::Relu,
+            LayerSpec::Conv(6, 3, 1),
+            LayerSpec::Relu,
+            LayerSpec::Dense(8),
+            LayerSpec::Relu,
+            LayerSpec::Dense(3),
+        ],
+        3,
+        4,
+    );
+}
+
+#[test]
+fn conv_output_matches_a_direct_convolution() {
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let (h, w, c, f, k, s) = (7, 8, 3, 2, 3, 2);
+    let net = Net::new(InputShape::Image(h, w, c), &[LayerSpec::Conv(f, k, s)], None, &mut rng);
+    let x: Vec<f32> = (0..h * w * c).map(|_| rng.random_range(-1.0..1.0)).collect();
+    let mut tape = Tape::default();
+    net.forward(&x, 1, &mut tape, Par::Seq);
+    let (oh, ow) = ((h - k) / s + 1, (w - k) / s + 1);
+    let kkc = k * k * c;
+    for oy in 0..oh {
+        for ox in 0..ow {
+            for fi in 0..f {
+                let mut acc = net.params[f * kkc + fi] as f64; // bias
+                for ky in 0..k {
+                    for kx in 0..k {
+                        for ci in 0..c {
+                            let xv = x[((oy * s + ky) * w + ox * s + kx) * c + ci] as f64;
+                            acc += xv * net.params[fi * kkc + (ky * k + kx) * c + ci] as f64;
+                        }
+                    }
+                }
+                let got = tape.output()[(oy * ow + ox) * f + fi] as f64;
+                assert!((got - acc).abs() < 1e-5, "({oy},{ox},{fi}): {got} vs {acc}");
+            }
+        }
+    }
+}
+
+#[test]
+fn adam_minimises_a_quadratic() {
+    let target = [3.0f32, -2.0, 0.5];
+    let mut p = vec![0.0f32; 3];
+    let mut opt = Adam::new(3, 0.1);
+    for _ in 0..500 {
+        let g: Vec<f32> = p.iter().zip(&target).map(|(a, b)| 2.0 * (a - b)).collect();
+        opt.step(&mut p, &g);
+    }
+    for (a, b) in p.iter().zip(&target) {
+        assert!((a - b).abs() < 1e-2, "{p:?}");
+    }
+    assert_eq!(opt.eps, 1e-5);
+    assert_eq!(opt.beta2, 0.999);
+}
