@@ -25,6 +25,106 @@ pub enum Command {
     },
     /// Drive laps with the scripted pure-pursuit driver and print each lap.
     Drive(DriveArgs),
+    /// Train a model with PPO in this process.
+    Train(TrainArgs),
+    /// Run evaluation trials with a model's most likely actions.
+    Evaluate(EvaluateArgs),
+    /// Start a new run from a model's weights (transfer learning).
+    Clone(CloneArgs),
+}
+
+#[derive(Args)]
+pub struct TrainArgs {
+    /// World to train on (built-in name or .npy path).
+    #[arg(long, default_value = "reinvent_base")]
+    pub world: String,
+    /// Reward: a DeepRacer Python file or builtin:NAME.
+    #[arg(long, default_value = "builtin:center_line")]
+    pub reward: String,
+    /// DeepRacer hyperparameters.json (default: the console's PPO defaults).
+    #[arg(long)]
+    pub hyperparameters: Option<PathBuf>,
+    /// DeepRacer model_metadata.json (default: state vector, 5 steering x 2 speeds).
+    #[arg(long)]
+    pub model_metadata: Option<PathBuf>,
+    /// Wall-clock budget in minutes.
+    #[arg(long, default_value_t = 5.0)]
+    pub minutes: f64,
+    /// Run folder (default: a new folder under runs/).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Continue the run in --out from its last checkpoint.
+    #[arg(long)]
+    pub resume: bool,
+    /// Delete --out if it exists and start again.
+    #[arg(long)]
+    pub force: bool,
+    /// Override the learning rate.
+    #[arg(long)]
+    pub lr: Option<f64>,
+    /// Stop early once an evaluation completes this many of its laps (0: train the full time).
+    #[arg(long, default_value_t = 3)]
+    pub target_laps: usize,
+    /// Evaluation trials per checkpoint.
+    #[arg(long, default_value_t = 3)]
+    pub trials: usize,
+    /// Seconds between evaluations and checkpoints.
+    #[arg(long, default_value_t = 2.0)]
+    pub checkpoint_seconds: f64,
+    /// Parallel environments.
+    #[arg(long, default_value_t = 32)]
+    pub envs: usize,
+    /// Threads for the environments (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Random seed.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Simulator configuration file (TOML).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Override a simulator configuration key (`key=value`, repeatable).
+    #[arg(long = "set")]
+    pub sets: Vec<String>,
+}
+
+#[derive(Args)]
+pub struct EvaluateArgs {
+    /// A model folder (e.g. RUN/model).
+    pub model_dir: PathBuf,
+    /// World to evaluate on.
+    #[arg(long, default_value = "reinvent_base")]
+    pub world: String,
+    /// Trials (laps from the start line).
+    #[arg(long, default_value_t = 3)]
+    pub trials: usize,
+    /// Put an off-track car back with a 2 s penalty (up to 100 times) instead of ending the trial.
+    #[arg(long)]
+    pub reset_rules: bool,
+    /// Drive the track in reverse.
+    #[arg(long)]
+    pub reversed: bool,
+    /// Random seed (actuator noise).
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+}
+
+#[derive(Args)]
+pub struct CloneArgs {
+    /// The model folder to start from.
+    pub model_dir: PathBuf,
+    /// The new run folder.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Learning rate for the new run.
+    #[arg(long)]
+    pub lr: Option<f64>,
+    /// model_metadata.json for the new run (its sensors and action space must match).
+    #[arg(long)]
+    pub model_metadata: Option<PathBuf>,
+    /// hyperparameters.json for the new run.
+    #[arg(long)]
+    pub hyperparameters: Option<PathBuf>,
 }
 
 #[derive(Subcommand)]

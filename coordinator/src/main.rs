@@ -1,11 +1,12 @@
 //! `coordinator`: Paddock's user-facing command.
 //!
-//! Today: the track catalog (`tracks list|show|import`), reward validation
-//! (`reward validate`), and the scripted driver (`drive`). Training, jobs and the cluster
-//! arrive with later issues.
+//! The track catalog (`tracks list|show|import`), reward validation (`reward validate`),
+//! the scripted driver (`drive`), and PPO in one process (`train`, `evaluate`, `clone`).
+//! Jobs and the cluster arrive with later issues.
 
 mod cli;
 mod drive;
+mod train;
 mod tracks_cmd;
 
 use clap::Parser;
@@ -25,6 +26,9 @@ fn main() {
             cli::RewardCommand::Validate(args) => drive::validate(args),
         },
         cli::Command::Drive(args) => drive::drive(args),
+        cli::Command::Train(args) => train::train(args),
+        cli::Command::Evaluate(args) => train::evaluate_cmd(args),
+        cli::Command::Clone(args) => train::clone_cmd(args),
     };
     match result {
         Ok(code) => std::process::exit(code),

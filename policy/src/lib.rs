@@ -1,15 +1,24 @@
 //! What sim-agent, learner and deploy share about a model.
 //!
-//! Today: DeepRacer's `model_metadata.json` ([`ModelMetadata`]) and the action spaces it
-//! defines ([`ActionSpace`]). The networks, their forward/backward passes and the model
-//! folder format arrive with the learner issue.
+//! - [`metadata`]: DeepRacer's `model_metadata.json` and action spaces.
+//! - [`nn`]: layers on faer, forward and backward, Adam.
+//! - [`model`]: the actor-critic (separate policy and value towers, DeepRacer's networks by
+//!   name) and its heads.
+//! - [`folder`]: the model folder (safetensors + `model_metadata.json` + manifest).
+//! - [`experience`]: trajectories, tagged with the policy version that produced them.
 //!
 //! Architecture invariant: no physics, no transport, no Python here.
 
-mod metadata;
+pub mod experience;
+pub mod folder;
+pub mod metadata;
+pub mod model;
 pub mod nn;
 
+pub use experience::Trajectory;
+pub use folder::{Manifest, ModelError, ModelFolder};
 pub use metadata::{
     Action, ActionSpace, MAX_SPEED, MAX_STEERING_DEG, MIN_SPEED, MetadataError, ModelMetadata, NeuralNetwork, Sensor,
     TrainingAlgorithm,
 };
+pub use model::{ActOutput, ActorCritic, Choice, Head};

@@ -81,6 +81,9 @@ pub enum Sensor {
     SectorLidar,
     /// Sectors × values per sector.
     DiscretizedSectorLidar,
+    /// Paddock's extension: the simulator's state vector (pose relative to the track, speed,
+    /// centre-line points ahead). It takes the camera's place; simulation only.
+    StateVector,
 }
 
 impl Sensor {
@@ -93,12 +96,28 @@ impl Sensor {
             "LIDAR" => Sensor::Lidar,
             "SECTOR_LIDAR" => Sensor::SectorLidar,
             "DISCRETIZED_SECTOR_LIDAR" => Sensor::DiscretizedSectorLidar,
+            "STATE_VECTOR" => Sensor::StateVector,
             _ => return None,
         })
     }
 
-    fn is_camera(self) -> bool {
-        matches!(self, Sensor::FrontFacingCamera | Sensor::LeftCamera | Sensor::StereoCameras | Sensor::Observation)
+    /// The name written in `model_metadata.json`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Sensor::FrontFacingCamera => "FRONT_FACING_CAMERA",
+            Sensor::LeftCamera => "LEFT_CAMERA",
+            Sensor::StereoCameras => "STEREO_CAMERAS",
+            Sensor::Observation => "observation",
+            Sensor::Lidar => "LIDAR",
+            Sensor::SectorLidar => "SECTOR_LIDAR",
+            Sensor::DiscretizedSectorLidar => "DISCRETIZED_SECTOR_LIDAR",
+            Sensor::StateVector => "STATE_VECTOR",
+        }
+    }
+
+    /// A camera (or the state vector, which takes its place).
+    pub fn is_primary(self) -> bool {
+        matches!(self, Sensor::FrontFacingCamera | Sensor::LeftCamera | Sensor::StereoCameras | Sensor::Observation | Sensor::StateVector)
     }
 }
 
@@ -111,6 +130,20 @@ pub enum NeuralNetwork {
     DeepConvolutionalNetwork,
     /// The deeper CNN.
     DeepConvolutionalNetworkDeep,
+    /// Paddock's extension for the state vector and lidar: two dense layers of 128 (ReLU).
+    PaddockMlp,
+}
+
+impl NeuralNetwork {
+    /// The name written in `model_metadata.json`.
+    pub fn name(self) -> &'static str {
+        match self {
+            NeuralNetwork::DeepConvolutionalNetworkShallow => "DEEP_CONVOLUTIONAL_NETWORK_SHALLOW",
+            NeuralNetwork::DeepConvolutionalNetwork => "DEEP_CONVOLUTIONAL_NETWORK",
+            NeuralNetwork::DeepConvolutionalNetworkDeep => "DEEP_CONVOLUTIONAL_NETWORK_DEEP",
+            NeuralNetwork::PaddockMlp => "PADDOCK_MLP",
+        }
+    }
 }
 
 /// `training_algorithm`.
@@ -199,8 +232,9 @@ impl ModelMetadata {
             None | Some(Some("DEEP_CONVOLUTIONAL_NETWORK_SHALLOW")) => NeuralNetwork::DeepConvolutionalNetworkShallow,
             Some(Some("DEEP_CONVOLUTIONAL_NETWORK")) => NeuralNetwork::DeepConvolutionalNetwork,
             Some(Some("DEEP_CONVOLUTIONAL_NETWORK_DEEP")) => NeuralNetwork::DeepConvolutionalNetworkDeep,
+            Some(Some("PADDOCK_MLP")) => NeuralNetwork::PaddockMlp,
             Some(_) => {
-                return Err(err("field 'neural_network' must be one of DEEP_CONVOLUTIONAL_NETWORK_SHALLOW, DEEP_CONVOLUTIONAL_NETWORK, DEEP_CONVOLUTIONAL_NETWORK_DEEP".into()));
+                return Err(err("field 'neural_network' must be one of DEEP_CONVOLUTIONAL_NETWORK_SHALLOW, DEEP_CONVOLUTIONAL_NETWORK, DEEP_CONVOLUTIONAL_NETWORK_DEEP, PADDOCK_MLP".into()));
             }
         };
         let version = match raw.get("version") {
@@ -224,12 +258,103 @@ impl ModelMetadata {
                 .collect::<Result<Vec<_>, _>>()?,
             Some(other) => return Err(err(format!("field 'sensor' is {other}, expected a list of sensor names"))),
         };
-        let cameras = sensor.iter().filter(|s| s.is_camera()).count();
+        let cameras = sensor.iter().filter(|s| s.is_primary()).count();
         let lidars = sensor.len() - cameras;
         if cameras != 1 || lidars > 1 {
-            return Err(err(format!("field 'sensor' needs exactly one camera and at most one lidar, got {sensor:?}")));
+            return Err(err(format!(
+                "field 'sensor' needs exactly one camera (or STATE_VECTOR) and at most one lidar, got {:?}",
+                sensor.iter().map(|s| s.name()).collect::<Vec<_>>()
+            )));
+        }
+        let state = sensor.contains(&Sensor::StateVector);
+        if state != (neural_network == NeuralNetwork::PaddockMlp) {
+            return Err(err(format!(
+                "sensor STATE_VECTOR goes with neural_network PADDOCK_MLP (and cameras with the convolutional networks); got {} with {}",
+                sensor.iter().map(|s| s.name()).collect::<Vec<_>>().join(", "),
+                neural_network.name()
+            )));
         }
         Ok(ModelMetadata { action_space, sensor, neural_network, training_algorithm, version, raw })
+    }
+
+    /// Paddock's default for state-vector training: 5 steering angles × 2 speeds, discrete.
+    pub fn default_state_vector() -> ModelMetadata {
+        let mut actions = Vec::new();
+        for speed in [1.0, 2.0] {
+            for steering_angle in [-30.0, -15.0, 0.0, 15.0, 30.0] {
+                actions.push(Action { steering_angle, speed });
+            }
+        }
+        let meta = ModelMetadata {
+            action_space: ActionSpace::Discrete(actions),
+            sensor: vec![Sensor::StateVector],
+            neural_network: NeuralNetwork::PaddockMlp,
+            training_algorithm: TrainingAlgorithm::ClippedPpo,
+            version: 5.0,
+            raw: Map::new(),
+        };
+        let text = meta.to_json();
+        ModelMetadata::parse(&text, "default").expect("the default metadata parses")
+    }
+
+    /// The file as DeepRacer writes it (its keys, in its order; unknown keys kept).
+    pub fn to_json(&self) -> String {
+        let mut out = Map::new();
+        let action_space = match &self.action_space {
+            ActionSpace::Discrete(a) => Value::Array(
+                a.iter()
+                    .enumerate()
+                    .map(|(i, a)| serde_json::json!({"steering_angle": a.steering_angle, "speed": a.speed, "index": i}))
+                    .collect(),
+            ),
+            ActionSpace::Continuous { steering_angle: (sl, sh), speed: (vl, vh) } => {
+                serde_json::json!({"steering_angle": {"low": sl, "high": sh}, "speed": {"low": vl, "high": vh}})
+            }
+        };
+        out.insert("action_space".into(), action_space);
+        out.insert("sensor".into(), Value::Array(self.sensor.iter().map(|s| Value::String(s.name().into())).collect()));
+        out.insert("neural_network".into(), Value::String(self.neural_network.name().into()));
+        out.insert(
+            "training_algorithm".into(),
+            Value::String(match self.training_algorithm {
+                TrainingAlgorithm::ClippedPpo => "clipped_ppo".into(),
+                TrainingAlgorithm::Sac => "sac".into(),
+            }),
+        );
+        out.insert(
+            "action_space_type".into(),
+            Value::String(if matches!(self.action_space, ActionSpace::Discrete(_)) { "discrete" } else { "continuous" }.into()),
+        );
+        out.insert("version".into(), Value::String(format!("{}", self.version)));
+        for (k, v) in &self.raw {
+            out.entry(k.clone()).or_insert_with(|| v.clone());
+        }
+        serde_json::to_string_pretty(&Value::Object(out)).expect("JSON")
+    }
+
+    /// Whether another metadata's network inputs and outputs match this one's
+    /// (same sensors, same network, same action count and kind); the reason if not.
+    pub fn compatible_with(&self, other: &ModelMetadata) -> Result<(), String> {
+        if self.sensor != other.sensor {
+            return Err(format!("sensors differ ({:?} vs {:?}): the network's inputs would no longer match", self.sensor, other.sensor));
+        }
+        if self.neural_network != other.neural_network {
+            return Err(format!("neural_network differs ({} vs {})", self.neural_network.name(), other.neural_network.name()));
+        }
+        let kind = |m: &ModelMetadata| matches!(m.action_space, ActionSpace::Discrete(_));
+        if kind(self) != kind(other) || self.action_space.dim() != other.action_space.dim() {
+            return Err(format!(
+                "the action space differs ({} {} outputs vs {} {}): the output layer would no longer match",
+                if kind(self) { "discrete" } else { "continuous" },
+                self.action_space.dim(),
+                if kind(other) { "discrete" } else { "continuous" },
+                other.action_space.dim()
+            ));
+        }
+        if self.action_space != other.action_space {
+            return Err("the action space's values differ: each output of the trained network would change meaning".into());
+        }
+        Ok(())
     }
 }
 

@@ -6,6 +6,7 @@
 //! - [`reward`] and [`python`]: built-in and Python reward functions.
 //! - [`obs`]: the state vector and lidar.
 //! - [`vec_env`]: many environments on all cores.
+//! - [`rollout`]: a policy acting in them (trajectories), and evaluation trials.
 //! - [`driver`]: a scripted pure-pursuit driver.
 //! - [`simtrace`]: DeepRacer's sim-trace CSV, for the community's analysis notebooks.
 //! - [`validate`]: DeepRacer's "Validate" for reward files, and more.
@@ -22,6 +23,7 @@ pub mod obs;
 pub mod params;
 pub mod python;
 pub mod reward;
+pub mod rollout;
 pub mod simtrace;
 pub mod validate;
 pub mod vec_env;

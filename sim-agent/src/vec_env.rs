@@ -38,11 +38,23 @@ impl VecEnv {
         reward: RewardFn,
         threads: usize,
     ) -> Result<VecEnv, EnvError> {
+        VecEnv::with_mode(specs, cfg, seed, reward, threads, Mode::Training)
+    }
+
+    /// Environments under the given rules (evaluation trials all start at the line).
+    pub fn with_mode(
+        specs: Vec<EnvSpec>,
+        cfg: Arc<SimConfig>,
+        seed: u64,
+        reward: RewardFn,
+        threads: usize,
+        mode: Mode,
+    ) -> Result<VecEnv, EnvError> {
         let n = specs.len();
         let envs = specs
             .into_iter()
             .enumerate()
-            .map(|(i, spec)| Env::new(spec, cfg.clone(), Mode::Training, env_seed(seed, i), i as f64 / n as f64))
+            .map(|(i, spec)| Env::new(spec, cfg.clone(), mode.clone(), env_seed(seed, i), i as f64 / n as f64))
             .collect::<Result<Vec<_>, _>>()?;
         let dim = obs_dim(&cfg.observation);
         let pool = rayon::ThreadPoolBuilder::new()

@@ -1,0 +1,259 @@
+//! Run folders and checkpoints.
+//!
+//! ```text
+//! RUN/
+//!   model/                      the best model so far (a model folder; the final answer)
+//!   checkpoints/ckpt_000012/    a model folder per checkpoint (the last 4 and the best are kept)
+//!   checkpoints/deepracer_checkpoints.json   {"best_checkpoint": …, "last_checkpoint": …}
+//!   metrics.jsonl               one JSON line per iteration
+//!   hyperparameters.json, model_metadata.json, sim.toml   the effective inputs
+//! ```
+//!
+//! Every file is written to a temporary name and renamed into place. The best checkpoint is
+//! chosen by mean evaluation progress, then by lap time.
+
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// Checkpoints kept besides the best.
+pub const KEEP_LAST: usize = 4;
+
+/// One checkpoint's record (DeepRacer's `deepracer_checkpoints.json` entries, plus figures).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CheckpointRecord {
+    /// Folder name under `checkpoints/`.
+    pub name: String,
+    /// Training iteration.
+    pub iteration: u64,
+    /// Policy version of the weights.
+    pub policy_version: u64,
+    /// Mean evaluation progress (%) — DeepRacer's `avg_eval_metric` with `BEST_MODEL_METRIC=progress`.
+    pub avg_eval_metric: f64,
+    /// Mean lap time of the evaluation trials when all completed (s).
+    pub avg_lap_time: Option<f64>,
+    /// Seconds since training started.
+    pub time_stamp: f64,
+}
+
+impl CheckpointRecord {
+    /// Better by progress, then by lap time.
+    pub fn better_than(&self, other: &CheckpointRecord) -> bool {
+        if self.avg_eval_metric != other.avg_eval_metric {
+            return self.avg_eval_metric > other.avg_eval_metric;
+        }
+        match (self.avg_lap_time, other.avg_lap_time) {
+            (Some(a), Some(b)) => a < b,
+            (Some(_), None) => true,
+            _ => false,
+        }
+    }
+}
+
+/// `deepracer_checkpoints.json`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct CheckpointIndex {
+    /// The best so far.
+    pub best_checkpoint: Option<CheckpointRecord>,
+    /// The latest.
+    pub last_checkpoint: Option<CheckpointRecord>,
+}
+
+/// Why a run folder could not be used.
+#[derive(Debug, thiserror::Error)]
+pub enum RunError {
+    /// It exists and neither resuming nor forcing was asked for.
+    #[error("{0} already exists: pass --resume to continue that run or --force to start it again")]
+    Exists(String),
+    /// Resuming a folder that holds no run.
+    #[error("{0} holds no run to resume (no model/ folder)")]
+    NothingToResume(String),
+    /// A file operation failed.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: String,
+        /// The error.
+        source: std::io::Error,
+    },
+    /// A file holds something unexpected.
+    #[error("{path}: {msg}")]
+    Invalid {
+        /// The file.
+        path: String,
+        /// What.
+        msg: String,
+    },
+}
+
+fn io(path: &Path) -> impl FnOnce(std::io::Error) -> RunError + '_ {
+    move |source| RunError::Io { path: path.display().to_string(), source }
+}
+
+/// Write `bytes` to `path` through a temporary file and a rename.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), RunError> {
+    let tmp = path.with_extension(format!("tmp-{}", std::process::id()));
+    std::fs::write(&tmp, bytes).map_err(io(&tmp))?;
+    std::fs::rename(&tmp, path).map_err(io(path))
+}
+
+/// How to open a run folder.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum OpenMode {
+    /// It must not exist yet.
+    New,
+    /// It must hold a run; carry on from it.
+    Resume,
+    /// Delete whatever is there and start again.
+    Force,
+}
+
+/// A run folder.
+#[derive(Clone, Debug)]
+pub struct RunDir {
+    root: PathBuf,
+}
+
+impl RunDir {
+    /// Open or create a run folder.
+    pub fn open(root: &Path, mode: OpenMode) -> Result<RunDir, RunError> {
+        let exists = root.exists() && std::fs::read_dir(root).map(|mut d| d.next().is_some()).unwrap_or(false);
+        match mode {
+            OpenMode::New if exists => return Err(RunError::Exists(root.display().to_string())),
+            OpenMode::Resume if !root.join("model").join("manifest.json").exists() => {
+                return Err(RunError::NothingToResume(root.display().to_string()));
+            }
+            OpenMode::Force if exists => std::fs::remove_dir_all(root).map_err(io(root))?,
+            _ => {}
+        }
+        std::fs::create_dir_all(root.join("checkpoints")).map_err(io(root))?;
+        Ok(RunDir { root: root.to_path_buf() })
+    }
+
+    /// The run folder.
+    pub fn root(&self) -> &Path {
+        &self.root
+    }
+
+    /// The model folder (the best model).
+    pub fn model_dir(&self) -> PathBuf {
+        self.root.join("model")
+    }
+
+    /// A checkpoint's folder.
+    pub fn checkpoint_dir(&self, name: &str) -> PathBuf {
+        self.root.join("checkpoints").join(name)
+    }
+
+    /// The checkpoint name for an iteration.
+    pub fn checkpoint_name(iteration: u64) -> String {
+        format!("ckpt_{iteration:06}")
+    }
+
+    fn index_path(&self) -> PathBuf {
+        self.root.join("checkpoints").join("deepracer_checkpoints.json")
+    }
+
+    /// Read `deepracer_checkpoints.json` (empty if none yet).
+    pub fn index(&self) -> Result<CheckpointIndex, RunError> {
+        let p = self.index_path();
+        if !p.exists() {
+            return Ok(CheckpointIndex::default());
+        }
+        let text = std::fs::read_to_string(&p).map_err(io(&p))?;
+        serde_json::from_str(&text).map_err(|e| RunError::Invalid { path: p.display().to_string(), msg: e.to_string() })
+    }
+
+    /// Record a checkpoint that has been written: updates best/last, prunes old ones.
+    /// Returns whether it is the new best.
+    pub fn record(&self, rec: CheckpointRecord) -> Result<bool, RunError> {
+        let mut index = self.index()?;
+        let best = index.best_checkpoint.as_ref().is_none_or(|b| rec.better_than(b));
+        if best {
+            index.best_checkpoint = Some(rec.clone());
+        }
+        index.last_checkpoint = Some(rec);
+        write_atomic(&self.index_path(), serde_json::to_string_pretty(&index).expect("JSON").as_bytes())?;
+        self.prune(&index)?;
+        Ok(best)
+    }
+
+    fn prune(&self, index: &CheckpointIndex) -> Result<(), RunError> {
+        let dir = self.root.join("checkpoints");
+        let mut names: Vec<String> = std::fs::read_dir(&dir)
+            .map_err(io(&dir))?
+            .filter_map(|e| e.ok())
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .filter(|n| n.starts_with("ckpt_"))
+            .collect();
+        names.sort();
+        let best = index.best_checkpoint.as_ref().map(|b| b.name.clone());
+        let keep_from = names.len().saturating_sub(KEEP_LAST);
+        for (i, n) in names.iter().enumerate() {
+            if i < keep_from && Some(n) != best.as_ref() {
+                let p = dir.join(n);
+                std::fs::remove_dir_all(&p).map_err(io(&p))?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Append one line to `metrics.jsonl`.
+    pub fn append_metrics(&self, line: &serde_json::Value) -> Result<(), RunError> {
+        use std::io::Write;
+        let p = self.root.join("metrics.jsonl");
+        let mut f = std::fs::OpenOptions::new().create(true).append(true).open(&p).map_err(io(&p))?;
+        writeln!(f, "{line}").map_err(io(&p))
+    }
+
+    /// Write a file at the run folder's top (atomically).
+    pub fn write_file(&self, name: &str, bytes: &[u8]) -> Result<(), RunError> {
+        write_atomic(&self.root.join(name), bytes)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn rec(i: u64, progress: f64, lap: Option<f64>) -> CheckpointRecord {
+        CheckpointRecord {
+            name: RunDir::checkpoint_name(i),
+            iteration: i,
+            policy_version: i,
+            avg_eval_metric: progress,
+            avg_lap_time: lap,
+            time_stamp: i as f64,
+        }
+    }
+
+    #[test]
+    fn best_is_progress_then_lap_time_and_old_checkpoints_are_pruned() {
+        let dir = std::env::temp_dir().join(format!("paddock-ckpt-test-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let run = RunDir::open(&dir, OpenMode::New).unwrap();
+        let table = [(1, 40.0, None, true), (2, 100.0, Some(12.0), true), (3, 100.0, Some(13.0), false), (4, 100.0, Some(11.5), true), (5, 90.0, None, false)];
+        for (i, p, lap, best) in table {
+            std::fs::create_dir_all(run.checkpoint_dir(&RunDir::checkpoint_name(i))).unwrap();
+            assert_eq!(run.record(rec(i, p, lap)).unwrap(), best, "iteration {i}");
+        }
+        for i in 6..=9 {
+            std::fs::create_dir_all(run.checkpoint_dir(&RunDir::checkpoint_name(i))).unwrap();
+            run.record(rec(i, 10.0, None)).unwrap();
+        }
+        let index = run.index().unwrap();
+        assert_eq!(index.best_checkpoint.unwrap().iteration, 4);
+        assert_eq!(index.last_checkpoint.unwrap().iteration, 9);
+        let mut left: Vec<String> = std::fs::read_dir(dir.join("checkpoints"))
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .filter(|n| n.starts_with("ckpt_"))
+            .collect();
+        left.sort();
+        assert_eq!(left, ["ckpt_000004", "ckpt_000006", "ckpt_000007", "ckpt_000008", "ckpt_000009"]);
+        assert!(matches!(RunDir::open(&dir, OpenMode::New), Err(RunError::Exists(_))));
+        assert!(matches!(RunDir::open(&dir, OpenMode::Resume), Err(RunError::NothingToResume(_))));
+        RunDir::open(&dir, OpenMode::Force).unwrap();
+        assert!(!dir.join("checkpoints").join("ckpt_000004").exists());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}

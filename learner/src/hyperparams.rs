@@ -1,0 +1,227 @@
+//! DeepRacer's `hyperparameters.json`, read unchanged (§2.2 of the reference).
+//!
+//! Every key simapp knows is accepted with its type; a key Paddock does not use is accepted
+//! and reported (`ignored`), an unknown key is reported as a warning, and a key of the wrong
+//! type is refused naming the key. Defaults are the DeepRacer console's PPO defaults.
+
+use serde_json::Value;
+use std::path::Path;
+
+/// PPO loss for the value head.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LossType {
+    /// Huber (δ = 1).
+    Huber,
+    /// Mean squared error.
+    MeanSquaredError,
+}
+
+/// The hyperparameters, documented.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct Hyperparameters {
+    /// Minibatch size for gradient steps.
+    pub batch_size: usize,
+    /// Entropy bonus coefficient.
+    pub beta_entropy: f64,
+    /// γ.
+    pub discount_factor: f64,
+    /// Value loss: huber or mean squared error.
+    pub loss_type: LossType,
+    /// Adam learning rate.
+    pub lr: f64,
+    /// Episodes collected per training iteration.
+    pub num_episodes_between_training: usize,
+    /// Passes over each iteration's experience.
+    pub num_epochs: usize,
+    /// Stop after this many episodes (`term_cond_max_episodes`).
+    pub term_cond_max_episodes: u64,
+    /// Stop when the mean reward per episode over an iteration reaches this (`term_cond_avg_score`).
+    pub term_cond_avg_score: f64,
+}
+
+impl Default for Hyperparameters {
+    fn default() -> Self {
+        Hyperparameters {
+            batch_size: 64,
+            beta_entropy: 0.01,
+            discount_factor: 0.99,
+            loss_type: LossType::Huber,
+            lr: 0.0003,
+            num_episodes_between_training: 20,
+            num_epochs: 10,
+            term_cond_max_episodes: 100_000,
+            term_cond_avg_score: 100_000.0,
+        }
+    }
+}
+
+/// A parsed file and what it said that Paddock does not act on.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Parsed {
+    /// The values.
+    pub hyperparameters: Hyperparameters,
+    /// Keys DeepRacer knows that Paddock's PPO does not use (e.g. `sac_alpha`), with why.
+    pub ignored: Vec<String>,
+    /// Keys nobody knows.
+    pub unknown: Vec<String>,
+}
+
+/// Why a file was refused.
+#[derive(Debug, thiserror::Error)]
+#[error("{origin}: {msg}")]
+pub struct HyperparameterError {
+    /// The file.
+    pub origin: String,
+    /// What is wrong, naming the key.
+    pub msg: String,
+}
+
+impl Hyperparameters {
+    /// Read a file.
+    pub fn load(path: &Path) -> Result<Parsed, HyperparameterError> {
+        let origin = path.display().to_string();
+        let text =
+            std::fs::read_to_string(path).map_err(|e| HyperparameterError { origin: origin.clone(), msg: e.to_string() })?;
+        Hyperparameters::parse(&text, &origin)
+    }
+
+    /// Parse JSON text.
+    pub fn parse(text: &str, origin: &str) -> Result<Parsed, HyperparameterError> {
+        let err = |msg: String| HyperparameterError { origin: origin.into(), msg };
+        let v: Value = serde_json::from_str(text).map_err(|e| err(format!("not valid JSON: {e}")))?;
+        let Value::Object(map) = v else { return Err(err("expected a JSON object".into())) };
+        let mut h = Hyperparameters::default();
+        let mut ignored = Vec::new();
+        let mut unknown = Vec::new();
+        let int = |k: &str, v: &Value| -> Result<u64, HyperparameterError> {
+            match v {
+                Value::Number(n) if n.as_u64().is_some() => Ok(n.as_u64().expect("checked")),
+                Value::Number(n) if n.as_f64().is_some_and(|f| f >= 0.0 && f.fract() == 0.0) => Ok(n.as_f64().expect("checked") as u64),
+                Value::String(s) if s.trim().parse::<u64>().is_ok() => Ok(s.trim().parse().expect("checked")),
+                other => Err(err(format!("key '{k}' is {other}, expected a whole number"))),
+            }
+        };
+        let float = |k: &str, v: &Value| -> Result<f64, HyperparameterError> {
+            match v {
+                Value::Number(n) => Ok(n.as_f64().expect("JSON numbers are f64")),
+                Value::String(s) if s.trim().parse::<f64>().is_ok() => Ok(s.trim().parse().expect("checked")),
+                other => Err(err(format!("key '{k}' is {other}, expected a number"))),
+            }
+        };
+        let positive = |k: &str, x: u64| if x == 0 { Err(err(format!("key '{k}' must be at least 1"))) } else { Ok(x as usize) };
+        for (k, v) in &map {
+            match k.as_str() {
+                "batch_size" => h.batch_size = positive(k, int(k, v)?)?,
+                "beta_entropy" => h.beta_entropy = float(k, v)?,
+                "discount_factor" => {
+                    h.discount_factor = float(k, v)?;
+                    if !(0.0..=1.0).contains(&h.discount_factor) {
+                        return Err(err(format!("key 'discount_factor' is {}, expected a value in [0, 1]", h.discount_factor)));
+                    }
+                }
+                "loss_type" => {
+                    h.loss_type = match v.as_str().map(|s| s.trim().to_lowercase()) {
+                        Some(s) if s == "huber" => LossType::Huber,
+                        Some(s) if s == "mean squared error" || s == "mse" => LossType::MeanSquaredError,
+                        _ => return Err(err(format!("key 'loss_type' is {v}, expected \"huber\" or \"mean squared error\""))),
+                    }
+                }
+                "lr" => {
+                    h.lr = float(k, v)?;
+                    if !(h.lr > 0.0 && h.lr.is_finite()) {
+                        return Err(err(format!("key 'lr' is {}, expected a positive number", h.lr)));
+                    }
+                }
+                "num_episodes_between_training" => h.num_episodes_between_training = positive(k, int(k, v)?)?,
+                "num_epochs" => h.num_epochs = positive(k, int(k, v)?)?,
+                "term_cond_max_episodes" => h.term_cond_max_episodes = int(k, v)?,
+                "term_cond_avg_score" => h.term_cond_avg_score = float(k, v)?,
+                "stack_size" => {
+                    int(k, v)?;
+                    ignored.push("stack_size (DeepRacer reads it but always stacks 1 frame)".into());
+                }
+                "e_greedy_value" | "sac_alpha" => {
+                    float(k, v)?;
+                    ignored.push(format!("{k} (not used by clipped PPO with categorical exploration)"));
+                }
+                "epsilon_steps" => {
+                    int(k, v)?;
+                    ignored.push("epsilon_steps (not used by categorical exploration)".into());
+                }
+                "exploration_type" => match v.as_str() {
+                    Some("categorical") | Some("Categorical") => {}
+                    Some(other) => {
+                        return Err(err(format!(
+                            "key 'exploration_type' is \"{other}\": Paddock's PPO explores by sampling (\"categorical\") only"
+                        )));
+                    }
+                    None => return Err(err(format!("key 'exploration_type' is {v}, expected a string"))),
+                },
+                _ => unknown.push(k.clone()),
+            }
+        }
+        Ok(Parsed { hyperparameters: h, ignored, unknown })
+    }
+
+    /// The file as DeepRacer writes it.
+    pub fn to_json(&self) -> String {
+        serde_json::to_string_pretty(&serde_json::json!({
+            "batch_size": self.batch_size,
+            "beta_entropy": self.beta_entropy,
+            "discount_factor": self.discount_factor,
+            "e_greedy_value": 0.05,
+            "epsilon_steps": 10000,
+            "exploration_type": "categorical",
+            "loss_type": match self.loss_type { LossType::Huber => "huber", LossType::MeanSquaredError => "mean squared error" },
+            "lr": self.lr,
+            "num_episodes_between_training": self.num_episodes_between_training,
+            "num_epochs": self.num_epochs,
+            "stack_size": 1,
+            "term_cond_avg_score": self.term_cond_avg_score,
+            "term_cond_max_episodes": self.term_cond_max_episodes,
+        }))
+        .expect("JSON")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn drfc_template_parses_unchanged() {
+        let text = r#"{"batch_size": 64, "beta_entropy": 0.01, "discount_factor": 0.99, "e_greedy_value": 0.05,
+            "epsilon_steps": 10000, "exploration_type": "categorical", "loss_type": "huber", "lr": 0.0003,
+            "num_episodes_between_training": 20, "num_epochs": 5, "stack_size": 1, "term_cond_avg_score": 350.0,
+            "term_cond_max_episodes": 1000, "sac_alpha": 0.2}"#;
+        let p = Hyperparameters::parse(text, "h.json").unwrap();
+        assert_eq!(p.hyperparameters.num_epochs, 5);
+        assert_eq!(p.hyperparameters.term_cond_max_episodes, 1000);
+        assert!(p.unknown.is_empty());
+        assert_eq!(p.ignored.len(), 4, "{:?}", p.ignored);
+        let back = Hyperparameters::parse(&p.hyperparameters.to_json(), "back.json").unwrap();
+        assert_eq!(back.hyperparameters, p.hyperparameters);
+    }
+
+    #[test]
+    fn unknown_keys_are_reported_and_wrong_types_refused() {
+        let p = Hyperparameters::parse(r#"{"lr": 0.001, "learning_rate": 1}"#, "h.json").unwrap();
+        assert_eq!(p.unknown, vec!["learning_rate".to_string()]);
+        assert_eq!(p.hyperparameters.lr, 0.001);
+        for (text, want) in [
+            (r#"{"batch_size": "big"}"#, "key 'batch_size'"),
+            (r#"{"batch_size": 0}"#, "at least 1"),
+            (r#"{"lr": [1]}"#, "key 'lr'"),
+            (r#"{"lr": -1}"#, "positive"),
+            (r#"{"loss_type": "l1"}"#, "key 'loss_type'"),
+            (r#"{"discount_factor": 1.5}"#, "[0, 1]"),
+            (r#"{"num_epochs": 2.5}"#, "whole number"),
+            (r#"{"exploration_type": "e-greedy"}"#, "categorical"),
+            ("[]", "expected a JSON object"),
+        ] {
+            let e = Hyperparameters::parse(text, "h.json").unwrap_err().to_string();
+            assert!(e.starts_with("h.json: ") && e.contains(want), "{text}: {e}");
+        }
+    }
+}

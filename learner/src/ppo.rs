@@ -1,0 +1,346 @@
+//! Clipped PPO as DeepRacer runs it (§3.3 of the reference): GAE (λ 0.95) with a zero
+//! bootstrap at every episode end, advantages standardised over the batch, clip ε 0.2,
+//! entropy bonus `beta_entropy`, Huber or MSE value loss on a separate value tower, Adam
+//! (ε 1e-5, β2 0.999) without gradient clipping, `num_epochs` epochs of shuffled
+//! minibatches of `batch_size` (the remainder dropped).
+//!
+//! A non-finite loss or gradient refuses the whole update: the weights and the optimiser
+//! state go back to where the iteration began, and the refusal is reported.
+
+use crate::hyperparams::{Hyperparameters, LossType};
+use faer::Par;
+use policy::model::{clip_log_std, gaussian_entropy, gaussian_logp, log_softmax, LOG_STD_RANGE};
+use policy::nn::{Adam, Tape};
+use policy::{ActorCritic, Choice, Head, Trajectory};
+use rand::SeedableRng;
+use rand::seq::SliceRandom;
+use rand_chacha::ChaCha8Rng;
+
+/// PPO's clip range.
+pub const CLIP_EPSILON: f32 = 0.2;
+/// GAE's λ.
+pub const GAE_LAMBDA: f64 = 0.95;
+
+/// Experience flattened for training.
+#[derive(Clone, Debug, Default)]
+pub struct Batch {
+    /// Inputs per observation.
+    pub obs_size: usize,
+    /// Observations, row-major.
+    pub obs: Vec<f32>,
+    /// Actions taken.
+    pub choices: Vec<Choice>,
+    /// Behaviour log-probabilities.
+    pub logp_old: Vec<f32>,
+    /// Standardised advantages.
+    pub adv: Vec<f32>,
+    /// Value targets (GAE advantage + value).
+    pub returns: Vec<f32>,
+    /// Values at acting time.
+    pub values_old: Vec<f32>,
+}
+
+impl Batch {
+    /// Steps in the batch.
+    pub fn len(&self) -> usize {
+        self.adv.len()
+    }
+
+    /// True when empty.
+    pub fn is_empty(&self) -> bool {
+        self.adv.is_empty()
+    }
+}
+
+/// GAE advantages and value targets for one trajectory (bootstrap 0 at its end).
+pub fn gae(t: &Trajectory, gamma: f64, lambda: f64) -> (Vec<f64>, Vec<f64>) {
+    let n = t.len();
+    let mut adv = vec![0.0; n];
+    let mut next_adv = 0.0;
+    let mut next_value = 0.0;
+    for i in (0..n).rev() {
+        let v = t.values[i] as f64;
+        let delta = t.rewards[i] as f64 + gamma * next_value - v;
+        next_adv = delta + gamma * lambda * next_adv;
+        adv[i] = next_adv;
+        next_value = v;
+    }
+    let returns = adv.iter().zip(&t.values).map(|(a, v)| a + *v as f64).collect();
+    (adv, returns)
+}
+
+/// Flatten trajectories into a batch with standardised advantages.
+pub fn make_batch(trajs: &[Trajectory], obs_size: usize, gamma: f64) -> Batch {
+    let mut b = Batch { obs_size, ..Batch::default() };
+    let mut adv = Vec::new();
+    for t in trajs {
+        let (a, r) = gae(t, gamma, GAE_LAMBDA);
+        adv.extend(a);
+        b.returns.extend(r.iter().map(|x| *x as f32));
+        b.obs.extend_from_slice(&t.obs);
+        b.choices.extend_from_slice(&t.choices);
+        b.logp_old.extend_from_slice(&t.logp);
+        b.values_old.extend_from_slice(&t.values);
+    }
+    let n = adv.len().max(1) as f64;
+    let mean = adv.iter().sum::<f64>() / n;
+    let std = (adv.iter().map(|a| (a - mean).powi(2)).sum::<f64>() / n).sqrt();
+    b.adv = adv.iter().map(|a| ((a - mean) / (std + 1e-8)) as f32).collect();
+    b
+}
+
+/// Losses of one minibatch and their gradients.
+#[derive(Clone, Debug, Default)]
+pub struct LossGrad {
+    /// Clipped surrogate loss (to minimise).
+    pub policy_loss: f64,
+    /// Value loss.
+    pub value_loss: f64,
+    /// Mean entropy.
+    pub entropy: f64,
+    /// The total minimised: policy − β·entropy + value.
+    pub total: f64,
+    /// Mean (r − 1) − ln r.
+    pub approx_kl: f64,
+    /// Fraction of samples whose ratio left [1−ε, 1+ε].
+    pub clip_fraction: f64,
+    /// Gradient for the policy tower's parameters.
+    pub grad_pi: Vec<f32>,
+    /// Gradient for the value tower's parameters.
+    pub grad_v: Vec<f32>,
+    /// Gradient for the Gaussian head's log-std.
+    pub grad_log_std: [f32; 2],
+}
+
+/// The PPO loss of `model` on the samples `idx` of `batch`, and its gradient.
+pub fn loss_and_grad(model: &ActorCritic, batch: &Batch, idx: &[usize], h: &Hyperparameters, par: Par) -> LossGrad {
+    let n = idx.len();
+    let os = batch.obs_size;
+    let mut obs = Vec::with_capacity(n * os);
+    for &i in idx {
+        obs.extend_from_slice(&batch.obs[i * os..(i + 1) * os]);
+    }
+    let beta = h.beta_entropy as f32;
+    let inv_n = 1.0 / n as f32;
+    let mut tape_pi = Tape::default();
+    model.pi.forward(&obs, n, &mut tape_pi, par);
+    let out = tape_pi.output();
+    let dim = model.pi.out_size();
+    let mut d_out = vec![0.0f32; n * dim];
+    let mut out_stats = LossGrad { grad_pi: vec![0.0; model.pi.params.len()], grad_v: vec![0.0; model.v.params.len()], ..Default::default() };
+    let mut g_log_std = [0.0f32; 2];
+    for (k, &i) in idx.iter().enumerate() {
+        let row = &out[k * dim..(k + 1) * dim];
+        let a = batch.adv[i];
+        let (logp, entropy) = match (&model.head, batch.choices[i]) {
+            (Head::Categorical(_), Choice::Discrete(c)) => {
+                let lp = log_softmax(row);
+                let h: f32 = -lp.iter().map(|l| l.exp() * l).sum::<f32>();
+                (lp[c], h)
+            }
+            (Head::Gaussian { log_std }, Choice::Continuous(x)) => (gaussian_logp(row, log_std, &x), gaussian_entropy(log_std)),
+            _ => panic!("the batch's actions do not fit the model's head"),
+        };
+        let ratio = (logp - batch.logp_old[i]).exp();
+        let clipped = ratio.clamp(1.0 - CLIP_EPSILON, 1.0 + CLIP_EPSILON);
+        let (s1, s2) = (ratio * a, clipped * a);
+        out_stats.policy_loss -= s1.min(s2) as f64;
+        out_stats.entropy += entropy as f64;
+        out_stats.approx_kl += ((ratio - 1.0) - (logp - batch.logp_old[i])) as f64;
+        if (ratio - 1.0).abs() > CLIP_EPSILON {
+            out_stats.clip_fraction += 1.0;
+        }
+        // d(loss)/d(logp): only the unclipped term carries a gradient.
+        let g_logp = if s1 <= s2 { -a * ratio * inv_n } else { 0.0 };
+        let d = &mut d_out[k * dim..(k + 1) * dim];
+        match (&model.head, batch.choices[i]) {
+            (Head::Categorical(_), Choice::Discrete(c)) => {
+                let lp = log_softmax(row);
+                for j in 0..dim {
+                    let p = lp[j].exp();
+                    let onehot = if j == c { 1.0 } else { 0.0 };
+                    // logp term, and −β·H with dH/dz_j = −p_j (log p_j + H).
+                    d[j] = g_logp * (onehot - p) + beta * inv_n * p * (lp[j] + entropy);
+                }
+            }
+            (Head::Gaussian { log_std }, Choice::Continuous(x)) => {
+                for j in 0..2 {
+                    let ls = clip_log_std(log_std[j]);
+                    let var = (2.0 * ls).exp();
+                    let diff = x[j] - row[j];
+                    d[j] = g_logp * diff / var;
+                    if log_std[j] > LOG_STD_RANGE.0 && log_std[j] < LOG_STD_RANGE.1 {
+                        g_log_std[j] += g_logp * (diff * diff / var - 1.0);
+                    }
+                }
+            }
+            _ => unreachable!(),
+        }
+    }
+    if let Head::Gaussian { log_std } = &model.head {
+        for j in 0..2 {
+            if log_std[j] > LOG_STD_RANGE.0 && log_std[j] < LOG_STD_RANGE.1 {
+                g_log_std[j] -= beta; // −β·H, dH/dlogσ = 1
+            }
+        }
+    }
+    model.pi.backward(&tape_pi, &d_out, &mut out_stats.grad_pi, par);
+
+    let mut tape_v = Tape::default();
+    model.v.forward(&obs, n, &mut tape_v, par);
+    let values = tape_v.output();
+    let mut d_v = vec![0.0f32; n];
+    for (k, &i) in idx.iter().enumerate() {
+        let err = values[k] - batch.returns[i];
+        let (loss, grad) = match h.loss_type {
+            LossType::Huber if err.abs() <= 1.0 => (0.5 * err * err, err),
+            LossType::Huber => (err.abs() - 0.5, err.signum()),
+            LossType::MeanSquaredError => (err * err, 2.0 * err),
+        };
+        out_stats.value_loss += loss as f64;
+        d_v[k] = grad * inv_n;
+    }
+    model.v.backward(&tape_v, &d_v, &mut out_stats.grad_v, par);
+
+    let nf = n as f64;
+    out_stats.policy_loss /= nf;
+    out_stats.value_loss /= nf;
+    out_stats.entropy /= nf;
+    out_stats.approx_kl /= nf;
+    out_stats.clip_fraction /= nf;
+    out_stats.total = out_stats.policy_loss - h.beta_entropy * out_stats.entropy + out_stats.value_loss;
+    out_stats.grad_log_std = g_log_std;
+    out_stats
+}
+
+/// What one training iteration did.
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
+pub struct UpdateStats {
+    /// Samples trained on.
+    pub samples: usize,
+    /// Mean clipped-surrogate loss over minibatches.
+    pub policy_loss: f64,
+    /// Mean value loss.
+    pub value_loss: f64,
+    /// Mean entropy.
+    pub entropy: f64,
+    /// Mean approximate KL between the old and new policy.
+    pub approx_kl: f64,
+    /// Mean clip fraction.
+    pub clip_fraction: f64,
+    /// 1 − Var(returns − values) / Var(returns), before the update.
+    pub explained_variance: f64,
+    /// Gradient steps taken.
+    pub gradient_steps: usize,
+    /// The update was refused (a non-finite loss or gradient); the weights did not change.
+    pub refused: Option<String>,
+    /// Policy version after the update.
+    pub policy_version: u64,
+}
+
+/// The learner's state: the model, its optimisers, its version.
+#[derive(Clone)]
+pub struct Ppo {
+    /// The model being trained.
+    pub model: ActorCritic,
+    /// Hyperparameters.
+    pub hyper: Hyperparameters,
+    /// Current policy version (+1 per accepted update).
+    pub version: u64,
+    opt_pi: Adam,
+    opt_v: Adam,
+    opt_log_std: Adam,
+    rng: ChaCha8Rng,
+    par: Par,
+}
+
+impl Ppo {
+    /// A learner for `model` at `version`.
+    pub fn new(model: ActorCritic, hyper: Hyperparameters, version: u64, seed: u64, par: Par) -> Ppo {
+        let lr = hyper.lr as f32;
+        Ppo {
+            opt_pi: Adam::new(model.pi.params.len(), lr),
+            opt_v: Adam::new(model.v.params.len(), lr),
+            opt_log_std: Adam::new(2, lr),
+            model,
+            hyper,
+            version,
+            rng: ChaCha8Rng::seed_from_u64(seed),
+            par,
+        }
+    }
+
+    /// Train on a set of trajectories (one iteration).
+    pub fn update(&mut self, trajs: &[Trajectory]) -> UpdateStats {
+        let batch = make_batch(trajs, self.model.obs_size(), self.hyper.discount_factor);
+        let n = batch.len();
+        let mut stats = UpdateStats { samples: n, explained_variance: explained_variance(&batch), ..Default::default() };
+        let bs = self.hyper.batch_size.min(n.max(1));
+        let minibatches = n / bs;
+        if minibatches == 0 {
+            stats.refused = Some(format!("{n} samples: fewer than one minibatch of {bs}"));
+            stats.policy_version = self.version;
+            return stats;
+        }
+        let saved = (self.model.clone(), self.opt_pi.clone(), self.opt_v.clone(), self.opt_log_std.clone());
+        let mut order: Vec<usize> = (0..n).collect();
+        for _ in 0..self.hyper.num_epochs {
+            order.shuffle(&mut self.rng);
+            for mb in order.chunks_exact(bs) {
+                let lg = loss_and_grad(&self.model, &batch, mb, &self.hyper, self.par);
+                let finite = lg.total.is_finite()
+                    && lg.grad_pi.iter().all(|g| g.is_finite())
+                    && lg.grad_v.iter().all(|g| g.is_finite())
+                    && lg.grad_log_std.iter().all(|g| g.is_finite());
+                if !finite {
+                    (self.model, self.opt_pi, self.opt_v, self.opt_log_std) = saved;
+                    stats.refused = Some(format!(
+                        "non-finite loss or gradient at gradient step {} (loss {}): update refused, weights kept at version {}",
+                        stats.gradient_steps, lg.total, self.version
+                    ));
+                    stats.policy_version = self.version;
+                    return stats;
+                }
+                self.opt_pi.step(&mut self.model.pi.params, &lg.grad_pi);
+                self.opt_v.step(&mut self.model.v.params, &lg.grad_v);
+                if let Head::Gaussian { log_std } = &mut self.model.head {
+                    self.opt_log_std.step(log_std, &lg.grad_log_std);
+                }
+                stats.policy_loss += lg.policy_loss;
+                stats.value_loss += lg.value_loss;
+                stats.entropy += lg.entropy;
+                stats.approx_kl += lg.approx_kl;
+                stats.clip_fraction += lg.clip_fraction;
+                stats.gradient_steps += 1;
+            }
+        }
+        let k = stats.gradient_steps as f64;
+        stats.policy_loss /= k;
+        stats.value_loss /= k;
+        stats.entropy /= k;
+        stats.approx_kl /= k;
+        stats.clip_fraction /= k;
+        self.version += 1;
+        stats.policy_version = self.version;
+        stats
+    }
+
+    /// Change the learning rate (e.g. after cloning).
+    pub fn set_lr(&mut self, lr: f64) {
+        self.hyper.lr = lr;
+        for opt in [&mut self.opt_pi, &mut self.opt_v, &mut self.opt_log_std] {
+            opt.lr = lr as f32;
+        }
+    }
+}
+
+fn explained_variance(b: &Batch) -> f64 {
+    let n = b.len().max(1) as f64;
+    let mean = |v: &mut dyn Iterator<Item = f64>| v.sum::<f64>() / n;
+    let mr = mean(&mut b.returns.iter().map(|x| *x as f64));
+    let var_r = mean(&mut b.returns.iter().map(|x| (*x as f64 - mr).powi(2)));
+    let diffs: Vec<f64> = b.returns.iter().zip(&b.values_old).map(|(r, v)| (*r - *v) as f64).collect();
+    let md = mean(&mut diffs.iter().copied());
+    let var_d = mean(&mut diffs.iter().map(|d| (d - md).powi(2)));
+    if var_r > 0.0 { 1.0 - var_d / var_r } else { f64::NAN }
+}

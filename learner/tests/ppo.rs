@@ -1,0 +1,194 @@
+//! PPO's maths: the whole loss against finite differences, and learning a task whose answer
+//! is known (it fails if the gradient's sign or the advantage is wrong).
+
+use faer::Par;
+use learner::ppo::{Batch, gae, loss_and_grad, make_batch};
+use learner::{Hyperparameters, LossType, Ppo};
+use policy::{ActorCritic, Choice, ModelMetadata, Trajectory};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+fn meta(continuous: bool) -> ModelMetadata {
+    let text = if continuous {
+        r#"{"action_space":{"steering_angle":{"low":-30,"high":30},"speed":{"low":0.5,"high":2}},"action_space_type":"continuous","sensor":["STATE_VECTOR"],"neural_network":"PADDOCK_MLP","version":"5"}"#
+    } else {
+        r#"{"action_space":[{"steering_angle":-30,"speed":1},{"steering_angle":0,"speed":1},{"steering_angle":30,"speed":1}],"sensor":["STATE_VECTOR"],"neural_network":"PADDOCK_MLP","version":"5"}"#
+    };
+    ModelMetadata::parse(text, "meta").unwrap()
+}
+
+/// A random batch acted by `model` (so ratios start near 1) with random advantages.
+fn random_batch(model: &ActorCritic, n: usize, rng: &mut ChaCha8Rng) -> Batch {
+    let os = model.obs_size();
+    let obs: Vec<f32> = (0..n * os).map(|_| rng.random_range(-1.0..1.0)).collect();
+    let acts = model.act(&obs, n, false, rng, Par::Seq);
+    Batch {
+        obs_size: os,
+        obs,
+        choices: acts.iter().map(|a| a.choice).collect(),
+        // Perturbed behaviour log-probs so that some ratios fall outside the clip range.
+        logp_old: acts.iter().map(|a| a.logp + rng.random_range(-0.3..0.3)).collect(),
+        adv: (0..n).map(|_| rng.random_range(-2.0..2.0)).collect(),
+        returns: (0..n).map(|_| rng.random_range(-3.0..3.0)).collect(),
+        values_old: acts.iter().map(|a| a.value).collect(),
+    }
+}
+
+fn check_whole_loss(continuous: bool, loss_type: LossType) {
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    let mut model = ActorCritic::new(&meta(continuous), 6, &mut rng);
+    // Larger head weights than the initialisation so the loss depends visibly on them.
+    for p in model.pi.params.iter_mut() {
+        *p *= 3.0;
+    }
+    if let policy::Head::Gaussian { log_std } = &mut model.head {
+        *log_std = [-0.3, 0.2];
+    }
+    let batch = random_batch(&model, 32, &mut rng);
+    let h = Hyperparameters { beta_entropy: 0.05, loss_type, ..Hyperparameters::default() };
+    let idx: Vec<usize> = (0..32).collect();
+    let lg = loss_and_grad(&model, &batch, &idx, &h, Par::Seq);
+    let eps = 2e-3f32;
+    let mut bad = Vec::new();
+    let mut checked = 0;
+    for tower in 0..2 {
+        for _ in 0..60 {
+            let len = if tower == 0 { model.pi.params.len() } else { model.v.params.len() };
+            let i = rng.random_range(0..len);
+            let analytic = if tower == 0 { lg.grad_pi[i] } else { lg.grad_v[i] } as f64;
+            let mut m = model.clone();
+            let p = if tower == 0 { &mut m.pi.params[i] } else { &mut m.v.params[i] };
+            let orig = *p;
+            *p = orig + eps;
+            let up = loss_and_grad(&m, &batch, &idx, &h, Par::Seq).total;
+            let p = if tower == 0 { &mut m.pi.params[i] } else { &mut m.v.params[i] };
+            *p = orig - eps;
+            let down = loss_and_grad(&m, &batch, &idx, &h, Par::Seq).total;
+            let numeric = (up - down) / (2.0 * eps as f64);
+            checked += 1;
+            if (numeric - analytic).abs() > 2e-3 + 3e-2 * analytic.abs() {
+                bad.push((tower, i, numeric, analytic));
+            }
+        }
+    }
+    if continuous {
+        // log σ moves every sample's ratio at once; keep the ratios away from the clip edges
+        // (behaviour = current policy) so the difference quotient crosses no kink.
+        let mut batch = batch.clone();
+        let acts_logp: Vec<f32> = {
+            let probe = loss_and_grad(&model, &batch, &idx, &h, Par::Seq);
+            assert!(probe.total.is_finite());
+            let mut out = Vec::new();
+            for i in 0..batch.len() {
+                let os = batch.obs_size;
+                let mut tape = policy::nn::Tape::default();
+                model.pi.forward(&batch.obs[i * os..(i + 1) * os], 1, &mut tape, Par::Seq);
+                let policy::Head::Gaussian { log_std } = &model.head else { unreachable!() };
+                let Choice::Continuous(x) = batch.choices[i] else { unreachable!() };
+                out.push(policy::model::gaussian_logp(tape.output(), log_std, &x));
+            }
+            out
+        };
+        batch.logp_old = acts_logp;
+        let lg = loss_and_grad(&model, &batch, &idx, &h, Par::Seq);
+        for d in 0..2 {
+            let mut m = model.clone();
+            let policy::Head::Gaussian { log_std } = &mut m.head else { unreachable!() };
+            let orig = log_std[d];
+            log_std[d] = orig + eps;
+            let up = loss_and_grad(&m, &batch, &idx, &h, Par::Seq).total;
+            let policy::Head::Gaussian { log_std } = &mut m.head else { unreachable!() };
+            log_std[d] = orig - eps;
+            let down = loss_and_grad(&m, &batch, &idx, &h, Par::Seq).total;
+            let numeric = (up - down) / (2.0 * eps as f64);
+            let analytic = lg.grad_log_std[d] as f64;
+            assert!((numeric - analytic).abs() < 2e-3 + 3e-2 * analytic.abs(), "log_std[{d}]: {numeric} vs {analytic}");
+        }
+    }
+    // Clip boundaries and ReLU kinks may spoil a rare quotient; a wrong gradient spoils most.
+    assert!(bad.len() <= checked / 25, "{} of {checked} disagree: {:?}", bad.len(), &bad[..bad.len().min(6)]);
+}
+
+#[test]
+fn whole_loss_gradient_categorical_huber() {
+    check_whole_loss(false, LossType::Huber);
+}
+
+#[test]
+fn whole_loss_gradient_gaussian_mse() {
+    check_whole_loss(true, LossType::MeanSquaredError);
+}
+
+#[test]
+fn gae_matches_a_hand_computation() {
+    let t = Trajectory { rewards: vec![1.0, 0.0, 2.0], values: vec![0.5, 1.0, 1.5], ..Default::default() };
+    let (g, l) = (0.9, 0.8);
+    let (adv, ret) = gae(&t, g, l);
+    // δ2 = 2 − 1.5 = 0.5; δ1 = 0 + 0.9·1.5 − 1 = 0.35; δ0 = 1 + 0.9·1 − 0.5 = 1.4
+    let a2 = 0.5;
+    let a1 = 0.35 + g * l * a2;
+    let a0 = 1.4 + g * l * a1;
+    for (x, y) in adv.iter().zip([a0, a1, a2]) {
+        assert!((x - y).abs() < 1e-9, "{adv:?}");
+    }
+    assert!((ret[0] - (a0 + 0.5)).abs() < 1e-9);
+    let b = make_batch(&[t.clone(), t], 0, 0.9);
+    let mean: f32 = b.adv.iter().sum::<f32>() / 6.0;
+    let var: f32 = b.adv.iter().map(|a| (a - mean).powi(2)).sum::<f32>() / 6.0;
+    assert!(mean.abs() < 1e-6 && (var - 1.0).abs() < 1e-4, "standardised: {mean} {var}");
+}
+
+/// A contextual bandit: the observation names the rewarded action (one-hot of 3).
+fn bandit_episodes(model: &ActorCritic, version: u64, n: usize, rng: &mut ChaCha8Rng) -> (Vec<Trajectory>, f64) {
+    let os = model.obs_size();
+    let mut trajs = Vec::new();
+    let mut total = 0.0;
+    for _ in 0..n {
+        let ctx = rng.random_range(0..3);
+        let mut obs = vec![0.0f32; os];
+        obs[ctx] = 1.0;
+        let a = model.act(&obs, 1, false, rng, Par::Seq)[0];
+        let Choice::Discrete(k) = a.choice else { unreachable!() };
+        let r = if k == ctx { 1.0 } else { 0.0 };
+        total += r as f64;
+        trajs.push(Trajectory { obs, choices: vec![a.choice], logp: vec![a.logp], values: vec![a.value], rewards: vec![r], done: true, policy_version: version, ..Default::default() });
+    }
+    (trajs, total / n as f64)
+}
+
+#[test]
+fn ppo_learns_a_bandit_and_would_not_with_a_wrong_sign() {
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    let model = ActorCritic::new(&meta(false), 6, &mut rng);
+    let h = Hyperparameters { lr: 3e-3, num_epochs: 4, batch_size: 32, ..Hyperparameters::default() };
+    let mut ppo = Ppo::new(model, h, 0, 1, Par::Seq);
+    let (_, first) = bandit_episodes(&ppo.model, 0, 400, &mut rng);
+    for _ in 0..25 {
+        let (trajs, _) = bandit_episodes(&ppo.model, ppo.version, 128, &mut rng);
+        let stats = ppo.update(&trajs);
+        assert!(stats.refused.is_none());
+    }
+    let (_, last) = bandit_episodes(&ppo.model, ppo.version, 400, &mut rng);
+    assert!(first < 0.5, "a fresh policy guesses: {first}");
+    assert!(last > 0.9, "PPO finds the rewarded action: {first} -> {last}");
+    assert_eq!(ppo.version, 25);
+}
+
+#[test]
+fn a_nan_never_reaches_the_weights() {
+    let mut rng = ChaCha8Rng::seed_from_u64(4);
+    let model = ActorCritic::new(&meta(false), 6, &mut rng);
+    let mut ppo = Ppo::new(model, Hyperparameters { batch_size: 8, ..Hyperparameters::default() }, 3, 1, Par::Seq);
+    let (mut trajs, _) = bandit_episodes(&ppo.model, 3, 64, &mut rng);
+    let before = ppo.model.clone();
+    trajs[5].rewards[0] = f32::NAN;
+    let stats = ppo.update(&trajs);
+    assert!(stats.refused.as_deref().unwrap_or("").contains("non-finite"), "{stats:?}");
+    assert_eq!(ppo.model, before, "weights untouched");
+    assert_eq!(ppo.version, 3, "no new version");
+    // And training goes on from the good weights.
+    let (good, _) = bandit_episodes(&ppo.model, 3, 64, &mut rng);
+    let stats = ppo.update(&good);
+    assert!(stats.refused.is_none() && ppo.version == 4);
+    assert_ne!(ppo.model, before);
+}

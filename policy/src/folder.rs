@@ -1,0 +1,232 @@
+//! The model folder: what a trained model is on disk, and what a car will receive.
+//!
+//! ```text
+//! model/
+//!   model.safetensors     weights: pi.<layer>.weight/bias, v.<layer>.weight/bias, pi.log_std
+//!   model_metadata.json   DeepRacer's file, as DeepRacer writes it
+//!   manifest.json         policy version, parent model, sha256 of the weights, figures
+//! ```
+//!
+//! Saving writes a sibling temporary folder and renames it into place, so a reader sees the
+//! old folder or the new one, never half of one. Loading checks every tensor's presence and
+//! shape against what `model_metadata.json` implies, and the weights' checksum.
+
+use crate::metadata::ModelMetadata;
+use crate::model::{ActorCritic, Head};
+use crate::nn::{Layer, Net};
+use safetensors::{Dtype, SafeTensors, tensor::TensorView};
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+/// The folder's manifest.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Manifest {
+    /// Format tag: `paddock-model-1`.
+    pub format: String,
+    /// The policy version these weights are (0 = freshly initialised; +1 per update).
+    pub policy_version: u64,
+    /// The model this one was cloned or trained from.
+    pub parent: Option<Parent>,
+    /// sha256 of `model.safetensors`, hex.
+    pub weights_sha256: String,
+    /// Inputs per observation (the state vector's length; the camera's pixel count).
+    pub obs_size: usize,
+    /// The simulator's observation settings the model was trained with (opaque here).
+    pub observation: serde_json::Value,
+    /// Training figures (iteration, steps, best evaluation, hyperparameters…).
+    pub training: serde_json::Value,
+}
+
+/// Where a model came from.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Parent {
+    /// The parent folder as given.
+    pub path: String,
+    /// Its policy version.
+    pub policy_version: u64,
+    /// Its weights' checksum.
+    pub weights_sha256: String,
+}
+
+/// A loaded model folder.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ModelFolder {
+    /// `model_metadata.json`.
+    pub metadata: ModelMetadata,
+    /// The networks.
+    pub model: ActorCritic,
+    /// `manifest.json`.
+    pub manifest: Manifest,
+}
+
+/// Why a model folder could not be read or written.
+#[derive(Debug, thiserror::Error)]
+pub enum ModelError {
+    /// A file could not be read or written.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: String,
+        /// The error.
+        source: std::io::Error,
+    },
+    /// The folder's contents are inconsistent.
+    #[error("{path}: {msg}")]
+    Invalid {
+        /// The file.
+        path: String,
+        /// What is wrong.
+        msg: String,
+    },
+}
+
+fn io(path: &Path) -> impl FnOnce(std::io::Error) -> ModelError + '_ {
+    move |source| ModelError::Io { path: path.display().to_string(), source }
+}
+
+/// Named tensors of a model: (name, shape, values).
+fn tensors(model: &ActorCritic) -> Vec<(String, Vec<usize>, &[f32])> {
+    let mut out = Vec::new();
+    for (tower, net) in [("pi", &model.pi), ("v", &model.v)] {
+        for (i, layer) in net.layers.iter().enumerate() {
+            let (wshape, offset, nw, nb) = match *layer {
+                Layer::Dense { inp, out, offset } => (vec![out, inp], offset, inp * out, out),
+                Layer::Conv2d { input: [_, _, c], filters, kernel, offset, .. } => {
+                    (vec![filters, kernel, kernel, c], offset, filters * kernel * kernel * c, filters)
+                }
+                _ => continue,
+            };
+            out.push((format!("{tower}.{i}.weight"), wshape, &net.params[offset..offset + nw]));
+            out.push((format!("{tower}.{i}.bias"), vec![nb], &net.params[offset + nw..offset + nw + nb]));
+        }
+    }
+    if let Head::Gaussian { log_std } = &model.head {
+        out.push(("pi.log_std".into(), vec![2], log_std.as_slice()));
+    }
+    out
+}
+
+/// The safetensors bytes of a model's weights.
+pub fn weights_bytes(model: &ActorCritic, policy_version: u64) -> Vec<u8> {
+    let named = tensors(model);
+    let bytes: Vec<(String, Vec<usize>, Vec<u8>)> =
+        named.into_iter().map(|(n, s, v)| (n, s, v.iter().flat_map(|x| x.to_le_bytes()).collect())).collect();
+    let views: Vec<(String, TensorView<'_>)> = bytes
+        .iter()
+        .map(|(n, s, b)| (n.clone(), TensorView::new(Dtype::F32, s.clone(), b).expect("sizes agree")))
+        .collect();
+    let info = HashMap::from([
+        ("format".to_string(), "paddock-policy-1".to_string()),
+        ("policy_version".to_string(), policy_version.to_string()),
+    ]);
+    safetensors::serialize(views, Some(info)).expect("serialisable")
+}
+
+/// sha256 of bytes, hex.
+pub fn sha256_hex(bytes: &[u8]) -> String {
+    format!("{:x}", Sha256::digest(bytes))
+}
+
+/// Write a model folder at `dir` (replacing one that is there). `manifest.weights_sha256`
+/// is filled in here.
+pub fn save(dir: &Path, metadata: &ModelMetadata, model: &ActorCritic, manifest: &Manifest) -> Result<Manifest, ModelError> {
+    let weights = weights_bytes(model, manifest.policy_version);
+    let mut manifest = manifest.clone();
+    manifest.weights_sha256 = sha256_hex(&weights);
+    let parent = dir.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    std::fs::create_dir_all(parent).map_err(io(parent))?;
+    let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "model".into());
+    let tmp = parent.join(format!(".{name}.tmp-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&tmp);
+    std::fs::create_dir_all(&tmp).map_err(io(&tmp))?;
+    let write = |file: &str, bytes: &[u8]| -> Result<(), ModelError> {
+        let p = tmp.join(file);
+        std::fs::write(&p, bytes).map_err(io(&p))
+    };
+    write("model.safetensors", &weights)?;
+    write("model_metadata.json", metadata.to_json().as_bytes())?;
+    write("manifest.json", serde_json::to_string_pretty(&manifest).expect("JSON").as_bytes())?;
+    let old: PathBuf = parent.join(format!(".{name}.old-{}", std::process::id()));
+    if dir.exists() {
+        std::fs::rename(dir, &old).map_err(io(dir))?;
+    }
+    std::fs::rename(&tmp, dir).map_err(io(dir))?;
+    let _ = std::fs::remove_dir_all(&old);
+    Ok(manifest)
+}
+
+/// Read a model folder, checking the weights against the metadata and the checksum.
+pub fn load(dir: &Path) -> Result<ModelFolder, ModelError> {
+    let meta_path = dir.join("model_metadata.json");
+    let metadata = ModelMetadata::load(&meta_path).map_err(|e| ModelError::Invalid { path: meta_path.display().to_string(), msg: e.msg })?;
+    let man_path = dir.join("manifest.json");
+    let text = std::fs::read_to_string(&man_path).map_err(io(&man_path))?;
+    let manifest: Manifest =
+        serde_json::from_str(&text).map_err(|e| ModelError::Invalid { path: man_path.display().to_string(), msg: e.to_string() })?;
+    let w_path = dir.join("model.safetensors");
+    let bytes = std::fs::read(&w_path).map_err(io(&w_path))?;
+    let bad = |msg: String| ModelError::Invalid { path: w_path.display().to_string(), msg };
+    let sum = sha256_hex(&bytes);
+    if sum != manifest.weights_sha256 {
+        return Err(bad(format!("sha256 is {sum}, manifest.json says {}: the weights were changed or damaged", manifest.weights_sha256)));
+    }
+    let st = SafeTensors::deserialize(&bytes).map_err(|e| bad(format!("not a safetensors file: {e}")))?;
+    // The architecture the metadata implies; its weights are replaced below.
+    let mut model = ActorCritic::new(&metadata, manifest.obs_size, &mut <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(0));
+    let expected: Vec<(String, Vec<usize>)> = tensors(&model).into_iter().map(|(n, s, _)| (n, s)).collect();
+    let mut names: Vec<String> = st.names().into_iter().map(str::to_string).collect();
+    names.sort();
+    for (name, shape) in &expected {
+        let t = st.tensor(name).map_err(|_| {
+            bad(format!(
+                "has no tensor '{name}' (shape {shape:?}) that model_metadata.json ({}, {} outputs) needs; it holds {names:?}",
+                metadata.neural_network.name(),
+                metadata.action_space.dim()
+            ))
+        })?;
+        if t.dtype() != Dtype::F32 || t.shape() != shape.as_slice() {
+            return Err(bad(format!(
+                "tensor '{name}' is {:?} {:?}; model_metadata.json ({}, {} outputs, {} inputs) needs F32 {shape:?}",
+                t.dtype(),
+                t.shape(),
+                metadata.neural_network.name(),
+                metadata.action_space.dim(),
+                manifest.obs_size
+            )));
+        }
+    }
+    if names.len() != expected.len() {
+        let extra: Vec<&String> = names.iter().filter(|n| !expected.iter().any(|(e, _)| e == *n)).collect();
+        return Err(bad(format!("holds tensors the metadata does not explain: {extra:?}")));
+    }
+    let read = |name: &str, dst: &mut [f32]| {
+        let t = st.tensor(name).expect("checked above");
+        for (d, c) in dst.iter_mut().zip(t.data().chunks_exact(4)) {
+            *d = f32::from_le_bytes([c[0], c[1], c[2], c[3]]);
+        }
+    };
+    for (tower, net) in [("pi", &mut model.pi), ("v", &mut model.v)] {
+        fill_net(tower, net, &read);
+    }
+    if let Head::Gaussian { log_std } = &mut model.head {
+        read("pi.log_std", log_std);
+    }
+    Ok(ModelFolder { metadata, model, manifest })
+}
+
+fn fill_net(tower: &str, net: &mut Net, read: &impl Fn(&str, &mut [f32])) {
+    let layers = net.layers.clone();
+    for (i, layer) in layers.iter().enumerate() {
+        let (offset, nw, nb) = match *layer {
+            Layer::Dense { inp, out, offset } => (offset, inp * out, out),
+            Layer::Conv2d { input: [_, _, c], filters, kernel, offset, .. } => (offset, filters * kernel * kernel * c, filters),
+            _ => continue,
+        };
+        read(&format!("{tower}.{i}.weight"), &mut net.params[offset..offset + nw]);
+        read(&format!("{tower}.{i}.bias"), &mut net.params[offset + nw..offset + nw + nb]);
+    }
+}

@@ -1,0 +1,235 @@
+//! The actor-critic: separate policy and value towers as DeepRacer builds them (§3.2–3.3),
+//! the action heads, and the maths of their log-probabilities and entropies.
+//!
+//! Heads: a categorical over a discrete action list (softmax); for continuous ranges a
+//! Gaussian with a state-independent log-std (DeepRacer's PPO head). Paddock's continuous
+//! head is a *clipped* Gaussian: the sample is unbounded (its log-probability is the
+//! Gaussian's), and the environment receives it clipped to [-1, 1] and rescaled linearly to
+//! [low, high], as DeepRacer's `ScalableBoxActionSpace` does.
+
+use crate::metadata::{Action, ActionSpace, ModelMetadata, NeuralNetwork, Sensor};
+use crate::nn::{InputShape, LayerSpec, Net, Tape};
+use faer::Par;
+use rand::Rng;
+use rand_distr::{Distribution, StandardNormal};
+
+/// DeepRacer's camera frame: 120 rows × 160 columns × 1 (grayscale).
+pub const CAMERA_SHAPE: (usize, usize, usize) = (120, 160, 1);
+/// DeepRacer's clip on the Gaussian head's log-std.
+pub const LOG_STD_RANGE: (f32, f32) = (-20.0, 3.0);
+
+/// The policy's output head.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Head {
+    /// Softmax over `n` actions.
+    Categorical(usize),
+    /// Two means from the tower and a learned log-std per dimension.
+    Gaussian {
+        /// log σ for (steering, speed).
+        log_std: [f32; 2],
+    },
+}
+
+/// What the policy chose for one observation.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Choice {
+    /// Index into the discrete action list.
+    Discrete(usize),
+    /// The raw Gaussian sample (before clipping) for (steering, speed).
+    Continuous([f32; 2]),
+}
+
+impl Choice {
+    /// The command for the car.
+    pub fn to_action(self, space: &ActionSpace) -> Action {
+        match self {
+            Choice::Discrete(i) => space.discrete(i).expect("index within the action list"),
+            Choice::Continuous(u) => space.scale([u[0] as f64, u[1] as f64]).expect("continuous space"),
+        }
+    }
+}
+
+/// One step of acting: the choice, its log-probability, and the value estimate.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ActOutput {
+    /// The choice.
+    pub choice: Choice,
+    /// log π(choice | obs).
+    pub logp: f32,
+    /// V(obs).
+    pub value: f32,
+}
+
+/// Separate policy and value towers plus the head.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ActorCritic {
+    /// Policy tower (ends in the head's logits or means).
+    pub pi: Net,
+    /// Value tower (ends in one output).
+    pub v: Net,
+    /// The head.
+    pub head: Head,
+}
+
+/// The tower layers (without the final output layer) for a network name.
+pub fn tower_specs(network: NeuralNetwork) -> Vec<LayerSpec> {
+    use LayerSpec::*;
+    match network {
+        NeuralNetwork::DeepConvolutionalNetworkShallow => {
+            vec![Scale(1.0 / 255.0), Conv(32, 8, 4), Relu, Conv(64, 4, 2), Relu, Conv(64, 3, 1), Relu, Dense(512), Relu]
+        }
+        // "Dense on the last axis" of a 4-D tensor (Keras) is a 1×1 convolution.
+        NeuralNetwork::DeepConvolutionalNetwork => vec![
+            Scale(1.0 / 255.0),
+            Conv(32, 5, 2),
+            Relu,
+            Conv(32, 3, 1),
+            Relu,
+            Conv(64, 3, 2),
+            Relu,
+            Conv(64, 3, 1),
+            Relu,
+            Conv(64, 1, 1),
+            Relu,
+            Dense(512),
+            Relu,
+        ],
+        NeuralNetwork::DeepConvolutionalNetworkDeep => vec![
+            Scale(1.0 / 255.0),
+            Conv(32, 8, 4),
+            Relu,
+            Conv(32, 4, 2),
+            Relu,
+            Conv(64, 4, 2),
+            Relu,
+            Conv(64, 3, 1),
+            Relu,
+            Conv(512, 1, 1),
+            Relu,
+            Conv(512, 1, 1),
+            Relu,
+            Dense(256),
+            Relu,
+            Dense(128),
+            Relu,
+        ],
+        NeuralNetwork::PaddockMlp => vec![Dense(128), Relu, Dense(128), Relu],
+    }
+}
+
+/// The network input for a model: the camera frame, or a vector of `obs_size`.
+pub fn input_shape(meta: &ModelMetadata, obs_size: usize) -> InputShape {
+    if meta.sensor.contains(&Sensor::StateVector) {
+        InputShape::Flat(obs_size)
+    } else {
+        let (h, w, c) = CAMERA_SHAPE;
+        let c = if meta.sensor.contains(&Sensor::StereoCameras) { 2 } else { c };
+        InputShape::Image(h, w, c)
+    }
+}
+
+impl ActorCritic {
+    /// A freshly initialised model for `meta` (state-vector models take `obs_size` inputs).
+    pub fn new(meta: &ModelMetadata, obs_size: usize, rng: &mut impl Rng) -> ActorCritic {
+        let input = input_shape(meta, obs_size);
+        let mut pi_specs = tower_specs(meta.neural_network);
+        let mut v_specs = pi_specs.clone();
+        let head = match meta.action_space {
+            ActionSpace::Discrete(ref a) => Head::Categorical(a.len()),
+            ActionSpace::Continuous { .. } => Head::Gaussian { log_std: [0.0, 0.0] },
+        };
+        pi_specs.push(LayerSpec::Dense(meta.action_space.dim()));
+        v_specs.push(LayerSpec::Dense(1));
+        // Small initial policy outputs: near-uniform actions at the start (DeepRacer's
+        // continuous head uses std 0.01); value head with unit-scale weights.
+        let pi = Net::new(input, &pi_specs, Some(0.01), rng);
+        let v = Net::new(input, &v_specs, Some(1.0 / (tower_width(&v_specs) as f32).sqrt()), rng);
+        ActorCritic { pi, v, head }
+    }
+
+    /// Inputs per observation.
+    pub fn obs_size(&self) -> usize {
+        self.pi.in_size()
+    }
+
+    /// Act on a batch of observations: sample (training) or take the mode (evaluation).
+    pub fn act(&self, obs: &[f32], batch: usize, deterministic: bool, rng: &mut impl Rng, par: Par) -> Vec<ActOutput> {
+        let mut tape = Tape::default();
+        self.pi.forward(obs, batch, &mut tape, par);
+        let out = tape.output().to_vec();
+        self.v.forward(obs, batch, &mut tape, par);
+        let values = tape.output();
+        let dim = self.pi.out_size();
+        (0..batch)
+            .map(|i| {
+                let row = &out[i * dim..(i + 1) * dim];
+                let (choice, logp) = match self.head {
+                    Head::Categorical(n) => {
+                        let logp = log_softmax(row);
+                        let a = if deterministic {
+                            argmax(&logp)
+                        } else {
+                            let u: f32 = rng.random();
+                            let mut acc = 0.0;
+                            let mut pick = n - 1;
+                            for (k, lp) in logp.iter().enumerate() {
+                                acc += lp.exp();
+                                if u < acc {
+                                    pick = k;
+                                    break;
+                                }
+                            }
+                            pick
+                        };
+                        (Choice::Discrete(a), logp[a])
+                    }
+                    Head::Gaussian { log_std } => {
+                        let mut x = [0.0f32; 2];
+                        for d in 0..2 {
+                            let z: f32 = if deterministic { 0.0 } else { StandardNormal.sample(rng) };
+                            x[d] = row[d] + z * clip_log_std(log_std[d]).exp();
+                        }
+                        (Choice::Continuous(x), gaussian_logp(row, &log_std, &x))
+                    }
+                };
+                ActOutput { choice, logp, value: values[i] }
+            })
+            .collect()
+    }
+}
+
+fn tower_width(specs: &[LayerSpec]) -> usize {
+    specs.iter().rev().skip(1).find_map(|s| if let LayerSpec::Dense(n) = s { Some(*n) } else { None }).unwrap_or(1)
+}
+
+/// log-softmax of one row of logits.
+pub fn log_softmax(z: &[f32]) -> Vec<f32> {
+    let m = z.iter().cloned().fold(f32::MIN, f32::max);
+    let lse = m + z.iter().map(|v| (v - m).exp()).sum::<f32>().ln();
+    z.iter().map(|v| v - lse).collect()
+}
+
+fn argmax(v: &[f32]) -> usize {
+    v.iter().enumerate().fold((0, f32::MIN), |b, (i, &x)| if x > b.1 { (i, x) } else { b }).0
+}
+
+/// The clipped log-std actually used.
+pub fn clip_log_std(l: f32) -> f32 {
+    l.clamp(LOG_STD_RANGE.0, LOG_STD_RANGE.1)
+}
+
+/// log N(x; mean, exp(log_std)) summed over the two dimensions.
+pub fn gaussian_logp(mean: &[f32], log_std: &[f32; 2], x: &[f32; 2]) -> f32 {
+    (0..2)
+        .map(|d| {
+            let ls = clip_log_std(log_std[d]);
+            let z = (x[d] - mean[d]) / ls.exp();
+            -0.5 * z * z - ls - 0.5 * (2.0 * std::f32::consts::PI).ln()
+        })
+        .sum()
+}
+
+/// Entropy of the Gaussian head (nats).
+pub fn gaussian_entropy(log_std: &[f32; 2]) -> f32 {
+    (0..2).map(|d| clip_log_std(log_std[d]) + 0.5 * (2.0 * std::f32::consts::PI * std::f32::consts::E).ln()).sum()
+}

@@ -1,0 +1,133 @@
+//! Acting: a policy drives a vector of environments and the steps become trajectories;
+//! and evaluation trials with the policy's most likely actions.
+
+use crate::env::{EpisodeStatus, Mode};
+use crate::reward::{RewardError, RewardFn};
+use crate::vec_env::VecEnv;
+use crate::{EnvSpec, EvalRules, SimConfig};
+use faer::Par;
+use policy::{ActionSpace, ActorCritic, Trajectory};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use std::sync::Arc;
+
+/// Collects complete episodes from a vector of environments.
+pub struct Collector {
+    vec: VecEnv,
+    space: ActionSpace,
+    open: Vec<Trajectory>,
+    rng: ChaCha8Rng,
+    /// Environment steps taken so far.
+    pub env_steps: u64,
+    /// Episodes completed so far.
+    pub episodes: u64,
+}
+
+impl Collector {
+    /// A collector over `vec`, choosing actions from `space`.
+    pub fn new(vec: VecEnv, space: ActionSpace, seed: u64) -> Collector {
+        let open = (0..vec.len()).map(|i| Trajectory { env: i as u32, episode: vec.envs()[i].episode(), ..Default::default() }).collect();
+        Collector { vec, space, open, rng: ChaCha8Rng::seed_from_u64(seed ^ 0xC011_EC70), env_steps: 0, episodes: 0 }
+    }
+
+    /// The environments.
+    pub fn vec_env(&self) -> &VecEnv {
+        &self.vec
+    }
+
+    /// Step until at least `episodes` episodes have completed; return them. Episodes still
+    /// running carry on at the next call (their steps keep the behaviour log-probabilities
+    /// of the version that chose them; `policy_version` is the version of their first step).
+    pub fn collect(&mut self, model: &ActorCritic, version: u64, episodes: usize) -> Result<Vec<Trajectory>, RewardError> {
+        let n = self.vec.len();
+        let dim = self.vec.obs_dim();
+        let mut done = Vec::new();
+        for t in &mut self.open {
+            if t.is_empty() {
+                t.policy_version = version;
+            }
+        }
+        while done.len() < episodes {
+            let obs = self.vec.observations().to_vec();
+            let acts = model.act(&obs, n, false, &mut self.rng, Par::Seq);
+            let actions: Vec<policy::Action> = acts.iter().map(|a| a.choice.to_action(&self.space)).collect();
+            for (i, a) in acts.iter().enumerate() {
+                let t = &mut self.open[i];
+                t.obs.extend_from_slice(&obs[i * dim..(i + 1) * dim]);
+                t.choices.push(a.choice);
+                t.logp.push(a.logp);
+                t.values.push(a.value);
+            }
+            let outcomes = self.vec.step(&actions)?.to_vec();
+            self.env_steps += n as u64;
+            for (i, o) in outcomes.iter().enumerate() {
+                let t = &mut self.open[i];
+                t.rewards.push(o.reward as f32);
+                if o.done {
+                    t.done = true;
+                    t.progress = o.progress;
+                    t.lap_complete = o.status == EpisodeStatus::LapComplete;
+                    let next = Trajectory { env: i as u32, episode: self.vec.envs()[i].episode(), policy_version: version, ..Default::default() };
+                    done.push(std::mem::replace(t, next));
+                    self.episodes += 1;
+                }
+            }
+        }
+        Ok(done)
+    }
+}
+
+/// One evaluation trial's result.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TrialResult {
+    /// Progress reached (%).
+    pub progress: f64,
+    /// Lap time if the lap was completed (s, penalties included).
+    pub lap_time: Option<f64>,
+    /// Times the car left the track (resets, plus a final off-track).
+    pub off_track: u32,
+    /// Steps taken.
+    pub steps: u64,
+    /// How the trial ended.
+    pub status: EpisodeStatus,
+}
+
+/// Run `trials` evaluation trials in parallel from the start line, with the policy's most
+/// likely action at every step.
+#[allow(clippy::too_many_arguments)]
+pub fn evaluate(
+    model: &ActorCritic,
+    space: &ActionSpace,
+    spec: &EnvSpec,
+    cfg: &Arc<SimConfig>,
+    rules: EvalRules,
+    trials: usize,
+    seed: u64,
+    threads: usize,
+) -> Result<Vec<TrialResult>, RewardError> {
+    let reward = RewardFn::Builtin(crate::BuiltinReward::CenterLine);
+    let mut vec = VecEnv::with_mode(vec![spec.clone(); trials], cfg.clone(), seed, reward, threads, Mode::Evaluation(rules))
+        .map_err(|e| RewardError::Load { origin: "evaluation".into(), msg: e.to_string() })?;
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let mut results: Vec<Option<TrialResult>> = vec![None; trials];
+    let cap = cfg.episode.max_steps;
+    let mut steps = 0u64;
+    while results.iter().any(|r| r.is_none()) && steps < cap {
+        let acts = model.act(vec.observations(), trials, true, &mut rng, Par::Seq);
+        let actions: Vec<policy::Action> = acts.iter().map(|a| a.choice.to_action(space)).collect();
+        let outcomes = vec.step(&actions)?;
+        for (r, o) in results.iter_mut().zip(outcomes) {
+            if r.is_none() && o.done {
+                *r = Some(TrialResult {
+                    progress: o.progress,
+                    lap_time: o.lap_time,
+                    off_track: o.resets + u32::from(o.status == EpisodeStatus::OffTrack),
+                    steps: o.steps,
+                    status: o.status,
+                });
+            }
+        }
+        steps += 1;
+    }
+    Ok(results.into_iter().map(|r| r.expect("every trial ends by the step cap")).collect())
+}
