@@ -6,8 +6,8 @@
 
 mod cli;
 mod drive;
-mod train;
 mod tracks_cmd;
+mod train;
 
 use clap::Parser;
 

@@ -31,7 +31,8 @@ fn check_sensors(meta: &ModelMetadata, cfg: &mut SimConfig) -> Result<()> {
             meta.sensor.iter().map(|s| s.name()).collect::<Vec<_>>()
         );
     }
-    cfg.observation.kind = if meta.sensor.contains(&Sensor::Lidar) { ObservationKind::StateLidar } else { ObservationKind::State };
+    cfg.observation.kind =
+        if meta.sensor.contains(&Sensor::Lidar) { ObservationKind::StateLidar } else { ObservationKind::State };
     Ok(())
 }
 
@@ -101,13 +102,26 @@ pub fn train(args: TrainArgs) -> Result<i32> {
     // The model: resumed from the last checkpoint, or fresh.
     let (model, version, parent) = if mode == OpenMode::Resume {
         let index = run.index()?;
-        let dir = index.last_checkpoint.as_ref().map(|l| run.checkpoint_dir(&l.name)).filter(|d| d.exists()).unwrap_or_else(|| run.model_dir());
+        let dir = index
+            .last_checkpoint
+            .as_ref()
+            .map(|l| run.checkpoint_dir(&l.name))
+            .filter(|d| d.exists())
+            .unwrap_or_else(|| run.model_dir());
         let f = folder::load(&dir)?;
         if let Err(why) = f.metadata.compatible_with(&meta) {
-            bail!("{}: cannot continue this run with {}: {why}", dir.display(), meta_path.as_ref().map(|p| p.display().to_string()).unwrap_or_default());
+            bail!(
+                "{}: cannot continue this run with {}: {why}",
+                dir.display(),
+                meta_path.as_ref().map(|p| p.display().to_string()).unwrap_or_default()
+            );
         }
         if f.manifest.obs_size != obs_size {
-            bail!("{}: the model takes {} inputs, this configuration's observation has {obs_size}", dir.display(), f.manifest.obs_size);
+            bail!(
+                "{}: the model takes {} inputs, this configuration's observation has {obs_size}",
+                dir.display(),
+                f.manifest.obs_size
+            );
         }
         tracing::info!(from = %dir.display(), version = f.manifest.policy_version, "resuming");
         (f.model, f.manifest.policy_version, f.manifest.parent)
@@ -153,7 +167,8 @@ pub fn train(args: TrainArgs) -> Result<i32> {
         let update_s = t1.elapsed().as_secs_f64();
         iteration += 1;
         total_episodes += trajs.len() as u64;
-        let mean_reward = trajs.iter().map(|t| t.rewards.iter().map(|r| *r as f64).sum::<f64>()).sum::<f64>() / trajs.len() as f64;
+        let mean_reward =
+            trajs.iter().map(|t| t.rewards.iter().map(|r| *r as f64).sum::<f64>()).sum::<f64>() / trajs.len() as f64;
         let mean_progress = trajs.iter().map(|t| t.progress).sum::<f64>() / trajs.len() as f64;
         let steps: usize = trajs.iter().map(|t| t.len()).sum();
         if let Some(why) = &stats.refused {
@@ -164,7 +179,16 @@ pub fn train(args: TrainArgs) -> Result<i32> {
         let mut eval = None;
         if elapsed - last_eval >= args.checkpoint_seconds || elapsed >= budget {
             last_eval = elapsed;
-            let trials = evaluate(&ppo.model, &meta.action_space, &spec, &cfg, eval_rules.clone(), args.trials, args.seed ^ iteration, threads)?;
+            let trials = evaluate(
+                &ppo.model,
+                &meta.action_space,
+                &spec,
+                &cfg,
+                eval_rules.clone(),
+                args.trials,
+                args.seed ^ iteration,
+                threads,
+            )?;
             let (progress, lap, laps) = summarise(&trials);
             let name = RunDir::checkpoint_name(iteration);
             let manifest = Manifest {
@@ -182,7 +206,14 @@ pub fn train(args: TrainArgs) -> Result<i32> {
                 }),
             };
             folder::save(&run.checkpoint_dir(&name), &meta, &ppo.model, &manifest)?;
-            let rec = CheckpointRecord { name: name.clone(), iteration, policy_version: ppo.version, avg_eval_metric: progress, avg_lap_time: lap, time_stamp: elapsed };
+            let rec = CheckpointRecord {
+                name: name.clone(),
+                iteration,
+                policy_version: ppo.version,
+                avg_eval_metric: progress,
+                avg_lap_time: lap,
+                time_stamp: elapsed,
+            };
             if run.record(rec.clone())? {
                 folder::save(&run.model_dir(), &meta, &ppo.model, &manifest)?;
                 best = Some(rec);
@@ -201,6 +232,25 @@ pub fn train(args: TrainArgs) -> Result<i32> {
             "refused": stats.refused,
             "eval_progress": eval.map(|e| e.0), "eval_lap_time": eval.and_then(|e| e.1), "eval_laps": eval.map(|e| e.2),
         }))?;
+        bar.suspend(|| {
+            println!(
+                "it {iteration:>4} v{:<4} episodes {:>3} steps {:>6} reward {:>8.2} progress {:>5.1}% | pi {:>7.4} v {:>7.4} H {:.3} kl {:.4} clip {:.3} ev {:>5.2} | {:>6.0} samples/s lag {lag}{}",
+                stats.policy_version,
+                trajs.len(),
+                steps,
+                mean_reward,
+                mean_progress,
+                stats.policy_loss,
+                stats.value_loss,
+                stats.entropy,
+                stats.approx_kl,
+                stats.clip_fraction,
+                stats.explained_variance,
+                sps,
+                eval.map(|(p, l, n)| format!(" | eval {p:.1}% {n}/{}{}", args.trials, l.map(|t| format!(" lap {t:.2}s")).unwrap_or_default()))
+                    .unwrap_or_default()
+            )
+        });
         bar.set_position(elapsed.min(budget) as u64);
         bar.set_message(format!(
             "it {iteration} v{} reward {mean_reward:.1} progress {mean_progress:.1}% {sps:.0} samples/s{} {:.0}s left",
@@ -227,7 +277,10 @@ pub fn train(args: TrainArgs) -> Result<i32> {
     }
     bar.finish_and_clear();
     let secs = start.elapsed().as_secs_f64();
-    println!("stopped after {iteration} iterations, {total_episodes} episodes, {} env steps, {secs:.1} s: {stop_reason}", collector.env_steps);
+    println!(
+        "stopped after {iteration} iterations, {total_episodes} episodes, {} env steps, {secs:.1} s: {stop_reason}",
+        collector.env_steps
+    );
     match &best {
         Some(b) => println!(
             "best model: {} (iteration {}, policy v{}): evaluation progress {:.1} %{}",
@@ -256,13 +309,28 @@ pub fn evaluate_cmd(args: EvaluateArgs) -> Result<i32> {
     cfg.observation = serde_json::from_value(f.manifest.observation.clone())
         .with_context(|| format!("{}: manifest.json's observation settings", args.model_dir.display()))?;
     if obs_dim(&cfg.observation) != f.manifest.obs_size {
-        bail!("{}: the observation settings give {} inputs, the model takes {}", args.model_dir.display(), obs_dim(&cfg.observation), f.manifest.obs_size);
+        bail!(
+            "{}: the observation settings give {} inputs, the model takes {}",
+            args.model_dir.display(),
+            obs_dim(&cfg.observation),
+            f.manifest.obs_size
+        );
     }
     let world = resolve_world(&args.world)?;
     let spec = EnvSpec::from_world(&world, if args.reversed { Direction::Reversed } else { Direction::Forward });
-    let rules = if args.reset_rules { EvalRules { max_resets: 100, penalty_s: 2.0, time_limit_s: None } } else { EvalRules::default() };
+    let rules = if args.reset_rules {
+        EvalRules { max_resets: 100, penalty_s: 2.0, time_limit_s: None }
+    } else {
+        EvalRules::default()
+    };
     let cfg = Arc::new(cfg);
-    println!("evaluating {} (policy v{}) on {}: {} trials, argmax actions", args.model_dir.display(), f.manifest.policy_version, world.name, args.trials);
+    println!(
+        "evaluating {} (policy v{}) on {}: {} trials, argmax actions",
+        args.model_dir.display(),
+        f.manifest.policy_version,
+        world.name,
+        args.trials
+    );
     let trials = evaluate(&f.model, &f.metadata.action_space, &spec, &cfg, rules, args.trials, args.seed, 1)?;
     for (i, t) in trials.iter().enumerate() {
         println!(
@@ -315,7 +383,11 @@ pub fn clone_cmd(args: CloneArgs) -> Result<i32> {
         policy_version: f.manifest.policy_version,
         weights_sha256: f.manifest.weights_sha256.clone(),
     };
-    let manifest = Manifest { parent: Some(parent), training: serde_json::json!({"cloned": true, "hyperparameters": hyper}), ..f.manifest.clone() };
+    let manifest = Manifest {
+        parent: Some(parent),
+        training: serde_json::json!({"cloned": true, "hyperparameters": hyper}),
+        ..f.manifest.clone()
+    };
     folder::save(&run.model_dir(), &meta, &f.model, &manifest)?;
     run.write_file("model_metadata.json", meta.to_json().as_bytes())?;
     run.write_file("hyperparameters.json", hyper.to_json().as_bytes())?;

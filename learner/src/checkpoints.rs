@@ -231,7 +231,13 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("paddock-ckpt-test-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         let run = RunDir::open(&dir, OpenMode::New).unwrap();
-        let table = [(1, 40.0, None, true), (2, 100.0, Some(12.0), true), (3, 100.0, Some(13.0), false), (4, 100.0, Some(11.5), true), (5, 90.0, None, false)];
+        let table = [
+            (1, 40.0, None, true),
+            (2, 100.0, Some(12.0), true),
+            (3, 100.0, Some(13.0), false),
+            (4, 100.0, Some(11.5), true),
+            (5, 90.0, None, false),
+        ];
         for (i, p, lap, best) in table {
             std::fs::create_dir_all(run.checkpoint_dir(&RunDir::checkpoint_name(i))).unwrap();
             assert_eq!(run.record(rec(i, p, lap)).unwrap(), best, "iteration {i}");

@@ -81,8 +81,8 @@ impl Hyperparameters {
     /// Read a file.
     pub fn load(path: &Path) -> Result<Parsed, HyperparameterError> {
         let origin = path.display().to_string();
-        let text =
-            std::fs::read_to_string(path).map_err(|e| HyperparameterError { origin: origin.clone(), msg: e.to_string() })?;
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| HyperparameterError { origin: origin.clone(), msg: e.to_string() })?;
         Hyperparameters::parse(&text, &origin)
     }
 
@@ -97,7 +97,9 @@ impl Hyperparameters {
         let int = |k: &str, v: &Value| -> Result<u64, HyperparameterError> {
             match v {
                 Value::Number(n) if n.as_u64().is_some() => Ok(n.as_u64().expect("checked")),
-                Value::Number(n) if n.as_f64().is_some_and(|f| f >= 0.0 && f.fract() == 0.0) => Ok(n.as_f64().expect("checked") as u64),
+                Value::Number(n) if n.as_f64().is_some_and(|f| f >= 0.0 && f.fract() == 0.0) => {
+                    Ok(n.as_f64().expect("checked") as u64)
+                }
                 Value::String(s) if s.trim().parse::<u64>().is_ok() => Ok(s.trim().parse().expect("checked")),
                 other => Err(err(format!("key '{k}' is {other}, expected a whole number"))),
             }
@@ -109,7 +111,8 @@ impl Hyperparameters {
                 other => Err(err(format!("key '{k}' is {other}, expected a number"))),
             }
         };
-        let positive = |k: &str, x: u64| if x == 0 { Err(err(format!("key '{k}' must be at least 1"))) } else { Ok(x as usize) };
+        let positive =
+            |k: &str, x: u64| if x == 0 { Err(err(format!("key '{k}' must be at least 1"))) } else { Ok(x as usize) };
         for (k, v) in &map {
             match k.as_str() {
                 "batch_size" => h.batch_size = positive(k, int(k, v)?)?,
@@ -117,14 +120,21 @@ impl Hyperparameters {
                 "discount_factor" => {
                     h.discount_factor = float(k, v)?;
                     if !(0.0..=1.0).contains(&h.discount_factor) {
-                        return Err(err(format!("key 'discount_factor' is {}, expected a value in [0, 1]", h.discount_factor)));
+                        return Err(err(format!(
+                            "key 'discount_factor' is {}, expected a value in [0, 1]",
+                            h.discount_factor
+                        )));
                     }
                 }
                 "loss_type" => {
                     h.loss_type = match v.as_str().map(|s| s.trim().to_lowercase()) {
                         Some(s) if s == "huber" => LossType::Huber,
                         Some(s) if s == "mean squared error" || s == "mse" => LossType::MeanSquaredError,
-                        _ => return Err(err(format!("key 'loss_type' is {v}, expected \"huber\" or \"mean squared error\""))),
+                        _ => {
+                            return Err(err(format!(
+                                "key 'loss_type' is {v}, expected \"huber\" or \"mean squared error\""
+                            )));
+                        }
                     }
                 }
                 "lr" => {

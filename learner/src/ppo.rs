@@ -9,7 +9,7 @@
 
 use crate::hyperparams::{Hyperparameters, LossType};
 use faer::Par;
-use policy::model::{clip_log_std, gaussian_entropy, gaussian_logp, log_softmax, LOG_STD_RANGE};
+use policy::model::{LOG_STD_RANGE, clip_log_std, gaussian_entropy, gaussian_logp, log_softmax};
 use policy::nn::{Adam, Tape};
 use policy::{ActorCritic, Choice, Head, Trajectory};
 use rand::SeedableRng;
@@ -112,22 +112,68 @@ pub struct LossGrad {
     pub grad_log_std: [f32; 2],
 }
 
+/// Buffers reused across gradient steps (tapes, the gathered minibatch).
+#[derive(Default, Debug)]
+pub struct Workspace {
+    tape_pi: Tape,
+    tape_v: Tape,
+    obs: Vec<f32>,
+    grad_pi: Vec<f32>,
+    grad_v: Vec<f32>,
+}
+
+impl Workspace {
+    /// Hand a used gradient's buffers back for the next step.
+    pub fn recycle(&mut self, lg: LossGrad) {
+        self.grad_pi = lg.grad_pi;
+        self.grad_v = lg.grad_v;
+    }
+}
+
+impl Clone for Workspace {
+    /// Buffers are scratch space: a clone starts empty.
+    fn clone(&self) -> Self {
+        Workspace::default()
+    }
+}
+
 /// The PPO loss of `model` on the samples `idx` of `batch`, and its gradient.
 pub fn loss_and_grad(model: &ActorCritic, batch: &Batch, idx: &[usize], h: &Hyperparameters, par: Par) -> LossGrad {
+    loss_and_grad_with(&mut Workspace::default(), model, batch, idx, h, par)
+}
+
+/// [`loss_and_grad`] reusing `ws`'s buffers.
+pub fn loss_and_grad_with(
+    ws: &mut Workspace,
+    model: &ActorCritic,
+    batch: &Batch,
+    idx: &[usize],
+    h: &Hyperparameters,
+    par: Par,
+) -> LossGrad {
     let n = idx.len();
     let os = batch.obs_size;
-    let mut obs = Vec::with_capacity(n * os);
+    let Workspace { tape_pi, tape_v, obs, grad_pi, grad_v } = ws;
+    let take_zeroed = |buf: &mut Vec<f32>, len: usize| {
+        let mut v = std::mem::take(buf);
+        v.clear();
+        v.resize(len, 0.0);
+        v
+    };
+    let grad_pi = take_zeroed(grad_pi, model.pi.params.len());
+    let grad_v = take_zeroed(grad_v, model.v.params.len());
+    obs.clear();
     for &i in idx {
         obs.extend_from_slice(&batch.obs[i * os..(i + 1) * os]);
     }
     let beta = h.beta_entropy as f32;
     let inv_n = 1.0 / n as f32;
-    let mut tape_pi = Tape::default();
-    model.pi.forward(&obs, n, &mut tape_pi, par);
-    let out = tape_pi.output();
+    model.pi.forward(obs, n, tape_pi, par);
+    let out = tape_pi.output().to_vec();
+    let out = &out[..];
     let dim = model.pi.out_size();
     let mut d_out = vec![0.0f32; n * dim];
-    let mut out_stats = LossGrad { grad_pi: vec![0.0; model.pi.params.len()], grad_v: vec![0.0; model.v.params.len()], ..Default::default() };
+    let mut out_stats = LossGrad { grad_pi, grad_v, ..Default::default() };
     let mut g_log_std = [0.0f32; 2];
     for (k, &i) in idx.iter().enumerate() {
         let row = &out[k * dim..(k + 1) * dim];
@@ -138,7 +184,9 @@ pub fn loss_and_grad(model: &ActorCritic, batch: &Batch, idx: &[usize], h: &Hype
                 let h: f32 = -lp.iter().map(|l| l.exp() * l).sum::<f32>();
                 (lp[c], h)
             }
-            (Head::Gaussian { log_std }, Choice::Continuous(x)) => (gaussian_logp(row, log_std, &x), gaussian_entropy(log_std)),
+            (Head::Gaussian { log_std }, Choice::Continuous(x)) => {
+                (gaussian_logp(row, log_std, &x), gaussian_entropy(log_std))
+            }
             _ => panic!("the batch's actions do not fit the model's head"),
         };
         let ratio = (logp - batch.logp_old[i]).exp();
@@ -184,11 +232,10 @@ pub fn loss_and_grad(model: &ActorCritic, batch: &Batch, idx: &[usize], h: &Hype
             }
         }
     }
-    model.pi.backward(&tape_pi, &d_out, &mut out_stats.grad_pi, par);
+    model.pi.backward(tape_pi, &d_out, &mut out_stats.grad_pi, par);
 
-    let mut tape_v = Tape::default();
-    model.v.forward(&obs, n, &mut tape_v, par);
-    let values = tape_v.output();
+    model.v.forward(obs, n, tape_v, par);
+    let values = tape_v.output().to_vec();
     let mut d_v = vec![0.0f32; n];
     for (k, &i) in idx.iter().enumerate() {
         let err = values[k] - batch.returns[i];
@@ -200,7 +247,7 @@ pub fn loss_and_grad(model: &ActorCritic, batch: &Batch, idx: &[usize], h: &Hype
         out_stats.value_loss += loss as f64;
         d_v[k] = grad * inv_n;
     }
-    model.v.backward(&tape_v, &d_v, &mut out_stats.grad_v, par);
+    model.v.backward(tape_v, &d_v, &mut out_stats.grad_v, par);
 
     let nf = n as f64;
     out_stats.policy_loss /= nf;
@@ -252,6 +299,7 @@ pub struct Ppo {
     opt_log_std: Adam,
     rng: ChaCha8Rng,
     par: Par,
+    ws: Workspace,
 }
 
 impl Ppo {
@@ -267,6 +315,7 @@ impl Ppo {
             version,
             rng: ChaCha8Rng::seed_from_u64(seed),
             par,
+            ws: Default::default(),
         }
     }
 
@@ -274,7 +323,8 @@ impl Ppo {
     pub fn update(&mut self, trajs: &[Trajectory]) -> UpdateStats {
         let batch = make_batch(trajs, self.model.obs_size(), self.hyper.discount_factor);
         let n = batch.len();
-        let mut stats = UpdateStats { samples: n, explained_variance: explained_variance(&batch), ..Default::default() };
+        let mut stats =
+            UpdateStats { samples: n, explained_variance: explained_variance(&batch), ..Default::default() };
         let bs = self.hyper.batch_size.min(n.max(1));
         let minibatches = n / bs;
         if minibatches == 0 {
@@ -284,16 +334,18 @@ impl Ppo {
         }
         let saved = (self.model.clone(), self.opt_pi.clone(), self.opt_v.clone(), self.opt_log_std.clone());
         let mut order: Vec<usize> = (0..n).collect();
+        let mut ws = std::mem::take(&mut self.ws);
         for _ in 0..self.hyper.num_epochs {
             order.shuffle(&mut self.rng);
             for mb in order.chunks_exact(bs) {
-                let lg = loss_and_grad(&self.model, &batch, mb, &self.hyper, self.par);
+                let lg = loss_and_grad_with(&mut ws, &self.model, &batch, mb, &self.hyper, self.par);
                 let finite = lg.total.is_finite()
                     && lg.grad_pi.iter().all(|g| g.is_finite())
                     && lg.grad_v.iter().all(|g| g.is_finite())
                     && lg.grad_log_std.iter().all(|g| g.is_finite());
                 if !finite {
                     (self.model, self.opt_pi, self.opt_v, self.opt_log_std) = saved;
+                    self.ws = ws;
                     stats.refused = Some(format!(
                         "non-finite loss or gradient at gradient step {} (loss {}): update refused, weights kept at version {}",
                         stats.gradient_steps, lg.total, self.version
@@ -312,8 +364,10 @@ impl Ppo {
                 stats.approx_kl += lg.approx_kl;
                 stats.clip_fraction += lg.clip_fraction;
                 stats.gradient_steps += 1;
+                ws.recycle(lg);
             }
         }
+        self.ws = ws;
         let k = stats.gradient_steps as f64;
         stats.policy_loss /= k;
         stats.value_loss /= k;

@@ -151,7 +151,16 @@ fn bandit_episodes(model: &ActorCritic, version: u64, n: usize, rng: &mut ChaCha
         let Choice::Discrete(k) = a.choice else { unreachable!() };
         let r = if k == ctx { 1.0 } else { 0.0 };
         total += r as f64;
-        trajs.push(Trajectory { obs, choices: vec![a.choice], logp: vec![a.logp], values: vec![a.value], rewards: vec![r], done: true, policy_version: version, ..Default::default() });
+        trajs.push(Trajectory {
+            obs,
+            choices: vec![a.choice],
+            logp: vec![a.logp],
+            values: vec![a.value],
+            rewards: vec![r],
+            done: true,
+            policy_version: version,
+            ..Default::default()
+        });
     }
     (trajs, total / n as f64)
 }

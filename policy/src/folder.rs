@@ -133,7 +133,12 @@ pub fn sha256_hex(bytes: &[u8]) -> String {
 
 /// Write a model folder at `dir` (replacing one that is there). `manifest.weights_sha256`
 /// is filled in here.
-pub fn save(dir: &Path, metadata: &ModelMetadata, model: &ActorCritic, manifest: &Manifest) -> Result<Manifest, ModelError> {
+pub fn save(
+    dir: &Path,
+    metadata: &ModelMetadata,
+    model: &ActorCritic,
+    manifest: &Manifest,
+) -> Result<Manifest, ModelError> {
     let weights = weights_bytes(model, manifest.policy_version);
     let mut manifest = manifest.clone();
     manifest.weights_sha256 = sha256_hex(&weights);
@@ -162,21 +167,29 @@ pub fn save(dir: &Path, metadata: &ModelMetadata, model: &ActorCritic, manifest:
 /// Read a model folder, checking the weights against the metadata and the checksum.
 pub fn load(dir: &Path) -> Result<ModelFolder, ModelError> {
     let meta_path = dir.join("model_metadata.json");
-    let metadata = ModelMetadata::load(&meta_path).map_err(|e| ModelError::Invalid { path: meta_path.display().to_string(), msg: e.msg })?;
+    let metadata = ModelMetadata::load(&meta_path)
+        .map_err(|e| ModelError::Invalid { path: meta_path.display().to_string(), msg: e.msg })?;
     let man_path = dir.join("manifest.json");
     let text = std::fs::read_to_string(&man_path).map_err(io(&man_path))?;
-    let manifest: Manifest =
-        serde_json::from_str(&text).map_err(|e| ModelError::Invalid { path: man_path.display().to_string(), msg: e.to_string() })?;
+    let manifest: Manifest = serde_json::from_str(&text)
+        .map_err(|e| ModelError::Invalid { path: man_path.display().to_string(), msg: e.to_string() })?;
     let w_path = dir.join("model.safetensors");
     let bytes = std::fs::read(&w_path).map_err(io(&w_path))?;
     let bad = |msg: String| ModelError::Invalid { path: w_path.display().to_string(), msg };
     let sum = sha256_hex(&bytes);
     if sum != manifest.weights_sha256 {
-        return Err(bad(format!("sha256 is {sum}, manifest.json says {}: the weights were changed or damaged", manifest.weights_sha256)));
+        return Err(bad(format!(
+            "sha256 is {sum}, manifest.json says {}: the weights were changed or damaged",
+            manifest.weights_sha256
+        )));
     }
     let st = SafeTensors::deserialize(&bytes).map_err(|e| bad(format!("not a safetensors file: {e}")))?;
     // The architecture the metadata implies; its weights are replaced below.
-    let mut model = ActorCritic::new(&metadata, manifest.obs_size, &mut <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(0));
+    let mut model = ActorCritic::new(
+        &metadata,
+        manifest.obs_size,
+        &mut <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(0),
+    );
     let expected: Vec<(String, Vec<usize>)> = tensors(&model).into_iter().map(|(n, s, _)| (n, s)).collect();
     let mut names: Vec<String> = st.names().into_iter().map(str::to_string).collect();
     names.sort();
@@ -223,7 +236,9 @@ fn fill_net(tower: &str, net: &mut Net, read: &impl Fn(&str, &mut [f32])) {
     for (i, layer) in layers.iter().enumerate() {
         let (offset, nw, nb) = match *layer {
             Layer::Dense { inp, out, offset } => (offset, inp * out, out),
-            Layer::Conv2d { input: [_, _, c], filters, kernel, offset, .. } => (offset, filters * kernel * kernel * c, filters),
+            Layer::Conv2d { input: [_, _, c], filters, kernel, offset, .. } => {
+                (offset, filters * kernel * kernel * c, filters)
+            }
             _ => continue,
         };
         read(&format!("{tower}.{i}.weight"), &mut net.params[offset..offset + nw]);

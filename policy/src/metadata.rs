@@ -117,7 +117,14 @@ impl Sensor {
 
     /// A camera (or the state vector, which takes its place).
     pub fn is_primary(self) -> bool {
-        matches!(self, Sensor::FrontFacingCamera | Sensor::LeftCamera | Sensor::StereoCameras | Sensor::Observation | Sensor::StateVector)
+        matches!(
+            self,
+            Sensor::FrontFacingCamera
+                | Sensor::LeftCamera
+                | Sensor::StereoCameras
+                | Sensor::Observation
+                | Sensor::StateVector
+        )
     }
 }
 
@@ -323,7 +330,9 @@ impl ModelMetadata {
         );
         out.insert(
             "action_space_type".into(),
-            Value::String(if matches!(self.action_space, ActionSpace::Discrete(_)) { "discrete" } else { "continuous" }.into()),
+            Value::String(
+                if matches!(self.action_space, ActionSpace::Discrete(_)) { "discrete" } else { "continuous" }.into(),
+            ),
         );
         out.insert("version".into(), Value::String(format!("{}", self.version)));
         for (k, v) in &self.raw {
@@ -336,10 +345,17 @@ impl ModelMetadata {
     /// (same sensors, same network, same action count and kind); the reason if not.
     pub fn compatible_with(&self, other: &ModelMetadata) -> Result<(), String> {
         if self.sensor != other.sensor {
-            return Err(format!("sensors differ ({:?} vs {:?}): the network's inputs would no longer match", self.sensor, other.sensor));
+            return Err(format!(
+                "sensors differ ({:?} vs {:?}): the network's inputs would no longer match",
+                self.sensor, other.sensor
+            ));
         }
         if self.neural_network != other.neural_network {
-            return Err(format!("neural_network differs ({} vs {})", self.neural_network.name(), other.neural_network.name()));
+            return Err(format!(
+                "neural_network differs ({} vs {})",
+                self.neural_network.name(),
+                other.neural_network.name()
+            ));
         }
         let kind = |m: &ModelMetadata| matches!(m.action_space, ActionSpace::Discrete(_));
         if kind(self) != kind(other) || self.action_space.dim() != other.action_space.dim() {
@@ -352,7 +368,9 @@ impl ModelMetadata {
             ));
         }
         if self.action_space != other.action_space {
-            return Err("the action space's values differ: each output of the trained network would change meaning".into());
+            return Err(
+                "the action space's values differ: each output of the trained network would change meaning".into()
+            );
         }
         Ok(())
     }

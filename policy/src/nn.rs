@@ -131,7 +131,9 @@ pub struct Net {
     pub params: Vec<f32>,
 }
 
-/// What a forward pass keeps for the backward pass.
+/// What a forward pass keeps for the backward pass, and the backward pass's scratch
+/// buffers. Reuse one tape across calls: its buffers keep their memory, so a training step
+/// allocates nothing.
 #[derive(Default, Debug)]
 pub struct Tape {
     /// Input of every layer, then the final output.
@@ -139,6 +141,9 @@ pub struct Tape {
     /// im2col matrices of the conv layers (empty for others).
     cols: Vec<Vec<f32>>,
     batch: usize,
+    d: Vec<f32>,
+    d_prev: Vec<f32>,
+    d_cols: Vec<f32>,
 }
 
 impl Tape {
@@ -271,7 +276,7 @@ impl Net {
                     let [oh, ow] = layer.conv_out();
                     let rows = batch * oh * ow;
                     let cols = &mut tape.cols[i];
-                    im2col(layer, inp, batch, cols);
+                    im2col(layer, inp, batch, cols, par);
                     let w = &self.params[offset..offset + filters * kkc];
                     let b = &self.params[offset + filters * kkc..offset + filters * kkc + filters];
                     for row in out.chunks_mut(filters) {
@@ -286,12 +291,15 @@ impl Net {
     /// Backward from `d_out` (`batch × out`, gradient of the loss wrt the output) through
     /// the last forward pass: adds parameter gradients into `grad` (same layout as `params`).
     /// The input gradient is not computed (nothing upstream needs it).
-    pub fn backward(&self, tape: &Tape, d_out: &[f32], grad: &mut [f32], par: Par) {
+    pub fn backward(&self, tape: &mut Tape, d_out: &[f32], grad: &mut [f32], par: Par) {
         let batch = tape.batch;
         assert_eq!(d_out.len(), batch * self.out_size());
         assert_eq!(grad.len(), self.params.len());
-        let mut d = d_out.to_vec();
-        let mut d_prev = Vec::new();
+        let mut d = std::mem::take(&mut tape.d);
+        let mut d_prev = std::mem::take(&mut tape.d_prev);
+        let mut d_cols = std::mem::take(&mut tape.d_cols);
+        d.clear();
+        d.extend_from_slice(d_out);
         for (i, layer) in self.layers.iter().enumerate().rev() {
             let inp = &tape.acts[i];
             let need_dx = self.layers[..i].iter().any(|l| l.param_count() > 0);
@@ -340,11 +348,11 @@ impl Net {
                     }
                     if need_dx {
                         let w = &self.params[offset..offset + filters * kkc];
-                        let mut d_cols = vec![0.0f32; rows * kkc];
+                        d_cols.resize(rows * kkc, 0.0);
                         gemm(&mut d_cols, rows, kkc, filters, &d, false, w, false, false, par);
                         d_prev.clear();
                         d_prev.resize(batch * layer.in_size(), 0.0);
-                        col2im(layer, &d_cols, batch, &mut d_prev);
+                        col2im(layer, &d_cols, batch, &mut d_prev, par);
                     }
                 }
             }
@@ -353,21 +361,24 @@ impl Net {
             }
             std::mem::swap(&mut d, &mut d_prev);
         }
+        tape.d = d;
+        tape.d_prev = d_prev;
+        tape.d_cols = d_cols;
     }
 }
 
-/// Unfold NHWC input patches into rows: `(batch·oh·ow) × (k·k·c)`.
-fn im2col(layer: &Layer, x: &[f32], batch: usize, cols: &mut Vec<f32>) {
+/// Unfold NHWC input patches into rows: `(batch·oh·ow) × (k·k·c)`; samples in parallel
+/// when `par` allows.
+fn im2col(layer: &Layer, x: &[f32], batch: usize, cols: &mut Vec<f32>, par: Par) {
     let Layer::Conv2d { input: [h, w, c], kernel: k, stride: s, .. } = *layer else { unreachable!() };
     let [oh, ow] = layer.conv_out();
     let kkc = k * k * c;
     cols.resize(batch * oh * ow * kkc, 0.0);
-    let mut r = 0;
-    for n in 0..batch {
-        let img = &x[n * h * w * c..(n + 1) * h * w * c];
+    let one = |(img, out): (&[f32], &mut [f32])| {
+        let mut r = 0;
         for oy in 0..oh {
             for ox in 0..ow {
-                let row = &mut cols[r * kkc..(r + 1) * kkc];
+                let row = &mut out[r * kkc..(r + 1) * kkc];
                 for ky in 0..k {
                     let src = ((oy * s + ky) * w + ox * s) * c;
                     row[ky * k * c..(ky + 1) * k * c].copy_from_slice(&img[src..src + k * c]);
@@ -375,20 +386,27 @@ fn im2col(layer: &Layer, x: &[f32], batch: usize, cols: &mut Vec<f32>) {
                 r += 1;
             }
         }
+    };
+    let per_in = h * w * c;
+    let per_out = oh * ow * kkc;
+    if matches!(par, Par::Seq) {
+        x.chunks(per_in).zip(cols.chunks_mut(per_out)).for_each(one);
+    } else {
+        use rayon::prelude::*;
+        x.par_chunks(per_in).zip(cols.par_chunks_mut(per_out)).for_each(one);
     }
 }
 
 /// The adjoint of [`im2col`]: scatter-add patch gradients back into the input gradient.
-fn col2im(layer: &Layer, d_cols: &[f32], batch: usize, dx: &mut [f32]) {
+fn col2im(layer: &Layer, d_cols: &[f32], batch: usize, dx: &mut [f32], par: Par) {
     let Layer::Conv2d { input: [h, w, c], kernel: k, stride: s, .. } = *layer else { unreachable!() };
     let [oh, ow] = layer.conv_out();
     let kkc = k * k * c;
-    let mut r = 0;
-    for n in 0..batch {
-        let img = &mut dx[n * h * w * c..(n + 1) * h * w * c];
+    let one = |(img, rows): (&mut [f32], &[f32])| {
+        let mut r = 0;
         for oy in 0..oh {
             for ox in 0..ow {
-                let row = &d_cols[r * kkc..(r + 1) * kkc];
+                let row = &rows[r * kkc..(r + 1) * kkc];
                 for ky in 0..k {
                     let dst = ((oy * s + ky) * w + ox * s) * c;
                     for (d, v) in img[dst..dst + k * c].iter_mut().zip(&row[ky * k * c..(ky + 1) * k * c]) {
@@ -398,6 +416,15 @@ fn col2im(layer: &Layer, d_cols: &[f32], batch: usize, dx: &mut [f32]) {
                 r += 1;
             }
         }
+    };
+    let per_in = h * w * c;
+    let per_out = oh * ow * kkc;
+    debug_assert_eq!(dx.len(), batch * per_in);
+    if matches!(par, Par::Seq) {
+        dx.chunks_mut(per_in).zip(d_cols.chunks(per_out)).for_each(one);
+    } else {
+        use rayon::prelude::*;
+        dx.par_chunks_mut(per_in).zip(d_cols.par_chunks(per_out)).for_each(one);
     }
 }
 

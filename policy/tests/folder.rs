@@ -59,7 +59,10 @@ fn weights_that_do_not_fit_the_metadata_are_refused_clearly() {
     let path = dir.path().join("model");
     folder::save(&path, &m, &model, &manifest(1)).unwrap();
     // Three actions in the metadata, two in the weights.
-    let three = DISCRETE.replace(r#"{"steering_angle":30,"speed":2}"#, r#"{"steering_angle":30,"speed":2},{"steering_angle":0,"speed":2}"#);
+    let three = DISCRETE.replace(
+        r#"{"steering_angle":30,"speed":2}"#,
+        r#"{"steering_angle":30,"speed":2},{"steering_angle":0,"speed":2}"#,
+    );
     std::fs::write(path.join("model_metadata.json"), three).unwrap();
     let err = folder::load(&path).unwrap_err().to_string();
     assert!(err.contains("model.safetensors") && err.contains("pi.4.weight") && err.contains("[3, 128]"), "{err}");

@@ -24,7 +24,7 @@ fn check(input: InputShape, specs: &[LayerSpec], batch: usize, seed: u64) {
     let mut tape = Tape::default();
     net.forward(&x, batch, &mut tape, Par::Seq);
     let mut grad = vec![0.0f32; net.params.len()];
-    net.backward(&tape, &c, &mut grad, Par::Seq);
+    net.backward(&mut tape, &c, &mut grad, Par::Seq);
     let h = 2e-3f32;
     let mut checked = 0;
     let mut bad = Vec::new();

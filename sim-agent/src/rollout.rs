@@ -26,7 +26,9 @@ pub struct Collector {
 impl Collector {
     /// A collector over `vec`, choosing actions from `space`.
     pub fn new(vec: VecEnv, space: ActionSpace, seed: u64) -> Collector {
-        let open = (0..vec.len()).map(|i| Trajectory { env: i as u32, episode: vec.envs()[i].episode(), ..Default::default() }).collect();
+        let open = (0..vec.len())
+            .map(|i| Trajectory { env: i as u32, episode: vec.envs()[i].episode(), ..Default::default() })
+            .collect();
         Collector { vec, space, open, rng: ChaCha8Rng::seed_from_u64(seed ^ 0xC011_EC70), env_steps: 0, episodes: 0 }
     }
 
@@ -38,7 +40,12 @@ impl Collector {
     /// Step until at least `episodes` episodes have completed; return them. Episodes still
     /// running carry on at the next call (their steps keep the behaviour log-probabilities
     /// of the version that chose them; `policy_version` is the version of their first step).
-    pub fn collect(&mut self, model: &ActorCritic, version: u64, episodes: usize) -> Result<Vec<Trajectory>, RewardError> {
+    pub fn collect(
+        &mut self,
+        model: &ActorCritic,
+        version: u64,
+        episodes: usize,
+    ) -> Result<Vec<Trajectory>, RewardError> {
         let n = self.vec.len();
         let dim = self.vec.obs_dim();
         let mut done = Vec::new();
@@ -67,7 +74,12 @@ impl Collector {
                     t.done = true;
                     t.progress = o.progress;
                     t.lap_complete = o.status == EpisodeStatus::LapComplete;
-                    let next = Trajectory { env: i as u32, episode: self.vec.envs()[i].episode(), policy_version: version, ..Default::default() };
+                    let next = Trajectory {
+                        env: i as u32,
+                        episode: self.vec.envs()[i].episode(),
+                        policy_version: version,
+                        ..Default::default()
+                    };
                     done.push(std::mem::replace(t, next));
                     self.episodes += 1;
                 }
@@ -106,8 +118,9 @@ pub fn evaluate(
     threads: usize,
 ) -> Result<Vec<TrialResult>, RewardError> {
     let reward = RewardFn::Builtin(crate::BuiltinReward::CenterLine);
-    let mut vec = VecEnv::with_mode(vec![spec.clone(); trials], cfg.clone(), seed, reward, threads, Mode::Evaluation(rules))
-        .map_err(|e| RewardError::Load { origin: "evaluation".into(), msg: e.to_string() })?;
+    let mut vec =
+        VecEnv::with_mode(vec![spec.clone(); trials], cfg.clone(), seed, reward, threads, Mode::Evaluation(rules))
+            .map_err(|e| RewardError::Load { origin: "evaluation".into(), msg: e.to_string() })?;
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let mut results: Vec<Option<TrialResult>> = vec![None; trials];
     let cap = cfg.episode.max_steps;

@@ -1,0 +1,133 @@
+//! `coordinator train`, `evaluate` and `clone`, run as a user would (issue 3).
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn coordinator(dir: &Path, args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_coordinator")).args(args).current_dir(dir).output().expect("runs")
+}
+
+fn text(o: &Output) -> String {
+    format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
+}
+
+fn repo(rel: &str) -> String {
+    let p: PathBuf = [env!("CARGO_MANIFEST_DIR"), "..", rel].iter().collect();
+    p.canonicalize().unwrap().display().to_string()
+}
+
+#[test]
+fn train_then_evaluate_then_clone_and_resume() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let o = coordinator(d, &["train", "--world", "reinvent_base", "--minutes", "2", "--out", "run1"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let out = text(&o);
+    assert!(out.contains("target laps reached"), "{out}");
+    assert!(out.contains("evaluation progress 100.0 %"), "{out}");
+    for f in [
+        "model/model.safetensors",
+        "model/model_metadata.json",
+        "model/manifest.json",
+        "checkpoints/deepracer_checkpoints.json",
+        "metrics.jsonl",
+        "hyperparameters.json",
+        "model_metadata.json",
+        "sim.toml",
+        "summary.json",
+    ] {
+        assert!(d.join("run1").join(f).exists(), "{f} missing");
+    }
+    let metrics = std::fs::read_to_string(d.join("run1/metrics.jsonl")).unwrap();
+    let first: serde_json::Value = serde_json::from_str(metrics.lines().next().unwrap()).unwrap();
+    for k in [
+        "mean_reward",
+        "mean_progress",
+        "episodes",
+        "steps",
+        "policy_loss",
+        "value_loss",
+        "entropy",
+        "approx_kl",
+        "clip_fraction",
+        "explained_variance",
+        "samples_per_s",
+    ] {
+        assert!(first.get(k).is_some(), "metrics lack {k}: {first}");
+    }
+
+    let e = coordinator(d, &["evaluate", "run1/model", "--world", "reinvent_base", "--trials", "3"]);
+    assert!(e.status.success(), "{}", text(&e));
+    let eout = text(&e);
+    assert_eq!(eout.lines().filter(|l| l.starts_with("trial ")).count(), 3, "{eout}");
+    assert!(eout.contains("3 of 3 laps completed"), "{eout}");
+
+    // An existing run folder is never overwritten by accident.
+    let again = coordinator(d, &["train", "--minutes", "1", "--out", "run1"]);
+    assert!(!again.status.success() && text(&again).contains("--resume"), "{}", text(&again));
+
+    // Clone with a lower learning rate, then go on training from those weights.
+    let c = coordinator(d, &["clone", "run1/model", "--out", "run2", "--lr", "0.0001"]);
+    assert!(c.status.success(), "{}", text(&c));
+    let manifest: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(d.join("run2/model/manifest.json")).unwrap()).unwrap();
+    assert!(manifest["parent"]["weights_sha256"].as_str().unwrap().len() == 64);
+    let hyper: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(d.join("run2/hyperparameters.json")).unwrap()).unwrap();
+    assert_eq!(hyper["lr"], 0.0001);
+    let parent_version = manifest["policy_version"].as_u64().unwrap();
+    let r = coordinator(d, &["train", "--world", "reinvent_wood", "--minutes", "1", "--out", "run2", "--resume"]);
+    assert!(r.status.success(), "{}", text(&r));
+    let resumed: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(d.join("run2/checkpoints/deepracer_checkpoints.json")).unwrap())
+            .unwrap();
+    assert!(resumed["last_checkpoint"]["policy_version"].as_u64().unwrap() > parent_version, "{resumed}");
+
+    // A clone whose action space differs is refused, with the reason.
+    std::fs::write(
+        d.join("five.json"),
+        r#"{"action_space":[{"steering_angle":-30,"speed":1},{"steering_angle":0,"speed":1},{"steering_angle":30,"speed":1}],"sensor":["STATE_VECTOR"],"neural_network":"PADDOCK_MLP","version":"5"}"#,
+    )
+    .unwrap();
+    let bad = coordinator(d, &["clone", "run1/model", "--out", "run3", "--model-metadata", "five.json"]);
+    assert!(!bad.status.success());
+    assert!(text(&bad).contains("output layer would no longer match"), "{}", text(&bad));
+    assert!(!d.join("run3").exists());
+}
+
+#[test]
+fn train_refuses_a_raising_reward_before_training() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = coordinator(
+        dir.path(),
+        &["train", "--reward", &repo("tests/data/rewards/raises_key_error.py"), "--out", "run"],
+    );
+    assert!(!o.status.success());
+    let out = text(&o);
+    assert!(out.contains("KeyError: 'distance_from_centre'") && out.contains("Traceback"), "{out}");
+    assert!(!dir.path().join("run").exists(), "nothing was trained or written");
+}
+
+#[test]
+fn train_reads_deepracer_files_and_rejects_bad_ones_by_key() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    std::fs::write(
+        d.join("hyperparameters.json"),
+        r#"{"batch_size": 64, "lr": 0.0003, "num_epochs": 3, "learning_rate_typo": 1}"#,
+    )
+    .unwrap();
+    let o = coordinator(d, &["train", "--hyperparameters", "hyperparameters.json", "--minutes", "1", "--out", "run"]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("unknown key 'learning_rate_typo'"), "{}", text(&o));
+    std::fs::write(d.join("bad.json"), r#"{"batch_size": "sixty-four"}"#).unwrap();
+    let b = coordinator(d, &["train", "--hyperparameters", "bad.json", "--out", "run_bad"]);
+    assert!(!b.status.success() && text(&b).contains("bad.json: key 'batch_size'"), "{}", text(&b));
+    std::fs::write(
+        d.join("camera.json"),
+        r#"{"action_space":[{"steering_angle":0,"speed":1}],"sensor":["FRONT_FACING_CAMERA"],"version":"5"}"#,
+    )
+    .unwrap();
+    let c = coordinator(d, &["train", "--model-metadata", "camera.json", "--out", "run_cam"]);
+    assert!(!c.status.success() && text(&c).contains("STATE_VECTOR"), "{}", text(&c));
+}

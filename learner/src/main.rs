@@ -1,0 +1,168 @@
+//! The `learner` binary. Today it has one subcommand, `bench`, which measures the network
+//! maths; the learner role (serving sim agents over Zenoh) comes with the cluster issue.
+
+use faer::Par;
+use learner::Hyperparameters;
+use learner::ppo::{Batch, Workspace, loss_and_grad_with};
+use policy::{ActorCritic, ModelMetadata};
+use rand::{Rng, SeedableRng};
+use std::time::Instant;
+
+fn usage() -> ! {
+    eprintln!("usage: learner bench [--network SHALLOW|DEEP|DEEPER|MLP] [--seconds S] [--threads N]");
+    std::process::exit(2);
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    if args.first().map(String::as_str) != Some("bench") {
+        usage();
+    }
+    let mut network = "SHALLOW".to_string();
+    let mut seconds = 5.0f64;
+    let mut threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
+    let mut it = args[1..].iter();
+    while let Some(a) = it.next() {
+        let mut val = || it.next().cloned().unwrap_or_else(|| usage());
+        match a.as_str() {
+            "--network" => network = val(),
+            "--seconds" => seconds = val().parse().unwrap_or_else(|_| usage()),
+            "--threads" => threads = val().parse().unwrap_or_else(|_| usage()),
+            _ => usage(),
+        }
+    }
+    let (name, sensor) = match network.as_str() {
+        "SHALLOW" => ("DEEP_CONVOLUTIONAL_NETWORK_SHALLOW", "FRONT_FACING_CAMERA"),
+        "DEEP" => ("DEEP_CONVOLUTIONAL_NETWORK", "FRONT_FACING_CAMERA"),
+        "DEEPER" => ("DEEP_CONVOLUTIONAL_NETWORK_DEEP", "FRONT_FACING_CAMERA"),
+        "MLP" => ("PADDOCK_MLP", "STATE_VECTOR"),
+        _ => usage(),
+    };
+    let meta = ModelMetadata::parse(
+        &format!(
+            r#"{{"action_space":[{{"steering_angle":-30,"speed":1}},{{"steering_angle":-15,"speed":1}},{{"steering_angle":0,"speed":1}},{{"steering_angle":15,"speed":1}},{{"steering_angle":30,"speed":1}}],"sensor":["{sensor}"],"neural_network":"{name}","version":"5"}}"#
+        ),
+        "bench",
+    )
+    .expect("bench metadata");
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+    let model = ActorCritic::new(&meta, 27, &mut rng);
+    let os = model.obs_size();
+    let params = model.pi.params.len() + model.v.params.len();
+    println!("# learner bench: {name} ({sensor}), {} inputs, {params} parameters (both towers), {threads} threads", os);
+    println!();
+    // Camera frames are 0..255 grey levels; the state vector is about unit scale.
+    let frame = |rng: &mut rand_chacha::ChaCha8Rng| -> f32 {
+        if sensor == "STATE_VECTOR" { rng.random_range(-1.0..1.0) } else { rng.random_range(0..=255u8) as f32 }
+    };
+    let n = 64;
+    let obs: Vec<f32> = (0..n * os).map(|_| frame(&mut rng)).collect();
+    let acts = model.act(&obs, n, false, &mut rng, Par::Seq);
+    let batch = Batch {
+        obs_size: os,
+        obs,
+        choices: acts.iter().map(|a| a.choice).collect(),
+        logp_old: acts.iter().map(|a| a.logp).collect(),
+        adv: (0..n).map(|_| rng.random_range(-1.0..1.0)).collect(),
+        returns: (0..n).map(|_| rng.random_range(-1.0..1.0)).collect(),
+        values_old: acts.iter().map(|a| a.value).collect(),
+    };
+    let idx: Vec<usize> = (0..n).collect();
+    let h = Hyperparameters::default();
+    let time = |par: Par, secs: f64| {
+        let mut ws = Workspace::default();
+        std::hint::black_box(loss_and_grad_with(&mut ws, &model, &batch, &idx, &h, par));
+        let t = Instant::now();
+        let mut k = 0;
+        while t.elapsed().as_secs_f64() < secs || k < 2 {
+            let lg = loss_and_grad_with(&mut ws, &model, &batch, &idx, &h, par);
+            ws.recycle(std::hint::black_box(lg));
+            k += 1;
+        }
+        (k * n) as f64 / t.elapsed().as_secs_f64()
+    };
+    let one = time(Par::Seq, seconds);
+    let many = time(if threads > 1 { Par::rayon(threads) } else { Par::Seq }, seconds);
+    println!("| measurement | value |");
+    println!("|---|---|");
+    println!("| PPO sample-gradients/s, minibatch 64, forward + backward of both towers, 1 thread | {one:.0} |");
+    println!("| PPO sample-gradients/s, minibatch 64, {threads} threads | {many:.0} ({:.2}× one thread) |", many / one);
+    // Reference in the same run: the GEMMs alone (the layers' matrix products, forward and
+    // backward, both towers, no im2col, no activations): the ceiling for this network.
+    let gemm_only = |par: Par| {
+        let shapes = gemm_shapes(&model.pi, n);
+        let bufs: Vec<(Vec<f32>, Vec<f32>, Vec<f32>)> = shapes
+            .iter()
+            .map(|&(m, nn, k, _, _)| (vec![0.5f32; m * k], vec![0.25f32; k * nn], vec![0.0f32; m * nn]))
+            .collect();
+        let mut bufs = bufs;
+        let t = Instant::now();
+        let mut k = 0;
+        while t.elapsed().as_secs_f64() < seconds.min(3.0) || k < 2 {
+            for _tower in 0..2 {
+                for (&(m, nn, kk, at, bt), (a, b, c)) in shapes.iter().zip(bufs.iter_mut()) {
+                    policy::nn::gemm(c, m, nn, kk, a, at, b, bt, true, par);
+                }
+            }
+            k += 1;
+        }
+        (k * n) as f64 / t.elapsed().as_secs_f64()
+    };
+    let ceiling = gemm_only(if threads > 1 { Par::rayon(threads) } else { Par::Seq });
+    println!(
+        "| reference: the same GEMMs alone, {threads} threads (the ceiling) | {ceiling:.0} (ours reach {:.0} %) |",
+        100.0 * many / ceiling
+    );
+    let single: Vec<f32> = batch.obs[..os].to_vec();
+    let t = Instant::now();
+    let mut k = 0u64;
+    while t.elapsed().as_secs_f64() < seconds.min(3.0) || k < 10 {
+        std::hint::black_box(model.act(&single, 1, true, &mut rng, Par::Seq));
+        k += 1;
+    }
+    let ms = t.elapsed().as_secs_f64() * 1e3 / k as f64;
+    println!("| inference at batch 1 (policy + value towers), 1 thread | {ms:.3} ms |");
+    let t = Instant::now();
+    let mut k = 0u64;
+    let pi_only = || {
+        let mut tape = policy::nn::Tape::default();
+        model.pi.forward(&single, 1, &mut tape, Par::Seq);
+        std::hint::black_box(tape.output()[0]);
+    };
+    while t.elapsed().as_secs_f64() < seconds.min(3.0) || k < 10 {
+        pi_only();
+        k += 1;
+    }
+    let ms_pi = t.elapsed().as_secs_f64() * 1e3 / k as f64;
+    println!("| inference at batch 1 (policy tower only, as on the car), 1 thread | {ms_pi:.3} ms |");
+}
+
+/// (m, n, k, a_t, b_t) of every GEMM one tower's forward and backward make for a batch.
+fn gemm_shapes(net: &policy::nn::Net, batch: usize) -> Vec<(usize, usize, usize, bool, bool)> {
+    use policy::nn::Layer;
+    let mut out = Vec::new();
+    for (i, layer) in net.layers.iter().enumerate() {
+        let first = !net.layers[..i].iter().any(|l| l.param_count() > 0);
+        match *layer {
+            Layer::Dense { inp, out: o, .. } => {
+                out.push((batch, o, inp, false, true));
+                out.push((o, inp, batch, true, false));
+                if !first {
+                    out.push((batch, inp, o, false, false));
+                }
+            }
+            Layer::Conv2d { filters, .. } => {
+                let [oh, ow] = layer.conv_out();
+                let rows = batch * oh * ow;
+                let kkc = layer.param_count() / filters - 1;
+                out.push((rows, filters, kkc, false, true));
+                out.push((filters, kkc, rows, true, false));
+                if !first {
+                    out.push((rows, kkc, filters, false, false));
+                }
+            }
+            _ => {}
+        }
+    }
+    out
+}
