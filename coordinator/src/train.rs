@@ -159,7 +159,8 @@ pub fn train(args: TrainArgs) -> Result<i32> {
     let mut stop_reason = "time limit";
     loop {
         let t0 = Instant::now();
-        let trajs = collector.collect(&ppo.model, ppo.version, hyper.num_episodes_between_training)?;
+        let current = Arc::new(ppo.model.clone());
+        let trajs = collector.collect(&current, ppo.version, hyper.num_episodes_between_training)?;
         let collect_s = t0.elapsed().as_secs_f64();
         let lag = trajs.iter().map(|t| ppo.version - t.policy_version).max().unwrap_or(0);
         let t1 = Instant::now();

@@ -1,5 +1,7 @@
-//! The `learner` binary. Today it has one subcommand, `bench`, which measures the network
-//! maths; the learner role (serving sim agents over Zenoh) comes with the cluster issue.
+//! The `learner` binary: `serve` (the learner role over Zenoh) and `bench` (the network
+//! maths' speed).
+
+mod serve;
 
 use faer::Par;
 use learner::Hyperparameters;
@@ -10,18 +12,50 @@ use std::time::Instant;
 
 fn usage() -> ! {
     eprintln!("usage: learner bench [--network SHALLOW|DEEP|DEEPER|MLP] [--seconds S] [--threads N]");
+    eprintln!("       learner serve [--connect ENDPOINT]... [--listen ENDPOINT]... [-c ZENOH_CONFIG] [--multicast IFACE] [--id ID] [--checkpoint-seconds S]");
     std::process::exit(2);
 }
 
 fn main() {
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()))
+        .with_writer(std::io::stderr)
+        .init();
     let args: Vec<String> = std::env::args().skip(1).collect();
-    if args.first().map(String::as_str) != Some("bench") {
-        usage();
+    match args.first().map(String::as_str) {
+        Some("bench") => bench(&args[1..]),
+        Some("serve") => {
+            let mut net = protocol::net::NetArgs::default();
+            let mut id = None;
+            let mut checkpoint_seconds = 5.0;
+            let mut it = args[1..].iter();
+            while let Some(a) = it.next() {
+                let mut val = || it.next().cloned().unwrap_or_else(|| usage());
+                match a.as_str() {
+                    "--connect" => net.connect.push(val()),
+                    "--listen" => net.listen.push(val()),
+                    "-c" | "--zenoh-config" => net.config = Some(val().into()),
+                    "--multicast" => net.multicast = Some(val()),
+                    "--id" => id = Some(val()),
+                    "--checkpoint-seconds" => checkpoint_seconds = val().parse().unwrap_or_else(|_| usage()),
+                    _ => usage(),
+                }
+            }
+            let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
+            if let Err(e) = serve::serve(serve::ServeArgs { net, id, threads, checkpoint_seconds }) {
+                eprintln!("error: {e:#}");
+                std::process::exit(1);
+            }
+        }
+        _ => usage(),
     }
+}
+
+fn bench(args: &[String]) {
     let mut network = "SHALLOW".to_string();
     let mut seconds = 5.0f64;
     let mut threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
-    let mut it = args[1..].iter();
+    let mut it = args.iter();
     while let Some(a) = it.next() {
         let mut val = || it.next().cloned().unwrap_or_else(|| usage());
         match a.as_str() {

@@ -167,23 +167,41 @@ pub fn save(
 /// Read a model folder, checking the weights against the metadata and the checksum.
 pub fn load(dir: &Path) -> Result<ModelFolder, ModelError> {
     let meta_path = dir.join("model_metadata.json");
-    let metadata = ModelMetadata::load(&meta_path)
-        .map_err(|e| ModelError::Invalid { path: meta_path.display().to_string(), msg: e.msg })?;
+    let meta_text = std::fs::read_to_string(&meta_path).map_err(io(&meta_path))?;
     let man_path = dir.join("manifest.json");
-    let text = std::fs::read_to_string(&man_path).map_err(io(&man_path))?;
-    let manifest: Manifest = serde_json::from_str(&text)
-        .map_err(|e| ModelError::Invalid { path: man_path.display().to_string(), msg: e.to_string() })?;
+    let man_text = std::fs::read_to_string(&man_path).map_err(io(&man_path))?;
     let w_path = dir.join("model.safetensors");
     let bytes = std::fs::read(&w_path).map_err(io(&w_path))?;
+    from_parts(&meta_text, &man_text, &bytes, dir)
+}
+
+/// The three files of a model folder, as bytes (what travels on the network).
+pub fn to_parts(folder: &ModelFolder) -> (String, String, Vec<u8>) {
+    let weights = weights_bytes(&folder.model, folder.manifest.policy_version);
+    let mut manifest = folder.manifest.clone();
+    manifest.weights_sha256 = sha256_hex(&weights);
+    (folder.metadata.to_json(), serde_json::to_string_pretty(&manifest).expect("JSON"), weights)
+}
+
+/// A model from its three files' contents (`dir` names them in errors), with every check of
+/// [`load`].
+pub fn from_parts(meta_text: &str, manifest_text: &str, bytes: &[u8], dir: &Path) -> Result<ModelFolder, ModelError> {
+    let meta_path = dir.join("model_metadata.json");
+    let metadata = ModelMetadata::parse(meta_text, &meta_path.display().to_string())
+        .map_err(|e| ModelError::Invalid { path: meta_path.display().to_string(), msg: e.msg })?;
+    let man_path = dir.join("manifest.json");
+    let manifest: Manifest = serde_json::from_str(manifest_text)
+        .map_err(|e| ModelError::Invalid { path: man_path.display().to_string(), msg: e.to_string() })?;
+    let w_path = dir.join("model.safetensors");
     let bad = |msg: String| ModelError::Invalid { path: w_path.display().to_string(), msg };
-    let sum = sha256_hex(&bytes);
+    let sum = sha256_hex(bytes);
     if sum != manifest.weights_sha256 {
         return Err(bad(format!(
             "sha256 is {sum}, manifest.json says {}: the weights were changed or damaged",
             manifest.weights_sha256
         )));
     }
-    let st = SafeTensors::deserialize(&bytes).map_err(|e| bad(format!("not a safetensors file: {e}")))?;
+    let st = SafeTensors::deserialize(bytes).map_err(|e| bad(format!("not a safetensors file: {e}")))?;
     // The architecture the metadata implies; its weights are replaced below.
     let mut model = ActorCritic::new(
         &metadata,

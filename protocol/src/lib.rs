@@ -1,5 +1,272 @@
-//! The wire: Zenoh key expressions, message schemas and their encoding.
+//! The wire: Zenoh key expressions, message schemas (`proto/paddock.proto`, protobuf via
+//! prost) and their encoding. The only crate that knows how anything crosses a process
+//! boundary; the roles are thin shells over it and the libraries.
 //!
-//! Empty on purpose until the cluster issue: nothing crosses a process boundary yet, and
-//! this crate will be the only one that knows how anything does. It has no dependencies on
-//! the simulator or learner crates, and they will have none on the transport.
+//! Decoding never panics: a message that does not decode, is over [`MAX_MESSAGE_BYTES`], or
+//! carries another [`PROTOCOL_VERSION`] is an error the caller counts and drops.
+//!
+//! # Key expressions
+//!
+//! | key | payload | who publishes |
+//! |---|---|---|
+//! | `paddock/v1/alive/agent/{agent}` | liveliness token | sim agent |
+//! | `paddock/v1/alive/learner/{learner}` | liveliness token | learner |
+//! | `paddock/v1/alive/coordinator` | liveliness token | coordinator |
+//! | `paddock/v1/agent/{agent}/info` | [`AgentInfo`] (queryable) | sim agent |
+//! | `paddock/v1/assign/{agent}` | [`Assignment`] (re-sent every second) | coordinator |
+//! | `paddock/v1/jobs` | [`AssignmentTable`] per running job (re-sent every second) | coordinator |
+//! | `paddock/v1/job/{job}/experience/{world}/{agent}` | [`ExperienceBatch`] | sim agent |
+//! | `paddock/v1/job/{job}/policy` | [`PolicyUpdate`] (publication and "latest" queryable) | learner |
+//! | `paddock/v1/job/{job}/learner` | [`LearnerStatus`] | learner |
+//! | `paddock/v1/job/{job}/report/{agent}` | [`AgentReport`] | sim agent |
+//! | `paddock/v1/control` | [`JobRequest`] → [`JobReply`] (queryable) | coordinator |
+
+use prost::Message;
+
+#[allow(missing_docs, clippy::all)]
+mod generated {
+    include!(concat!(env!("OUT_DIR"), "/paddock.v1.rs"));
+}
+
+pub use generated::*;
+
+pub mod job;
+pub mod net;
+
+/// The version every message carries; others are dropped.
+pub const PROTOCOL_VERSION: u32 = 1;
+/// The largest message accepted (a SHALLOW camera model is ≈47 MB for both towers).
+pub const MAX_MESSAGE_BYTES: usize = 128 << 20;
+
+/// Key expressions.
+pub mod keys {
+    /// Every key starts with this.
+    pub const ROOT: &str = "paddock/v1";
+
+    /// A sim agent's liveliness token.
+    pub fn agent_alive(agent: &str) -> String {
+        format!("{ROOT}/alive/agent/{agent}")
+    }
+    /// All sim agents' liveliness tokens.
+    pub const AGENTS_ALIVE: &str = "paddock/v1/alive/agent/*";
+    /// A learner's liveliness token.
+    pub fn learner_alive(learner: &str) -> String {
+        format!("{ROOT}/alive/learner/{learner}")
+    }
+    /// All learners' tokens.
+    pub const LEARNERS_ALIVE: &str = "paddock/v1/alive/learner/*";
+    /// The coordinator's token.
+    pub const COORDINATOR_ALIVE: &str = "paddock/v1/alive/coordinator";
+    /// A sim agent's info queryable.
+    pub fn agent_info(agent: &str) -> String {
+        format!("{ROOT}/agent/{agent}/info")
+    }
+    /// A sim agent's assignment.
+    pub fn assignment(agent: &str) -> String {
+        format!("{ROOT}/assign/{agent}")
+    }
+    /// The running jobs' tables.
+    pub const JOBS: &str = "paddock/v1/jobs";
+    /// Experience of a job from one agent on one world.
+    pub fn experience(job: &str, world: &str, agent: &str) -> String {
+        format!("{ROOT}/job/{job}/experience/{world}/{agent}")
+    }
+    /// All experience of a job.
+    pub fn experience_all(job: &str) -> String {
+        format!("{ROOT}/job/{job}/experience/**")
+    }
+    /// A job's policy publications and "latest model" queryable.
+    pub fn policy(job: &str) -> String {
+        format!("{ROOT}/job/{job}/policy")
+    }
+    /// A job's learner status.
+    pub fn learner_status(job: &str) -> String {
+        format!("{ROOT}/job/{job}/learner")
+    }
+    /// The coordinator's job-control queryable.
+    pub const CONTROL: &str = "paddock/v1/control";
+    /// An agent's failure report for a job.
+    pub fn agent_report(job: &str, agent: &str) -> String {
+        format!("{ROOT}/job/{job}/report/{agent}")
+    }
+    /// Every job's failure reports.
+    pub const ALL_REPORTS: &str = "paddock/v1/job/*/report/*";
+    /// Every job's learner status.
+    pub const ALL_LEARNER_STATUS: &str = "paddock/v1/job/*/learner";
+
+    /// The last chunk of a key (an agent id from a token key, say).
+    pub fn last(key: &str) -> &str {
+        key.rsplit('/').next().unwrap_or(key)
+    }
+
+    /// A name safe in a key expression: letters, digits, `-`, `_`, `.`.
+    pub fn is_valid_name(s: &str) -> bool {
+        !s.is_empty() && s.len() <= 128 && s.chars().all(|c| c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.'))
+    }
+}
+
+/// Why a message was dropped.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum DecodeError {
+    /// Over the size limit.
+    #[error("message of {0} bytes is over the {MAX_MESSAGE_BYTES}-byte limit")]
+    TooLarge(usize),
+    /// Not a valid encoding of the expected message.
+    #[error("malformed message: {0}")]
+    Malformed(String),
+    /// Another protocol version.
+    #[error("protocol version {0}, expected {PROTOCOL_VERSION}")]
+    Version(u32),
+    /// Well-formed but inconsistent (e.g. column lengths disagree).
+    #[error("invalid message: {0}")]
+    Invalid(String),
+}
+
+/// Messages that carry a protocol version.
+pub trait Versioned: Message + Default {
+    /// The version field.
+    fn version(&self) -> u32;
+}
+
+macro_rules! versioned {
+    ($($t:ty),*) => {$(impl Versioned for $t { fn version(&self) -> u32 { self.protocol_version } })*};
+}
+versioned!(AgentInfo, Assignment, AssignmentTable, ExperienceBatch, PolicyUpdate, LearnerStatus, JobRequest, JobReply, AgentReport);
+
+/// Encode a message.
+pub fn encode<M: Message>(m: &M) -> Vec<u8> {
+    m.encode_to_vec()
+}
+
+/// Decode a message, checking size and version. Never panics.
+pub fn decode<M: Versioned>(bytes: &[u8]) -> Result<M, DecodeError> {
+    if bytes.len() > MAX_MESSAGE_BYTES {
+        return Err(DecodeError::TooLarge(bytes.len()));
+    }
+    let m = M::decode(bytes).map_err(|e| DecodeError::Malformed(e.to_string()))?;
+    if m.version() != PROTOCOL_VERSION {
+        return Err(DecodeError::Version(m.version()));
+    }
+    Ok(m)
+}
+
+/// A `policy::Trajectory` on the wire.
+pub fn trajectory_to_wire(t: &policy::Trajectory, obs_size: usize) -> Trajectory {
+    let mut discrete = Vec::new();
+    let mut continuous = Vec::new();
+    for c in &t.choices {
+        match c {
+            policy::Choice::Discrete(i) => discrete.push(*i as u32),
+            policy::Choice::Continuous(x) => continuous.extend_from_slice(x),
+        }
+    }
+    Trajectory {
+        env: t.env,
+        episode: t.episode,
+        policy_version: t.policy_version,
+        obs_size: obs_size as u32,
+        obs: t.obs.clone(),
+        discrete_actions: discrete,
+        continuous_actions: continuous,
+        logp: t.logp.clone(),
+        values: t.values.clone(),
+        rewards: t.rewards.clone(),
+        done: t.done,
+        progress: t.progress,
+        lap_complete: t.lap_complete,
+    }
+}
+
+/// A wire trajectory back, checked for consistent lengths and finite numbers.
+pub fn trajectory_from_wire(w: Trajectory, obs_size: usize) -> Result<policy::Trajectory, DecodeError> {
+    let n = w.rewards.len();
+    let bad = |m: String| Err(DecodeError::Invalid(m));
+    if w.obs_size as usize != obs_size {
+        return bad(format!("observation size {}, the job's model takes {obs_size}", w.obs_size));
+    }
+    if w.obs.len() != n * obs_size || w.logp.len() != n || w.values.len() != n {
+        return bad(format!("column lengths disagree ({} steps, {} obs values, {} logp, {} values)", n, w.obs.len(), w.logp.len(), w.values.len()));
+    }
+    let choices: Vec<policy::Choice> = if !w.discrete_actions.is_empty() || w.continuous_actions.is_empty() {
+        if w.discrete_actions.len() != n {
+            return bad(format!("{} discrete actions for {n} steps", w.discrete_actions.len()));
+        }
+        w.discrete_actions.iter().map(|&a| policy::Choice::Discrete(a as usize)).collect()
+    } else {
+        if w.continuous_actions.len() != 2 * n {
+            return bad(format!("{} continuous action values for {n} steps", w.continuous_actions.len()));
+        }
+        w.continuous_actions.chunks(2).map(|c| policy::Choice::Continuous([c[0], c[1]])).collect()
+    };
+    if !(w.obs.iter().chain(&w.logp).chain(&w.values).chain(&w.rewards).all(|x| x.is_finite()) && w.progress.is_finite()) {
+        return bad("non-finite numbers".into());
+    }
+    Ok(policy::Trajectory {
+        env: w.env,
+        episode: w.episode,
+        policy_version: w.policy_version,
+        obs: w.obs,
+        choices,
+        logp: w.logp,
+        values: w.values,
+        rewards: w.rewards,
+        done: w.done,
+        progress: w.progress,
+        lap_complete: w.lap_complete,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn round_trip_and_refusals() {
+        let t = policy::Trajectory {
+            env: 2,
+            episode: 9,
+            policy_version: 4,
+            obs: vec![0.5; 6],
+            choices: vec![policy::Choice::Discrete(1), policy::Choice::Discrete(3)],
+            logp: vec![-1.0, -2.0],
+            values: vec![0.1, 0.2],
+            rewards: vec![1.0, 0.5],
+            done: true,
+            progress: 42.0,
+            lap_complete: false,
+        };
+        let batch = ExperienceBatch {
+            protocol_version: PROTOCOL_VERSION,
+            job_id: "j".into(),
+            agent_id: "a".into(),
+            world: "w".into(),
+            seq: 3,
+            trajectories: vec![trajectory_to_wire(&t, 3)],
+            env_steps: 2,
+            seconds: 0.1,
+        };
+        let bytes = encode(&batch);
+        let back: ExperienceBatch = decode(&bytes).unwrap();
+        assert_eq!(trajectory_from_wire(back.trajectories[0].clone(), 3).unwrap(), t);
+        // Garbage, truncation, another version, wrong sizes: errors, never panics.
+        assert!(matches!(decode::<ExperienceBatch>(&[0xff, 0xff, 0xff]), Err(DecodeError::Malformed(_))));
+        assert!(decode::<ExperienceBatch>(&bytes[..bytes.len() / 2]).is_err());
+        let v2 = ExperienceBatch { protocol_version: 2, ..batch.clone() };
+        assert_eq!(decode::<ExperienceBatch>(&encode(&v2)).unwrap_err(), DecodeError::Version(2));
+        assert!(matches!(decode::<ExperienceBatch>(&vec![0u8; MAX_MESSAGE_BYTES + 1]), Err(DecodeError::TooLarge(_))));
+        assert!(matches!(trajectory_from_wire(batch.trajectories[0].clone(), 4), Err(DecodeError::Invalid(_))));
+        let mut short = batch.trajectories[0].clone();
+        short.logp.pop();
+        assert!(matches!(trajectory_from_wire(short, 3), Err(DecodeError::Invalid(_))));
+        let mut nan = batch.trajectories[0].clone();
+        nan.rewards[0] = f32::NAN;
+        assert!(matches!(trajectory_from_wire(nan, 3), Err(DecodeError::Invalid(_))));
+    }
+
+    #[test]
+    fn keys_are_well_formed() {
+        assert_eq!(keys::experience("job1", "reinvent_wood", "a1"), "paddock/v1/job/job1/experience/reinvent_wood/a1");
+        assert_eq!(keys::last(&keys::agent_alive("host-1.2")), "host-1.2");
+        assert!(keys::is_valid_name("job-7_a.b") && !keys::is_valid_name("a/b") && !keys::is_valid_name("*"));
+    }
+}

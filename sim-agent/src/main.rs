@@ -1,5 +1,8 @@
-//! The `sim-agent` binary. Today it has one subcommand, `bench`, which measures the
-//! simulator; the network role (serving a coordinator over Zenoh) comes with the cluster issue.
+//! The `sim-agent` binary: `serve` (the network role: takes world assignments from a
+//! coordinator and streams experience to a learner over Zenoh) and `bench` (the simulator's
+//! speed).
+
+mod serve;
 
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};
@@ -22,8 +25,38 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    /// Serve a coordinator: run the assigned world with the latest policy, stream experience.
+    Serve(ServeCli),
     /// Measure env steps/s (1 and 2 threads, built-in and Python reward) and query cost.
     Bench(BenchArgs),
+}
+
+#[derive(clap::Args)]
+struct ServeCli {
+    /// Zenoh endpoint to connect to (repeatable), e.g. tcp/10.0.0.1:7447.
+    #[arg(long)]
+    connect: Vec<String>,
+    /// Zenoh endpoint to listen on (repeatable).
+    #[arg(long)]
+    listen: Vec<String>,
+    /// Zenoh configuration file (JSON5); flags apply on top.
+    #[arg(short = 'c', long = "zenoh-config")]
+    zenoh_config: Option<PathBuf>,
+    /// Multicast scouting on this interface (e.g. lo); off by default.
+    #[arg(long)]
+    multicast: Option<String>,
+    /// Environments to run.
+    #[arg(long, default_value_t = 16)]
+    envs: usize,
+    /// Threads for the environments (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+    /// Agent id (default: HOST-PID).
+    #[arg(long)]
+    id: Option<String>,
+    /// Episodes per experience batch.
+    #[arg(long, default_value_t = 2)]
+    episodes_per_batch: usize,
 }
 
 #[derive(clap::Args)]
@@ -59,6 +92,13 @@ fn main() {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Bench(args) => bench(args),
+        Command::Serve(a) => serve::serve(serve::ServeArgs {
+            net: protocol::net::NetArgs { connect: a.connect, listen: a.listen, config: a.zenoh_config, multicast: a.multicast },
+            envs: a.envs,
+            id: a.id,
+            threads: a.threads.unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)),
+            episodes_per_batch: a.episodes_per_batch.max(1),
+        }),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

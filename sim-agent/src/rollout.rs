@@ -11,11 +11,14 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use std::sync::Arc;
 
-/// Collects complete episodes from a vector of environments.
+/// Collects complete episodes from a vector of environments. Each episode is driven start
+/// to end by the policy version that was current when it began: new weights are taken at
+/// episode boundaries, as DeepRacer's workers take them.
 pub struct Collector {
     vec: VecEnv,
     space: ActionSpace,
     open: Vec<Trajectory>,
+    pinned: Vec<Option<Arc<ActorCritic>>>,
     rng: ChaCha8Rng,
     /// Environment steps taken so far.
     pub env_steps: u64,
@@ -29,7 +32,8 @@ impl Collector {
         let open = (0..vec.len())
             .map(|i| Trajectory { env: i as u32, episode: vec.envs()[i].episode(), ..Default::default() })
             .collect();
-        Collector { vec, space, open, rng: ChaCha8Rng::seed_from_u64(seed ^ 0xC011_EC70), env_steps: 0, episodes: 0 }
+        let pinned = vec![None; vec.len()];
+        Collector { vec, space, open, pinned, rng: ChaCha8Rng::seed_from_u64(seed ^ 0xC011_EC70), env_steps: 0, episodes: 0 }
     }
 
     /// The environments.
@@ -37,28 +41,39 @@ impl Collector {
         &self.vec
     }
 
-    /// Step until at least `episodes` episodes have completed; return them. Episodes still
-    /// running carry on at the next call (their steps keep the behaviour log-probabilities
-    /// of the version that chose them; `policy_version` is the version of their first step).
-    pub fn collect(
-        &mut self,
-        model: &ActorCritic,
-        version: u64,
-        episodes: usize,
-    ) -> Result<Vec<Trajectory>, RewardError> {
+    /// Step until at least `episodes` episodes have completed; return them. An episode that
+    /// is running keeps the model it started with; episodes that start now get `model`.
+    pub fn collect(&mut self, model: &Arc<ActorCritic>, version: u64, episodes: usize) -> Result<Vec<Trajectory>, RewardError> {
         let n = self.vec.len();
         let dim = self.vec.obs_dim();
         let mut done = Vec::new();
-        for t in &mut self.open {
+        for (t, pin) in self.open.iter_mut().zip(&mut self.pinned) {
             if t.is_empty() {
                 t.policy_version = version;
+                *pin = Some(model.clone());
             }
         }
+        let mut acts = vec![None; n];
         while done.len() < episodes {
             let obs = self.vec.observations().to_vec();
-            let acts = model.act(&obs, n, false, &mut self.rng, Par::Seq);
-            let actions: Vec<policy::Action> = acts.iter().map(|a| a.choice.to_action(&self.space)).collect();
-            for (i, a) in acts.iter().enumerate() {
+            // One batched forward pass per policy version in use (usually one, briefly two).
+            let mut versions: Vec<u64> = self.open.iter().map(|t| t.policy_version).collect();
+            versions.sort_unstable();
+            versions.dedup();
+            for v in versions {
+                let rows: Vec<usize> = (0..n).filter(|&i| self.open[i].policy_version == v).collect();
+                let m = self.pinned[rows[0]].clone().expect("every open episode has a model");
+                let mut x = Vec::with_capacity(rows.len() * dim);
+                for &i in &rows {
+                    x.extend_from_slice(&obs[i * dim..(i + 1) * dim]);
+                }
+                for (a, &i) in m.act(&x, rows.len(), false, &mut self.rng, Par::Seq).into_iter().zip(&rows) {
+                    acts[i] = Some(a);
+                }
+            }
+            let acts_now: Vec<policy::ActOutput> = acts.iter().map(|a| a.expect("acted")).collect();
+            let actions: Vec<policy::Action> = acts_now.iter().map(|a| a.choice.to_action(&self.space)).collect();
+            for (i, a) in acts_now.iter().enumerate() {
                 let t = &mut self.open[i];
                 t.obs.extend_from_slice(&obs[i * dim..(i + 1) * dim]);
                 t.choices.push(a.choice);
@@ -74,13 +89,9 @@ impl Collector {
                     t.done = true;
                     t.progress = o.progress;
                     t.lap_complete = o.status == EpisodeStatus::LapComplete;
-                    let next = Trajectory {
-                        env: i as u32,
-                        episode: self.vec.envs()[i].episode(),
-                        policy_version: version,
-                        ..Default::default()
-                    };
+                    let next = Trajectory { env: i as u32, episode: self.vec.envs()[i].episode(), policy_version: version, ..Default::default() };
                     done.push(std::mem::replace(t, next));
+                    self.pinned[i] = Some(model.clone());
                     self.episodes += 1;
                 }
             }

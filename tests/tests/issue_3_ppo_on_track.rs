@@ -23,7 +23,7 @@ fn issue_3_ppo_learns_to_drive_reinvent_base() {
     let mut ppo = Ppo::new(model, Hyperparameters::default(), 0, 5, Par::Seq);
     let mut progress = Vec::new();
     for _ in 0..14 {
-        let trajs = collector.collect(&ppo.model, ppo.version, 20).unwrap();
+        let trajs = collector.collect(&Arc::new(ppo.model.clone()), ppo.version, 20).unwrap();
         progress.push(trajs.iter().map(|t| t.progress).sum::<f64>() / trajs.len() as f64);
         let stats = ppo.update(&trajs);
         assert!(stats.refused.is_none(), "{stats:?}");

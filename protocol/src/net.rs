@@ -1,0 +1,132 @@
+//! Zenoh sessions and typed messaging: how every role opens the network, publishes and
+//! receives messages, and counts what it drops.
+
+use crate::{DecodeError, Versioned, decode};
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicU64, Ordering};
+pub use zenoh;
+use zenoh::Wait;
+
+/// Where a role connects and listens (`--connect`, `--listen`, `-c`).
+#[derive(Clone, Debug, Default)]
+pub struct NetArgs {
+    /// Endpoints to dial, e.g. `tcp/10.0.0.2:7447`.
+    pub connect: Vec<String>,
+    /// Endpoints to listen on, e.g. `tcp/0.0.0.0:7447`.
+    pub listen: Vec<String>,
+    /// A zenoh configuration file (JSON5); flags are applied on top.
+    pub config: Option<PathBuf>,
+    /// Network interface for multicast scouting (off when `None`).
+    pub multicast: Option<String>,
+}
+
+/// Why the network could not be opened.
+#[derive(Debug, thiserror::Error)]
+#[error("zenoh: {0}")]
+pub struct NetError(pub String);
+
+fn json_list(items: &[String]) -> String {
+    format!("[{}]", items.iter().map(|e| format!("{e:?}")).collect::<Vec<_>>().join(","))
+}
+
+/// Open a peer-mode session (or whatever mode the config file says) with the given endpoints.
+pub fn open(args: &NetArgs) -> Result<zenoh::Session, NetError> {
+    let e = |x: Box<dyn std::error::Error + Send + Sync>| NetError(x.to_string());
+    let mut config = match &args.config {
+        Some(p) => zenoh::Config::from_file(p).map_err(|x| NetError(format!("{}: {x}", p.display())))?,
+        None => {
+            let mut c = zenoh::Config::default();
+            c.insert_json5("mode", r#""peer""#).map_err(e)?;
+            c
+        }
+    };
+    match &args.multicast {
+        Some(iface) => {
+            config.insert_json5("scouting/multicast/enabled", "true").map_err(e)?;
+            config.insert_json5("scouting/multicast/interface", &format!("{iface:?}")).map_err(e)?;
+        }
+        None if args.config.is_none() => config.insert_json5("scouting/multicast/enabled", "false").map_err(e)?,
+        None => {}
+    }
+    if !args.connect.is_empty() {
+        config.insert_json5("connect/endpoints", &json_list(&args.connect)).map_err(e)?;
+    }
+    if !args.listen.is_empty() {
+        config.insert_json5("listen/endpoints", &json_list(&args.listen)).map_err(e)?;
+    }
+    zenoh::open(config).wait().map_err(e)
+}
+
+/// Counts of messages dropped on receipt, by reason.
+#[derive(Debug, Default)]
+pub struct DropCounters {
+    /// Did not decode or was inconsistent.
+    pub malformed: AtomicU64,
+    /// Over the size limit.
+    pub oversized: AtomicU64,
+    /// Another protocol version.
+    pub version: AtomicU64,
+}
+
+impl DropCounters {
+    /// Total dropped.
+    pub fn total(&self) -> u64 {
+        self.malformed.load(Ordering::Relaxed) + self.oversized.load(Ordering::Relaxed) + self.version.load(Ordering::Relaxed)
+    }
+
+    /// Count one drop.
+    pub fn count(&self, e: &DecodeError) {
+        let c = match e {
+            DecodeError::TooLarge(_) => &self.oversized,
+            DecodeError::Version(_) => &self.version,
+            DecodeError::Malformed(_) | DecodeError::Invalid(_) => &self.malformed,
+        };
+        c.fetch_add(1, Ordering::Relaxed);
+    }
+}
+
+/// Decode a sample's payload as `M`; a bad one is counted, logged and `None`.
+pub fn decode_sample<M: Versioned>(sample: &zenoh::sample::Sample, drops: &DropCounters) -> Option<M> {
+    let bytes = sample.payload().to_bytes();
+    match decode::<M>(&bytes) {
+        Ok(m) => Some(m),
+        Err(e) => {
+            drops.count(&e);
+            tracing::warn!(key = %sample.key_expr(), bytes = bytes.len(), "dropped a message: {e}");
+            None
+        }
+    }
+}
+
+/// Put an encoded message on `key`, blocking under congestion (nothing lost).
+pub fn put<M: prost::Message>(session: &zenoh::Session, key: &str, m: &M) -> Result<(), NetError> {
+    session
+        .put(key, crate::encode(m))
+        .congestion_control(zenoh::qos::CongestionControl::Block)
+        .wait()
+        .map_err(|e| NetError(e.to_string()))
+}
+
+/// Query `key` with an optional request message; return the decoded replies (bad ones dropped).
+pub fn query<M: Versioned>(
+    session: &zenoh::Session,
+    key: &str,
+    request: Option<Vec<u8>>,
+    timeout: std::time::Duration,
+    drops: &DropCounters,
+) -> Result<Vec<M>, NetError> {
+    let mut get = session.get(key).timeout(timeout);
+    if let Some(r) = request {
+        get = get.payload(r);
+    }
+    let replies = get.wait().map_err(|e| NetError(e.to_string()))?;
+    let mut out = Vec::new();
+    while let Ok(reply) = replies.recv() {
+        if let Ok(sample) = reply.result() {
+            if let Some(m) = decode_sample::<M>(sample, drops) {
+                out.push(m);
+            }
+        }
+    }
+    Ok(out)
+}
