@@ -31,6 +31,122 @@ pub enum Command {
     Evaluate(EvaluateArgs),
     /// Start a new run from a model's weights (transfer learning).
     Clone(CloneArgs),
+    /// Keep jobs, watch agents, assign worlds, enforce stop conditions (the coordinator role).
+    Serve(ServeCli),
+    /// Job control: start, list, status, stop, logs.
+    Job {
+        #[command(subcommand)]
+        command: JobCommand,
+    },
+    /// Alive sim agents, their hosts and worlds.
+    Agents {
+        #[command(flatten)]
+        net: NetCli,
+    },
+    /// One machine, one command: coordinator, learner and sim agents on loopback, one job.
+    Up(UpArgs),
+}
+
+/// Where to reach the network (every networked command).
+#[derive(Args, Clone, Default)]
+pub struct NetCli {
+    /// Zenoh endpoint to connect to (repeatable); clients default to tcp/127.0.0.1:7447.
+    #[arg(long)]
+    pub connect: Vec<String>,
+    /// Zenoh endpoint to listen on (repeatable).
+    #[arg(long)]
+    pub listen: Vec<String>,
+    /// Zenoh configuration file (JSON5); flags apply on top.
+    #[arg(short = 'c', long = "zenoh-config")]
+    pub zenoh_config: Option<PathBuf>,
+    /// Multicast scouting on this interface (e.g. lo); off by default.
+    #[arg(long)]
+    pub multicast: Option<String>,
+}
+
+#[derive(Args)]
+pub struct ServeCli {
+    #[command(flatten)]
+    pub net: NetCli,
+    /// The job database (redb); jobs survive restarts.
+    #[arg(long, default_value = "paddock-coordinator.redb")]
+    pub db: PathBuf,
+}
+
+#[derive(Subcommand)]
+pub enum JobCommand {
+    /// Start a job from a TOML spec (it may name DeepRacer's files as they are).
+    Start {
+        /// The job spec.
+        spec: PathBuf,
+        /// Job id (default: derived from the spec's name and the time).
+        #[arg(long)]
+        id: Option<String>,
+        #[command(flatten)]
+        net: NetCli,
+    },
+    /// Every job.
+    List {
+        #[command(flatten)]
+        net: NetCli,
+    },
+    /// One job: state, per world figures, the learner.
+    Status {
+        /// Job id.
+        id: String,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
+        #[command(flatten)]
+        net: NetCli,
+    },
+    /// Stop a job gracefully (final checkpoint and best model written).
+    Stop {
+        /// Job id.
+        id: String,
+        #[command(flatten)]
+        net: NetCli,
+    },
+    /// A job's event log.
+    Logs {
+        /// Job id.
+        id: String,
+        /// Keep printing new lines until the job ends.
+        #[arg(long)]
+        follow: bool,
+        #[command(flatten)]
+        net: NetCli,
+    },
+    #[command(skip)]
+    Agents { net: NetCli },
+}
+
+#[derive(Args)]
+pub struct UpArgs {
+    /// World (repeatable; default: reinvent_carpet and reinvent_concrete).
+    #[arg(long)]
+    pub world: Vec<String>,
+    /// Sim agent processes.
+    #[arg(long, default_value_t = 2)]
+    pub agents: usize,
+    /// Environments per agent.
+    #[arg(long, default_value_t = 16)]
+    pub envs: usize,
+    /// Time limit (minutes).
+    #[arg(long, default_value_t = 2.0)]
+    pub minutes: f64,
+    /// Stop early when the mean progress over the last 20 episodes reaches this (%).
+    #[arg(long)]
+    pub target_progress: Option<f64>,
+    /// Reward: a DeepRacer Python file or builtin:NAME.
+    #[arg(long)]
+    pub reward: Option<String>,
+    /// Output folder (the run folder is OUT/run, the model OUT/run/model).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Replace OUT if it exists.
+    #[arg(long)]
+    pub force: bool,
 }
 
 #[derive(Args)]

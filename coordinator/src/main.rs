@@ -1,13 +1,18 @@
 //! `coordinator`: Paddock's user-facing command.
 //!
 //! The track catalog (`tracks list|show|import`), reward validation (`reward validate`),
-//! the scripted driver (`drive`), and PPO in one process (`train`, `evaluate`, `clone`).
-//! Jobs and the cluster arrive with later issues.
+//! the scripted driver (`drive`), PPO in one process (`train`, `evaluate`, `clone`), and the
+//! cluster: the coordinator role (`serve`), job control (`job …`, `agents`) and the
+//! one-machine launcher (`up`).
 
 mod cli;
+mod client;
 mod drive;
+mod jobspec;
+mod serve;
 mod tracks_cmd;
 mod train;
+mod up;
 
 use clap::Parser;
 
@@ -29,6 +34,12 @@ fn main() {
         cli::Command::Train(args) => train::train(args),
         cli::Command::Evaluate(args) => train::evaluate_cmd(args),
         cli::Command::Clone(args) => train::clone_cmd(args),
+        cli::Command::Serve(a) => {
+            serve::serve(serve::ServeArgs { net: client::net_args(&a.net, false), db: a.db }).map(|()| 0)
+        }
+        cli::Command::Job { command } => client::run(command),
+        cli::Command::Agents { net } => client::run(cli::JobCommand::Agents { net }),
+        cli::Command::Up(args) => up::up(args),
     };
     match result {
         Ok(code) => std::process::exit(code),

@@ -12,7 +12,9 @@ use std::time::Instant;
 
 fn usage() -> ! {
     eprintln!("usage: learner bench [--network SHALLOW|DEEP|DEEPER|MLP] [--seconds S] [--threads N]");
-    eprintln!("       learner serve [--connect ENDPOINT]... [--listen ENDPOINT]... [-c ZENOH_CONFIG] [--multicast IFACE] [--id ID] [--checkpoint-seconds S]");
+    eprintln!(
+        "       learner serve [--connect ENDPOINT]... [--listen ENDPOINT]... [-c ZENOH_CONFIG] [--multicast IFACE] [--id ID] [--checkpoint-seconds S]"
+    );
     std::process::exit(2);
 }
 

@@ -7,10 +7,10 @@
 //! writes checkpoints and the best model. A restarted learner resumes from the run folder's
 //! last checkpoint.
 
-use learner::checkpoints::{CheckpointRecord, OpenMode, RunDir};
-use learner::{Hyperparameters, Ppo};
 use anyhow::{Context, Result};
 use faer::Par;
+use learner::checkpoints::{CheckpointRecord, OpenMode, RunDir};
+use learner::{Hyperparameters, Ppo};
 use policy::folder::{self, Manifest};
 use policy::{ActorCritic, ModelFolder, ModelMetadata, Trajectory};
 use protocol::job::JobDoc;
@@ -40,7 +40,8 @@ pub struct ServeArgs {
 pub fn serve(args: ServeArgs) -> Result<()> {
     let session = net::open(&args.net)?;
     let id = args.id.clone().unwrap_or_else(|| format!("learner-{}", std::process::id()));
-    let _token = session.liveliness().declare_token(keys::learner_alive(&id)).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
+    let _token =
+        session.liveliness().declare_token(keys::learner_alive(&id)).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
     let jobs = session.declare_subscriber(keys::JOBS).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
     let drops = Arc::new(DropCounters::default());
     tracing::info!(learner = %id, "learner up; waiting for a job");
@@ -82,7 +83,8 @@ pub fn serve(args: ServeArgs) -> Result<()> {
 /// Per-world figures over the last 10 seconds.
 #[derive(Default)]
 struct WorldWindow {
-    recent: VecDeque<(Instant, String, f64, f64, u64)>, // (when, agent, progress, reward, steps)
+    recent: VecDeque<(Instant, String, f64, f64)>, // (when, agent, progress, reward) per episode
+    steps: VecDeque<(Instant, u64)>,               // environment steps per batch, trained on or not
     episodes: u64,
 }
 
@@ -103,7 +105,8 @@ fn run_job(
     let meta = ModelMetadata::parse(&doc.model_metadata_json, "job model_metadata.json")?;
     let hyper = hyper_of(doc)?;
     let mut cfg: SimConfig = parse_toml(&doc.sim_config_toml, "job sim config")?;
-    cfg.observation.kind = if meta.sensor.contains(&policy::Sensor::Lidar) { ObservationKind::StateLidar } else { ObservationKind::State };
+    cfg.observation.kind =
+        if meta.sensor.contains(&policy::Sensor::Lidar) { ObservationKind::StateLidar } else { ObservationKind::State };
     let obs_size = sim_agent::obs::obs_dim(&cfg.observation);
     let cfg = Arc::new(cfg);
     let out = PathBuf::from(&doc.out);
@@ -111,14 +114,22 @@ fn run_job(
     let run = RunDir::open(&out, if resuming { OpenMode::Resume } else { OpenMode::New })?;
     let (model, version, parent) = if resuming {
         let index = run.index()?;
-        let dir = index.last_checkpoint.map(|l| run.checkpoint_dir(&l.name)).filter(|d| d.exists()).unwrap_or_else(|| run.model_dir());
+        let dir = index
+            .last_checkpoint
+            .map(|l| run.checkpoint_dir(&l.name))
+            .filter(|d| d.exists())
+            .unwrap_or_else(|| run.model_dir());
         let f = folder::load(&dir)?;
         tracing::info!(job = %doc.id, from = %dir.display(), version = f.manifest.policy_version, "resuming the job's run");
         (f.model, f.manifest.policy_version, f.manifest.parent)
     } else if let Some(from) = &doc.clone_from {
         let f = folder::load(std::path::Path::new(from))?;
         f.metadata.compatible_with(&meta).map_err(|why| anyhow::anyhow!("{from}: {why}"))?;
-        let parent = folder::Parent { path: from.clone(), policy_version: f.manifest.policy_version, weights_sha256: f.manifest.weights_sha256.clone() };
+        let parent = folder::Parent {
+            path: from.clone(),
+            policy_version: f.manifest.policy_version,
+            weights_sha256: f.manifest.weights_sha256.clone(),
+        };
         (f.model, f.manifest.policy_version, Some(parent))
     } else {
         (ActorCritic::new(&meta, obs_size, &mut rand_chacha::ChaCha8Rng::seed_from_u64(doc.seed)), 0, None)
@@ -139,9 +150,20 @@ fn run_job(
     };
     let latest: Arc<Mutex<Vec<u8>>> = Arc::new(Mutex::new(Vec::new()));
     let publish = |ppo: &Ppo| -> Result<()> {
-        let f = ModelFolder { metadata: meta.clone(), model: ppo.model.clone(), manifest: manifest_for(ppo, serde_json::json!({"job": doc.id})) };
+        let f = ModelFolder {
+            metadata: meta.clone(),
+            model: ppo.model.clone(),
+            manifest: manifest_for(ppo, serde_json::json!({"job": doc.id})),
+        };
         let (m, man, w) = folder::to_parts(&f);
-        let u = PolicyUpdate { protocol_version: PROTOCOL_VERSION, job_id: doc.id.clone(), policy_version: ppo.version, weights: w, model_metadata_json: m, manifest_json: man };
+        let u = PolicyUpdate {
+            protocol_version: PROTOCOL_VERSION,
+            job_id: doc.id.clone(),
+            policy_version: ppo.version,
+            weights: w,
+            model_metadata_json: m,
+            manifest_json: man,
+        };
         let bytes = protocol::encode(&u);
         *latest.lock().expect("lock") = bytes.clone();
         session
@@ -173,7 +195,8 @@ fn run_job(
     let mut windows: HashMap<String, WorldWindow> = HashMap::new();
     let mut recent: VecDeque<(f64, f64)> = VecDeque::new();
     let (mut dup, mut stale, mut bad) = (0u64, 0u64, 0u64);
-    let (mut episodes, mut env_steps, mut iteration, mut max_lag) = (0u64, 0u64, run.index()?.last_checkpoint.map(|l| l.iteration).unwrap_or(0), 0u64);
+    let (mut episodes, mut env_steps, mut iteration, mut max_lag) =
+        (0u64, 0u64, run.index()?.last_checkpoint.map(|l| l.iteration).unwrap_or(0), 0u64);
     let mut last_eval = Instant::now() - Duration::from_secs(3600);
     let mut eval_progress = 0.0;
     let mut running = true;
@@ -202,12 +225,19 @@ fn run_job(
                 } else {
                     env_steps += b.env_steps;
                     let w = windows.entry(b.world.clone()).or_default();
+                    w.steps.push_back((Instant::now(), b.env_steps));
                     for wt in b.trajectories {
                         match protocol::trajectory_from_wire(wt, obs_size) {
-                            Ok(t) if ppo.version.saturating_sub(t.policy_version) > doc.max_policy_lag => stale += 1,
+                            // Too old, or from a version this learner never published (before a restart).
+                            Ok(t)
+                                if ppo.version.saturating_sub(t.policy_version) > doc.max_policy_lag
+                                    || t.policy_version > ppo.version =>
+                            {
+                                stale += 1
+                            }
                             Ok(t) => {
                                 let r: f64 = t.rewards.iter().map(|x| *x as f64).sum();
-                                w.recent.push_back((Instant::now(), b.agent_id.clone(), t.progress, r, t.len() as u64));
+                                w.recent.push_back((Instant::now(), b.agent_id.clone(), t.progress, r));
                                 w.episodes += 1;
                                 recent.push_back((t.progress, r));
                                 while recent.len() as u64 > doc.stop.window.max(1) {
@@ -249,14 +279,36 @@ fn run_job(
         let due = last_eval.elapsed().as_secs_f64() >= args.checkpoint_seconds;
         if (enough && due) || finishing {
             last_eval = Instant::now();
-            let trials = sim_agent::rollout::evaluate(&ppo.model, &meta.action_space, &eval_spec, &cfg, sim_agent::EvalRules::default(), doc.eval_trials.max(1) as usize, doc.seed ^ iteration, args.threads)?;
+            let trials = sim_agent::rollout::evaluate(
+                &ppo.model,
+                &meta.action_space,
+                &eval_spec,
+                &cfg,
+                sim_agent::EvalRules::default(),
+                doc.eval_trials.max(1) as usize,
+                doc.seed ^ iteration,
+                args.threads,
+            )?;
             let n = trials.len() as f64;
             eval_progress = trials.iter().map(|t| t.progress).sum::<f64>() / n;
-            let lap = trials.iter().all(|t| t.lap_time.is_some()).then(|| trials.iter().filter_map(|t| t.lap_time).sum::<f64>() / n);
+            let lap = trials
+                .iter()
+                .all(|t| t.lap_time.is_some())
+                .then(|| trials.iter().filter_map(|t| t.lap_time).sum::<f64>() / n);
             let name = RunDir::checkpoint_name(iteration);
-            let manifest = manifest_for(&ppo, serde_json::json!({"job": doc.id, "iteration": iteration, "episodes": episodes, "env_steps": env_steps, "eval_progress": eval_progress, "eval_lap_time": lap, "hyperparameters": hyper}));
+            let manifest = manifest_for(
+                &ppo,
+                serde_json::json!({"job": doc.id, "iteration": iteration, "episodes": episodes, "env_steps": env_steps, "eval_progress": eval_progress, "eval_lap_time": lap, "hyperparameters": hyper}),
+            );
             folder::save(&run.checkpoint_dir(&name), &meta, &ppo.model, &manifest)?;
-            let rec = CheckpointRecord { name, iteration, policy_version: ppo.version, avg_eval_metric: eval_progress, avg_lap_time: lap, time_stamp: start.elapsed().as_secs_f64() };
+            let rec = CheckpointRecord {
+                name,
+                iteration,
+                policy_version: ppo.version,
+                avg_eval_metric: eval_progress,
+                avg_lap_time: lap,
+                time_stamp: start.elapsed().as_secs_f64(),
+            };
             if run.record(rec)? || !run.model_dir().join("manifest.json").exists() {
                 folder::save(&run.model_dir(), &meta, &ppo.model, &manifest)?;
             }
@@ -270,6 +322,11 @@ fn run_job(
                     while w.recent.front().is_some_and(|r| now.duration_since(r.0) > Duration::from_secs(10)) {
                         w.recent.pop_front();
                     }
+                    while w.steps.front().is_some_and(|r| now.duration_since(r.0) > Duration::from_secs(10)) {
+                        w.steps.pop_front();
+                    }
+                    let span =
+                        w.steps.front().map(|f| now.duration_since(f.0).as_secs_f64()).unwrap_or(0.0).clamp(1.0, 10.0);
                     let n = w.recent.len().max(1) as f64;
                     let agents: BTreeSet<&String> = w.recent.iter().map(|r| &r.1).collect();
                     WorldStats {
@@ -278,7 +335,7 @@ fn run_job(
                         episodes: w.episodes,
                         mean_progress: w.recent.iter().map(|r| r.2).sum::<f64>() / n,
                         mean_reward: w.recent.iter().map(|r| r.3).sum::<f64>() / n,
-                        steps_per_s: w.recent.iter().map(|r| r.4).sum::<u64>() as f64 / 10.0,
+                        steps_per_s: w.steps.iter().map(|r| r.1).sum::<u64>() as f64 / span,
                     }
                 })
                 .collect();

@@ -23,7 +23,14 @@ pub struct StopSpec {
 
 impl Default for StopSpec {
     fn default() -> Self {
-        StopSpec { minutes: 10.0, max_episodes: 1_000_000, target_progress: None, target_reward: None, window: 20, env_steps_budget: None }
+        StopSpec {
+            minutes: 10.0,
+            max_episodes: 1_000_000,
+            target_progress: None,
+            target_reward: None,
+            window: 20,
+            env_steps_budget: None,
+        }
     }
 }
 

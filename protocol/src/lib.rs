@@ -131,7 +131,17 @@ pub trait Versioned: Message + Default {
 macro_rules! versioned {
     ($($t:ty),*) => {$(impl Versioned for $t { fn version(&self) -> u32 { self.protocol_version } })*};
 }
-versioned!(AgentInfo, Assignment, AssignmentTable, ExperienceBatch, PolicyUpdate, LearnerStatus, JobRequest, JobReply, AgentReport);
+versioned!(
+    AgentInfo,
+    Assignment,
+    AssignmentTable,
+    ExperienceBatch,
+    PolicyUpdate,
+    LearnerStatus,
+    JobRequest,
+    JobReply,
+    AgentReport
+);
 
 /// Encode a message.
 pub fn encode<M: Message>(m: &M) -> Vec<u8> {
@@ -185,7 +195,13 @@ pub fn trajectory_from_wire(w: Trajectory, obs_size: usize) -> Result<policy::Tr
         return bad(format!("observation size {}, the job's model takes {obs_size}", w.obs_size));
     }
     if w.obs.len() != n * obs_size || w.logp.len() != n || w.values.len() != n {
-        return bad(format!("column lengths disagree ({} steps, {} obs values, {} logp, {} values)", n, w.obs.len(), w.logp.len(), w.values.len()));
+        return bad(format!(
+            "column lengths disagree ({} steps, {} obs values, {} logp, {} values)",
+            n,
+            w.obs.len(),
+            w.logp.len(),
+            w.values.len()
+        ));
     }
     let choices: Vec<policy::Choice> = if !w.discrete_actions.is_empty() || w.continuous_actions.is_empty() {
         if w.discrete_actions.len() != n {
@@ -198,7 +214,9 @@ pub fn trajectory_from_wire(w: Trajectory, obs_size: usize) -> Result<policy::Tr
         }
         w.continuous_actions.chunks(2).map(|c| policy::Choice::Continuous([c[0], c[1]])).collect()
     };
-    if !(w.obs.iter().chain(&w.logp).chain(&w.values).chain(&w.rewards).all(|x| x.is_finite()) && w.progress.is_finite()) {
+    if !(w.obs.iter().chain(&w.logp).chain(&w.values).chain(&w.rewards).all(|x| x.is_finite())
+        && w.progress.is_finite())
+    {
         return bad("non-finite numbers".into());
     }
     Ok(policy::Trajectory {

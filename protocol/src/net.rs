@@ -71,7 +71,9 @@ pub struct DropCounters {
 impl DropCounters {
     /// Total dropped.
     pub fn total(&self) -> u64 {
-        self.malformed.load(Ordering::Relaxed) + self.oversized.load(Ordering::Relaxed) + self.version.load(Ordering::Relaxed)
+        self.malformed.load(Ordering::Relaxed)
+            + self.oversized.load(Ordering::Relaxed)
+            + self.version.load(Ordering::Relaxed)
     }
 
     /// Count one drop.

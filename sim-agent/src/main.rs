@@ -93,7 +93,12 @@ fn main() {
     let result = match cli.command {
         Command::Bench(args) => bench(args),
         Command::Serve(a) => serve::serve(serve::ServeArgs {
-            net: protocol::net::NetArgs { connect: a.connect, listen: a.listen, config: a.zenoh_config, multicast: a.multicast },
+            net: protocol::net::NetArgs {
+                connect: a.connect,
+                listen: a.listen,
+                config: a.zenoh_config,
+                multicast: a.multicast,
+            },
             envs: a.envs,
             id: a.id,
             threads: a.threads.unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)),

@@ -33,7 +33,15 @@ impl Collector {
             .map(|i| Trajectory { env: i as u32, episode: vec.envs()[i].episode(), ..Default::default() })
             .collect();
         let pinned = vec![None; vec.len()];
-        Collector { vec, space, open, pinned, rng: ChaCha8Rng::seed_from_u64(seed ^ 0xC011_EC70), env_steps: 0, episodes: 0 }
+        Collector {
+            vec,
+            space,
+            open,
+            pinned,
+            rng: ChaCha8Rng::seed_from_u64(seed ^ 0xC011_EC70),
+            env_steps: 0,
+            episodes: 0,
+        }
     }
 
     /// The environments.
@@ -43,7 +51,12 @@ impl Collector {
 
     /// Step until at least `episodes` episodes have completed; return them. An episode that
     /// is running keeps the model it started with; episodes that start now get `model`.
-    pub fn collect(&mut self, model: &Arc<ActorCritic>, version: u64, episodes: usize) -> Result<Vec<Trajectory>, RewardError> {
+    pub fn collect(
+        &mut self,
+        model: &Arc<ActorCritic>,
+        version: u64,
+        episodes: usize,
+    ) -> Result<Vec<Trajectory>, RewardError> {
         let n = self.vec.len();
         let dim = self.vec.obs_dim();
         let mut done = Vec::new();
@@ -89,7 +102,12 @@ impl Collector {
                     t.done = true;
                     t.progress = o.progress;
                     t.lap_complete = o.status == EpisodeStatus::LapComplete;
-                    let next = Trajectory { env: i as u32, episode: self.vec.envs()[i].episode(), policy_version: version, ..Default::default() };
+                    let next = Trajectory {
+                        env: i as u32,
+                        episode: self.vec.envs()[i].episode(),
+                        policy_version: version,
+                        ..Default::default()
+                    };
                     done.push(std::mem::replace(t, next));
                     self.pinned[i] = Some(model.clone());
                     self.episodes += 1;

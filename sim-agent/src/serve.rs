@@ -53,7 +53,11 @@ struct Work {
 }
 
 fn host() -> String {
-    std::fs::read_to_string("/etc/hostname").map(|s| s.trim().to_string()).ok().filter(|s| !s.is_empty()).unwrap_or_else(|| "host".into())
+    std::fs::read_to_string("/etc/hostname")
+        .map(|s| s.trim().to_string())
+        .ok()
+        .filter(|s| !s.is_empty())
+        .unwrap_or_else(|| "host".into())
 }
 
 /// Run the agent until the process is stopped.
@@ -77,7 +81,8 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         })
         .wait()
         .map_err(|e| anyhow::anyhow!("{e}"))?;
-    let _token = session.liveliness().declare_token(keys::agent_alive(&id)).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
+    let _token =
+        session.liveliness().declare_token(keys::agent_alive(&id)).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
     let assign_sub = session.declare_subscriber(keys::assignment(&id)).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
     let drops = DropCounters::default();
     tracing::info!(agent = %id, envs = args.envs, "sim agent up; waiting for an assignment");
@@ -128,7 +133,12 @@ pub fn serve(args: ServeArgs) -> Result<()> {
 
 fn report(session: &zenoh::Session, job: &str, agent: &str, error: &str) {
     tracing::error!(job, "{error}");
-    let r = AgentReport { protocol_version: PROTOCOL_VERSION, job_id: job.into(), agent_id: agent.into(), error: error.into() };
+    let r = AgentReport {
+        protocol_version: PROTOCOL_VERSION,
+        job_id: job.into(),
+        agent_id: agent.into(),
+        error: error.into(),
+    };
     if let Err(e) = net::put(session, &keys::agent_report(job, agent), &r) {
         tracing::warn!("could not send the failure report: {e}");
     }
@@ -147,14 +157,21 @@ fn start(session: &zenoh::Session, args: &ServeArgs, a: &Assignment) -> Result<W
     let (reward, reward_dir) = if a.reward_source.starts_with("builtin:") {
         (RewardFn::from_spec(&a.reward_source)?, None)
     } else {
-        let dir = std::env::temp_dir().join(format!("paddock-agent-{}-{}-{}", std::process::id(), a.job_id, a.generation));
+        let dir =
+            std::env::temp_dir().join(format!("paddock-agent-{}-{}-{}", std::process::id(), a.job_id, a.generation));
         std::fs::create_dir_all(&dir)?;
         let file = dir.join(if a.reward_name.ends_with(".py") { a.reward_name.as_str() } else { "reward_function.py" });
         std::fs::write(&file, &a.reward_source)?;
         (RewardFn::from_spec(&file.display().to_string())?, Some(dir))
     };
-    let mut spec = EnvSpec::from_world(&world, if world_spec.reversed { tracks::Direction::Reversed } else { tracks::Direction::Forward });
-    spec.noise = Some(sim_agent::config::NoiseConfig { steering_deg: world_spec.steering_noise_deg, speed_fraction: world_spec.speed_noise_fraction });
+    let mut spec = EnvSpec::from_world(
+        &world,
+        if world_spec.reversed { tracks::Direction::Reversed } else { tracks::Direction::Forward },
+    );
+    spec.noise = Some(sim_agent::config::NoiseConfig {
+        steering_deg: world_spec.steering_noise_deg,
+        speed_fraction: world_spec.speed_noise_fraction,
+    });
     let cfg = Arc::new(cfg);
     let obs_size = sim_agent::obs::obs_dim(&cfg.observation);
     let vec = VecEnv::new(vec![spec; args.envs], cfg, a.seed, reward, args.threads)?;
@@ -175,7 +192,9 @@ fn start(session: &zenoh::Session, args: &ServeArgs, a: &Assignment) -> Result<W
 }
 
 fn take_policy(w: &mut Work, u: PolicyUpdate) {
-    if w.model.as_ref().is_some_and(|(_, v)| *v >= u.policy_version) {
+    // Any version other than the current one is taken: a restarted learner resumes at an
+    // older version than the agents may hold, and its word is the one that counts.
+    if w.model.as_ref().is_some_and(|(_, v)| *v == u.policy_version) {
         return;
     }
     match folder::from_parts(&u.model_metadata_json, &u.manifest_json, &u.weights, std::path::Path::new("<network>")) {
@@ -183,7 +202,12 @@ fn take_policy(w: &mut Work, u: PolicyUpdate) {
             tracing::info!(version = u.policy_version, "new policy");
             w.model = Some((Arc::new(f.model), u.policy_version));
         }
-        Ok(f) => tracing::warn!("policy v{} takes {} inputs, this world gives {}: ignored", u.policy_version, f.manifest.obs_size, w.obs_size),
+        Ok(f) => tracing::warn!(
+            "policy v{} takes {} inputs, this world gives {}: ignored",
+            u.policy_version,
+            f.manifest.obs_size,
+            w.obs_size
+        ),
         Err(e) => tracing::warn!("policy v{} refused: {e}", u.policy_version),
     }
 }

@@ -1,0 +1,87 @@
+//! The job-control CLI (`coordinator job …`, `coordinator agents`): requests to
+//! `coordinator serve` over Zenoh.
+
+use crate::cli::{JobCommand, NetCli};
+use anyhow::{Context, Result, bail};
+use protocol::net::{self, DropCounters, NetArgs};
+use protocol::{JobReply, JobRequest, PROTOCOL_VERSION, job_request::Kind, keys};
+use std::time::Duration;
+
+/// Network arguments for a client: default to a coordinator on this machine.
+pub fn net_args(n: &NetCli, default_connect: bool) -> NetArgs {
+    let mut connect = n.connect.clone();
+    if connect.is_empty() && default_connect && n.zenoh_config.is_none() && n.multicast.is_none() {
+        connect.push("tcp/127.0.0.1:7447".into());
+    }
+    NetArgs { connect, listen: n.listen.clone(), config: n.zenoh_config.clone(), multicast: n.multicast.clone() }
+}
+
+/// Send one request and wait for the reply.
+pub fn request(session: &zenoh::Session, kind: Kind, timeout: Duration) -> Result<JobReply> {
+    let req = JobRequest { protocol_version: PROTOCOL_VERSION, kind: Some(kind) };
+    let drops = DropCounters::default();
+    let replies = net::query::<JobReply>(session, keys::CONTROL, Some(protocol::encode(&req)), timeout, &drops)?;
+    replies.into_iter().next().context("no coordinator answered (is `coordinator serve` running and reachable?)")
+}
+
+use protocol::net::zenoh;
+
+/// A job id from a spec file's name and the time.
+pub fn new_job_id(path: &std::path::Path, name: Option<&str>) -> String {
+    let stem = name
+        .map(str::to_string)
+        .unwrap_or_else(|| path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "job".into()));
+    let clean: String =
+        stem.chars().map(|c| if c.is_ascii_alphanumeric() || c == '-' || c == '_' { c } else { '-' }).collect();
+    let t = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_millis()).unwrap_or(0);
+    format!("{clean}-{}", t % 100_000_000)
+}
+
+pub fn run(cmd: JobCommand) -> Result<i32> {
+    let (net, kind, follow) = match cmd {
+        JobCommand::Start { spec, id, net } => {
+            let text = std::fs::read_to_string(&spec).with_context(|| format!("reading {}", spec.display()))?;
+            let name = crate::jobspec::name_of(&text);
+            let id = id.unwrap_or_else(|| new_job_id(&spec, name.as_deref()));
+            let doc = crate::jobspec::load(&spec, &id)?;
+            (net, Kind::StartJobJson(serde_json::to_string(&doc)?), false)
+        }
+        JobCommand::List { net } => (net, Kind::List(true), false),
+        JobCommand::Status { id, json, net } => {
+            let session = net::open(&net_args(&net, true))?;
+            let r = request(&session, Kind::StatusJobId(id), Duration::from_secs(5))?;
+            println!("{}", if json { r.json } else { r.text });
+            return Ok(if r.ok { 0 } else { 1 });
+        }
+        JobCommand::Stop { id, net } => (net, Kind::StopJobId(id), false),
+        JobCommand::Logs { id, follow, net } => (net, Kind::LogsJobId(id), follow),
+        JobCommand::Agents { net } => (net, Kind::Agents(true), false),
+    };
+    let session = net::open(&net_args(&net, true))?;
+    let r = request(&session, kind.clone(), Duration::from_secs(10))?;
+    if !follow {
+        println!("{}", r.text.trim_end());
+        return Ok(if r.ok { 0 } else { 1 });
+    }
+    // Follow: print new lines as they come until the job ends.
+    let mut shown = 0;
+    let mut r = r;
+    loop {
+        if !r.ok {
+            bail!("{}", r.text);
+        }
+        let lines: Vec<&str> = r.text.lines().collect();
+        for l in lines.iter().skip(shown) {
+            println!("{l}");
+        }
+        shown = lines.len().max(shown);
+        let state = serde_json::from_str::<serde_json::Value>(&r.json)
+            .ok()
+            .and_then(|v| v.get("state").and_then(|s| s.as_str()).map(str::to_string));
+        if matches!(state.as_deref(), Some("finished") | Some("failed")) {
+            return Ok(0);
+        }
+        std::thread::sleep(Duration::from_secs(1));
+        r = request(&session, kind.clone(), Duration::from_secs(10))?;
+    }
+}

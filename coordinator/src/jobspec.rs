@@ -1,0 +1,178 @@
+//! Job spec files (`JOB.toml`): parsed with errors that name the field, every file they
+//! point at read in, and turned into the [`JobDoc`] the coordinator stores.
+//!
+//! ```toml
+//! worlds = ["reinvent_carpet", "reinvent_concrete"]   # required
+//! reward = "reward_function.py"      # DeepRacer's file as it is, or "builtin:center_line"
+//! model_metadata = "model_metadata.json"   # optional, DeepRacer's file
+//! hyperparameters = "hyperparameters.json" # optional, DeepRacer's file
+//! clone_from = "runs/first/model"    # optional: start from a model (path on the learner)
+//! out = "runs/carpet-concrete"       # run folder on the learner's machine
+//! [stop]
+//! minutes = 10
+//! target_progress = 95
+//! ```
+
+use anyhow::{Context, Result, bail};
+use learner::Hyperparameters;
+use policy::ModelMetadata;
+use protocol::job::{JobDoc, StopSpec};
+use serde::Deserialize;
+use sim_agent::SimConfig;
+use std::path::Path;
+
+/// The file's fields.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct JobSpec {
+    /// Optional name (the job id is derived from it).
+    pub name: Option<String>,
+    /// Worlds to train on.
+    pub worlds: Vec<String>,
+    /// Reward file or `builtin:NAME`.
+    #[serde(default = "default_reward")]
+    pub reward: String,
+    /// `model_metadata.json`.
+    pub model_metadata: Option<String>,
+    /// `hyperparameters.json`.
+    pub hyperparameters: Option<String>,
+    /// A model folder to start from (on the learner's machine).
+    pub clone_from: Option<String>,
+    /// The run folder (on the learner's machine).
+    pub out: Option<String>,
+    /// Random seed.
+    #[serde(default = "one")]
+    pub seed: u64,
+    /// Environments per sim agent.
+    #[serde(default = "sixteen")]
+    pub envs_per_agent: u32,
+    /// Experience older than this many policy versions is dropped.
+    #[serde(default = "four")]
+    pub max_policy_lag: u64,
+    /// Evaluation trials per checkpoint.
+    #[serde(default = "three")]
+    pub eval_trials: u32,
+    /// Stop conditions.
+    #[serde(default)]
+    pub stop: StopSpec,
+    /// Simulator configuration (any key of config/default.toml).
+    #[serde(default)]
+    pub sim: Option<toml::Table>,
+}
+
+fn default_reward() -> String {
+    "builtin:center_line".into()
+}
+fn one() -> u64 {
+    1
+}
+fn sixteen() -> u32 {
+    16
+}
+fn four() -> u64 {
+    4
+}
+fn three() -> u32 {
+    3
+}
+
+/// The spec's optional `name` (used for the job id), if the file parses.
+pub fn name_of(text: &str) -> Option<String> {
+    toml::from_str::<JobSpec>(text).ok().and_then(|s| s.name)
+}
+
+/// Read a spec file and everything it names; `id` is the job id to give it.
+pub fn load(path: &Path, id: &str) -> Result<JobDoc> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    parse(&text, path.parent().unwrap_or(Path::new(".")), &path.display().to_string(), id)
+}
+
+/// Parse spec text; relative file names resolve against `base`.
+pub fn parse(text: &str, base: &Path, origin: &str, id: &str) -> Result<JobDoc> {
+    let spec: JobSpec = toml::from_str(text).map_err(|e| anyhow::anyhow!("{origin}: {e}"))?;
+    if spec.worlds.is_empty() {
+        bail!("{origin}: field 'worlds' is empty; name at least one world");
+    }
+    for w in &spec.worlds {
+        tracks::world(w).map_err(|e| anyhow::anyhow!("{origin}: field 'worlds': {e}"))?;
+    }
+    let read = |field: &str, name: &str| -> Result<String> {
+        let p = base.join(name);
+        std::fs::read_to_string(&p).map_err(|e| anyhow::anyhow!("{origin}: field '{field}': {}: {e}", p.display()))
+    };
+    let (reward_name, reward_source) = if spec.reward.starts_with("builtin:") {
+        (spec.reward.clone(), spec.reward.clone())
+    } else {
+        let name = Path::new(&spec.reward).file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        (name, read("reward", &spec.reward)?)
+    };
+    let model_metadata_json = match &spec.model_metadata {
+        Some(f) => {
+            let t = read("model_metadata", f)?;
+            ModelMetadata::parse(&t, &base.join(f).display().to_string())?;
+            t
+        }
+        None => ModelMetadata::default_state_vector().to_json(),
+    };
+    let hyperparameters_json = match &spec.hyperparameters {
+        Some(f) => {
+            let t = read("hyperparameters", f)?;
+            Hyperparameters::parse(&t, &base.join(f).display().to_string())?;
+            t
+        }
+        None => Hyperparameters::default().to_json(),
+    };
+    let sim: SimConfig = match &spec.sim {
+        Some(t) => SimConfig::deserialize(toml::Value::Table(t.clone()))
+            .map_err(|e| anyhow::anyhow!("{origin}: field 'sim': {e}"))?,
+        None => SimConfig::default(),
+    };
+    if spec.stop.minutes <= 0.0 || !spec.stop.minutes.is_finite() {
+        bail!("{origin}: field 'stop.minutes' must be a positive number of minutes");
+    }
+    Ok(JobDoc {
+        id: id.to_string(),
+        worlds: spec.worlds,
+        reward_name,
+        reward_source,
+        model_metadata_json,
+        hyperparameters_json,
+        sim_config_toml: toml::to_string(&sim)?,
+        out: spec.out.unwrap_or_else(|| format!("runs/{id}")),
+        clone_from: spec.clone_from,
+        seed: spec.seed,
+        envs_per_agent: spec.envs_per_agent.max(1),
+        max_policy_lag: spec.max_policy_lag,
+        stop: spec.stop,
+        eval_trials: spec.eval_trials.max(1),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn errors_name_the_field() {
+        let dir = std::env::temp_dir();
+        for (text, want) in [
+            ("worlds = []", "field 'worlds' is empty"),
+            ("worlds = [\"no_such_world\"]", "no built-in world named 'no_such_world'"),
+            ("worlds = [\"reinvent_wood\"]\nrewrd = \"x.py\"", "rewrd"),
+            ("worlds = [\"reinvent_wood\"]\nreward = \"missing.py\"", "field 'reward'"),
+            ("worlds = [\"reinvent_wood\"]\n[stop]\nminutes = -1", "stop.minutes"),
+            ("worlds = [\"reinvent_wood\"]\n[stop]\nminute = 3", "minute"),
+            ("worlds = [\"reinvent_wood\"]\n[sim]\ncontrol_hz = \"fast\"", "field 'sim'"),
+            ("worlds = \"reinvent_wood\"", "worlds"),
+        ] {
+            let e = parse(text, &dir, "job.toml", "j").unwrap_err().to_string();
+            assert!(e.contains("job.toml") && e.contains(want), "{text}: {e}");
+        }
+        let ok =
+            parse("worlds = [\"reinvent_carpet\", \"reinvent_concrete\"]\n[stop]\nminutes = 2", &dir, "job.toml", "j")
+                .unwrap();
+        assert_eq!(ok.worlds.len(), 2);
+        assert_eq!(ok.reward_source, "builtin:center_line");
+        assert_eq!(ok.out, "runs/j");
+    }
+}

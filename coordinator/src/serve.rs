@@ -1,0 +1,719 @@
+//! `coordinator serve`: jobs in an embedded database (redb), agent liveliness, world
+//! assignment, stop conditions, and the job-control queryable the CLI talks to.
+//!
+//! Assignment: the oldest running job gets every live agent. With at least as many agents as
+//! worlds, agents spread evenly (counts differ by at most one; a lost agent's world is filled
+//! at once from the most crowded world). With fewer agents than worlds, agents time-share:
+//! after [`DWELL`] on a world an agent moves to the world that has been served least, so every
+//! world gets its share over time and a lost agent's world is picked up within seconds.
+
+use anyhow::{Context, Result};
+use protocol::job::JobDoc;
+use protocol::net::{self, DropCounters, NetArgs, decode_sample, zenoh};
+use protocol::{
+    AgentInfo, AgentReport, Assignment, AssignmentTable, JobReply, JobRequest, LearnerStatus, PROTOCOL_VERSION,
+    WorldSpec, job_request::Kind, keys,
+};
+use redb::{Database, ReadableDatabase, ReadableTable, TableDefinition};
+use serde::{Deserialize, Serialize};
+use std::collections::{BTreeMap, HashMap};
+use std::path::Path;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use zenoh::Wait;
+
+/// Minimum time on a world before an agent is moved for time-sharing.
+pub const DWELL: Duration = Duration::from_secs(4);
+const TICK: Duration = Duration::from_millis(500);
+const JOBS: TableDefinition<&str, &str> = TableDefinition::new("jobs");
+
+fn now_unix() -> f64 {
+    SystemTime::now().duration_since(UNIX_EPOCH).map(|d| d.as_secs_f64()).unwrap_or(0.0)
+}
+
+/// A job's state.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum JobState {
+    /// Agents and the learner work on it.
+    Running,
+    /// A stop condition or the user asked it to stop; waiting for the learner's final checkpoint.
+    Stopping,
+    /// Done: final checkpoint and best model written.
+    Finished,
+    /// Could not run (a reward that raises, say).
+    Failed,
+}
+
+/// What the database keeps per job.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct JobRecord {
+    /// The job with its files.
+    pub doc: JobDoc,
+    /// Its state.
+    pub state: JobState,
+    /// Unix time it was started.
+    pub started: f64,
+    /// Unix time it ended.
+    pub ended: Option<f64>,
+    /// Why it stopped.
+    pub stop_reason: Option<String>,
+    /// Agent → (world, generation).
+    pub assignments: BTreeMap<String, (String, u64)>,
+    /// Next assignment generation.
+    pub generation: u64,
+    /// Seconds each world has been served (agent-seconds).
+    pub share: BTreeMap<String, f64>,
+    /// Event log.
+    pub log: Vec<String>,
+    /// The learner's last status, as JSON.
+    pub learner: Option<serde_json::Value>,
+}
+
+impl JobRecord {
+    fn event(&mut self, line: String) {
+        tracing::info!(job = %self.doc.id, "{line}");
+        let t = now_unix() - self.started;
+        self.log.push(format!("[{t:>8.1}s] {line}"));
+        if self.log.len() > 2000 {
+            self.log.drain(..500);
+        }
+    }
+}
+
+struct Alive {
+    since: Instant,
+    info: Option<AgentInfo>,
+}
+
+struct State {
+    jobs: BTreeMap<String, JobRecord>,
+    agents: BTreeMap<String, Alive>,
+    dwell: HashMap<String, Instant>,
+    learners: BTreeMap<String, Instant>,
+}
+
+/// Options of `coordinator serve`.
+pub struct ServeArgs {
+    /// Network endpoints.
+    pub net: NetArgs,
+    /// The database file.
+    pub db: std::path::PathBuf,
+}
+
+/// The database: jobs by id, as JSON.
+struct Db {
+    db: Database,
+}
+
+impl Db {
+    fn open(path: &Path) -> Result<Db> {
+        if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
+            std::fs::create_dir_all(parent)?;
+        }
+        let db = Database::create(path).with_context(|| format!("opening the job database {}", path.display()))?;
+        let w = db.begin_write()?;
+        w.open_table(JOBS)?;
+        w.commit()?;
+        Ok(Db { db })
+    }
+
+    fn load(&self) -> Result<BTreeMap<String, JobRecord>> {
+        let r = self.db.begin_read()?;
+        let t = r.open_table(JOBS)?;
+        let mut out = BTreeMap::new();
+        for e in t.iter()? {
+            let (k, v) = e?;
+            match serde_json::from_str::<JobRecord>(v.value()) {
+                Ok(rec) => {
+                    out.insert(k.value().to_string(), rec);
+                }
+                Err(e) => tracing::warn!("job {} in the database is unreadable, skipped: {e}", k.value()),
+            }
+        }
+        Ok(out)
+    }
+
+    fn save(&self, rec: &JobRecord) -> Result<()> {
+        let w = self.db.begin_write()?;
+        {
+            let mut t = w.open_table(JOBS)?;
+            t.insert(rec.doc.id.as_str(), serde_json::to_string(rec)?.as_str())?;
+        }
+        w.commit()?;
+        Ok(())
+    }
+}
+
+/// Run the coordinator until the process is stopped.
+pub fn serve(args: ServeArgs) -> Result<()> {
+    let db = Arc::new(Db::open(&args.db)?);
+    let jobs = db.load()?;
+    for j in jobs.values().filter(|j| matches!(j.state, JobState::Running | JobState::Stopping)) {
+        tracing::info!(job = %j.doc.id, state = ?j.state, "job carried over from the database");
+    }
+    let session = net::open(&args.net)?;
+    let _token =
+        session.liveliness().declare_token(keys::COORDINATOR_ALIVE).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
+    let state =
+        Arc::new(Mutex::new(State { jobs, agents: BTreeMap::new(), dwell: HashMap::new(), learners: BTreeMap::new() }));
+    let drops = Arc::new(DropCounters::default());
+
+    // Control queryable.
+    let (st, dbc, sess) = (state.clone(), db.clone(), session.clone());
+    let drops_q = drops.clone();
+    let _control = session
+        .declare_queryable(keys::CONTROL)
+        .callback(move |q| {
+            let reply = match q.payload().map(|p| protocol::decode::<JobRequest>(&p.to_bytes())) {
+                Some(Ok(req)) => handle(&st, &dbc, &sess, req),
+                Some(Err(e)) => {
+                    drops_q.count(&e);
+                    reply(false, format!("bad request: {e}"), serde_json::Value::Null)
+                }
+                None => reply(false, "empty request".into(), serde_json::Value::Null),
+            };
+            let _ = q.reply(q.key_expr().clone(), protocol::encode(&reply)).wait();
+        })
+        .wait()
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let agents_sub = session
+        .liveliness()
+        .declare_subscriber(keys::AGENTS_ALIVE)
+        .history(true)
+        .wait()
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let learners_sub = session
+        .liveliness()
+        .declare_subscriber(keys::LEARNERS_ALIVE)
+        .history(true)
+        .wait()
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let status_sub = session.declare_subscriber(keys::ALL_LEARNER_STATUS).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
+    let report_sub = session.declare_subscriber(keys::ALL_REPORTS).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
+    tracing::info!(db = %args.db.display(), "coordinator up");
+    loop {
+        let tick = Instant::now();
+        let mut st = state.lock().expect("state lock");
+        while let Ok(Some(s)) = agents_sub.try_recv() {
+            let id = keys::last(s.key_expr().as_str()).to_string();
+            if s.kind() == zenoh::sample::SampleKind::Put {
+                if !st.agents.contains_key(&id) {
+                    let info = net::query::<AgentInfo>(
+                        &session,
+                        &keys::agent_info(&id),
+                        None,
+                        Duration::from_millis(500),
+                        &drops,
+                    )
+                    .ok()
+                    .and_then(|v| v.into_iter().next());
+                    for j in st.jobs.values_mut().filter(|j| j.state == JobState::Running) {
+                        j.event(format!(
+                            "agent {id} joined{}",
+                            info.as_ref()
+                                .map(|i| format!(" ({}, {} cores, {} envs)", i.host, i.cores, i.envs))
+                                .unwrap_or_default()
+                        ));
+                    }
+                    st.agents.insert(id, Alive { since: Instant::now(), info });
+                }
+            } else if st.agents.remove(&id).is_some() {
+                for j in st.jobs.values_mut().filter(|j| j.state == JobState::Running) {
+                    j.event(format!("agent {id} lost (liveliness dropped)"));
+                }
+            }
+        }
+        while let Ok(Some(s)) = learners_sub.try_recv() {
+            let id = keys::last(s.key_expr().as_str()).to_string();
+            if s.kind() == zenoh::sample::SampleKind::Put {
+                st.learners.insert(id, Instant::now());
+            } else {
+                st.learners.remove(&id);
+                for j in st.jobs.values_mut().filter(|j| j.state == JobState::Running) {
+                    j.event(format!("learner {id} lost"));
+                }
+            }
+        }
+        while let Ok(Some(s)) = status_sub.try_recv() {
+            if let Some(ls) = decode_sample::<LearnerStatus>(&s, &drops) {
+                on_status(&mut st, &db, ls);
+            }
+        }
+        while let Ok(Some(s)) = report_sub.try_recv() {
+            if let Some(r) = decode_sample::<AgentReport>(&s, &drops) {
+                if let Some(j) = st.jobs.get_mut(&r.job_id).filter(|j| j.state == JobState::Running) {
+                    j.event(format!("agent {} failed: {}", r.agent_id, r.error));
+                    j.state = JobState::Failed;
+                    j.stop_reason = Some(format!("agent {} failed: {}", r.agent_id, r.error));
+                    j.ended = Some(now_unix());
+                    let _ = db.save(j);
+                }
+            }
+        }
+        schedule(&mut st, &db, &session);
+        drop(st);
+        std::thread::sleep(TICK.saturating_sub(tick.elapsed()));
+    }
+}
+
+fn on_status(st: &mut State, db: &Db, ls: LearnerStatus) {
+    let Some(j) = st.jobs.get_mut(&ls.job_id) else { return };
+    let summary = serde_json::json!({
+        "learner": ls.learner_id, "policy_version": ls.policy_version, "iteration": ls.iteration, "episodes": ls.episodes,
+        "env_steps": ls.env_steps, "mean_progress": ls.mean_progress, "mean_reward": ls.mean_reward,
+        "window_progress": ls.window_progress, "window_reward": ls.window_reward, "eval_progress": ls.eval_progress,
+        "max_lag": ls.max_lag, "dropped_stale": ls.dropped_stale, "dropped_duplicate": ls.dropped_duplicate,
+        "dropped_bad": ls.dropped_bad, "run_dir": ls.run_dir, "finished": ls.finished,
+        "worlds": ls.worlds.iter().map(|w| serde_json::json!({"world": w.world, "agents": w.agents, "episodes": w.episodes,
+            "mean_progress": w.mean_progress, "mean_reward": w.mean_reward, "steps_per_s": w.steps_per_s})).collect::<Vec<_>>(),
+    });
+    let first = j.learner.is_none();
+    j.learner = Some(summary);
+    if first {
+        j.event(format!("learner {} is training (policy v{})", ls.learner_id, ls.policy_version));
+    }
+    if ls.finished && matches!(j.state, JobState::Stopping | JobState::Running) {
+        if ls.run_dir.starts_with("error:") {
+            j.state = JobState::Failed;
+            j.stop_reason = Some(ls.run_dir.clone());
+        } else {
+            j.state = JobState::Finished;
+        }
+        j.ended = Some(now_unix());
+        j.event(format!("learner finished: final checkpoint and best model in {}", ls.run_dir));
+    }
+    let _ = db.save(j);
+}
+
+/// Balanced assignment of agents to worlds (see the module doc).
+pub fn assign(
+    agents: &[String],
+    worlds: &[String],
+    current: &BTreeMap<String, (String, u64)>,
+    share: &BTreeMap<String, f64>,
+    dwelled: &dyn Fn(&str) -> bool,
+) -> BTreeMap<String, String> {
+    let mut out: BTreeMap<String, String> = BTreeMap::new();
+    if worlds.is_empty() {
+        return out;
+    }
+    for a in agents {
+        if let Some((w, _)) = current.get(a).filter(|(w, _)| worlds.contains(w)) {
+            out.insert(a.clone(), w.clone());
+        }
+    }
+    let count = |out: &BTreeMap<String, String>, w: &str| out.values().filter(|x| *x == w).count();
+    let least = |out: &BTreeMap<String, String>, exclude: Option<&str>| {
+        worlds
+            .iter()
+            .filter(|w| Some(w.as_str()) != exclude)
+            .min_by(|a, b| {
+                count(out, a)
+                    .cmp(&count(out, b))
+                    .then(share.get(*a).unwrap_or(&0.0).total_cmp(share.get(*b).unwrap_or(&0.0)))
+            })
+            .cloned()
+    };
+    for a in agents {
+        if !out.contains_key(a) {
+            let w = least(&out, None).expect("worlds not empty");
+            out.insert(a.clone(), w);
+        }
+    }
+    if agents.len() >= worlds.len() {
+        // Even out: move agents from the most to the least crowded world.
+        loop {
+            let max = worlds.iter().max_by_key(|w| count(&out, w)).expect("not empty").clone();
+            let min = worlds.iter().min_by_key(|w| count(&out, w)).expect("not empty").clone();
+            if count(&out, &max) <= count(&out, &min) + 1 {
+                break;
+            }
+            let mover = out.iter().rev().find(|(_, w)| **w == max).map(|(a, _)| a.clone()).expect("max has agents");
+            out.insert(mover, min);
+        }
+    } else {
+        // Time-share: an agent that has dwelled moves to the least-served world nobody serves.
+        for a in agents {
+            if !dwelled(a) {
+                continue;
+            }
+            let mine = out[a].clone();
+            let unserved: Vec<&String> = worlds.iter().filter(|w| count(&out, w) == 0).collect();
+            if let Some(target) = unserved
+                .into_iter()
+                .min_by(|x, y| share.get(*x).unwrap_or(&0.0).total_cmp(share.get(*y).unwrap_or(&0.0)))
+            {
+                if share.get(target).unwrap_or(&0.0) < share.get(&mine).unwrap_or(&0.0) {
+                    out.insert(a.clone(), target.clone());
+                }
+            }
+        }
+    }
+    out
+}
+
+fn schedule(st: &mut State, db: &Db, session: &zenoh::Session) {
+    let agents: Vec<String> = st.agents.keys().cloned().collect();
+    let now = Instant::now();
+    let running: Vec<String> =
+        st.jobs.values().filter(|j| j.state == JobState::Running).map(|j| j.doc.id.clone()).collect();
+    // Stop conditions.
+    for id in &running {
+        let j = st.jobs.get_mut(id).expect("listed");
+        let elapsed_min = (now_unix() - j.started) / 60.0;
+        let l = j.learner.clone().unwrap_or(serde_json::Value::Null);
+        let num = |k: &str| l.get(k).and_then(|v| v.as_f64());
+        let stop = &j.doc.stop;
+        let episodes = num("episodes").unwrap_or(0.0);
+        let full_window = episodes >= stop.window as f64;
+        let reason = if elapsed_min >= stop.minutes {
+            Some(format!("time limit of {} min reached", stop.minutes))
+        } else if episodes >= stop.max_episodes as f64 {
+            Some(format!("{} episodes reached", stop.max_episodes))
+        } else if let (Some(t), Some(p), true) = (stop.target_progress, num("window_progress"), full_window) {
+            (p >= t).then(|| {
+                format!("mean progress {p:.1} % over the last {} episodes reached the target {t}", stop.window)
+            })
+        } else if let (Some(t), Some(r), true) = (stop.target_reward, num("window_reward"), full_window) {
+            (r >= t)
+                .then(|| format!("mean reward {r:.1} over the last {} episodes reached the target {t}", stop.window))
+        } else if let (Some(b), Some(s)) = (stop.env_steps_budget, num("env_steps")) {
+            (s >= b as f64).then(|| format!("compute budget of {b} env steps spent"))
+        } else {
+            None
+        };
+        if let Some(r) = reason {
+            j.event(format!("stopping: {r}"));
+            j.state = JobState::Stopping;
+            j.stop_reason = Some(r);
+            let _ = db.save(j);
+        }
+    }
+    // The oldest running job gets the agents.
+    let active = st
+        .jobs
+        .values()
+        .filter(|j| j.state == JobState::Running)
+        .min_by(|a, b| a.started.total_cmp(&b.started))
+        .map(|j| j.doc.id.clone());
+    let dwell_map = st.dwell.clone();
+    if let Some(id) = &active {
+        let j = st.jobs.get_mut(id).expect("active");
+        let dwelled = |a: &str| dwell_map.get(a).is_none_or(|t| now.duration_since(*t) >= DWELL);
+        let plan = assign(&agents, &j.doc.worlds, &j.assignments, &j.share, &dwelled);
+        let mut changed = false;
+        for (a, w) in &plan {
+            if j.assignments.get(a).map(|(cw, _)| cw) != Some(w) {
+                j.generation += 1;
+                let old = j.assignments.get(a).map(|(cw, _)| cw.clone());
+                j.event(match old {
+                    Some(o) => format!("agent {a}: {o} -> {w}"),
+                    None => format!("agent {a} assigned to {w}"),
+                });
+                j.assignments.insert(a.clone(), (w.clone(), j.generation));
+                st.dwell.insert(a.clone(), now);
+                changed = true;
+            }
+            *j.share.entry(w.clone()).or_default() += TICK.as_secs_f64();
+        }
+        let gone: Vec<String> = j.assignments.keys().filter(|a| !plan.contains_key(*a)).cloned().collect();
+        for a in gone {
+            let (w, _) = j.assignments.remove(&a).expect("listed");
+            j.event(format!("agent {a} no longer on {w}"));
+            changed = true;
+        }
+        if changed {
+            let _ = db.save(j);
+        }
+    }
+    // Publish assignments and the job tables.
+    for j in st.jobs.values().filter(|j| matches!(j.state, JobState::Running | JobState::Stopping)) {
+        let running = j.state == JobState::Running;
+        let mut table = AssignmentTable {
+            protocol_version: PROTOCOL_VERSION,
+            job_id: j.doc.id.clone(),
+            running,
+            job_json: serde_json::to_string(&j.doc).unwrap_or_default(),
+            assignments: vec![],
+        };
+        if running && Some(&j.doc.id) == active.as_ref() {
+            for (a, (w, g)) in &j.assignments {
+                let asg = assignment(&j.doc, a, w, *g);
+                if let Err(e) = net::put(session, &keys::assignment(a), &asg) {
+                    tracing::warn!("could not send {a} its assignment: {e}");
+                }
+                table.assignments.push(asg);
+            }
+        }
+        if let Err(e) = net::put(session, keys::JOBS, &table) {
+            tracing::warn!("could not publish the job table: {e}");
+        }
+    }
+}
+
+fn assignment(doc: &JobDoc, agent: &str, world: &str, generation: u64) -> Assignment {
+    let sim: sim_agent::SimConfig = sim_agent::config::parse_toml(&doc.sim_config_toml, "job").unwrap_or_default();
+    Assignment {
+        protocol_version: PROTOCOL_VERSION,
+        job_id: doc.id.clone(),
+        agent_id: agent.into(),
+        world: Some(WorldSpec {
+            name: world.into(),
+            reversed: false,
+            steering_noise_deg: sim.noise.steering_deg,
+            speed_noise_fraction: sim.noise.speed_fraction,
+        }),
+        reward_name: doc.reward_name.clone(),
+        reward_source: doc.reward_source.clone(),
+        model_metadata_json: doc.model_metadata_json.clone(),
+        sim_config_toml: doc.sim_config_toml.clone(),
+        seed: doc.seed ^ generation.wrapping_mul(0x9E37_79B9),
+        generation,
+    }
+}
+
+fn reply(ok: bool, text: String, json: serde_json::Value) -> JobReply {
+    JobReply { protocol_version: PROTOCOL_VERSION, ok, text, json: json.to_string() }
+}
+
+/// Check a job's reward function before anything trains on it.
+fn validate(doc: &JobDoc) -> std::result::Result<(), String> {
+    let dir = std::env::temp_dir().join(format!("paddock-coordinator-{}-{}", std::process::id(), doc.id));
+    let spec = if doc.reward_source.starts_with("builtin:") {
+        doc.reward_source.clone()
+    } else {
+        std::fs::create_dir_all(&dir).map_err(|e| e.to_string())?;
+        let f =
+            dir.join(if doc.reward_name.ends_with(".py") { doc.reward_name.as_str() } else { "reward_function.py" });
+        std::fs::write(&f, &doc.reward_source).map_err(|e| e.to_string())?;
+        f.display().to_string()
+    };
+    let result = (|| -> Result<()> {
+        let mut reward = sim_agent::RewardFn::from_spec(&spec)?;
+        let meta = policy::ModelMetadata::parse(&doc.model_metadata_json, "model_metadata.json")?;
+        for w in &doc.worlds {
+            let track = tracks::world(w)?.track(tracks::Direction::Forward);
+            sim_agent::validate::validate_reward(&mut reward, &track, &meta.action_space, 20)?;
+        }
+        Ok(())
+    })();
+    let _ = std::fs::remove_dir_all(&dir);
+    result.map_err(|e| format!("{e:#}"))
+}
+
+fn handle(st: &Arc<Mutex<State>>, db: &Db, _session: &zenoh::Session, req: JobRequest) -> JobReply {
+    let mut st = st.lock().expect("state lock");
+    match req.kind {
+        Some(Kind::StartJobJson(doc_json)) => {
+            let doc: JobDoc = match serde_json::from_str(&doc_json) {
+                Ok(d) => d,
+                Err(e) => return reply(false, format!("bad job document: {e}"), serde_json::Value::Null),
+            };
+            if !keys::is_valid_name(&doc.id) || st.jobs.contains_key(&doc.id) {
+                return reply(
+                    false,
+                    format!("job id '{}' is taken or not a valid name", doc.id),
+                    serde_json::Value::Null,
+                );
+            }
+            let mut rec = JobRecord {
+                doc,
+                state: JobState::Running,
+                started: now_unix(),
+                ended: None,
+                stop_reason: None,
+                assignments: BTreeMap::new(),
+                generation: 0,
+                share: BTreeMap::new(),
+                log: vec![],
+                learner: None,
+            };
+            let ok = match validate(&rec.doc) {
+                Ok(()) => {
+                    rec.event(format!("started: worlds {:?}, reward {}", rec.doc.worlds, rec.doc.reward_name));
+                    true
+                }
+                Err(e) => {
+                    rec.state = JobState::Failed;
+                    rec.ended = Some(now_unix());
+                    rec.stop_reason = Some(format!("the reward function failed validation: {e}"));
+                    rec.event(format!("failed before training: the reward function failed validation:\n{e}"));
+                    false
+                }
+            };
+            if let Err(e) = db.save(&rec) {
+                return reply(false, format!("could not store the job: {e:#}"), serde_json::Value::Null);
+            }
+            let text = if ok {
+                format!("job {} started", rec.doc.id)
+            } else {
+                format!("job {} failed: {}", rec.doc.id, rec.stop_reason.clone().unwrap_or_default())
+            };
+            let json = serde_json::json!({"id": rec.doc.id, "state": rec.state});
+            st.jobs.insert(rec.doc.id.clone(), rec);
+            reply(ok, text, json)
+        }
+        Some(Kind::StopJobId(id)) => match st.jobs.get_mut(&id) {
+            Some(j) if j.state == JobState::Running => {
+                j.state = JobState::Stopping;
+                j.stop_reason = Some("stopped by the user".into());
+                j.event("stopping: asked by the user".into());
+                let _ = db.save(j);
+                reply(
+                    true,
+                    format!("job {id} stopping: the learner writes its final checkpoint and best model"),
+                    serde_json::json!({"id": id}),
+                )
+            }
+            Some(j) => reply(false, format!("job {id} is {:?}, not running", j.state), serde_json::Value::Null),
+            None => reply(false, format!("no job '{id}'"), serde_json::Value::Null),
+        },
+        Some(Kind::StatusJobId(id)) => match st.jobs.get(&id) {
+            Some(j) => reply(true, status_text(j, &st), serde_json::to_value(j).unwrap_or_default()),
+            None => reply(false, format!("no job '{id}'"), serde_json::Value::Null),
+        },
+        Some(Kind::List(_)) => {
+            let mut text = format!(
+                "{:<28} {:<9} {:>9} {:>9} {:>9}  {}\n",
+                "JOB", "STATE", "MINUTES", "EPISODES", "PROGRESS", "WORLDS"
+            );
+            let mut rows = vec![];
+            for j in st.jobs.values() {
+                let mins = (j.ended.unwrap_or_else(now_unix) - j.started) / 60.0;
+                let eps = j.learner.as_ref().and_then(|l| l.get("episodes")).and_then(|v| v.as_u64()).unwrap_or(0);
+                let prog =
+                    j.learner.as_ref().and_then(|l| l.get("window_progress")).and_then(|v| v.as_f64()).unwrap_or(0.0);
+                text.push_str(&format!(
+                    "{:<28} {:<9} {:>9.1} {:>9} {:>8.1}%  {}\n",
+                    j.doc.id,
+                    format!("{:?}", j.state).to_lowercase(),
+                    mins,
+                    eps,
+                    prog,
+                    j.doc.worlds.join(",")
+                ));
+                rows.push(serde_json::json!({"id": j.doc.id, "state": j.state, "minutes": mins, "episodes": eps, "progress": prog}));
+            }
+            reply(true, text, serde_json::Value::Array(rows))
+        }
+        Some(Kind::Agents(_)) => {
+            let active = st.jobs.values().find(|j| j.state == JobState::Running);
+            let mut text = format!("{:<28} {:<16} {:>5} {:>5}  {}\n", "AGENT", "HOST", "CORES", "ENVS", "WORLD");
+            let mut rows = vec![];
+            for (id, a) in &st.agents {
+                let world =
+                    active.and_then(|j| j.assignments.get(id)).map(|(w, _)| w.clone()).unwrap_or_else(|| "-".into());
+                let (host, cores, envs) =
+                    a.info.as_ref().map(|i| (i.host.clone(), i.cores, i.envs)).unwrap_or_default();
+                text.push_str(&format!(
+                    "{id:<28} {host:<16} {cores:>5} {envs:>5}  {world} (up {:.0} s)\n",
+                    a.since.elapsed().as_secs_f64()
+                ));
+                rows.push(serde_json::json!({"id": id, "host": host, "cores": cores, "envs": envs, "world": world}));
+            }
+            reply(true, text, serde_json::Value::Array(rows))
+        }
+        Some(Kind::LogsJobId(id)) => match st.jobs.get(&id) {
+            Some(j) => reply(true, j.log.join("\n"), serde_json::json!({"lines": j.log.len(), "state": j.state})),
+            None => reply(false, format!("no job '{id}'"), serde_json::Value::Null),
+        },
+        None => reply(false, "empty request".into(), serde_json::Value::Null),
+    }
+}
+
+fn status_text(j: &JobRecord, st: &State) -> String {
+    let mut t = String::new();
+    let mins = (j.ended.unwrap_or_else(now_unix) - j.started) / 60.0;
+    t.push_str(&format!("job {}: {:?}, {:.1} of {} min", j.doc.id, j.state, mins, j.doc.stop.minutes));
+    if let Some(r) = &j.stop_reason {
+        t.push_str(&format!(" ({r})"));
+    }
+    t.push('\n');
+    let l = j.learner.clone().unwrap_or(serde_json::Value::Null);
+    for w in &j.doc.worlds {
+        let agents: Vec<&String> = j.assignments.iter().filter(|(_, (x, _))| x == w).map(|(a, _)| a).collect();
+        let ws = l
+            .get("worlds")
+            .and_then(|v| v.as_array())
+            .and_then(|a| a.iter().find(|x| x.get("world").and_then(|s| s.as_str()) == Some(w)));
+        let g = |k: &str| ws.and_then(|x| x.get(k)).and_then(|v| v.as_f64()).unwrap_or(0.0);
+        t.push_str(&format!(
+            "  world {w:<20} agents {:<2} episodes {:>6} mean progress {:>5.1} % mean reward {:>8.2} steps/s {:>7.0}  [{}]\n",
+            agents.len(),
+            g("episodes"),
+            g("mean_progress"),
+            g("mean_reward"),
+            g("steps_per_s"),
+            agents.iter().map(|s| s.as_str()).collect::<Vec<_>>().join(", ")
+        ));
+    }
+    let n = |k: &str| l.get(k).and_then(|v| v.as_f64()).unwrap_or(0.0);
+    t.push_str(&format!(
+        "  learner {}: policy v{} iteration {} episodes {} env steps {} lag ≤{} dropped: {} stale, {} duplicate, {} bad; eval progress {:.1} %\n",
+        l.get("learner").and_then(|v| v.as_str()).unwrap_or("-"),
+        n("policy_version"),
+        n("iteration"),
+        n("episodes"),
+        n("env_steps"),
+        n("max_lag"),
+        n("dropped_stale"),
+        n("dropped_duplicate"),
+        n("dropped_bad"),
+        n("eval_progress")
+    ));
+    t.push_str(&format!("  agents alive: {}, learners alive: {}\n", st.agents.len(), st.learners.len()));
+    t.push_str("  recent events:\n");
+    for line in j.log.iter().rev().take(8).rev() {
+        t.push_str(&format!("    {line}\n"));
+    }
+    t
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn names(v: &[&str]) -> Vec<String> {
+        v.iter().map(|s| s.to_string()).collect()
+    }
+
+    #[test]
+    fn six_agents_three_worlds_two_each_and_a_lost_agent_is_replaced() {
+        let worlds = names(&["carpet", "concrete", "wood"]);
+        let agents = names(&["a", "b", "c", "d", "e", "f"]);
+        let plan = assign(&agents, &worlds, &BTreeMap::new(), &BTreeMap::new(), &|_| true);
+        for w in &worlds {
+            assert_eq!(plan.values().filter(|x| *x == w).count(), 2, "{plan:?}");
+        }
+        // Lose both agents of one world: it is refilled at once from the others.
+        let current: BTreeMap<String, (String, u64)> = plan.iter().map(|(a, w)| (a.clone(), (w.clone(), 1))).collect();
+        let wood: Vec<String> = plan.iter().filter(|(_, w)| *w == "wood").map(|(a, _)| a.clone()).collect();
+        let left: Vec<String> = agents.iter().filter(|a| !wood.contains(a)).cloned().collect();
+        let plan2 = assign(&left, &worlds, &current, &BTreeMap::new(), &|_| false);
+        for w in &worlds {
+            let n = plan2.values().filter(|x| *x == w).count();
+            assert!((1..=2).contains(&n), "{plan2:?}");
+        }
+    }
+
+    #[test]
+    fn two_agents_three_worlds_share_over_time() {
+        let worlds = names(&["carpet", "concrete", "wood"]);
+        let agents = names(&["a", "b"]);
+        let mut current = BTreeMap::new();
+        let mut share: BTreeMap<String, f64> = BTreeMap::new();
+        for _ in 0..60 {
+            let plan = assign(&agents, &worlds, &current, &share, &|_| true);
+            assert_eq!(plan.len(), 2, "both agents work");
+            for w in plan.values() {
+                *share.entry(w.clone()).or_default() += 1.0;
+            }
+            current = plan.into_iter().map(|(a, w)| (a, (w, 0))).collect();
+        }
+        for w in &worlds {
+            let s = share.get(w).copied().unwrap_or(0.0);
+            assert!(s >= 30.0, "every world gets its share: {share:?}");
+        }
+    }
+}

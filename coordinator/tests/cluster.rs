@@ -1,0 +1,312 @@
+//! Issue 4: real processes, real Zenoh on loopback (and across network namespaces).
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+fn bin(name: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_BIN_EXE_coordinator")).with_file_name(name)
+}
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
+}
+
+/// Processes killed when dropped.
+struct Procs(Vec<(String, Child)>);
+
+impl Drop for Procs {
+    fn drop(&mut self) {
+        for (_, c) in &mut self.0 {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+}
+
+impl Procs {
+    fn spawn(&mut self, name: &str, cmd: &mut Command, log: &Path) {
+        let f = std::fs::File::create(log).unwrap();
+        let child = cmd.stdin(Stdio::null()).stdout(f.try_clone().unwrap()).stderr(f).spawn().unwrap();
+        self.0.push((name.into(), child));
+    }
+
+    fn kill(&mut self, name: &str) {
+        let i = self.0.iter().position(|(n, _)| n == name).unwrap();
+        let (_, mut c) = self.0.remove(i);
+        c.kill().unwrap(); // SIGKILL
+        c.wait().unwrap();
+    }
+}
+
+struct Cluster {
+    dir: tempfile::TempDir,
+    endpoint: String,
+    procs: Procs,
+}
+
+impl Cluster {
+    fn new() -> Cluster {
+        let dir = tempfile::tempdir().unwrap();
+        Cluster { endpoint: format!("tcp/127.0.0.1:{}", free_port()), dir, procs: Procs(vec![]) }
+    }
+
+    fn path(&self, p: &str) -> PathBuf {
+        self.dir.path().join(p)
+    }
+
+    fn coordinator(&mut self) {
+        let (ep, db, log) = (self.endpoint.clone(), self.path("c.redb"), self.path("coordinator.log"));
+        self.procs.spawn(
+            "coordinator",
+            Command::new(bin("coordinator"))
+                .args(["serve", "--listen", &ep, "--db"])
+                .arg(db)
+                .current_dir(self.dir.path()),
+            &log,
+        );
+    }
+
+    fn learner(&mut self) {
+        let (ep, log) = (self.endpoint.clone(), self.path("learner.log"));
+        self.procs.spawn(
+            "learner",
+            Command::new(bin("learner"))
+                .args(["serve", "--connect", &ep, "--id", "learner-1", "--checkpoint-seconds", "0"])
+                .current_dir(self.dir.path()),
+            &log,
+        );
+    }
+
+    fn agent(&mut self, id: &str) {
+        let (ep, log) = (self.endpoint.clone(), self.path(&format!("{id}.log")));
+        self.procs.spawn(
+            id,
+            Command::new(bin("sim-agent"))
+                .args(["serve", "--connect", &ep, "--id", id, "--envs", "8", "--threads", "1"])
+                .current_dir(self.dir.path()),
+            &log,
+        );
+    }
+
+    fn cli(&self, args: &[&str]) -> Output {
+        let mut a: Vec<&str> = args.to_vec();
+        a.extend(["--connect", &self.endpoint]);
+        Command::new(bin("coordinator")).args(&a).current_dir(self.dir.path()).output().unwrap()
+    }
+
+    fn start(&self, spec: &str) -> String {
+        std::fs::write(self.path("job.toml"), spec).unwrap();
+        let deadline = Instant::now() + Duration::from_secs(20);
+        loop {
+            let o = self.cli(&["job", "start", "job.toml", "--id", "job1"]);
+            if o.status.success() {
+                return "job1".into();
+            }
+            let text = String::from_utf8_lossy(&o.stderr).to_string() + &String::from_utf8_lossy(&o.stdout);
+            assert!(Instant::now() < deadline && text.contains("no coordinator answered"), "{text}");
+            std::thread::sleep(Duration::from_millis(300));
+        }
+    }
+
+    fn status(&self, id: &str) -> serde_json::Value {
+        let o = self.cli(&["job", "status", id, "--json"]);
+        serde_json::from_slice(&o.stdout).unwrap_or(serde_json::Value::Null)
+    }
+
+    /// Wait until `f(status)` holds.
+    fn wait(&self, id: &str, secs: u64, what: &str, f: impl Fn(&serde_json::Value) -> bool) -> serde_json::Value {
+        let deadline = Instant::now() + Duration::from_secs(secs);
+        loop {
+            let s = self.status(id);
+            if f(&s) {
+                return s;
+            }
+            assert!(Instant::now() < deadline, "timed out waiting for {what}; last status: {s}\nlogs: {}", self.logs());
+            std::thread::sleep(Duration::from_millis(300));
+        }
+    }
+
+    fn logs(&self) -> String {
+        let mut out = String::new();
+        for e in std::fs::read_dir(self.dir.path()).unwrap().flatten() {
+            if e.path().extension().is_some_and(|x| x == "log") {
+                let t = std::fs::read_to_string(e.path()).unwrap_or_default();
+                let tail: Vec<&str> = t.lines().rev().take(15).collect();
+                out += &format!(
+                    "\n== {} ==\n{}",
+                    e.path().display(),
+                    tail.into_iter().rev().collect::<Vec<_>>().join("\n")
+                );
+            }
+        }
+        out
+    }
+}
+
+fn version(s: &serde_json::Value) -> u64 {
+    s["learner"]["policy_version"].as_u64().unwrap_or(0)
+}
+
+fn world_of(s: &serde_json::Value, agent: &str) -> Option<String> {
+    s["assignments"][agent][0].as_str().map(str::to_string)
+}
+
+const SPEC: &str =
+    "worlds = [\"reinvent_carpet\", \"reinvent_concrete\"]\nout = \"run\"\nenvs_per_agent = 8\n[stop]\nminutes = 5\n";
+
+#[test]
+fn issue_4_up_runs_a_job_to_its_stop_and_the_model_improves() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = Command::new(bin("coordinator"))
+        .args(["up", "--agents", "2", "--envs", "8", "--minutes", "2", "--target-progress", "80", "--out", "up"])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&o.stdout).to_string() + &String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{text}");
+    assert!(text.contains("Finished") && text.contains("reached the target 80"), "{text}");
+    let model = dir.path().join("up/run/model");
+    assert!(model.join("model.safetensors").exists() && dir.path().join("up/summary.json").exists());
+    let metrics = std::fs::read_to_string(dir.path().join("up/run/metrics.jsonl")).unwrap();
+    let progress: Vec<f64> = metrics
+        .lines()
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["mean_progress"].as_f64().unwrap())
+        .collect();
+    let n = progress.len();
+    assert!(n >= 3, "{metrics}");
+    let head = progress[..2].iter().sum::<f64>() / 2.0;
+    let tail = progress[n - 2..].iter().sum::<f64>() / 2.0;
+    assert!(tail > head + 20.0, "mean progress improves over the job: {progress:?}");
+    // Both worlds got experience.
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.path().join("up/summary.json")).unwrap()).unwrap();
+    for w in summary["learner"]["worlds"].as_array().unwrap() {
+        assert!(w["episodes"].as_u64().unwrap() > 0, "{summary}");
+    }
+}
+
+#[test]
+fn issue_4_killed_agent_world_reassigned_learner_and_coordinator_restart() {
+    let mut c = Cluster::new();
+    c.coordinator();
+    c.learner();
+    c.agent("agent-1");
+    c.agent("agent-2");
+    let id = c.start(SPEC);
+    let s = c.wait(&id, 60, "training under way", |s| version(s) >= 3);
+    let lost_world = world_of(&s, "agent-2").expect("agent-2 has a world");
+
+    // SIGKILL an agent: its world goes to the other within 5 s.
+    c.procs.kill("agent-2");
+    let t = Instant::now();
+    c.wait(&id, 20, "the lost agent's world reassigned", |s| {
+        world_of(s, "agent-1").as_deref() == Some(lost_world.as_str())
+    });
+    assert!(t.elapsed() < Duration::from_secs(5) + Duration::from_millis(2500), "reassigned after {:?}", t.elapsed());
+    let logs = c.cli(&["job", "logs", &id]);
+    let log = String::from_utf8_lossy(&logs.stdout);
+    assert!(log.contains("agent agent-2 lost"), "{log}");
+
+    // SIGKILL the learner, start another: it resumes from the last checkpoint.
+    let before = version(&c.status(&id));
+    c.procs.kill("learner");
+    let index = c.path("run/checkpoints/deepracer_checkpoints.json");
+    let last: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&index).unwrap()).unwrap();
+    let ckpt = last["last_checkpoint"]["policy_version"].as_u64().unwrap();
+    assert!(ckpt + 1 >= before, "at most one iteration lost: checkpoint v{ckpt}, learner was at v{before}");
+    c.learner();
+    c.wait(&id, 60, "the restarted learner trains on", |s| version(s) > ckpt + 1);
+
+    // Kill and restart the coordinator: the job is still there and goes on.
+    c.procs.kill("coordinator");
+    std::thread::sleep(Duration::from_millis(500));
+    c.coordinator();
+    let s = c.wait(&id, 30, "the job back after a coordinator restart", |s| s["state"] == "running");
+    let v = version(&s);
+    c.wait(&id, 60, "training continuing after the restart", |s| version(s) > v + 1);
+
+    // Graceful stop: final checkpoint and best model.
+    let o = c.cli(&["job", "stop", &id]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stdout));
+    let s = c.wait(&id, 60, "the job finished", |s| s["state"] == "finished");
+    assert_eq!(s["learner"]["dropped_duplicate"].as_u64(), Some(0), "no experience counted twice: {s}");
+    assert!(c.path("run/model/model.safetensors").exists());
+    let list = String::from_utf8_lossy(&c.cli(&["job", "list"]).stdout).to_string();
+    assert!(list.contains("job1") && list.contains("finished"), "{list}");
+}
+
+#[test]
+fn issue_4_bad_input_is_counted_and_dropped_and_bad_jobs_are_refused() {
+    use protocol::net::{self, NetArgs, zenoh};
+    use zenoh::Wait;
+    let mut c = Cluster::new();
+    c.coordinator();
+    c.learner();
+    c.agent("agent-1");
+    // A job spec with errors names the field.
+    std::fs::write(c.path("bad.toml"), "worlds = [\"reinvent_wood\"]\n[stop]\nminuts = 3\n").unwrap();
+    let o = c.cli(&["job", "start", "bad.toml"]);
+    assert!(
+        !o.status.success() && String::from_utf8_lossy(&o.stderr).contains("minuts"),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    // A reward that raises: the job fails with the traceback, nothing trains on it.
+    let raising = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../tests/data/rewards/raises_key_error.py");
+    std::fs::write(
+        c.path("raise.toml"),
+        format!("worlds = [\"reinvent_wood\"]\nreward = {:?}\n", raising.canonicalize().unwrap().display().to_string()),
+    )
+    .unwrap();
+    let deadline = Instant::now() + Duration::from_secs(20);
+    let o = loop {
+        let o = c.cli(&["job", "start", "raise.toml", "--id", "raiser"]);
+        if o.status.success()
+            || !String::from_utf8_lossy(&o.stderr).contains("no coordinator answered")
+            || Instant::now() > deadline
+        {
+            break o;
+        }
+        std::thread::sleep(Duration::from_millis(300));
+    };
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        !o.status.success() && out.contains("KeyError: 'distance_from_centre'") && out.contains("Traceback"),
+        "{out}"
+    );
+    assert_eq!(c.status("raiser")["state"], "failed");
+    assert!(!c.path("runs/raiser").exists(), "nothing trained");
+
+    // Garbage on every key the roles subscribe to, while a good job runs.
+    let id = c.start("worlds = [\"reinvent_wood\"]\nout = \"run\"\n[stop]\nminutes = 5\n");
+    c.wait(&id, 60, "training", |s| version(s) >= 2);
+    let session = net::open(&NetArgs { connect: vec![c.endpoint.clone()], ..Default::default() }).unwrap();
+    let garbage: Vec<Vec<u8>> =
+        vec![vec![0xff; 7], b"not protobuf at all".to_vec(), vec![0x08, 0x63], vec![0x12; 3 << 20]];
+    let keys = [
+        protocol::keys::assignment("agent-1"),
+        protocol::keys::JOBS.to_string(),
+        protocol::keys::policy(&id),
+        protocol::keys::experience(&id, "reinvent_wood", "intruder"),
+        protocol::keys::learner_status(&id),
+        protocol::keys::agent_report(&id, "intruder"),
+    ];
+    for k in &keys {
+        for g in &garbage {
+            session.put(k.as_str(), g.clone()).wait().unwrap();
+        }
+    }
+    for g in &garbage {
+        let _ = session.get(protocol::keys::CONTROL).payload(g.clone()).timeout(Duration::from_secs(2)).wait();
+    }
+    // Everyone is still alive and the job goes on, counting what it dropped.
+    let v = version(&c.status(&id));
+    let s = c.wait(&id, 60, "training after the garbage", |s| {
+        version(s) > v + 1 && s["learner"]["dropped_bad"].as_u64().unwrap_or(0) >= 4
+    });
+    assert_eq!(s["state"], "running");
+    for (name, p) in &mut c.procs.0 {
+        assert!(p.try_wait().unwrap().is_none(), "{name} died");
+    }
+}
