@@ -45,6 +45,33 @@ pub enum Command {
     },
     /// One machine, one command: coordinator, learner and sim agents on loopback, one job.
     Up(UpArgs),
+    /// Benchmarks of the cluster: `cluster` (env steps/s vs one process), `publish` (model latency).
+    Bench {
+        #[command(subcommand)]
+        command: BenchCommand,
+    },
+}
+
+#[derive(Subcommand)]
+pub enum BenchCommand {
+    /// Env steps/s end to end: single process vs `up` with 1, 2, 4 agent processes.
+    Cluster {
+        /// Seconds per row.
+        #[arg(long, default_value_t = 30.0)]
+        seconds: f64,
+        /// Environments in total.
+        #[arg(long, default_value_t = 32)]
+        envs: usize,
+        /// World.
+        #[arg(long, default_value = "reinvent_base")]
+        world: String,
+    },
+    /// Publish-to-4-agents latency of a SHALLOW camera model; bytes per env step.
+    Publish {
+        /// Publications to time.
+        #[arg(long, default_value_t = 10)]
+        repeats: usize,
+    },
 }
 
 /// Where to reach the network (every networked command).

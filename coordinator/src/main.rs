@@ -5,6 +5,7 @@
 //! cluster: the coordinator role (`serve`), job control (`job …`, `agents`) and the
 //! one-machine launcher (`up`).
 
+mod bench;
 mod cli;
 mod client;
 mod drive;
@@ -40,6 +41,10 @@ fn main() {
         cli::Command::Job { command } => client::run(command),
         cli::Command::Agents { net } => client::run(cli::JobCommand::Agents { net }),
         cli::Command::Up(args) => up::up(args),
+        cli::Command::Bench { command } => match command {
+            cli::BenchCommand::Cluster { seconds, envs, world } => bench::cluster(seconds, envs, &world).map(|()| 0),
+            cli::BenchCommand::Publish { repeats } => bench::publish(repeats).map(|()| 0),
+        },
     };
     match result {
         Ok(code) => std::process::exit(code),

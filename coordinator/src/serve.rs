@@ -152,7 +152,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
     for j in jobs.values().filter(|j| matches!(j.state, JobState::Running | JobState::Stopping)) {
         tracing::info!(job = %j.doc.id, state = ?j.state, "job carried over from the database");
     }
-    let session = net::open(&args.net)?;
+    let session = net::open_retrying(&args.net)?;
     let _token =
         session.liveliness().declare_token(keys::COORDINATOR_ALIVE).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
     let state =

@@ -310,3 +310,38 @@ fn issue_4_bad_input_is_counted_and_dropped_and_bad_jobs_are_refused() {
         assert!(p.try_wait().unwrap().is_none(), "{name} died");
     }
 }
+
+#[test]
+fn issue_4_the_same_job_through_a_router() {
+    // The coordinator's session runs as a Zenoh router; the learner and the agent are clients
+    // of it (zenoh configuration files, `-c`), so every message goes through the router.
+    let mut c = Cluster::new();
+    let port = free_port();
+    std::fs::write(c.path("router.json5"), format!("{{ mode: \"router\", listen: {{ endpoints: [\"tcp/127.0.0.1:{port}\"] }}, scouting: {{ multicast: {{ enabled: false }} }} }}")).unwrap();
+    std::fs::write(c.path("client.json5"), format!("{{ mode: \"client\", connect: {{ endpoints: [\"tcp/127.0.0.1:{port}\"] }}, scouting: {{ multicast: {{ enabled: false }} }} }}")).unwrap();
+    c.endpoint = format!("tcp/127.0.0.1:{port}");
+    let (db, dir) = (c.path("c.redb"), c.dir.path().to_path_buf());
+    c.procs.spawn(
+        "coordinator",
+        Command::new(bin("coordinator")).args(["serve", "-c", "router.json5", "--db"]).arg(db).current_dir(&dir),
+        &dir.join("coordinator.log"),
+    );
+    c.procs.spawn(
+        "learner",
+        Command::new(bin("learner"))
+            .args(["serve", "-c", "client.json5", "--checkpoint-seconds", "0"])
+            .current_dir(&dir),
+        &dir.join("learner.log"),
+    );
+    c.procs.spawn(
+        "agent-1",
+        Command::new(bin("sim-agent"))
+            .args(["serve", "-c", "client.json5", "--id", "agent-1", "--envs", "8", "--threads", "1"])
+            .current_dir(&dir),
+        &dir.join("agent-1.log"),
+    );
+    let id = c.start("worlds = [\"reinvent_wood\"]\nout = \"run\"\n[stop]\nminutes = 3\ntarget_progress = 60\n");
+    let s = c.wait(&id, 90, "the job finished through the router", |s| s["state"] == "finished");
+    assert!(version(&s) >= 2, "{s}");
+    assert!(c.path("run/model/model.safetensors").exists());
+}

@@ -86,11 +86,22 @@ fn issue_4_a_job_across_three_network_namespaces() {
     let s = |x: &str| x.to_string();
     let coord = bin("coordinator").display().to_string();
     let db = dir.path().join("c.redb").display().to_string();
-    hosts.run(&a, &[coord.clone(), s("serve"), s("--listen"), s("tcp/0.0.0.0:7447"), s("--db"), db], dir.path().join("coordinator.log"));
+    hosts.run(
+        &a,
+        &[coord.clone(), s("serve"), s("--listen"), s("tcp/0.0.0.0:7447"), s("--db"), db],
+        dir.path().join("coordinator.log"),
+    );
     let run = dir.path().join("run").display().to_string();
     hosts.run(
         &a,
-        &[bin("learner").display().to_string(), s("serve"), s("--connect"), s("tcp/127.0.0.1:7447"), s("--checkpoint-seconds"), s("1")],
+        &[
+            bin("learner").display().to_string(),
+            s("serve"),
+            s("--connect"),
+            s("tcp/127.0.0.1:7447"),
+            s("--checkpoint-seconds"),
+            s("1"),
+        ],
         dir.path().join("learner.log"),
     );
     for (ns, net, id) in [(&b, 1, "agent-b"), (&c, 2, "agent-c")] {
@@ -137,7 +148,18 @@ fn issue_4_a_job_across_three_network_namespaces() {
         }
         let logs: String = ["coordinator", "learner", "agent-b", "agent-c"]
             .iter()
-            .map(|n| format!("\n== {n} ==\n{}", std::fs::read_to_string(dir.path().join(format!("{n}.log"))).unwrap_or_default().lines().rev().take(10).collect::<Vec<_>>().join("\n")))
+            .map(|n| {
+                format!(
+                    "\n== {n} ==\n{}",
+                    std::fs::read_to_string(dir.path().join(format!("{n}.log")))
+                        .unwrap_or_default()
+                        .lines()
+                        .rev()
+                        .take(10)
+                        .collect::<Vec<_>>()
+                        .join("\n")
+                )
+            })
             .collect();
         assert!(Instant::now() < deadline, "the job did not finish; status {v}{logs}");
         std::thread::sleep(Duration::from_secs(1));

@@ -38,7 +38,7 @@ pub struct ServeArgs {
 
 /// Run the learner until the process is stopped.
 pub fn serve(args: ServeArgs) -> Result<()> {
-    let session = net::open(&args.net)?;
+    let session = net::open_retrying(&args.net)?;
     let id = args.id.clone().unwrap_or_else(|| format!("learner-{}", std::process::id()));
     let _token =
         session.liveliness().declare_token(keys::learner_alive(&id)).wait().map_err(|e| anyhow::anyhow!("{e}"))?;

@@ -30,6 +30,7 @@ fn json_list(items: &[String]) -> String {
 }
 
 /// Open a peer-mode session (or whatever mode the config file says) with the given endpoints.
+/// `connect/exit_on_failure` is always false: roles wait for each other.
 pub fn open(args: &NetArgs) -> Result<zenoh::Session, NetError> {
     let e = |x: Box<dyn std::error::Error + Send + Sync>| NetError(x.to_string());
     let mut config = match &args.config {
@@ -51,10 +52,31 @@ pub fn open(args: &NetArgs) -> Result<zenoh::Session, NetError> {
     if !args.connect.is_empty() {
         config.insert_json5("connect/endpoints", &json_list(&args.connect)).map_err(e)?;
     }
+    // A role never exits because the other side is not up yet or went away: it keeps
+    // retrying in the background (clients default to giving up).
+    config.insert_json5("connect/exit_on_failure", "false").map_err(e)?;
     if !args.listen.is_empty() {
         config.insert_json5("listen/endpoints", &json_list(&args.listen)).map_err(e)?;
     }
     zenoh::open(config).wait().map_err(e)
+}
+
+/// [`open`], retried every second while the endpoints to connect to are not up yet (a
+/// client-mode session refuses to open without its router); other errors return at once.
+pub fn open_retrying(args: &NetArgs) -> Result<zenoh::Session, NetError> {
+    let mut warned = false;
+    loop {
+        match open(args) {
+            Err(e) if e.0.contains("Unable to connect") => {
+                if !warned {
+                    tracing::warn!("waiting for {:?} to come up: {e}", args.connect);
+                    warned = true;
+                }
+                std::thread::sleep(std::time::Duration::from_secs(1));
+            }
+            other => return other,
+        }
+    }
 }
 
 /// Counts of messages dropped on receipt, by reason.

@@ -62,7 +62,7 @@ fn host() -> String {
 
 /// Run the agent until the process is stopped.
 pub fn serve(args: ServeArgs) -> Result<()> {
-    let session = net::open(&args.net)?;
+    let session = net::open_retrying(&args.net)?;
     let id = args.id.clone().unwrap_or_else(|| format!("{}-{}", host(), std::process::id()));
     anyhow::ensure!(keys::is_valid_name(&id), "agent id '{id}' may hold only letters, digits, '-', '_' and '.'");
     let info = AgentInfo {
