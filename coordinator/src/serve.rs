@@ -265,6 +265,7 @@ fn on_status(st: &mut State, db: &Db, ls: LearnerStatus) {
         "window_progress": ls.window_progress, "window_reward": ls.window_reward, "eval_progress": ls.eval_progress,
         "max_lag": ls.max_lag, "dropped_stale": ls.dropped_stale, "dropped_duplicate": ls.dropped_duplicate,
         "dropped_bad": ls.dropped_bad, "run_dir": ls.run_dir, "finished": ls.finished,
+        "agents": ls.agents.iter().map(|a| serde_json::json!({"agent": a.agent_id, "world": a.world, "steps_per_s": a.steps_per_s})).collect::<Vec<_>>(),
         "worlds": ls.worlds.iter().map(|w| serde_json::json!({"world": w.world, "agents": w.agents, "episodes": w.episodes,
             "mean_progress": w.mean_progress, "mean_reward": w.mean_reward, "steps_per_s": w.steps_per_s})).collect::<Vec<_>>(),
     });
@@ -599,18 +600,27 @@ fn handle(st: &Arc<Mutex<State>>, db: &Db, _session: &zenoh::Session, req: JobRe
         }
         Some(Kind::Agents(_)) => {
             let active = st.jobs.values().find(|j| j.state == JobState::Running);
-            let mut text = format!("{:<28} {:<16} {:>5} {:>5}  {}\n", "AGENT", "HOST", "CORES", "ENVS", "WORLD");
+            let mut text =
+                format!("{:<28} {:<16} {:>5} {:>5} {:>9}  {}\n", "AGENT", "HOST", "CORES", "ENVS", "STEPS/S", "WORLD");
             let mut rows = vec![];
             for (id, a) in &st.agents {
                 let world =
                     active.and_then(|j| j.assignments.get(id)).map(|(w, _)| w.clone()).unwrap_or_else(|| "-".into());
                 let (host, cores, envs) =
                     a.info.as_ref().map(|i| (i.host.clone(), i.cores, i.envs)).unwrap_or_default();
+                let sps = active
+                    .and_then(|j| j.learner.as_ref())
+                    .and_then(|l| l.get("agents"))
+                    .and_then(|v| v.as_array())
+                    .and_then(|v| v.iter().find(|x| x.get("agent").and_then(|s| s.as_str()) == Some(id.as_str())))
+                    .and_then(|x| x.get("steps_per_s"))
+                    .and_then(|v| v.as_f64())
+                    .unwrap_or(0.0);
                 text.push_str(&format!(
-                    "{id:<28} {host:<16} {cores:>5} {envs:>5}  {world} (up {:.0} s)\n",
+                    "{id:<28} {host:<16} {cores:>5} {envs:>5} {sps:>9.0}  {world} (up {:.0} s)\n",
                     a.since.elapsed().as_secs_f64()
                 ));
-                rows.push(serde_json::json!({"id": id, "host": host, "cores": cores, "envs": envs, "world": world}));
+                rows.push(serde_json::json!({"id": id, "host": host, "cores": cores, "envs": envs, "world": world, "steps_per_s": sps}));
             }
             reply(true, text, serde_json::Value::Array(rows))
         }

@@ -196,6 +196,22 @@ fn issue_4_killed_agent_world_reassigned_learner_and_coordinator_restart() {
     let id = c.start(SPEC);
     let s = c.wait(&id, 60, "training under way", |s| version(s) >= 3);
     let lost_world = world_of(&s, "agent-2").expect("agent-2 has a world");
+    // `coordinator agents`: both agents, their worlds and throughput.
+    let deadline = Instant::now() + Duration::from_secs(20);
+    loop {
+        let o = c.cli(&["agents"]);
+        let text = String::from_utf8_lossy(&o.stdout).to_string();
+        let rows: Vec<&str> = text.lines().filter(|l| l.starts_with("agent-")).collect();
+        let busy = rows
+            .iter()
+            .filter(|l| l.split_whitespace().nth(4).and_then(|x| x.parse::<f64>().ok()).unwrap_or(0.0) > 0.0)
+            .count();
+        if rows.len() == 2 && busy == 2 && text.contains("reinvent_") {
+            break;
+        }
+        assert!(Instant::now() < deadline, "{text}");
+        std::thread::sleep(Duration::from_millis(500));
+    }
 
     // SIGKILL an agent: its world goes to the other within 5 s.
     c.procs.kill("agent-2");

@@ -15,7 +15,9 @@ use policy::folder::{self, Manifest};
 use policy::{ActorCritic, ModelFolder, ModelMetadata, Trajectory};
 use protocol::job::JobDoc;
 use protocol::net::{self, DropCounters, NetArgs, decode_sample, zenoh};
-use protocol::{AssignmentTable, ExperienceBatch, LearnerStatus, PROTOCOL_VERSION, PolicyUpdate, WorldStats, keys};
+use protocol::{
+    AgentStats, AssignmentTable, ExperienceBatch, LearnerStatus, PROTOCOL_VERSION, PolicyUpdate, WorldStats, keys,
+};
 use rand::SeedableRng;
 use sim_agent::config::{ObservationKind, SimConfig, parse_toml};
 use std::collections::{BTreeSet, HashMap, VecDeque};
@@ -193,6 +195,7 @@ fn run_job(
     let mut buffer: Vec<Trajectory> = Vec::new();
     let mut seen: HashMap<String, BTreeSet<u64>> = HashMap::new();
     let mut windows: HashMap<String, WorldWindow> = HashMap::new();
+    let mut per_agent: HashMap<String, (String, VecDeque<(Instant, u64)>)> = HashMap::new();
     let mut recent: VecDeque<(f64, f64)> = VecDeque::new();
     let (mut dup, mut stale, mut bad) = (0u64, 0u64, 0u64);
     let (mut episodes, mut env_steps, mut iteration, mut max_lag) =
@@ -226,6 +229,9 @@ fn run_job(
                     env_steps += b.env_steps;
                     let w = windows.entry(b.world.clone()).or_default();
                     w.steps.push_back((Instant::now(), b.env_steps));
+                    let a = per_agent.entry(b.agent_id.clone()).or_insert_with(|| (b.world.clone(), VecDeque::new()));
+                    a.0 = b.world.clone();
+                    a.1.push_back((Instant::now(), b.env_steps));
                     for wt in b.trajectories {
                         match protocol::trajectory_from_wire(wt, obs_size) {
                             // Too old, or from a version this learner never published (before a restart).
@@ -340,6 +346,20 @@ fn run_job(
                 })
                 .collect();
             let k = recent.len().max(1) as f64;
+            let agents = per_agent
+                .iter_mut()
+                .filter_map(|(id, (world, q))| {
+                    while q.front().is_some_and(|r| now.duration_since(r.0) > Duration::from_secs(10)) {
+                        q.pop_front();
+                    }
+                    let span = q.front().map(|f| now.duration_since(f.0).as_secs_f64()).unwrap_or(0.0).clamp(1.0, 10.0);
+                    (!q.is_empty()).then(|| AgentStats {
+                        agent_id: id.clone(),
+                        world: world.clone(),
+                        steps_per_s: q.iter().map(|r| r.1).sum::<u64>() as f64 / span,
+                    })
+                })
+                .collect();
             let status = LearnerStatus {
                 protocol_version: PROTOCOL_VERSION,
                 job_id: doc.id.clone(),
@@ -360,6 +380,7 @@ fn run_job(
                 window_progress: recent.iter().map(|r| r.0).sum::<f64>() / k,
                 window_reward: recent.iter().map(|r| r.1).sum::<f64>() / k,
                 learner_id: id.into(),
+                agents,
             };
             net::put(session, &keys::learner_status(&doc.id), &status)?;
         }
