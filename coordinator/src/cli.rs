@@ -45,6 +45,8 @@ pub enum Command {
     },
     /// One machine, one command: coordinator, learner and sim agents on loopback, one job.
     Up(UpArgs),
+    /// Render the car's camera view (160x120) to a PNG; --grid for several worlds side by side.
+    Render(RenderArgs),
     /// Benchmarks of the cluster: `cluster` (env steps/s vs one process), `publish` (model latency).
     Bench {
         #[command(subcommand)]
@@ -365,4 +367,23 @@ pub struct DriveArgs {
     /// Override a configuration key (`key=value`, repeatable), e.g. --set noise.steering_deg=0.
     #[arg(long = "set")]
     pub sets: Vec<String>,
+}
+
+#[derive(Args)]
+pub struct RenderArgs {
+    /// World (repeatable with --grid; default reinvent_base, or the four reinvent surfaces for --grid).
+    #[arg(long)]
+    pub world: Vec<String>,
+    /// Car pose x,y,heading (metres, metres, degrees); default: the start line.
+    #[arg(long, allow_hyphen_values = true)]
+    pub pose: Option<String>,
+    /// Output PNG.
+    #[arg(long)]
+    pub png: PathBuf,
+    /// A contact sheet of several worlds.
+    #[arg(long)]
+    pub grid: bool,
+    /// Colour instead of the policy's grayscale.
+    #[arg(long)]
+    pub rgb: bool,
 }

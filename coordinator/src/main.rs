@@ -10,6 +10,7 @@ mod cli;
 mod client;
 mod drive;
 mod jobspec;
+mod render_cmd;
 mod serve;
 mod tracks_cmd;
 mod train;
@@ -41,6 +42,7 @@ fn main() {
         cli::Command::Job { command } => client::run(command),
         cli::Command::Agents { net } => client::run(cli::JobCommand::Agents { net }),
         cli::Command::Up(args) => up::up(args),
+        cli::Command::Render(args) => render_cmd::render(args),
         cli::Command::Bench { command } => match command {
             cli::BenchCommand::Cluster { seconds, envs, world } => bench::cluster(seconds, envs, &world).map(|()| 0),
             cli::BenchCommand::Publish { repeats } => bench::publish(repeats).map(|()| 0),

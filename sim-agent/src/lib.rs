@@ -1,6 +1,7 @@
 //! The simulator, a plain library: no transport, testable without a network.
 //!
 //! - [`car`]: the rapier car.
+//! - [`camera`]: the front camera, rendered with wgpu (GPU or lavapipe), batched.
 //! - [`env`]: one environment, DeepRacer's step loop and episode rules.
 //! - [`params`]: reward `params` from a pose.
 //! - [`reward`] and [`python`]: built-in and Python reward functions.
@@ -15,6 +16,7 @@
 //! Architecture invariant: nothing here opens a socket. The `sim-agent` binary's network
 //! role is a thin shell added by the cluster issue.
 
+pub mod camera;
 pub mod car;
 pub mod config;
 pub mod driver;
