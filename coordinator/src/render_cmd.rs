@@ -31,7 +31,10 @@ pub fn render(args: RenderArgs) -> Result<i32> {
     let mut renderer = Renderer::new()?;
     let names: Vec<String> = if args.grid {
         if args.world.is_empty() {
-            ["reinvent_base", "reinvent_carpet", "reinvent_concrete", "reinvent_wood"].iter().map(|s| s.to_string()).collect()
+            ["reinvent_base", "reinvent_carpet", "reinvent_concrete", "reinvent_wood"]
+                .iter()
+                .map(|s| s.to_string())
+                .collect()
         } else {
             args.world.clone()
         }
@@ -44,7 +47,11 @@ pub fn render(args: RenderArgs) -> Result<i32> {
         .iter()
         .map(|t| match &args.pose {
             Some(p) => {
-                let v: Vec<f64> = p.split(',').map(|x| x.trim().parse::<f64>()).collect::<Result<_, _>>().context("--pose x,y,heading (heading in degrees)")?;
+                let v: Vec<f64> = p
+                    .split(',')
+                    .map(|x| x.trim().parse::<f64>())
+                    .collect::<Result<_, _>>()
+                    .context("--pose x,y,heading (heading in degrees)")?;
                 if v.len() != 3 {
                     bail!("--pose takes x,y,heading (heading in degrees), got {p}");
                 }
@@ -60,7 +67,14 @@ pub fn render(args: RenderArgs) -> Result<i32> {
         .iter()
         .zip(&tracks)
         .zip(&poses)
-        .map(|((w, t), p)| View { track: t, surface: w.surface, lighting: w.lighting, pose: *p, jitter: [0.0, 0.0], texture_seed: 0 })
+        .map(|((w, t), p)| View {
+            track: t,
+            surface: w.surface,
+            lighting: w.lighting,
+            pose: *p,
+            jitter: [0.0, 0.0],
+            texture_seed: 0,
+        })
         .collect();
     let rgb = renderer.render(&views, true);
     let frame = (WIDTH * HEIGHT * 3) as usize;
@@ -80,6 +94,12 @@ pub fn render(args: RenderArgs) -> Result<i32> {
             .collect()
     };
     write_png(&frames, 4, &args.png)?;
-    println!("{} frame(s) of {WIDTH}x{HEIGHT} from {} on {}: {}", frames.len(), names.join(", "), renderer.adapter(), args.png.display());
+    println!(
+        "{} frame(s) of {WIDTH}x{HEIGHT} from {} on {}: {}",
+        frames.len(),
+        names.join(", "),
+        renderer.adapter(),
+        args.png.display()
+    );
     Ok(0)
 }

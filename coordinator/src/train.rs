@@ -25,14 +25,19 @@ use tracks::Direction;
 
 /// The simulator configuration a model's sensors call for.
 fn check_sensors(meta: &ModelMetadata, cfg: &mut SimConfig) -> Result<()> {
-    if !meta.sensor.contains(&Sensor::StateVector) {
+    cfg.observation.kind = if meta.sensor.contains(&Sensor::StateVector) {
+        if meta.sensor.contains(&Sensor::Lidar) { ObservationKind::StateLidar } else { ObservationKind::State }
+    } else if meta.sensor.contains(&Sensor::FrontFacingCamera) || meta.sensor.contains(&Sensor::Observation) {
+        if meta.sensor.len() > 1 {
+            bail!("model_metadata.json: a camera with a lidar is not supported yet; use FRONT_FACING_CAMERA alone");
+        }
+        ObservationKind::Camera
+    } else {
         bail!(
-            "model_metadata.json asks for the camera ({:?}); Paddock trains from the state vector until the renderer lands: use \"sensor\": [\"STATE_VECTOR\"] with \"neural_network\": \"PADDOCK_MLP\"",
+            "model_metadata.json asks for {:?}: Paddock trains from FRONT_FACING_CAMERA or STATE_VECTOR",
             meta.sensor.iter().map(|s| s.name()).collect::<Vec<_>>()
         );
-    }
-    cfg.observation.kind =
-        if meta.sensor.contains(&Sensor::Lidar) { ObservationKind::StateLidar } else { ObservationKind::State };
+    };
     Ok(())
 }
 

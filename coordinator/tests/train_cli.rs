@@ -124,10 +124,10 @@ fn train_reads_deepracer_files_and_rejects_bad_ones_by_key() {
     let b = coordinator(d, &["train", "--hyperparameters", "bad.json", "--out", "run_bad"]);
     assert!(!b.status.success() && text(&b).contains("bad.json: key 'batch_size'"), "{}", text(&b));
     std::fs::write(
-        d.join("camera.json"),
-        r#"{"action_space":[{"steering_angle":0,"speed":1}],"sensor":["FRONT_FACING_CAMERA"],"version":"5"}"#,
+        d.join("stereo.json"),
+        r#"{"action_space":[{"steering_angle":0,"speed":1}],"sensor":["STEREO_CAMERAS"],"version":"5"}"#,
     )
     .unwrap();
-    let c = coordinator(d, &["train", "--model-metadata", "camera.json", "--out", "run_cam"]);
-    assert!(!c.status.success() && text(&c).contains("STATE_VECTOR"), "{}", text(&c));
+    let c = coordinator(d, &["train", "--model-metadata", "stereo.json", "--out", "run_cam"]);
+    assert!(!c.status.success() && text(&c).contains("FRONT_FACING_CAMERA or STATE_VECTOR"), "{}", text(&c));
 }

@@ -185,7 +185,14 @@ fn mesh(track: &Track) -> Vec<Vertex> {
         hi = hi.sup(p);
     }
     let m = 30.0;
-    quad(P2::new(lo.x - m, lo.y - m), P2::new(hi.x + m, lo.y - m), P2::new(hi.x + m, hi.y + m), P2::new(lo.x - m, hi.y + m), 0.0, 0.0);
+    quad(
+        P2::new(lo.x - m, lo.y - m),
+        P2::new(hi.x + m, lo.y - m),
+        P2::new(hi.x + m, hi.y + m),
+        P2::new(lo.x - m, hi.y + m),
+        0.0,
+        0.0,
+    );
     let (inner, outer) = (track.inner().points(), track.outer().points());
     for i in 0..inner.len() - 1 {
         quad(inner[i], outer[i], outer[i + 1], inner[i + 1], 0.0, 1.0);
@@ -225,7 +232,11 @@ fn mesh(track: &Track) -> Vec<Vertex> {
 fn view_proj(pose: [f64; 3], jitter: [f64; 2], origin: [f64; 2]) -> [[f32; 4]; 4] {
     use nalgebra::{Matrix4, Point3, Vector3};
     let (c, s) = (pose[2].cos(), pose[2].sin());
-    let eye = Point3::new(pose[0] - origin[0] + CAMERA_AHEAD * c, pose[1] - origin[1] + CAMERA_AHEAD * s, CAMERA_HEIGHT + jitter[0]);
+    let eye = Point3::new(
+        pose[0] - origin[0] + CAMERA_AHEAD * c,
+        pose[1] - origin[1] + CAMERA_AHEAD * s,
+        CAMERA_HEIGHT + jitter[0],
+    );
     let pitch = CAMERA_PITCH + jitter[1];
     let dir = Vector3::new(c * pitch.cos(), s * pitch.cos(), -pitch.sin());
     let view = Matrix4::look_at_rh(&eye, &(eye + dir), &Vector3::z());
@@ -266,7 +277,10 @@ impl Renderer {
             trace: wgpu::Trace::Off,
         }))
         .map_err(|e| RenderError::Device(e.to_string()))?;
-        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor { label: Some("camera"), source: wgpu::ShaderSource::Wgsl(SHADER.into()) });
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("camera"),
+            source: wgpu::ShaderSource::Wgsl(SHADER.into()),
+        });
         let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: None,
             entries: &[wgpu::BindGroupLayoutEntry {
@@ -280,7 +294,11 @@ impl Renderer {
                 count: None,
             }],
         });
-        let pl = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor { label: None, bind_group_layouts: &[Some(&layout)], immediate_size: 0 });
+        let pl = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: None,
+            bind_group_layouts: &[Some(&layout)],
+            immediate_size: 0,
+        });
         let pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
             label: Some("camera"),
             layout: Some(&pl),
@@ -301,12 +319,25 @@ impl Renderer {
                 module: &module,
                 entry_point: Some("fs"),
                 compilation_options: Default::default(),
-                targets: &[Some(wgpu::ColorTargetState { format: wgpu::TextureFormat::Rgba8Unorm, blend: None, write_mask: wgpu::ColorWrites::ALL })],
+                targets: &[Some(wgpu::ColorTargetState {
+                    format: wgpu::TextureFormat::Rgba8Unorm,
+                    blend: None,
+                    write_mask: wgpu::ColorWrites::ALL,
+                })],
             }),
             multiview_mask: None,
             cache: None,
         });
-        Ok(Renderer { device, queue, pipeline, layout, meshes: HashMap::new(), capacity: 0, target: None, adapter: adapter_name })
+        Ok(Renderer {
+            device,
+            queue,
+            pipeline,
+            layout,
+            meshes: HashMap::new(),
+            capacity: 0,
+            target: None,
+            adapter: adapter_name,
+        })
     }
 
     /// The adapter in use (e.g. "llvmpipe (LLVM 15…) (Cpu, Vulkan)").
@@ -387,7 +418,12 @@ impl Renderer {
             let origin = [v.pose[0].floor(), v.pose[1].floor()];
             let u = Uniform {
                 view_proj: view_proj(v.pose, v.jitter, origin),
-                params: [surface_id(v.surface), v.lighting.intensity as f32, v.texture_seed as f32 * 0.1, v.lighting.elevation_deg.to_radians() as f32],
+                params: [
+                    surface_id(v.surface),
+                    v.lighting.intensity as f32,
+                    v.texture_seed as f32 * 0.1,
+                    v.lighting.elevation_deg.to_radians() as f32,
+                ],
                 origin: [origin[0] as f32, origin[1] as f32, 0.0, 0.0],
             };
             let off = i * UNIFORM_STRIDE as usize;
@@ -403,7 +439,10 @@ impl Renderer {
                     view: &view,
                     depth_slice: None,
                     resolve_target: None,
-                    ops: wgpu::Operations { load: wgpu::LoadOp::Clear(wgpu::Color::BLACK), store: wgpu::StoreOp::Store },
+                    ops: wgpu::Operations {
+                        load: wgpu::LoadOp::Clear(wgpu::Color::BLACK),
+                        store: wgpu::StoreOp::Store,
+                    },
                 })],
                 depth_stencil_attachment: None,
                 timestamp_writes: None,
@@ -424,8 +463,20 @@ impl Renderer {
         let padded = (size.width * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT) * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
         let rows_used = n.div_ceil(ATLAS_COLUMNS) * HEIGHT;
         enc.copy_texture_to_buffer(
-            wgpu::TexelCopyTextureInfo { texture, mip_level: 0, origin: wgpu::Origin3d::ZERO, aspect: wgpu::TextureAspect::All },
-            wgpu::TexelCopyBufferInfo { buffer: readback, layout: wgpu::TexelCopyBufferLayout { offset: 0, bytes_per_row: Some(padded), rows_per_image: Some(size.height) } },
+            wgpu::TexelCopyTextureInfo {
+                texture,
+                mip_level: 0,
+                origin: wgpu::Origin3d::ZERO,
+                aspect: wgpu::TextureAspect::All,
+            },
+            wgpu::TexelCopyBufferInfo {
+                buffer: readback,
+                layout: wgpu::TexelCopyBufferLayout {
+                    offset: 0,
+                    bytes_per_row: Some(padded),
+                    rows_per_image: Some(size.height),
+                },
+            },
             wgpu::Extent3d { width: size.width, height: rows_used, depth_or_array_layers: 1 },
         );
         self.queue.submit([enc.finish()]);

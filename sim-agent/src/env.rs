@@ -13,7 +13,7 @@
 //! start line and may reset an off-track car with a time penalty instead of ending.
 
 use crate::car::Car;
-use crate::config::{NoiseConfig, ObservationKind, SimConfig};
+use crate::config::{NoiseConfig, SimConfig};
 use crate::params::{EpisodeClock, Pose, RewardParams, compute_params};
 use crate::reward::{BuiltinReward, RewardError, check_reward};
 use policy::{Action, MAX_SPEED, MAX_STEERING_DEG, MIN_SPEED};
@@ -122,12 +122,22 @@ pub struct EnvSpec {
     pub friction: f64,
     /// This world's actuator noise, overriding the configuration's.
     pub noise: Option<NoiseConfig>,
+    /// The floor's look (for the camera).
+    pub surface: tracks::Surface,
+    /// The lighting (for the camera).
+    pub lighting: tracks::Lighting,
 }
 
 impl EnvSpec {
     /// From a catalog world and a direction.
     pub fn from_world(world: &tracks::World, direction: tracks::Direction) -> EnvSpec {
-        EnvSpec { track: Arc::new(world.track(direction)), friction: world.surface.friction(), noise: None }
+        EnvSpec {
+            track: Arc::new(world.track(direction)),
+            friction: world.surface.friction(),
+            noise: None,
+            surface: world.surface,
+            lighting: world.lighting,
+        }
     }
 }
 
@@ -176,11 +186,6 @@ impl Env {
     /// An environment seeded with `seed`; its first training start is at `first_start`
     /// (a fraction of the track) and moves round-robin from there.
     pub fn new(spec: EnvSpec, cfg: Arc<SimConfig>, mode: Mode, seed: u64, first_start: f64) -> Result<Env, EnvError> {
-        if cfg.observation.kind == ObservationKind::Camera {
-            return Err(EnvError::Config(
-                "observation kind 'camera' needs the renderer, which is not part of Paddock yet; use state, lidar or state_lidar".into(),
-            ));
-        }
         if !(cfg.control_hz > 0.0) || cfg.physics_substeps == 0 {
             return Err(EnvError::Config("control_hz must be positive and physics_substeps at least 1".into()));
         }
@@ -368,6 +373,11 @@ impl Env {
     /// Whether the episode has ended (call [`Env::reset`]).
     pub fn is_done(&self) -> bool {
         self.done
+    }
+
+    /// The world's parts.
+    pub fn spec(&self) -> &EnvSpec {
+        &self.spec
     }
 
     /// The track.

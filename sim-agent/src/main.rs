@@ -146,6 +146,10 @@ fn bench(args: BenchArgs) -> Result<()> {
     breakdown(&spec, &cfg, &args.python_reward, args.seconds.min(2.0))?;
     println!();
     query_bench(&world.track(Direction::Forward), args.seconds.min(2.0));
+    println!();
+    if let Err(e) = camera_bench(&world, &spec, &cfg, args.envs, args.seconds.min(3.0)) {
+        println!("camera: not measured: {e:#}");
+    }
     if cfg.observation.kind != ObservationKind::Lidar {
         let mut lidar_cfg = (*cfg).clone();
         lidar_cfg.observation.kind = ObservationKind::StateLidar;
@@ -213,6 +217,45 @@ fn run_vec(
         episodes,
         mean_progress: if episodes > 0 { progress_sum / episodes as f64 } else { f64::NAN },
     })
+}
+
+/// Rendered frames/s (batched) and camera env steps/s (physics + render + reward).
+fn camera_bench(world: &tracks::World, spec: &EnvSpec, cfg: &Arc<SimConfig>, n: usize, seconds: f64) -> Result<()> {
+    use sim_agent::camera::{Renderer, View};
+    let mut r = Renderer::new()?;
+    let track = world.track(Direction::Forward);
+    let views: Vec<View<'_>> = (0..n)
+        .map(|i| {
+            let (p, h) = track.pose_at(track.length() * i as f64 / n as f64);
+            View {
+                track: &track,
+                surface: world.surface,
+                lighting: world.lighting,
+                pose: [p.x, p.y, h],
+                jitter: [0.0, 0.0],
+                texture_seed: 0,
+            }
+        })
+        .collect();
+    r.render(&views, false);
+    let t = Instant::now();
+    let mut frames = 0usize;
+    while t.elapsed().as_secs_f64() < seconds {
+        std::hint::black_box(r.render(&views, false));
+        frames += n;
+    }
+    let fps = frames as f64 / t.elapsed().as_secs_f64();
+    let mut cam = (**cfg).clone();
+    cam.observation.kind = ObservationKind::Camera;
+    let threads = std::thread::available_parallelism().map(|x| x.get()).unwrap_or(1);
+    let res =
+        run_vec(spec, &Arc::new(cam), n, threads, RewardFn::Builtin(sim_agent::BuiltinReward::CenterLine), seconds)?;
+    println!(
+        "camera on {}: {fps:.0} frames/s rendering {n} views of 160x120 per batch (render + readback + luma); {:.0} camera env steps/s (physics + render + reward, {threads} threads)",
+        r.adapter(),
+        res.steps_per_s
+    );
+    Ok(())
 }
 
 /// Time `f` repeatedly for about `seconds`; nanoseconds per call.

@@ -16,8 +16,9 @@
 //! border, rays spread evenly over `lidar_fov_deg` centred on the heading (first ray on the
 //! right), divided by `lidar_range` (1 = nothing within range).
 //!
-//! `state_lidar` concatenates both. The camera (`kind = camera`) plugs in here with the
-//! renderer: [`obs_dim`] and [`observe`] are the seam.
+//! `state_lidar` concatenates both. The camera (`kind = camera`): 160×120 grayscale pixels,
+//! 0–255 as floats (the model divides by 255), top row first, rendered by
+//! [`crate::camera`] for a whole `VecEnv` in one batch.
 
 use crate::config::{ObservationConfig, ObservationKind};
 use crate::env::Env;
@@ -30,7 +31,7 @@ pub fn obs_dim(cfg: &ObservationConfig) -> usize {
         ObservationKind::State => state,
         ObservationKind::Lidar => cfg.lidar_rays,
         ObservationKind::StateLidar => state + cfg.lidar_rays,
-        ObservationKind::Camera => 0,
+        ObservationKind::Camera => (crate::camera::WIDTH * crate::camera::HEIGHT) as usize,
     }
 }
 
@@ -46,6 +47,8 @@ pub fn observe(env: &Env, out: &mut [f32]) {
             state(env, cfg, s);
             lidar(env, cfg, l);
         }
+        // Camera frames are rendered for a whole vector of environments at once
+        // (`VecEnv`); a lone `Env` has no renderer.
         ObservationKind::Camera => {}
     }
 }

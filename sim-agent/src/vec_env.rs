@@ -27,6 +27,7 @@ pub struct VecEnv {
     outcomes: Vec<StepOutcome>,
     rewards: Vec<f64>,
     pool: rayon::ThreadPool,
+    renderer: Option<crate::camera::Renderer>,
 }
 
 impl VecEnv {
@@ -61,6 +62,11 @@ impl VecEnv {
             .num_threads(threads.max(1))
             .build()
             .map_err(|e| EnvError::Config(format!("thread pool: {e}")))?;
+        let renderer = if cfg.observation.kind == crate::config::ObservationKind::Camera {
+            Some(crate::camera::Renderer::new().map_err(|e| EnvError::Config(e.to_string()))?)
+        } else {
+            None
+        };
         let mut v = VecEnv {
             envs,
             reward,
@@ -69,11 +75,13 @@ impl VecEnv {
             outcomes: Vec::with_capacity(n),
             rewards: Vec::with_capacity(n),
             pool,
+            renderer,
         };
         let VecEnv { envs, obs, .. } = &mut v;
         for (e, o) in envs.iter().zip(obs.chunks_mut(dim.max(1))) {
             observe(e, o);
         }
+        v.render();
         Ok(v)
     }
 
@@ -105,7 +113,7 @@ impl VecEnv {
     /// Step every environment with its action. A reward error stops the batch.
     pub fn step(&mut self, actions: &[Action]) -> Result<&[StepOutcome], RewardError> {
         assert_eq!(actions.len(), self.envs.len(), "one action per environment");
-        let VecEnv { envs, reward, dim, obs, outcomes, rewards, pool } = self;
+        let VecEnv { envs, reward, dim, obs, outcomes, rewards, pool, .. } = self;
         let dim = (*dim).max(1);
         outcomes.clear();
         outcomes.resize(envs.len(), placeholder());
@@ -149,7 +157,37 @@ impl VecEnv {
                 }
             }
         })?;
-        Ok(outcomes)
+        self.render();
+        Ok(&self.outcomes)
+    }
+
+    /// Camera observations: every environment's frame in one batch.
+    fn render(&mut self) {
+        let Some(r) = self.renderer.as_mut() else { return };
+        let views: Vec<crate::camera::View<'_>> = self
+            .envs
+            .iter()
+            .map(|e| {
+                let p = e.pose();
+                crate::camera::View {
+                    track: e.track(),
+                    surface: e.spec().surface,
+                    lighting: e.spec().lighting,
+                    pose: [p.x, p.y, p.yaw],
+                    jitter: [0.0, 0.0],
+                    texture_seed: 0,
+                }
+            })
+            .collect();
+        let frames = r.render(&views, false);
+        for (o, px) in self.obs.iter_mut().zip(frames) {
+            *o = px as f32;
+        }
+    }
+
+    /// The renderer's adapter, when the observation is the camera.
+    pub fn renderer(&self) -> Option<&str> {
+        self.renderer.as_ref().map(|r| r.adapter())
     }
 }
 

@@ -9,7 +9,14 @@ use tracks::{Direction, World};
 fn start_view<'a>(world: &World, track: &'a tracks::Track, lateral: f64) -> View<'a> {
     let (p, h) = track.pose_at(0.0);
     let (nx, ny) = (-h.sin(), h.cos());
-    View { track, surface: world.surface, lighting: world.lighting, pose: [p.x + lateral * nx, p.y + lateral * ny, h], jitter: [0.0, 0.0], texture_seed: 0 }
+    View {
+        track,
+        surface: world.surface,
+        lighting: world.lighting,
+        pose: [p.x + lateral * nx, p.y + lateral * ny, h],
+        jitter: [0.0, 0.0],
+        texture_seed: 0,
+    }
 }
 
 /// Columns of near-white pixels (the border lines) in a row of a grayscale frame.
@@ -56,21 +63,31 @@ fn frames_are_deterministic_and_the_road_is_where_the_geometry_says() {
 #[test]
 fn carpet_and_wood_look_different_and_a_batch_equals_single_frames() {
     let mut r = Renderer::new().expect("an adapter");
-    let worlds: Vec<World> = ["reinvent_carpet", "reinvent_wood", "reinvent_concrete"].iter().map(|n| tracks::world(n).unwrap()).collect();
+    let worlds: Vec<World> =
+        ["reinvent_carpet", "reinvent_wood", "reinvent_concrete"].iter().map(|n| tracks::world(n).unwrap()).collect();
     let tracks: Vec<tracks::Track> = worlds.iter().map(|w| w.track(Direction::Forward)).collect();
     let views: Vec<View<'_>> = worlds.iter().zip(&tracks).map(|(w, t)| start_view(w, t, 0.0)).collect();
     let batch = r.render(&views, false);
     let n = (WIDTH * HEIGHT) as usize;
     // The floor beyond the track (rows 27-33) differs between carpet and wood.
-    let floor = |f: &[u8]| -> f64 { (27..33).flat_map(|y| (0..40).map(move |x| f[y * WIDTH as usize + x] as f64)).sum::<f64>() / 240.0 };
+    let floor = |f: &[u8]| -> f64 {
+        (27..33).flat_map(|y| (0..40).map(move |x| f[y * WIDTH as usize + x] as f64)).sum::<f64>() / 240.0
+    };
     let (carpet, wood) = (&batch[..n], &batch[n..2 * n]);
     let diff: f64 = carpet.iter().zip(wood).map(|(a, b)| (*a as f64 - *b as f64).abs()).sum::<f64>() / n as f64;
-    assert!(diff > 2.0 && (floor(carpet) - floor(wood)).abs() > 10.0, "mean |Δ| {diff}, floors {} vs {}", floor(carpet), floor(wood));
+    assert!(
+        diff > 2.0 && (floor(carpet) - floor(wood)).abs() > 10.0,
+        "mean |Δ| {diff}, floors {} vs {}",
+        floor(carpet),
+        floor(wood)
+    );
     // A view drawn in a batch matches the same view drawn alone (its viewport sits elsewhere
     // in the atlas, so the rasteriser may round a few edge pixels differently).
     for (i, v) in views.iter().enumerate() {
         let alone = r.render(std::slice::from_ref(v), false);
-        let d: f64 = alone.iter().zip(&batch[i * n..(i + 1) * n]).map(|(a, b)| (*a as f64 - *b as f64).abs()).sum::<f64>() / n as f64;
+        let d: f64 =
+            alone.iter().zip(&batch[i * n..(i + 1) * n]).map(|(a, b)| (*a as f64 - *b as f64).abs()).sum::<f64>()
+                / n as f64;
         assert!(d < 1.0, "view {i}: batched vs alone differ by {d:.2} on average");
     }
 }
@@ -85,10 +102,16 @@ fn the_start_frame_matches_the_stored_reference() {
     if std::env::var_os("PADDOCK_UPDATE_REFERENCE").is_some() {
         std::fs::write(&path, &frame).unwrap();
     }
-    let reference = std::fs::read(&path).expect("tests/data/camera/reinvent_base_start.gray (PADDOCK_UPDATE_REFERENCE=1 writes it)");
+    let reference = std::fs::read(&path)
+        .expect("tests/data/camera/reinvent_base_start.gray (PADDOCK_UPDATE_REFERENCE=1 writes it)");
     assert_eq!(reference.len(), frame.len());
     let diffs: Vec<u32> = frame.iter().zip(&reference).map(|(a, b)| (*a as i32 - *b as i32).unsigned_abs()).collect();
     let mean = diffs.iter().sum::<u32>() as f64 / diffs.len() as f64;
     let far = diffs.iter().filter(|&&d| d > 16).count() as f64 / diffs.len() as f64;
-    assert!(mean < 3.0 && far < 0.02, "mean |Δ| {mean:.2}, {:.1} % of pixels off by more than 16 (renderer {})", far * 100.0, r.adapter());
+    assert!(
+        mean < 3.0 && far < 0.02,
+        "mean |Δ| {mean:.2}, {:.1} % of pixels off by more than 16 (renderer {})",
+        far * 100.0,
+        r.adapter()
+    );
 }

@@ -23,7 +23,13 @@ fn circle(r: f64, w: f64, n: usize) -> TrackRows {
 }
 
 fn spec_of(track: Track, friction: f64) -> EnvSpec {
-    EnvSpec { track: Arc::new(track), friction, noise: None }
+    EnvSpec {
+        track: Arc::new(track),
+        friction,
+        noise: None,
+        surface: tracks::Surface::Asphalt,
+        lighting: Default::default(),
+    }
 }
 
 fn quiet() -> SimConfig {
@@ -212,9 +218,17 @@ fn commands_are_clamped_to_the_cars_limits() {
 }
 
 #[test]
-fn choosing_the_camera_today_is_a_clear_error() {
+fn the_camera_observation_is_rendered_for_the_whole_vector() {
     let mut cfg = SimConfig::default();
     cfg.observation.kind = sim_agent::config::ObservationKind::Camera;
-    let err = Env::new(base(), Arc::new(cfg), Mode::Training, 1, 0.0).err().unwrap().to_string();
-    assert!(err.contains("camera") && err.contains("renderer"), "{err}");
+    let reward = sim_agent::RewardFn::Builtin(REWARD);
+    let mut v = sim_agent::VecEnv::new(vec![base(); 3], Arc::new(cfg), 1, reward, 1).expect("lavapipe or a GPU");
+    assert_eq!(v.obs_dim(), 160 * 120);
+    let before = v.observations().to_vec();
+    assert!(before.iter().all(|&p| (0.0..=255.0).contains(&p)) && before.iter().any(|&p| p > 100.0), "pixels 0-255");
+    // Three starts at different places: three different pictures.
+    assert_ne!(before[..19200], before[19200..38400]);
+    v.step(&[Action { steering_angle: 0.0, speed: 2.0 }; 3]).unwrap();
+    v.step(&[Action { steering_angle: 0.0, speed: 2.0 }; 3]).unwrap();
+    assert_ne!(v.observations()[..19200], before[..19200], "the view moves with the car");
 }
