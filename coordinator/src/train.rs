@@ -142,7 +142,9 @@ pub fn train(args: TrainArgs) -> Result<i32> {
     let threads = args.threads.unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1));
     let vec = VecEnv::new(vec![spec.clone(); args.envs], cfg.clone(), args.seed, reward, threads)?;
     let mut collector = Collector::new(vec, meta.action_space.clone(), args.seed);
-    let mut ppo = Ppo::new(model, hyper.clone(), version, args.seed, Par::Seq);
+    // The camera networks are big enough to split over the cores; the MLP is not.
+    let par = if cfg.observation.kind == ObservationKind::Camera { Par::rayon(threads) } else { Par::Seq };
+    let mut ppo = Ppo::new(model, hyper.clone(), version, args.seed, par);
     let budget = args.minutes * 60.0;
     println!(
         "training on {} ({}) for up to {:.1} min, {} envs, reward {}, run folder {}",
