@@ -1,21 +1,11 @@
 //! Time forward and backward of prefixes of the SHALLOW tower to see where time goes.
 use faer::Par;
-use policy::nn::{InputShape, LayerSpec::*, Net, Tape};
+use policy::nn::{InputShape, LayerSpec, Net, Tape};
 use rand::SeedableRng;
 use std::time::Instant;
 fn main() {
-    let specs = [
-        Scale(1.0 / 255.0),
-        Conv(32, 8, 4),
-        Relu,
-        Conv(64, 4, 2),
-        Relu,
-        Conv(64, 3, 1),
-        Relu,
-        Dense(512),
-        Relu,
-        Dense(5),
-    ];
+    let mut specs = policy::model::tower_specs(policy::NeuralNetwork::DeepConvolutionalNetworkShallow);
+    specs.push(LayerSpec::Dense(5));
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
     for (n, par) in [(64, Par::rayon(2)), (1, Par::Seq)] {
         let x: Vec<f32> = (0..n * 19200).map(|i| (i % 251) as f32).collect();

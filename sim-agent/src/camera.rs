@@ -84,7 +84,8 @@ pub struct Renderer {
     queue: wgpu::Queue,
     pipeline: wgpu::RenderPipeline,
     layout: wgpu::BindGroupLayout,
-    meshes: HashMap<String, (wgpu::Buffer, u32)>,
+    meshes: HashMap<String, (wgpu::Buffer, Vec<Item>)>,
+    indices: Option<(wgpu::Buffer, u64)>,
     capacity: u32,
     target: Option<(wgpu::Texture, wgpu::Buffer, wgpu::Buffer, wgpu::BindGroup)>,
     adapter: String,
@@ -227,6 +228,53 @@ fn mesh(track: &Track) -> Vec<Vertex> {
     v
 }
 
+/// A quad's bounding circle in the plane, for culling.
+#[derive(Clone, Copy)]
+struct Item {
+    center: [f32; 2],
+    radius: f32,
+}
+
+/// Bounding circles of the mesh's quads (6 vertices each), in mesh order.
+fn items(v: &[Vertex]) -> Vec<Item> {
+    v.chunks(6)
+        .map(|q| {
+            let (mut cx, mut cy) = (0.0f32, 0.0f32);
+            for p in q {
+                cx += p.pos[0] / 6.0;
+                cy += p.pos[1] / 6.0;
+            }
+            let r = q.iter().map(|p| ((p.pos[0] - cx).powi(2) + (p.pos[1] - cy).powi(2)).sqrt()).fold(0.0, f32::max);
+            Item { center: [cx, cy], radius: r }
+        })
+        .collect()
+}
+
+/// Indices of the quads a camera at `pose` can see (the floor always), in drawing order.
+fn visible(items: &[Item], pose: [f64; 3], out: &mut Vec<u32>) {
+    let (c, s) = (pose[2].cos() as f32, pose[2].sin() as f32);
+    let cam = [pose[0] as f32 + CAMERA_AHEAD as f32 * c, pose[1] as f32 + CAMERA_AHEAD as f32 * s];
+    let half = (HFOV / 2.0) as f32 + 0.05;
+    for (k, it) in items.iter().enumerate() {
+        let keep = k == 0 || {
+            let (dx, dy) = (it.center[0] - cam[0], it.center[1] - cam[1]);
+            let d = (dx * dx + dy * dy).sqrt();
+            if d <= it.radius + 0.3 {
+                true
+            } else {
+                let ahead = dx * c + dy * s;
+                let side = -dx * s + dy * c;
+                // Inside the horizontal field of view widened by the quad's size.
+                ahead > -it.radius && side.abs().atan2(ahead) <= half + (it.radius / d).min(1.0).asin()
+            }
+        };
+        if keep {
+            let f = k as u32 * 6;
+            out.extend(f..f + 6);
+        }
+    }
+}
+
 /// The view-projection matrix for a camera pose (wgpu clip space, z in [0, 1]), relative to
 /// `origin`.
 fn view_proj(pose: [f64; 3], jitter: [f64; 2], origin: [f64; 2]) -> [[f32; 4]; 4] {
@@ -334,6 +382,7 @@ impl Renderer {
             pipeline,
             layout,
             meshes: HashMap::new(),
+            indices: None,
             capacity: 0,
             target: None,
             adapter: adapter_name,
@@ -401,7 +450,7 @@ impl Renderer {
                 contents: bytemuck::cast_slice(&v),
                 usage: wgpu::BufferUsages::VERTEX,
             });
-            self.meshes.insert(key.clone(), (buf, v.len() as u32));
+            self.meshes.insert(key.clone(), (buf, items(&v)));
         }
         key
     }
@@ -412,6 +461,27 @@ impl Renderer {
         let n = views.len() as u32;
         self.ensure(n);
         let keys: Vec<String> = views.iter().map(|v| self.mesh_for(v.track)).collect();
+        // Only what each camera can see: most of a track is behind or beside the car.
+        let mut indices: Vec<u32> = Vec::new();
+        let mut ranges = Vec::with_capacity(views.len());
+        for (v, key) in views.iter().zip(&keys) {
+            let start = indices.len() as u32;
+            visible(&self.meshes[key].1, v.pose, &mut indices);
+            ranges.push(start..indices.len() as u32);
+        }
+        let bytes = (indices.len() * 4) as u64;
+        if self.indices.as_ref().is_none_or(|(_, cap)| *cap < bytes) {
+            let cap = bytes.next_power_of_two().max(4096);
+            let buf = self.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("indices"),
+                size: cap,
+                usage: wgpu::BufferUsages::INDEX | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            });
+            self.indices = Some((buf, cap));
+        }
+        let (ibuf, _) = self.indices.as_ref().expect("made above");
+        self.queue.write_buffer(ibuf, 0, bytemuck::cast_slice(&indices));
         let (texture, readback, uniforms, bind) = self.target.as_ref().expect("ensured");
         let mut data = vec![0u8; (UNIFORM_STRIDE * n as u64) as usize];
         for (i, v) in views.iter().enumerate() {
@@ -450,13 +520,14 @@ impl Renderer {
                 multiview_mask: None,
             });
             pass.set_pipeline(&self.pipeline);
+            pass.set_index_buffer(ibuf.slice(..), wgpu::IndexFormat::Uint32);
             for (i, key) in keys.iter().enumerate() {
-                let (buf, count) = &self.meshes[key];
+                let (buf, _) = &self.meshes[key];
                 let (col, row) = (i as u32 % ATLAS_COLUMNS, i as u32 / ATLAS_COLUMNS);
                 pass.set_viewport((col * WIDTH) as f32, (row * HEIGHT) as f32, WIDTH as f32, HEIGHT as f32, 0.0, 1.0);
                 pass.set_bind_group(0, bind, &[(i as u64 * UNIFORM_STRIDE) as u32]);
                 pass.set_vertex_buffer(0, buf.slice(..));
-                pass.draw(0..*count, 0..1);
+                pass.draw_indexed(ranges[i].clone(), 0, 0..1);
             }
         }
         let size = texture.size();
