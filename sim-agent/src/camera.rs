@@ -9,7 +9,8 @@
 //! (0.2989 R + 0.5870 G + 0.1140 B) unless RGB is asked for.
 //!
 //! Batching: every view of a call is drawn into its own viewport of one atlas texture in one
-//! render pass, one submission, one readback.
+//! render pass, one submission, one readback. Each view draws only the quads in its field of
+//! view, nearest layer first, and a stencil test shades every pixel once.
 
 use bytemuck::{Pod, Zeroable};
 use std::collections::HashMap;
@@ -78,6 +79,14 @@ struct Uniform {
 
 const UNIFORM_STRIDE: u64 = 256;
 
+/// Stencil rule: draw where nothing has been drawn yet, and mark the pixel.
+const ONCE: wgpu::StencilFaceState = wgpu::StencilFaceState {
+    compare: wgpu::CompareFunction::Equal,
+    fail_op: wgpu::StencilOperation::Keep,
+    depth_fail_op: wgpu::StencilOperation::Keep,
+    pass_op: wgpu::StencilOperation::IncrementClamp,
+};
+
 /// A renderer for batches of camera views.
 pub struct Renderer {
     device: wgpu::Device,
@@ -87,7 +96,7 @@ pub struct Renderer {
     meshes: HashMap<String, (wgpu::Buffer, Vec<Item>)>,
     indices: Option<(wgpu::Buffer, u64)>,
     capacity: u32,
-    target: Option<(wgpu::Texture, wgpu::Buffer, wgpu::Buffer, wgpu::BindGroup)>,
+    target: Option<(wgpu::Texture, wgpu::Buffer, wgpu::Buffer, wgpu::BindGroup, wgpu::Texture)>,
     adapter: String,
 }
 
@@ -250,12 +259,13 @@ fn items(v: &[Vertex]) -> Vec<Item> {
         .collect()
 }
 
-/// Indices of the quads a camera at `pose` can see (the floor always), in drawing order.
+/// Indices of the quads a camera at `pose` can see (the floor always), nearest layer first
+/// (dashes, borders, road, floor: the reverse of the mesh's order), for the stencil.
 fn visible(items: &[Item], pose: [f64; 3], out: &mut Vec<u32>) {
     let (c, s) = (pose[2].cos() as f32, pose[2].sin() as f32);
     let cam = [pose[0] as f32 + CAMERA_AHEAD as f32 * c, pose[1] as f32 + CAMERA_AHEAD as f32 * s];
     let half = (HFOV / 2.0) as f32 + 0.05;
-    for (k, it) in items.iter().enumerate() {
+    for (k, it) in items.iter().enumerate().rev() {
         let keep = k == 0 || {
             let (dx, dy) = (it.center[0] - cam[0], it.center[1] - cam[1]);
             let d = (dx * dx + dy * dy).sqrt();
@@ -361,7 +371,12 @@ impl Renderer {
                 })],
             },
             primitive: wgpu::PrimitiveState { cull_mode: None, ..Default::default() },
-            depth_stencil: None,
+            // Each pixel is shaded once: the nearest layer is drawn first (lines, road, then the
+            // floor) and a pixel's stencil, once set, rejects later fragments before shading.
+            depth_stencil: Some(wgpu::DepthStencilState::stencil(
+                wgpu::TextureFormat::Stencil8,
+                wgpu::StencilState { front: ONCE, back: ONCE, read_mask: 0xff, write_mask: 0xff },
+            )),
             multisample: wgpu::MultisampleState::default(),
             fragment: Some(wgpu::FragmentState {
                 module: &module,
@@ -436,8 +451,18 @@ impl Renderer {
                 }),
             }],
         });
+        let stencil = self.device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("stencil"),
+            size: wgpu::Extent3d { width: w, height: h, depth_or_array_layers: 1 },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: wgpu::TextureFormat::Stencil8,
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
+            view_formats: &[],
+        });
         self.capacity = cap;
-        self.target = Some((texture, readback, uniforms, bind));
+        self.target = Some((texture, readback, uniforms, bind, stencil));
     }
 
     fn mesh_for(&mut self, track: &Track) -> String {
@@ -482,7 +507,8 @@ impl Renderer {
         }
         let (ibuf, _) = self.indices.as_ref().expect("made above");
         self.queue.write_buffer(ibuf, 0, bytemuck::cast_slice(&indices));
-        let (texture, readback, uniforms, bind) = self.target.as_ref().expect("ensured");
+        let (texture, readback, uniforms, bind, stencil) = self.target.as_ref().expect("ensured");
+        let stencil_view = stencil.create_view(&wgpu::TextureViewDescriptor::default());
         let mut data = vec![0u8; (UNIFORM_STRIDE * n as u64) as usize];
         for (i, v) in views.iter().enumerate() {
             let origin = [v.pose[0].floor(), v.pose[1].floor()];
@@ -514,12 +540,17 @@ impl Renderer {
                         store: wgpu::StoreOp::Store,
                     },
                 })],
-                depth_stencil_attachment: None,
+                depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                    view: &stencil_view,
+                    depth_ops: None,
+                    stencil_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Clear(0), store: wgpu::StoreOp::Discard }),
+                }),
                 timestamp_writes: None,
                 occlusion_query_set: None,
                 multiview_mask: None,
             });
             pass.set_pipeline(&self.pipeline);
+            pass.set_stencil_reference(0);
             pass.set_index_buffer(ibuf.slice(..), wgpu::IndexFormat::Uint32);
             for (i, key) in keys.iter().enumerate() {
                 let (buf, _) = &self.meshes[key];
@@ -557,23 +588,26 @@ impl Renderer {
         let px = if rgb { 3 } else { 1 };
         let mut out = vec![0u8; n as usize * (WIDTH * HEIGHT) as usize * px];
         {
+            use rayon::prelude::*;
             let mapped = slice.get_mapped_range().expect("mapped after the poll");
-            for i in 0..n as usize {
+            let src: &[u8] = &mapped;
+            // One view per task: pick its viewport out of the atlas, convert to luma or RGB.
+            out.par_chunks_mut((WIDTH * HEIGHT) as usize * px).enumerate().for_each(|(i, frame)| {
                 let (col, row) = (i as u32 % ATLAS_COLUMNS, i as u32 / ATLAS_COLUMNS);
                 for y in 0..HEIGHT {
-                    let src = ((row * HEIGHT + y) * padded + col * WIDTH * 4) as usize;
-                    let dst = (i * (WIDTH * HEIGHT) as usize + (y * WIDTH) as usize) * px;
-                    for x in 0..WIDTH as usize {
-                        let p = &mapped[src + 4 * x..src + 4 * x + 3];
+                    let at = ((row * HEIGHT + y) * padded + col * WIDTH * 4) as usize;
+                    let line = &src[at..at + 4 * WIDTH as usize];
+                    let dst = &mut frame[(y * WIDTH) as usize * px..((y + 1) * WIDTH) as usize * px];
+                    for (x, p) in line.chunks_exact(4).enumerate() {
                         if rgb {
-                            out[dst + 3 * x..dst + 3 * x + 3].copy_from_slice(p);
+                            dst[3 * x..3 * x + 3].copy_from_slice(&p[..3]);
                         } else {
                             let yl = 0.2989 * p[0] as f32 + 0.5870 * p[1] as f32 + 0.1140 * p[2] as f32;
-                            out[dst + x] = yl.round().clamp(0.0, 255.0) as u8;
+                            dst[x] = yl.round().clamp(0.0, 255.0) as u8;
                         }
                     }
                 }
-            }
+            });
         }
         readback.unmap();
         out
