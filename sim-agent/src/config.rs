@@ -25,6 +25,8 @@ pub struct SimConfig {
     pub episode: EpisodeConfig,
     /// What the policy observes.
     pub observation: ObservationConfig,
+    /// Camera domain randomisation (used when the observation is the camera).
+    pub camera: CameraConfig,
 }
 
 impl Default for SimConfig {
@@ -36,6 +38,42 @@ impl Default for SimConfig {
             noise: NoiseConfig::default(),
             episode: EpisodeConfig::default(),
             observation: ObservationConfig::default(),
+            camera: CameraConfig::default(),
+        }
+    }
+}
+
+/// Camera domain randomisation, drawn afresh for every episode of every environment (and
+/// image noise for every frame). Off by default, as in DeepRacer's simulator.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CameraConfig {
+    /// Turn randomisation on.
+    pub randomize: bool,
+    /// Light intensity range (1 = nominal).
+    pub light_intensity: [f64; 2],
+    /// Light elevation range (degrees above the floor).
+    pub light_elevation_deg: [f64; 2],
+    /// Vary the surface texture (a new pattern seed each episode).
+    pub texture_variation: bool,
+    /// Camera height jitter, ± metres.
+    pub height_jitter: f64,
+    /// Camera pitch jitter, ± degrees.
+    pub pitch_jitter_deg: f64,
+    /// Gaussian image noise, standard deviation in grey levels (0–255).
+    pub image_noise: f64,
+}
+
+impl Default for CameraConfig {
+    fn default() -> Self {
+        CameraConfig {
+            randomize: false,
+            light_intensity: [0.7, 1.3],
+            light_elevation_deg: [30.0, 90.0],
+            texture_variation: true,
+            height_jitter: 0.01,
+            pitch_jitter_deg: 2.0,
+            image_noise: 3.0,
         }
     }
 }

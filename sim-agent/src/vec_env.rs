@@ -28,6 +28,17 @@ pub struct VecEnv {
     rewards: Vec<f64>,
     pool: rayon::ThreadPool,
     renderer: Option<crate::camera::Renderer>,
+    /// Per environment: (episode the draw is for, its camera randomisation, its RNG).
+    camera_draws: Vec<(u64, CameraDraw, rand_chacha::ChaCha8Rng)>,
+}
+
+/// One episode's camera randomisation.
+#[derive(Clone, Copy, Debug, Default)]
+struct CameraDraw {
+    intensity: f64,
+    elevation_deg: f64,
+    texture_seed: u32,
+    jitter: [f64; 2],
 }
 
 impl VecEnv {
@@ -76,6 +87,15 @@ impl VecEnv {
             rewards: Vec::with_capacity(n),
             pool,
             renderer,
+            camera_draws: (0..n)
+                .map(|i| {
+                    (
+                        0,
+                        CameraDraw::default(),
+                        <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(env_seed(seed, i) ^ 0xCA3E_7A),
+                    )
+                })
+                .collect(),
         };
         let VecEnv { envs, obs, .. } = &mut v;
         for (e, o) in envs.iter().zip(obs.chunks_mut(dim.max(1))) {
@@ -161,27 +181,79 @@ impl VecEnv {
         Ok(&self.outcomes)
     }
 
-    /// Camera observations: every environment's frame in one batch.
+    /// Camera observations: every environment's frame in one batch (with the episode's
+    /// domain randomisation, and image noise, when configured).
     fn render(&mut self) {
         let Some(r) = self.renderer.as_mut() else { return };
+        use rand::Rng;
+        use rand_distr::{Distribution, Normal};
+        let cfg = self.envs.first().map(|e| e.config().camera.clone()).unwrap_or_default();
+        for (e, (episode, draw, rng)) in self.envs.iter().zip(self.camera_draws.iter_mut()) {
+            if *episode != e.episode() {
+                *episode = e.episode();
+                let l = e.spec().lighting;
+                *draw = if cfg.randomize {
+                    let pick = |rng: &mut rand_chacha::ChaCha8Rng, r: [f64; 2]| {
+                        if r[1] > r[0] { rng.random_range(r[0]..r[1]) } else { r[0] }
+                    };
+                    let h = cfg.height_jitter.abs();
+                    let p = cfg.pitch_jitter_deg.abs().to_radians();
+                    CameraDraw {
+                        intensity: pick(rng, cfg.light_intensity),
+                        elevation_deg: pick(rng, cfg.light_elevation_deg),
+                        texture_seed: if cfg.texture_variation { rng.random_range(1..1000) } else { 0 },
+                        jitter: [
+                            if h > 0.0 { rng.random_range(-h..h) } else { 0.0 },
+                            if p > 0.0 { rng.random_range(-p..p) } else { 0.0 },
+                        ],
+                    }
+                } else {
+                    CameraDraw {
+                        intensity: l.intensity,
+                        elevation_deg: l.elevation_deg,
+                        texture_seed: 0,
+                        jitter: [0.0, 0.0],
+                    }
+                };
+            }
+        }
         let views: Vec<crate::camera::View<'_>> = self
             .envs
             .iter()
-            .map(|e| {
+            .zip(&self.camera_draws)
+            .map(|(e, (_, d, _))| {
                 let p = e.pose();
+                let mut lighting = e.spec().lighting;
+                lighting.intensity = d.intensity;
+                lighting.elevation_deg = d.elevation_deg;
                 crate::camera::View {
                     track: e.track(),
                     surface: e.spec().surface,
-                    lighting: e.spec().lighting,
+                    lighting,
                     pose: [p.x, p.y, p.yaw],
-                    jitter: [0.0, 0.0],
-                    texture_seed: 0,
+                    jitter: d.jitter,
+                    texture_seed: d.texture_seed,
                 }
             })
             .collect();
         let frames = r.render(&views, false);
-        for (o, px) in self.obs.iter_mut().zip(frames) {
-            *o = px as f32;
+        let frame = frames.len() / self.envs.len().max(1);
+        let noise = if cfg.randomize && cfg.image_noise > 0.0 { Normal::new(0.0, cfg.image_noise).ok() } else { None };
+        for ((o, px), (_, _, rng)) in
+            self.obs.chunks_mut(frame).zip(frames.chunks(frame)).zip(self.camera_draws.iter_mut())
+        {
+            match &noise {
+                Some(n) => {
+                    for (o, p) in o.iter_mut().zip(px) {
+                        *o = (*p as f64 + n.sample(rng)).round().clamp(0.0, 255.0) as f32;
+                    }
+                }
+                None => {
+                    for (o, p) in o.iter_mut().zip(px) {
+                        *o = *p as f32;
+                    }
+                }
+            }
         }
     }
 

@@ -232,3 +232,30 @@ fn the_camera_observation_is_rendered_for_the_whole_vector() {
     v.step(&[Action { steering_angle: 0.0, speed: 2.0 }; 3]).unwrap();
     assert_ne!(v.observations()[..19200], before[..19200], "the view moves with the car");
 }
+
+#[test]
+fn camera_domain_randomisation_changes_the_view_between_episodes_and_only_when_asked() {
+    let frames = |randomize: bool, seed: u64| {
+        let mut cfg = SimConfig::default();
+        cfg.observation.kind = sim_agent::config::ObservationKind::Camera;
+        cfg.camera.randomize = randomize;
+        let reward = sim_agent::RewardFn::Builtin(REWARD);
+        let v = sim_agent::VecEnv::with_mode(
+            vec![base(); 2],
+            Arc::new(cfg),
+            seed,
+            reward,
+            1,
+            Mode::Evaluation(EvalRules::default()),
+        )
+        .unwrap();
+        v.observations().to_vec()
+    };
+    // Evaluation: both environments sit at the start line, so only randomisation tells them apart.
+    let plain = frames(false, 1);
+    assert_eq!(plain[..19200], plain[19200..], "no randomisation: the same picture");
+    let random = frames(true, 1);
+    let diff: f32 = random[..19200].iter().zip(&random[19200..]).map(|(a, b)| (a - b).abs()).sum::<f32>() / 19200.0;
+    assert!(diff > 2.0, "randomised environments differ: {diff}");
+    assert_eq!(random, frames(true, 1), "same seed, same randomisation");
+}
