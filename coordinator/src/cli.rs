@@ -170,6 +170,9 @@ pub struct UpArgs {
     /// Reward: a DeepRacer Python file or builtin:NAME.
     #[arg(long)]
     pub reward: Option<String>,
+    /// "state" (the state vector) or "camera" (FRONT_FACING_CAMERA, SHALLOW network).
+    #[arg(long, default_value = "state")]
+    pub sensor: String,
     /// Output folder (the run folder is OUT/run, the model OUT/run/model).
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -189,9 +192,13 @@ pub struct TrainArgs {
     /// DeepRacer hyperparameters.json (default: the console's PPO defaults).
     #[arg(long)]
     pub hyperparameters: Option<PathBuf>,
-    /// DeepRacer model_metadata.json (default: state vector, 5 steering x 2 speeds).
+    /// DeepRacer model_metadata.json (default: see --sensor).
     #[arg(long)]
     pub model_metadata: Option<PathBuf>,
+    /// Without a model_metadata.json: "state" (the state vector, PADDOCK_MLP) or "camera"
+    /// (FRONT_FACING_CAMERA, DEEP_CONVOLUTIONAL_NETWORK_SHALLOW); 5 steering angles x 2 speeds.
+    #[arg(long, default_value = "state")]
+    pub sensor: String,
     /// Wall-clock budget in minutes.
     #[arg(long, default_value_t = 5.0)]
     pub minutes: f64,
@@ -213,6 +220,9 @@ pub struct TrainArgs {
     /// Evaluation trials per checkpoint.
     #[arg(long, default_value_t = 3)]
     pub trials: usize,
+    /// Consecutive evaluations that must reach --target-laps before training stops.
+    #[arg(long, default_value_t = 2)]
+    pub target_evals: usize,
     /// Seconds between evaluations and checkpoints.
     #[arg(long, default_value_t = 2.0)]
     pub checkpoint_seconds: f64,

@@ -140,8 +140,16 @@ pub fn up(args: UpArgs) -> Result<i32> {
         None => String::new(),
     };
     let target = args.target_progress.map(|t| format!("target_progress = {t}\n")).unwrap_or_default();
+    let meta_line = match args.sensor.as_str() {
+        "state" => String::new(),
+        "camera" => {
+            std::fs::write(out.join("model_metadata.json"), policy::ModelMetadata::default_camera().to_json())?;
+            "model_metadata = \"model_metadata.json\"\n".to_string()
+        }
+        other => bail!("--sensor is {other:?}, expected \"state\" or \"camera\""),
+    };
     let spec = format!(
-        "# Written by `coordinator up`; `coordinator job start` takes this file as it is.\nworlds = {worlds:?}\n{reward_line}out = {:?}\nenvs_per_agent = {}\n[stop]\nminutes = {}\n{target}",
+        "# Written by `coordinator up`; `coordinator job start` takes this file as it is.\nworlds = {worlds:?}\n{reward_line}{meta_line}out = {:?}\nenvs_per_agent = {}\n[stop]\nminutes = {}\n{target}",
         out.join("run").display().to_string(),
         args.envs,
         args.minutes

@@ -131,3 +131,35 @@ fn train_reads_deepracer_files_and_rejects_bad_ones_by_key() {
     let c = coordinator(d, &["train", "--model-metadata", "stereo.json", "--out", "run_cam"]);
     assert!(!c.status.success() && text(&c).contains("FRONT_FACING_CAMERA or STATE_VECTOR"), "{}", text(&c));
 }
+
+#[test]
+fn issue_5_a_camera_model_learns_to_lap_from_pixels() {
+    // DeepRacer's SHALLOW network on 160x120 grayscale frames rendered on lavapipe, DeepRacer's
+    // default hyperparameters; training stops after two consecutive 3/3 evaluations.
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let o = coordinator(
+        d,
+        &[
+            "train",
+            "--sensor",
+            "camera",
+            "--envs",
+            "16",
+            "--minutes",
+            "6",
+            "--checkpoint-seconds",
+            "20",
+            "--out",
+            "cam",
+        ],
+    );
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("target laps reached"), "{}", text(&o));
+    let meta = std::fs::read_to_string(d.join("cam/model/model_metadata.json")).unwrap();
+    assert!(meta.contains("FRONT_FACING_CAMERA") && meta.contains("DEEP_CONVOLUTIONAL_NETWORK_SHALLOW"), "{meta}");
+    let e = coordinator(d, &["evaluate", "cam/model", "--world", "reinvent_base", "--trials", "3", "--seed", "2"]);
+    assert!(e.status.success(), "{}", text(&e));
+    let laps: usize = text(&e).lines().filter(|l| l.starts_with("trial ") && l.contains("lap_complete")).count();
+    assert!(laps >= 2, "the camera model laps in an independent evaluation too:\n{}", text(&e));
+}

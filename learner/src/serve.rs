@@ -107,8 +107,7 @@ fn run_job(
     let meta = ModelMetadata::parse(&doc.model_metadata_json, "job model_metadata.json")?;
     let hyper = hyper_of(doc)?;
     let mut cfg: SimConfig = parse_toml(&doc.sim_config_toml, "job sim config")?;
-    cfg.observation.kind =
-        if meta.sensor.contains(&policy::Sensor::Lidar) { ObservationKind::StateLidar } else { ObservationKind::State };
+    cfg.observation.kind = sim_agent::config::observation_kind_for(&meta).map_err(|e| anyhow::anyhow!("{e}"))?;
     let obs_size = sim_agent::obs::obs_dim(&cfg.observation);
     let cfg = Arc::new(cfg);
     let out = PathBuf::from(&doc.out);
@@ -139,7 +138,8 @@ fn run_job(
     run.write_file("model_metadata.json", meta.to_json().as_bytes())?;
     run.write_file("hyperparameters.json", hyper.to_json().as_bytes())?;
     run.write_file("sim.toml", doc.sim_config_toml.as_bytes())?;
-    let mut ppo = Ppo::new(model, hyper.clone(), version, doc.seed, Par::Seq);
+    let par = if cfg.observation.kind == ObservationKind::Camera { Par::rayon(args.threads) } else { Par::Seq };
+    let mut ppo = Ppo::new(model, hyper.clone(), version, doc.seed, par);
 
     let manifest_for = |ppo: &Ppo, training: serde_json::Value| Manifest {
         format: "paddock-model-1".into(),

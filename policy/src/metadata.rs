@@ -304,6 +304,15 @@ impl ModelMetadata {
         ModelMetadata::parse(&text, "default").expect("the default metadata parses")
     }
 
+    /// DeepRacer's camera model: FRONT_FACING_CAMERA, the SHALLOW network, 5 steering × 2 speeds.
+    pub fn default_camera() -> ModelMetadata {
+        let mut m = ModelMetadata::default_state_vector();
+        m.sensor = vec![Sensor::FrontFacingCamera];
+        m.neural_network = NeuralNetwork::DeepConvolutionalNetworkShallow;
+        let text = m.to_json();
+        ModelMetadata::parse(&text, "default").expect("the default camera metadata parses")
+    }
+
     /// The file as DeepRacer writes it (its keys, in its order; unknown keys kept).
     pub fn to_json(&self) -> String {
         let mut out = Map::new();

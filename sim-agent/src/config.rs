@@ -234,3 +234,22 @@ where
         msg: e.to_string(),
     })
 }
+
+/// The observation a model's `sensor` list calls for: the state vector (with or without the
+/// lidar) or the front camera.
+pub fn observation_kind_for(meta: &policy::ModelMetadata) -> Result<ObservationKind, String> {
+    use policy::Sensor;
+    if meta.sensor.contains(&Sensor::StateVector) {
+        Ok(if meta.sensor.contains(&Sensor::Lidar) { ObservationKind::StateLidar } else { ObservationKind::State })
+    } else if meta.sensor.contains(&Sensor::FrontFacingCamera) || meta.sensor.contains(&Sensor::Observation) {
+        if meta.sensor.len() > 1 {
+            return Err("a camera with a lidar is not supported yet; use FRONT_FACING_CAMERA alone".into());
+        }
+        Ok(ObservationKind::Camera)
+    } else {
+        Err(format!(
+            "sensor {:?} is not supported: Paddock trains from FRONT_FACING_CAMERA or STATE_VECTOR",
+            meta.sensor.iter().map(|s| s.name()).collect::<Vec<_>>()
+        ))
+    }
+}

@@ -149,11 +149,7 @@ fn start(session: &zenoh::Session, args: &ServeArgs, a: &Assignment) -> Result<W
     let world = tracks::world(&world_spec.name)?;
     let mut cfg: SimConfig = parse_toml(&a.sim_config_toml, "assignment sim config")?;
     let meta = policy::ModelMetadata::parse(&a.model_metadata_json, "assignment model_metadata.json")?;
-    cfg.observation.kind = if meta.sensor.contains(&policy::Sensor::Lidar) {
-        sim_agent::config::ObservationKind::StateLidar
-    } else {
-        sim_agent::config::ObservationKind::State
-    };
+    cfg.observation.kind = sim_agent::config::observation_kind_for(&meta).map_err(|e| anyhow::anyhow!("{e}"))?;
     let (reward, reward_dir) = if a.reward_source.starts_with("builtin:") {
         (RewardFn::from_spec(&a.reward_source)?, None)
     } else {
