@@ -201,11 +201,12 @@ pub fn publish(repeats: usize) -> Result<()> {
         protocol_version: PROTOCOL_VERSION,
         job_id: "bench".into(),
         agent_id: "agent-1".into(),
-        world: "reinvent_base".into(),
         seq: 1,
         trajectories: trajs.iter().map(|t| protocol::trajectory_to_wire(t, obs)).collect(),
         env_steps: steps as u64,
         seconds: 0.0,
+        credit_version: 0,
+        credit_round: 1,
     };
     let bytes = protocol::encode(&batch).len();
     println!(

@@ -76,22 +76,7 @@ pub enum BenchCommand {
     },
 }
 
-/// Where to reach the network (every networked command).
-#[derive(Args, Clone, Default)]
-pub struct NetCli {
-    /// Zenoh endpoint to connect to (repeatable); clients default to tcp/127.0.0.1:7447.
-    #[arg(long)]
-    pub connect: Vec<String>,
-    /// Zenoh endpoint to listen on (repeatable).
-    #[arg(long)]
-    pub listen: Vec<String>,
-    /// Zenoh configuration file (JSON5); flags apply on top.
-    #[arg(short = 'c', long = "zenoh-config")]
-    pub zenoh_config: Option<PathBuf>,
-    /// Multicast scouting on this interface (e.g. lo); off by default.
-    #[arg(long)]
-    pub multicast: Option<String>,
-}
+pub use protocol::net::NetCli;
 
 #[derive(Args)]
 pub struct ServeCli {
@@ -183,9 +168,10 @@ pub struct UpArgs {
 
 #[derive(Args)]
 pub struct TrainArgs {
-    /// World to train on (built-in name or .npy path).
-    #[arg(long, default_value = "reinvent_base")]
-    pub world: String,
+    /// World to train on (built-in name or .npy path; repeatable: the environments are split
+    /// over the worlds and every evaluation runs on each). Default: reinvent_base.
+    #[arg(long)]
+    pub world: Vec<String>,
     /// Reward: a DeepRacer Python file or builtin:NAME.
     #[arg(long, default_value = "builtin:center_line")]
     pub reward: String,
@@ -223,6 +209,21 @@ pub struct TrainArgs {
     /// Consecutive evaluations that must reach --target-laps before training stops.
     #[arg(long, default_value_t = 2)]
     pub target_evals: usize,
+    /// Stop after this many episodes trained on.
+    #[arg(long)]
+    pub max_episodes: Option<u64>,
+    /// Stop when the mean progress (%) over the last --window episodes reaches this.
+    #[arg(long)]
+    pub target_progress: Option<f64>,
+    /// Stop when the mean episode reward over the last --window episodes reaches this.
+    #[arg(long)]
+    pub target_reward: Option<f64>,
+    /// Episodes in the window of --target-progress and --target-reward.
+    #[arg(long, default_value_t = 20)]
+    pub window: u64,
+    /// Stop once this many environment steps have been simulated (a compute budget).
+    #[arg(long)]
+    pub env_steps: Option<u64>,
     /// Seconds between evaluations and checkpoints.
     #[arg(long, default_value_t = 2.0)]
     pub checkpoint_seconds: f64,
@@ -247,9 +248,9 @@ pub struct TrainArgs {
 pub struct EvaluateArgs {
     /// A model folder (e.g. RUN/model).
     pub model_dir: PathBuf,
-    /// World to evaluate on.
-    #[arg(long, default_value = "reinvent_base")]
-    pub world: String,
+    /// World to evaluate on (repeatable: one table over the worlds). Default: reinvent_base.
+    #[arg(long)]
+    pub world: Vec<String>,
     /// Trials (laps from the start line).
     #[arg(long, default_value_t = 3)]
     pub trials: usize,

@@ -9,11 +9,7 @@ use std::time::Duration;
 
 /// Network arguments for a client: default to a coordinator on this machine.
 pub fn net_args(n: &NetCli, default_connect: bool) -> NetArgs {
-    let mut connect = n.connect.clone();
-    if connect.is_empty() && default_connect && n.zenoh_config.is_none() && n.multicast.is_none() {
-        connect.push("tcp/127.0.0.1:7447".into());
-    }
-    NetArgs { connect, listen: n.listen.clone(), config: n.zenoh_config.clone(), multicast: n.multicast.clone() }
+    n.args(default_connect)
 }
 
 /// Send one request and wait for the reply.

@@ -127,6 +127,10 @@ pub fn parse(text: &str, base: &Path, origin: &str, id: &str) -> Result<JobDoc> 
             .map_err(|e| anyhow::anyhow!("{origin}: field 'sim': {e}"))?,
         None => SimConfig::default(),
     };
+    let mut observation = sim.observation.clone();
+    let meta = ModelMetadata::parse(&model_metadata_json, "model_metadata.json")?;
+    observation.kind =
+        sim_agent::config::observation_kind_for(&meta).map_err(|e| anyhow::anyhow!("{origin}: model_metadata: {e}"))?;
     if spec.stop.minutes <= 0.0 || !spec.stop.minutes.is_finite() {
         bail!("{origin}: field 'stop.minutes' must be a positive number of minutes");
     }
@@ -145,6 +149,8 @@ pub fn parse(text: &str, base: &Path, origin: &str, id: &str) -> Result<JobDoc> 
         max_policy_lag: spec.max_policy_lag,
         stop: spec.stop,
         eval_trials: spec.eval_trials.max(1),
+        obs_size: sim_agent::obs::obs_dim(&observation) as u64,
+        observation_json: serde_json::to_string(&observation)?,
     })
 }
 

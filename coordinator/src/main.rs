@@ -10,6 +10,7 @@ mod cli;
 mod client;
 mod drive;
 mod jobspec;
+mod local;
 mod render_cmd;
 mod serve;
 mod tracks_cmd;

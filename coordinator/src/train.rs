@@ -1,26 +1,29 @@
 //! `coordinator train`, `evaluate` and `clone`: PPO in one process.
 //!
-//! The loop wires the same pieces the cluster will run apart: a `sim_agent::rollout::Collector`
-//! produces trajectories tagged with the policy version, `learner::Ppo` trains on them, and
-//! evaluation trials pick the best checkpoint.
+//! `train` runs the one training loop ([`learner::run::run`]) with a sim worker
+//! ([`sim_agent::worker::Worker`]) on another thread, joined by in-process channels
+//! ([`crate::local`]): the same loop and the same worker that `learner serve` and
+//! `sim-agent serve` run apart over Zenoh.
 
 use crate::cli::{CloneArgs, EvaluateArgs, TrainArgs};
+use crate::local::LocalLink;
 use crate::tracks_cmd::resolve_world;
 use anyhow::{Context, Result, bail};
 use faer::Par;
 use indicatif::{ProgressBar, ProgressStyle};
-use learner::checkpoints::{CheckpointRecord, OpenMode, RunDir};
-use learner::{Hyperparameters, Ppo};
+use learner::Hyperparameters;
+use learner::checkpoints::{OpenMode, RunDir};
+use learner::run::{EvalRecord, IterationRecord, Observer, RunSpec, Start, StopRules, TargetLaps, run};
+use policy::ModelMetadata;
+use policy::exchange::{Trial, summarise};
 use policy::folder::{self, Manifest, Parent};
-use policy::{ActorCritic, ModelMetadata};
-use rand::SeedableRng;
 use sim_agent::config::{ObservationKind, load_config};
 use sim_agent::obs::obs_dim;
-use sim_agent::rollout::{Collector, TrialResult, evaluate};
-use sim_agent::{EnvSpec, EvalRules, RewardFn, SimConfig, VecEnv};
+use sim_agent::rollout::evaluate;
+use sim_agent::worker::{Worker, WorkerSetup};
+use sim_agent::{EnvSpec, EvalRules, RewardFn, SimConfig};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::time::Instant;
 use tracks::Direction;
 
 /// The simulator configuration a model's sensors call for.
@@ -47,26 +50,80 @@ fn default_run_dir(world: &str) -> PathBuf {
     PathBuf::from("runs").join(format!("{world}-{stamp}"))
 }
 
-/// Evaluation summary: mean progress, mean lap time when every trial completed.
-fn summarise(trials: &[TrialResult]) -> (f64, Option<f64>, usize) {
-    let n = trials.len().max(1) as f64;
-    let progress = trials.iter().map(|t| t.progress).sum::<f64>() / n;
-    let laps = trials.iter().filter(|t| t.lap_time.is_some()).count();
-    let lap = (laps == trials.len()).then(|| trials.iter().filter_map(|t| t.lap_time).sum::<f64>() / n);
-    (progress, lap, laps)
+/// Prints every iteration and evaluation above a progress bar.
+struct Terminal {
+    bar: ProgressBar,
+    budget: f64,
+}
+
+impl Observer for Terminal {
+    fn iteration(&mut self, r: &IterationRecord) {
+        self.bar.suspend(|| {
+            println!(
+                "it {:>4} v{:<4} episodes {:>3} steps {:>6} reward {:>8.2} progress {:>5.1}% | pi {:>7.4} v {:>7.4} H {:.3} kl {:.4} clip {:.3} ev {:>5.2} | {:>6.0} samples/s lag {}",
+                r.iteration,
+                r.policy_version,
+                r.episodes,
+                r.steps,
+                r.mean_reward,
+                r.mean_progress,
+                r.policy_loss,
+                r.value_loss,
+                r.entropy,
+                r.approx_kl,
+                r.clip_fraction,
+                r.explained_variance,
+                r.samples_per_s,
+                r.policy_lag
+            )
+        });
+        if let Some(why) = &r.refused {
+            self.bar.suspend(|| eprintln!("warning: iteration {}: {why}", r.iteration));
+        }
+        self.bar.set_position(r.time_s.min(self.budget) as u64);
+        self.bar.set_message(format!(
+            "it {} v{} reward {:.1} progress {:.1}% {:.0}s left",
+            r.iteration,
+            r.policy_version,
+            r.mean_reward,
+            r.mean_progress,
+            (self.budget - r.time_s).max(0.0)
+        ));
+    }
+
+    fn evaluation(&mut self, e: &EvalRecord) {
+        let worlds: Vec<String> = e
+            .worlds
+            .iter()
+            .map(|(w, p, lap, laps, n)| {
+                format!("{w} {p:.1}% {laps}/{n}{}", lap.map(|t| format!(" lap {t:.2}s")).unwrap_or_default())
+            })
+            .collect();
+        self.bar.suspend(|| {
+            println!(
+                "     eval v{}: {} {}",
+                e.policy_version,
+                worlds.join(" | "),
+                if e.best { "(best so far)" } else { "" }
+            )
+        });
+    }
 }
 
 pub fn train(args: TrainArgs) -> Result<i32> {
-    let start = Instant::now();
-    let out = args.out.clone().unwrap_or_else(|| default_run_dir(&args.world));
-    let mode = match (args.resume, args.force) {
+    let worlds_arg = if args.world.is_empty() { vec!["reinvent_base".to_string()] } else { args.world.clone() };
+    let out = args.out.clone().unwrap_or_else(|| default_run_dir(&worlds_arg.join("+")));
+    let start = match (args.resume, args.force) {
         (true, true) => bail!("--resume and --force contradict each other"),
-        (true, false) => OpenMode::Resume,
-        (false, true) => OpenMode::Force,
-        (false, false) => OpenMode::New,
+        (true, false) => Start::Resume,
+        (false, true) => Start::Force,
+        (false, false) => Start::New { clone_from: None },
     };
+    if start == (Start::New { clone_from: None }) && out.join("model").exists() {
+        bail!("{} already holds a run: pass --resume to continue it or --force to start again", out.display());
+    }
     // Inputs: flags first, then what the run folder holds (resume, clone), then defaults.
-    let from_run = |name: &str| Some(out.join(name)).filter(|p| mode == OpenMode::Resume && p.exists());
+    let from_run = |name: &str| Some(out.join(name)).filter(|p| start == Start::Resume && p.exists());
     let meta_path = args.model_metadata.clone().or_else(|| from_run("model_metadata.json"));
     let hyper_path = args.hyperparameters.clone().or_else(|| from_run("hyperparameters.json"));
     let sim_path = args.config.clone().or_else(|| from_run("sim.toml"));
@@ -85,209 +142,80 @@ pub fn train(args: TrainArgs) -> Result<i32> {
     }
     let mut cfg: SimConfig = load_config(sim_path.as_deref(), &args.sets)?;
     check_sensors(&meta, &mut cfg)?;
-    let world = resolve_world(&args.world)?;
-    let mut reward = RewardFn::from_spec(&args.reward)?;
+    let worlds = worlds_arg.iter().map(|w| resolve_world(w)).collect::<Result<Vec<_>>>()?;
     // Validate the reward before any training: a broken file stops here with its traceback.
-    let track = world.track(Direction::Forward);
-    sim_agent::validate::validate_reward(&mut reward, &track, &meta.action_space, 20)
-        .with_context(|| format!("the reward function {} failed validation", args.reward))?;
-    let run = RunDir::open(&out, mode)?;
+    let mut reward = RewardFn::from_spec(&args.reward)?;
+    for w in &worlds {
+        sim_agent::validate::validate_reward(&mut reward, &w.track(Direction::Forward), &meta.action_space, 20)
+            .with_context(|| format!("the reward function {} failed validation on {}", args.reward, w.name))?;
+    }
     let obs_size = obs_dim(&cfg.observation);
-    let cfg = Arc::new(cfg);
-
-    // The model: resumed from the last checkpoint, or fresh.
-    let (model, version, parent) = if mode == OpenMode::Resume {
-        let index = run.index()?;
-        let dir = index
-            .last_checkpoint
-            .as_ref()
-            .map(|l| run.checkpoint_dir(&l.name))
-            .filter(|d| d.exists())
-            .unwrap_or_else(|| run.model_dir());
-        let f = folder::load(&dir)?;
-        if let Err(why) = f.metadata.compatible_with(&meta) {
-            bail!(
-                "{}: cannot continue this run with {}: {why}",
-                dir.display(),
-                meta_path.as_ref().map(|p| p.display().to_string()).unwrap_or_default()
-            );
-        }
-        if f.manifest.obs_size != obs_size {
-            bail!(
-                "{}: the model takes {} inputs, this configuration's observation has {obs_size}",
-                dir.display(),
-                f.manifest.obs_size
-            );
-        }
-        tracing::info!(from = %dir.display(), version = f.manifest.policy_version, "resuming");
-        (f.model, f.manifest.policy_version, f.manifest.parent)
-    } else {
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(args.seed);
-        (ActorCritic::new(&meta, obs_size, &mut rng), 0, None)
-    };
-    run.write_file("model_metadata.json", meta.to_json().as_bytes())?;
-    run.write_file("hyperparameters.json", hyper.to_json().as_bytes())?;
-    run.write_file("sim.toml", toml::to_string_pretty(&*cfg)?.as_bytes())?;
-
-    let spec = EnvSpec::from_world(&world, Direction::Forward);
     let threads = args.threads.unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1));
-    let vec = VecEnv::new(vec![spec.clone(); args.envs], cfg.clone(), args.seed, reward, threads)?;
-    let mut collector = Collector::new(vec, meta.action_space.clone(), args.seed);
-    // The camera networks are big enough to split over the cores; the MLP is not.
-    let par = if cfg.observation.kind == ObservationKind::Camera { Par::rayon(threads) } else { Par::Seq };
-    let mut ppo = Ppo::new(model, hyper.clone(), version, args.seed, par);
-    let budget = args.minutes * 60.0;
+    let camera = cfg.observation.kind == ObservationKind::Camera;
+    let spec = RunSpec {
+        name: worlds.iter().map(|w| w.name.clone()).collect::<Vec<_>>().join("+"),
+        metadata: meta.clone(),
+        hyper: hyper.clone(),
+        obs_size,
+        observation: serde_json::to_value(&cfg.observation)?,
+        sim_toml: toml::to_string_pretty(&cfg)?,
+        worlds: worlds.iter().map(|w| w.name.clone()).collect(),
+        out: out.clone(),
+        start,
+        seed: args.seed,
+        max_policy_lag: 4,
+        eval_trials: args.trials.max(1) as u32,
+        eval_seconds: args.checkpoint_seconds,
+        stop: StopRules {
+            minutes: args.minutes,
+            max_episodes: args.max_episodes,
+            target_progress: args.target_progress,
+            target_reward: args.target_reward,
+            window: args.window.max(1),
+            env_steps_budget: args.env_steps,
+            target_laps: (args.target_laps > 0)
+                .then(|| TargetLaps { laps: args.target_laps, evaluations: args.target_evals.max(1) }),
+        },
+        // The camera networks are big enough to split over the cores; the MLP is not.
+        par: if camera { Par::rayon(threads) } else { Par::Seq },
+    };
+    let worker = Worker::new(WorkerSetup {
+        id: "local".into(),
+        worlds: worlds.iter().map(|w| EnvSpec::from_world(w, Direction::Forward)).collect(),
+        offset: 0,
+        envs: args.envs.max(1),
+        threads,
+        cfg: Arc::new(cfg),
+        reward,
+        space: meta.action_space.clone(),
+        seed: args.seed,
+        first_seq: 0,
+    })?;
     println!(
-        "training on {} ({}) for up to {:.1} min, {} envs, reward {}, run folder {}",
-        world.name,
-        world.surface.name(),
+        "training on {} for up to {:.1} min, {} envs, reward {}, run folder {}",
+        worlds.iter().map(|w| format!("{} ({})", w.name, w.surface.name())).collect::<Vec<_>>().join(", "),
         args.minutes,
         args.envs,
         args.reward,
         out.display()
     );
+    let budget = args.minutes * 60.0;
     let bar = ProgressBar::new(budget.ceil() as u64)
         .with_style(ProgressStyle::with_template("{elapsed_precise} [{bar:25}] {msg}").expect("template"));
-    let eval_rules = EvalRules::default();
-    let mut iteration = 0u64;
-    let mut last_eval = f64::MIN;
-    let mut best: Option<CheckpointRecord> = run.index()?.best_checkpoint;
-    let mut total_episodes = 0u64;
-    let mut reached = false;
-    let mut streak = 0usize;
-    let mut stop_reason = "time limit";
-    loop {
-        let t0 = Instant::now();
-        let current = Arc::new(ppo.model.clone());
-        let trajs = collector.collect(&current, ppo.version, hyper.num_episodes_between_training)?;
-        let collect_s = t0.elapsed().as_secs_f64();
-        let lag = trajs.iter().map(|t| ppo.version - t.policy_version).max().unwrap_or(0);
-        let t1 = Instant::now();
-        let stats = ppo.update(&trajs);
-        let update_s = t1.elapsed().as_secs_f64();
-        iteration += 1;
-        total_episodes += trajs.len() as u64;
-        let mean_reward =
-            trajs.iter().map(|t| t.rewards.iter().map(|r| *r as f64).sum::<f64>()).sum::<f64>() / trajs.len() as f64;
-        let mean_progress = trajs.iter().map(|t| t.progress).sum::<f64>() / trajs.len() as f64;
-        let steps: usize = trajs.iter().map(|t| t.len()).sum();
-        if let Some(why) = &stats.refused {
-            tracing::warn!(iteration, "{why}");
-            eprintln!("warning: iteration {iteration}: {why}");
-        }
-        let elapsed = start.elapsed().as_secs_f64();
-        let mut eval = None;
-        if elapsed - last_eval >= args.checkpoint_seconds || elapsed >= budget {
-            last_eval = elapsed;
-            let trials = evaluate(
-                &ppo.model,
-                &meta.action_space,
-                &spec,
-                &cfg,
-                eval_rules.clone(),
-                args.trials,
-                args.seed ^ iteration,
-                threads,
-            )?;
-            let (progress, lap, laps) = summarise(&trials);
-            let name = RunDir::checkpoint_name(iteration);
-            let manifest = Manifest {
-                format: "paddock-model-1".into(),
-                policy_version: ppo.version,
-                parent: parent.clone(),
-                weights_sha256: String::new(),
-                obs_size,
-                observation: serde_json::to_value(&cfg.observation)?,
-                training: serde_json::json!({
-                    "world": world.name, "iteration": iteration, "episodes": total_episodes,
-                    "env_steps": collector.env_steps, "seconds": elapsed,
-                    "eval_progress": progress, "eval_lap_time": lap, "eval_laps": laps, "eval_trials": args.trials,
-                    "hyperparameters": hyper,
-                }),
-            };
-            folder::save(&run.checkpoint_dir(&name), &meta, &ppo.model, &manifest)?;
-            let rec = CheckpointRecord {
-                name: name.clone(),
-                iteration,
-                policy_version: ppo.version,
-                avg_eval_metric: progress,
-                avg_lap_time: lap,
-                time_stamp: elapsed,
-            };
-            if run.record(rec.clone())? {
-                folder::save(&run.model_dir(), &meta, &ppo.model, &manifest)?;
-                best = Some(rec);
-            }
-            // Stop only after the target is met in consecutive evaluations (each with fresh
-            // actuator noise): one lucky evaluation is not a model that laps.
-            streak = if args.target_laps > 0 && laps >= args.target_laps.min(args.trials) { streak + 1 } else { 0 };
-            reached = streak >= args.target_evals.max(1);
-            eval = Some((progress, lap, laps));
-        }
-        let sps = steps as f64 / (collect_s + update_s);
-        run.append_metrics(&serde_json::json!({
-            "iteration": iteration, "policy_version": stats.policy_version, "time_s": elapsed,
-            "episodes": trajs.len(), "total_episodes": total_episodes, "steps": steps, "env_steps": collector.env_steps,
-            "mean_reward": mean_reward, "mean_progress": mean_progress,
-            "policy_loss": stats.policy_loss, "value_loss": stats.value_loss, "entropy": stats.entropy,
-            "approx_kl": stats.approx_kl, "clip_fraction": stats.clip_fraction, "explained_variance": stats.explained_variance,
-            "samples_per_s": sps, "collect_s": collect_s, "update_s": update_s, "policy_lag": lag,
-            "refused": stats.refused,
-            "eval_progress": eval.map(|e| e.0), "eval_lap_time": eval.and_then(|e| e.1), "eval_laps": eval.map(|e| e.2),
-        }))?;
-        bar.suspend(|| {
-            println!(
-                "it {iteration:>4} v{:<4} episodes {:>3} steps {:>6} reward {:>8.2} progress {:>5.1}% | pi {:>7.4} v {:>7.4} H {:.3} kl {:.4} clip {:.3} ev {:>5.2} | {:>6.0} samples/s lag {lag}{}",
-                stats.policy_version,
-                trajs.len(),
-                steps,
-                mean_reward,
-                mean_progress,
-                stats.policy_loss,
-                stats.value_loss,
-                stats.entropy,
-                stats.approx_kl,
-                stats.clip_fraction,
-                stats.explained_variance,
-                sps,
-                eval.map(|(p, l, n)| format!(" | eval {p:.1}% {n}/{}{}", args.trials, l.map(|t| format!(" lap {t:.2}s")).unwrap_or_default()))
-                    .unwrap_or_default()
-            )
-        });
-        bar.set_position(elapsed.min(budget) as u64);
-        bar.set_message(format!(
-            "it {iteration} v{} reward {mean_reward:.1} progress {mean_progress:.1}% {sps:.0} samples/s{} {:.0}s left",
-            stats.policy_version,
-            eval.map(|(p, _, l)| format!(" eval {p:.0}% {l}/{}", args.trials)).unwrap_or_default(),
-            (budget - elapsed).max(0.0)
-        ));
-        tracing::debug!(iteration, mean_reward, mean_progress, "iteration");
-        if reached {
-            stop_reason = "target laps reached";
-            break;
-        }
-        if elapsed >= budget {
-            break;
-        }
-        if total_episodes >= hyper.term_cond_max_episodes {
-            stop_reason = "term_cond_max_episodes reached";
-            break;
-        }
-        if mean_reward >= hyper.term_cond_avg_score {
-            stop_reason = "term_cond_avg_score reached";
-            break;
-        }
-    }
-    bar.finish_and_clear();
-    let secs = start.elapsed().as_secs_f64();
+    let mut terminal = Terminal { bar, budget };
+    let mut link = LocalLink::start(worker, "local");
+    let summary = run(&spec, &mut link, &mut terminal);
+    terminal.bar.finish_and_clear();
+    drop(link);
+    let summary = summary?;
     println!(
-        "stopped after {iteration} iterations, {total_episodes} episodes, {} env steps, {secs:.1} s: {stop_reason}",
-        collector.env_steps
+        "stopped after {} iterations, {} episodes, {} env steps, {:.1} s: {}",
+        summary.iterations, summary.episodes, summary.env_steps, summary.seconds, summary.stop_reason
     );
-    match &best {
+    match &summary.best {
         Some(b) => println!(
             "best model: {} (iteration {}, policy v{}): evaluation progress {:.1} %{}",
-            run.model_dir().display(),
+            out.join("model").display(),
             b.iteration,
             b.policy_version,
             b.avg_eval_metric,
@@ -295,14 +223,6 @@ pub fn train(args: TrainArgs) -> Result<i32> {
         ),
         None => println!("no evaluation ran"),
     }
-    run.write_file(
-        "summary.json",
-        serde_json::to_string_pretty(&serde_json::json!({
-            "world": world.name, "iterations": iteration, "episodes": total_episodes, "env_steps": collector.env_steps,
-            "seconds": secs, "stop_reason": stop_reason, "best": best,
-        }))?
-        .as_bytes(),
-    )?;
     Ok(0)
 }
 
@@ -319,39 +239,59 @@ pub fn evaluate_cmd(args: EvaluateArgs) -> Result<i32> {
             f.manifest.obs_size
         );
     }
-    let world = resolve_world(&args.world)?;
-    let spec = EnvSpec::from_world(&world, if args.reversed { Direction::Reversed } else { Direction::Forward });
     let rules = if args.reset_rules {
         EvalRules { max_resets: 100, penalty_s: 2.0, time_limit_s: None }
     } else {
         EvalRules::default()
     };
     let cfg = Arc::new(cfg);
+    let names = if args.world.is_empty() { vec!["reinvent_base".to_string()] } else { args.world.clone() };
+    let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
     println!(
-        "evaluating {} (policy v{}) on {}: {} trials, argmax actions",
+        "evaluating {} (policy v{}) on {}: {} trials each, argmax actions",
         args.model_dir.display(),
         f.manifest.policy_version,
-        world.name,
+        names.join(", "),
         args.trials
     );
-    let trials = evaluate(&f.model, &f.metadata.action_space, &spec, &cfg, rules, args.trials, args.seed, 1)?;
-    for (i, t) in trials.iter().enumerate() {
+    let mut table = Vec::new();
+    for name in &names {
+        let world = resolve_world(name)?;
+        let spec = EnvSpec::from_world(&world, if args.reversed { Direction::Reversed } else { Direction::Forward });
+        let trials: Vec<Trial> =
+            evaluate(&f.model, &f.metadata.action_space, &spec, &cfg, rules.clone(), args.trials, args.seed, threads)?
+                .into_iter()
+                .map(Trial::from)
+                .collect();
+        for (i, t) in trials.iter().enumerate() {
+            println!(
+                "trial {}: {:<20} {:<12} progress {:>6.1} %  lap time {:>8}  off-track {:>2}  steps {:>5}",
+                i + 1,
+                world.name,
+                t.status,
+                t.progress,
+                t.lap_time.map(|l| format!("{l:.2} s")).unwrap_or_else(|| "-".into()),
+                t.off_track,
+                t.steps
+            );
+        }
+        let (progress, lap, laps) = summarise(&trials);
+        table.push((world.name.clone(), laps, trials.len(), progress, lap));
+    }
+    println!();
+    println!("{:<24} {:>6} {:>10} {:>10}", "WORLD", "LAPS", "PROGRESS", "MEAN LAP");
+    for (w, laps, n, p, lap) in &table {
         println!(
-            "trial {}: {:<12} progress {:>6.1} %  lap time {:>8}  off-track {:>2}  steps {:>5}",
-            i + 1,
-            t.status.label(),
-            t.progress,
-            t.lap_time.map(|l| format!("{l:.2} s")).unwrap_or_else(|| "-".into()),
-            t.off_track,
-            t.steps
+            "{w:<24} {:>6} {:>9.1}% {:>10}",
+            format!("{laps}/{n}"),
+            p,
+            lap.map(|l| format!("{l:.2} s")).unwrap_or_else(|| "-".into())
         );
     }
-    let (progress, lap, laps) = summarise(&trials);
-    println!(
-        "{laps} of {} laps completed, mean progress {progress:.1} %{}",
-        trials.len(),
-        lap.map(|l| format!(", mean lap time {l:.2} s")).unwrap_or_default()
-    );
+    let laps: usize = table.iter().map(|t| t.1).sum();
+    let n: usize = table.iter().map(|t| t.2).sum();
+    let progress = table.iter().map(|t| t.3).sum::<f64>() / table.len().max(1) as f64;
+    println!("{laps} of {n} laps completed, mean progress {progress:.1} %");
     Ok(0)
 }
 

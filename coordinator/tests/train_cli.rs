@@ -16,6 +16,35 @@ fn repo(rel: &str) -> String {
     p.canonicalize().unwrap().display().to_string()
 }
 
+mod common;
+
+#[test]
+fn issue_8_every_stop_condition_in_one_process() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    for (i, (flags, _, hyper, want)) in common::STOP_TABLE.iter().enumerate() {
+        let out = format!("run{i}");
+        let mut args = vec!["train", "--world", "reinvent_base", "--target-laps", "0", "--out", &out];
+        let hfile = format!("h{i}.json");
+        if !hyper.is_empty() {
+            std::fs::write(d.join(&hfile), hyper).unwrap();
+            args.extend(["--hyperparameters", &hfile]);
+        }
+        if !flags.contains(&"--minutes") {
+            args.extend(["--minutes", "2"]);
+        }
+        args.extend(flags.iter());
+        let o = coordinator(d, &args);
+        assert!(o.status.success(), "{args:?}: {}", text(&o));
+        assert!(text(&o).contains(want), "{args:?}: want {want:?}\n{}", text(&o));
+        // The final model was evaluated and saved, whatever stopped the run.
+        let summary: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(d.join(&out).join("summary.json")).unwrap()).unwrap();
+        assert!(summary["stop_reason"].as_str().unwrap().contains(want), "{summary}");
+        assert!(d.join(&out).join("model/model.safetensors").exists(), "{args:?}");
+    }
+}
+
 #[test]
 fn train_then_evaluate_then_clone_and_resume() {
     let dir = tempfile::tempdir().unwrap();
@@ -61,6 +90,15 @@ fn train_then_evaluate_then_clone_and_resume() {
     let eout = text(&e);
     assert_eq!(eout.lines().filter(|l| l.starts_with("trial ")).count(), 3, "{eout}");
     assert!(eout.contains("3 of 3 laps completed"), "{eout}");
+    // One table over several worlds.
+    let e = coordinator(
+        d,
+        &["evaluate", "run1/model", "--world", "reinvent_base", "--world", "reinvent_wood", "--trials", "2"],
+    );
+    assert!(e.status.success(), "{}", text(&e));
+    let eout = text(&e);
+    let table = eout.lines().filter(|l| l.starts_with("reinvent_base ") || l.starts_with("reinvent_wood ")).count();
+    assert_eq!(table, 2, "{eout}");
 
     // An existing run folder is never overwritten by accident.
     let again = coordinator(d, &["train", "--minutes", "1", "--out", "run1"]);
@@ -147,7 +185,7 @@ fn issue_5_a_camera_model_learns_to_lap_from_pixels() {
             "--envs",
             "16",
             "--minutes",
-            "6",
+            "15",
             "--checkpoint-seconds",
             "20",
             "--out",

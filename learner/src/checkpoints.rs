@@ -6,6 +6,7 @@
 //!   checkpoints/ckpt_000012/    a model folder per checkpoint (the last 4 and the best are kept)
 //!   checkpoints/deepracer_checkpoints.json   {"best_checkpoint": …, "last_checkpoint": …}
 //!   metrics.jsonl               one JSON line per iteration
+//!   evaluations.jsonl           one JSON line per evaluation (every world)
 //!   hyperparameters.json, model_metadata.json, sim.toml   the effective inputs
 //! ```
 //!
@@ -171,7 +172,10 @@ impl RunDir {
         if best {
             index.best_checkpoint = Some(rec.clone());
         }
-        index.last_checkpoint = Some(rec);
+        // An evaluation that comes back late never moves "last" behind a newer checkpoint.
+        if index.last_checkpoint.as_ref().is_none_or(|l| l.iteration <= rec.iteration) {
+            index.last_checkpoint = Some(rec);
+        }
         write_atomic(&self.index_path(), serde_json::to_string_pretty(&index).expect("JSON").as_bytes())?;
         self.prune(&index)?;
         Ok(best)
@@ -197,10 +201,27 @@ impl RunDir {
         Ok(())
     }
 
-    /// Append one line to `metrics.jsonl`.
+    /// Mark a checkpoint that has been written but not yet evaluated as the last one (what
+    /// a restarted learner resumes from); its figures come with [`RunDir::record`].
+    pub fn record_last(&self, rec: CheckpointRecord) -> Result<(), RunError> {
+        let mut index = self.index()?;
+        index.last_checkpoint = Some(rec);
+        write_atomic(&self.index_path(), serde_json::to_string_pretty(&index).expect("JSON").as_bytes())
+    }
+
+    /// Append one line to `metrics.jsonl` (one per update).
     pub fn append_metrics(&self, line: &serde_json::Value) -> Result<(), RunError> {
+        self.append_line("metrics.jsonl", line)
+    }
+
+    /// Append one line to `evaluations.jsonl` (one per evaluation over every world).
+    pub fn append_evaluation(&self, line: &serde_json::Value) -> Result<(), RunError> {
+        self.append_line("evaluations.jsonl", line)
+    }
+
+    fn append_line(&self, name: &str, line: &serde_json::Value) -> Result<(), RunError> {
         use std::io::Write;
-        let p = self.root.join("metrics.jsonl");
+        let p = self.root.join(name);
         let mut f = std::fs::OpenOptions::new().create(true).append(true).open(&p).map_err(io(&p))?;
         writeln!(f, "{line}").map_err(io(&p))
     }

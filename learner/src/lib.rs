@@ -3,13 +3,17 @@
 //! - [`hyperparams`]: `hyperparameters.json`, read unchanged.
 //! - [`ppo`]: GAE, the clipped surrogate, the value loss, their gradients, the update.
 //! - [`checkpoints`]: run folders, atomic checkpoints, best/last records.
+//! - [`run`]: one training run (flow control, updates, evaluations on the workers,
+//!   checkpoints, stop rules) over any [`run::Link`]: in-process channels or Zenoh.
 //!
-//! Architecture invariant: no simulator and no transport here. Experience arrives as
-//! [`policy::Trajectory`] values, from the same process or (later) from the network.
+//! Architecture invariant: no simulator and no transport here. Experience and evaluation
+//! results arrive as [`policy::exchange`] values through a [`run::Link`], from a worker in the
+//! same process or from the network; the learner package does not depend on `sim-agent`.
 
 pub mod checkpoints;
 pub mod hyperparams;
 pub mod ppo;
+pub mod run;
 
 pub use hyperparams::{Hyperparameters, LossType};
 pub use ppo::{Ppo, UpdateStats};

@@ -10,12 +10,53 @@ use policy::{ActorCritic, ModelMetadata};
 use rand::{Rng, SeedableRng};
 use std::time::Instant;
 
-fn usage() -> ! {
-    eprintln!("usage: learner bench [--network SHALLOW|DEEP|DEEPER|MLP] [--seconds S] [--threads N]");
-    eprintln!(
-        "       learner serve [--connect ENDPOINT]... [--listen ENDPOINT]... [-c ZENOH_CONFIG] [--multicast IFACE] [--id ID] [--checkpoint-seconds S]"
-    );
-    std::process::exit(2);
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(name = "learner", version, about = "Paddock's learner: PPO on faer")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Serve a coordinator: train its running job over Zenoh.
+    Serve(ServeCli),
+    /// The network maths' speed: PPO sample-gradients/s and inference latency.
+    Bench(BenchCli),
+}
+
+#[derive(clap::Args)]
+struct ServeCli {
+    #[command(flatten)]
+    net: protocol::net::NetCli,
+    /// Learner id (default: learner-PID).
+    #[arg(long)]
+    id: Option<String>,
+    /// Seconds between evaluations (and checkpoints).
+    #[arg(long, default_value_t = 5.0)]
+    checkpoint_seconds: f64,
+    /// Threads for the update (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+}
+
+#[derive(clap::Args)]
+struct BenchCli {
+    /// SHALLOW, DEEP, DEEPER or MLP.
+    #[arg(long, default_value = "SHALLOW")]
+    network: String,
+    /// Seconds per measurement.
+    #[arg(long, default_value_t = 5.0)]
+    seconds: f64,
+    /// Threads for the threaded row (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+}
+
+fn cores() -> usize {
+    std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)
 }
 
 fn main() {
@@ -23,56 +64,28 @@ fn main() {
         .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()))
         .with_writer(std::io::stderr)
         .init();
-    let args: Vec<String> = std::env::args().skip(1).collect();
-    match args.first().map(String::as_str) {
-        Some("bench") => bench(&args[1..]),
-        Some("serve") => {
-            let mut net = protocol::net::NetArgs::default();
-            let mut id = None;
-            let mut checkpoint_seconds = 5.0;
-            let mut it = args[1..].iter();
-            while let Some(a) = it.next() {
-                let mut val = || it.next().cloned().unwrap_or_else(|| usage());
-                match a.as_str() {
-                    "--connect" => net.connect.push(val()),
-                    "--listen" => net.listen.push(val()),
-                    "-c" | "--zenoh-config" => net.config = Some(val().into()),
-                    "--multicast" => net.multicast = Some(val()),
-                    "--id" => id = Some(val()),
-                    "--checkpoint-seconds" => checkpoint_seconds = val().parse().unwrap_or_else(|_| usage()),
-                    _ => usage(),
-                }
-            }
-            let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
-            if let Err(e) = serve::serve(serve::ServeArgs { net, id, threads, checkpoint_seconds }) {
-                eprintln!("error: {e:#}");
-                std::process::exit(1);
-            }
-        }
-        _ => usage(),
+    let result = match Cli::parse().command {
+        Command::Bench(b) => bench(&b.network, b.seconds, b.threads.unwrap_or_else(cores)),
+        Command::Serve(a) => serve::serve(serve::ServeArgs {
+            net: a.net.into(),
+            id: a.id,
+            threads: a.threads.unwrap_or_else(cores),
+            checkpoint_seconds: a.checkpoint_seconds,
+        }),
+    };
+    if let Err(e) = result {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
     }
 }
 
-fn bench(args: &[String]) {
-    let mut network = "SHALLOW".to_string();
-    let mut seconds = 5.0f64;
-    let mut threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
-    let mut it = args.iter();
-    while let Some(a) = it.next() {
-        let mut val = || it.next().cloned().unwrap_or_else(|| usage());
-        match a.as_str() {
-            "--network" => network = val(),
-            "--seconds" => seconds = val().parse().unwrap_or_else(|_| usage()),
-            "--threads" => threads = val().parse().unwrap_or_else(|_| usage()),
-            _ => usage(),
-        }
-    }
-    let (name, sensor) = match network.as_str() {
+fn bench(network: &str, seconds: f64, threads: usize) -> anyhow::Result<()> {
+    let (name, sensor) = match network {
         "SHALLOW" => ("DEEP_CONVOLUTIONAL_NETWORK_SHALLOW", "FRONT_FACING_CAMERA"),
         "DEEP" => ("DEEP_CONVOLUTIONAL_NETWORK", "FRONT_FACING_CAMERA"),
         "DEEPER" => ("DEEP_CONVOLUTIONAL_NETWORK_DEEP", "FRONT_FACING_CAMERA"),
         "MLP" => ("PADDOCK_MLP", "STATE_VECTOR"),
-        _ => usage(),
+        other => anyhow::bail!("--network {other:?}: expected SHALLOW, DEEP, DEEPER or MLP"),
     };
     let meta = ModelMetadata::parse(
         &format!(
@@ -171,6 +184,7 @@ fn bench(args: &[String]) {
     }
     let ms_pi = t.elapsed().as_secs_f64() * 1e3 / k as f64;
     println!("| inference at batch 1 (policy tower only, as on the car), 1 thread | {ms_pi:.3} ms |");
+    Ok(())
 }
 
 /// (m, n, k, a_t, b_t) of every GEMM one tower's forward and backward make for a batch.

@@ -6,6 +6,8 @@ use crate::model::Choice;
 /// One episode (or a segment of one) from one environment, stored column-wise.
 #[derive(Clone, Debug, PartialEq, Default)]
 pub struct Trajectory {
+    /// The world it was driven on (a built-in world name).
+    pub world: String,
     /// The environment (agent-local index).
     pub env: u32,
     /// That environment's episode counter.

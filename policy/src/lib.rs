@@ -6,9 +6,12 @@
 //!   name) and its heads.
 //! - [`folder`]: the model folder (safetensors + `model_metadata.json` + manifest).
 //! - [`experience`]: trajectories, tagged with the policy version that produced them.
+//! - [`exchange`]: what the learner and the sim workers say to each other (credits,
+//!   experience, evaluation requests and reports), as plain values.
 //!
 //! Architecture invariant: no physics, no transport, no Python here.
 
+pub mod exchange;
 pub mod experience;
 pub mod folder;
 pub mod metadata;

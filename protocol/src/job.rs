@@ -1,5 +1,6 @@
 //! The job document: a job spec with every file it names read in, as the coordinator stores
 //! it and sends it to the learner (JSON inside [`crate::AssignmentTable::job_json`]).
+//! Everything the learner needs is here, so that it needs no simulator.
 
 use serde::{Deserialize, Serialize};
 
@@ -19,6 +20,10 @@ pub struct StopSpec {
     pub window: u64,
     /// Compute budget: environment steps across all agents.
     pub env_steps_budget: Option<u64>,
+    /// Stop once evaluations complete this many laps (of `eval_trials`, on every world)...
+    pub target_laps: Option<u32>,
+    /// ...in this many consecutive evaluations.
+    pub target_evals: u32,
 }
 
 impl Default for StopSpec {
@@ -30,6 +35,8 @@ impl Default for StopSpec {
             target_reward: None,
             window: 20,
             env_steps_budget: None,
+            target_laps: None,
+            target_evals: 1,
         }
     }
 }
@@ -64,6 +71,11 @@ pub struct JobDoc {
     pub max_policy_lag: u64,
     /// Stop conditions.
     pub stop: StopSpec,
-    /// Evaluation trials per checkpoint.
+    /// Evaluation trials per checkpoint (per world).
     pub eval_trials: u32,
+    /// The model's observation length (from the model's sensors and the simulator
+    /// configuration), so that the learner needs no simulator to know it.
+    pub obs_size: u64,
+    /// The simulator's observation settings (JSON), for the model's manifest.
+    pub observation_json: String,
 }

@@ -15,7 +15,10 @@
 //! | `paddock/v1/agent/{agent}/info` | [`AgentInfo`] (queryable) | sim agent |
 //! | `paddock/v1/assign/{agent}` | [`Assignment`] (re-sent every second) | coordinator |
 //! | `paddock/v1/jobs` | [`AssignmentTable`] per running job (re-sent every second) | coordinator |
-//! | `paddock/v1/job/{job}/experience/{world}/{agent}` | [`ExperienceBatch`] | sim agent |
+//! | `paddock/v1/job/{job}/experience/{agent}` | [`ExperienceBatch`] | sim agent |
+//! | `paddock/v1/job/{job}/credit` | [`Credit`] (re-sent every second) | learner |
+//! | `paddock/v1/job/{job}/eval/request/{agent}` | [`EvalRequest`] | learner |
+//! | `paddock/v1/job/{job}/eval/report/{agent}` | [`EvalReport`] | sim agent |
 //! | `paddock/v1/job/{job}/policy` | [`PolicyUpdate`] (publication and "latest" queryable) | learner |
 //! | `paddock/v1/job/{job}/learner` | [`LearnerStatus`] | learner |
 //! | `paddock/v1/job/{job}/report/{agent}` | [`AgentReport`] | sim agent |
@@ -30,11 +33,12 @@ mod generated {
 
 pub use generated::*;
 
+pub mod exchange;
 pub mod job;
 pub mod net;
 
 /// The version every message carries; others are dropped.
-pub const PROTOCOL_VERSION: u32 = 1;
+pub const PROTOCOL_VERSION: u32 = 2;
 /// The largest message accepted (a SHALLOW camera model is ≈47 MB for both towers).
 pub const MAX_MESSAGE_BYTES: usize = 128 << 20;
 
@@ -67,9 +71,25 @@ pub mod keys {
     }
     /// The running jobs' tables.
     pub const JOBS: &str = "paddock/v1/jobs";
-    /// Experience of a job from one agent on one world.
-    pub fn experience(job: &str, world: &str, agent: &str) -> String {
-        format!("{ROOT}/job/{job}/experience/{world}/{agent}")
+    /// Experience of a job from one agent.
+    pub fn experience(job: &str, agent: &str) -> String {
+        format!("{ROOT}/job/{job}/experience/{agent}")
+    }
+    /// A job's grants.
+    pub fn credit(job: &str) -> String {
+        format!("{ROOT}/job/{job}/credit")
+    }
+    /// Evaluation requests to one agent.
+    pub fn eval_request(job: &str, agent: &str) -> String {
+        format!("{ROOT}/job/{job}/eval/request/{agent}")
+    }
+    /// Evaluation reports from one agent.
+    pub fn eval_report(job: &str, agent: &str) -> String {
+        format!("{ROOT}/job/{job}/eval/report/{agent}")
+    }
+    /// Every agent's evaluation reports for a job.
+    pub fn eval_reports(job: &str) -> String {
+        format!("{ROOT}/job/{job}/eval/report/*")
     }
     /// All experience of a job.
     pub fn experience_all(job: &str) -> String {
@@ -140,7 +160,10 @@ versioned!(
     LearnerStatus,
     JobRequest,
     JobReply,
-    AgentReport
+    AgentReport,
+    Credit,
+    EvalRequest,
+    EvalReport
 );
 
 /// Encode a message.
@@ -184,6 +207,7 @@ pub fn trajectory_to_wire(t: &policy::Trajectory, obs_size: usize) -> Trajectory
         done: t.done,
         progress: t.progress,
         lap_complete: t.lap_complete,
+        world: t.world.clone(),
     }
 }
 
@@ -219,7 +243,11 @@ pub fn trajectory_from_wire(w: Trajectory, obs_size: usize) -> Result<policy::Tr
     {
         return bad("non-finite numbers".into());
     }
+    if !keys::is_valid_name(&w.world) {
+        return bad(format!("world name {:?} is not a valid name", w.world));
+    }
     Ok(policy::Trajectory {
+        world: w.world,
         env: w.env,
         episode: w.episode,
         policy_version: w.policy_version,
@@ -241,6 +269,7 @@ mod tests {
     #[test]
     fn round_trip_and_refusals() {
         let t = policy::Trajectory {
+            world: "reinvent_wood".into(),
             env: 2,
             episode: 9,
             policy_version: 4,
@@ -257,11 +286,12 @@ mod tests {
             protocol_version: PROTOCOL_VERSION,
             job_id: "j".into(),
             agent_id: "a".into(),
-            world: "w".into(),
             seq: 3,
             trajectories: vec![trajectory_to_wire(&t, 3)],
             env_steps: 2,
             seconds: 0.1,
+            credit_version: 4,
+            credit_round: 1,
         };
         let bytes = encode(&batch);
         let back: ExperienceBatch = decode(&bytes).unwrap();
@@ -269,8 +299,8 @@ mod tests {
         // Garbage, truncation, another version, wrong sizes: errors, never panics.
         assert!(matches!(decode::<ExperienceBatch>(&[0xff, 0xff, 0xff]), Err(DecodeError::Malformed(_))));
         assert!(decode::<ExperienceBatch>(&bytes[..bytes.len() / 2]).is_err());
-        let v2 = ExperienceBatch { protocol_version: 2, ..batch.clone() };
-        assert_eq!(decode::<ExperienceBatch>(&encode(&v2)).unwrap_err(), DecodeError::Version(2));
+        let other = ExperienceBatch { protocol_version: 99, ..batch.clone() };
+        assert_eq!(decode::<ExperienceBatch>(&encode(&other)).unwrap_err(), DecodeError::Version(99));
         assert!(matches!(decode::<ExperienceBatch>(&vec![0u8; MAX_MESSAGE_BYTES + 1]), Err(DecodeError::TooLarge(_))));
         assert!(matches!(trajectory_from_wire(batch.trajectories[0].clone(), 4), Err(DecodeError::Invalid(_))));
         let mut short = batch.trajectories[0].clone();
@@ -283,7 +313,7 @@ mod tests {
 
     #[test]
     fn keys_are_well_formed() {
-        assert_eq!(keys::experience("job1", "reinvent_wood", "a1"), "paddock/v1/job/job1/experience/reinvent_wood/a1");
+        assert_eq!(keys::experience("job1", "a1"), "paddock/v1/job/job1/experience/a1");
         assert_eq!(keys::last(&keys::agent_alive("host-1.2")), "host-1.2");
         assert!(keys::is_valid_name("job-7_a.b") && !keys::is_valid_name("a/b") && !keys::is_valid_name("*"));
     }

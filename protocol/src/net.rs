@@ -20,6 +20,47 @@ pub struct NetArgs {
     pub multicast: Option<String>,
 }
 
+/// The network flags every role and client takes (`--connect`, `--listen`, `-c`,
+/// `--multicast`), one definition for every binary.
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct NetCli {
+    /// Zenoh endpoint to connect to (repeatable), e.g. tcp/10.0.0.1:7447; clients default to
+    /// tcp/127.0.0.1:7447.
+    #[arg(long)]
+    pub connect: Vec<String>,
+    /// Zenoh endpoint to listen on (repeatable).
+    #[arg(long)]
+    pub listen: Vec<String>,
+    /// Zenoh configuration file (JSON5); flags apply on top.
+    #[arg(short = 'c', long = "zenoh-config")]
+    pub zenoh_config: Option<PathBuf>,
+    /// Multicast scouting on this interface (e.g. lo); off by default.
+    #[arg(long)]
+    pub multicast: Option<String>,
+}
+
+impl NetCli {
+    /// The endpoints; a client (`default_connect`) with none dials tcp/127.0.0.1:7447.
+    pub fn args(&self, default_connect: bool) -> NetArgs {
+        let mut connect = self.connect.clone();
+        if connect.is_empty() && default_connect && self.zenoh_config.is_none() && self.multicast.is_none() {
+            connect.push("tcp/127.0.0.1:7447".into());
+        }
+        NetArgs {
+            connect,
+            listen: self.listen.clone(),
+            config: self.zenoh_config.clone(),
+            multicast: self.multicast.clone(),
+        }
+    }
+}
+
+impl From<NetCli> for NetArgs {
+    fn from(n: NetCli) -> NetArgs {
+        n.args(false)
+    }
+}
+
 /// Why the network could not be opened.
 #[derive(Debug, thiserror::Error)]
 #[error("zenoh: {0}")]
@@ -153,4 +194,23 @@ pub fn query<M: Versioned>(
         }
     }
     Ok(out)
+}
+
+/// A subscriber whose samples wait in a queue until taken.
+pub type Sub = zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>;
+
+/// Subscribe to `key`.
+pub fn subscribe(session: &zenoh::Session, key: &str) -> Result<Sub, NetError> {
+    session.declare_subscriber(key.to_string()).wait().map_err(|e| NetError(e.to_string()))
+}
+
+/// The next message already received on `sub` that decodes as `M`, with its key; the ones
+/// that do not decode are counted and skipped.
+pub fn try_next<M: Versioned>(sub: &Sub, drops: &DropCounters) -> Option<(String, M)> {
+    while let Ok(Some(s)) = sub.try_recv() {
+        if let Some(m) = decode_sample::<M>(&s, drops) {
+            return Some((s.key_expr().as_str().to_string(), m));
+        }
+    }
+    None
 }

@@ -116,6 +116,8 @@ pub struct StepOutcome {
 /// The parts of a world an environment needs.
 #[derive(Clone, Debug)]
 pub struct EnvSpec {
+    /// The world's name (tags the episodes driven on it).
+    pub name: String,
     /// Track geometry for the driving direction.
     pub track: Arc<Track>,
     /// Tyre–surface friction.
@@ -132,6 +134,7 @@ impl EnvSpec {
     /// From a catalog world and a direction.
     pub fn from_world(world: &tracks::World, direction: tracks::Direction) -> EnvSpec {
         EnvSpec {
+            name: world.name.clone(),
             track: Arc::new(world.track(direction)),
             friction: world.surface.friction(),
             noise: None,

@@ -8,6 +8,7 @@
 //! - [`obs`]: the state vector and lidar.
 //! - [`vec_env`]: many environments on all cores.
 //! - [`rollout`]: a policy acting in them (trajectories), and evaluation trials.
+//! - [`worker`]: the learner's peer: granted episodes and evaluation trials, over any link.
 //! - [`driver`]: a scripted pure-pursuit driver.
 //! - [`simtrace`]: DeepRacer's sim-trace CSV, for the community's analysis notebooks.
 //! - [`validate`]: DeepRacer's "Validate" for reward files, and more.
@@ -29,9 +30,10 @@ pub mod rollout;
 pub mod simtrace;
 pub mod validate;
 pub mod vec_env;
+pub mod worker;
 
 pub use config::SimConfig;
-pub use env::{Env, EnvSpec, EpisodeStatus, EvalRules, Mode, StepOutcome};
+pub use env::{Env, EnvError, EnvSpec, EpisodeStatus, EvalRules, Mode, StepOutcome};
 pub use reward::{BuiltinReward, RewardError, RewardFn};
 pub use vec_env::VecEnv;
 

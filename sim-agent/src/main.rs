@@ -33,18 +33,8 @@ enum Command {
 
 #[derive(clap::Args)]
 struct ServeCli {
-    /// Zenoh endpoint to connect to (repeatable), e.g. tcp/10.0.0.1:7447.
-    #[arg(long)]
-    connect: Vec<String>,
-    /// Zenoh endpoint to listen on (repeatable).
-    #[arg(long)]
-    listen: Vec<String>,
-    /// Zenoh configuration file (JSON5); flags apply on top.
-    #[arg(short = 'c', long = "zenoh-config")]
-    zenoh_config: Option<PathBuf>,
-    /// Multicast scouting on this interface (e.g. lo); off by default.
-    #[arg(long)]
-    multicast: Option<String>,
+    #[command(flatten)]
+    net: protocol::net::NetCli,
     /// Environments to run.
     #[arg(long, default_value_t = 16)]
     envs: usize,
@@ -54,9 +44,6 @@ struct ServeCli {
     /// Agent id (default: HOST-PID).
     #[arg(long)]
     id: Option<String>,
-    /// Episodes per experience batch.
-    #[arg(long, default_value_t = 2)]
-    episodes_per_batch: usize,
 }
 
 #[derive(clap::Args)]
@@ -93,16 +80,10 @@ fn main() {
     let result = match cli.command {
         Command::Bench(args) => bench(args),
         Command::Serve(a) => serve::serve(serve::ServeArgs {
-            net: protocol::net::NetArgs {
-                connect: a.connect,
-                listen: a.listen,
-                config: a.zenoh_config,
-                multicast: a.multicast,
-            },
+            net: a.net.into(),
             envs: a.envs,
             id: a.id,
             threads: a.threads.unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)),
-            episodes_per_batch: a.episodes_per_batch.max(1),
         }),
     };
     if let Err(e) = result {

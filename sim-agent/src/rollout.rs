@@ -30,7 +30,12 @@ impl Collector {
     /// A collector over `vec`, choosing actions from `space`.
     pub fn new(vec: VecEnv, space: ActionSpace, seed: u64) -> Collector {
         let open = (0..vec.len())
-            .map(|i| Trajectory { env: i as u32, episode: vec.envs()[i].episode(), ..Default::default() })
+            .map(|i| Trajectory {
+                world: vec.envs()[i].spec().name.clone(),
+                env: i as u32,
+                episode: vec.envs()[i].episode(),
+                ..Default::default()
+            })
             .collect();
         let pinned = vec![None; vec.len()];
         Collector {
@@ -103,6 +108,7 @@ impl Collector {
                     t.progress = o.progress;
                     t.lap_complete = o.status == EpisodeStatus::LapComplete;
                     let next = Trajectory {
+                        world: self.vec.envs()[i].spec().name.clone(),
                         env: i as u32,
                         episode: self.vec.envs()[i].episode(),
                         policy_version: version,

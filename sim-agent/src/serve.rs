@@ -1,26 +1,25 @@
-//! `sim-agent serve`: the network role, a thin shell over the simulator library.
+//! `sim-agent serve`: the network role, a thin shell over [`sim_agent::worker::Worker`].
 //!
 //! It announces itself with a liveliness token (and its host, cores and renderer on an info
-//! queryable), takes its world assignment from the coordinator, runs N environments with the
-//! latest policy (taken at episode boundaries), and streams experience to the learner. When
-//! the coordinator or learner goes away it keeps its state and carries on when they return;
-//! an assignment not refreshed for a while is dropped.
+//! queryable), takes its assignment from the coordinator (the job's worlds, all driven at
+//! once), and hands the worker what arrives over Zenoh: policy versions, grants and
+//! evaluation requests, each checked against the job before it is believed. The worker's
+//! experience and evaluation reports go back the same way. When the coordinator or learner
+//! goes away it keeps its state and carries on when they return; an assignment not refreshed
+//! for a while is dropped.
 
 use anyhow::{Context, Result};
-use policy::folder;
-use protocol::net::{self, DropCounters, NetArgs, decode_sample, zenoh};
-use protocol::{AgentInfo, AgentReport, Assignment, ExperienceBatch, PROTOCOL_VERSION, PolicyUpdate, keys};
+use protocol::exchange::{self as wire, JobView};
+use protocol::net::{self, DropCounters, NetArgs, Sub, try_next, zenoh};
+use protocol::{AgentInfo, AgentReport, Assignment, PROTOCOL_VERSION, PolicyUpdate, keys};
 use sim_agent::config::{SimConfig, parse_toml};
-use sim_agent::rollout::Collector;
-use sim_agent::{EnvSpec, RewardFn, VecEnv};
+use sim_agent::worker::{Worker, WorkerError, WorkerInbound, WorkerLink, WorkerOutbound, WorkerSetup};
+use sim_agent::{EnvSpec, RewardFn};
+use std::collections::VecDeque;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use zenoh::Wait;
-
-/// This process's experience batch counter: one sequence per agent, across assignments, so
-/// the learner can drop duplicates.
-static SEQ: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
 
 /// How long an assignment stays valid without being re-sent.
 const ASSIGNMENT_TTL: Duration = Duration::from_secs(5);
@@ -29,27 +28,12 @@ const ASSIGNMENT_TTL: Duration = Duration::from_secs(5);
 pub struct ServeArgs {
     /// Network endpoints.
     pub net: NetArgs,
-    /// Environments to run.
+    /// Environments to run (unless the job says).
     pub envs: usize,
     /// Agent id (default: host-pid).
     pub id: Option<String>,
     /// Threads for the environments.
     pub threads: usize,
-    /// Episodes per experience batch.
-    pub episodes_per_batch: usize,
-}
-
-struct Work {
-    job: String,
-    world: String,
-    generation: u64,
-    collector: Collector,
-    obs_size: usize,
-    model: Option<(Arc<policy::ActorCritic>, u64)>,
-    policy_sub: zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>,
-    last_query: Option<Instant>,
-    steps_reported: u64,
-    _reward_dir: Option<PathBuf>,
 }
 
 fn host() -> String {
@@ -83,52 +67,52 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         .map_err(|e| anyhow::anyhow!("{e}"))?;
     let _token =
         session.liveliness().declare_token(keys::agent_alive(&id)).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
-    let assign_sub = session.declare_subscriber(keys::assignment(&id)).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
+    let assign_sub = net::subscribe(&session, &keys::assignment(&id))?;
     let drops = DropCounters::default();
     tracing::info!(agent = %id, envs = args.envs, "sim agent up; waiting for an assignment");
-    let mut work: Option<Work> = None;
-    let mut last_seen = Instant::now();
     let mut failed: Option<(String, u64)> = None;
+    let mut next: Option<Assignment> = None;
+    let mut seq = 0u64;
     loop {
-        let mut latest = None;
-        while let Ok(Some(s)) = assign_sub.try_recv() {
-            if let Some(a) = decode_sample::<Assignment>(&s, &drops) {
-                latest = Some(a);
-            }
-        }
-        if let Some(a) = latest {
-            last_seen = Instant::now();
-            let same = work.as_ref().is_some_and(|w| w.job == a.job_id && w.generation == a.generation);
-            let known_bad = failed.as_ref().is_some_and(|(j, g)| *j == a.job_id && *g == a.generation);
-            if !same && !known_bad {
-                work = None;
-                match start(&session, &args, &a) {
-                    Ok(w) => {
-                        tracing::info!(job = %a.job_id, world = %w.world, generation = a.generation, "assignment taken");
-                        work = Some(w);
-                    }
-                    Err(e) => {
-                        report(&session, &a.job_id, &id, &format!("{e:#}"));
-                        failed = Some((a.job_id.clone(), a.generation));
-                    }
+        let a = match next.take() {
+            Some(a) => a,
+            None => match try_next::<Assignment>(&assign_sub, &drops) {
+                Some((_, a)) => a,
+                None => {
+                    std::thread::sleep(Duration::from_millis(100));
+                    continue;
                 }
-            }
-        } else if work.is_some() && last_seen.elapsed() > ASSIGNMENT_TTL {
-            tracing::info!("no assignment for {ASSIGNMENT_TTL:?}: stopping work and waiting");
-            work = None;
+            },
+        };
+        if a.agent_id != id || failed.as_ref().is_some_and(|(j, g)| *j == a.job_id && *g == a.generation) {
+            continue;
         }
-        match work.as_mut() {
-            Some(w) => {
-                if let Err(e) = step(&session, &id, &args, w, &drops) {
-                    let job = w.job.clone();
-                    report(&session, &job, &id, &format!("{e:#}"));
-                    failed = Some((job, w.generation));
-                    work = None;
-                }
+        let mut link = match AgentLink::new(&session, &id, &a, &assign_sub, &drops) {
+            Ok(l) => l,
+            Err(e) => {
+                report(&session, &a.job_id, &id, &format!("{e:#}"));
+                failed = Some((a.job_id.clone(), a.generation));
+                continue;
             }
-            None => std::thread::sleep(Duration::from_millis(100)),
+        };
+        let result = start(&args, &id, &a, seq).and_then(|mut w| {
+            tracing::info!(job = %a.job_id, worlds = ?w_names(&a), generation = a.generation, "assignment taken");
+            let r = w.drive(&mut link).map_err(anyhow::Error::from);
+            seq = w.seq();
+            r
+        });
+        match result {
+            Ok(()) => next = link.next_assignment.take(),
+            Err(e) => {
+                report(&session, &a.job_id, &id, &format!("{e:#}"));
+                failed = Some((a.job_id.clone(), a.generation));
+            }
         }
     }
+}
+
+fn w_names(a: &Assignment) -> Vec<String> {
+    a.worlds.iter().map(|w| w.name.clone()).collect()
 }
 
 fn report(session: &zenoh::Session, job: &str, agent: &str, error: &str) {
@@ -144,104 +128,208 @@ fn report(session: &zenoh::Session, job: &str, agent: &str, error: &str) {
     }
 }
 
-fn start(session: &zenoh::Session, args: &ServeArgs, a: &Assignment) -> Result<Work> {
-    let world_spec = a.world.clone().context("assignment without a world")?;
-    let world = tracks::world(&world_spec.name)?;
+/// The job's simulator configuration, its observation set from the model's sensors.
+fn job_config(a: &Assignment) -> Result<SimConfig> {
     let mut cfg: SimConfig = parse_toml(&a.sim_config_toml, "assignment sim config")?;
     let meta = policy::ModelMetadata::parse(&a.model_metadata_json, "assignment model_metadata.json")?;
     cfg.observation.kind = sim_agent::config::observation_kind_for(&meta).map_err(|e| anyhow::anyhow!("{e}"))?;
-    let (reward, reward_dir) = if a.reward_source.starts_with("builtin:") {
-        (RewardFn::from_spec(&a.reward_source)?, None)
+    Ok(cfg)
+}
+
+fn start(args: &ServeArgs, id: &str, a: &Assignment, first_seq: u64) -> Result<Worker> {
+    anyhow::ensure!(!a.worlds.is_empty(), "assignment without a world");
+    let cfg = job_config(a)?;
+    let meta = policy::ModelMetadata::parse(&a.model_metadata_json, "assignment model_metadata.json")?;
+    let reward = if a.reward_source.starts_with("builtin:") {
+        RewardFn::from_spec(&a.reward_source)?
     } else {
-        let dir =
-            std::env::temp_dir().join(format!("paddock-agent-{}-{}-{}", std::process::id(), a.job_id, a.generation));
+        // The reward file keeps its name (tracebacks show it) in a folder of its own.
+        let dir = reward_dir(id, &a.job_id);
         std::fs::create_dir_all(&dir)?;
         let file = dir.join(if a.reward_name.ends_with(".py") { a.reward_name.as_str() } else { "reward_function.py" });
         std::fs::write(&file, &a.reward_source)?;
-        (RewardFn::from_spec(&file.display().to_string())?, Some(dir))
+        RewardFn::from_spec(&file.display().to_string())?
     };
-    let mut spec = EnvSpec::from_world(
-        &world,
-        if world_spec.reversed { tracks::Direction::Reversed } else { tracks::Direction::Forward },
-    );
-    spec.noise = Some(sim_agent::config::NoiseConfig {
-        steering_deg: world_spec.steering_noise_deg,
-        speed_fraction: world_spec.speed_noise_fraction,
-    });
-    let cfg = Arc::new(cfg);
-    let obs_size = sim_agent::obs::obs_dim(&cfg.observation);
-    let vec = VecEnv::new(vec![spec; args.envs], cfg, a.seed, reward, args.threads)?;
-    let collector = Collector::new(vec, meta.action_space.clone(), a.seed);
-    let policy_sub = session.declare_subscriber(keys::policy(&a.job_id)).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
-    Ok(Work {
-        job: a.job_id.clone(),
-        world: world.name.clone(),
-        generation: a.generation,
-        collector,
-        obs_size,
-        model: None,
-        policy_sub,
-        last_query: None,
-        steps_reported: 0,
-        _reward_dir: reward_dir,
-    })
+    let mut worlds = Vec::new();
+    for w in &a.worlds {
+        let world = tracks::world(&w.name).with_context(|| format!("assigned world {:?}", w.name))?;
+        let mut spec = EnvSpec::from_world(
+            &world,
+            if w.reversed { tracks::Direction::Reversed } else { tracks::Direction::Forward },
+        );
+        spec.noise = Some(sim_agent::config::NoiseConfig {
+            steering_deg: w.steering_noise_deg,
+            speed_fraction: w.speed_noise_fraction,
+        });
+        worlds.push(spec);
+    }
+    let envs = if a.envs > 0 { a.envs as usize } else { args.envs };
+    Ok(Worker::new(WorkerSetup {
+        id: id.into(),
+        worlds,
+        offset: a.offset as usize,
+        envs,
+        threads: args.threads,
+        cfg: Arc::new(cfg),
+        reward,
+        space: meta.action_space.clone(),
+        seed: a.seed,
+        first_seq,
+    })?)
 }
 
-fn take_policy(w: &mut Work, u: PolicyUpdate) {
-    // Any version other than the current one is taken: a restarted learner resumes at an
-    // older version than the agents may hold, and its word is the one that counts.
-    if w.model.as_ref().is_some_and(|(_, v)| *v == u.policy_version) {
-        return;
-    }
-    match folder::from_parts(&u.model_metadata_json, &u.manifest_json, &u.weights, std::path::Path::new("<network>")) {
-        Ok(f) if f.manifest.obs_size == w.obs_size => {
-            tracing::info!(version = u.policy_version, "new policy");
-            w.model = Some((Arc::new(f.model), u.policy_version));
-        }
-        Ok(f) => tracing::warn!(
-            "policy v{} takes {} inputs, this world gives {}: ignored",
-            u.policy_version,
-            f.manifest.obs_size,
-            w.obs_size
-        ),
-        Err(e) => tracing::warn!("policy v{} refused: {e}", u.policy_version),
-    }
+/// Where an agent keeps a job's reward file (one folder per agent and job, replaced on reuse).
+fn reward_dir(agent: &str, job: &str) -> PathBuf {
+    std::env::temp_dir().join(format!("paddock-agent-{agent}-{job}"))
 }
 
-fn step(session: &zenoh::Session, id: &str, args: &ServeArgs, w: &mut Work, drops: &DropCounters) -> Result<()> {
-    while let Ok(Some(s)) = w.policy_sub.try_recv() {
-        if let Some(u) = decode_sample::<PolicyUpdate>(&s, drops) {
-            take_policy(w, u);
-        }
+/// The worker's link over Zenoh for one assignment.
+struct AgentLink<'a> {
+    session: &'a zenoh::Session,
+    id: String,
+    job: String,
+    generation: u64,
+    /// The job's worlds (what its messages may name).
+    worlds: Vec<String>,
+    obs_size: usize,
+    assign_sub: &'a Sub,
+    policy_sub: Sub,
+    credit_sub: Sub,
+    eval_sub: Sub,
+    drops: &'a DropCounters,
+    last_seen: Instant,
+    last_query: Option<Instant>,
+    queue: VecDeque<WorkerInbound>,
+    next_assignment: Option<Assignment>,
+}
+
+impl<'a> AgentLink<'a> {
+    fn new(
+        session: &'a zenoh::Session,
+        id: &str,
+        a: &Assignment,
+        assign_sub: &'a Sub,
+        drops: &'a DropCounters,
+    ) -> Result<AgentLink<'a>> {
+        let cfg = job_config(a)?;
+        Ok(AgentLink {
+            session,
+            id: id.into(),
+            job: a.job_id.clone(),
+            generation: a.generation,
+            worlds: if a.job_worlds.is_empty() { w_names(a) } else { a.job_worlds.clone() },
+            obs_size: sim_agent::obs::obs_dim(&cfg.observation),
+            assign_sub,
+            policy_sub: net::subscribe(session, &keys::policy(&a.job_id))?,
+            credit_sub: net::subscribe(session, &keys::credit(&a.job_id))?,
+            eval_sub: net::subscribe(session, &keys::eval_request(&a.job_id, id))?,
+            drops,
+            last_seen: Instant::now(),
+            last_query: None,
+            queue: VecDeque::new(),
+            next_assignment: None,
+        })
     }
-    if w.model.is_none() {
-        if w.last_query.is_none_or(|t| t.elapsed() > Duration::from_secs(1)) {
-            w.last_query = Some(Instant::now());
-            for u in net::query::<PolicyUpdate>(session, &keys::policy(&w.job), None, Duration::from_secs(2), drops)? {
-                take_policy(w, u);
+
+    fn view(&self) -> JobView<'_> {
+        JobView { job_id: &self.job, obs_size: self.obs_size, worlds: &self.worlds }
+    }
+
+    fn take_policy(&mut self, u: PolicyUpdate) {
+        match wire::policy_from_wire(u, &self.view()) {
+            Ok(p) => {
+                tracing::info!(version = p.version, "new policy");
+                self.queue.push_back(WorkerInbound::Policy(p));
+            }
+            Err(e) => {
+                self.drops.count(&e);
+                tracing::warn!("policy refused: {e}");
             }
         }
-        if w.model.is_none() {
-            std::thread::sleep(Duration::from_millis(100));
-            return Ok(());
+    }
+
+    /// Move what arrived into the queue; false when the assignment ended.
+    fn poll(&mut self, need_policy: bool) -> Result<bool, WorkerError> {
+        while let Some((_, a)) = try_next::<Assignment>(self.assign_sub, self.drops) {
+            if a.agent_id != self.id {
+                continue;
+            }
+            if a.job_id == self.job && a.generation == self.generation {
+                self.last_seen = Instant::now();
+            } else {
+                self.next_assignment = Some(a);
+                return Ok(false);
+            }
+        }
+        if self.last_seen.elapsed() > ASSIGNMENT_TTL {
+            tracing::info!("no assignment for {ASSIGNMENT_TTL:?}: stopping work and waiting");
+            return Ok(false);
+        }
+        while let Some((_, u)) = try_next::<PolicyUpdate>(&self.policy_sub, self.drops) {
+            self.take_policy(u);
+        }
+        if need_policy && self.queue.is_empty() && self.last_query.is_none_or(|t| t.elapsed() > Duration::from_secs(1))
+        {
+            self.last_query = Some(Instant::now());
+            let key = keys::policy(&self.job);
+            let latest = net::query::<PolicyUpdate>(self.session, &key, None, Duration::from_secs(2), self.drops)
+                .map_err(|e| WorkerError::Link(e.to_string()))?;
+            for u in latest {
+                self.take_policy(u);
+            }
+        }
+        while let Some((_, c)) = try_next::<protocol::Credit>(&self.credit_sub, self.drops) {
+            match wire::credit_from_wire(c, &self.job) {
+                Ok(c) => self.queue.push_back(WorkerInbound::Credit(c)),
+                Err(e) => self.drops.count(&e),
+            }
+        }
+        while let Some((_, r)) = try_next::<protocol::EvalRequest>(&self.eval_sub, self.drops) {
+            match wire::eval_request_from_wire(r, &self.view(), &self.id) {
+                Ok(r) => self.queue.push_back(WorkerInbound::Eval(r)),
+                Err(e) => {
+                    self.drops.count(&e);
+                    tracing::warn!("evaluation request refused: {e}");
+                }
+            }
+        }
+        Ok(true)
+    }
+}
+
+impl WorkerLink for AgentLink<'_> {
+    fn next(&mut self, timeout: Duration, need_policy: bool) -> Result<Option<WorkerInbound>, WorkerError> {
+        let deadline = Instant::now() + timeout;
+        loop {
+            if let Some(m) = self.queue.pop_front() {
+                return Ok(Some(m));
+            }
+            if !self.poll(need_policy)? {
+                return Ok(Some(WorkerInbound::End));
+            }
+            if let Some(m) = self.queue.pop_front() {
+                return Ok(Some(m));
+            }
+            if Instant::now() >= deadline {
+                return Ok(None);
+            }
+            std::thread::sleep(Duration::from_millis(5).min(deadline - Instant::now()));
         }
     }
-    let (model, version) = w.model.clone().expect("checked");
-    let t0 = Instant::now();
-    let trajs = w.collector.collect(&model, version, args.episodes_per_batch)?;
-    let seq = SEQ.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
-    let steps = w.collector.env_steps - w.steps_reported;
-    w.steps_reported = w.collector.env_steps;
-    let batch = ExperienceBatch {
-        protocol_version: PROTOCOL_VERSION,
-        job_id: w.job.clone(),
-        agent_id: id.into(),
-        world: w.world.clone(),
-        seq,
-        trajectories: trajs.iter().map(|t| protocol::trajectory_to_wire(t, w.obs_size)).collect(),
-        env_steps: steps,
-        seconds: t0.elapsed().as_secs_f64(),
-    };
-    net::put(session, &keys::experience(&w.job, &w.world, id), &batch)?;
-    Ok(())
+
+    fn send(&mut self, out: WorkerOutbound) -> Result<(), WorkerError> {
+        let r = match out {
+            WorkerOutbound::Experience(e) => net::put(
+                self.session,
+                &keys::experience(&self.job, &self.id),
+                &wire::experience_to_wire(&self.job, &e, self.obs_size),
+            ),
+            WorkerOutbound::Eval(r) => net::put(
+                self.session,
+                &keys::eval_report(&self.job, &self.id),
+                &wire::eval_report_to_wire(&self.job, &r),
+            ),
+        };
+        r.map_err(|e| WorkerError::Link(e.to_string()))
+    }
 }

@@ -24,6 +24,7 @@ fn circle(r: f64, w: f64, n: usize) -> TrackRows {
 
 fn spec_of(track: Track, friction: f64) -> EnvSpec {
     EnvSpec {
+        name: "test".into(),
         track: Arc::new(track),
         friction,
         noise: None,

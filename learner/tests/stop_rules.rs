@@ -1,0 +1,46 @@
+//! Issue 8: every stop condition means one thing, decided in one place (`StopRules::check`),
+//! whichever transport the run uses. A table of standings and the reason each gives.
+
+use learner::Hyperparameters;
+use learner::run::{Standing, StopRules, TargetLaps};
+
+#[test]
+fn issue_8_each_stop_rule_fires_on_its_own_figure_and_not_before() {
+    let rules = StopRules {
+        minutes: 2.0,
+        max_episodes: Some(500),
+        target_progress: Some(90.0),
+        target_reward: Some(300.0),
+        window: 20,
+        env_steps_budget: Some(1_000_000),
+        target_laps: Some(TargetLaps { laps: 3, evaluations: 2 }),
+    };
+    let hyper = Hyperparameters { term_cond_max_episodes: 800, term_cond_avg_score: 250.0, ..Default::default() };
+    let quiet = Standing { seconds: 10.0, episodes: 100, env_steps: 5_000, window: Some((50.0, 100.0)), lap_streak: 0 };
+    // (what changes, the reason's words; None: no stop)
+    let table: Vec<(Standing, Option<&str>)> = vec![
+        (quiet.clone(), None),
+        (Standing { seconds: 120.0, ..quiet.clone() }, Some("time limit of 2 min")),
+        (Standing { episodes: 500, ..quiet.clone() }, Some("500 episodes reached")),
+        (Standing { window: Some((90.0, 100.0)), ..quiet.clone() }, Some("reached the target 90")),
+        // The window must be full: no target decisions on a handful of episodes.
+        (Standing { window: None, ..quiet.clone() }, None),
+        (Standing { window: Some((50.0, 300.0)), ..quiet.clone() }, Some("reached the target 300")),
+        (Standing { env_steps: 1_000_000, ..quiet.clone() }, Some("compute budget of 1000000 env steps")),
+        (Standing { lap_streak: 1, ..quiet.clone() }, None),
+        (Standing { lap_streak: 2, ..quiet.clone() }, Some("target laps reached")),
+    ];
+    for (standing, want) in table {
+        let got = rules.check(&hyper, &standing);
+        match want {
+            None => assert_eq!(got, None, "{standing:?}"),
+            Some(w) => assert!(got.as_deref().is_some_and(|g| g.contains(w)), "{standing:?}: {got:?}, want {w:?}"),
+        }
+    }
+    // DeepRacer's own conditions, from hyperparameters.json.
+    let loose = StopRules { max_episodes: None, target_reward: None, ..rules.clone() };
+    let r = loose.check(&hyper, &Standing { episodes: 800, ..quiet.clone() });
+    assert!(r.as_deref().is_some_and(|r| r.contains("term_cond_max_episodes")), "{r:?}");
+    let r = loose.check(&hyper, &Standing { window: Some((50.0, 250.0)), ..quiet });
+    assert!(r.as_deref().is_some_and(|r| r.contains("term_cond_avg_score")), "{r:?}");
+}

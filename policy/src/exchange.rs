@@ -1,0 +1,114 @@
+//! What the learner and the sim workers say to each other, as plain values.
+//!
+//! The training run (in `learner`) and the sim worker (in `sim-agent`) are peers: neither
+//! depends on the other, and both speak this vocabulary. In one process the values travel
+//! over channels; across machines the `protocol` crate maps them onto its protobuf messages.
+//! Nothing here knows a transport.
+//!
+//! Flow control: the learner grants each worker a number of episodes to *start* with a policy
+//! version ([`Credit`]). A worker that has spent its grant waits (or runs evaluations) until
+//! the next grant, so it never simulates what the learner will not use.
+
+use crate::experience::Trajectory;
+use crate::metadata::ModelMetadata;
+use crate::model::ActorCritic;
+use std::collections::BTreeMap;
+use std::sync::Arc;
+
+/// A policy version, ready to act with.
+#[derive(Clone)]
+pub struct PolicyVersion {
+    /// The version (+1 per accepted update).
+    pub version: u64,
+    /// The model.
+    pub model: Arc<ActorCritic>,
+    /// Its metadata (action space, sensors).
+    pub metadata: Arc<ModelMetadata>,
+}
+
+/// Episodes each worker may start with `version`, in grant `round` (a round is re-issued
+/// when a worker went away before delivering its share).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Credit {
+    /// The policy version the episodes are for.
+    pub version: u64,
+    /// Grant round within the version: increases with every grant of a run, and a later
+    /// run (a restarted learner) starts above its predecessor's.
+    pub round: u64,
+    /// Worker id → episodes granted in this round.
+    pub episodes: BTreeMap<String, u64>,
+}
+
+/// Experience from one worker: complete episodes, and what producing them cost.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Experience {
+    /// The worker.
+    pub worker: String,
+    /// Per worker, from 1: the learner drops duplicates.
+    pub seq: u64,
+    /// The grant these episodes were produced under (version, round).
+    pub credit: (u64, u64),
+    /// Complete episodes (each tagged with its world and the version that acted).
+    pub trajectories: Vec<Trajectory>,
+    /// Environment steps simulated for this batch.
+    pub env_steps: u64,
+    /// Wall time it took (s).
+    pub seconds: f64,
+}
+
+/// Run evaluation trials of one policy version on one world (DeepRacer's evaluation worker:
+/// every trial from the start line, most likely action at every step).
+#[derive(Clone, Debug, PartialEq)]
+pub struct EvalRequest {
+    /// Request id (unique within the run).
+    pub id: u64,
+    /// Who should run it.
+    pub worker: String,
+    /// The policy version to evaluate.
+    pub version: u64,
+    /// The world (a built-in world name).
+    pub world: String,
+    /// Trials.
+    pub trials: u32,
+    /// Seed of the trials' actuator noise.
+    pub seed: u64,
+}
+
+/// One evaluation trial.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Trial {
+    /// Progress reached (%).
+    pub progress: f64,
+    /// Lap time if the lap was completed (s, penalties included).
+    pub lap_time: Option<f64>,
+    /// Times the car left the track.
+    pub off_track: u32,
+    /// Steps taken.
+    pub steps: u64,
+    /// How the trial ended (DeepRacer's status label).
+    pub status: String,
+}
+
+/// The answer to an [`EvalRequest`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct EvalReport {
+    /// The request's id.
+    pub id: u64,
+    /// The worker that ran it.
+    pub worker: String,
+    /// The version evaluated.
+    pub version: u64,
+    /// The world.
+    pub world: String,
+    /// The trials, or why they could not run.
+    pub trials: Result<Vec<Trial>, String>,
+}
+
+/// Mean progress, mean lap time (when every trial completed), laps completed.
+pub fn summarise(trials: &[Trial]) -> (f64, Option<f64>, usize) {
+    let n = trials.len().max(1) as f64;
+    let progress = trials.iter().map(|t| t.progress).sum::<f64>() / n;
+    let laps = trials.iter().filter(|t| t.lap_time.is_some()).count();
+    let lap = (laps == trials.len() && laps > 0).then(|| trials.iter().filter_map(|t| t.lap_time).sum::<f64>() / n);
+    (progress, lap, laps)
+}

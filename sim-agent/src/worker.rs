@@ -1,0 +1,303 @@
+//! The sim worker: the learner's peer. It drives a vector of environments with the policy
+//! versions the learner publishes, starts only the episodes the learner granted
+//! ([`Credit`]), delivers them as [`Experience`], and runs the evaluation trials the learner
+//! asks for ([`EvalRequest`]) when it has no grant to spend.
+//!
+//! [`Worker::drive`] is the worker's one loop. It reads and writes through a
+//! [`WorkerLink`]: `coordinator train` passes in-process channels, `sim-agent serve` passes
+//! Zenoh. A worker may drive several worlds at once (environment `i` drives world
+//! `i + offset mod k`), so an agent with fewer peers than worlds never has to hop between
+//! worlds and lose the episodes it had running.
+
+use crate::config::SimConfig;
+use crate::reward::{RewardError, RewardFn};
+use crate::rollout::{Collector, TrialResult, evaluate};
+use crate::vec_env::VecEnv;
+use crate::{EnvError, EnvSpec, EvalRules};
+use policy::exchange::{Credit, EvalReport, EvalRequest, Experience, PolicyVersion, Trial};
+use std::collections::VecDeque;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// Why a worker stopped.
+#[derive(Debug, thiserror::Error)]
+pub enum WorkerError {
+    /// The reward function failed (its traceback is in the message).
+    #[error(transparent)]
+    Reward(#[from] RewardError),
+    /// The environments could not be built.
+    #[error(transparent)]
+    Env(#[from] EnvError),
+    /// The link failed.
+    #[error("link: {0}")]
+    Link(String),
+}
+
+/// What reaches a worker.
+#[derive(Clone)]
+pub enum WorkerInbound {
+    /// A policy version to act with.
+    Policy(PolicyVersion),
+    /// A grant (re-sent every second; repeats are ignored).
+    Credit(Credit),
+    /// Evaluation trials to run.
+    Eval(EvalRequest),
+    /// Stop driving (the assignment ended, or the run did).
+    End,
+}
+
+/// What a worker sends.
+#[derive(Clone, Debug)]
+pub enum WorkerOutbound {
+    /// Episodes.
+    Experience(Experience),
+    /// Evaluation trials.
+    Eval(EvalReport),
+}
+
+/// How a worker reaches its learner.
+pub trait WorkerLink {
+    /// The next message, waiting at most `timeout`. `need_policy` is true while the worker
+    /// has no policy to act with (a networked link may ask for the latest one).
+    fn next(&mut self, timeout: Duration, need_policy: bool) -> Result<Option<WorkerInbound>, WorkerError>;
+    /// Send a result.
+    fn send(&mut self, out: WorkerOutbound) -> Result<(), WorkerError>;
+}
+
+/// What a worker is built from.
+pub struct WorkerSetup {
+    /// The worker's id (the learner grants by it).
+    pub id: String,
+    /// The worlds to drive.
+    pub worlds: Vec<EnvSpec>,
+    /// Which world environment 0 drives (spreads several workers over the worlds).
+    pub offset: usize,
+    /// Environments.
+    pub envs: usize,
+    /// Threads for them.
+    pub threads: usize,
+    /// The simulator configuration (observation included).
+    pub cfg: Arc<SimConfig>,
+    /// The reward function.
+    pub reward: RewardFn,
+    /// The action space (the job's `model_metadata.json`).
+    pub space: policy::ActionSpace,
+    /// Seed.
+    pub seed: u64,
+    /// Sequence number of the first experience batch (carry it over from a previous worker
+    /// of the same process so the learner's duplicate check holds).
+    pub first_seq: u64,
+}
+
+/// Policy versions kept for evaluation requests that arrive late.
+const KEEP_VERSIONS: usize = 4;
+/// Evaluation reports kept to answer repeated requests.
+const KEEP_REPORTS: usize = 16;
+
+/// A worker: environments, the policy versions it holds, its grant, its evaluation queue.
+pub struct Worker {
+    id: String,
+    collector: Collector,
+    cfg: Arc<SimConfig>,
+    worlds: Vec<EnvSpec>,
+    threads: usize,
+    versions: VecDeque<PolicyVersion>,
+    /// (version, round) of the newest grant seen, and the episodes left to start in it.
+    grant: Option<(u64, u64, u64)>,
+    evals: VecDeque<EvalRequest>,
+    /// The last reports sent, answered again when their request is repeated.
+    reports: VecDeque<EvalReport>,
+    /// A report to send again.
+    resend: Option<EvalReport>,
+    seq: u64,
+    steps_reported: u64,
+}
+
+impl Worker {
+    /// Build the environments.
+    pub fn new(s: WorkerSetup) -> Result<Worker, WorkerError> {
+        if s.worlds.is_empty() {
+            return Err(WorkerError::Env(EnvError::Config("a worker needs at least one world".into())));
+        }
+        let k = s.worlds.len();
+        let specs: Vec<EnvSpec> = (0..s.envs.max(1)).map(|i| s.worlds[(i + s.offset) % k].clone()).collect();
+        let vec = VecEnv::new(specs, s.cfg.clone(), s.seed, s.reward, s.threads)?;
+        Ok(Worker {
+            id: s.id,
+            collector: Collector::new(vec, s.space, s.seed),
+            cfg: s.cfg,
+            worlds: s.worlds,
+            threads: s.threads,
+            versions: VecDeque::new(),
+            grant: None,
+            evals: VecDeque::new(),
+            reports: VecDeque::new(),
+            resend: None,
+            seq: s.first_seq,
+            steps_reported: 0,
+        })
+    }
+
+    /// The next experience sequence number.
+    pub fn seq(&self) -> u64 {
+        self.seq
+    }
+
+    /// Environment steps simulated so far.
+    pub fn env_steps(&self) -> u64 {
+        self.collector.env_steps
+    }
+
+    /// The newest policy version held.
+    pub fn version(&self) -> Option<u64> {
+        self.versions.back().map(|p| p.version)
+    }
+
+    /// Take a message.
+    pub fn take(&mut self, m: WorkerInbound) {
+        match m {
+            WorkerInbound::Policy(p) => {
+                if self.version() == Some(p.version) {
+                    return; // a repeat
+                }
+                // A version at or below one we hold comes from a restarted learner, which
+                // resumed from a checkpoint: its word counts, and what we held beyond it is void.
+                self.versions.retain(|v| v.version < p.version);
+                self.versions.push_back(p);
+                while self.versions.len() > KEEP_VERSIONS {
+                    self.versions.pop_front();
+                }
+            }
+            WorkerInbound::Credit(c) => {
+                // Repeats of the grant in hand are ignored; a new version or a later round replaces it.
+                let newer = self.grant.is_none_or(|(v, r, _)| c.version != v || c.round > r);
+                if newer {
+                    let mine = c.episodes.get(&self.id).copied().unwrap_or(0);
+                    self.grant = Some((c.version, c.round, mine));
+                }
+            }
+            WorkerInbound::Eval(r) => {
+                if r.worker != self.id || self.evals.iter().any(|e| e.id == r.id) {
+                    return;
+                }
+                match self.reports.iter().find(|d| d.id == r.id && d.version == r.version) {
+                    Some(done) => self.resend = Some(done.clone()),
+                    None => self.evals.push_back(r),
+                }
+            }
+            WorkerInbound::End => {}
+        }
+    }
+
+    /// Do one piece of work: collect the granted episodes, or run one evaluation. `None`
+    /// when there is nothing to do until the next message.
+    pub fn work(&mut self) -> Result<Option<WorkerOutbound>, WorkerError> {
+        // Granted episodes first: the learner is waiting for them.
+        if let Some((version, round, left)) = self.grant.filter(|g| g.2 > 0) {
+            if let Some(p) = self.versions.iter().rev().find(|p| p.version == version).cloned() {
+                let t0 = Instant::now();
+                tracing::debug!(version, round, episodes = left, "collecting");
+                let trajectories = self.collector.collect(&p.model, p.version, left as usize)?;
+                tracing::debug!(
+                    version,
+                    round,
+                    episodes = trajectories.len(),
+                    seconds = t0.elapsed().as_secs_f64(),
+                    "collected"
+                );
+                self.grant = Some((version, round, 0));
+                self.seq += 1;
+                let env_steps = self.collector.env_steps - self.steps_reported;
+                self.steps_reported = self.collector.env_steps;
+                return Ok(Some(WorkerOutbound::Experience(Experience {
+                    worker: self.id.clone(),
+                    seq: self.seq,
+                    credit: (version, round),
+                    trajectories,
+                    env_steps,
+                    seconds: t0.elapsed().as_secs_f64(),
+                })));
+            }
+            if self.version().is_some_and(|v| v > version) {
+                self.grant = Some((version, round, 0)); // a grant for a version we moved past
+            }
+        }
+        if let Some(r) = self.resend.take() {
+            return Ok(Some(WorkerOutbound::Eval(r)));
+        }
+        // Evaluations whose version we hold (or can no longer hold).
+        let newest = self.version();
+        let ready = self.evals.iter().position(|r| newest.is_some_and(|v| r.version <= v));
+        if let Some(i) = ready {
+            let r = self.evals.remove(i).expect("found");
+            let trials = match self.versions.iter().find(|p| p.version == r.version).cloned() {
+                Some(p) => self.evaluate(&p, &r).map_err(|e| format!("{e:#}")),
+                None => Err(format!("policy v{} is no longer held by {}", r.version, self.id)),
+            };
+            let report = EvalReport { id: r.id, worker: self.id.clone(), version: r.version, world: r.world, trials };
+            self.reports.push_back(report.clone());
+            while self.reports.len() > KEEP_REPORTS {
+                self.reports.pop_front();
+            }
+            return Ok(Some(WorkerOutbound::Eval(report)));
+        }
+        Ok(None)
+    }
+
+    fn evaluate(&self, p: &PolicyVersion, r: &EvalRequest) -> Result<Vec<Trial>, WorkerError> {
+        let spec = match self.worlds.iter().find(|w| w.name == r.world) {
+            Some(s) => s.clone(),
+            None => {
+                let world = tracks::world(&r.world)
+                    .map_err(|e| WorkerError::Env(EnvError::Config(format!("evaluation world: {e}"))))?;
+                EnvSpec::from_world(&world, tracks::Direction::Forward)
+            }
+        };
+        let trials = evaluate(
+            &p.model,
+            &p.metadata.action_space,
+            &spec,
+            &self.cfg,
+            EvalRules::default(),
+            r.trials.max(1) as usize,
+            r.seed,
+            self.threads,
+        )?;
+        Ok(trials.into_iter().map(Trial::from).collect())
+    }
+
+    /// The worker's loop: take messages, work, send, until the link says [`WorkerInbound::End`]
+    /// or closes.
+    pub fn drive(&mut self, link: &mut dyn WorkerLink) -> Result<(), WorkerError> {
+        loop {
+            // Everything that is waiting, then work; block only when idle.
+            loop {
+                match link.next(Duration::ZERO, self.versions.is_empty())? {
+                    Some(WorkerInbound::End) => return Ok(()),
+                    Some(m) => self.take(m),
+                    None => break,
+                }
+            }
+            match self.work()? {
+                Some(out) => link.send(out)?,
+                None => match link.next(Duration::from_millis(100), self.versions.is_empty())? {
+                    Some(WorkerInbound::End) => return Ok(()),
+                    Some(m) => self.take(m),
+                    None => {}
+                },
+            }
+        }
+    }
+}
+
+impl From<TrialResult> for Trial {
+    fn from(t: TrialResult) -> Trial {
+        Trial {
+            progress: t.progress,
+            lap_time: t.lap_time,
+            off_track: t.off_track,
+            steps: t.steps,
+            status: t.status.label().to_string(),
+        }
+    }
+}

@@ -1,0 +1,114 @@
+//! Issue 8: the sim worker simulates only what the learner granted, runs evaluations when
+//! asked, and follows a restarted learner back to an older version.
+
+use policy::exchange::{Credit, EvalRequest, PolicyVersion};
+use policy::{ActorCritic, ModelMetadata};
+use rand::SeedableRng;
+use sim_agent::worker::{Worker, WorkerInbound, WorkerOutbound, WorkerSetup};
+use sim_agent::{BuiltinReward, EnvSpec, RewardFn, SimConfig};
+use std::sync::Arc;
+
+fn worker(envs: usize, worlds: &[&str]) -> Worker {
+    let meta = ModelMetadata::default_state_vector();
+    Worker::new(WorkerSetup {
+        id: "w1".into(),
+        worlds: worlds
+            .iter()
+            .map(|w| EnvSpec::from_world(&tracks::world(w).unwrap(), tracks::Direction::Forward))
+            .collect(),
+        offset: 0,
+        envs,
+        threads: 1,
+        cfg: Arc::new(SimConfig::default()),
+        reward: RewardFn::Builtin(BuiltinReward::CenterLine),
+        space: meta.action_space.clone(),
+        seed: 3,
+        first_seq: 0,
+    })
+    .unwrap()
+}
+
+fn policy(version: u64) -> WorkerInbound {
+    let meta = ModelMetadata::default_state_vector();
+    let obs = sim_agent::obs::obs_dim(&SimConfig::default().observation);
+    let model = ActorCritic::new(&meta, obs, &mut rand_chacha::ChaCha8Rng::seed_from_u64(version));
+    WorkerInbound::Policy(PolicyVersion { version, model: Arc::new(model), metadata: Arc::new(meta) })
+}
+
+fn credit(version: u64, round: u64, episodes: u64) -> WorkerInbound {
+    WorkerInbound::Credit(Credit { version, round, episodes: [("w1".to_string(), episodes)].into() })
+}
+
+#[test]
+fn issue_8_a_worker_simulates_only_what_it_was_granted() {
+    let mut w = worker(4, &["reinvent_base"]);
+    // Nothing granted: nothing simulated.
+    w.take(policy(0));
+    assert!(w.work().unwrap().is_none());
+    assert_eq!(w.env_steps(), 0);
+    w.take(credit(0, 1, 6));
+    let Some(WorkerOutbound::Experience(e)) = w.work().unwrap() else { panic!("experience expected") };
+    assert!(e.trajectories.len() >= 6, "{} episodes for a grant of 6", e.trajectories.len());
+    assert!(e.trajectories.len() < 6 + 4, "no more than the grant plus the environments' last step");
+    assert_eq!((e.credit, e.seq), ((0, 1), 1));
+    assert!(e.trajectories.iter().all(|t| t.done && t.world == "reinvent_base" && t.policy_version == 0));
+    let steps = w.env_steps();
+    // The grant is spent: repeats of it change nothing, and nothing is simulated.
+    w.take(credit(0, 1, 6));
+    assert!(w.work().unwrap().is_none());
+    assert_eq!(w.env_steps(), steps);
+    // Another grant for a version not yet held waits for the policy.
+    w.take(credit(1, 1, 2));
+    assert!(w.work().unwrap().is_none());
+    w.take(policy(1));
+    let Some(WorkerOutbound::Experience(e)) = w.work().unwrap() else { panic!("experience expected") };
+    assert_eq!(e.credit, (1, 1));
+    // Episodes that were running when the grant ran out finish under the next one.
+    assert!(e.trajectories.iter().all(|t| t.policy_version <= 1));
+    // Someone else's grant is not ours.
+    w.take(WorkerInbound::Credit(Credit { version: 1, round: 2, episodes: [("w2".to_string(), 5)].into() }));
+    assert!(w.work().unwrap().is_none());
+}
+
+#[test]
+fn issue_8_a_worker_evaluates_when_asked_and_follows_a_restarted_learner() {
+    let mut w = worker(4, &["reinvent_carpet", "reinvent_wood"]);
+    w.take(policy(0));
+    w.take(policy(1));
+    w.take(credit(1, 1, 4));
+    // Environments spread over both worlds.
+    let Some(WorkerOutbound::Experience(e)) = w.work().unwrap() else { panic!("experience expected") };
+    let worlds: std::collections::BTreeSet<&str> = e.trajectories.iter().map(|t| t.world.as_str()).collect();
+    assert!(worlds.len() == 2 || e.trajectories.len() < 2, "{worlds:?}");
+    // An evaluation request of a version held: trials come back.
+    w.take(WorkerInbound::Eval(EvalRequest {
+        id: 9,
+        worker: "w1".into(),
+        version: 0,
+        world: "reinvent_wood".into(),
+        trials: 2,
+        seed: 1,
+    }));
+    let Some(WorkerOutbound::Eval(r)) = w.work().unwrap() else { panic!("report expected") };
+    assert_eq!((r.id, r.version, r.world.as_str()), (9, 0, "reinvent_wood"));
+    assert_eq!(r.trials.as_ref().unwrap().len(), 2);
+    // A repeated request (the report was lost on the way) is answered again without driving.
+    let steps = w.env_steps();
+    w.take(WorkerInbound::Eval(EvalRequest {
+        id: 9,
+        worker: "w1".into(),
+        version: 0,
+        world: "reinvent_wood".into(),
+        trials: 2,
+        seed: 1,
+    }));
+    let Some(WorkerOutbound::Eval(again)) = w.work().unwrap() else { panic!("report expected") };
+    assert_eq!(again, r);
+    assert_eq!(w.env_steps(), steps);
+    // A restarted learner resumes at an older version with a new grant: the worker follows it.
+    w.take(policy(0));
+    assert_eq!(w.version(), Some(0));
+    w.take(credit(0, 1, 3));
+    let Some(WorkerOutbound::Experience(e)) = w.work().unwrap() else { panic!("experience expected") };
+    assert_eq!(e.credit, (0, 1));
+}
