@@ -19,7 +19,7 @@ for seed in $(seq 1 "$seeds"); do
 import json, sys
 s = json.load(open(sys.argv[1]))
 b = s.get("best") or {}
-laps = "3/3" if s["stop_reason"] == "target laps reached" else "not reached"
+laps = "3/3" if s["stop_reason"].startswith("target laps reached") else "not reached"
 lap = b.get("avg_lap_time")
 print(f"| {sys.argv[2]} | {sys.argv[3]} | {float(sys.argv[5]) - float(sys.argv[4]):.1f} | {s['iterations']} | {s['episodes']} | {s['env_steps']} | {laps} | {lap:.2f} |" if lap else
       f"| {sys.argv[2]} | {sys.argv[3]} | {float(sys.argv[5]) - float(sys.argv[4]):.1f} | {s['iterations']} | {s['episodes']} | {s['env_steps']} | {laps} | - |")

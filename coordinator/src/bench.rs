@@ -1,7 +1,12 @@
 //! `coordinator bench cluster|publish`: what distribution costs.
 //!
-//! - `cluster`: env steps/s end to end of the single-process trainer and of `up` with 1, 2 and
-//!   4 agent processes on loopback, measured in the same run with the same total envs.
+//! - `cluster`: useful work end to end: samples trained on per second (the steps of the episodes
+//!   the learner used, every update's optimiser step included), of the single-process trainer
+//!   and of `up` with 1, 2 and 4 agent processes on loopback, in the same run with the same
+//!   total envs; beside it the env steps simulated and the share of episodes dropped stale.
+//! - `pixels`: wall-clock to 3/3 laps on every world from pixels (domain randomisation on),
+//!   `train` in one process against `up` with 2 agents, in one run; then both final models
+//!   evaluated on the training worlds and on tracks they never saw.
 //! - `publish`: time from publishing a SHALLOW camera model until 4 agent sessions on loopback
 //!   hold it, and the bytes per env step of experience on the wire.
 
@@ -22,8 +27,10 @@ pub fn cluster(seconds: f64, envs: usize, world: &str) -> Result<()> {
     let minutes = format!("{}", seconds / 60.0);
     println!("# coordinator bench cluster: {world}, {envs} environments in total, {seconds:.0} s per row, 2 cores");
     println!();
-    println!("| setup | env steps | seconds | env steps/s | vs single process |");
-    println!("|---|---|---|---|---|");
+    println!(
+        "| setup | samples trained on | updates | seconds | samples trained on/s | vs single process | env steps simulated | episodes dropped stale |"
+    );
+    println!("|---|---|---|---|---|---|---|---|");
     // The single-process trainer (same learner and sim code, no network).
     let out = tmp.join("single");
     let t0 = Instant::now();
@@ -49,10 +56,15 @@ pub fn cluster(seconds: f64, envs: usize, world: &str) -> Result<()> {
     }
     let wall = t0.elapsed().as_secs_f64();
     let s: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("summary.json"))?)?;
-    let steps = s["env_steps"].as_f64().unwrap_or(0.0);
+    let (used, updates) = used_samples(&out)?;
     let secs = s["seconds"].as_f64().unwrap_or(wall);
-    let base = steps / secs;
-    println!("| single process (`coordinator train`) | {steps:.0} | {secs:.1} | {base:.0} | 1.00× |");
+    let base = used / secs;
+    println!(
+        "| single process (`coordinator train`) | {used:.0} | {updates} | {secs:.1} | {base:.0} | 1.00× | {:.0} | {} of {} |",
+        s["env_steps"].as_f64().unwrap_or(0.0),
+        s["dropped_stale"].as_u64().unwrap_or(0),
+        s["episodes_received"].as_u64().unwrap_or(0)
+    );
     for agents in [1usize, 2, 4] {
         let out = tmp.join(format!("up{agents}"));
         let per = (envs / agents).max(1);
@@ -78,15 +90,30 @@ pub fn cluster(seconds: f64, envs: usize, world: &str) -> Result<()> {
             serde_json::from_str(&std::fs::read_to_string(out.join("summary.json"))?).context("up's summary")?;
         let steps = s["learner"]["env_steps"].as_f64().unwrap_or(0.0);
         let secs = s["ended"].as_f64().unwrap_or(0.0) - s["started"].as_f64().unwrap_or(0.0);
-        let rate = steps / secs;
+        let (used, updates) = used_samples(&out.join("run"))?;
+        let rate = used / secs;
         let stale = s["learner"]["dropped_stale"].as_u64().unwrap_or(0);
+        let received = s["learner"]["episodes_received"].as_u64().unwrap_or(0);
         println!(
-            "| `up` with {agents} agent process(es) × {per} envs (+ coordinator + learner) | {steps:.0} | {secs:.1} | {rate:.0} | {:.2}× ({stale} stale episodes dropped) |",
+            "| `up` with {agents} agent process(es) × {per} envs (+ coordinator + learner) | {used:.0} | {updates} | {secs:.1} | {rate:.0} | {:.2}× | {steps:.0} | {stale} of {received} |",
             rate / base
         );
     }
     let _ = std::fs::remove_dir_all(&tmp);
     Ok(())
+}
+
+/// Samples trained on (the steps of every update's episodes) and updates, from a run folder.
+fn used_samples(run: &std::path::Path) -> Result<(f64, usize)> {
+    let text = std::fs::read_to_string(run.join("metrics.jsonl")).with_context(|| format!("{}", run.display()))?;
+    let mut used = 0.0;
+    let mut updates = 0;
+    for line in text.lines() {
+        let v: serde_json::Value = serde_json::from_str(line)?;
+        used += v["steps"].as_f64().unwrap_or(0.0);
+        updates += 1;
+    }
+    Ok((used, updates))
 }
 
 pub fn publish(repeats: usize) -> Result<()> {
@@ -214,5 +241,110 @@ pub fn publish(repeats: usize) -> Result<()> {
         bytes as f64 / steps as f64
     );
     drop(agents);
+    Ok(())
+}
+
+/// Run `coordinator ARGS` in `dir`, showing its progress; return its stdout.
+fn child(me: &std::path::Path, dir: &std::path::Path, args: &[String]) -> Result<String> {
+    eprintln!("bench: coordinator {}", args.join(" "));
+    let o = Command::new(me).args(args).current_dir(dir).stderr(std::process::Stdio::inherit()).output()?;
+    let text = String::from_utf8_lossy(&o.stdout).to_string();
+    if !o.status.success() {
+        bail!("coordinator {} failed:\n{text}", args.join(" "));
+    }
+    Ok(text)
+}
+
+pub fn pixels(
+    worlds: &[String],
+    unseen: &[String],
+    minutes: f64,
+    envs: usize,
+    evals: u32,
+    out: &std::path::Path,
+) -> Result<()> {
+    let me = std::env::current_exe()?;
+    std::fs::create_dir_all(out)?;
+    let dir = out.canonicalize()?;
+    let common = |v: &mut Vec<String>| {
+        for w in worlds {
+            v.extend(["--world".into(), w.clone()]);
+        }
+        v.extend(
+            [
+                "--sensor",
+                "camera",
+                "--set",
+                "camera.randomize=true",
+                "--target-laps",
+                "3",
+                "--checkpoint-seconds",
+                "20",
+            ]
+            .map(String::from),
+        );
+        v.extend(["--minutes".into(), minutes.to_string(), "--target-evals".into(), evals.to_string()]);
+    };
+    let mut train =
+        vec!["train".to_string(), "--envs".into(), envs.to_string(), "--out".into(), "train".into(), "--force".into()];
+    common(&mut train);
+    let t0 = Instant::now();
+    let text = child(&me, &dir, &train)?;
+    let train_s = t0.elapsed().as_secs_f64();
+    let train_reason = text.lines().find(|l| l.starts_with("stopped after")).unwrap_or("").to_string();
+    let mut up = vec![
+        "up".to_string(),
+        "--agents".into(),
+        "2".into(),
+        "--envs".into(),
+        (envs / 2).max(1).to_string(),
+        "--out".into(),
+        "up".into(),
+        "--force".into(),
+    ];
+    common(&mut up);
+    let t0 = Instant::now();
+    let text = child(&me, &dir, &up)?;
+    let up_s = t0.elapsed().as_secs_f64();
+    let up_reason =
+        text.lines().find(|l| l.contains(": Finished") || l.contains(": Failed")).unwrap_or("").trim().to_string();
+    let metrics = |run: &std::path::Path| -> Result<(usize, f64)> {
+        let (used, updates) = used_samples(run)?;
+        Ok((updates, used))
+    };
+    let (tu, ts) = metrics(&dir.join("train"))?;
+    let (uu, us) = metrics(&dir.join("up/run"))?;
+    println!(
+        "# coordinator bench pixels: {} from pixels, domain randomisation on, {envs} environments",
+        worlds.join(", ")
+    );
+    println!();
+    println!("| setup | wall-clock s (process start to model) | updates | samples trained on | how it stopped |");
+    println!("|---|---|---|---|---|");
+    println!("| `train` in one process | {train_s:.0} | {tu} | {ts:.0} | {train_reason} |");
+    println!(
+        "| `up`, 2 agents × {} envs (+ coordinator + learner) | {up_s:.0} | {uu} | {us:.0} | {up_reason} |",
+        (envs / 2).max(1)
+    );
+    println!();
+    println!("Ratio: `up` took {:.2}× the wall-clock of one process.", up_s / train_s);
+    println!();
+    // Both models on the training worlds and on tracks they never saw.
+    let all: Vec<String> = worlds.iter().chain(unseen).cloned().collect();
+    for (name, model) in [("train", "train/model"), ("up", "up/run/model")] {
+        let mut args = vec!["evaluate".to_string(), model.into(), "--trials".into(), "3".into()];
+        for w in &all {
+            args.extend(["--world".into(), w.clone()]);
+        }
+        let text = child(&me, &dir, &args)?;
+        println!("{name} model ({}):", dir.join(model).display());
+        println!();
+        println!("```");
+        for l in text.lines().skip_while(|l| !l.starts_with("WORLD")) {
+            println!("{l}");
+        }
+        println!("```");
+        println!();
+    }
     Ok(())
 }

@@ -56,7 +56,7 @@ pub enum Command {
 
 #[derive(Subcommand)]
 pub enum BenchCommand {
-    /// Env steps/s end to end: single process vs `up` with 1, 2, 4 agent processes.
+    /// Samples trained on per second end to end: single process vs `up` with 1, 2, 4 agents.
     Cluster {
         /// Seconds per row.
         #[arg(long, default_value_t = 30.0)]
@@ -73,6 +73,28 @@ pub enum BenchCommand {
         /// Publications to time.
         #[arg(long, default_value_t = 10)]
         repeats: usize,
+    },
+    /// Wall-clock to 3/3 laps on every world from pixels: `train` in one process, then `up`
+    /// with 2 agents, same worlds, same settings, in one run; then both models on more tracks.
+    Pixels {
+        /// Worlds to train on.
+        #[arg(long, default_value = "reinvent_carpet,reinvent_concrete,reinvent_wood", value_delimiter = ',')]
+        worlds: Vec<String>,
+        /// Worlds never trained on, for the generalisation table.
+        #[arg(long, default_value = "reinvent_base,reInvent2019_track,Oval_track", value_delimiter = ',')]
+        unseen: Vec<String>,
+        /// Time limit of each training (minutes).
+        #[arg(long, default_value_t = 20.0)]
+        minutes: f64,
+        /// Environments in total (split over the agents for `up`).
+        #[arg(long, default_value_t = 16)]
+        envs: usize,
+        /// Consecutive 3/3 evaluations (on every world) that end a training.
+        #[arg(long, default_value_t = 2)]
+        evals: u32,
+        /// Where the runs go (kept, with their models).
+        #[arg(long, default_value = "runs/bench-pixels")]
+        out: PathBuf,
     },
 }
 
@@ -152,12 +174,25 @@ pub struct UpArgs {
     /// Stop early when the mean progress over the last 20 episodes reaches this (%).
     #[arg(long)]
     pub target_progress: Option<f64>,
+    /// Stop early once an evaluation completes this many laps on every world...
+    #[arg(long)]
+    pub target_laps: Option<u32>,
+    /// ...in this many consecutive evaluations.
+    #[arg(long, default_value_t = 1)]
+    pub target_evals: u32,
     /// Reward: a DeepRacer Python file or builtin:NAME.
     #[arg(long)]
     pub reward: Option<String>,
     /// "state" (the state vector) or "camera" (FRONT_FACING_CAMERA, SHALLOW network).
     #[arg(long, default_value = "state")]
     pub sensor: String,
+    /// Override a simulator configuration key for the job (`key=value`, repeatable), e.g.
+    /// `camera.randomize=true` for domain randomisation.
+    #[arg(long = "set")]
+    pub sets: Vec<String>,
+    /// Seconds between the learner's evaluations (and checkpoints).
+    #[arg(long, default_value_t = 2.0)]
+    pub checkpoint_seconds: f64,
     /// Output folder (the run folder is OUT/run, the model OUT/run/model).
     #[arg(long)]
     pub out: Option<PathBuf>,

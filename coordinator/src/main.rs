@@ -47,6 +47,9 @@ fn main() {
         cli::Command::Bench { command } => match command {
             cli::BenchCommand::Cluster { seconds, envs, world } => bench::cluster(seconds, envs, &world).map(|()| 0),
             cli::BenchCommand::Publish { repeats } => bench::publish(repeats).map(|()| 0),
+            cli::BenchCommand::Pixels { worlds, unseen, minutes, envs, evals, out } => {
+                bench::pixels(&worlds, &unseen, minutes, envs, evals, &out).map(|()| 0)
+            }
         },
     };
     match result {

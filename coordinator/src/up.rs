@@ -101,7 +101,7 @@ pub fn up(args: UpArgs) -> Result<i32> {
             "--id".into(),
             "learner-1".into(),
             "--checkpoint-seconds".into(),
-            "2".into(),
+            args.checkpoint_seconds.to_string(),
         ],
         &logs.join("learner.log"),
     )?;
@@ -139,7 +139,19 @@ pub fn up(args: UpArgs) -> Result<i32> {
         Some(r) => format!("reward = {r:?}\n"),
         None => String::new(),
     };
-    let target = args.target_progress.map(|t| format!("target_progress = {t}\n")).unwrap_or_default();
+    let mut target = args.target_progress.map(|t| format!("target_progress = {t}\n")).unwrap_or_default();
+    if let Some(l) = args.target_laps {
+        target += &format!("target_laps = {l}\ntarget_evals = {}\n", args.target_evals.max(1));
+    }
+    // `--set` overrides, checked against the simulator configuration now, kept in the spec.
+    let sim: sim_agent::SimConfig = sim_agent::config::load_config(None, &args.sets)?;
+    let sim_table = if args.sets.is_empty() {
+        String::new()
+    } else {
+        let mut t = toml::Table::new();
+        t.insert("sim".into(), toml::Value::try_from(&sim)?);
+        toml::to_string(&t)?
+    };
     let meta_line = match args.sensor.as_str() {
         "state" => String::new(),
         "camera" => {
@@ -149,7 +161,7 @@ pub fn up(args: UpArgs) -> Result<i32> {
         other => bail!("--sensor is {other:?}, expected \"state\" or \"camera\""),
     };
     let spec = format!(
-        "# Written by `coordinator up`; `coordinator job start` takes this file as it is.\nworlds = {worlds:?}\n{reward_line}{meta_line}out = {:?}\nenvs_per_agent = {}\n[stop]\nminutes = {}\n{target}",
+        "# Written by `coordinator up`; `coordinator job start` takes this file as it is.\nworlds = {worlds:?}\n{reward_line}{meta_line}out = {:?}\nenvs_per_agent = {}\n[stop]\nminutes = {}\n{target}{sim_table}",
         out.join("run").display().to_string(),
         args.envs,
         args.minutes

@@ -4,6 +4,14 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
+/// One cluster at a time: each test starts several processes that want both cores, and
+/// timings (flow control, updates to the end of a job) mean something only on a quiet machine.
+static ONE_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+fn exclusive() -> std::sync::MutexGuard<'static, ()> {
+    ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner())
+}
+
 fn bin(name: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_BIN_EXE_coordinator")).with_file_name(name)
 }
@@ -43,12 +51,15 @@ struct Cluster {
     dir: tempfile::TempDir,
     endpoint: String,
     procs: Procs,
+    // Last: released after the processes are gone.
+    _turn: std::sync::MutexGuard<'static, ()>,
 }
 
 impl Cluster {
     fn new() -> Cluster {
         let dir = tempfile::tempdir().unwrap();
-        Cluster { endpoint: format!("tcp/127.0.0.1:{}", free_port()), dir, procs: Procs(vec![]) }
+        let turn = exclusive();
+        Cluster { _turn: turn, endpoint: format!("tcp/127.0.0.1:{}", free_port()), dir, procs: Procs(vec![]) }
     }
 
     fn path(&self, p: &str) -> PathBuf {
@@ -96,12 +107,17 @@ impl Cluster {
     }
 
     fn start(&self, spec: &str) -> String {
+        self.start_as(spec, "job1")
+    }
+
+    /// Start a job (waiting for the coordinator to answer).
+    fn start_as(&self, spec: &str, id: &str) -> String {
         std::fs::write(self.path("job.toml"), spec).unwrap();
         let deadline = Instant::now() + Duration::from_secs(20);
         loop {
-            let o = self.cli(&["job", "start", "job.toml", "--id", "job1"]);
+            let o = self.cli(&["job", "start", "job.toml", "--id", id]);
             if o.status.success() {
-                return "job1".into();
+                return id.into();
             }
             let text = String::from_utf8_lossy(&o.stderr).to_string() + &String::from_utf8_lossy(&o.stdout);
             assert!(Instant::now() < deadline && text.contains("no coordinator answered"), "{text}");
@@ -168,6 +184,7 @@ const SPEC: &str =
 
 #[test]
 fn issue_4_up_runs_a_job_to_its_stop_and_the_model_improves() {
+    let _turn = exclusive();
     let dir = tempfile::tempdir().unwrap();
     let o = Command::new(bin("coordinator"))
         .args(["up", "--agents", "2", "--envs", "8", "--minutes", "2", "--target-progress", "80", "--out", "up"])
@@ -374,4 +391,144 @@ fn issue_4_the_same_job_through_a_router() {
     let s = c.wait(&id, 90, "the job finished through the router", |s| s["state"] == "finished");
     assert!(version(&s) >= 2, "{s}");
     assert!(c.path("run/model/model.safetensors").exists());
+}
+
+mod common;
+
+#[test]
+fn issue_8_every_stop_condition_through_the_cluster() {
+    // The same table as `coordinator train` runs in one process, job after job on one cluster.
+    let mut c = Cluster::new();
+    c.coordinator();
+    c.learner();
+    c.agent("agent-1");
+    for (i, (_, stop, hyper, want)) in common::STOP_TABLE.iter().enumerate() {
+        let mut spec = format!("worlds = [\"reinvent_base\"]\nout = \"run{i}\"\nenvs_per_agent = 8\n");
+        if !hyper.is_empty() {
+            std::fs::write(c.path(&format!("h{i}.json")), hyper).unwrap();
+            spec += &format!("hyperparameters = \"h{i}.json\"\n");
+        }
+        spec += "[stop]\n";
+        if !stop.contains("minutes") {
+            spec += "minutes = 2\n";
+        }
+        spec += stop;
+        let id = c.start_as(&spec, &format!("stop{i}"));
+        let s = c.wait(&id, 150, "the job finished", |s| s["state"] == "finished" || s["state"] == "failed");
+        assert_eq!(s["state"], "finished", "{spec}: {s}");
+        let reason = s["stop_reason"].as_str().unwrap_or("");
+        assert!(reason.contains(want), "{spec}: stopped because {reason:?}, want {want:?}");
+        assert!(c.path(&format!("run{i}/model/model.safetensors")).exists(), "{spec}");
+    }
+}
+
+/// Run `up` on three worlds with two agents; return (summary, metrics lines, job seconds).
+fn up_three_worlds(dir: &Path, extra: &[&str]) -> (serde_json::Value, Vec<serde_json::Value>, f64) {
+    let _turn = exclusive();
+    let mut args = vec![
+        "up",
+        "--world",
+        "reinvent_carpet",
+        "--world",
+        "reinvent_concrete",
+        "--world",
+        "reinvent_wood",
+        "--agents",
+        "2",
+        "--out",
+        "up",
+    ];
+    args.extend(extra);
+    let o = Command::new(bin("coordinator")).args(&args).current_dir(dir).output().unwrap();
+    let text = String::from_utf8_lossy(&o.stdout).to_string() + &String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{text}");
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("up/summary.json")).unwrap()).unwrap();
+    let metrics: Vec<serde_json::Value> = std::fs::read_to_string(dir.join("up/run/metrics.jsonl"))
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    let seconds = summary["ended"].as_f64().unwrap() - summary["started"].as_f64().unwrap();
+    (summary, metrics, seconds)
+}
+
+/// Every world's episodes reached the learner, updates kept coming to the end, and (nearly)
+/// nothing simulated was thrown away as stale.
+fn assert_no_waste(summary: &serde_json::Value, metrics: &[serde_json::Value], seconds: f64, min_iterations: usize) {
+    let l = &summary["learner"];
+    let worlds = l["worlds"].as_array().unwrap();
+    for w in ["reinvent_carpet", "reinvent_concrete", "reinvent_wood"] {
+        let e = worlds.iter().find(|x| x["world"] == w).map(|x| x["episodes"].as_u64().unwrap()).unwrap_or(0);
+        assert!(e > 0, "no episode of {w} reached the learner: {summary}");
+    }
+    assert!(metrics.len() >= min_iterations, "{} iterations: {metrics:?}", metrics.len());
+    let last = metrics.last().unwrap()["time_s"].as_f64().unwrap();
+    let gaps: Vec<f64> =
+        metrics.windows(2).map(|w| w[1]["time_s"].as_f64().unwrap() - w[0]["time_s"].as_f64().unwrap()).collect();
+    let longest = gaps.iter().copied().fold(0.0, f64::max);
+    assert!(
+        seconds - last <= (2.0 * longest).max(0.25 * seconds),
+        "updates stopped {:.0} s before the end of a {seconds:.0} s job (longest gap {longest:.0} s)",
+        seconds - last
+    );
+    let received = l["episodes_received"].as_f64().unwrap();
+    let stale = l["dropped_stale"].as_f64().unwrap();
+    assert!(received > 0.0 && stale <= 0.05 * received, "{stale} of {received} episodes dropped stale");
+}
+
+#[test]
+fn issue_8_three_worlds_two_agents_state_every_world_trained_nothing_wasted() {
+    let dir = tempfile::tempdir().unwrap();
+    let (summary, metrics, seconds) = up_three_worlds(dir.path(), &["--envs", "6", "--minutes", "1"]);
+    assert_no_waste(&summary, &metrics, seconds, 10);
+    // Each agent drove all three worlds at once: no hopping between worlds.
+    let log = summary["log"].as_array().unwrap().iter().filter_map(|l| l.as_str()).collect::<Vec<_>>().join("\n");
+    assert!(log.contains("reinvent_carpet+reinvent_concrete+reinvent_wood"), "{log}");
+    assert!(!log.contains(" -> "), "no agent was moved: {log}");
+}
+
+#[test]
+fn issue_8_three_worlds_two_agents_camera_every_world_trained_nothing_wasted() {
+    let dir = tempfile::tempdir().unwrap();
+    let (summary, metrics, seconds) =
+        up_three_worlds(dir.path(), &["--sensor", "camera", "--envs", "3", "--minutes", "2.5"]);
+    assert_no_waste(&summary, &metrics, seconds, 3);
+}
+
+#[test]
+fn issue_8_the_final_model_of_a_long_job_still_laps_every_world() {
+    // Round 1's `up` job reached 100 % progress by iteration 46 and collapsed by iteration 150:
+    // 88 % of the episodes were dropped as stale, the long (successful) ones first, so the
+    // learner trained on a sample of crashes. With flow control nothing is dropped; the model
+    // of the job's last update, not only an early best checkpoint, must still lap both worlds.
+    let _turn = exclusive();
+    let dir = tempfile::tempdir().unwrap();
+    let o = Command::new(bin("coordinator"))
+        .args(["up", "--world", "reinvent_carpet", "--world", "reinvent_concrete", "--agents", "2", "--minutes", "3"])
+        .args(["--out", "up"])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&o.stdout).to_string() + &String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{text}");
+    let index: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(dir.path().join("up/run/checkpoints/deepracer_checkpoints.json")).unwrap(),
+    )
+    .unwrap();
+    let last = &index["last_checkpoint"];
+    assert!(last["iteration"].as_u64().unwrap() >= 120, "the job got past round 1's collapse point: {index}");
+    let ckpt = format!("up/run/checkpoints/{}", last["name"].as_str().unwrap());
+    let e = Command::new(bin("coordinator"))
+        .args(["evaluate", &ckpt, "--world", "reinvent_carpet", "--world", "reinvent_concrete", "--trials", "3"])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    let out = String::from_utf8_lossy(&e.stdout).to_string();
+    assert!(e.status.success(), "{out}");
+    assert!(out.contains("6 of 6 laps completed"), "the final model laps both worlds:\n{out}");
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.path().join("up/summary.json")).unwrap()).unwrap();
+    let l = &summary["learner"];
+    assert!(l["dropped_stale"].as_f64().unwrap() <= 0.05 * l["episodes_received"].as_f64().unwrap(), "{summary}");
 }

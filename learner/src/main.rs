@@ -118,33 +118,35 @@ fn bench(network: &str, seconds: f64, threads: usize) -> anyhow::Result<()> {
     };
     let idx: Vec<usize> = (0..n).collect();
     let h = Hyperparameters::default();
-    let time = |par: Par, secs: f64| {
+    // What one minibatch costs in training: forward + backward of both towers, and (`adam`)
+    // the optimiser step over every parameter, as `Ppo::update` does it.
+    let time = |par: Par, secs: f64, adam: bool| {
         let mut ws = Workspace::default();
-        std::hint::black_box(loss_and_grad_with(&mut ws, &model, &batch, &idx, &h, par));
+        let mut m = model.clone();
+        let mut opt_pi = policy::nn::Adam::new(m.pi.params.len(), 3e-4);
+        let mut opt_v = policy::nn::Adam::new(m.v.params.len(), 3e-4);
+        std::hint::black_box(loss_and_grad_with(&mut ws, &m, &batch, &idx, &h, par));
         let t = Instant::now();
         let mut k = 0;
         while t.elapsed().as_secs_f64() < secs || k < 2 {
-            let lg = loss_and_grad_with(&mut ws, &model, &batch, &idx, &h, par);
+            let lg = loss_and_grad_with(&mut ws, &m, &batch, &idx, &h, par);
+            if adam {
+                opt_pi.step_with(&mut m.pi.params, &lg.grad_pi, par);
+                opt_v.step_with(&mut m.v.params, &lg.grad_v, par);
+            }
             ws.recycle(std::hint::black_box(lg));
             k += 1;
         }
         (k * n) as f64 / t.elapsed().as_secs_f64()
     };
-    let one = time(Par::Seq, seconds);
-    let many = time(if threads > 1 { Par::rayon(threads) } else { Par::Seq }, seconds);
-    println!("| measurement | value |");
-    println!("|---|---|");
-    println!("| PPO sample-gradients/s, minibatch 64, forward + backward of both towers, 1 thread | {one:.0} |");
-    println!("| PPO sample-gradients/s, minibatch 64, {threads} threads | {many:.0} ({:.2}× one thread) |", many / one);
     // Reference in the same run: the GEMMs alone (the layers' matrix products, forward and
-    // backward, both towers, no im2col, no activations): the ceiling for this network.
+    // backward, both towers, no im2col, no activations, no optimiser): the ceiling.
     let gemm_only = |par: Par| {
         let shapes = gemm_shapes(&model.pi, n);
-        let bufs: Vec<(Vec<f32>, Vec<f32>, Vec<f32>)> = shapes
+        let mut bufs: Vec<(Vec<f32>, Vec<f32>, Vec<f32>)> = shapes
             .iter()
             .map(|&(m, nn, k, _, _)| (vec![0.5f32; m * k], vec![0.25f32; k * nn], vec![0.0f32; m * nn]))
             .collect();
-        let mut bufs = bufs;
         let t = Instant::now();
         let mut k = 0;
         while t.elapsed().as_secs_f64() < seconds.min(3.0) || k < 2 {
@@ -157,11 +159,26 @@ fn bench(network: &str, seconds: f64, threads: usize) -> anyhow::Result<()> {
         }
         (k * n) as f64 / t.elapsed().as_secs_f64()
     };
-    let ceiling = gemm_only(if threads > 1 { Par::rayon(threads) } else { Par::Seq });
-    println!(
-        "| reference: the same GEMMs alone, {threads} threads (the ceiling) | {ceiling:.0} (ours reach {:.0} %) |",
-        100.0 * many / ceiling
-    );
+    println!("| measurement (minibatch 64, both towers) | sample-gradients/s |");
+    println!("|---|---|");
+    let mut pars = vec![(1, Par::Seq)];
+    if threads > 1 {
+        pars.push((threads, Par::rayon(threads)));
+    }
+    for (t, par) in pars {
+        let fb = time(par, seconds, false);
+        let full = time(par, seconds, true);
+        let ceiling = gemm_only(par);
+        println!("| {t} thread(s): forward + backward | {fb:.0} |");
+        println!(
+            "| {t} thread(s): forward + backward + Adam (one training step) | {full:.0} (Adam {:.0} % of the step) |",
+            100.0 * (1.0 - full / fb)
+        );
+        println!(
+            "| {t} thread(s): reference, the same GEMMs alone (the ceiling) | {ceiling:.0} (the training step reaches {:.0} %) |",
+            100.0 * full / ceiling
+        );
+    }
     let single: Vec<f32> = batch.obs[..os].to_vec();
     let t = Instant::now();
     let mut k = 0u64;

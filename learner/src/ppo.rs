@@ -353,8 +353,8 @@ impl Ppo {
                     stats.policy_version = self.version;
                     return stats;
                 }
-                self.opt_pi.step(&mut self.model.pi.params, &lg.grad_pi);
-                self.opt_v.step(&mut self.model.v.params, &lg.grad_v);
+                self.opt_pi.step_with(&mut self.model.pi.params, &lg.grad_pi, self.par);
+                self.opt_v.step_with(&mut self.model.v.params, &lg.grad_v, self.par);
                 if let Head::Gaussian { log_std } = &mut self.model.head {
                     self.opt_log_std.step(log_std, &lg.grad_log_std);
                 }

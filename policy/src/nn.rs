@@ -452,14 +452,34 @@ impl Adam {
 
     /// One step: `params -= lr · m̂ / (√v̂ + ε)`.
     pub fn step(&mut self, params: &mut [f32], grad: &[f32]) {
+        self.step_with(params, grad, Par::Seq);
+    }
+
+    /// One step, split over the cores when `par` says so (the same numbers either way: each
+    /// parameter's update depends on that parameter alone).
+    pub fn step_with(&mut self, params: &mut [f32], grad: &[f32], par: Par) {
         self.t += 1;
-        let (b1, b2) = (self.beta1, self.beta2);
-        let c1 = 1.0 - b1.powi(self.t as i32);
-        let c2 = 1.0 - b2.powi(self.t as i32);
-        for (((p, g), m), v) in params.iter_mut().zip(grad).zip(&mut self.m).zip(&mut self.v) {
-            *m = b1 * *m + (1.0 - b1) * g;
-            *v = b2 * *v + (1.0 - b2) * g * g;
-            *p -= self.lr * (*m / c1) / ((*v / c2).sqrt() + self.eps);
+        let (b1, b2, eps) = (self.beta1, self.beta2, self.eps);
+        let step = self.lr / (1.0 - b1.powi(self.t as i32));
+        let inv_c2 = 1.0 / (1.0 - b2.powi(self.t as i32));
+        let one = |(((p, g), m), v): (((&mut [f32], &[f32]), &mut [f32]), &mut [f32])| {
+            for (((p, g), m), v) in p.iter_mut().zip(g).zip(m.iter_mut()).zip(v.iter_mut()) {
+                *m = b1 * *m + (1.0 - b1) * g;
+                *v = b2 * *v + (1.0 - b2) * g * g;
+                *p -= step * *m / ((*v * inv_c2).sqrt() + eps);
+            }
+        };
+        const CHUNK: usize = 1 << 15;
+        if matches!(par, Par::Seq) || params.len() < 4 * CHUNK {
+            one((((params, grad), &mut self.m[..]), &mut self.v[..]));
+        } else {
+            use rayon::prelude::*;
+            params
+                .par_chunks_mut(CHUNK)
+                .zip(grad.par_chunks(CHUNK))
+                .zip(self.m.par_chunks_mut(CHUNK))
+                .zip(self.v.par_chunks_mut(CHUNK))
+                .for_each(one);
         }
     }
 

@@ -1,0 +1,101 @@
+//! Tidy: the invariants ARCHITECTURE.md states that the compiler does not check.
+//!
+//! - Every Rust file starts with a `//!` doc.
+//! - No unfinished code (`todo!`, `unimplemented!`, "TODO") outside tests.
+//! - The learner and the simulator are peers (issue 8): the `learner` package depends on
+//!   neither `sim-agent` nor `tracks`, and `sim-agent` does not depend on `learner`.
+//! - Only `protocol` and the role shells name the wire: the simulator and learner libraries
+//!   (`src/lib.rs` and the modules it declares) do not mention `zenoh` or `protocol`.
+
+use std::path::{Path, PathBuf};
+
+fn root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).parent().unwrap().to_path_buf()
+}
+
+fn rust_files(dir: &Path, out: &mut Vec<PathBuf>) {
+    for e in std::fs::read_dir(dir).unwrap().flatten() {
+        let p = e.path();
+        let name = e.file_name().to_string_lossy().to_string();
+        if p.is_dir() {
+            if name != "target" && !name.starts_with('.') {
+                rust_files(&p, out);
+            }
+        } else if name.ends_with(".rs") {
+            out.push(p);
+        }
+    }
+}
+
+const CRATES: &[&str] = &["tracks", "policy", "protocol", "sim-agent", "learner", "deploy", "coordinator", "tests"];
+
+#[test]
+fn every_file_has_a_module_doc_and_nothing_is_left_unfinished() {
+    let mut files = Vec::new();
+    for c in CRATES {
+        rust_files(&root().join(c), &mut files);
+    }
+    assert!(files.len() > 50, "found only {} files", files.len());
+    let mut problems = Vec::new();
+    for f in &files {
+        let text = std::fs::read_to_string(f).unwrap();
+        let first = text.lines().find(|l| !l.trim().is_empty()).unwrap_or("");
+        if !first.starts_with("//!") {
+            problems.push(format!("{}: no //! module doc at the top", f.display()));
+        }
+        let in_tests = f.components().any(|c| c.as_os_str() == "tests");
+        if !in_tests {
+            for (i, line) in text.lines().enumerate() {
+                if line.contains("todo!(") || line.contains("unimplemented!(") || line.contains("TODO") {
+                    problems.push(format!("{}:{}: unfinished: {}", f.display(), i + 1, line.trim()));
+                }
+            }
+        }
+    }
+    assert!(problems.is_empty(), "{}", problems.join("\n"));
+}
+
+/// The `[dependencies]` table of a crate's manifest.
+fn dependencies(krate: &str) -> Vec<String> {
+    let text = std::fs::read_to_string(root().join(krate).join("Cargo.toml")).unwrap();
+    let mut deps = Vec::new();
+    let mut inside = false;
+    for line in text.lines() {
+        let l = line.trim();
+        if l.starts_with('[') {
+            inside = l == "[dependencies]";
+        } else if inside && !l.is_empty() && !l.starts_with('#') {
+            deps.push(l.split(['.', '=', ' ']).next().unwrap().to_string());
+        }
+    }
+    deps
+}
+
+#[test]
+fn issue_8_learner_and_simulator_are_peers() {
+    let learner = dependencies("learner");
+    assert!(learner.contains(&"policy".to_string()), "{learner:?}");
+    for not in ["sim-agent", "tracks"] {
+        assert!(!learner.contains(&not.to_string()), "learner depends on {not}: {learner:?}");
+    }
+    let sim = dependencies("sim-agent");
+    assert!(!sim.contains(&"learner".to_string()), "sim-agent depends on learner: {sim:?}");
+}
+
+#[test]
+fn the_simulator_and_learner_libraries_do_not_touch_the_wire() {
+    for (krate, shells) in [("sim-agent", &["main.rs", "serve.rs"]), ("learner", &["main.rs", "serve.rs"])] {
+        let mut files = Vec::new();
+        rust_files(&root().join(krate).join("src"), &mut files);
+        for f in files {
+            let name = f.file_name().unwrap().to_string_lossy().to_string();
+            if shells.contains(&name.as_str()) {
+                continue;
+            }
+            let text = std::fs::read_to_string(&f).unwrap();
+            for word in ["zenoh", "protocol::"] {
+                assert!(!text.contains(word), "{} (a library module) mentions {word}", f.display());
+            }
+        }
+    }
+}
