@@ -285,6 +285,34 @@ pub struct UpdateStats {
     pub policy_version: u64,
 }
 
+/// The learners of a data-parallel group (DD-PPO), as one learner's update sees them: each
+/// computes the gradient of its share of every minibatch, weighted by the share's size, and
+/// `all_reduce` sums the shares in rank order, so every learner applies the same Adam step to
+/// the same weights and the group's update equals one learner's on the whole minibatch (to
+/// float rounding).
+pub trait Reducer {
+    /// This learner's rank and the group's size.
+    fn shard(&self) -> (usize, usize);
+    /// Replace `values` by their sum over the group, added in rank order. `step` numbers the
+    /// calls of one update, from 0.
+    fn all_reduce(&mut self, step: u64, values: &mut [f32]) -> Result<(), String>;
+}
+
+/// A group of one: nothing to add.
+pub struct Alone;
+
+impl Reducer for Alone {
+    fn shard(&self) -> (usize, usize) {
+        (0, 1)
+    }
+    fn all_reduce(&mut self, _step: u64, _values: &mut [f32]) -> Result<(), String> {
+        Ok(())
+    }
+}
+
+/// The loss figures that travel with the gradient (and are summed like it).
+const FIGURES: usize = 6;
+
 /// The learner's state: the model, its optimisers, its version.
 #[derive(Clone)]
 pub struct Ppo {
@@ -321,6 +349,12 @@ impl Ppo {
 
     /// Train on a set of trajectories (one iteration).
     pub fn update(&mut self, trajs: &[Trajectory]) -> UpdateStats {
+        self.update_in(trajs, &mut Alone)
+    }
+
+    /// Train on a set of trajectories as one learner of a data-parallel group: every learner
+    /// of the group calls this with the same trajectories, from the same state.
+    pub fn update_in(&mut self, trajs: &[Trajectory], group: &mut dyn Reducer) -> UpdateStats {
         let batch = make_batch(trajs, self.model.obs_size(), self.hyper.discount_factor);
         let n = batch.len();
         let mut stats =
@@ -338,7 +372,19 @@ impl Ppo {
         for _ in 0..self.hyper.num_epochs {
             order.shuffle(&mut self.rng);
             for mb in order.chunks_exact(bs) {
-                let lg = loss_and_grad_with(&mut ws, &self.model, &batch, mb, &self.hyper, self.par);
+                let (rank, size) = group.shard();
+                let mine = &mb[mb.len() * rank / size..mb.len() * (rank + 1) / size];
+                let mut lg = loss_and_grad_with(&mut ws, &self.model, &batch, mine, &self.hyper, self.par);
+                if size > 1 {
+                    if let Err(why) = reduce(group, stats.gradient_steps as u64, &mut lg, mine.len(), mb.len()) {
+                        (self.model, self.opt_pi, self.opt_v, self.opt_log_std) = saved;
+                        self.ws = ws;
+                        stats.refused =
+                            Some(format!("the learner group failed: {why}; weights kept at version {}", self.version));
+                        stats.policy_version = self.version;
+                        return stats;
+                    }
+                }
                 let finite = lg.total.is_finite()
                     && lg.grad_pi.iter().all(|g| g.is_finite())
                     && lg.grad_v.iter().all(|g| g.is_finite())
@@ -386,6 +432,29 @@ impl Ppo {
             opt.lr = lr as f32;
         }
     }
+}
+
+/// Weight this learner's share of a minibatch (`mine` of `all` samples) and sum it over the
+/// group: gradients of both towers, the log-std gradient and the loss figures, in one message.
+fn reduce(group: &mut dyn Reducer, step: u64, lg: &mut LossGrad, mine: usize, all: usize) -> Result<(), String> {
+    let w = mine as f32 / all as f32;
+    let (np, nv) = (lg.grad_pi.len(), lg.grad_v.len());
+    let figures = [lg.policy_loss, lg.value_loss, lg.entropy, lg.total, lg.approx_kl, lg.clip_fraction];
+    let mut values = Vec::with_capacity(np + nv + 2 + FIGURES);
+    // An empty share contributes nothing (its means are not numbers).
+    let weigh = |x: f32| if mine == 0 { 0.0 } else { x * w };
+    values.extend(lg.grad_pi.iter().map(|g| weigh(*g)));
+    values.extend(lg.grad_v.iter().map(|g| weigh(*g)));
+    values.extend(lg.grad_log_std.iter().map(|g| weigh(*g)));
+    values.extend(figures.iter().map(|f| weigh(*f as f32)));
+    group.all_reduce(step, &mut values)?;
+    lg.grad_pi.copy_from_slice(&values[..np]);
+    lg.grad_v.copy_from_slice(&values[np..np + nv]);
+    lg.grad_log_std.copy_from_slice(&values[np + nv..np + nv + 2]);
+    let f = &values[np + nv + 2..];
+    (lg.policy_loss, lg.value_loss, lg.entropy, lg.total, lg.approx_kl, lg.clip_fraction) =
+        (f[0] as f64, f[1] as f64, f[2] as f64, f[3] as f64, f[4] as f64, f[5] as f64);
+    Ok(())
 }
 
 fn explained_variance(b: &Batch) -> f64 {

@@ -1,0 +1,194 @@
+//! Issue 8: data-parallel PPO. Learners that each take a share of every minibatch and sum
+//! their gradients in rank order make the same update as one learner on the whole batch.
+//! The group here is threads joined by a barrier: the same `Reducer` seam a networked group
+//! plugs into.
+
+use faer::Par;
+use learner::{Alone, Hyperparameters, Ppo, Reducer};
+use policy::{ActorCritic, ModelMetadata, Trajectory};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use std::sync::{Arc, Barrier, Mutex};
+
+/// Threads of one process as a learner group.
+struct Threads {
+    rank: usize,
+    size: usize,
+    slots: Arc<Mutex<Vec<Vec<f32>>>>,
+    barrier: Arc<Barrier>,
+}
+
+impl Reducer for Threads {
+    fn shard(&self) -> (usize, usize) {
+        (self.rank, self.size)
+    }
+
+    fn all_reduce(&mut self, _step: u64, values: &mut [f32]) -> Result<(), String> {
+        self.slots.lock().unwrap()[self.rank] = values.to_vec();
+        self.barrier.wait();
+        {
+            let slots = self.slots.lock().unwrap();
+            values.fill(0.0);
+            for s in slots.iter() {
+                for (v, x) in values.iter_mut().zip(s) {
+                    *v += x;
+                }
+            }
+        }
+        self.barrier.wait();
+        Ok(())
+    }
+}
+
+fn episodes(model: &ActorCritic, n: usize, rng: &mut ChaCha8Rng) -> Vec<Trajectory> {
+    let os = model.obs_size();
+    (0..n)
+        .map(|_| {
+            let len = rng.random_range(5..40);
+            let obs: Vec<f32> = (0..len * os).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let acts = model.act(&obs, len, false, rng, Par::Seq);
+            Trajectory {
+                world: "reinvent_base".into(),
+                obs,
+                choices: acts.iter().map(|a| a.choice).collect(),
+                logp: acts.iter().map(|a| a.logp).collect(),
+                values: acts.iter().map(|a| a.value).collect(),
+                rewards: (0..len).map(|_| rng.random_range(0.0..1.0)).collect(),
+                done: true,
+                ..Default::default()
+            }
+        })
+        .collect()
+}
+
+#[test]
+fn issue_8_two_learners_make_one_learners_update() {
+    let meta = ModelMetadata::default_state_vector();
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let model = ActorCritic::new(&meta, 27, &mut rng);
+    let h = Hyperparameters { num_epochs: 3, ..Hyperparameters::default() };
+    let mut alone = Ppo::new(model.clone(), h.clone(), 0, 5, Par::Seq);
+    let mut group: Vec<Ppo> = (0..2).map(|_| Ppo::new(model.clone(), h.clone(), 0, 5, Par::Seq)).collect();
+    let slots = Arc::new(Mutex::new(vec![Vec::new(); 2]));
+    let barrier = Arc::new(Barrier::new(2));
+    for iteration in 0..3 {
+        let trajs = episodes(&alone.model, 20, &mut rng);
+        let one = alone.update_in(&trajs, &mut Alone);
+        assert!(one.refused.is_none() && one.gradient_steps > 10, "{one:?}");
+        let stats: Vec<_> = std::thread::scope(|s| {
+            let handles: Vec<_> = group
+                .iter_mut()
+                .enumerate()
+                .map(|(rank, ppo)| {
+                    let (trajs, slots, barrier) = (&trajs, slots.clone(), barrier.clone());
+                    s.spawn(move || ppo.update_in(trajs, &mut Threads { rank, size: 2, slots, barrier }))
+                })
+                .collect();
+            handles.into_iter().map(|h| h.join().unwrap()).collect()
+        });
+        // The group's members hold the very same weights...
+        assert_eq!(group[0].model, group[1].model, "iteration {iteration}");
+        assert_eq!(stats[0].gradient_steps, one.gradient_steps);
+        // ...and they are one learner's, to float rounding.
+        for (a, b) in
+            [(&alone.model.pi.params, &group[0].model.pi.params), (&alone.model.v.params, &group[0].model.v.params)]
+        {
+            let worst = a.iter().zip(b.iter()).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+            let scale = a.iter().map(|x| x.abs()).fold(0.0f32, f32::max);
+            assert!(worst <= 1e-4 * scale.max(1.0), "iteration {iteration}: weights differ by {worst}");
+        }
+        assert!(
+            (stats[0].policy_loss - one.policy_loss).abs() < 1e-3,
+            "{} vs {}",
+            stats[0].policy_loss,
+            one.policy_loss
+        );
+        // And a real update happened.
+        assert_ne!(alone.model, model);
+    }
+}
+
+/// Rank 0 of two, recording what the group summed at its first step.
+struct Recording {
+    inner: Threads,
+    first: Option<Vec<f32>>,
+}
+
+impl Reducer for Recording {
+    fn shard(&self) -> (usize, usize) {
+        self.inner.shard()
+    }
+    fn all_reduce(&mut self, step: u64, values: &mut [f32]) -> Result<(), String> {
+        self.inner.all_reduce(step, values)?;
+        if step == 0 {
+            self.first = Some(values.to_vec());
+        }
+        Ok(())
+    }
+}
+
+#[test]
+fn issue_8_the_summed_shares_are_the_whole_minibatch_gradient() {
+    // One minibatch of the whole batch: what the group sums at its first step must be the
+    // gradient of the mean loss over every sample (each share weighted by its size; Adam is
+    // blind to a constant factor, so this is checked on the gradient itself).
+    let meta = ModelMetadata::default_state_vector();
+    let mut rng = ChaCha8Rng::seed_from_u64(13);
+    let model = ActorCritic::new(&meta, 27, &mut rng);
+    let trajs = episodes(&model, 7, &mut rng);
+    let n = trajs.iter().map(|t| t.len()).sum::<usize>();
+    let h = Hyperparameters { num_epochs: 1, batch_size: n, ..Hyperparameters::default() };
+    let batch = learner::ppo::make_batch(&trajs, 27, h.discount_factor);
+    let all: Vec<usize> = (0..n).collect();
+    let whole = learner::ppo::loss_and_grad(&model, &batch, &all, &h, Par::Seq);
+    let slots = Arc::new(Mutex::new(vec![Vec::new(); 2]));
+    let barrier = Arc::new(Barrier::new(2));
+    let mut group: Vec<Ppo> = (0..2).map(|_| Ppo::new(model.clone(), h.clone(), 0, 5, Par::Seq)).collect();
+    let summed = std::thread::scope(|s| {
+        let mut it = group.iter_mut();
+        let (p0, p1) = (it.next().unwrap(), it.next().unwrap());
+        let (t, sl, b) = (&trajs, slots.clone(), barrier.clone());
+        let first = s.spawn(move || {
+            let mut r = Recording { inner: Threads { rank: 0, size: 2, slots: sl, barrier: b }, first: None };
+            p0.update_in(t, &mut r);
+            r.first.unwrap()
+        });
+        let (t, sl, b) = (&trajs, slots.clone(), barrier.clone());
+        s.spawn(move || p1.update_in(t, &mut Threads { rank: 1, size: 2, slots: sl, barrier: b }));
+        first.join().unwrap()
+    });
+    let np = whole.grad_pi.len();
+    let worst = whole.grad_pi.iter().zip(&summed[..np]).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+    let scale = whole.grad_pi.iter().map(|a| a.abs()).fold(0.0f32, f32::max);
+    assert!(
+        scale > 0.0 && worst <= 1e-4 * scale,
+        "summed shares differ from the whole gradient by {worst} (scale {scale})"
+    );
+    let total = summed[np + whole.grad_v.len() + 2 + 3];
+    assert!((total as f64 - whole.total).abs() < 1e-4 * whole.total.abs().max(1.0), "{total} vs {}", whole.total);
+}
+
+/// A member that cannot reach the others refuses the update and keeps its weights.
+struct Broken;
+
+impl Reducer for Broken {
+    fn shard(&self) -> (usize, usize) {
+        (1, 2)
+    }
+    fn all_reduce(&mut self, step: u64, _values: &mut [f32]) -> Result<(), String> {
+        Err(format!("peer gone at step {step}"))
+    }
+}
+
+#[test]
+fn issue_8_a_broken_group_refuses_the_update_and_keeps_the_weights() {
+    let meta = ModelMetadata::default_state_vector();
+    let mut rng = ChaCha8Rng::seed_from_u64(12);
+    let model = ActorCritic::new(&meta, 27, &mut rng);
+    let mut ppo = Ppo::new(model.clone(), Hyperparameters::default(), 7, 5, Par::Seq);
+    let trajs = episodes(&ppo.model, 20, &mut rng);
+    let stats = ppo.update_in(&trajs, &mut Broken);
+    assert!(stats.refused.as_deref().is_some_and(|r| r.contains("peer gone")), "{stats:?}");
+    assert_eq!(ppo.model, model);
+    assert_eq!(ppo.version, 7);
+}
