@@ -27,8 +27,9 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use zenoh::Wait;
 
 /// How long past its time limit a job may run before the coordinator stops it without the
-/// learner's word (the learner's own clock starts when it picks the job up).
-const GRACE_S: f64 = 30.0;
+/// learner's word (the learner's own clock starts when it picks the job up, and it looks at
+/// it between updates, which take a minute on a camera model late in a job).
+const GRACE_S: f64 = 120.0;
 const TICK: Duration = Duration::from_millis(500);
 const JOBS: TableDefinition<&str, &str> = TableDefinition::new("jobs");
 

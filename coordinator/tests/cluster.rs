@@ -79,11 +79,15 @@ impl Cluster {
     }
 
     fn learner(&mut self) {
-        let (ep, log) = (self.endpoint.clone(), self.path("learner.log"));
+        self.learner_as("learner", "learner-1");
+    }
+
+    fn learner_as(&mut self, name: &str, id: &str) {
+        let (ep, log) = (self.endpoint.clone(), self.path(&format!("{name}.log")));
         self.procs.spawn(
-            "learner",
+            name,
             Command::new(bin("learner"))
-                .args(["serve", "--connect", &ep, "--id", "learner-1", "--checkpoint-seconds", "0"])
+                .args(["serve", "--connect", &ep, "--id", id, "--checkpoint-seconds", "0"])
                 .current_dir(self.dir.path()),
             &log,
         );
@@ -531,4 +535,22 @@ fn issue_8_the_final_model_of_a_long_job_still_laps_every_world() {
         serde_json::from_str(&std::fs::read_to_string(dir.path().join("up/summary.json")).unwrap()).unwrap();
     let l = &summary["learner"];
     assert!(l["dropped_stale"].as_f64().unwrap() <= 0.05 * l["episodes_received"].as_f64().unwrap(), "{summary}");
+}
+
+#[test]
+fn issue_8_a_second_learner_stands_by_and_takes_over() {
+    let mut c = Cluster::new();
+    c.coordinator();
+    c.learner_as("learner-a", "learner-a");
+    c.learner_as("learner-b", "learner-b");
+    c.agent("agent-1");
+    let id = c.start(SPEC);
+    let s = c.wait(&id, 60, "training under way", |s| version(s) >= 3);
+    assert_eq!(s["learner"]["learner"], "learner-a", "the lowest id trains: {s}");
+    let log = std::fs::read_to_string(c.path("learner-b.log")).unwrap();
+    assert!(log.contains("standing by"), "{log}");
+    c.procs.kill("learner-a");
+    let s = c.wait(&id, 60, "learner-b took over", |s| s["learner"]["learner"] == "learner-b" && version(s) >= 3);
+    let v = version(&s);
+    c.wait(&id, 60, "training goes on under learner-b", |s| version(s) > v + 1);
 }

@@ -46,6 +46,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
     let drops = Arc::new(DropCounters::default());
     tracing::info!(learner = %id, "learner up; waiting for a job");
     let mut finished: BTreeSet<String> = BTreeSet::new();
+    let mut standby_note: Option<String> = None;
     loop {
         let Some((_, table)) = try_next::<AssignmentTable>(&jobs, &drops) else {
             std::thread::sleep(Duration::from_millis(200));
@@ -53,6 +54,21 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         };
         if !table.running || finished.contains(&table.job_id) {
             continue;
+        }
+        // One learner trains a job; the others stand by and take over if it goes away (the
+        // lowest id among the live learners is the one). Learners that share the work of one
+        // job are not built yet.
+        match net::alive(&session, keys::LEARNERS_ALIVE, Duration::from_secs(1)) {
+            Ok(ids) if ids.iter().any(|other| other.as_str() < id.as_str()) => {
+                if standby_note.as_deref() != Some(table.job_id.as_str()) {
+                    tracing::info!(job = %table.job_id, learners = ?ids, "another learner trains this job; standing by");
+                    standby_note = Some(table.job_id.clone());
+                }
+                std::thread::sleep(Duration::from_millis(500));
+                continue;
+            }
+            Ok(_) => {}
+            Err(e) => tracing::warn!("could not list the learners: {e}"),
         }
         let doc: JobDoc = match serde_json::from_str::<JobDoc>(&table.job_json) {
             Ok(d) if d.id == table.job_id && keys::is_valid_name(&d.id) => d,

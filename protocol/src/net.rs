@@ -214,3 +214,18 @@ pub fn try_next<M: Versioned>(sub: &Sub, drops: &DropCounters) -> Option<(String
     }
     None
 }
+
+/// The ids (last key chunk) of the liveliness tokens alive under `key` (e.g. every learner).
+pub fn alive(session: &zenoh::Session, key: &str, timeout: std::time::Duration) -> Result<Vec<String>, NetError> {
+    let replies =
+        session.liveliness().get(key.to_string()).timeout(timeout).wait().map_err(|e| NetError(e.to_string()))?;
+    let mut ids = Vec::new();
+    while let Ok(reply) = replies.recv() {
+        if let Ok(sample) = reply.result() {
+            ids.push(crate::keys::last(sample.key_expr().as_str()).to_string());
+        }
+    }
+    ids.sort();
+    ids.dedup();
+    Ok(ids)
+}
