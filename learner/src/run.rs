@@ -432,6 +432,66 @@ struct PendingEval {
     done: BTreeMap<String, Vec<Trial>>,
 }
 
+impl PendingEval {
+    /// The request for `world`'s trials of this checkpoint, as request `id` to `worker`.
+    fn request(&self, spec: &RunSpec, id: u64, worker: &str, world: &str) -> EvalRequest {
+        EvalRequest {
+            id,
+            worker: worker.into(),
+            version: self.version,
+            world: world.into(),
+            trials: spec.eval_trials,
+            seed: spec.seed ^ self.iteration,
+        }
+    }
+}
+
+/// Who is asked next, and the next request id.
+#[derive(Default)]
+struct EvalTurns {
+    turn: usize,
+    ids: u64,
+}
+
+impl EvalTurns {
+    /// Ask the next worker in turn for `world`'s trials (this is attempt `attempts`).
+    fn ask(
+        &mut self,
+        p: &mut PendingEval,
+        link: &mut dyn Link,
+        spec: &RunSpec,
+        workers: &[String],
+        world: String,
+        attempts: u32,
+    ) -> Result<(), LinkError> {
+        let w = workers[self.turn % workers.len()].clone();
+        self.turn += 1;
+        self.ids += 1;
+        link.request_eval(&p.request(spec, self.ids, &w, &world))?;
+        p.asked.insert(self.ids, (world, w, Instant::now(), attempts));
+        Ok(())
+    }
+
+    /// A request that failed or went unanswered: ask another worker, or, after three
+    /// attempts (or with nobody left), count the world as evaluated without trials.
+    fn retry(
+        &mut self,
+        p: &mut PendingEval,
+        link: &mut dyn Link,
+        spec: &RunSpec,
+        workers: &[String],
+        world: String,
+        attempts: u32,
+    ) -> Result<(), LinkError> {
+        if attempts >= 3 || workers.is_empty() {
+            p.done.insert(world, Vec::new());
+            Ok(())
+        } else {
+            self.ask(p, link, spec, workers, world, attempts + 1)
+        }
+    }
+}
+
 /// A grant round in progress.
 struct Round {
     credit: Credit,
@@ -577,9 +637,8 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
     let mut last_eval_figures = (0.0, 0u64);
     let mut lap_streak = 0usize;
     let mut pending: Option<PendingEval> = None;
-    let mut eval_ids = 0u64;
+    let mut turns = EvalTurns::default();
     let mut last_eval_ask = Instant::now();
-    let mut eval_turn = 0usize;
     let mut round: Option<Round> = None;
     // Rounds count up from the run's start time, so a restarted learner's grants are never
     // mistaken for repeats of its predecessor's.
@@ -659,25 +718,8 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
                         }
                         Err(why) => {
                             tracing::warn!(run = %spec.name, worker = %worker, world = %world, "evaluation failed: {why}");
-                            if attempts < 3 {
-                                let workers = link.workers();
-                                if let Some(w) = workers.get(eval_turn % workers.len().max(1)) {
-                                    eval_turn += 1;
-                                    eval_ids += 1;
-                                    let req = EvalRequest {
-                                        id: eval_ids,
-                                        worker: w.clone(),
-                                        version: p.version,
-                                        world: world.clone(),
-                                        trials: spec.eval_trials,
-                                        seed: spec.seed ^ p.iteration,
-                                    };
-                                    link.request_eval(&req)?;
-                                    p.asked.insert(eval_ids, (world, w.clone(), Instant::now(), attempts + 1));
-                                }
-                            } else {
-                                p.done.insert(world, Vec::new());
-                            }
+                            let workers = link.workers();
+                            turns.retry(p, link, spec, &workers, world, attempts)?;
                         }
                     }
                 }
@@ -806,30 +848,19 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
             }
             last_eval = Some(Instant::now());
             if pending.is_none() && !workers.is_empty() {
-                let mut asked = BTreeMap::new();
-                for world in &spec.worlds {
-                    let w = workers[eval_turn % workers.len()].clone();
-                    eval_turn += 1;
-                    eval_ids += 1;
-                    link.request_eval(&EvalRequest {
-                        id: eval_ids,
-                        worker: w.clone(),
-                        version: ppo.version,
-                        world: world.clone(),
-                        trials: spec.eval_trials,
-                        seed: spec.seed ^ iteration,
-                    })?;
-                    asked.insert(eval_ids, (world.clone(), w, Instant::now(), 1));
-                }
-                pending = Some(PendingEval {
+                let mut p = PendingEval {
                     iteration,
                     version: ppo.version,
                     model: ppo.model.clone(),
                     manifest,
                     name,
-                    asked,
+                    asked: BTreeMap::new(),
                     done: BTreeMap::new(),
-                });
+                };
+                for world in &spec.worlds {
+                    turns.ask(&mut p, link, spec, &workers, world.clone(), 1)?;
+                }
+                pending = Some(p);
             }
         }
         if let Some(p) = pending.as_mut() {
@@ -839,14 +870,7 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
             if last_eval_ask.elapsed() >= EVAL_REPEAT {
                 last_eval_ask = Instant::now();
                 for (id, (world, w, _, _)) in &p.asked {
-                    link.request_eval(&EvalRequest {
-                        id: *id,
-                        worker: w.clone(),
-                        version: p.version,
-                        world: world.clone(),
-                        trials: spec.eval_trials,
-                        seed: spec.seed ^ p.iteration,
-                    })?;
+                    link.request_eval(&p.request(spec, *id, w, world))?;
                 }
             }
             let lost: Vec<u64> = p
@@ -857,22 +881,7 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
                 .collect();
             for id in lost {
                 let (world, _, _, attempts) = p.asked.remove(&id).expect("listed");
-                if attempts >= 3 || workers.is_empty() {
-                    p.done.insert(world, Vec::new());
-                    continue;
-                }
-                let w = workers[eval_turn % workers.len()].clone();
-                eval_turn += 1;
-                eval_ids += 1;
-                link.request_eval(&EvalRequest {
-                    id: eval_ids,
-                    worker: w.clone(),
-                    version: p.version,
-                    world: world.clone(),
-                    trials: spec.eval_trials,
-                    seed: spec.seed ^ p.iteration,
-                })?;
-                p.asked.insert(eval_ids, (world, w, Instant::now(), attempts + 1));
+                turns.retry(p, link, spec, &workers, world, attempts)?;
             }
         }
         if pending.as_ref().is_some_and(|p| p.asked.is_empty()) {
