@@ -287,6 +287,7 @@ fn on_status(st: &mut State, db: &Db, ls: LearnerStatus) {
         "max_lag": ls.max_lag, "dropped_stale": ls.dropped_stale, "dropped_duplicate": ls.dropped_duplicate,
         "dropped_bad": ls.dropped_bad, "run_dir": ls.run_dir, "finished": ls.finished,
         "episodes_received": ls.episodes_received, "eval_laps": ls.eval_laps, "stop_reason": ls.stop_reason,
+        "learners": ls.learners, "team_updates": ls.team_updates, "team_failures": ls.team_failures,
         "agents": ls.agents.iter().map(|a| serde_json::json!({"agent": a.agent_id, "world": a.world, "steps_per_s": a.steps_per_s})).collect::<Vec<_>>(),
         "worlds": ls.worlds.iter().map(|w| serde_json::json!({"world": w.world, "agents": w.agents, "episodes": w.episodes,
             "mean_progress": w.mean_progress, "mean_reward": w.mean_reward, "steps_per_s": w.steps_per_s})).collect::<Vec<_>>(),

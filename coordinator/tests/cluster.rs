@@ -537,18 +537,45 @@ fn issue_8_the_final_model_of_a_long_job_still_laps_every_world() {
     assert!(l["dropped_stale"].as_f64().unwrap() <= 0.05 * l["episodes_received"].as_f64().unwrap(), "{summary}");
 }
 
+fn learners(s: &serde_json::Value) -> Vec<String> {
+    s["learner"]["learners"]
+        .as_array()
+        .map(|a| a.iter().filter_map(|x| x.as_str().map(str::to_string)).collect())
+        .unwrap_or_default()
+}
+
+fn team_updates(s: &serde_json::Value) -> u64 {
+    s["learner"]["team_updates"].as_u64().unwrap_or(0)
+}
+
 #[test]
-fn issue_8_a_second_learner_stands_by_and_takes_over() {
+fn issue_8_learners_share_updates_drop_the_dead_take_joiners_and_take_over() {
     let mut c = Cluster::new();
     c.coordinator();
     c.learner_as("learner-a", "learner-a");
     c.learner_as("learner-b", "learner-b");
     c.agent("agent-1");
     let id = c.start(SPEC);
-    let s = c.wait(&id, 60, "training under way", |s| version(s) >= 3);
-    assert_eq!(s["learner"]["learner"], "learner-a", "the lowest id trains: {s}");
+    // The lowest id leads; the other joins its team and shares every update.
+    let s = c.wait(&id, 90, "a team of two training", |s| learners(s).len() == 2 && team_updates(s) >= 3);
+    assert_eq!(s["learner"]["learner"], "learner-a", "the lowest id leads: {s}");
+    assert_eq!(learners(&s), ["learner-a", "learner-b"]);
     let log = std::fs::read_to_string(c.path("learner-b.log")).unwrap();
-    assert!(log.contains("standing by"), "{log}");
+    assert!(log.contains("took over the leader's weights and optimiser state") && log.contains("team update"), "{log}");
+    // A member that dies is dropped within seconds; the leader goes on from the current version.
+    c.procs.kill("learner-b");
+    let gone = Instant::now();
+    let s = c.wait(&id, 30, "learner-b dropped from the team", |s| learners(s) == ["learner-a"]);
+    assert!(gone.elapsed() < Duration::from_secs(10), "dropped after {:?}", gone.elapsed());
+    let v = version(&s);
+    let s = c.wait(&id, 60, "training goes on without learner-b", |s| version(s) >= v + 2);
+    // One that joins receives the weights and optimiser state first, then takes part.
+    let before = team_updates(&s);
+    c.learner_as("learner-b2", "learner-b");
+    c.wait(&id, 90, "learner-b back in the team", |s| learners(s).len() == 2 && team_updates(s) >= before + 2);
+    let log = std::fs::read_to_string(c.path("learner-b2.log")).unwrap();
+    assert!(log.contains("took over the leader's weights and optimiser state"), "{log}");
+    // The leader dies: the member takes over the job.
     c.procs.kill("learner-a");
     let s = c.wait(&id, 60, "learner-b took over", |s| s["learner"]["learner"] == "learner-b" && version(s) >= 3);
     let v = version(&s);

@@ -2,6 +2,8 @@
 //! maths' speed).
 
 mod serve;
+mod team;
+mod team_bench;
 
 use faer::Par;
 use learner::Hyperparameters;
@@ -25,6 +27,21 @@ enum Command {
     Serve(ServeCli),
     /// The network maths' speed: PPO sample-gradients/s and inference latency.
     Bench(BenchCli),
+    /// A member of `bench --learners N`'s team (started by the bench itself).
+    #[command(hide = true)]
+    BenchMember(MemberCli),
+}
+
+#[derive(clap::Args)]
+struct MemberCli {
+    #[command(flatten)]
+    net: protocol::net::NetCli,
+    /// Learner id.
+    #[arg(long)]
+    id: String,
+    /// The bench's network.
+    #[arg(long)]
+    network: String,
 }
 
 #[derive(clap::Args)]
@@ -53,6 +70,17 @@ struct BenchCli {
     /// Threads for the threaded row (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
+    /// Also measure whole updates shared by this many learner processes of one thread each
+    /// (a team over Zenoh on loopback), against one learner in the same run.
+    #[arg(long, default_value_t = 1)]
+    learners: usize,
+    /// With --learners: check that the team's weights are one learner's (to float rounding)
+    /// and every member's are the leader's (bit for bit); fail otherwise.
+    #[arg(long)]
+    check: bool,
+    /// Only the team rows (with --learners).
+    #[arg(long)]
+    team_only: bool,
 }
 
 fn cores() -> usize {
@@ -65,7 +93,16 @@ fn main() {
         .with_writer(std::io::stderr)
         .init();
     let result = match Cli::parse().command {
-        Command::Bench(b) => bench(&b.network, b.seconds, b.threads.unwrap_or_else(cores)),
+        Command::Bench(b) => (|| {
+            if !b.team_only {
+                bench(&b.network, b.seconds, b.threads.unwrap_or_else(cores))?;
+            }
+            if b.learners > 1 {
+                team_bench::run(&b.network, b.seconds, b.learners, b.check)?;
+            }
+            Ok(())
+        })(),
+        Command::BenchMember(m) => team_bench::member(&m.network, m.net.args(true), &m.id),
         Command::Serve(a) => serve::serve(serve::ServeArgs {
             net: a.net.into(),
             id: a.id,
@@ -79,7 +116,8 @@ fn main() {
     }
 }
 
-fn bench(network: &str, seconds: f64, threads: usize) -> anyhow::Result<()> {
+/// The bench's model description for a network name: (network, sensor, metadata).
+pub(crate) fn bench_metadata(network: &str) -> anyhow::Result<(&'static str, &'static str, ModelMetadata)> {
     let (name, sensor) = match network {
         "SHALLOW" => ("DEEP_CONVOLUTIONAL_NETWORK_SHALLOW", "FRONT_FACING_CAMERA"),
         "DEEP" => ("DEEP_CONVOLUTIONAL_NETWORK", "FRONT_FACING_CAMERA"),
@@ -92,8 +130,12 @@ fn bench(network: &str, seconds: f64, threads: usize) -> anyhow::Result<()> {
             r#"{{"action_space":[{{"steering_angle":-30,"speed":1}},{{"steering_angle":-15,"speed":1}},{{"steering_angle":0,"speed":1}},{{"steering_angle":15,"speed":1}},{{"steering_angle":30,"speed":1}}],"sensor":["{sensor}"],"neural_network":"{name}","version":"5"}}"#
         ),
         "bench",
-    )
-    .expect("bench metadata");
+    )?;
+    Ok((name, sensor, meta))
+}
+
+fn bench(network: &str, seconds: f64, threads: usize) -> anyhow::Result<()> {
+    let (name, sensor, meta) = bench_metadata(network)?;
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
     let model = ActorCritic::new(&meta, 27, &mut rng);
     let os = model.obs_size();

@@ -283,6 +283,20 @@ pub struct UpdateStats {
     pub refused: Option<String>,
     /// Policy version after the update.
     pub policy_version: u64,
+    /// The refusal came from the learner group (a member did not answer), not from the numbers.
+    pub group_failed: bool,
+}
+
+/// Everything that makes a learner's next update what it will be: the version, the weights
+/// and the optimisers' moments. A learner joining a group takes it over before its first
+/// update, so the group's members stay identical bit for bit.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PpoState {
+    /// Policy version.
+    pub version: u64,
+    /// Named tensors: `pi`, `v`, `log_std`, and `m`/`v`/`t` of each optimiser (`adam.pi.m`, …;
+    /// the step count as one number).
+    pub tensors: Vec<(String, Vec<f32>)>,
 }
 
 /// The learners of a data-parallel group (DD-PPO), as one learner's update sees them: each
@@ -355,6 +369,21 @@ impl Ppo {
     /// Train on a set of trajectories as one learner of a data-parallel group: every learner
     /// of the group calls this with the same trajectories, from the same state.
     pub fn update_in(&mut self, trajs: &[Trajectory], group: &mut dyn Reducer) -> UpdateStats {
+        let seed = self.draw_seed();
+        self.update_planned(trajs, seed, group)
+    }
+
+    /// The shuffle seed of the next update (a group's leader draws it and sends it to the
+    /// members with the trajectories).
+    pub fn draw_seed(&mut self) -> u64 {
+        use rand::RngCore;
+        self.rng.next_u64()
+    }
+
+    /// Train with minibatches shuffled from `seed`: the update every member of a group makes
+    /// from the leader's plan.
+    pub fn update_planned(&mut self, trajs: &[Trajectory], seed: u64, group: &mut dyn Reducer) -> UpdateStats {
+        let mut shuffle = ChaCha8Rng::seed_from_u64(seed);
         let batch = make_batch(trajs, self.model.obs_size(), self.hyper.discount_factor);
         let n = batch.len();
         let mut stats =
@@ -370,7 +399,7 @@ impl Ppo {
         let mut order: Vec<usize> = (0..n).collect();
         let mut ws = std::mem::take(&mut self.ws);
         for _ in 0..self.hyper.num_epochs {
-            order.shuffle(&mut self.rng);
+            order.shuffle(&mut shuffle);
             for mb in order.chunks_exact(bs) {
                 let (rank, size) = group.shard();
                 let mine = &mb[mb.len() * rank / size..mb.len() * (rank + 1) / size];
@@ -382,6 +411,7 @@ impl Ppo {
                         stats.refused =
                             Some(format!("the learner group failed: {why}; weights kept at version {}", self.version));
                         stats.policy_version = self.version;
+                        stats.group_failed = true;
                         return stats;
                     }
                 }
@@ -423,6 +453,58 @@ impl Ppo {
         self.version += 1;
         stats.policy_version = self.version;
         stats
+    }
+
+    /// The state a joining member takes over.
+    pub fn state(&self) -> PpoState {
+        let mut tensors =
+            vec![("pi".to_string(), self.model.pi.params.clone()), ("v".into(), self.model.v.params.clone())];
+        if let Head::Gaussian { log_std } = &self.model.head {
+            tensors.push(("log_std".into(), log_std.to_vec()));
+        }
+        for (name, opt) in [("pi", &self.opt_pi), ("v", &self.opt_v), ("log_std", &self.opt_log_std)] {
+            let (m, v, t) = opt.moments();
+            tensors.push((format!("adam.{name}.m"), m.to_vec()));
+            tensors.push((format!("adam.{name}.v"), v.to_vec()));
+            tensors.push((format!("adam.{name}.t"), vec![t as f32]));
+        }
+        PpoState { version: self.version, tensors }
+    }
+
+    /// Take over another member's state. Refused, with nothing changed, unless every tensor
+    /// is there with the size this learner's model has.
+    pub fn restore(&mut self, state: PpoState) -> Result<(), String> {
+        let mut next = self.clone();
+        let mut tensors: std::collections::BTreeMap<String, Vec<f32>> = state.tensors.into_iter().collect();
+        let mut take = |name: &str, len: usize| -> Result<Vec<f32>, String> {
+            let t = tensors.remove(name).ok_or_else(|| format!("the state has no tensor `{name}`"))?;
+            if t.len() != len {
+                return Err(format!("tensor `{name}` has {} values where {len} were expected", t.len()));
+            }
+            Ok(t)
+        };
+        next.model.pi.params = take("pi", self.model.pi.params.len())?;
+        next.model.v.params = take("v", self.model.v.params.len())?;
+        if let Head::Gaussian { log_std } = &mut next.model.head {
+            let l = take("log_std", 2)?;
+            *log_std = [l[0], l[1]];
+        }
+        for (name, opt) in [("pi", &mut next.opt_pi), ("v", &mut next.opt_v), ("log_std", &mut next.opt_log_std)] {
+            let n = opt.moments().0.len();
+            let m = take(&format!("adam.{name}.m"), n)?;
+            let v = take(&format!("adam.{name}.v"), n)?;
+            let t = take(&format!("adam.{name}.t"), 1)?[0];
+            if !(t >= 0.0 && t.fract() == 0.0 && t < u32::MAX as f32) {
+                return Err(format!("optimiser step count {t} is not a count"));
+            }
+            opt.set_moments(m, v, t as u32)?;
+        }
+        if let Some(extra) = tensors.keys().next() {
+            return Err(format!("the state has an unknown tensor `{extra}`"));
+        }
+        next.version = state.version;
+        *self = next;
+        Ok(())
     }
 
     /// Change the learning rate (e.g. after cloning).

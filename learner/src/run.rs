@@ -91,6 +91,18 @@ pub trait Link {
     fn status(&mut self, status: &RunStatus) -> Result<(), LinkError>;
     /// The workers alive now.
     fn workers(&mut self) -> Vec<String>;
+    /// The learners this run's updates are shared with (DD-PPO); `None`: this one alone.
+    fn team(&mut self) -> Option<&mut dyn Team> {
+        None
+    }
+}
+
+/// The learners that share a run's updates, as their leader (the learner running [`run`])
+/// sees them. Members join and leave between updates; a member lost during an update makes
+/// the team's attempt fail, and the leader makes that update again with whoever is left.
+pub trait Team {
+    /// This iteration's update, made with the members there are (alone when there are none).
+    fn update(&mut self, ppo: &mut Ppo, trajs: &[Trajectory]) -> UpdateStats;
 }
 
 /// Hears about iterations and evaluations (a terminal, a log). Default: nothing.
@@ -738,7 +750,10 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
             max_lag = max_lag.max(lag);
             let wait_s = wait_since.elapsed().as_secs_f64();
             let t1 = Instant::now();
-            let stats: UpdateStats = ppo.update(&trajs);
+            let stats: UpdateStats = match link.team() {
+                Some(team) => team.update(&mut ppo, &trajs),
+                None => ppo.update(&trajs),
+            };
             let update_s = t1.elapsed().as_secs_f64();
             wait_since = Instant::now();
             iteration += 1;

@@ -5,12 +5,14 @@
 //! grants and evaluation requests go to the agents, experience and evaluation reports come
 //! back, each checked against the job before it is believed (and counted when dropped).
 //! The workers are the agents the coordinator assigned to the job. A restarted learner
-//! resumes from the run folder's last checkpoint.
+//! resumes from the run folder's last checkpoint. Other learners serving the same job join
+//! its team and share every update ([`crate::team`]).
 
+use crate::team::{self, FollowEnd, TeamLead};
 use anyhow::Result;
 use faer::Par;
 use learner::Hyperparameters;
-use learner::run::{Inbound, Link, LinkError, Quiet, RunSpec, Start, StopRules, TargetLaps, run};
+use learner::run::{Inbound, Link, LinkError, Quiet, RunSpec, Start, StopRules, TargetLaps, Team, run};
 use policy::ModelMetadata;
 use policy::exchange::{Credit, EvalRequest, PolicyVersion};
 use policy::folder::Manifest;
@@ -44,6 +46,11 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         session.liveliness().declare_token(keys::learner_alive(&id)).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
     let jobs = net::subscribe(&session, keys::JOBS)?;
     let drops = Arc::new(DropCounters::default());
+    // Who else serves: the other learners' tokens reach a new session over a few hundred
+    // milliseconds; no job is led before they had the time to (two leaders would split it).
+    let roster = team::Roster::new(&session)?;
+    let born = Instant::now();
+    const HEAR_OTHERS: Duration = Duration::from_secs(3);
     tracing::info!(learner = %id, "learner up; waiting for a job");
     let mut finished: BTreeSet<String> = BTreeSet::new();
     let mut standby_note: Option<String> = None;
@@ -55,21 +62,6 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         if !table.running || finished.contains(&table.job_id) {
             continue;
         }
-        // One learner trains a job; the others stand by and take over if it goes away (the
-        // lowest id among the live learners is the one). Learners that share the work of one
-        // job are not built yet.
-        match net::alive(&session, keys::LEARNERS_ALIVE, Duration::from_secs(1)) {
-            Ok(ids) if ids.iter().any(|other| other.as_str() < id.as_str()) => {
-                if standby_note.as_deref() != Some(table.job_id.as_str()) {
-                    tracing::info!(job = %table.job_id, learners = ?ids, "another learner trains this job; standing by");
-                    standby_note = Some(table.job_id.clone());
-                }
-                std::thread::sleep(Duration::from_millis(500));
-                continue;
-            }
-            Ok(_) => {}
-            Err(e) => tracing::warn!("could not list the learners: {e}"),
-        }
         let doc: JobDoc = match serde_json::from_str::<JobDoc>(&table.job_json) {
             Ok(d) if d.id == table.job_id && keys::is_valid_name(&d.id) => d,
             Ok(_) => continue,
@@ -78,6 +70,32 @@ pub fn serve(args: ServeArgs) -> Result<()> {
                 continue;
             }
         };
+        // The lowest id among the live learners leads the job; the others join its team and
+        // share every update (and one of them leads if it goes away).
+        if born.elapsed() < HEAR_OTHERS {
+            std::thread::sleep(HEAR_OTHERS - born.elapsed());
+        }
+        let ids = roster.ids();
+        match ids {
+            ids if ids.iter().any(|other| other.as_str() < id.as_str()) => {
+                if standby_note.as_deref() != Some(doc.id.as_str()) {
+                    tracing::info!(job = %doc.id, learners = ?ids, "another learner leads this job; joining its team");
+                    standby_note = Some(doc.id.clone());
+                }
+                match follow_job(&session, &id, &doc, &args, &jobs, drops.clone()) {
+                    Ok(FollowEnd::Stopped) => {
+                        finished.insert(doc.id.clone());
+                    }
+                    Ok(FollowEnd::LeaderGone) => tracing::info!(job = %doc.id, "the team's leader is gone"),
+                    Err(e) => {
+                        tracing::warn!(job = %doc.id, "could not follow the job's leader: {e:#}");
+                        std::thread::sleep(Duration::from_millis(500));
+                    }
+                }
+                continue;
+            }
+            _ => {}
+        }
         finished.insert(doc.id.clone());
         let result = (|| -> Result<()> {
             let spec = spec_of(&doc, &args)?;
@@ -99,6 +117,42 @@ pub fn serve(args: ServeArgs) -> Result<()> {
             let _ = net::put(&session, &keys::learner_status(&doc.id), &status);
         }
     }
+}
+
+/// Share `doc`'s updates as a member of its leader's team, until the job stops or the
+/// leader goes.
+fn follow_job(
+    session: &zenoh::Session,
+    id: &str,
+    doc: &JobDoc,
+    args: &ServeArgs,
+    jobs: &Sub,
+    drops: Arc<DropCounters>,
+) -> Result<FollowEnd> {
+    let spec = spec_of(doc, args)?;
+    let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(spec.seed);
+    let model = policy::ActorCritic::new(&spec.metadata, spec.obs_size, &mut rng);
+    let mut ppo = learner::Ppo::new(model, spec.hyper.clone(), 0, spec.seed, spec.par);
+    let view = JobView { job_id: &doc.id, obs_size: spec.obs_size, worlds: &spec.worlds };
+    let d = drops.clone();
+    // Until the job stops (or its table is no longer published: it ended).
+    let mut seen = Instant::now();
+    let mut keep_going = || {
+        let mut running = true;
+        while let Some((_, t)) = try_next::<AssignmentTable>(jobs, &d) {
+            if t.job_id == doc.id {
+                seen = Instant::now();
+                running &= t.running;
+            }
+        }
+        running && seen.elapsed() < Duration::from_secs(15)
+    };
+    let mut updates = 0u64;
+    let mut on_update = |ppo: &learner::Ppo, stats: &learner::UpdateStats| {
+        updates += 1;
+        tracing::info!(job = %doc.id, version = ppo.version, samples = stats.samples, updates, "team update");
+    };
+    team::follow(session, id, &view, &mut ppo, drops, &mut keep_going, &mut on_update)
 }
 
 /// The run a job describes.
@@ -150,6 +204,7 @@ struct ZenohLink<'a> {
     latest: Arc<Mutex<Vec<u8>>>,
     _queryable: zenoh::query::Queryable<()>,
     agents: Vec<String>,
+    team: TeamLead<'a>,
     last_table: Instant,
     stop_sent: bool,
     refused: u64,
@@ -185,10 +240,11 @@ impl<'a> ZenohLink<'a> {
             jobs,
             exp_sub: net::subscribe(session, &keys::experience_all(&doc.id))?,
             eval_sub: net::subscribe(session, &keys::eval_reports(&doc.id))?,
-            drops,
+            drops: drops.clone(),
             latest,
             _queryable: queryable,
             agents: table.assignments.iter().map(|a| a.agent_id.clone()).collect(),
+            team: TeamLead::new(session, &doc.id, learner, doc.obs_size as usize, drops.clone())?,
             last_table: Instant::now(),
             stop_sent: false,
             refused: 0,
@@ -316,11 +372,18 @@ impl Link for ZenohLink<'_> {
             episodes_received: s.episodes_received,
             eval_laps: s.eval_laps,
             stop_reason: s.stop_reason.clone().unwrap_or_default(),
+            learners: self.team.members(),
+            team_updates: self.team.team_updates,
+            team_failures: self.team.failures,
         };
         net::put(self.session, &keys::learner_status(&self.job), &status).map_err(link_err)
     }
 
     fn workers(&mut self) -> Vec<String> {
         self.agents.clone()
+    }
+
+    fn team(&mut self) -> Option<&mut dyn Team> {
+        Some(&mut self.team)
     }
 }

@@ -192,3 +192,56 @@ fn issue_8_a_broken_group_refuses_the_update_and_keeps_the_weights() {
     assert_eq!(ppo.model, model);
     assert_eq!(ppo.version, 7);
 }
+
+#[test]
+fn issue_8_a_joiner_that_takes_the_state_makes_the_same_updates_bit_for_bit() {
+    let meta = ModelMetadata::default_state_vector();
+    let mut rng = ChaCha8Rng::seed_from_u64(21);
+    let model = ActorCritic::new(&meta, 27, &mut rng);
+    let h = Hyperparameters { num_epochs: 2, ..Hyperparameters::default() };
+    let mut leader = Ppo::new(model.clone(), h.clone(), 0, 5, Par::Seq);
+    for _ in 0..2 {
+        let trajs = episodes(&leader.model, 12, &mut rng);
+        leader.update(&trajs);
+    }
+    // A fresh learner (other initial weights, no optimiser history) takes the leader's state.
+    let other = ActorCritic::new(&meta, 27, &mut ChaCha8Rng::seed_from_u64(99));
+    let mut joiner = Ppo::new(other, h.clone(), 0, 77, Par::Seq);
+    joiner.restore(leader.state()).unwrap();
+    assert_eq!(joiner.version, leader.version);
+    assert_eq!(joiner.state(), leader.state());
+    // From the same plan (trajectories and shuffle seed) both make the same update. Without
+    // the optimiser's moments it would differ: Adam's step depends on them.
+    let trajs = episodes(&leader.model, 12, &mut rng);
+    let seed = leader.draw_seed();
+    let mut no_moments = Ppo::new(leader.model.clone(), h, leader.version, 5, Par::Seq);
+    leader.update_planned(&trajs, seed, &mut Alone);
+    joiner.update_planned(&trajs, seed, &mut Alone);
+    no_moments.update_planned(&trajs, seed, &mut Alone);
+    assert_eq!(joiner.model, leader.model);
+    assert_ne!(no_moments.model, leader.model);
+}
+
+#[test]
+fn issue_8_a_state_that_does_not_fit_is_refused_and_changes_nothing() {
+    let meta = ModelMetadata::default_state_vector();
+    let mut rng = ChaCha8Rng::seed_from_u64(22);
+    let model = ActorCritic::new(&meta, 27, &mut rng);
+    let mut ppo = Ppo::new(model.clone(), Hyperparameters::default(), 3, 5, Par::Seq);
+    let good = ppo.state();
+    let mut short = good.clone();
+    short.tensors[0].1.pop();
+    let mut missing = good.clone();
+    missing.tensors.retain(|(n, _)| n != "adam.v.m");
+    let mut extra = good.clone();
+    extra.tensors.push(("mystery".into(), vec![1.0]));
+    let mut bad_count = good.clone();
+    bad_count.tensors.iter_mut().find(|(n, _)| n == "adam.pi.t").unwrap().1[0] = 0.5;
+    for (bad, why) in [(short, "values"), (missing, "adam.v.m"), (extra, "mystery"), (bad_count, "count")] {
+        let mut s = bad;
+        s.version = 40;
+        let e = ppo.restore(s).unwrap_err();
+        assert!(e.contains(why), "{e}");
+        assert_eq!(ppo.state(), good, "nothing changed");
+    }
+}

@@ -487,4 +487,23 @@ impl Adam {
     pub fn steps(&self) -> u32 {
         self.t
     }
+
+    /// The moment estimates and the step count (what a learner joining a group receives).
+    pub fn moments(&self) -> (&[f32], &[f32], u32) {
+        (&self.m, &self.v, self.t)
+    }
+
+    /// Take over another optimiser's moments; refused unless they fit this one's parameters.
+    pub fn set_moments(&mut self, m: Vec<f32>, v: Vec<f32>, t: u32) -> Result<(), String> {
+        if m.len() != self.m.len() || v.len() != self.v.len() {
+            return Err(format!(
+                "optimiser state for {} and {} parameters where {} were expected",
+                m.len(),
+                v.len(),
+                self.m.len()
+            ));
+        }
+        (self.m, self.v, self.t) = (m, v, t);
+        Ok(())
+    }
 }

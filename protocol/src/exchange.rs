@@ -253,12 +253,219 @@ pub fn policy_from_wire(u: crate::PolicyUpdate, job: &JobView<'_>) -> Result<ex:
     Ok(ex::PolicyVersion { version: u.policy_version, model: Arc::new(f.model), metadata: Arc::new(f.metadata) })
 }
 
+/// The most members a learner team may have, and tensors a state may hold.
+pub const TEAM_LIMIT: usize = 64;
+
+/// A learner team's plan for one update (see `TeamPlan` in the `.proto`).
+#[derive(Clone, Debug, PartialEq)]
+pub struct TeamPlan {
+    /// The leader (rank 0).
+    pub leader: String,
+    /// This plan's number.
+    pub plan: u64,
+    /// The plan whose result a member must hold to take part.
+    pub base: u64,
+    /// The version the update starts from.
+    pub policy_version: u64,
+    /// Members in rank order, the leader first.
+    pub members: Vec<String>,
+    /// The minibatch shuffle seed.
+    pub seed: u64,
+    /// What to train on.
+    pub trajectories: Vec<policy::Trajectory>,
+    /// The state after `base`, for members that do not hold it.
+    pub state: Option<TeamState>,
+}
+
+/// A learner's weights and optimiser moments, as named tensors.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TeamState {
+    /// Policy version.
+    pub policy_version: u64,
+    /// Named tensors.
+    pub tensors: Vec<(String, Vec<f32>)>,
+}
+
+/// Little-endian bytes of `values`.
+pub fn f32_bytes(values: &[f32]) -> Vec<u8> {
+    if cfg!(target_endian = "little") {
+        // One copy: gradients of the camera network are 47 MB per minibatch.
+        return bytemuck::cast_slice::<f32, u8>(values).to_vec();
+    }
+    values.iter().flat_map(|v| v.to_le_bytes()).collect()
+}
+
+/// `values` back from little-endian bytes.
+pub fn f32_values(bytes: &[u8]) -> Result<Vec<f32>, DecodeError> {
+    if !bytes.len().is_multiple_of(4) {
+        return invalid(format!("{} bytes of f32 values: not a multiple of 4", bytes.len()));
+    }
+    if cfg!(target_endian = "little") {
+        return Ok(bytemuck::pod_collect_to_vec::<u8, f32>(bytes));
+    }
+    Ok(bytes.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect())
+}
+
+/// A plan on the wire.
+pub fn team_plan_to_wire(job: &str, p: &TeamPlan, obs_size: usize) -> crate::TeamPlan {
+    crate::TeamPlan {
+        protocol_version: crate::PROTOCOL_VERSION,
+        job_id: job.into(),
+        leader: p.leader.clone(),
+        plan: p.plan,
+        base: p.base,
+        policy_version: p.policy_version,
+        members: p.members.clone(),
+        seed: p.seed,
+        trajectories: p.trajectories.iter().map(|t| trajectory_to_wire(t, obs_size)).collect(),
+        state: p.state.as_ref().map(|s| crate::TeamState {
+            policy_version: s.policy_version,
+            tensors: s.tensors.iter().map(|(n, v)| crate::Tensor { name: n.clone(), data: f32_bytes(v) }).collect(),
+        }),
+    }
+}
+
+/// A plan back, for `job`. Every member must train on the same data, so one trajectory that
+/// does not fit the job refuses the whole plan.
+pub fn team_plan_from_wire(w: crate::TeamPlan, job: &JobView<'_>) -> Result<TeamPlan, DecodeError> {
+    same_job(&w.job_id, job.job_id)?;
+    if w.members.is_empty() || w.members.len() > TEAM_LIMIT || w.members[0] != w.leader {
+        return invalid(format!(
+            "team of {} members led by {:?}: the leader must come first",
+            w.members.len(),
+            w.leader
+        ));
+    }
+    let mut seen = std::collections::BTreeSet::new();
+    for m in &w.members {
+        if !keys::is_valid_name(m) || !seen.insert(m.as_str()) {
+            return invalid(format!("team member {m:?} is not a name or comes twice"));
+        }
+    }
+    if w.trajectories.len() as u64 > SANITY_LIMIT || w.plan <= w.base {
+        return invalid(format!("plan {} on base {} with {} episodes", w.plan, w.base, w.trajectories.len()));
+    }
+    let mut trajectories = Vec::with_capacity(w.trajectories.len());
+    for t in w.trajectories {
+        let t = trajectory_from_wire(t, job.obs_size)?;
+        if !job.worlds.contains(&t.world) {
+            return invalid(format!("episode on {:?}, not one of the job's worlds", t.world));
+        }
+        trajectories.push(t);
+    }
+    let state = match w.state {
+        None => None,
+        Some(s) => {
+            if s.tensors.len() > TEAM_LIMIT {
+                return invalid(format!("a state of {} tensors", s.tensors.len()));
+            }
+            let tensors = s
+                .tensors
+                .into_iter()
+                .map(|t| Ok((t.name, f32_values(&t.data)?)))
+                .collect::<Result<Vec<_>, DecodeError>>()?;
+            Some(TeamState { policy_version: s.policy_version, tensors })
+        }
+    };
+    Ok(TeamPlan {
+        leader: w.leader,
+        plan: w.plan,
+        base: w.base,
+        policy_version: w.policy_version,
+        members: w.members,
+        seed: w.seed,
+        trajectories,
+        state,
+    })
+}
+
+/// A gradient share on the wire.
+pub fn share_to_wire(job: &str, learner: &str, plan: u64, step: u64, values: &[f32]) -> crate::GradShare {
+    crate::GradShare {
+        protocol_version: crate::PROTOCOL_VERSION,
+        job_id: job.into(),
+        learner: learner.into(),
+        plan,
+        step,
+        values: f32_bytes(values),
+    }
+}
+
+/// A gradient share back: for `job`, from `learner` (the key's), `len` values.
+pub fn share_from_wire(
+    w: crate::GradShare,
+    job: &str,
+    learner: &str,
+    len: usize,
+) -> Result<(u64, u64, Vec<f32>), DecodeError> {
+    same_job(&w.job_id, job)?;
+    if w.learner != learner {
+        return invalid(format!("gradient share from {:?} on {learner:?}'s key", w.learner));
+    }
+    if w.values.len() != len * 4 {
+        return invalid(format!("gradient share of {} bytes where {} values were expected", w.values.len(), len));
+    }
+    Ok((w.plan, w.step, f32_values(&w.values)?))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
     fn job() -> (String, Vec<String>) {
         ("job1".into(), vec!["reinvent_wood".into(), "reinvent_carpet".into()])
+    }
+
+    #[test]
+    fn issue_8_team_messages_round_trip_and_refuse_what_does_not_fit() {
+        let (id, worlds) = job();
+        let view = JobView { job_id: &id, obs_size: 3, worlds: &worlds };
+        let t = policy::Trajectory {
+            world: "reinvent_wood".into(),
+            obs: vec![0.5; 6],
+            choices: vec![policy::Choice::Discrete(1); 2],
+            logp: vec![-1.0; 2],
+            values: vec![0.25; 2],
+            rewards: vec![1.0; 2],
+            done: true,
+            ..Default::default()
+        };
+        let plan = TeamPlan {
+            leader: "l0".into(),
+            plan: 9,
+            base: 8,
+            policy_version: 3,
+            members: vec!["l0".into(), "l1".into()],
+            seed: 42,
+            trajectories: vec![t.clone()],
+            state: Some(TeamState {
+                policy_version: 3,
+                tensors: vec![("pi".into(), vec![1.5, -2.0, f32::MIN_POSITIVE])],
+            }),
+        };
+        let wire = team_plan_to_wire(&id, &plan, 3);
+        let bytes = crate::encode(&wire);
+        assert_eq!(team_plan_from_wire(crate::decode(&bytes).unwrap(), &view).unwrap(), plan);
+        // The leader not first, a member twice, another job, an episode off the job's worlds:
+        // refused whole (members must train on the same data).
+        let mut w = wire.clone();
+        w.members.reverse();
+        assert!(team_plan_from_wire(w, &view).is_err());
+        let mut w = wire.clone();
+        w.members.push("l1".into());
+        assert!(team_plan_from_wire(w, &view).is_err());
+        assert!(team_plan_from_wire(wire.clone(), &JobView { job_id: "job2", ..view }).is_err());
+        let mut w = wire.clone();
+        w.trajectories[0].world = "Vegas_track".into();
+        assert!(team_plan_from_wire(w, &view).is_err());
+        let mut w = wire;
+        w.state.as_mut().unwrap().tensors[0].data.pop();
+        assert!(team_plan_from_wire(w, &view).is_err());
+
+        let share = share_to_wire(&id, "l1", 9, 4, &[1.0, 2.0]);
+        assert_eq!(share_from_wire(share.clone(), &id, "l1", 2).unwrap(), (9, 4, vec![1.0, 2.0]));
+        assert!(share_from_wire(share.clone(), &id, "l0", 2).is_err(), "another sender than the key names");
+        assert!(share_from_wire(share, &id, "l1", 3).is_err(), "another size than the model's");
     }
 
     #[test]

@@ -40,7 +40,7 @@ pub mod net;
 /// The version every message carries; others are dropped.
 pub const PROTOCOL_VERSION: u32 = 2;
 /// The largest message accepted (a SHALLOW camera model is ≈47 MB for both towers).
-pub const MAX_MESSAGE_BYTES: usize = 128 << 20;
+pub const MAX_MESSAGE_BYTES: usize = 256 << 20;
 
 /// Key expressions.
 pub mod keys {
@@ -103,6 +103,26 @@ pub mod keys {
     pub fn learner_status(job: &str) -> String {
         format!("{ROOT}/job/{job}/learner")
     }
+    /// A job's team plans (learner leader to members).
+    pub fn team_plan(job: &str) -> String {
+        format!("{ROOT}/job/{job}/team/plan")
+    }
+    /// One learner's gradient shares for a job.
+    pub fn team_share(job: &str, learner: &str) -> String {
+        format!("{ROOT}/job/{job}/team/share/{learner}")
+    }
+    /// Every learner's gradient shares for a job.
+    pub fn team_shares(job: &str) -> String {
+        format!("{ROOT}/job/{job}/team/share/*")
+    }
+    /// One learner's wish to take part in a job's updates.
+    pub fn team_join(job: &str, learner: &str) -> String {
+        format!("{ROOT}/job/{job}/team/join/{learner}")
+    }
+    /// Every learner's wish to take part.
+    pub fn team_joins(job: &str) -> String {
+        format!("{ROOT}/job/{job}/team/join/*")
+    }
     /// The coordinator's job-control queryable.
     pub const CONTROL: &str = "paddock/v1/control";
     /// An agent's failure report for a job.
@@ -163,7 +183,10 @@ versioned!(
     AgentReport,
     Credit,
     EvalRequest,
-    EvalReport
+    EvalReport,
+    TeamPlan,
+    GradShare,
+    TeamJoin
 );
 
 /// Encode a message.

@@ -1,0 +1,483 @@
+//! Learners on several machines: synchronous data-parallel PPO over Zenoh, as DD-PPO does it.
+//!
+//! The learner that runs the job (the lowest live id) leads; every other learner that serves
+//! the job follows. Per update the leader publishes a plan (the trajectories, the shuffle
+//! seed, the members in rank order, and, for a member that does not hold the leader's state,
+//! the weights and optimiser moments); every member trains on its share of each minibatch,
+//! publishes the share's weighted gradient and adds all the shares in rank order
+//! ([`learner::Reducer`]), so every member applies the same Adam step to the same weights,
+//! bit for bit. A member that dies (its liveliness token goes) or stops answering makes the
+//! attempt fail: the leader makes that update again with whoever is left, and the lost member
+//! gets the state again when it comes back. A follower whose leader goes becomes the leader
+//! (the serve loop's lowest-id rule).
+
+use learner::ppo::PpoState;
+use learner::run::Team;
+use learner::{Ppo, Reducer, UpdateStats};
+use policy::Trajectory;
+use protocol::exchange::{self as wire, JobView, TeamPlan, TeamState};
+use protocol::net::{self, DropCounters, Sub, try_next, zenoh};
+use protocol::{GradShare, PROTOCOL_VERSION, TeamJoin, keys};
+use std::collections::{BTreeMap, BTreeSet, HashMap};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+use zenoh::Wait;
+
+/// A member not heard from for this long is dropped from the team.
+pub const MEMBER_TIMEOUT: Duration = Duration::from_secs(3);
+/// How long a member waits for another's first share of an update (the plan, and maybe the
+/// state, must reach it first) and for each later one.
+const FIRST_SHARE_TIMEOUT: Duration = Duration::from_secs(60);
+const SHARE_TIMEOUT: Duration = Duration::from_secs(15);
+
+/// The learners whose liveliness tokens are up, kept current by a liveliness subscriber.
+pub struct Roster {
+    alive: Arc<Mutex<BTreeSet<String>>>,
+    _sub: zenoh::pubsub::Subscriber<()>,
+}
+
+impl Roster {
+    /// Follow the learners' tokens.
+    pub fn new(session: &zenoh::Session) -> anyhow::Result<Roster> {
+        let alive: Arc<Mutex<BTreeSet<String>>> = Arc::default();
+        let a = alive.clone();
+        let sub = session
+            .liveliness()
+            .declare_subscriber(keys::LEARNERS_ALIVE)
+            .history(true)
+            .callback(move |s| {
+                let id = keys::last(s.key_expr().as_str()).to_string();
+                if let Ok(mut set) = a.lock() {
+                    match s.kind() {
+                        zenoh::sample::SampleKind::Put => set.insert(id),
+                        zenoh::sample::SampleKind::Delete => set.remove(&id),
+                    };
+                }
+            })
+            .wait()
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        Ok(Roster { alive, _sub: sub })
+    }
+
+    /// Whether `id`'s token is up.
+    pub fn contains(&self, id: &str) -> bool {
+        self.alive.lock().map(|s| s.contains(id)).unwrap_or(false)
+    }
+
+    /// The live learners, by id.
+    pub fn ids(&self) -> Vec<String> {
+        self.alive.lock().map(|s| s.iter().cloned().collect()).unwrap_or_default()
+    }
+}
+
+/// Gradient shares received and not yet added.
+pub struct Shares {
+    sub: Sub,
+    job: String,
+    waiting: HashMap<String, BTreeMap<(u64, u64), Vec<f32>>>,
+    drops: Arc<DropCounters>,
+}
+
+impl Shares {
+    /// Subscribe to the job's shares.
+    pub fn new(session: &zenoh::Session, job: &str, drops: Arc<DropCounters>) -> anyhow::Result<Shares> {
+        Ok(Shares {
+            sub: net::subscribe(session, &keys::team_shares(job))?,
+            job: job.into(),
+            waiting: HashMap::new(),
+            drops,
+        })
+    }
+
+    /// Take what arrived; shares of plans before `plan` are thrown away.
+    fn pump(&mut self, plan: u64, len: usize) {
+        while let Some((key, w)) = try_next::<GradShare>(&self.sub, &self.drops) {
+            let from = keys::last(&key).to_string();
+            match wire::share_from_wire(w, &self.job, &from, len) {
+                Ok((p, step, values)) if p >= plan => {
+                    self.waiting.entry(from).or_default().insert((p, step), values);
+                }
+                Ok(_) => {}
+                Err(e) => {
+                    self.drops.count(&e);
+                    tracing::warn!(job = %self.job, "dropped a gradient share from {from}: {e}");
+                }
+            }
+        }
+        for q in self.waiting.values_mut() {
+            q.retain(|(p, _), _| *p >= plan);
+        }
+    }
+}
+
+/// One update's view of the team: this member's rank, and the Zenoh all-reduce.
+struct Group<'a> {
+    session: &'a zenoh::Session,
+    job: &'a str,
+    me: &'a str,
+    members: &'a [String],
+    plan: u64,
+    shares: &'a mut Shares,
+    roster: &'a Roster,
+    /// The member whose share did not come, when the attempt failed.
+    lost: Option<String>,
+}
+
+impl Reducer for Group<'_> {
+    fn shard(&self) -> (usize, usize) {
+        (self.members.iter().position(|m| m == self.me).unwrap_or(0), self.members.len())
+    }
+
+    fn all_reduce(&mut self, step: u64, values: &mut [f32]) -> Result<(), String> {
+        let t0 = Instant::now();
+        let share = wire::share_to_wire(self.job, self.me, self.plan, step, values);
+        let t1 = Instant::now();
+        net::put(self.session, &keys::team_share(self.job, self.me), &share).map_err(|e| e.to_string())?;
+        let t2 = Instant::now();
+        let timeout = if step == 0 { FIRST_SHARE_TIMEOUT } else { SHARE_TIMEOUT };
+        let since = Instant::now();
+        let mut theirs: Vec<Option<Vec<f32>>> = vec![None; self.members.len()];
+        loop {
+            self.shares.pump(self.plan, values.len());
+            let mut missing = None;
+            for (r, m) in self.members.iter().enumerate() {
+                if m == self.me || theirs[r].is_some() {
+                    continue;
+                }
+                match self.shares.waiting.get_mut(m).and_then(|q| q.remove(&(self.plan, step))) {
+                    Some(v) => theirs[r] = Some(v),
+                    None => missing = missing.or(Some(m.clone())),
+                }
+            }
+            let Some(m) = missing else { break };
+            if !self.roster.contains(&m) || since.elapsed() > timeout {
+                let why = if self.roster.contains(&m) { "did not answer" } else { "left" };
+                self.lost = Some(m.clone());
+                return Err(format!("learner {m} {why} (plan {}, step {step})", self.plan));
+            }
+            std::thread::sleep(Duration::from_micros(200));
+        }
+        let t3 = Instant::now();
+        // Every member adds the same numbers in the same (rank) order, in one pass: element
+        // by element, ((s0 + s1) + s2) + …, with this member's own share read in place.
+        let rank = self.shard().0;
+        let shares: Vec<&[f32]> = theirs.iter().map(|s| s.as_deref().unwrap_or(&[])).collect();
+        for (i, v) in values.iter_mut().enumerate() {
+            let at = |r: usize| if r == rank { *v } else { shares[r][i] };
+            let mut acc = at(0);
+            for r in 1..shares.len() {
+                acc += at(r);
+            }
+            *v = acc;
+        }
+        tracing::trace!(
+            encode_ms = (t1 - t0).as_secs_f64() * 1e3,
+            put_ms = (t2 - t1).as_secs_f64() * 1e3,
+            wait_ms = (t3 - t2).as_secs_f64() * 1e3,
+            sum_ms = t3.elapsed().as_secs_f64() * 1e3,
+            "all-reduce step {step}"
+        );
+        Ok(())
+    }
+}
+
+fn to_wire_state(s: PpoState) -> TeamState {
+    TeamState { policy_version: s.version, tensors: s.tensors }
+}
+
+struct Member {
+    heard: Instant,
+    in_sync: bool,
+    /// The base of the last plan that carried the state to it (older wishes for the state
+    /// were sent before it arrived).
+    state_base: u64,
+}
+
+/// The leader's side: who is in the team, and the plans.
+pub struct TeamLead<'a> {
+    session: &'a zenoh::Session,
+    job: String,
+    me: String,
+    obs_size: usize,
+    joins: Sub,
+    shares: Shares,
+    roster: Roster,
+    drops: Arc<DropCounters>,
+    members: BTreeMap<String, Member>,
+    plan: u64,
+    good: u64,
+    /// Updates made by two or more learners.
+    pub team_updates: u64,
+    /// Team updates that failed and were made again.
+    pub failures: u64,
+}
+
+impl<'a> TeamLead<'a> {
+    /// Lead `job`'s team as `me`.
+    pub fn new(
+        session: &'a zenoh::Session,
+        job: &str,
+        me: &str,
+        obs_size: usize,
+        drops: Arc<DropCounters>,
+    ) -> anyhow::Result<TeamLead<'a>> {
+        // Plan numbers grow across restarts of the leader (a follower's last plan from an
+        // earlier leader is never mistaken for this one's).
+        let start = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default();
+        let plan = start.as_millis() as u64 * 1000;
+        Ok(TeamLead {
+            session,
+            job: job.into(),
+            me: me.into(),
+            obs_size,
+            joins: net::subscribe(session, &keys::team_joins(job))?,
+            shares: Shares::new(session, job, drops.clone())?,
+            roster: Roster::new(session)?,
+            drops,
+            members: BTreeMap::new(),
+            plan,
+            good: plan,
+            team_updates: 0,
+            failures: 0,
+        })
+    }
+
+    /// The team now, the leader first.
+    pub fn members(&mut self) -> Vec<String> {
+        self.hear();
+        std::iter::once(self.me.clone()).chain(self.members.keys().cloned()).collect()
+    }
+
+    /// Take the followers' wishes, drop the members gone quiet.
+    fn hear(&mut self) {
+        while let Some((key, j)) = try_next::<TeamJoin>(&self.joins, &self.drops) {
+            let from = keys::last(&key).to_string();
+            if j.job_id != self.job || j.learner != from || from == self.me || !keys::is_valid_name(&from) {
+                self.drops.malformed.fetch_add(1, Ordering::Relaxed);
+                continue;
+            }
+            let good = self.good;
+            let m = self.members.entry(from.clone()).or_insert_with(|| {
+                tracing::info!(job = %self.job, learner = %from, "a learner joins the team");
+                Member { heard: Instant::now(), in_sync: j.plan == good && !j.needs_state, state_base: 0 }
+            });
+            m.heard = Instant::now();
+            if j.needs_state && j.plan < m.state_base.max(1) {
+                // Asked before the state reached it.
+            } else if j.needs_state {
+                m.in_sync = false;
+            }
+        }
+        let roster = &self.roster;
+        self.members.retain(|id, m| {
+            let keep = m.heard.elapsed() < MEMBER_TIMEOUT && roster.contains(id);
+            if !keep {
+                tracing::warn!(learner = %id, "a learner left the team");
+            }
+            keep
+        });
+    }
+}
+
+impl Team for TeamLead<'_> {
+    fn update(&mut self, ppo: &mut Ppo, trajs: &[Trajectory]) -> UpdateStats {
+        self.hear();
+        self.plan += 1;
+        if self.members.is_empty() {
+            let stats = ppo.update(trajs);
+            if stats.refused.is_none() {
+                self.good = self.plan;
+            }
+            return stats;
+        }
+        let members: Vec<String> = std::iter::once(self.me.clone()).chain(self.members.keys().cloned()).collect();
+        let state = self.members.values().any(|m| !m.in_sync).then(|| to_wire_state(ppo.state()));
+        if state.is_some() {
+            for m in self.members.values_mut().filter(|m| !m.in_sync) {
+                m.state_base = self.good;
+            }
+        }
+        let seed = ppo.draw_seed();
+        let plan = TeamPlan {
+            leader: self.me.clone(),
+            plan: self.plan,
+            base: self.good,
+            policy_version: ppo.version,
+            members: members.clone(),
+            seed,
+            trajectories: trajs.to_vec(),
+            state,
+        };
+        let sent = net::put(
+            self.session,
+            &keys::team_plan(&self.job),
+            &wire::team_plan_to_wire(&self.job, &plan, self.obs_size),
+        );
+        let (stats, lost) = match sent {
+            Ok(()) => {
+                let mut group = Group {
+                    session: self.session,
+                    job: &self.job,
+                    me: &self.me,
+                    members: &members,
+                    plan: self.plan,
+                    shares: &mut self.shares,
+                    roster: &self.roster,
+                    lost: None,
+                };
+                let stats = ppo.update_planned(trajs, seed, &mut group);
+                (stats, group.lost)
+            }
+            Err(e) => {
+                tracing::warn!(job = %self.job, "could not send the team's plan: {e}");
+                let mut s = UpdateStats { group_failed: true, ..Default::default() };
+                s.refused = Some(e.to_string());
+                (s, None)
+            }
+        };
+        if !stats.group_failed {
+            self.team_updates += 1;
+            if stats.refused.is_none() {
+                self.good = self.plan;
+            }
+            for m in self.members.values_mut() {
+                m.in_sync = true;
+            }
+            return stats;
+        }
+        // A member was lost mid-update: drop it, and make the update again without it (alone;
+        // the others get the state with the next plan).
+        self.failures += 1;
+        tracing::warn!(job = %self.job, "{}; making the update again", stats.refused.as_deref().unwrap_or("the team failed"));
+        if let Some(l) = lost {
+            self.members.remove(&l);
+        }
+        for m in self.members.values_mut() {
+            m.in_sync = false;
+            m.state_base = 0;
+        }
+        self.plan += 1;
+        let stats = ppo.update(trajs);
+        if stats.refused.is_none() {
+            self.good = self.plan;
+        }
+        stats
+    }
+}
+
+/// How following ended.
+#[derive(Debug, PartialEq)]
+pub enum FollowEnd {
+    /// No live learner with a lower id is left: this one should lead.
+    LeaderGone,
+    /// `keep_going` said so.
+    Stopped,
+}
+
+/// Take part in `job`'s updates as `me` until the leader goes or `keep_going` says stop.
+/// `ppo` is this learner's model (its state is replaced by the leader's before the first
+/// update); `on_update` hears about every update made.
+pub fn follow(
+    session: &zenoh::Session,
+    me: &str,
+    view: &JobView<'_>,
+    ppo: &mut Ppo,
+    drops: Arc<DropCounters>,
+    keep_going: &mut dyn FnMut() -> bool,
+    on_update: &mut dyn FnMut(&Ppo, &UpdateStats),
+) -> anyhow::Result<FollowEnd> {
+    let plans = net::subscribe(session, &keys::team_plan(view.job_id))?;
+    let mut shares = Shares::new(session, view.job_id, drops.clone())?;
+    let roster = Roster::new(session)?;
+    // The wish to take part, every half second from a thread of its own (an update of
+    // several seconds must not look like a dead member).
+    let wish = Arc::new(Mutex::new((0u64, true)));
+    let stop = Arc::new(AtomicBool::new(false));
+    let beat = {
+        let (wish, stop, session) = (wish.clone(), stop.clone(), session.clone());
+        let (job, me) = (view.job_id.to_string(), me.to_string());
+        std::thread::spawn(move || {
+            while !stop.load(Ordering::Relaxed) {
+                let (plan, needs_state) = *wish.lock().expect("wish");
+                let j = TeamJoin {
+                    protocol_version: PROTOCOL_VERSION,
+                    job_id: job.clone(),
+                    learner: me.clone(),
+                    plan,
+                    needs_state,
+                };
+                let _ = net::put(&session, &keys::team_join(&job, &me), &j);
+                std::thread::sleep(Duration::from_millis(500));
+            }
+        })
+    };
+    let set = |plan: u64, needs: bool| *wish.lock().expect("wish") = (plan, needs);
+    let mut last = 0u64;
+    tracing::info!(job = %view.job_id, learner = %me, "following the job's leader: asking to join its team");
+    let started = Instant::now();
+    let end = loop {
+        if !keep_going() {
+            break FollowEnd::Stopped;
+        }
+        // Grace for the roster's first replies; then a leader must be there.
+        if started.elapsed() > Duration::from_secs(2) && !roster.ids().iter().any(|id| id.as_str() < me) {
+            break FollowEnd::LeaderGone;
+        }
+        let Some((_, w)) = try_next::<protocol::TeamPlan>(&plans, &drops) else {
+            std::thread::sleep(Duration::from_millis(2));
+            continue;
+        };
+        let plan = match wire::team_plan_from_wire(w, view) {
+            Ok(p) => p,
+            Err(e) => {
+                drops.count(&e);
+                tracing::warn!(job = %view.job_id, "dropped a team plan: {e}");
+                continue;
+            }
+        };
+        if !plan.members.iter().any(|m| m == me) {
+            continue;
+        }
+        if last != plan.base {
+            if let Some(state) = plan.state.clone() {
+                match ppo.restore(PpoState { version: state.policy_version, tensors: state.tensors }) {
+                    Ok(()) => {
+                        last = plan.base;
+                        tracing::info!(job = %view.job_id, version = ppo.version, "took over the leader's weights and optimiser state");
+                    }
+                    Err(e) => tracing::warn!(job = %view.job_id, "the leader's state does not fit this learner: {e}"),
+                }
+            }
+        }
+        if last != plan.base || ppo.version != plan.policy_version {
+            set(last, true);
+            continue;
+        }
+        set(last, false);
+        let mut group = Group {
+            session,
+            job: view.job_id,
+            me,
+            members: &plan.members,
+            plan: plan.plan,
+            shares: &mut shares,
+            roster: &roster,
+            lost: None,
+        };
+        let stats = ppo.update_planned(&plan.trajectories, plan.seed, &mut group);
+        if stats.group_failed {
+            tracing::warn!(job = %view.job_id, "{}", stats.refused.as_deref().unwrap_or("the team failed"));
+            set(last, true);
+        } else {
+            if stats.refused.is_none() {
+                last = plan.plan;
+            }
+            set(last, false);
+            on_update(ppo, &stats);
+        }
+    };
+    stop.store(true, Ordering::Relaxed);
+    let _ = beat.join();
+    Ok(end)
+}

@@ -1,0 +1,21 @@
+//! Issue 8: learners on several machines. Three `learner` processes share PPO updates over
+//! Zenoh on loopback (the real binary, the real team code): the team's update is one
+//! learner's on the whole batch (to float rounding), and every member ends with the leader's
+//! weights bit for bit.
+
+use std::process::Command;
+
+#[test]
+fn issue_8_three_learner_processes_make_one_learners_update() {
+    let o = Command::new(env!("CARGO_BIN_EXE_learner"))
+        .args(["bench", "--network", "MLP", "--learners", "3", "--check", "--team-only", "--seconds", "0.5"])
+        .env("RUST_LOG", "warn")
+        .output()
+        .unwrap();
+    let out = String::from_utf8_lossy(&o.stdout).to_string();
+    let err = String::from_utf8_lossy(&o.stderr).to_string();
+    assert!(o.status.success(), "{out}\n{err}");
+    assert!(out.contains("check passed"), "{out}");
+    assert_eq!(out.matches("check: member bench-learner-").count(), 2, "{out}");
+    assert!(out.contains("3 learner processes × 1 thread"), "{out}");
+}
