@@ -10,7 +10,7 @@
 use crate::hyperparams::{Hyperparameters, LossType};
 use faer::Par;
 use policy::model::{LOG_STD_RANGE, clip_log_std, gaussian_entropy, gaussian_logp, log_softmax};
-use policy::nn::{Adam, Tape};
+use policy::nn::{Adam, Factors, Tape, gemm};
 use policy::{ActorCritic, Choice, Head, Trajectory};
 use rand::SeedableRng;
 use rand::seq::SliceRandom;
@@ -110,6 +110,11 @@ pub struct LossGrad {
     pub grad_v: Vec<f32>,
     /// Gradient for the Gaussian head's log-std.
     pub grad_log_std: [f32; 2],
+    /// Dense layers of the policy tower whose weight gradient was left as its factors
+    /// (their part of `grad_pi` is zero).
+    pub factors_pi: Vec<Factors>,
+    /// The same for the value tower.
+    pub factors_v: Vec<Factors>,
 }
 
 /// Buffers reused across gradient steps (tapes, the gathered minibatch).
@@ -150,6 +155,20 @@ pub fn loss_and_grad_with(
     idx: &[usize],
     h: &Hyperparameters,
     par: Par,
+) -> LossGrad {
+    loss_and_grad_factored(ws, model, batch, idx, h, par, (&[], &[]))
+}
+
+/// [`loss_and_grad_with`], leaving the weight gradient of the dense layers `defer` (policy
+/// tower's, value tower's; layer indices) as their factors.
+pub fn loss_and_grad_factored(
+    ws: &mut Workspace,
+    model: &ActorCritic,
+    batch: &Batch,
+    idx: &[usize],
+    h: &Hyperparameters,
+    par: Par,
+    defer: (&[usize], &[usize]),
 ) -> LossGrad {
     let n = idx.len();
     let os = batch.obs_size;
@@ -232,7 +251,7 @@ pub fn loss_and_grad_with(
             }
         }
     }
-    model.pi.backward(tape_pi, &d_out, &mut out_stats.grad_pi, par);
+    model.pi.backward_factored(tape_pi, &d_out, &mut out_stats.grad_pi, par, defer.0, &mut out_stats.factors_pi);
 
     model.v.forward(obs, n, tape_v, par);
     let values = tape_v.output().to_vec();
@@ -247,7 +266,7 @@ pub fn loss_and_grad_with(
         out_stats.value_loss += loss as f64;
         d_v[k] = grad * inv_n;
     }
-    model.v.backward(tape_v, &d_v, &mut out_stats.grad_v, par);
+    model.v.backward_factored(tape_v, &d_v, &mut out_stats.grad_v, par, defer.1, &mut out_stats.factors_v);
 
     let nf = n as f64;
     out_stats.policy_loss /= nf;
@@ -303,13 +322,16 @@ pub struct PpoState {
 /// computes the gradient of its share of every minibatch, weighted by the share's size, and
 /// `all_reduce` sums the shares in rank order, so every learner applies the same Adam step to
 /// the same weights and the group's update equals one learner's on the whole minibatch (to
-/// float rounding).
+/// float rounding). The big dense layers' weight gradients travel as their factors (inputs
+/// and output gradients of the share, a fraction of the size) and every member multiplies
+/// them out, in rank order too.
 pub trait Reducer {
     /// This learner's rank and the group's size.
     fn shard(&self) -> (usize, usize);
-    /// Replace `values` by their sum over the group, added in rank order. `step` numbers the
-    /// calls of one update, from 0.
-    fn all_reduce(&mut self, step: u64, values: &mut [f32]) -> Result<(), String>;
+    /// Replace `values` by their sum over the group, added in rank order, and return every
+    /// member's `factors` in rank order (this one's included). `step` numbers the calls of one
+    /// update, from 0.
+    fn all_reduce(&mut self, step: u64, values: &mut [f32], factors: Vec<f32>) -> Result<Vec<Vec<f32>>, String>;
 }
 
 /// A group of one: nothing to add.
@@ -319,8 +341,8 @@ impl Reducer for Alone {
     fn shard(&self) -> (usize, usize) {
         (0, 1)
     }
-    fn all_reduce(&mut self, _step: u64, _values: &mut [f32]) -> Result<(), String> {
-        Ok(())
+    fn all_reduce(&mut self, _step: u64, _values: &mut [f32], factors: Vec<f32>) -> Result<Vec<Vec<f32>>, String> {
+        Ok(vec![factors])
     }
 }
 
@@ -398,14 +420,27 @@ impl Ppo {
         let saved = (self.model.clone(), self.opt_pi.clone(), self.opt_v.clone(), self.opt_log_std.clone());
         let mut order: Vec<usize> = (0..n).collect();
         let mut ws = std::mem::take(&mut self.ws);
+        let (_, size) = group.shard();
+        let defer =
+            if size > 1 { (self.model.pi.factorable(bs), self.model.v.factorable(bs)) } else { Default::default() };
         for _ in 0..self.hyper.num_epochs {
             order.shuffle(&mut shuffle);
             for mb in order.chunks_exact(bs) {
                 let (rank, size) = group.shard();
                 let mine = &mb[mb.len() * rank / size..mb.len() * (rank + 1) / size];
-                let mut lg = loss_and_grad_with(&mut ws, &self.model, &batch, mine, &self.hyper, self.par);
+                let mut lg = loss_and_grad_factored(
+                    &mut ws,
+                    &self.model,
+                    &batch,
+                    mine,
+                    &self.hyper,
+                    self.par,
+                    (&defer.0, &defer.1),
+                );
                 if size > 1 {
-                    if let Err(why) = reduce(group, stats.gradient_steps as u64, &mut lg, mine.len(), mb.len()) {
+                    let shares: Vec<usize> =
+                        (0..size).map(|r| mb.len() * (r + 1) / size - mb.len() * r / size).collect();
+                    if let Err(why) = reduce(group, stats.gradient_steps as u64, &mut lg, &shares, rank) {
                         (self.model, self.opt_pi, self.opt_v, self.opt_log_std) = saved;
                         self.ws = ws;
                         stats.refused =
@@ -516,26 +551,97 @@ impl Ppo {
     }
 }
 
-/// Weight this learner's share of a minibatch (`mine` of `all` samples) and sum it over the
-/// group: gradients of both towers, the log-std gradient and the loss figures, in one message.
-fn reduce(group: &mut dyn Reducer, step: u64, lg: &mut LossGrad, mine: usize, all: usize) -> Result<(), String> {
+/// The parameter ranges a tower's factored layers leave out of its gradient vector.
+fn skipped(factors: &[Factors]) -> Vec<(usize, usize)> {
+    let mut r: Vec<(usize, usize)> = factors.iter().map(|f| (f.offset, f.offset + f.n_in * f.n_out)).collect();
+    r.sort_unstable();
+    r
+}
+
+/// The parts of `grad` outside `skip`, in order.
+fn kept<'a>(grad: &'a [f32], skip: &'a [(usize, usize)]) -> impl Iterator<Item = &'a [f32]> + 'a {
+    let mut at = 0;
+    let mut out = Vec::with_capacity(skip.len() + 1);
+    for &(a, b) in skip {
+        out.push(&grad[at..a]);
+        at = b;
+    }
+    out.push(&grad[at..]);
+    out.into_iter()
+}
+
+/// Weight this learner's share of a minibatch (`shares[rank]` of all its samples) and sum it
+/// over the group: gradients of both towers (but the factored layers' weights), the log-std
+/// gradient and the loss figures in one vector; the factored layers' weight gradients as
+/// every member's factors, multiplied out and added in rank order.
+fn reduce(group: &mut dyn Reducer, step: u64, lg: &mut LossGrad, shares: &[usize], rank: usize) -> Result<(), String> {
+    let (mine, all) = (shares[rank], shares.iter().sum::<usize>());
     let w = mine as f32 / all as f32;
-    let (np, nv) = (lg.grad_pi.len(), lg.grad_v.len());
+    let (skip_pi, skip_v) = (skipped(&lg.factors_pi), skipped(&lg.factors_v));
     let figures = [lg.policy_loss, lg.value_loss, lg.entropy, lg.total, lg.approx_kl, lg.clip_fraction];
-    let mut values = Vec::with_capacity(np + nv + 2 + FIGURES);
+    let mut values = Vec::with_capacity(lg.grad_pi.len() + lg.grad_v.len() + 2 + FIGURES);
     // An empty share contributes nothing (its means are not numbers).
     let weigh = |x: f32| if mine == 0 { 0.0 } else { x * w };
-    values.extend(lg.grad_pi.iter().map(|g| weigh(*g)));
-    values.extend(lg.grad_v.iter().map(|g| weigh(*g)));
+    for part in kept(&lg.grad_pi, &skip_pi).chain(kept(&lg.grad_v, &skip_v)) {
+        values.extend(part.iter().map(|g| weigh(*g)));
+    }
     values.extend(lg.grad_log_std.iter().map(|g| weigh(*g)));
     values.extend(figures.iter().map(|f| weigh(*f as f32)));
-    group.all_reduce(step, &mut values)?;
-    lg.grad_pi.copy_from_slice(&values[..np]);
-    lg.grad_v.copy_from_slice(&values[np..np + nv]);
-    lg.grad_log_std.copy_from_slice(&values[np + nv..np + nv + 2]);
-    let f = &values[np + nv + 2..];
+    let layers: Vec<&Factors> = lg.factors_pi.iter().chain(&lg.factors_v).collect();
+    let mut mine_f = Vec::with_capacity(layers.iter().map(|f| f.x.len() + f.d.len()).sum());
+    for f in &layers {
+        mine_f.extend_from_slice(&f.x);
+        mine_f.extend(f.d.iter().map(|d| d * w));
+    }
+    let every = group.all_reduce(step, &mut values, mine_f)?;
+    // Back into the gradients.
+    let mut at = 0;
+    for (grad, skip) in [(&mut lg.grad_pi, &skip_pi), (&mut lg.grad_v, &skip_v)] {
+        let mut from = 0;
+        for &(a, b) in skip.iter().chain(std::iter::once(&(grad.len(), grad.len()))) {
+            let n = a - from;
+            grad[from..a].copy_from_slice(&values[at..at + n]);
+            at += n;
+            from = b;
+        }
+    }
+    lg.grad_log_std.copy_from_slice(&values[at..at + 2]);
+    let f = &values[at + 2..];
     (lg.policy_loss, lg.value_loss, lg.entropy, lg.total, lg.approx_kl, lg.clip_fraction) =
         (f[0] as f64, f[1] as f64, f[2] as f64, f[3] as f64, f[4] as f64, f[5] as f64);
+    // The factored layers: dW = Σ_r d_rᵀ x_r, rank by rank, on one thread (the same numbers
+    // on every member whatever its cores).
+    let per_sample: usize = layers.iter().map(|f| f.n_in + f.n_out).sum();
+    if every.len() != shares.len() {
+        return Err(format!("{} members' factors for a group of {}", every.len(), shares.len()));
+    }
+    for (r, fr) in every.iter().enumerate() {
+        if fr.len() != shares[r] * per_sample {
+            return Err(format!(
+                "member {r}'s factors hold {} numbers where {} were expected",
+                fr.len(),
+                shares[r] * per_sample
+            ));
+        }
+    }
+    let mut pos = vec![0usize; shares.len()];
+    let n_pi = lg.factors_pi.len();
+    for (k, (offset, n_in, n_out)) in
+        layers.iter().map(|f| (f.offset, f.n_in, f.n_out)).collect::<Vec<_>>().into_iter().enumerate()
+    {
+        let grad = if k < n_pi { &mut lg.grad_pi } else { &mut lg.grad_v };
+        let gw = &mut grad[offset..offset + n_in * n_out];
+        gw.fill(0.0);
+        for (r, fr) in every.iter().enumerate() {
+            let b = shares[r];
+            let x = &fr[pos[r]..pos[r] + b * n_in];
+            let d = &fr[pos[r] + b * n_in..pos[r] + b * (n_in + n_out)];
+            pos[r] += b * (n_in + n_out);
+            if b > 0 {
+                gemm(gw, n_out, n_in, b, d, true, x, false, true, Par::Seq);
+            }
+        }
+    }
     Ok(())
 }
 

@@ -75,7 +75,7 @@ impl Roster {
 pub struct Shares {
     sub: Sub,
     job: String,
-    waiting: HashMap<String, BTreeMap<(u64, u64), Vec<f32>>>,
+    waiting: HashMap<String, BTreeMap<(u64, u64), (Vec<f32>, Vec<f32>)>>,
     drops: Arc<DropCounters>,
 }
 
@@ -95,8 +95,8 @@ impl Shares {
         while let Some((key, w)) = try_next::<GradShare>(&self.sub, &self.drops) {
             let from = keys::last(&key).to_string();
             match wire::share_from_wire(w, &self.job, &from, len) {
-                Ok((p, step, values)) if p >= plan => {
-                    self.waiting.entry(from).or_default().insert((p, step), values);
+                Ok((p, step, values, factors)) if p >= plan => {
+                    self.waiting.entry(from).or_default().insert((p, step), (values, factors));
                 }
                 Ok(_) => {}
                 Err(e) => {
@@ -129,15 +129,15 @@ impl Reducer for Group<'_> {
         (self.members.iter().position(|m| m == self.me).unwrap_or(0), self.members.len())
     }
 
-    fn all_reduce(&mut self, step: u64, values: &mut [f32]) -> Result<(), String> {
+    fn all_reduce(&mut self, step: u64, values: &mut [f32], factors: Vec<f32>) -> Result<Vec<Vec<f32>>, String> {
         let t0 = Instant::now();
-        let share = wire::share_to_wire(self.job, self.me, self.plan, step, values);
+        let share = wire::share_to_wire(self.job, self.me, self.plan, step, values, &factors);
         let t1 = Instant::now();
         net::put(self.session, &keys::team_share(self.job, self.me), &share).map_err(|e| e.to_string())?;
         let t2 = Instant::now();
         let timeout = if step == 0 { FIRST_SHARE_TIMEOUT } else { SHARE_TIMEOUT };
         let since = Instant::now();
-        let mut theirs: Vec<Option<Vec<f32>>> = vec![None; self.members.len()];
+        let mut theirs: Vec<Option<(Vec<f32>, Vec<f32>)>> = vec![None; self.members.len()];
         loop {
             self.shares.pump(self.plan, values.len());
             let mut missing = None;
@@ -162,7 +162,7 @@ impl Reducer for Group<'_> {
         // Every member adds the same numbers in the same (rank) order, in one pass: element
         // by element, ((s0 + s1) + s2) + …, with this member's own share read in place.
         let rank = self.shard().0;
-        let shares: Vec<&[f32]> = theirs.iter().map(|s| s.as_deref().unwrap_or(&[])).collect();
+        let shares: Vec<&[f32]> = theirs.iter().map(|s| s.as_ref().map_or(&[][..], |(v, _)| &v[..])).collect();
         for (i, v) in values.iter_mut().enumerate() {
             let at = |r: usize| if r == rank { *v } else { shares[r][i] };
             let mut acc = at(0);
@@ -178,7 +178,8 @@ impl Reducer for Group<'_> {
             sum_ms = t3.elapsed().as_secs_f64() * 1e3,
             "all-reduce step {step}"
         );
-        Ok(())
+        let mut mine = Some(factors);
+        Ok(theirs.into_iter().map(|t| t.map_or_else(|| mine.take().unwrap_or_default(), |(_, f)| f)).collect())
     }
 }
 

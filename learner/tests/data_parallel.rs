@@ -14,7 +14,7 @@ use std::sync::{Arc, Barrier, Mutex};
 struct Threads {
     rank: usize,
     size: usize,
-    slots: Arc<Mutex<Vec<Vec<f32>>>>,
+    slots: Arc<Mutex<Vec<(Vec<f32>, Vec<f32>)>>>,
     barrier: Arc<Barrier>,
 }
 
@@ -23,20 +23,21 @@ impl Reducer for Threads {
         (self.rank, self.size)
     }
 
-    fn all_reduce(&mut self, _step: u64, values: &mut [f32]) -> Result<(), String> {
-        self.slots.lock().unwrap()[self.rank] = values.to_vec();
+    fn all_reduce(&mut self, _step: u64, values: &mut [f32], factors: Vec<f32>) -> Result<Vec<Vec<f32>>, String> {
+        self.slots.lock().unwrap()[self.rank] = (values.to_vec(), factors);
         self.barrier.wait();
-        {
+        let every = {
             let slots = self.slots.lock().unwrap();
             values.fill(0.0);
-            for s in slots.iter() {
+            for (s, _) in slots.iter() {
                 for (v, x) in values.iter_mut().zip(s) {
                     *v += x;
                 }
             }
-        }
+            slots.iter().map(|(_, f)| f.clone()).collect()
+        };
         self.barrier.wait();
-        Ok(())
+        Ok(every)
     }
 }
 
@@ -69,7 +70,7 @@ fn issue_8_two_learners_make_one_learners_update() {
     let h = Hyperparameters { num_epochs: 3, ..Hyperparameters::default() };
     let mut alone = Ppo::new(model.clone(), h.clone(), 0, 5, Par::Seq);
     let mut group: Vec<Ppo> = (0..2).map(|_| Ppo::new(model.clone(), h.clone(), 0, 5, Par::Seq)).collect();
-    let slots = Arc::new(Mutex::new(vec![Vec::new(); 2]));
+    let slots = Arc::new(Mutex::new(vec![(Vec::new(), Vec::new()); 2]));
     let barrier = Arc::new(Barrier::new(2));
     for iteration in 0..3 {
         let trajs = episodes(&alone.model, 20, &mut rng);
@@ -118,12 +119,12 @@ impl Reducer for Recording {
     fn shard(&self) -> (usize, usize) {
         self.inner.shard()
     }
-    fn all_reduce(&mut self, step: u64, values: &mut [f32]) -> Result<(), String> {
-        self.inner.all_reduce(step, values)?;
+    fn all_reduce(&mut self, step: u64, values: &mut [f32], factors: Vec<f32>) -> Result<Vec<Vec<f32>>, String> {
+        let every = self.inner.all_reduce(step, values, factors)?;
         if step == 0 {
             self.first = Some(values.to_vec());
         }
-        Ok(())
+        Ok(every)
     }
 }
 
@@ -141,7 +142,7 @@ fn issue_8_the_summed_shares_are_the_whole_minibatch_gradient() {
     let batch = learner::ppo::make_batch(&trajs, 27, h.discount_factor);
     let all: Vec<usize> = (0..n).collect();
     let whole = learner::ppo::loss_and_grad(&model, &batch, &all, &h, Par::Seq);
-    let slots = Arc::new(Mutex::new(vec![Vec::new(); 2]));
+    let slots = Arc::new(Mutex::new(vec![(Vec::new(), Vec::new()); 2]));
     let barrier = Arc::new(Barrier::new(2));
     let mut group: Vec<Ppo> = (0..2).map(|_| Ppo::new(model.clone(), h.clone(), 0, 5, Par::Seq)).collect();
     let summed = std::thread::scope(|s| {
@@ -175,7 +176,7 @@ impl Reducer for Broken {
     fn shard(&self) -> (usize, usize) {
         (1, 2)
     }
-    fn all_reduce(&mut self, step: u64, _values: &mut [f32]) -> Result<(), String> {
+    fn all_reduce(&mut self, step: u64, _values: &mut [f32], _factors: Vec<f32>) -> Result<Vec<Vec<f32>>, String> {
         Err(format!("peer gone at step {step}"))
     }
 }
@@ -244,4 +245,58 @@ fn issue_8_a_state_that_does_not_fit_is_refused_and_changes_nothing() {
         assert!(e.contains(why), "{e}");
         assert_eq!(ppo.state(), good, "nothing changed");
     }
+}
+
+#[test]
+fn issue_8_camera_network_team_sends_factors_and_makes_one_learners_update() {
+    // DeepRacer's SHALLOW network: its first dense layer (11.5 M weights) travels as its
+    // factors (each share's inputs and output gradients), multiplied out by every member.
+    let meta = ModelMetadata::parse(
+        r#"{"action_space":[{"steering_angle":-30,"speed":1},{"steering_angle":0,"speed":1},{"steering_angle":30,"speed":1}],"sensor":["FRONT_FACING_CAMERA"],"neural_network":"DEEP_CONVOLUTIONAL_NETWORK_SHALLOW","version":"5"}"#,
+        "test",
+    )
+    .unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(31);
+    let model = ActorCritic::new(&meta, 27, &mut rng);
+    assert_eq!(model.pi.factorable(64).len(), 1, "the big dense layer is factored");
+    let os = model.obs_size();
+    let trajs: Vec<Trajectory> = (0..2)
+        .map(|_| {
+            let len = 64;
+            let obs: Vec<f32> = (0..len * os).map(|_| rng.random_range(0..=255u8) as f32).collect();
+            let acts = model.act(&obs, len, false, &mut rng, Par::Seq);
+            Trajectory {
+                world: "reinvent_base".into(),
+                obs,
+                choices: acts.iter().map(|a| a.choice).collect(),
+                logp: acts.iter().map(|a| a.logp).collect(),
+                values: acts.iter().map(|a| a.value).collect(),
+                rewards: (0..len).map(|_| rng.random_range(0.0..1.0)).collect(),
+                done: true,
+                ..Default::default()
+            }
+        })
+        .collect();
+    let h = Hyperparameters { num_epochs: 1, batch_size: 64, ..Hyperparameters::default() };
+    let mut alone = Ppo::new(model.clone(), h.clone(), 0, 5, Par::Seq);
+    let one = alone.update_in(&trajs, &mut Alone);
+    assert!(one.refused.is_none() && one.gradient_steps == 2, "{one:?}");
+    let mut group: Vec<Ppo> = (0..2).map(|_| Ppo::new(model.clone(), h.clone(), 0, 5, Par::Seq)).collect();
+    let slots = Arc::new(Mutex::new(vec![(Vec::new(), Vec::new()); 2]));
+    let barrier = Arc::new(Barrier::new(2));
+    std::thread::scope(|s| {
+        for (rank, ppo) in group.iter_mut().enumerate() {
+            let (trajs, slots, barrier) = (&trajs, slots.clone(), barrier.clone());
+            s.spawn(move || {
+                let st = ppo.update_in(trajs, &mut Threads { rank, size: 2, slots, barrier });
+                assert!(st.refused.is_none(), "{st:?}");
+            });
+        }
+    });
+    assert_eq!(group[0].model, group[1].model, "the members hold the same weights");
+    let flat = |m: &ActorCritic| m.pi.params.iter().chain(&m.v.params).copied().collect::<Vec<f32>>();
+    let (start, one_w, team_w) = (flat(&model), flat(&alone.model), flat(&group[0].model));
+    let dist = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| ((x - y) as f64).powi(2)).sum::<f64>().sqrt();
+    let (apart, moved) = (dist(&team_w, &one_w), dist(&one_w, &start));
+    assert!(moved > 0.0 && apart <= 1e-2 * moved, "the team is {apart} from one learner, which moved {moved}");
 }

@@ -380,7 +380,14 @@ pub fn team_plan_from_wire(w: crate::TeamPlan, job: &JobView<'_>) -> Result<Team
 }
 
 /// A gradient share on the wire.
-pub fn share_to_wire(job: &str, learner: &str, plan: u64, step: u64, values: &[f32]) -> crate::GradShare {
+pub fn share_to_wire(
+    job: &str,
+    learner: &str,
+    plan: u64,
+    step: u64,
+    values: &[f32],
+    factors: &[f32],
+) -> crate::GradShare {
     crate::GradShare {
         protocol_version: crate::PROTOCOL_VERSION,
         job_id: job.into(),
@@ -388,16 +395,16 @@ pub fn share_to_wire(job: &str, learner: &str, plan: u64, step: u64, values: &[f
         plan,
         step,
         values: f32_bytes(values),
+        factors: f32_bytes(factors),
     }
 }
 
-/// A gradient share back: for `job`, from `learner` (the key's), `len` values.
-pub fn share_from_wire(
-    w: crate::GradShare,
-    job: &str,
-    learner: &str,
-    len: usize,
-) -> Result<(u64, u64, Vec<f32>), DecodeError> {
+/// A gradient share, decoded: plan, step, summed values, factors.
+pub type Share = (u64, u64, Vec<f32>, Vec<f32>);
+
+/// A gradient share back: for `job`, from `learner` (the key's), `len` values (the factors'
+/// size depends on the member's share of the minibatch: the learner checks it).
+pub fn share_from_wire(w: crate::GradShare, job: &str, learner: &str, len: usize) -> Result<Share, DecodeError> {
     same_job(&w.job_id, job)?;
     if w.learner != learner {
         return invalid(format!("gradient share from {:?} on {learner:?}'s key", w.learner));
@@ -405,7 +412,7 @@ pub fn share_from_wire(
     if w.values.len() != len * 4 {
         return invalid(format!("gradient share of {} bytes where {} values were expected", w.values.len(), len));
     }
-    Ok((w.plan, w.step, f32_values(&w.values)?))
+    Ok((w.plan, w.step, f32_values(&w.values)?, f32_values(&w.factors)?))
 }
 
 #[cfg(test)]
@@ -462,8 +469,8 @@ mod tests {
         w.state.as_mut().unwrap().tensors[0].data.pop();
         assert!(team_plan_from_wire(w, &view).is_err());
 
-        let share = share_to_wire(&id, "l1", 9, 4, &[1.0, 2.0]);
-        assert_eq!(share_from_wire(share.clone(), &id, "l1", 2).unwrap(), (9, 4, vec![1.0, 2.0]));
+        let share = share_to_wire(&id, "l1", 9, 4, &[1.0, 2.0], &[3.0]);
+        assert_eq!(share_from_wire(share.clone(), &id, "l1", 2).unwrap(), (9, 4, vec![1.0, 2.0], vec![3.0]));
         assert!(share_from_wire(share.clone(), &id, "l0", 2).is_err(), "another sender than the key names");
         assert!(share_from_wire(share, &id, "l1", 3).is_err(), "another size than the model's");
     }
