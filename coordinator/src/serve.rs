@@ -466,18 +466,9 @@ fn reply(ok: bool, text: String, json: serde_json::Value) -> JobReply {
 
 /// Check a job's reward function before anything trains on it.
 fn validate(doc: &JobDoc) -> std::result::Result<(), String> {
-    let dir = std::env::temp_dir().join(format!("paddock-coordinator-{}-{}", std::process::id(), doc.id));
-    let spec = if doc.reward_source.starts_with("builtin:") {
-        doc.reward_source.clone()
-    } else {
-        std::fs::create_dir_all(&dir).map_err(|e| e.to_string())?;
-        let f =
-            dir.join(if doc.reward_name.ends_with(".py") { doc.reward_name.as_str() } else { "reward_function.py" });
-        std::fs::write(&f, &doc.reward_source).map_err(|e| e.to_string())?;
-        f.display().to_string()
-    };
     let result = (|| -> Result<()> {
-        let mut reward = sim_agent::RewardFn::from_spec(&spec)?;
+        let name = if doc.reward_name.ends_with(".py") { doc.reward_name.as_str() } else { "reward_function.py" };
+        let mut reward = sim_agent::RewardFn::from_source(name, &doc.reward_source)?;
         let meta = policy::ModelMetadata::parse(&doc.model_metadata_json, "model_metadata.json")?;
         for w in &doc.worlds {
             let track = tracks::world(w)?.track(tracks::Direction::Forward);
@@ -485,7 +476,6 @@ fn validate(doc: &JobDoc) -> std::result::Result<(), String> {
         }
         Ok(())
     })();
-    let _ = std::fs::remove_dir_all(&dir);
     result.map_err(|e| format!("{e:#}"))
 }
 

@@ -29,14 +29,27 @@ impl PythonReward {
     /// Read and compile `path`, and find `reward_function` in it.
     pub fn load(path: &Path) -> Result<PythonReward, RewardError> {
         let origin = path.display().to_string();
+        let source = std::fs::read_to_string(path).map_err(|e| RewardError::Load { origin, msg: e.to_string() })?;
+        let dir = path.parent().map(|d| if d.as_os_str().is_empty() { Path::new(".") } else { d });
+        Self::compile(&source, path, dir)
+    }
+
+    /// Compile a reward file's text received from elsewhere (a job from the network):
+    /// `name` is its file name, which tracebacks show; nothing is written to disk and no
+    /// folder goes on `sys.path`.
+    pub fn from_source(source: &str, name: &str) -> Result<PythonReward, RewardError> {
+        Self::compile(source, Path::new(name), None)
+    }
+
+    fn compile(source: &str, path: &Path, dir: Option<&Path>) -> Result<PythonReward, RewardError> {
+        let origin = path.display().to_string();
         let load_err = |msg: String| RewardError::Load { origin: origin.clone(), msg };
-        let source = std::fs::read_to_string(path).map_err(|e| load_err(e.to_string()))?;
         let code = CString::new(source).map_err(|_| load_err("the file contains a NUL byte".into()))?;
         let file_name = CString::new(origin.clone()).map_err(|_| load_err("path contains a NUL byte".into()))?;
         let n = MODULE_COUNTER.fetch_add(1, Ordering::Relaxed);
         let module_name = CString::new(format!("paddock_reward_{n}")).expect("no NUL");
         Python::attach(|py| {
-            if let Some(dir) = path.parent().map(|d| if d.as_os_str().is_empty() { Path::new(".") } else { d }) {
+            if let Some(dir) = dir {
                 let dir = dir.canonicalize().unwrap_or_else(|_| dir.to_path_buf());
                 let sys_path = py.import("sys").and_then(|s| s.getattr("path"));
                 if let Ok(sys_path) = sys_path {

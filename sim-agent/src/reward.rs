@@ -76,6 +76,15 @@ impl RewardFn {
         Ok(RewardFn::Python(Box::new(PythonReward::load(Path::new(spec))?)))
     }
 
+    /// A reward from a job's text: `builtin:NAME`, or the source of a Python reward file
+    /// named `name` (compiled in memory; tracebacks name `name`).
+    pub fn from_source(name: &str, source: &str) -> Result<RewardFn, RewardError> {
+        if source.starts_with("builtin:") {
+            return RewardFn::from_spec(source);
+        }
+        Ok(RewardFn::Python(Box::new(PythonReward::from_source(source, name)?)))
+    }
+
     /// A short description for logs.
     pub fn describe(&self) -> String {
         match self {

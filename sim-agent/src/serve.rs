@@ -16,7 +16,6 @@ use sim_agent::config::{SimConfig, parse_toml};
 use sim_agent::worker::{Worker, WorkerError, WorkerInbound, WorkerLink, WorkerOutbound, WorkerSetup};
 use sim_agent::{EnvSpec, RewardFn};
 use std::collections::VecDeque;
-use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use zenoh::Wait;
@@ -140,16 +139,8 @@ fn start(args: &ServeArgs, id: &str, a: &Assignment, first_seq: u64) -> Result<W
     anyhow::ensure!(!a.worlds.is_empty(), "assignment without a world");
     let cfg = job_config(a)?;
     let meta = policy::ModelMetadata::parse(&a.model_metadata_json, "assignment model_metadata.json")?;
-    let reward = if a.reward_source.starts_with("builtin:") {
-        RewardFn::from_spec(&a.reward_source)?
-    } else {
-        // The reward file keeps its name (tracebacks show it) in a folder of its own.
-        let dir = reward_dir(id, &a.job_id);
-        std::fs::create_dir_all(&dir)?;
-        let file = dir.join(if a.reward_name.ends_with(".py") { a.reward_name.as_str() } else { "reward_function.py" });
-        std::fs::write(&file, &a.reward_source)?;
-        RewardFn::from_spec(&file.display().to_string())?
-    };
+    // Compiled in memory; the file keeps its name in tracebacks.
+    let reward = RewardFn::from_source(reward_file_name(&a.reward_name), &a.reward_source)?;
     let mut worlds = Vec::new();
     for w in &a.worlds {
         let world = tracks::world(&w.name).with_context(|| format!("assigned world {:?}", w.name))?;
@@ -178,9 +169,9 @@ fn start(args: &ServeArgs, id: &str, a: &Assignment, first_seq: u64) -> Result<W
     })?)
 }
 
-/// Where an agent keeps a job's reward file (one folder per agent and job, replaced on reuse).
-fn reward_dir(agent: &str, job: &str) -> PathBuf {
-    std::env::temp_dir().join(format!("paddock-agent-{agent}-{job}"))
+/// The name a job's reward file shows in tracebacks.
+pub fn reward_file_name(name: &str) -> &str {
+    if name.ends_with(".py") { name } else { "reward_function.py" }
 }
 
 /// The worker's link over Zenoh for one assignment.

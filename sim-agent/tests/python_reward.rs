@@ -24,7 +24,10 @@ fn base() -> EnvSpec {
 
 /// Drive one evaluation lap with the pure-pursuit driver; return the rewards or the first error.
 fn lap(reward: &str) -> Result<Vec<f64>, RewardError> {
-    let mut r = RewardFn::from_spec(reward)?;
+    lap_with(RewardFn::from_spec(reward)?)
+}
+
+fn lap_with(mut r: RewardFn) -> Result<Vec<f64>, RewardError> {
     let mut env =
         Env::new(base(), Arc::new(SimConfig::default()), Mode::Evaluation(EvalRules::default()), 5, 0.0).unwrap();
     let driver = PurePursuit::default();
@@ -137,4 +140,24 @@ fn python_rewards_in_the_vector_env_match_the_builtin_bit_for_bit() {
     let py = run(RewardFn::from_spec(&example("follow_center_line.py")).unwrap());
     let rs = run(RewardFn::Builtin(BuiltinReward::CenterLine));
     assert_eq!(py, rs);
+}
+
+#[test]
+fn issue_8_a_reward_from_a_job_compiles_in_memory_and_keeps_its_name() {
+    // A job carries its reward file's text; agents and the coordinator compile it without
+    // writing it anywhere, and tracebacks still name the user's file.
+    let source = std::fs::read_to_string(data("raises_key_error.py")).unwrap();
+    let before: Vec<_> = std::fs::read_dir(std::env::temp_dir()).unwrap().flatten().map(|e| e.file_name()).collect();
+    let err = lap_with(RewardFn::from_source("raises_key_error.py", &source).unwrap()).unwrap_err();
+    let RewardError::Raised { traceback, .. } = &err else { panic!("{err}") };
+    assert!(traceback.contains("raises_key_error.py\", line 3"), "{traceback}");
+    let after: Vec<_> = std::fs::read_dir(std::env::temp_dir()).unwrap().flatten().map(|e| e.file_name()).collect();
+    assert!(after.iter().all(|f| before.contains(f) || !f.to_string_lossy().contains("paddock")), "nothing written");
+    // The same rewards as the file itself.
+    let sample = std::fs::read_to_string(example("follow_center_line.py")).unwrap();
+    let from_text = lap_with(RewardFn::from_source("follow_center_line.py", &sample).unwrap()).unwrap();
+    assert_eq!(from_text, lap(&example("follow_center_line.py")).unwrap());
+    assert!(matches!(RewardFn::from_source("x.py", "builtin:center_line").unwrap(), RewardFn::Builtin(_)));
+    let e = RewardFn::from_source("broken.py", "def reward_function(params)\n").err().unwrap().to_string();
+    assert!(e.contains("broken.py"), "{e}");
 }
