@@ -198,6 +198,19 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         })
         .wait()
         .map_err(|e| anyhow::anyhow!("{e}"))?;
+    // Each job's document, fetched once by every learner and agent that works on it.
+    let st = state.clone();
+    let _specs = session
+        .declare_queryable(keys::JOB_SPECS)
+        .callback(move |q| {
+            let Some(id) = keys::job_of(q.key_expr().as_str()) else { return };
+            let doc = st.lock().ok().and_then(|s| s.jobs.get(id).map(|j| protocol::job::to_wire(&j.doc)));
+            if let Some(job) = doc {
+                let _ = q.reply(q.key_expr().clone(), protocol::encode(&job)).wait();
+            }
+        })
+        .wait()
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
     let agents_sub = session
         .liveliness()
         .declare_subscriber(keys::AGENTS_ALIVE)
@@ -414,7 +427,6 @@ fn schedule(st: &mut State, db: &Db, session: &zenoh::Session) {
             protocol_version: PROTOCOL_VERSION,
             job_id: j.doc.id.clone(),
             running: j.state == JobState::Running,
-            job_json: serde_json::to_string(&j.doc).unwrap_or_default(),
             assignments: vec![],
         };
         if Some(&j.doc.id) == active.as_ref() {
@@ -451,10 +463,6 @@ fn assignment(doc: &JobDoc, agent: &str, work: &AgentWork) -> Assignment {
         offset: work.offset,
         envs: doc.envs_per_agent,
         job_worlds: doc.worlds.clone(),
-        reward_name: doc.reward_name.clone(),
-        reward_source: doc.reward_source.clone(),
-        model_metadata_json: doc.model_metadata_json.clone(),
-        sim_config_toml: doc.sim_config_toml.clone(),
         seed: doc.seed ^ work.generation.wrapping_mul(0x9E37_79B9),
         generation: work.generation,
     }

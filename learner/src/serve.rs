@@ -53,6 +53,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
     const HEAR_OTHERS: Duration = Duration::from_secs(3);
     tracing::info!(learner = %id, "learner up; waiting for a job");
     let mut finished: BTreeSet<String> = BTreeSet::new();
+    let mut docs: std::collections::HashMap<String, JobDoc> = Default::default();
     let mut standby_note: Option<String> = None;
     loop {
         let Some((_, table)) = try_next::<AssignmentTable>(&jobs, &drops) else {
@@ -62,13 +63,22 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         if !table.running || finished.contains(&table.job_id) {
             continue;
         }
-        let doc: JobDoc = match serde_json::from_str::<JobDoc>(&table.job_json) {
-            Ok(d) if d.id == table.job_id && keys::is_valid_name(&d.id) => d,
-            Ok(_) => continue,
-            Err(e) => {
-                tracing::warn!("job table for {} holds an unreadable job: {e}", table.job_id);
-                continue;
-            }
+        if !keys::is_valid_name(&table.job_id) {
+            continue;
+        }
+        // The job's document, fetched once from the coordinator.
+        let doc: JobDoc = match docs.get(&table.job_id) {
+            Some(d) => d.clone(),
+            None => match protocol::job::fetch(&session, &table.job_id, Duration::from_secs(2), &drops) {
+                Some(d) => {
+                    docs.insert(d.id.clone(), d.clone());
+                    d
+                }
+                None => {
+                    tracing::warn!(job = %table.job_id, "the coordinator did not send the job's document; asking again");
+                    continue;
+                }
+            },
         };
         // The lowest id among the live learners leads the job; the others join its team and
         // share every update (and one of them leads if it goes away).

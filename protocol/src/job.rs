@@ -1,6 +1,7 @@
 //! The job document: a job spec with every file it names read in, as the coordinator stores
-//! it and sends it to the learner (JSON inside [`crate::AssignmentTable::job_json`]).
-//! Everything the learner needs is here, so that it needs no simulator.
+//! it (JSON in its database) and serves it once per job to learners and agents (the `Job`
+//! protobuf message on `job/<id>/spec`). Everything the learner needs is here, so that it
+//! needs no simulator.
 
 use serde::{Deserialize, Serialize};
 
@@ -78,4 +79,153 @@ pub struct JobDoc {
     pub obs_size: u64,
     /// The simulator's observation settings (JSON), for the model's manifest.
     pub observation_json: String,
+}
+
+/// A job on the wire.
+pub fn to_wire(d: &JobDoc) -> crate::Job {
+    let s = &d.stop;
+    crate::Job {
+        protocol_version: crate::PROTOCOL_VERSION,
+        id: d.id.clone(),
+        worlds: d.worlds.clone(),
+        reward_name: d.reward_name.clone(),
+        reward_source: d.reward_source.clone(),
+        model_metadata_json: d.model_metadata_json.clone(),
+        hyperparameters_json: d.hyperparameters_json.clone(),
+        sim_config_toml: d.sim_config_toml.clone(),
+        out: d.out.clone(),
+        clone_from: d.clone_from.clone(),
+        seed: d.seed,
+        envs_per_agent: d.envs_per_agent,
+        max_policy_lag: d.max_policy_lag,
+        stop: Some(crate::JobStop {
+            minutes: s.minutes,
+            max_episodes: s.max_episodes,
+            target_progress: s.target_progress,
+            target_reward: s.target_reward,
+            window: s.window,
+            env_steps_budget: s.env_steps_budget,
+            target_laps: s.target_laps,
+            target_evals: s.target_evals,
+        }),
+        eval_trials: d.eval_trials,
+        obs_size: d.obs_size,
+        observation_json: d.observation_json.clone(),
+    }
+}
+
+/// A job back: the one asked for (`id`), with a name, worlds and sizes that make sense.
+pub fn from_wire(j: crate::Job, id: &str) -> Result<JobDoc, crate::DecodeError> {
+    let bad = |m: String| Err(crate::DecodeError::Invalid(m));
+    if j.id != id || !crate::keys::is_valid_name(&j.id) {
+        return bad(format!("job {:?} where {id:?} was asked for", j.id));
+    }
+    if j.worlds.is_empty() || j.worlds.len() > 64 || j.worlds.iter().any(|w| !crate::keys::is_valid_name(w)) {
+        return bad(format!("job {id}: worlds {:?}", j.worlds));
+    }
+    if j.obs_size == 0 || j.obs_size > 1 << 24 || j.envs_per_agent > 4096 {
+        return bad(format!(
+            "job {id}: observation size {} or {} environments per agent",
+            j.obs_size, j.envs_per_agent
+        ));
+    }
+    let Some(s) = j.stop else { return bad(format!("job {id} has no stop conditions")) };
+    if !(s.minutes.is_finite() && s.minutes > 0.0) {
+        return bad(format!("job {id}: stop after {} minutes", s.minutes));
+    }
+    Ok(JobDoc {
+        id: j.id,
+        worlds: j.worlds,
+        reward_name: j.reward_name,
+        reward_source: j.reward_source,
+        model_metadata_json: j.model_metadata_json,
+        hyperparameters_json: j.hyperparameters_json,
+        sim_config_toml: j.sim_config_toml,
+        out: j.out,
+        clone_from: j.clone_from,
+        seed: j.seed,
+        envs_per_agent: j.envs_per_agent,
+        max_policy_lag: j.max_policy_lag,
+        stop: StopSpec {
+            minutes: s.minutes,
+            max_episodes: s.max_episodes,
+            target_progress: s.target_progress,
+            target_reward: s.target_reward,
+            window: s.window,
+            env_steps_budget: s.env_steps_budget,
+            target_laps: s.target_laps,
+            target_evals: s.target_evals,
+        },
+        eval_trials: j.eval_trials,
+        obs_size: j.obs_size,
+        observation_json: j.observation_json,
+    })
+}
+
+/// Fetch job `id` from the coordinator (once per job: callers keep it). `None` when no
+/// coordinator answered in time or the answer did not fit (counted in `drops`).
+pub fn fetch(
+    session: &zenoh::Session,
+    id: &str,
+    timeout: std::time::Duration,
+    drops: &crate::net::DropCounters,
+) -> Option<JobDoc> {
+    let replies = crate::net::query::<crate::Job>(session, &crate::keys::job_spec(id), None, timeout, drops).ok()?;
+    let mut found = None;
+    for j in replies {
+        match from_wire(j, id) {
+            Ok(d) => found = Some(d),
+            Err(e) => {
+                drops.count(&e);
+                tracing::warn!("dropped the document of job {id}: {e}");
+            }
+        }
+    }
+    found
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn doc() -> JobDoc {
+        JobDoc {
+            id: "job1".into(),
+            worlds: vec!["reinvent_wood".into()],
+            reward_name: "reward.py".into(),
+            reward_source: "def reward_function(params):\n    return 1.0\n".into(),
+            model_metadata_json: "{}".into(),
+            hyperparameters_json: "{}".into(),
+            sim_config_toml: "".into(),
+            out: "run".into(),
+            clone_from: Some("old/model".into()),
+            seed: 3,
+            envs_per_agent: 8,
+            max_policy_lag: 2,
+            stop: StopSpec { target_laps: Some(3), target_progress: Some(80.0), ..StopSpec::default() },
+            eval_trials: 3,
+            obs_size: 27,
+            observation_json: "{}".into(),
+        }
+    }
+
+    #[test]
+    fn issue_8_the_job_travels_as_protobuf_and_comes_back_whole() {
+        let d = doc();
+        let bytes = crate::encode(&to_wire(&d));
+        assert_eq!(from_wire(crate::decode(&bytes).unwrap(), "job1").unwrap(), d);
+        // Another job than asked for, no worlds, nonsense sizes: refused.
+        assert!(from_wire(to_wire(&d), "job2").is_err());
+        for f in [
+            |j: &mut crate::Job| j.worlds.clear(),
+            |j: &mut crate::Job| j.obs_size = 0,
+            |j: &mut crate::Job| j.stop = None,
+            |j: &mut crate::Job| j.stop.as_mut().unwrap().minutes = f64::NAN,
+            |j: &mut crate::Job| j.worlds.push("../etc".into()),
+        ] {
+            let mut j = to_wire(&d);
+            f(&mut j);
+            assert!(from_wire(j, "job1").is_err());
+        }
+    }
 }

@@ -103,6 +103,16 @@ pub mod keys {
     pub fn learner_status(job: &str) -> String {
         format!("{ROOT}/job/{job}/learner")
     }
+    /// A job's document (the coordinator's queryable).
+    pub fn job_spec(job: &str) -> String {
+        format!("{ROOT}/job/{job}/spec")
+    }
+    /// Every job's document.
+    pub const JOB_SPECS: &str = "paddock/v1/job/*/spec";
+    /// The job id in a key under `{ROOT}/job/`.
+    pub fn job_of(key: &str) -> Option<&str> {
+        key.strip_prefix("paddock/v1/job/").and_then(|r| r.split('/').next())
+    }
     /// A job's team plans (learner leader to members).
     pub fn team_plan(job: &str) -> String {
         format!("{ROOT}/job/{job}/team/plan")
@@ -186,7 +196,8 @@ versioned!(
     EvalReport,
     TeamPlan,
     GradShare,
-    TeamJoin
+    TeamJoin,
+    Job
 );
 
 /// Encode a message.

@@ -10,6 +10,7 @@
 
 use anyhow::{Context, Result};
 use protocol::exchange::{self as wire, JobView};
+use protocol::job::JobDoc;
 use protocol::net::{self, DropCounters, NetArgs, Sub, try_next, zenoh};
 use protocol::{AgentInfo, AgentReport, Assignment, PROTOCOL_VERSION, PolicyUpdate, keys};
 use sim_agent::config::{SimConfig, parse_toml};
@@ -70,6 +71,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
     let drops = DropCounters::default();
     tracing::info!(agent = %id, envs = args.envs, "sim agent up; waiting for an assignment");
     let mut failed: Option<(String, u64)> = None;
+    let mut docs: Vec<JobDoc> = Vec::new();
     let mut next: Option<Assignment> = None;
     let mut seq = 0u64;
     loop {
@@ -83,10 +85,30 @@ pub fn serve(args: ServeArgs) -> Result<()> {
                 }
             },
         };
-        if a.agent_id != id || failed.as_ref().is_some_and(|(j, g)| *j == a.job_id && *g == a.generation) {
+        if a.agent_id != id
+            || !keys::is_valid_name(&a.job_id)
+            || failed.as_ref().is_some_and(|(j, g)| *j == a.job_id && *g == a.generation)
+        {
             continue;
         }
-        let mut link = match AgentLink::new(&session, &id, &a, &assign_sub, &drops) {
+        // The job's document, fetched once from the coordinator (assignments name the job).
+        let doc = match docs.iter().find(|d| d.id == a.job_id) {
+            Some(d) => d.clone(),
+            None => match protocol::job::fetch(&session, &a.job_id, Duration::from_secs(2), &drops) {
+                Some(d) => {
+                    if docs.len() >= 8 {
+                        docs.remove(0);
+                    }
+                    docs.push(d.clone());
+                    d
+                }
+                None => {
+                    tracing::warn!(job = %a.job_id, "the coordinator did not send the job's document; asking again");
+                    continue;
+                }
+            },
+        };
+        let mut link = match AgentLink::new(&session, &id, &a, &doc, &assign_sub, &drops) {
             Ok(l) => l,
             Err(e) => {
                 report(&session, &a.job_id, &id, &format!("{e:#}"));
@@ -94,7 +116,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
                 continue;
             }
         };
-        let result = start(&args, &id, &a, seq).and_then(|mut w| {
+        let result = start(&args, &id, &a, &doc, seq).and_then(|mut w| {
             tracing::info!(job = %a.job_id, worlds = ?w_names(&a), generation = a.generation, "assignment taken");
             let r = w.drive(&mut link).map_err(anyhow::Error::from);
             seq = w.seq();
@@ -128,19 +150,19 @@ fn report(session: &zenoh::Session, job: &str, agent: &str, error: &str) {
 }
 
 /// The job's simulator configuration, its observation set from the model's sensors.
-fn job_config(a: &Assignment) -> Result<SimConfig> {
-    let mut cfg: SimConfig = parse_toml(&a.sim_config_toml, "assignment sim config")?;
-    let meta = policy::ModelMetadata::parse(&a.model_metadata_json, "assignment model_metadata.json")?;
+fn job_config(doc: &JobDoc) -> Result<SimConfig> {
+    let mut cfg: SimConfig = parse_toml(&doc.sim_config_toml, "the job's sim config")?;
+    let meta = policy::ModelMetadata::parse(&doc.model_metadata_json, "the job's model_metadata.json")?;
     cfg.observation.kind = sim_agent::config::observation_kind_for(&meta).map_err(|e| anyhow::anyhow!("{e}"))?;
     Ok(cfg)
 }
 
-fn start(args: &ServeArgs, id: &str, a: &Assignment, first_seq: u64) -> Result<Worker> {
+fn start(args: &ServeArgs, id: &str, a: &Assignment, doc: &JobDoc, first_seq: u64) -> Result<Worker> {
     anyhow::ensure!(!a.worlds.is_empty(), "assignment without a world");
-    let cfg = job_config(a)?;
-    let meta = policy::ModelMetadata::parse(&a.model_metadata_json, "assignment model_metadata.json")?;
+    let cfg = job_config(doc)?;
+    let meta = policy::ModelMetadata::parse(&doc.model_metadata_json, "the job's model_metadata.json")?;
     // Compiled in memory; the file keeps its name in tracebacks.
-    let reward = RewardFn::from_source(reward_file_name(&a.reward_name), &a.reward_source)?;
+    let reward = RewardFn::from_source(reward_file_name(&doc.reward_name), &doc.reward_source)?;
     let mut worlds = Vec::new();
     for w in &a.worlds {
         let world = tracks::world(&w.name).with_context(|| format!("assigned world {:?}", w.name))?;
@@ -199,10 +221,11 @@ impl<'a> AgentLink<'a> {
         session: &'a zenoh::Session,
         id: &str,
         a: &Assignment,
+        doc: &JobDoc,
         assign_sub: &'a Sub,
         drops: &'a DropCounters,
     ) -> Result<AgentLink<'a>> {
-        let cfg = job_config(a)?;
+        let cfg = job_config(doc)?;
         Ok(AgentLink {
             session,
             id: id.into(),
