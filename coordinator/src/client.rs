@@ -37,9 +37,9 @@ pub fn run(cmd: JobCommand) -> Result<i32> {
     let (net, kind, follow) = match cmd {
         JobCommand::Start { spec, id, net } => {
             let text = std::fs::read_to_string(&spec).with_context(|| format!("reading {}", spec.display()))?;
-            let name = crate::jobspec::name_of(&text);
+            let name = coordinator::jobspec::name_of(&text);
             let id = id.unwrap_or_else(|| new_job_id(&spec, name.as_deref()));
-            let doc = crate::jobspec::load(&spec, &id)?;
+            let doc = coordinator::jobspec::load(&spec, &id)?;
             (net, Kind::StartJobJson(serde_json::to_string(&doc)?), false)
         }
         JobCommand::List { net } => (net, Kind::List(true), false),

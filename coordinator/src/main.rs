@@ -9,7 +9,6 @@ mod bench;
 mod cli;
 mod client;
 mod drive;
-mod jobspec;
 mod local;
 mod render_cmd;
 mod serve;

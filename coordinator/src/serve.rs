@@ -1,29 +1,25 @@
 //! `coordinator serve`: jobs in an embedded database (redb), agent liveliness, world
 //! assignment, stop conditions, and the job-control queryable the CLI talks to.
 //!
-//! Assignment: the oldest running job gets every live agent. With at least as many agents as
-//! worlds, agents spread evenly, one world each (counts differ by at most one; a lost agent's
-//! world is filled at once from the most crowded world). With fewer agents than worlds, every
-//! agent drives every world at once, its environments split over them from its own offset,
-//! so no agent hops between worlds and nothing it had running is thrown away.
+//! The oldest running job gets every live agent, placed by [`coordinator::assign`]; jobs
+//! live in [`coordinator::jobs::Db`].
 //!
 //! Stop conditions are the learner's (the one training loop checks them); the coordinator
 //! records the reason the learner reports, stops a job the user stops, and keeps the job's
 //! wall-clock limit as a backstop should the learner be gone.
 
-use anyhow::{Context, Result};
+use anyhow::Result;
+use coordinator::assign::{assign, assignment};
+use coordinator::jobs::{AgentWork, Db, JobRecord, JobState, now_unix};
 use protocol::job::JobDoc;
 use protocol::net::{self, DropCounters, NetArgs, decode_sample, zenoh};
 use protocol::{
-    AgentInfo, AgentReport, Assignment, AssignmentTable, JobReply, JobRequest, LearnerStatus, PROTOCOL_VERSION,
-    WorldSpec, job_request::Kind, keys,
+    AgentInfo, AgentReport, AssignmentTable, JobReply, JobRequest, LearnerStatus, PROTOCOL_VERSION, job_request::Kind,
+    keys,
 };
-use redb::{Database, ReadableDatabase, ReadableTable, TableDefinition};
-use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
-use std::path::Path;
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 use zenoh::Wait;
 
 /// How long past its time limit a job may run before the coordinator stops it without the
@@ -31,70 +27,6 @@ use zenoh::Wait;
 /// it between updates, which take a minute on a camera model late in a job).
 const GRACE_S: f64 = 120.0;
 const TICK: Duration = Duration::from_millis(500);
-const JOBS: TableDefinition<&str, &str> = TableDefinition::new("jobs");
-
-fn now_unix() -> f64 {
-    SystemTime::now().duration_since(UNIX_EPOCH).map(|d| d.as_secs_f64()).unwrap_or(0.0)
-}
-
-/// A job's state.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum JobState {
-    /// Agents and the learner work on it.
-    Running,
-    /// A stop condition or the user asked it to stop; waiting for the learner's final checkpoint.
-    Stopping,
-    /// Done: final checkpoint and best model written.
-    Finished,
-    /// Could not run (a reward that raises, say).
-    Failed,
-}
-
-/// One agent's share of a job.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct AgentWork {
-    /// The worlds it drives (all at once).
-    pub worlds: Vec<String>,
-    /// Which of them its environment 0 drives.
-    pub offset: u32,
-    /// Increases with every change.
-    pub generation: u64,
-}
-
-/// What the database keeps per job.
-#[derive(Clone, Debug, Serialize, Deserialize)]
-pub struct JobRecord {
-    /// The job with its files.
-    pub doc: JobDoc,
-    /// Its state.
-    pub state: JobState,
-    /// Unix time it was started.
-    pub started: f64,
-    /// Unix time it ended.
-    pub ended: Option<f64>,
-    /// Why it stopped.
-    pub stop_reason: Option<String>,
-    /// Agent → what it drives.
-    pub assignments: BTreeMap<String, AgentWork>,
-    /// Next assignment generation.
-    pub generation: u64,
-    /// Event log.
-    pub log: Vec<String>,
-    /// The learner's last status, as JSON.
-    pub learner: Option<serde_json::Value>,
-}
-
-impl JobRecord {
-    fn event(&mut self, line: String) {
-        tracing::info!(job = %self.doc.id, "{line}");
-        let t = now_unix() - self.started;
-        self.log.push(format!("[{t:>8.1}s] {line}"));
-        if self.log.len() > 2000 {
-            self.log.drain(..500);
-        }
-    }
-}
 
 struct Alive {
     since: Instant,
@@ -113,58 +45,6 @@ pub struct ServeArgs {
     pub net: NetArgs,
     /// The database file.
     pub db: std::path::PathBuf,
-}
-
-/// The database: jobs by id, as JSON.
-struct Db {
-    db: Database,
-}
-
-impl Db {
-    fn open(path: &Path) -> Result<Db> {
-        if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
-            std::fs::create_dir_all(parent)?;
-        }
-        let db = Database::create(path).with_context(|| format!("opening the job database {}", path.display()))?;
-        let w = db.begin_write()?;
-        w.open_table(JOBS)?;
-        w.commit()?;
-        Ok(Db { db })
-    }
-
-    fn load(&self) -> Result<BTreeMap<String, JobRecord>> {
-        let r = self.db.begin_read()?;
-        let t = r.open_table(JOBS)?;
-        let mut out = BTreeMap::new();
-        for e in t.iter()? {
-            let (k, v) = e?;
-            match serde_json::from_str::<JobRecord>(v.value()) {
-                Ok(rec) => {
-                    out.insert(k.value().to_string(), rec);
-                }
-                Err(e) => tracing::warn!("job {} in the database is unreadable, skipped: {e}", k.value()),
-            }
-        }
-        Ok(out)
-    }
-
-    /// Save, and say so loudly when the database refuses: the job's state in memory stays
-    /// right, and the next change tries again.
-    fn save_or_log(&self, rec: &JobRecord) {
-        if let Err(e) = self.save(rec) {
-            tracing::error!(job = %rec.doc.id, "could not store the job in the database: {e:#}");
-        }
-    }
-
-    fn save(&self, rec: &JobRecord) -> Result<()> {
-        let w = self.db.begin_write()?;
-        {
-            let mut t = w.open_table(JOBS)?;
-            t.insert(rec.doc.id.as_str(), serde_json::to_string(rec)?.as_str())?;
-        }
-        w.commit()?;
-        Ok(())
-    }
 }
 
 /// Run the coordinator until the process is stopped.
@@ -328,49 +208,6 @@ fn on_status(st: &mut State, db: &Db, ls: LearnerStatus) {
     db.save_or_log(j);
 }
 
-/// Which worlds each agent drives (see the module doc): one each, balanced, when there are
-/// at least as many agents as worlds; every world otherwise.
-pub fn assign(
-    agents: &[String],
-    worlds: &[String],
-    current: &BTreeMap<String, AgentWork>,
-) -> BTreeMap<String, Vec<String>> {
-    let mut out: BTreeMap<String, Vec<String>> = BTreeMap::new();
-    if worlds.is_empty() {
-        return out;
-    }
-    if agents.len() < worlds.len() {
-        return agents.iter().map(|a| (a.clone(), worlds.to_vec())).collect();
-    }
-    let mut one: BTreeMap<String, String> = BTreeMap::new();
-    for a in agents {
-        if let Some(w) = current.get(a).filter(|c| c.worlds.len() == 1 && worlds.contains(&c.worlds[0])) {
-            one.insert(a.clone(), w.worlds[0].clone());
-        }
-    }
-    let count = |m: &BTreeMap<String, String>, w: &str| m.values().filter(|x| *x == w).count();
-    for a in agents {
-        if !one.contains_key(a) {
-            let w = worlds.iter().min_by_key(|w| count(&one, w)).expect("worlds not empty").clone();
-            one.insert(a.clone(), w);
-        }
-    }
-    // Even out: move agents from the most to the least crowded world.
-    loop {
-        let max = worlds.iter().max_by_key(|w| count(&one, w)).expect("not empty").clone();
-        let min = worlds.iter().min_by_key(|w| count(&one, w)).expect("not empty").clone();
-        if count(&one, &max) <= count(&one, &min) + 1 {
-            break;
-        }
-        let mover = one.iter().rev().find(|(_, w)| **w == max).map(|(a, _)| a.clone()).expect("max has agents");
-        one.insert(mover, min);
-    }
-    for (a, w) in one {
-        out.insert(a, vec![w]);
-    }
-    out
-}
-
 fn schedule(st: &mut State, db: &Db, session: &zenoh::Session) {
     let agents: Vec<String> = st.agents.keys().cloned().collect();
     // The backstop: a job past its time limit (plus grace) stops even without the learner.
@@ -441,30 +278,6 @@ fn schedule(st: &mut State, db: &Db, session: &zenoh::Session) {
         if let Err(e) = net::put(session, keys::JOBS, &table) {
             tracing::warn!("could not publish the job table: {e}");
         }
-    }
-}
-
-fn assignment(doc: &JobDoc, agent: &str, work: &AgentWork) -> Assignment {
-    let sim: sim_agent::SimConfig = sim_agent::config::parse_toml(&doc.sim_config_toml, "job").unwrap_or_default();
-    Assignment {
-        protocol_version: PROTOCOL_VERSION,
-        job_id: doc.id.clone(),
-        agent_id: agent.into(),
-        worlds: work
-            .worlds
-            .iter()
-            .map(|w| WorldSpec {
-                name: w.clone(),
-                reversed: false,
-                steering_noise_deg: sim.noise.steering_deg,
-                speed_noise_fraction: sim.noise.speed_fraction,
-            })
-            .collect(),
-        offset: work.offset,
-        envs: doc.envs_per_agent,
-        job_worlds: doc.worlds.clone(),
-        seed: doc.seed ^ work.generation.wrapping_mul(0x9E37_79B9),
-        generation: work.generation,
     }
 }
 
@@ -671,52 +484,4 @@ fn status_text(j: &JobRecord, st: &State) -> String {
         t.push_str(&format!("    {line}\n"));
     }
     t
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn names(v: &[&str]) -> Vec<String> {
-        v.iter().map(|s| s.to_string()).collect()
-    }
-
-    fn work(plan: &BTreeMap<String, Vec<String>>) -> BTreeMap<String, AgentWork> {
-        plan.iter().map(|(a, w)| (a.clone(), AgentWork { worlds: w.clone(), offset: 0, generation: 1 })).collect()
-    }
-
-    #[test]
-    fn six_agents_three_worlds_two_each_and_a_lost_agent_is_replaced() {
-        let worlds = names(&["carpet", "concrete", "wood"]);
-        let agents = names(&["a", "b", "c", "d", "e", "f"]);
-        let plan = assign(&agents, &worlds, &BTreeMap::new());
-        for w in &worlds {
-            assert_eq!(plan.values().filter(|x| x[..] == [w.clone()]).count(), 2, "{plan:?}");
-        }
-        // Lose both agents of one world: it is refilled at once from the others.
-        let current = work(&plan);
-        let wood: Vec<String> = plan.iter().filter(|(_, w)| w[0] == "wood").map(|(a, _)| a.clone()).collect();
-        let left: Vec<String> = agents.iter().filter(|a| !wood.contains(a)).cloned().collect();
-        let plan2 = assign(&left, &worlds, &current);
-        for w in &worlds {
-            let n = plan2.values().filter(|x| x[0] == *w).count();
-            assert!((1..=2).contains(&n), "{plan2:?}");
-        }
-        // Agents that keep their world are not moved (no episodes thrown away).
-        let kept = plan2.iter().filter(|(a, w)| plan[*a] == **w).count();
-        assert!(kept >= 3, "{plan:?} -> {plan2:?}");
-    }
-
-    #[test]
-    fn issue_8_fewer_agents_than_worlds_drive_every_world_at_once() {
-        let worlds = names(&["carpet", "concrete", "wood"]);
-        let agents = names(&["a", "b"]);
-        let plan = assign(&agents, &worlds, &BTreeMap::new());
-        assert_eq!(plan.len(), 2, "both agents work");
-        for w in plan.values() {
-            assert_eq!(w, &worlds, "every agent drives every world: {plan:?}");
-        }
-        // The plan is stable: asked again, nobody moves (nothing running is thrown away).
-        assert_eq!(assign(&agents, &worlds, &work(&plan)), plan);
-    }
 }

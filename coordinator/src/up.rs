@@ -169,7 +169,7 @@ pub fn up(args: UpArgs) -> Result<i32> {
     let spec_path = out.join("job.toml");
     std::fs::write(&spec_path, &spec)?;
     let id = crate::client::new_job_id(&spec_path, Some("up"));
-    let doc = crate::jobspec::load(&spec_path, &id)?;
+    let doc = coordinator::jobspec::load(&spec_path, &id)?;
     let session = net::open(&NetArgs { connect: vec![endpoint.clone()], ..Default::default() })?;
     let t0 = Instant::now();
     let started = loop {
