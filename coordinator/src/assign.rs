@@ -53,9 +53,9 @@ pub fn assign(
 }
 
 /// The assignment message for `agent`'s share of a job.
-pub fn assignment(doc: &JobDoc, agent: &str, work: &AgentWork) -> Assignment {
-    let sim: sim_agent::SimConfig = sim_agent::config::parse_toml(&doc.sim_config_toml, "job").unwrap_or_default();
-    Assignment {
+pub fn assignment(doc: &JobDoc, agent: &str, work: &AgentWork) -> anyhow::Result<Assignment> {
+    let sim: sim_agent::SimConfig = sim_agent::config::parse_toml(&doc.sim_config_toml, "the job's sim config")?;
+    Ok(Assignment {
         protocol_version: PROTOCOL_VERSION,
         job_id: doc.id.clone(),
         agent_id: agent.into(),
@@ -74,7 +74,7 @@ pub fn assignment(doc: &JobDoc, agent: &str, work: &AgentWork) -> Assignment {
         job_worlds: doc.worlds.clone(),
         seed: doc.seed ^ work.generation.wrapping_mul(0x9E37_79B9),
         generation: work.generation,
-    }
+    })
 }
 
 #[cfg(test)]

@@ -268,7 +268,15 @@ fn schedule(st: &mut State, db: &Db, session: &zenoh::Session) {
         };
         if Some(&j.doc.id) == active.as_ref() {
             for (a, w) in &j.assignments {
-                let asg = assignment(&j.doc, a, w);
+                // The job's sim config was checked when it started; should it not parse now,
+                // say so rather than send defaults.
+                let asg = match assignment(&j.doc, a, w) {
+                    Ok(asg) => asg,
+                    Err(e) => {
+                        tracing::error!(job = %j.doc.id, "cannot assign {a}: {e:#}");
+                        continue;
+                    }
+                };
                 if let Err(e) = net::put(session, &keys::assignment(a), &asg) {
                     tracing::warn!("could not send {a} its assignment: {e}");
                 }

@@ -16,4 +16,4 @@ pub mod ppo;
 pub mod run;
 
 pub use hyperparams::{Hyperparameters, LossType};
-pub use ppo::{Alone, Ppo, Reducer, UpdateStats};
+pub use ppo::{Alone, GroupError, Ppo, Reducer, StateMismatch, UpdateStats};

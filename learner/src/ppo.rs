@@ -318,6 +318,16 @@ pub struct PpoState {
     pub tensors: Vec<(String, Vec<f32>)>,
 }
 
+/// Why a learner group's step failed (a member lost, a share that does not fit).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{0}")]
+pub struct GroupError(pub String);
+
+/// A state that does not fit this learner's model and optimisers (nothing was changed).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{0}")]
+pub struct StateMismatch(pub String);
+
 /// The learners of a data-parallel group (DD-PPO), as one learner's update sees them: each
 /// computes the gradient of its share of every minibatch, weighted by the share's size, and
 /// `all_reduce` sums the shares in rank order, so every learner applies the same Adam step to
@@ -331,7 +341,7 @@ pub trait Reducer {
     /// Replace `values` by their sum over the group, added in rank order, and return every
     /// member's `factors` in rank order (this one's included). `step` numbers the calls of one
     /// update, from 0.
-    fn all_reduce(&mut self, step: u64, values: &mut [f32], factors: Vec<f32>) -> Result<Vec<Vec<f32>>, String>;
+    fn all_reduce(&mut self, step: u64, values: &mut [f32], factors: Vec<f32>) -> Result<Vec<Vec<f32>>, GroupError>;
 }
 
 /// A group of one: nothing to add.
@@ -341,7 +351,7 @@ impl Reducer for Alone {
     fn shard(&self) -> (usize, usize) {
         (0, 1)
     }
-    fn all_reduce(&mut self, _step: u64, _values: &mut [f32], factors: Vec<f32>) -> Result<Vec<Vec<f32>>, String> {
+    fn all_reduce(&mut self, _step: u64, _values: &mut [f32], factors: Vec<f32>) -> Result<Vec<Vec<f32>>, GroupError> {
         Ok(vec![factors])
     }
 }
@@ -508,13 +518,13 @@ impl Ppo {
 
     /// Take over another member's state. Refused, with nothing changed, unless every tensor
     /// is there with the size this learner's model has.
-    pub fn restore(&mut self, state: PpoState) -> Result<(), String> {
+    pub fn restore(&mut self, state: PpoState) -> Result<(), StateMismatch> {
         let mut next = self.clone();
         let mut tensors: std::collections::BTreeMap<String, Vec<f32>> = state.tensors.into_iter().collect();
-        let mut take = |name: &str, len: usize| -> Result<Vec<f32>, String> {
-            let t = tensors.remove(name).ok_or_else(|| format!("the state has no tensor `{name}`"))?;
+        let mut take = |name: &str, len: usize| -> Result<Vec<f32>, StateMismatch> {
+            let t = tensors.remove(name).ok_or_else(|| StateMismatch(format!("the state has no tensor `{name}`")))?;
             if t.len() != len {
-                return Err(format!("tensor `{name}` has {} values where {len} were expected", t.len()));
+                return Err(StateMismatch(format!("tensor `{name}` has {} values where {len} were expected", t.len())));
             }
             Ok(t)
         };
@@ -530,12 +540,12 @@ impl Ppo {
             let v = take(&format!("adam.{name}.v"), n)?;
             let t = take(&format!("adam.{name}.t"), 1)?[0];
             if !(t >= 0.0 && t.fract() == 0.0 && t < u32::MAX as f32) {
-                return Err(format!("optimiser step count {t} is not a count"));
+                return Err(StateMismatch(format!("optimiser step count {t} is not a count")));
             }
-            opt.set_moments(m, v, t as u32)?;
+            opt.set_moments(m, v, t as u32).map_err(|e| StateMismatch(e.to_string()))?;
         }
         if let Some(extra) = tensors.keys().next() {
-            return Err(format!("the state has an unknown tensor `{extra}`"));
+            return Err(StateMismatch(format!("the state has an unknown tensor `{extra}`")));
         }
         next.version = state.version;
         *self = next;
@@ -574,7 +584,13 @@ fn kept<'a>(grad: &'a [f32], skip: &'a [(usize, usize)]) -> impl Iterator<Item =
 /// over the group: gradients of both towers (but the factored layers' weights), the log-std
 /// gradient and the loss figures in one vector; the factored layers' weight gradients as
 /// every member's factors, multiplied out and added in rank order.
-fn reduce(group: &mut dyn Reducer, step: u64, lg: &mut LossGrad, shares: &[usize], rank: usize) -> Result<(), String> {
+fn reduce(
+    group: &mut dyn Reducer,
+    step: u64,
+    lg: &mut LossGrad,
+    shares: &[usize],
+    rank: usize,
+) -> Result<(), GroupError> {
     let (mine, all) = (shares[rank], shares.iter().sum::<usize>());
     let w = mine as f32 / all as f32;
     let (skip_pi, skip_v) = (skipped(&lg.factors_pi), skipped(&lg.factors_v));
@@ -613,15 +629,15 @@ fn reduce(group: &mut dyn Reducer, step: u64, lg: &mut LossGrad, shares: &[usize
     // on every member whatever its cores).
     let per_sample: usize = layers.iter().map(|f| f.n_in + f.n_out).sum();
     if every.len() != shares.len() {
-        return Err(format!("{} members' factors for a group of {}", every.len(), shares.len()));
+        return Err(GroupError(format!("{} members' factors for a group of {}", every.len(), shares.len())));
     }
     for (r, fr) in every.iter().enumerate() {
         if fr.len() != shares[r] * per_sample {
-            return Err(format!(
+            return Err(GroupError(format!(
                 "member {r}'s factors hold {} numbers where {} were expected",
                 fr.len(),
                 shares[r] * per_sample
-            ));
+            )));
         }
     }
     let mut pos = vec![0usize; shares.len()];

@@ -13,7 +13,7 @@
 
 use learner::ppo::PpoState;
 use learner::run::Team;
-use learner::{Ppo, Reducer, UpdateStats};
+use learner::{GroupError, Ppo, Reducer, UpdateStats};
 use policy::Trajectory;
 use protocol::exchange::{self as wire, JobView, TeamPlan, TeamState};
 use protocol::net::{self, DropCounters, Sub, try_next, zenoh};
@@ -129,11 +129,11 @@ impl Reducer for Group<'_> {
         (self.members.iter().position(|m| m == self.me).unwrap_or(0), self.members.len())
     }
 
-    fn all_reduce(&mut self, step: u64, values: &mut [f32], factors: Vec<f32>) -> Result<Vec<Vec<f32>>, String> {
+    fn all_reduce(&mut self, step: u64, values: &mut [f32], factors: Vec<f32>) -> Result<Vec<Vec<f32>>, GroupError> {
         let t0 = Instant::now();
         let share = wire::share_to_wire(self.job, self.me, self.plan, step, values, &factors);
         let t1 = Instant::now();
-        net::put(self.session, &keys::team_share(self.job, self.me), &share).map_err(|e| e.to_string())?;
+        net::put(self.session, &keys::team_share(self.job, self.me), &share).map_err(|e| GroupError(e.to_string()))?;
         let t2 = Instant::now();
         let timeout = if step == 0 { FIRST_SHARE_TIMEOUT } else { SHARE_TIMEOUT };
         let since = Instant::now();
@@ -154,7 +154,7 @@ impl Reducer for Group<'_> {
             if !self.roster.contains(&m) || since.elapsed() > timeout {
                 let why = if self.roster.contains(&m) { "did not answer" } else { "left" };
                 self.lost = Some(m.clone());
-                return Err(format!("learner {m} {why} (plan {}, step {step})", self.plan));
+                return Err(GroupError(format!("learner {m} {why} (plan {}, step {step})", self.plan)));
             }
             std::thread::sleep(Duration::from_micros(200));
         }

@@ -4,7 +4,7 @@
 //! plugs into.
 
 use faer::Par;
-use learner::{Alone, Hyperparameters, Ppo, Reducer};
+use learner::{Alone, GroupError, Hyperparameters, Ppo, Reducer};
 use policy::{ActorCritic, ModelMetadata, Trajectory};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -23,7 +23,7 @@ impl Reducer for Threads {
         (self.rank, self.size)
     }
 
-    fn all_reduce(&mut self, _step: u64, values: &mut [f32], factors: Vec<f32>) -> Result<Vec<Vec<f32>>, String> {
+    fn all_reduce(&mut self, _step: u64, values: &mut [f32], factors: Vec<f32>) -> Result<Vec<Vec<f32>>, GroupError> {
         self.slots.lock().unwrap()[self.rank] = (values.to_vec(), factors);
         self.barrier.wait();
         let every = {
@@ -119,7 +119,7 @@ impl Reducer for Recording {
     fn shard(&self) -> (usize, usize) {
         self.inner.shard()
     }
-    fn all_reduce(&mut self, step: u64, values: &mut [f32], factors: Vec<f32>) -> Result<Vec<Vec<f32>>, String> {
+    fn all_reduce(&mut self, step: u64, values: &mut [f32], factors: Vec<f32>) -> Result<Vec<Vec<f32>>, GroupError> {
         let every = self.inner.all_reduce(step, values, factors)?;
         if step == 0 {
             self.first = Some(values.to_vec());
@@ -176,8 +176,8 @@ impl Reducer for Broken {
     fn shard(&self) -> (usize, usize) {
         (1, 2)
     }
-    fn all_reduce(&mut self, step: u64, _values: &mut [f32], _factors: Vec<f32>) -> Result<Vec<Vec<f32>>, String> {
-        Err(format!("peer gone at step {step}"))
+    fn all_reduce(&mut self, step: u64, _values: &mut [f32], _factors: Vec<f32>) -> Result<Vec<Vec<f32>>, GroupError> {
+        Err(GroupError(format!("peer gone at step {step}")))
     }
 }
 
@@ -241,7 +241,7 @@ fn issue_8_a_state_that_does_not_fit_is_refused_and_changes_nothing() {
     for (bad, why) in [(short, "values"), (missing, "adam.v.m"), (extra, "mystery"), (bad_count, "count")] {
         let mut s = bad;
         s.version = 40;
-        let e = ppo.restore(s).unwrap_err();
+        let e = ppo.restore(s).unwrap_err().to_string();
         assert!(e.contains(why), "{e}");
         assert_eq!(ppo.state(), good, "nothing changed");
     }

@@ -476,6 +476,18 @@ fn col2im(layer: &Layer, d_cols: &[f32], batch: usize, dx: &mut [f32], par: Par)
     }
 }
 
+/// Optimiser moments that do not fit the optimiser's parameters.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("optimiser state for {m} and {v} parameters where {expected} were expected")]
+pub struct MomentsMismatch {
+    /// First moments given.
+    pub m: usize,
+    /// Second moments given.
+    pub v: usize,
+    /// Parameters of the optimiser.
+    pub expected: usize,
+}
+
 /// Adam (DeepRacer's settings: β1 0.9, β2 0.999, ε 1e-5).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Adam {
@@ -542,14 +554,9 @@ impl Adam {
     }
 
     /// Take over another optimiser's moments; refused unless they fit this one's parameters.
-    pub fn set_moments(&mut self, m: Vec<f32>, v: Vec<f32>, t: u32) -> Result<(), String> {
+    pub fn set_moments(&mut self, m: Vec<f32>, v: Vec<f32>, t: u32) -> Result<(), MomentsMismatch> {
         if m.len() != self.m.len() || v.len() != self.v.len() {
-            return Err(format!(
-                "optimiser state for {} and {} parameters where {} were expected",
-                m.len(),
-                v.len(),
-                self.m.len()
-            ));
+            return Err(MomentsMismatch { m: m.len(), v: v.len(), expected: self.m.len() });
         }
         (self.m, self.v, self.t) = (m, v, t);
         Ok(())
