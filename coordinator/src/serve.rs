@@ -486,6 +486,19 @@ fn status_text(j: &JobRecord, st: &State) -> String {
         n("dropped_bad"),
         n("eval_progress")
     ));
+    let team: Vec<&str> = l
+        .get("learners")
+        .and_then(|v| v.as_array())
+        .map(|a| a.iter().filter_map(|x| x.as_str()).collect())
+        .unwrap_or_default();
+    if team.len() > 1 {
+        t.push_str(&format!(
+            "  learner team: {} ({} updates made together, {} made again after a member was lost)\n",
+            team.join(", "),
+            n("team_updates"),
+            n("team_failures")
+        ));
+    }
     t.push_str(&format!("  agents alive: {}, learners alive: {}\n", st.agents.len(), st.learners.len()));
     t.push_str("  recent events:\n");
     for line in j.log.iter().rev().take(8).rev() {

@@ -560,6 +560,8 @@ fn issue_8_learners_share_updates_drop_the_dead_take_joiners_and_take_over() {
     let s = c.wait(&id, 90, "a team of two training", |s| learners(s).len() == 2 && team_updates(s) >= 3);
     assert_eq!(s["learner"]["learner"], "learner-a", "the lowest id leads: {s}");
     assert_eq!(learners(&s), ["learner-a", "learner-b"]);
+    let text = String::from_utf8_lossy(&c.cli(&["job", "status", &id]).stdout).to_string();
+    assert!(text.contains("learner team: learner-a, learner-b"), "{text}");
     let log = std::fs::read_to_string(c.path("learner-b.log")).unwrap();
     assert!(log.contains("took over the leader's weights and optimiser state") && log.contains("team update"), "{log}");
     // A member that dies is dropped within seconds; the leader goes on from the current version.
