@@ -83,12 +83,18 @@ impl Cluster {
     }
 
     fn learner_as(&mut self, name: &str, id: &str) {
-        let (ep, log) = (self.endpoint.clone(), self.path(&format!("{name}.log")));
+        self.learner_in(name, id, ".");
+    }
+
+    /// A learner working in its own folder (as on another machine: its own run folder).
+    fn learner_in(&mut self, name: &str, id: &str, folder: &str) {
+        let (ep, log, dir) = (self.endpoint.clone(), self.path(&format!("{name}.log")), self.path(folder));
+        std::fs::create_dir_all(&dir).unwrap();
         self.procs.spawn(
             name,
             Command::new(bin("learner"))
                 .args(["serve", "--connect", &ep, "--id", id, "--checkpoint-seconds", "0"])
-                .current_dir(self.dir.path()),
+                .current_dir(dir),
             &log,
         );
     }
@@ -553,7 +559,8 @@ fn issue_8_learners_share_updates_drop_the_dead_take_joiners_and_take_over() {
     let mut c = Cluster::new();
     c.coordinator();
     c.learner_as("learner-a", "learner-a");
-    c.learner_as("learner-b", "learner-b");
+    // learner-b works in a folder of its own, as on another machine.
+    c.learner_in("learner-b", "learner-b", "machine-b");
     c.agent("agent-1");
     let id = c.start(SPEC);
     // The lowest id leads; the other joins its team and shares every update.
@@ -573,13 +580,19 @@ fn issue_8_learners_share_updates_drop_the_dead_take_joiners_and_take_over() {
     let s = c.wait(&id, 60, "training goes on without learner-b", |s| version(s) >= v + 2);
     // One that joins receives the weights and optimiser state first, then takes part.
     let before = team_updates(&s);
-    c.learner_as("learner-b2", "learner-b");
+    c.learner_in("learner-b2", "learner-b", "machine-b");
     c.wait(&id, 90, "learner-b back in the team", |s| learners(s).len() == 2 && team_updates(s) >= before + 2);
     let log = std::fs::read_to_string(c.path("learner-b2.log")).unwrap();
     assert!(log.contains("took over the leader's weights and optimiser state"), "{log}");
-    // The leader dies: the member takes over the job.
+    // The leader dies: the member takes the job over from the team's state (its own run
+    // folder has no checkpoint: it goes on from the version the team had reached).
+    let s = c.wait(&id, 60, "a few more team updates", |s| team_updates(s) >= before + 4);
+    let before_kill = version(&s);
     c.procs.kill("learner-a");
-    let s = c.wait(&id, 60, "learner-b took over", |s| s["learner"]["learner"] == "learner-b" && version(s) >= 3);
+    let s = c.wait(&id, 60, "learner-b took over", |s| s["learner"]["learner"] == "learner-b");
+    assert!(version(&s) + 1 >= before_kill, "learner-b went on from v{} (the team was at v{before_kill})", version(&s));
+    let log = std::fs::read_to_string(c.path("learner-b2.log")).unwrap();
+    assert!(log.contains("taking over from the team's state"), "{log}");
     let v = version(&s);
     c.wait(&id, 60, "training goes on under learner-b", |s| version(s) > v + 1);
 }

@@ -17,7 +17,7 @@
 
 use crate::checkpoints::{CheckpointRecord, OpenMode, RunDir, RunError};
 use crate::hyperparams::Hyperparameters;
-use crate::ppo::{Ppo, UpdateStats};
+use crate::ppo::{Ppo, PpoState, UpdateStats};
 use faer::Par;
 use policy::exchange::{Credit, EvalReport, EvalRequest, Experience, PolicyVersion, Trial, summarise};
 use policy::folder::{self, Manifest, Parent};
@@ -274,6 +274,9 @@ pub struct RunSpec {
     pub stop: StopRules,
     /// Cores for the update (the camera networks split over them; the MLP does not).
     pub par: Par,
+    /// A learner team member taking the run over from a leader that went away: its state
+    /// (the team's, as of the last update), used when it is newer than the run folder's.
+    pub adopt: Option<PpoState>,
 }
 
 /// One update, as `metrics.jsonl` records it.
@@ -618,6 +621,15 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
     let hyper = &spec.hyper;
     let want = hyper.num_episodes_between_training.max(1) as u64;
     let mut ppo = Ppo::new(model, hyper.clone(), version, spec.seed, spec.par);
+    if let Some(state) = spec.adopt.clone().filter(|s| s.version > ppo.version) {
+        let v = state.version;
+        match ppo.restore(state) {
+            Ok(()) => {
+                tracing::info!(run = %spec.name, version = v, "taking over from the team's state (newer than the run folder's)")
+            }
+            Err(e) => tracing::warn!(run = %spec.name, "the team's state does not fit this run: {e}"),
+        }
+    }
     let manifest_for = |ppo: &Ppo, training: serde_json::Value| Manifest {
         format: "paddock-model-1".into(),
         policy_version: ppo.version,

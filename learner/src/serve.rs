@@ -54,6 +54,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
     tracing::info!(learner = %id, "learner up; waiting for a job");
     let mut finished: BTreeSet<String> = BTreeSet::new();
     let mut docs: std::collections::HashMap<String, JobDoc> = Default::default();
+    let mut adopt: Option<(String, learner::ppo::PpoState)> = None;
     let mut standby_note: Option<String> = None;
     loop {
         let Some((_, table)) = try_next::<AssignmentTable>(&jobs, &drops) else {
@@ -93,10 +94,14 @@ pub fn serve(args: ServeArgs) -> Result<()> {
                     standby_note = Some(doc.id.clone());
                 }
                 match follow_job(&session, &id, &doc, &args, &jobs, drops.clone()) {
-                    Ok(FollowEnd::Stopped) => {
+                    Ok((FollowEnd::Stopped, _)) => {
                         finished.insert(doc.id.clone());
                     }
-                    Ok(FollowEnd::LeaderGone) => tracing::info!(job = %doc.id, "the team's leader is gone"),
+                    Ok((FollowEnd::LeaderGone, state)) => {
+                        tracing::info!(job = %doc.id, "the team's leader is gone");
+                        // Should this learner lead next, it goes on from the team's state.
+                        adopt = state.map(|s| (doc.id.clone(), s));
+                    }
                     Err(e) => {
                         tracing::warn!(job = %doc.id, "could not follow the job's leader: {e:#}");
                         std::thread::sleep(Duration::from_millis(500));
@@ -108,7 +113,8 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         }
         finished.insert(doc.id.clone());
         let result = (|| -> Result<()> {
-            let spec = spec_of(&doc, &args)?;
+            let mut spec = spec_of(&doc, &args)?;
+            spec.adopt = adopt.take().filter(|(job, _)| *job == doc.id).map(|(_, s)| s);
             let mut link = ZenohLink::new(&session, &id, &doc, &jobs, drops.clone(), table)?;
             run(&spec, &mut link, &mut Quiet)?;
             Ok(())
@@ -138,7 +144,7 @@ fn follow_job(
     args: &ServeArgs,
     jobs: &Sub,
     drops: Arc<DropCounters>,
-) -> Result<FollowEnd> {
+) -> Result<(FollowEnd, Option<learner::ppo::PpoState>)> {
     let spec = spec_of(doc, args)?;
     let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(spec.seed);
     let model = policy::ActorCritic::new(&spec.metadata, spec.obs_size, &mut rng);
@@ -162,7 +168,9 @@ fn follow_job(
         updates += 1;
         tracing::info!(job = %doc.id, version = ppo.version, samples = stats.samples, updates, "team update");
     };
-    team::follow(session, id, &view, &mut ppo, drops, &mut keep_going, &mut on_update)
+    let end = team::follow(session, id, &view, &mut ppo, drops, &mut keep_going, &mut on_update)?;
+    // The team's state, if this learner took part at all.
+    Ok((end, (updates > 0).then(|| ppo.state())))
 }
 
 /// The run a job describes.
@@ -197,6 +205,7 @@ fn spec_of(doc: &JobDoc, args: &ServeArgs) -> Result<RunSpec> {
                 .map(|l| TargetLaps { laps: l as usize, evaluations: s.target_evals.max(1) as usize }),
         },
         par: if camera { Par::rayon(args.threads) } else { Par::Seq },
+        adopt: None,
     })
 }
 
