@@ -65,6 +65,21 @@ pub struct JobRecord {
 }
 
 impl JobRecord {
+    /// A job starting now: running, nothing assigned yet.
+    pub fn new(doc: JobDoc) -> JobRecord {
+        JobRecord {
+            doc,
+            state: JobState::Running,
+            started: now_unix(),
+            ended: None,
+            stop_reason: None,
+            assignments: BTreeMap::new(),
+            generation: 0,
+            log: vec![],
+            learner: None,
+        }
+    }
+
     /// Log an event (and trace it).
     pub fn event(&mut self, line: String) {
         tracing::info!(job = %self.doc.id, "{line}");
@@ -146,21 +161,10 @@ mod tests {
             "max_policy_lag": 2, "stop": {}, "eval_trials": 3, "obs_size": 27, "observation_json": "{}"
         }))
         .unwrap();
-        let mut rec = JobRecord {
-            doc,
-            state: JobState::Running,
-            started: now_unix(),
-            ended: None,
-            stop_reason: None,
-            assignments: [(
-                "a1".to_string(),
-                AgentWork { worlds: vec!["reinvent_wood".into()], offset: 0, generation: 3 },
-            )]
-            .into(),
-            generation: 4,
-            log: vec![],
-            learner: None,
-        };
+        let mut rec = JobRecord::new(doc);
+        rec.assignments =
+            [("a1".to_string(), AgentWork { worlds: vec!["reinvent_wood".into()], offset: 0, generation: 3 })].into();
+        rec.generation = 4;
         rec.event("started".into());
         {
             let db = Db::open(&path).unwrap();

@@ -323,17 +323,7 @@ fn handle(st: &Arc<Mutex<State>>, db: &Db, _session: &zenoh::Session, req: JobRe
                     serde_json::Value::Null,
                 );
             }
-            let mut rec = JobRecord {
-                doc,
-                state: JobState::Running,
-                started: now_unix(),
-                ended: None,
-                stop_reason: None,
-                assignments: BTreeMap::new(),
-                generation: 0,
-                log: vec![],
-                learner: None,
-            };
+            let mut rec = JobRecord::new(doc);
             let ok = match validate(&rec.doc) {
                 Ok(()) => {
                     rec.event(format!("started: worlds {:?}, reward {}", rec.doc.worlds, rec.doc.reward_name));
