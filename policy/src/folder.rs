@@ -5,6 +5,7 @@
 //!   model.safetensors     weights: pi.<layer>.weight/bias, v.<layer>.weight/bias, pi.log_std
 //!   model_metadata.json   DeepRacer's file, as DeepRacer writes it
 //!   manifest.json         policy version, parent model, sha256 of the weights, figures
+//!   signature.json        the learner's ed25519 signature over the three (see `signature`)
 //! ```
 //!
 //! Saving writes a sibling temporary folder and renames it into place, so a reader sees the
@@ -14,6 +15,7 @@
 use crate::metadata::ModelMetadata;
 use crate::model::{ActorCritic, Head};
 use crate::nn::{Layer, Net};
+use crate::signature::{ModelSignature, SignatureError, Signer, TrustedKeys};
 use safetensors::{Dtype, SafeTensors, tensor::TensorView};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
@@ -131,7 +133,97 @@ pub fn sha256_hex(bytes: &[u8]) -> String {
     format!("{:x}", Sha256::digest(bytes))
 }
 
-/// Write a model folder at `dir` (replacing one that is there). `manifest.weights_sha256`
+/// A model's files as bytes: what a folder holds and what travels on the network.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ModelParts {
+    /// `model_metadata.json`.
+    pub metadata_json: String,
+    /// `manifest.json`.
+    pub manifest_json: String,
+    /// `model.safetensors`.
+    pub weights: Vec<u8>,
+    /// `signature.json`, when the model is signed.
+    pub signature: Option<ModelSignature>,
+}
+
+impl ModelParts {
+    /// The parts of a model; `manifest.weights_sha256` is filled in, and the parts are signed
+    /// when a signer is given.
+    pub fn new(metadata: &ModelMetadata, model: &ActorCritic, manifest: &Manifest, signer: Option<&Signer>) -> ModelParts {
+        let weights = weights_bytes(model, manifest.policy_version);
+        let mut manifest = manifest.clone();
+        manifest.weights_sha256 = sha256_hex(&weights);
+        let metadata_json = metadata.to_json();
+        let manifest_json = serde_json::to_string_pretty(&manifest).expect("JSON");
+        let signature = signer.map(|s| s.sign(&weights, &metadata_json, &manifest_json));
+        ModelParts { metadata_json, manifest_json, weights, signature }
+    }
+
+    /// Read a folder's files as they are (nothing checked but that they are there).
+    pub fn read(dir: &Path) -> Result<ModelParts, ModelError> {
+        let read_text = |file: &str| -> Result<String, ModelError> {
+            let p = dir.join(file);
+            std::fs::read_to_string(&p).map_err(io(&p))
+        };
+        let metadata_json = read_text("model_metadata.json")?;
+        let manifest_json = read_text("manifest.json")?;
+        let w_path = dir.join("model.safetensors");
+        let weights = std::fs::read(&w_path).map_err(io(&w_path))?;
+        let s_path = dir.join("signature.json");
+        let signature = match std::fs::read_to_string(&s_path) {
+            Ok(text) => Some(serde_json::from_str(&text).map_err(|e| ModelError::Invalid {
+                path: s_path.display().to_string(),
+                msg: format!("not a signature file: {e}"),
+            })?),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
+            Err(e) => return Err(io(&s_path)(e)),
+        };
+        Ok(ModelParts { metadata_json, manifest_json, weights, signature })
+    }
+
+    /// Write them as the folder `dir` (replacing one that is there): a sibling temporary
+    /// folder renamed into place, so that a reader sees the old folder or the new one.
+    pub fn write(&self, dir: &Path) -> Result<(), ModelError> {
+        let parent = dir.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+        std::fs::create_dir_all(parent).map_err(io(parent))?;
+        let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "model".into());
+        let tmp = parent.join(format!(".{name}.tmp-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&tmp);
+        std::fs::create_dir_all(&tmp).map_err(io(&tmp))?;
+        let write = |file: &str, bytes: &[u8]| -> Result<(), ModelError> {
+            let p = tmp.join(file);
+            std::fs::write(&p, bytes).map_err(io(&p))
+        };
+        write("model.safetensors", &self.weights)?;
+        write("model_metadata.json", self.metadata_json.as_bytes())?;
+        write("manifest.json", self.manifest_json.as_bytes())?;
+        if let Some(sig) = &self.signature {
+            write("signature.json", serde_json::to_string_pretty(sig).expect("JSON").as_bytes())?;
+        }
+        let old: PathBuf = parent.join(format!(".{name}.old-{}", std::process::id()));
+        if dir.exists() {
+            std::fs::rename(dir, &old).map_err(io(dir))?;
+        }
+        std::fs::rename(&tmp, dir).map_err(io(dir))?;
+        let _ = std::fs::remove_dir_all(&old);
+        Ok(())
+    }
+
+    /// The model, with every check of [`load`] (`origin` names the files in errors).
+    pub fn decode(&self, origin: &Path) -> Result<ModelFolder, ModelError> {
+        from_parts(&self.metadata_json, &self.manifest_json, &self.weights, origin)
+    }
+
+    /// Check the signature against `trust` (the key's name on success).
+    pub fn verify<'t>(&self, trust: &'t TrustedKeys) -> Result<&'t str, SignatureError> {
+        match &self.signature {
+            Some(sig) => trust.verify(sig, &self.weights, &self.metadata_json, &self.manifest_json),
+            None => Err(SignatureError::Refused("the model is not signed".into())),
+        }
+    }
+}
+
+/// Write a model folder at `dir` (replacing one that is there), unsigned. `manifest.weights_sha256`
 /// is filled in here.
 pub fn save(
     dir: &Path,
@@ -139,48 +231,33 @@ pub fn save(
     model: &ActorCritic,
     manifest: &Manifest,
 ) -> Result<Manifest, ModelError> {
-    let weights = weights_bytes(model, manifest.policy_version);
+    save_signed(dir, metadata, model, manifest, None)
+}
+
+/// Write a model folder at `dir`, with `signature.json` when a signer is given.
+pub fn save_signed(
+    dir: &Path,
+    metadata: &ModelMetadata,
+    model: &ActorCritic,
+    manifest: &Manifest,
+    signer: Option<&Signer>,
+) -> Result<Manifest, ModelError> {
+    let parts = ModelParts::new(metadata, model, manifest, signer);
+    parts.write(dir)?;
     let mut manifest = manifest.clone();
-    manifest.weights_sha256 = sha256_hex(&weights);
-    let parent = dir.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    std::fs::create_dir_all(parent).map_err(io(parent))?;
-    let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "model".into());
-    let tmp = parent.join(format!(".{name}.tmp-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&tmp);
-    std::fs::create_dir_all(&tmp).map_err(io(&tmp))?;
-    let write = |file: &str, bytes: &[u8]| -> Result<(), ModelError> {
-        let p = tmp.join(file);
-        std::fs::write(&p, bytes).map_err(io(&p))
-    };
-    write("model.safetensors", &weights)?;
-    write("model_metadata.json", metadata.to_json().as_bytes())?;
-    write("manifest.json", serde_json::to_string_pretty(&manifest).expect("JSON").as_bytes())?;
-    let old: PathBuf = parent.join(format!(".{name}.old-{}", std::process::id()));
-    if dir.exists() {
-        std::fs::rename(dir, &old).map_err(io(dir))?;
-    }
-    std::fs::rename(&tmp, dir).map_err(io(dir))?;
-    let _ = std::fs::remove_dir_all(&old);
+    manifest.weights_sha256 = sha256_hex(&parts.weights);
     Ok(manifest)
 }
 
 /// Read a model folder, checking the weights against the metadata and the checksum.
 pub fn load(dir: &Path) -> Result<ModelFolder, ModelError> {
-    let meta_path = dir.join("model_metadata.json");
-    let meta_text = std::fs::read_to_string(&meta_path).map_err(io(&meta_path))?;
-    let man_path = dir.join("manifest.json");
-    let man_text = std::fs::read_to_string(&man_path).map_err(io(&man_path))?;
-    let w_path = dir.join("model.safetensors");
-    let bytes = std::fs::read(&w_path).map_err(io(&w_path))?;
-    from_parts(&meta_text, &man_text, &bytes, dir)
+    ModelParts::read(dir)?.decode(dir)
 }
 
 /// The three files of a model folder, as bytes (what travels on the network).
 pub fn to_parts(folder: &ModelFolder) -> (String, String, Vec<u8>) {
-    let weights = weights_bytes(&folder.model, folder.manifest.policy_version);
-    let mut manifest = folder.manifest.clone();
-    manifest.weights_sha256 = sha256_hex(&weights);
-    (folder.metadata.to_json(), serde_json::to_string_pretty(&manifest).expect("JSON"), weights)
+    let p = ModelParts::new(&folder.metadata, &folder.model, &folder.manifest, None);
+    (p.metadata_json, p.manifest_json, p.weights)
 }
 
 /// A model from its three files' contents (`dir` names them in errors), with every check of

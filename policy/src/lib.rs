@@ -5,6 +5,7 @@
 //! - [`model`]: the actor-critic (separate policy and value towers, DeepRacer's networks by
 //!   name) and its heads.
 //! - [`folder`]: the model folder (safetensors + `model_metadata.json` + manifest).
+//! - [`signature`]: ed25519 signatures over a model's files, and the keys a car trusts.
 //! - [`experience`]: trajectories, tagged with the policy version that produced them.
 //! - [`exchange`]: what the learner and the sim workers say to each other (credits,
 //!   experience, evaluation requests and reports), as plain values.
@@ -17,9 +18,10 @@ pub mod folder;
 pub mod metadata;
 pub mod model;
 pub mod nn;
+pub mod signature;
 
 pub use experience::Trajectory;
-pub use folder::{Manifest, ModelError, ModelFolder};
+pub use folder::{Manifest, ModelError, ModelFolder, ModelParts};
 pub use metadata::{
     Action, ActionSpace, MAX_SPEED, MAX_STEERING_DEG, MIN_SPEED, MetadataError, ModelMetadata, NeuralNetwork, Sensor,
     TrainingAlgorithm,
