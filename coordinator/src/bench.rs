@@ -168,6 +168,7 @@ pub fn publish(repeats: usize) -> Result<()> {
         weights: w.clone(),
         model_metadata_json: m.clone(),
         manifest_json: man.clone(),
+        signature_json: String::new(),
     })
     .len();
     println!(
@@ -184,6 +185,7 @@ pub fn publish(repeats: usize) -> Result<()> {
             weights: w.clone(),
             model_metadata_json: m.clone(),
             manifest_json: man.clone(),
+            signature_json: String::new(),
         };
         let t0 = Instant::now();
         publisher.put(protocol::encode(&u)).wait().map_err(|e| anyhow::anyhow!("{e}"))?;

@@ -193,6 +193,10 @@ pub struct UpArgs {
     /// Seconds between the learner's evaluations (and checkpoints).
     #[arg(long, default_value_t = 2.0)]
     pub checkpoint_seconds: f64,
+    /// The key that signs every model the run writes and publishes (PKCS#8 PEM, from
+    /// `coordinator keys new NAME`); default: the run folder's `signing.key`, made on first use.
+    #[arg(long)]
+    pub signing_key: Option<PathBuf>,
     /// Output folder (the run folder is OUT/run, the model OUT/run/model).
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -262,6 +266,10 @@ pub struct TrainArgs {
     /// Seconds between evaluations and checkpoints.
     #[arg(long, default_value_t = 2.0)]
     pub checkpoint_seconds: f64,
+    /// The key that signs every model the run writes and publishes (PKCS#8 PEM, from
+    /// `coordinator keys new NAME`); default: the run folder's `signing.key`, made on first use.
+    #[arg(long)]
+    pub signing_key: Option<PathBuf>,
     /// Parallel environments.
     #[arg(long, default_value_t = 32)]
     pub envs: usize,

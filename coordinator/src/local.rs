@@ -5,6 +5,7 @@
 use learner::run::{Inbound, Link, LinkError, RunStatus};
 use policy::exchange::{Credit, EvalRequest, PolicyVersion};
 use policy::folder::Manifest;
+use policy::signature::Signer;
 use sim_agent::worker::{Worker, WorkerError, WorkerInbound, WorkerLink, WorkerOutbound};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender, TryRecvError, channel};
 use std::thread::JoinHandle;
@@ -88,7 +89,7 @@ impl Drop for LocalLink {
 }
 
 impl Link for LocalLink {
-    fn publish(&mut self, policy: &PolicyVersion, _manifest: &Manifest) -> Result<(), LinkError> {
+    fn publish(&mut self, policy: &PolicyVersion, _manifest: &Manifest, _signer: &Signer) -> Result<(), LinkError> {
         self.send(WorkerInbound::Policy(policy.clone()))
     }
 

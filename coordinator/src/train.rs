@@ -179,6 +179,7 @@ pub fn train(args: TrainArgs) -> Result<i32> {
         // The camera networks are big enough to split over the cores; the MLP is not.
         par: if camera { Par::rayon(threads) } else { Par::Seq },
         adopt: None,
+        signing_key: args.signing_key.clone(),
     };
     let worker = Worker::new(WorkerSetup {
         id: "local".into(),

@@ -102,7 +102,10 @@ pub fn up(args: UpArgs) -> Result<i32> {
             "learner-1".into(),
             "--checkpoint-seconds".into(),
             args.checkpoint_seconds.to_string(),
-        ],
+        ]
+        .into_iter()
+        .chain(args.signing_key.iter().flat_map(|k| ["--signing-key".into(), k.display().to_string()]))
+        .collect::<Vec<String>>(),
         &logs.join("learner.log"),
     )?;
     let threads = (std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1) / args.agents.max(1)).max(1);

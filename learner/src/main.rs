@@ -54,6 +54,10 @@ struct ServeCli {
     /// Seconds between evaluations (and checkpoints).
     #[arg(long, default_value_t = 5.0)]
     checkpoint_seconds: f64,
+    /// The key that signs every model (PKCS#8 PEM, from `coordinator keys new NAME`); default:
+    /// the run folder's `signing.key`, made on first use. Learners of one team share one key.
+    #[arg(long)]
+    signing_key: Option<std::path::PathBuf>,
     /// Threads for the update (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
@@ -108,6 +112,7 @@ fn main() {
             id: a.id,
             threads: a.threads.unwrap_or_else(cores),
             checkpoint_seconds: a.checkpoint_seconds,
+            signing_key: a.signing_key,
         }),
     };
     if let Err(e) = result {

@@ -21,6 +21,7 @@ use crate::ppo::{Ppo, PpoState, UpdateStats};
 use faer::Par;
 use policy::exchange::{Credit, EvalReport, EvalRequest, Experience, PolicyVersion, Trial, summarise};
 use policy::folder::{self, Manifest, Parent};
+use policy::signature::Signer;
 use policy::{ActorCritic, ModelMetadata, Trajectory};
 use rand::SeedableRng;
 use serde::{Deserialize, Serialize};
@@ -80,7 +81,12 @@ pub enum Inbound {
 /// How the run reaches its workers.
 pub trait Link {
     /// Make `policy` the one workers act with (every version is published).
-    fn publish(&mut self, policy: &PolicyVersion, manifest: &Manifest) -> Result<(), LinkError>;
+    fn publish(&mut self, policy: &PolicyVersion, manifest: &Manifest, signer: &Signer) -> Result<(), LinkError>;
+    /// A new best model (after the evaluation that made it best): cars following "best"
+    /// drive it. Default: nothing (no car listens in one process).
+    fn best(&mut self, _policy: &PolicyVersion, _manifest: &Manifest, _signer: &Signer) -> Result<(), LinkError> {
+        Ok(())
+    }
     /// Announce a grant (called again every second: it must be idempotent).
     fn grant(&mut self, credit: &Credit) -> Result<(), LinkError>;
     /// Ask a worker for evaluation trials.
@@ -277,6 +283,9 @@ pub struct RunSpec {
     /// A learner team member taking the run over from a leader that went away: its state
     /// (the team's, as of the last update), used when it is newer than the run folder's.
     pub adopt: Option<PpoState>,
+    /// The key that signs every published model and model folder (PKCS#8 PEM); `None`: the
+    /// run folder's `signing.key`, made on first use (its `signing.pub` is what cars trust).
+    pub signing_key: Option<PathBuf>,
 }
 
 /// One update, as `metrics.jsonl` records it.
@@ -597,6 +606,16 @@ fn open(spec: &RunSpec) -> Result<(RunDir, ActorCritic, u64, Option<Parent>, u64
     Ok((run, ActorCritic::new(&spec.metadata, spec.obs_size, &mut rng), 0, None, 0))
 }
 
+/// The run's signing key: the one the spec names, or the run folder's `signing.key` (made on
+/// first use, with `signing.pub` beside it).
+fn signer_for(spec: &RunSpec, run: &RunDir) -> Result<Signer, RunFailure> {
+    let r = match &spec.signing_key {
+        Some(path) => Signer::load(path),
+        None => Signer::load_or_create(&run.root().join("signing.key")),
+    };
+    r.map_err(|e| RunFailure::Inputs(format!("signing key: {e}")))
+}
+
 fn mean(xs: impl Iterator<Item = f64>) -> f64 {
     let (s, n) = xs.fold((0.0, 0usize), |(s, n), x| (s + x, n + 1));
     if n == 0 { 0.0 } else { s / n as f64 }
@@ -614,6 +633,7 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
         return Err(RunFailure::Inputs("the run names no world".into()));
     }
     let (run, model, version, parent, first_iteration) = open(spec)?;
+    let signer = signer_for(spec, &run)?;
     run.write_file("model_metadata.json", spec.metadata.to_json().as_bytes())?;
     run.write_file("hyperparameters.json", spec.hyper.to_json().as_bytes())?;
     run.write_file("sim.toml", spec.sim_toml.as_bytes())?;
@@ -641,7 +661,7 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
     };
     let publish = |ppo: &Ppo, link: &mut dyn Link| -> Result<(), LinkError> {
         let p = PolicyVersion { version: ppo.version, model: Arc::new(ppo.model.clone()), metadata: metadata.clone() };
-        link.publish(&p, &manifest_for(ppo, serde_json::json!({"run": spec.name})))
+        link.publish(&p, &manifest_for(ppo, serde_json::json!({"run": spec.name})), &signer)
     };
     publish(&ppo, link)?;
     tracing::info!(run = %spec.name, version = ppo.version, folder = %spec.out.display(), "training");
@@ -862,7 +882,7 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
                     "env_steps": env_steps, "seconds": start.elapsed().as_secs_f64(), "hyperparameters": hyper}),
             );
             if saved_iteration != Some(iteration) {
-                folder::save(&run.checkpoint_dir(&name), &spec.metadata, &ppo.model, &manifest)?;
+                folder::save_signed(&run.checkpoint_dir(&name), &spec.metadata, &ppo.model, &manifest, Some(&signer))?;
                 run.record_last(CheckpointRecord {
                     name: name.clone(),
                     iteration,
@@ -942,7 +962,12 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
             let is_best = run.record(rec.clone())?;
             evaluated_version = Some(p.version);
             if is_best || !run.model_dir().join("manifest.json").exists() {
-                folder::save(&run.model_dir(), &spec.metadata, &p.model, &manifest)?;
+                folder::save_signed(&run.model_dir(), &spec.metadata, &p.model, &manifest, Some(&signer))?;
+            }
+            if is_best {
+                let best_policy =
+                    PolicyVersion { version: p.version, model: Arc::new(p.model.clone()), metadata: metadata.clone() };
+                link.best(&best_policy, &manifest, &signer)?;
             }
             if is_best {
                 best = Some(rec);

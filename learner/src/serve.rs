@@ -16,6 +16,7 @@ use learner::run::{Inbound, Link, LinkError, Quiet, RunSpec, Start, StopRules, T
 use policy::ModelMetadata;
 use policy::exchange::{Credit, EvalRequest, PolicyVersion};
 use policy::folder::Manifest;
+use policy::signature::Signer;
 use protocol::exchange::{self as wire, JobView};
 use protocol::job::JobDoc;
 use protocol::net::{self, DropCounters, NetArgs, Sub, try_next, zenoh};
@@ -36,6 +37,8 @@ pub struct ServeArgs {
     pub threads: usize,
     /// Seconds between evaluations/checkpoints.
     pub checkpoint_seconds: f64,
+    /// The signing key (default: the run folder's).
+    pub signing_key: Option<PathBuf>,
 }
 
 /// Run the learner until the process is stopped.
@@ -206,6 +209,7 @@ fn spec_of(doc: &JobDoc, args: &ServeArgs) -> Result<RunSpec> {
         },
         par: if camera { Par::rayon(args.threads) } else { Par::Seq },
         adopt: None,
+        signing_key: args.signing_key.clone(),
     })
 }
 
@@ -222,6 +226,8 @@ struct ZenohLink<'a> {
     drops: Arc<DropCounters>,
     latest: Arc<Mutex<Vec<u8>>>,
     _queryable: zenoh::query::Queryable<()>,
+    best: Arc<Mutex<Vec<u8>>>,
+    _best_queryable: zenoh::query::Queryable<()>,
     agents: Vec<String>,
     team: TeamLead<'a>,
     last_table: Instant,
@@ -238,18 +244,8 @@ impl<'a> ZenohLink<'a> {
         drops: Arc<DropCounters>,
         table: AssignmentTable,
     ) -> Result<ZenohLink<'a>> {
-        let latest: Arc<Mutex<Vec<u8>>> = Arc::new(Mutex::new(Vec::new()));
-        let latest_q = latest.clone();
-        let queryable = session
-            .declare_queryable(keys::policy(&doc.id))
-            .callback(move |q| {
-                let bytes = latest_q.lock().map(|b| b.clone()).unwrap_or_default();
-                if !bytes.is_empty() {
-                    let _ = q.reply(q.key_expr().clone(), bytes).wait();
-                }
-            })
-            .wait()
-            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        let (latest, queryable) = answer_last(session, &keys::policy(&doc.id))?;
+        let (best, best_queryable) = answer_last(session, &keys::best(&doc.id))?;
         Ok(ZenohLink {
             session,
             learner: learner.into(),
@@ -262,6 +258,8 @@ impl<'a> ZenohLink<'a> {
             drops: drops.clone(),
             latest,
             _queryable: queryable,
+            best,
+            _best_queryable: best_queryable,
             agents: table.assignments.iter().map(|a| a.agent_id.clone()).collect(),
             team: TeamLead::new(session, &doc.id, learner, doc.obs_size as usize, drops.clone())?,
             last_table: Instant::now(),
@@ -281,18 +279,47 @@ impl<'a> ZenohLink<'a> {
     }
 }
 
+/// A queryable on `key` that answers with the last bytes stored in the returned cell.
+fn answer_last(session: &zenoh::Session, key: &str) -> Result<(Arc<Mutex<Vec<u8>>>, zenoh::query::Queryable<()>)> {
+    let cell: Arc<Mutex<Vec<u8>>> = Arc::new(Mutex::new(Vec::new()));
+    let c = cell.clone();
+    let queryable = session
+        .declare_queryable(key)
+        .callback(move |q| {
+            let bytes = c.lock().map(|b| b.clone()).unwrap_or_default();
+            if !bytes.is_empty() {
+                let _ = q.reply(q.key_expr().clone(), bytes).wait();
+            }
+        })
+        .wait()
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    Ok((cell, queryable))
+}
+
 fn link_err(e: impl std::fmt::Display) -> LinkError {
     LinkError(e.to_string())
 }
 
 impl Link for ZenohLink<'_> {
-    fn publish(&mut self, p: &PolicyVersion, manifest: &Manifest) -> Result<(), LinkError> {
-        let bytes = protocol::encode(&wire::policy_to_wire(&self.job, p, manifest));
+    fn publish(&mut self, p: &PolicyVersion, manifest: &Manifest, signer: &Signer) -> Result<(), LinkError> {
+        let bytes = protocol::encode(&wire::policy_to_wire(&self.job, p, manifest, Some(signer)));
         if let Ok(mut l) = self.latest.lock() {
             *l = bytes.clone();
         }
         self.session
             .put(keys::policy(&self.job), bytes)
+            .congestion_control(zenoh::qos::CongestionControl::Block)
+            .wait()
+            .map_err(link_err)
+    }
+
+    fn best(&mut self, p: &PolicyVersion, manifest: &Manifest, signer: &Signer) -> Result<(), LinkError> {
+        let bytes = protocol::encode(&wire::policy_to_wire(&self.job, p, manifest, Some(signer)));
+        if let Ok(mut l) = self.best.lock() {
+            *l = bytes.clone();
+        }
+        self.session
+            .put(keys::best(&self.job), bytes)
             .congestion_control(zenoh::qos::CongestionControl::Block)
             .wait()
             .map_err(link_err)

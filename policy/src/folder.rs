@@ -149,7 +149,12 @@ pub struct ModelParts {
 impl ModelParts {
     /// The parts of a model; `manifest.weights_sha256` is filled in, and the parts are signed
     /// when a signer is given.
-    pub fn new(metadata: &ModelMetadata, model: &ActorCritic, manifest: &Manifest, signer: Option<&Signer>) -> ModelParts {
+    pub fn new(
+        metadata: &ModelMetadata,
+        model: &ActorCritic,
+        manifest: &Manifest,
+        signer: Option<&Signer>,
+    ) -> ModelParts {
         let weights = weights_bytes(model, manifest.policy_version);
         let mut manifest = manifest.clone();
         manifest.weights_sha256 = sha256_hex(&weights);

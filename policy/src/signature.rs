@@ -162,8 +162,7 @@ impl Signer {
 fn write_private(path: &Path, bytes: &[u8]) -> Result<(), SignatureError> {
     use std::io::Write;
     use std::os::unix::fs::OpenOptionsExt;
-    let mut f =
-        std::fs::OpenOptions::new().write(true).create_new(true).mode(0o600).open(path).map_err(io(path))?;
+    let mut f = std::fs::OpenOptions::new().write(true).create_new(true).mode(0o600).open(path).map_err(io(path))?;
     f.write_all(bytes).map_err(io(path))
 }
 
@@ -255,7 +254,11 @@ mod tests {
         trust.add("a.pub", &a);
         let sig = a.sign(b"weights", "{\"m\":1}", "{\"v\":1}");
         assert_eq!(trust.verify(&sig, b"weights", "{\"m\":1}", "{\"v\":1}").unwrap(), "a.pub");
-        for (w, m, f) in [(&b"weightz"[..], "{\"m\":1}", "{\"v\":1}"), (b"weights", "{\"m\":2}", "{\"v\":1}"), (b"weights", "{\"m\":1}", "{\"v\":2}")] {
+        for (w, m, f) in [
+            (&b"weightz"[..], "{\"m\":1}", "{\"v\":1}"),
+            (b"weights", "{\"m\":2}", "{\"v\":1}"),
+            (b"weights", "{\"m\":1}", "{\"v\":2}"),
+        ] {
             let e = trust.verify(&sig, w, m, f).unwrap_err().to_string();
             assert!(e.contains("changed after signing"), "{e}");
         }

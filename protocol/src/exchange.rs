@@ -221,18 +221,42 @@ pub fn experience_from_wire(
 }
 
 /// A policy version on the wire (the model folder's three files).
-pub fn policy_to_wire(job: &str, p: &ex::PolicyVersion, manifest: &Manifest) -> crate::PolicyUpdate {
-    let f =
-        policy::ModelFolder { metadata: (*p.metadata).clone(), model: (*p.model).clone(), manifest: manifest.clone() };
-    let (metadata, manifest, weights) = folder::to_parts(&f);
+pub fn policy_to_wire(
+    job: &str,
+    p: &ex::PolicyVersion,
+    manifest: &Manifest,
+    signer: Option<&policy::signature::Signer>,
+) -> crate::PolicyUpdate {
+    let parts = policy::ModelParts::new(&p.metadata, &p.model, manifest, signer);
     crate::PolicyUpdate {
         protocol_version: crate::PROTOCOL_VERSION,
         job_id: job.into(),
         policy_version: p.version,
-        weights,
-        model_metadata_json: metadata,
-        manifest_json: manifest,
+        weights: parts.weights,
+        model_metadata_json: parts.metadata_json,
+        manifest_json: parts.manifest_json,
+        signature_json: parts.signature.map(|s| serde_json::to_string(&s).expect("JSON")).unwrap_or_default(),
     }
+}
+
+/// A published model's files as they came (signature included), for a verifier; only the
+/// message's own consistency is checked here (its version against the manifest's is left to
+/// the model's decoding).
+pub fn policy_parts(u: &crate::PolicyUpdate) -> Result<policy::ModelParts, DecodeError> {
+    let signature = if u.signature_json.is_empty() {
+        None
+    } else {
+        Some(
+            serde_json::from_str(&u.signature_json)
+                .map_err(|e| DecodeError::Invalid(format!("signature_json is not a signature: {e}")))?,
+        )
+    };
+    Ok(policy::ModelParts {
+        metadata_json: u.model_metadata_json.clone(),
+        manifest_json: u.manifest_json.clone(),
+        weights: u.weights.clone(),
+        signature,
+    })
 }
 
 /// A policy version back: for `job`, its weights matching its metadata and checksum, and

@@ -20,6 +20,9 @@
 //! | `paddock/v1/job/{job}/eval/request/{agent}` | [`EvalRequest`] | learner |
 //! | `paddock/v1/job/{job}/eval/report/{agent}` | [`EvalReport`] | sim agent |
 //! | `paddock/v1/job/{job}/policy` | [`PolicyUpdate`] (publication and "latest" queryable) | learner |
+//! | `paddock/v1/job/{job}/best` | [`PolicyUpdate`] of the best model (publication and queryable) | learner |
+//! | `paddock/v1/alive/car/{car}` | liveliness token | on-car agent (`deploy`) |
+//! | `paddock/v1/car/{car}/status` | [`CarStatus`] (once a second) | on-car agent |
 //! | `paddock/v1/job/{job}/learner` | [`LearnerStatus`] | learner |
 //! | `paddock/v1/job/{job}/report/{agent}` | [`AgentReport`] | sim agent |
 //! | `paddock/v1/control` | [`JobRequest`] → [`JobReply`] (queryable) | coordinator |
@@ -99,6 +102,22 @@ pub mod keys {
     pub fn policy(job: &str) -> String {
         format!("{ROOT}/job/{job}/policy")
     }
+    /// A job's best model so far (publication and queryable), signed like every model.
+    pub fn best(job: &str) -> String {
+        format!("{ROOT}/job/{job}/best")
+    }
+    /// A car's liveliness token.
+    pub fn car_alive(car: &str) -> String {
+        format!("{ROOT}/alive/car/{car}")
+    }
+    /// Every car's liveliness token.
+    pub const ALL_CARS_ALIVE: &str = "paddock/v1/alive/car/*";
+    /// A car's status (once a second).
+    pub fn car_status(car: &str) -> String {
+        format!("{ROOT}/car/{car}/status")
+    }
+    /// Every car's status.
+    pub const ALL_CAR_STATUS: &str = "paddock/v1/car/*/status";
     /// A job's learner status.
     pub fn learner_status(job: &str) -> String {
         format!("{ROOT}/job/{job}/learner")
@@ -197,7 +216,8 @@ versioned!(
     TeamPlan,
     GradShare,
     TeamJoin,
-    Job
+    Job,
+    CarStatus
 );
 
 /// Encode a message.
