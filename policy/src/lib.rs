@@ -5,6 +5,7 @@
 //! - [`model`]: the actor-critic (separate policy and value towers, DeepRacer's networks by
 //!   name) and its heads.
 //! - [`folder`]: the model folder (safetensors + `model_metadata.json` + manifest).
+//! - [`car`]: `car.toml`, what a physical car can run and how actions become servo ratios.
 //! - [`signature`]: ed25519 signatures over a model's files, and the keys a car trusts.
 //! - [`experience`]: trajectories, tagged with the policy version that produced them.
 //! - [`exchange`]: what the learner and the sim workers say to each other (credits,
@@ -12,6 +13,7 @@
 //!
 //! Architecture invariant: no physics, no transport, no Python here.
 
+pub mod car;
 pub mod exchange;
 pub mod experience;
 pub mod folder;

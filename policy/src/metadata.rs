@@ -87,6 +87,11 @@ pub enum Sensor {
 }
 
 impl Sensor {
+    /// The sensor a `model_metadata.json` name stands for.
+    pub fn parse_name(s: &str) -> Option<Sensor> {
+        Sensor::parse(s)
+    }
+
     fn parse(s: &str) -> Option<Sensor> {
         Some(match s {
             "FRONT_FACING_CAMERA" => Sensor::FrontFacingCamera,

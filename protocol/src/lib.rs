@@ -39,6 +39,7 @@ pub use generated::*;
 pub mod exchange;
 pub mod job;
 pub mod net;
+pub mod ros;
 
 /// The version every message carries; others are dropped.
 pub const PROTOCOL_VERSION: u32 = 2;
