@@ -152,6 +152,18 @@ impl ActorCritic {
         self.pi.in_size()
     }
 
+    /// The policy's most likely choice for one observation, from the policy tower alone (as a
+    /// car drives, and as evaluations choose): the argmax class, or the Gaussian's means.
+    /// `tape` keeps the buffers between calls.
+    pub fn mode(&self, obs: &[f32], tape: &mut Tape) -> Choice {
+        self.pi.forward(obs, 1, tape, Par::Seq);
+        let row = tape.output();
+        match self.head {
+            Head::Categorical(_) => Choice::Discrete(argmax(row)),
+            Head::Gaussian { .. } => Choice::Continuous([row[0], row[1]]),
+        }
+    }
+
     /// Act on a batch of observations: sample (training) or take the mode (evaluation).
     pub fn act(&self, obs: &[f32], batch: usize, deterministic: bool, rng: &mut impl Rng, par: Par) -> Vec<ActOutput> {
         let mut tape = Tape::default();

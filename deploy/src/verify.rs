@@ -1,0 +1,64 @@
+//! Every check a model passes before a car drives it, in order: signed by a trusted key;
+//! the weights' sha256 equals the manifest's (and every tensor fits `model_metadata.json`);
+//! the model's sensors and action space fit the car (`car.toml`); its input is the camera
+//! frame the car produces.
+
+use policy::car::{CarConfig, ServoMap};
+use policy::model::{CAMERA_SHAPE, input_shape};
+use policy::nn::InputShape;
+use policy::signature::TrustedKeys;
+use policy::{ActorCritic, Manifest, ModelMetadata, ModelParts};
+use std::path::Path;
+
+/// A model that passed every check, ready to drive.
+#[derive(Debug)]
+pub struct VerifiedModel {
+    /// Its policy version.
+    pub version: u64,
+    /// Where it came from ("latest", "best", "folder DIR", …).
+    pub source: String,
+    /// The trusted key (its file) that signed it.
+    pub key: String,
+    /// `model_metadata.json`.
+    pub metadata: ModelMetadata,
+    /// `manifest.json`.
+    pub manifest: Manifest,
+    /// The networks (the car runs the policy tower).
+    pub model: ActorCritic,
+    /// Actions to servo ratios for this model.
+    pub servo: ServoMap,
+    /// Input rows, columns, channels.
+    pub input: (usize, usize, usize),
+    /// The files as verified (what `--model-dir` keeps).
+    pub parts: ModelParts,
+}
+
+/// Check a model's files for this car (see the module documentation); the reason when not.
+pub fn verify(parts: ModelParts, trust: &TrustedKeys, car: &CarConfig, source: &str) -> Result<VerifiedModel, String> {
+    let key = parts.verify(trust).map_err(|e| format!("signature: {e}"))?.to_string();
+    let folder = parts.decode(Path::new(source)).map_err(|e| e.to_string())?;
+    car.fits(&folder.metadata)?;
+    let input = match input_shape(&folder.metadata, folder.manifest.obs_size) {
+        InputShape::Image(h, w, c) => (h, w, c),
+        InputShape::Flat(n) => return Err(format!("the model takes a vector of {n}, not a camera frame")),
+    };
+    let (h, w, _) = CAMERA_SHAPE;
+    if folder.manifest.obs_size != input.0 * input.1 * input.2 || (input.0, input.1) != (h, w) {
+        return Err(format!(
+            "the manifest says {} inputs; the car gives {}×{}×{} frames",
+            folder.manifest.obs_size, input.0, input.1, input.2
+        ));
+    }
+    let servo = ServoMap::new(&car.mapping, &folder.metadata.action_space);
+    Ok(VerifiedModel {
+        version: folder.manifest.policy_version,
+        source: source.into(),
+        key,
+        servo,
+        input,
+        metadata: folder.metadata,
+        manifest: folder.manifest,
+        model: folder.model,
+        parts,
+    })
+}

@@ -1,0 +1,166 @@
+//! The car's loop without a network: which models it takes and refuses, what it sends for each
+//! frame, the watchdog and the e-stop (issue 9).
+
+use deploy::{CarState, Driver, Follow, ModelSlot, Offer};
+use policy::car::CarConfig;
+use policy::signature::{Signer, TrustedKeys};
+use policy::{ActorCritic, Manifest, ModelMetadata, ModelParts};
+use protocol::ros::{self, Header, Image, Layout, RawFrame, Time};
+use rand::SeedableRng;
+use serde_bytes::ByteBuf;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+fn manifest(version: u64, obs_size: usize) -> Manifest {
+    Manifest {
+        format: "paddock-model-1".into(),
+        policy_version: version,
+        parent: None,
+        weights_sha256: String::new(),
+        obs_size,
+        observation: serde_json::json!({}),
+        training: serde_json::json!({}),
+    }
+}
+
+fn camera_parts(version: u64, signer: &Signer) -> ModelParts {
+    let meta = ModelMetadata::default_camera();
+    let model = ActorCritic::new(&meta, 120 * 160, &mut rand_chacha::ChaCha8Rng::seed_from_u64(version));
+    ModelParts::new(&meta, &model, &manifest(version, 120 * 160), Some(signer))
+}
+
+fn aws_frame(sec: i32) -> Vec<u8> {
+    let img = Image {
+        header: Header { stamp: Time { sec, nanosec: 0 }, frame_id: "camera".into() },
+        height: 480,
+        width: 640,
+        encoding: "bgr8".into(),
+        is_bigendian: 0,
+        step: 640 * 3,
+        data: ByteBuf::from((0..640 * 480 * 3).map(|i| (i % 251) as u8).collect::<Vec<u8>>()),
+    };
+    ros::encode_sensor(vec![RawFrame::Raw(img)], Layout::Aws)
+}
+
+fn aws_car() -> CarConfig {
+    CarConfig { layout: policy::car::Layout::Aws, ..CarConfig::default() }
+}
+
+#[test]
+fn issue_9_only_genuine_models_that_fit_the_car_are_taken() {
+    let learner = Signer::from_seed([1; 32]);
+    let stranger = Signer::from_seed([2; 32]);
+    let mut trust = TrustedKeys::default();
+    trust.add("learner.pub", &learner);
+    let car = CarConfig::default();
+    let slot = ModelSlot::default();
+    let offer = |p: ModelParts, f: &Follow| slot.offer(p, &trust, &car, "latest", f);
+
+    // Unsigned, signed by a stranger, changed after signing, a state-vector model: refused.
+    let mut unsigned = camera_parts(3, &learner);
+    unsigned.signature = None;
+    let mut changed = camera_parts(3, &learner);
+    let n = changed.weights.len();
+    changed.weights[n - 1] ^= 1;
+    let sv_meta = ModelMetadata::default_state_vector();
+    let sv = ModelParts::new(
+        &sv_meta,
+        &ActorCritic::new(&sv_meta, 20, &mut rand_chacha::ChaCha8Rng::seed_from_u64(0)),
+        &manifest(3, 20),
+        Some(&learner),
+    );
+    for (parts, why) in [
+        (unsigned, "not signed"),
+        (camera_parts(3, &stranger), "not trusted"),
+        (changed, "changed after signing"),
+        (sv, "STATE_VECTOR"),
+    ] {
+        match offer(parts, &Follow::Latest) {
+            Offer::Refused(r) => assert!(r.contains(why), "{r}"),
+            o => panic!("{why}: {o:?}"),
+        }
+    }
+    assert!(slot.current().is_none());
+    assert_eq!(slot.refusals().0, 4);
+
+    // Genuine: taken; an older version is not, a newer one is.
+    assert_eq!(offer(camera_parts(3, &learner), &Follow::Latest), Offer::Taken(3));
+    assert_eq!(offer(camera_parts(2, &learner), &Follow::Latest), Offer::Skipped(2));
+    assert_eq!(offer(camera_parts(5, &learner), &Follow::Latest), Offer::Taken(5));
+    // A refused model leaves the one that drives in place.
+    assert!(matches!(offer(camera_parts(9, &stranger), &Follow::Latest), Offer::Refused(_)));
+    assert_eq!(slot.current().unwrap().version, 5);
+    // Following one version: only that one.
+    assert_eq!(offer(camera_parts(7, &learner), &Follow::Version(6)), Offer::Skipped(7));
+    assert_eq!(offer(camera_parts(6, &learner), &Follow::Version(6)), Offer::Taken(6));
+    assert_eq!(slot.swaps(), 3);
+}
+
+#[test]
+fn issue_9_no_throttle_before_a_model_then_the_models_choice() {
+    let learner = Signer::from_seed([1; 32]);
+    let mut trust = TrustedKeys::default();
+    trust.add("learner.pub", &learner);
+    let car = aws_car();
+    let slot = Arc::new(ModelSlot::default());
+    let mut d = Driver::new(car.clone(), slot.clone());
+    let t0 = Instant::now();
+    let c = d.frame(&aws_frame(1), t0).unwrap();
+    assert_eq!((c.servo.throttle, c.servo.angle, c.version), (0.0, 0.0, None));
+    assert_eq!(c.correlation.stamp.sec, 1);
+    assert_eq!(d.state(), CarState::NoModel);
+
+    let parts = camera_parts(4, &learner);
+    assert_eq!(slot.offer(parts, &trust, &car, "latest", &Follow::Latest), Offer::Taken(4));
+    let c = d.frame(&aws_frame(2), t0 + Duration::from_millis(66)).unwrap();
+    assert_eq!(c.version, Some(4));
+    assert_eq!(d.state(), CarState::Driving);
+    // The command is the model's own choice, mapped as the navigation node maps it.
+    let m = slot.current().unwrap();
+    let frames = ros::decode_sensor(&aws_frame(2), Layout::Aws).unwrap();
+    let mut obs = Vec::new();
+    deploy::frame::preprocess(&frames, 120, 160, 1, &mut obs).unwrap();
+    let choice = m.model.mode(&obs, &mut policy::nn::Tape::default());
+    let action = match choice {
+        policy::Choice::Discrete(i) => m.metadata.action_space.discrete(i).unwrap(),
+        policy::Choice::Continuous(_) => unreachable!(),
+    };
+    let (angle, throttle) = m.servo.to_servo(action);
+    assert_eq!((c.servo.angle, c.servo.throttle), (angle, throttle));
+    assert!(throttle > 0.0);
+
+    // A frame that does not decode is an error, not a command, and not a crash.
+    assert!(d.frame(b"\x00\x01\x00\x00garbage", t0).is_err());
+    assert_eq!(d.figures().bad_frames, 1);
+}
+
+#[test]
+fn issue_9_watchdog_and_e_stop_bring_throttle_to_zero() {
+    let learner = Signer::from_seed([1; 32]);
+    let mut trust = TrustedKeys::default();
+    trust.add("learner.pub", &learner);
+    let car = aws_car();
+    let slot = Arc::new(ModelSlot::default());
+    slot.offer(camera_parts(1, &learner), &trust, &car, "latest", &Follow::Latest);
+    let mut d = Driver::new(car, slot);
+    let t0 = Instant::now();
+    assert!(d.tick(t0).is_none(), "no frame yet: nothing to watch");
+    d.frame(&aws_frame(1), t0).unwrap();
+    assert!(d.tick(t0 + Duration::from_millis(200)).is_none());
+    let stop = d.tick(t0 + Duration::from_millis(251)).expect("the watchdog fires after 250 ms");
+    assert_eq!((stop.servo.throttle, stop.version), (0.0, None));
+    assert_eq!(d.state(), CarState::FramesStopped);
+    assert!(d.tick(t0 + Duration::from_millis(300)).is_none(), "once per period");
+    assert!(d.tick(t0 + Duration::from_millis(502)).is_some(), "and again while frames stay away");
+    // Frames return: driving again.
+    let c = d.frame(&aws_frame(2), t0 + Duration::from_millis(600)).unwrap();
+    assert!(c.version.is_some());
+    assert_eq!(d.state(), CarState::Driving);
+    // The e-stop holds the car until released.
+    d.set_estop(true);
+    let c = d.frame(&aws_frame(3), t0 + Duration::from_millis(666)).unwrap();
+    assert_eq!((c.servo.throttle, c.version, d.state()), (0.0, None, CarState::EStop));
+    d.set_estop(false);
+    let c = d.frame(&aws_frame(4), t0 + Duration::from_millis(733)).unwrap();
+    assert!(c.version.is_some() && d.state() == CarState::Driving);
+}
