@@ -47,11 +47,47 @@ pub enum Command {
     Up(UpArgs),
     /// Render the car's camera view (160x120) to a PNG; --grid for several worlds side by side.
     Render(RenderArgs),
+    /// Signing keys: `keys new NAME` writes NAME.key (secret, for `--signing-key`) and NAME.pub
+    /// (for a car's `--trust`).
+    Keys {
+        #[command(subcommand)]
+        command: KeysCommand,
+    },
+    /// The cars (`deploy`) on the network: model, frames/s, latencies, refusals, watchdog;
+    /// `--estop CAR` holds a car at throttle 0 until `--release CAR`.
+    Cars(CarsArgs),
     /// Benchmarks of the cluster: `cluster` (env steps/s vs one process), `publish` (model latency).
     Bench {
         #[command(subcommand)]
         command: BenchCommand,
     },
+}
+
+#[derive(Subcommand)]
+pub enum KeysCommand {
+    /// Write a new ed25519 key pair: NAME.key (PKCS#8 PEM, owner-only) and NAME.pub.
+    New {
+        /// The pair's name (a path without extension: `keys/learner`).
+        name: PathBuf,
+    },
+}
+
+#[derive(Args)]
+pub struct CarsArgs {
+    /// Hold this car at throttle 0 (its e-stop) until released.
+    #[arg(long, conflicts_with = "release")]
+    pub estop: Option<String>,
+    /// Release this car's e-stop.
+    #[arg(long)]
+    pub release: Option<String>,
+    /// Print JSON lines.
+    #[arg(long)]
+    pub json: bool,
+    /// Seconds to listen for the cars' status.
+    #[arg(long, default_value_t = 2.0)]
+    pub seconds: f64,
+    #[command(flatten)]
+    pub net: NetCli,
 }
 
 #[derive(Subcommand)]

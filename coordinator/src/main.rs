@@ -6,6 +6,7 @@
 //! one-machine launcher (`up`).
 
 mod bench;
+mod cars;
 mod cli;
 mod client;
 mod drive;
@@ -43,6 +44,8 @@ fn main() {
         cli::Command::Agents { net } => client::run(cli::JobCommand::Agents { net }),
         cli::Command::Up(args) => up::up(args),
         cli::Command::Render(args) => render_cmd::render(args),
+        cli::Command::Keys { command: cli::KeysCommand::New { name } } => cars::new_keys(&name),
+        cli::Command::Cars(args) => cars::cars(args),
         cli::Command::Bench { command } => match command {
             cli::BenchCommand::Cluster { seconds, envs, world } => bench::cluster(seconds, envs, &world).map(|()| 0),
             cli::BenchCommand::Publish { repeats } => bench::publish(repeats).map(|()| 0),

@@ -23,6 +23,9 @@
 //! | `paddock/v1/job/{job}/best` | [`PolicyUpdate`] of the best model (publication and queryable) | learner |
 //! | `paddock/v1/alive/car/{car}` | liveliness token | on-car agent (`deploy`) |
 //! | `paddock/v1/car/{car}/status` | [`CarStatus`] (once a second) | on-car agent |
+//! | `paddock/v1/car/{car}/control` | [`CarControl`] (the e-stop) | a person (`coordinator cars`) |
+//! | `{ns}/sensor_fusion_pkg/sensor_msg` | the car's `EvoSensorMsg`, CDR ([`ros`]) | the car (zenoh-bridge-ros2dds) |
+//! | `{ns}/deepracer_navigation_pkg/auto_drive` | `ServoCtrlMsg`, CDR ([`ros`]) | on-car agent |
 //! | `paddock/v1/job/{job}/learner` | [`LearnerStatus`] | learner |
 //! | `paddock/v1/job/{job}/report/{agent}` | [`AgentReport`] | sim agent |
 //! | `paddock/v1/control` | [`JobRequest`] → [`JobReply`] (queryable) | coordinator |
@@ -119,6 +122,10 @@ pub mod keys {
     }
     /// Every car's status.
     pub const ALL_CAR_STATUS: &str = "paddock/v1/car/*/status";
+    /// A car's control (the e-stop).
+    pub fn car_control(car: &str) -> String {
+        format!("{ROOT}/car/{car}/control")
+    }
     /// A job's learner status.
     pub fn learner_status(job: &str) -> String {
         format!("{ROOT}/job/{job}/learner")
@@ -218,7 +225,8 @@ versioned!(
     GradShare,
     TeamJoin,
     Job,
-    CarStatus
+    CarStatus,
+    CarControl
 );
 
 /// Encode a message.
