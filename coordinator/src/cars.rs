@@ -24,7 +24,10 @@ pub fn cars(args: CarsArgs) -> Result<i32> {
     if let Some((car, hold)) = args.estop.as_ref().map(|c| (c, true)).or(args.release.as_ref().map(|c| (c, false))) {
         let alive = net::alive(&session, keys::ALL_CARS_ALIVE, Duration::from_secs(2))?;
         if !alive.iter().any(|k| keys::last(k) == car) {
-            bail!("no car '{car}' on the network (alive: {:?})", alive.iter().map(|k| keys::last(k)).collect::<Vec<_>>());
+            bail!(
+                "no car '{car}' on the network (alive: {:?})",
+                alive.iter().map(|k| keys::last(k)).collect::<Vec<_>>()
+            );
         }
         let m = CarControl { protocol_version: PROTOCOL_VERSION, car_id: car.clone(), estop: hold };
         // Sent a few times: a car that misses one still gets it.

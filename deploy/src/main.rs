@@ -6,6 +6,8 @@
 //! frame with a `ServoCtrlMsg` and runs the watchdog between frames; once a second the car's
 //! status goes out beside its liveliness token.
 
+mod bench;
+
 use anyhow::{Context, Result, bail};
 use clap::Parser;
 use deploy::{Driver, Follow, ModelSlot, Offer};
@@ -24,15 +26,17 @@ use zenoh::Wait;
 
 /// The on-car agent: drives the car with a job's published models, each verified first.
 #[derive(Parser, Debug)]
-#[command(version)]
+#[command(version, args_conflicts_with_subcommands = true)]
 struct Cli {
+    #[command(subcommand)]
+    command: Option<Sub>,
     /// The job whose models to drive (leave out with --model-dir to drive offline).
     #[arg(long)]
     job: Option<String>,
     #[command(flatten)]
     net: NetCli,
     /// Public keys (PEM, the learner's `.pub`) whose models the car accepts (repeatable).
-    #[arg(long, required = true)]
+    #[arg(long)]
     trust: Vec<PathBuf>,
     /// The car's configuration (default: built-in defaults, the same as deploy/car.toml).
     #[arg(long)]
@@ -46,12 +50,28 @@ struct Cli {
     follow: Follow,
 }
 
+#[derive(clap::Subcommand, Debug)]
+enum Sub {
+    /// Per-frame latency on one core (frame preparation, inference) and a new model's way to
+    /// the first frame it drives (decode, signature and checksum, load, swap).
+    Bench {
+        /// Seconds per measurement.
+        #[arg(long, default_value_t = 5.0)]
+        seconds: f64,
+    },
+}
+
 fn main() {
     tracing_subscriber::fmt()
         .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()))
         .with_writer(std::io::stderr)
         .init();
-    if let Err(e) = run(Cli::parse()) {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Some(Sub::Bench { seconds }) => bench::run(seconds),
+        None => run(cli),
+    };
+    if let Err(e) = result {
         eprintln!("error: {e:#}");
         std::process::exit(1);
     }
@@ -84,6 +104,9 @@ impl Mailbox {
 }
 
 fn run(cli: Cli) -> Result<()> {
+    if cli.trust.is_empty() {
+        bail!("give --trust FILE (the learner's public key): the car drives only models signed by a key it trusts");
+    }
     let car = match &cli.car {
         Some(p) => CarConfig::load(p)?,
         None => CarConfig::default(),
@@ -112,11 +135,8 @@ fn run(cli: Cli) -> Result<()> {
         Layout::Community => ros::Layout::Community,
         Layout::Aws => ros::Layout::Aws,
     };
-    let _token = session
-        .liveliness()
-        .declare_token(keys::car_alive(&car.id))
-        .wait()
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let _token =
+        session.liveliness().declare_token(keys::car_alive(&car.id)).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
 
     // Frames in.
     let mailbox = Arc::new(Mailbox::default());
@@ -179,6 +199,7 @@ fn run(cli: Cli) -> Result<()> {
     let servo_pub = session
         .declare_publisher(car_keys.servo.clone())
         .congestion_control(zenoh::qos::CongestionControl::Drop)
+        .priority(zenoh::qos::Priority::RealTime)
         .express(true)
         .wait()
         .map_err(|e| anyhow::anyhow!("{e}"))?;

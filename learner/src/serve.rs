@@ -309,6 +309,8 @@ impl Link for ZenohLink<'_> {
         self.session
             .put(keys::policy(&self.job), bytes)
             .congestion_control(zenoh::qos::CongestionControl::Block)
+            // Bulk: never ahead of a car's camera frames or commands on a shared link.
+            .priority(zenoh::qos::Priority::DataLow)
             .wait()
             .map_err(link_err)
     }
@@ -321,6 +323,8 @@ impl Link for ZenohLink<'_> {
         self.session
             .put(keys::best(&self.job), bytes)
             .congestion_control(zenoh::qos::CongestionControl::Block)
+            // Bulk: never ahead of a car's camera frames or commands on a shared link.
+            .priority(zenoh::qos::Priority::DataLow)
             .wait()
             .map_err(link_err)
     }

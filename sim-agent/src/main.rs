@@ -2,6 +2,7 @@
 //! coordinator and streams experience to a learner over Zenoh) and `bench` (the simulator's
 //! speed).
 
+mod hil;
 mod serve;
 
 use anyhow::{Context, Result};
@@ -29,6 +30,9 @@ enum Command {
     Serve(ServeCli),
     /// Measure env steps/s (1 and 2 threads, built-in and Python reward) and query cost.
     Bench(BenchArgs),
+    /// Play the physical car for `deploy`: camera frames out in the car's layout at 15 Hz,
+    /// servo commands in, DeepRacer's evaluation rules (hardware in the loop, no car).
+    Car(hil::CarArgs),
 }
 
 #[derive(clap::Args)]
@@ -79,6 +83,7 @@ fn main() {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Bench(args) => bench(args),
+        Command::Car(args) => hil::run(args),
         Command::Serve(a) => serve::serve(serve::ServeArgs {
             net: a.net.into(),
             envs: a.envs,
