@@ -47,6 +47,15 @@ pub enum Command {
     Up(UpArgs),
     /// Render the car's camera view (160x120) to a PNG; --grid for several worlds side by side.
     Render(RenderArgs),
+    /// Write a model's policy tower in another format: `export MODEL_DIR --onnx FILE`.
+    Export {
+        /// The model folder.
+        model: PathBuf,
+        /// Write ONNX here (input `observation` [N,120,160,1] NHWC 0–255; outputs `logits`
+        /// and, for discrete actions, `probabilities`).
+        #[arg(long)]
+        onnx: PathBuf,
+    },
     /// Signing keys: `keys new NAME` writes NAME.key (secret, for `--signing-key`) and NAME.pub
     /// (for a car's `--trust`).
     Keys {

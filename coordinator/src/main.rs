@@ -46,6 +46,18 @@ fn main() {
         cli::Command::Render(args) => render_cmd::render(args),
         cli::Command::Keys { command: cli::KeysCommand::New { name } } => cars::new_keys(&name),
         cli::Command::Cars(args) => cars::cars(args),
+        cli::Command::Export { model, onnx } => (|| -> anyhow::Result<i32> {
+            let f = policy::folder::load(&model)?;
+            let bytes = coordinator::onnx::policy_to_onnx(&f.model, &model.display().to_string());
+            std::fs::write(&onnx, &bytes).map_err(|e| anyhow::anyhow!("{}: {e}", onnx.display()))?;
+            println!(
+                "{}: policy v{} as ONNX ({:.1} MB)",
+                onnx.display(),
+                f.manifest.policy_version,
+                bytes.len() as f64 / 1e6
+            );
+            Ok(0)
+        })(),
         cli::Command::Bench { command } => match command {
             cli::BenchCommand::Cluster { seconds, envs, world } => bench::cluster(seconds, envs, &world).map(|()| 0),
             cli::BenchCommand::Publish { repeats } => bench::publish(repeats).map(|()| 0),

@@ -228,7 +228,9 @@ pub struct Driver {
 impl Driver {
     /// A driver for `car` taking its models from `slot`.
     pub fn new(car: CarConfig, slot: Arc<ModelSlot>) -> Driver {
-        tracing::info!(car = %car.id, "no verified model yet: throttle 0 until one is loaded");
+        if slot.current().is_none() {
+            tracing::info!(car = %car.id, "no verified model yet: throttle 0 until one is loaded");
+        }
         Driver {
             car,
             slot,

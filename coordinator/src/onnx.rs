@@ -1,0 +1,189 @@
+//! A model's policy tower as ONNX, for runtimes such as OpenVINO and onnxruntime.
+//!
+//! The graph takes DeepRacer's input, `observation` of shape `[N, 120, 160, C]` (NHWC, grey
+//! levels 0–255, C = 1 or 2 for stereo; `[N, n]` for a state-vector model), and gives `logits`
+//! (`[N, actions]`, or the two Gaussian means of a continuous space) and, for a discrete
+//! space, `probabilities` (their softmax: DeepRacer's policy output). Layers map one to one:
+//! the in-graph `/255` is `Mul`; Paddock's NHWC convolutions are ONNX's NCHW `Conv` between
+//! two `Transpose`s (weights `[f, ky, kx, c]` become `[f, c, ky, kx]`); dense layers are
+//! `Gemm` with `transB` (Paddock keeps `W` as `out × in`), after a `Flatten` of the NHWC
+//! activations, so that the flattening order is Paddock's. Opset 13; `N` is symbolic.
+
+use policy::ActorCritic;
+use policy::model::Head;
+use policy::nn::{Layer, Net};
+use prost::Message;
+
+#[allow(missing_docs, clippy::all)]
+mod pb {
+    include!(concat!(env!("OUT_DIR"), "/onnx.rs"));
+}
+
+const FLOAT: i32 = 1; // TensorProto.DataType.FLOAT
+
+fn tensor(name: &str, dims: &[usize], values: Vec<f32>) -> pb::TensorProto {
+    pb::TensorProto {
+        name: Some(name.into()),
+        dims: dims.iter().map(|d| *d as i64).collect(),
+        data_type: Some(FLOAT),
+        float_data: values,
+        ..Default::default()
+    }
+}
+
+fn node(op: &str, inputs: &[&str], output: &str, attributes: Vec<pb::AttributeProto>) -> pb::NodeProto {
+    pb::NodeProto {
+        op_type: Some(op.into()),
+        input: inputs.iter().map(|s| s.to_string()).collect(),
+        output: vec![output.into()],
+        name: Some(output.into()),
+        attribute: attributes,
+        ..Default::default()
+    }
+}
+
+fn ints(name: &str, v: &[i64]) -> pb::AttributeProto {
+    pb::AttributeProto {
+        name: Some(name.into()),
+        r#type: Some(pb::attribute_proto::AttributeType::Ints as i32),
+        ints: v.to_vec(),
+        ..Default::default()
+    }
+}
+
+fn int(name: &str, v: i64) -> pb::AttributeProto {
+    pb::AttributeProto {
+        name: Some(name.into()),
+        r#type: Some(pb::attribute_proto::AttributeType::Int as i32),
+        i: Some(v),
+        ..Default::default()
+    }
+}
+
+fn value_info(name: &str, dims: &[Option<usize>]) -> pb::ValueInfoProto {
+    use pb::tensor_shape_proto::{Dimension, dimension::Value};
+    let dim = dims
+        .iter()
+        .map(|d| Dimension {
+            value: Some(match d {
+                Some(n) => Value::DimValue(*n as i64),
+                None => Value::DimParam("N".into()),
+            }),
+            ..Default::default()
+        })
+        .collect();
+    pb::ValueInfoProto {
+        name: Some(name.into()),
+        r#type: Some(pb::TypeProto {
+            value: Some(pb::type_proto::Value::TensorType(pb::type_proto::Tensor {
+                elem_type: Some(FLOAT),
+                shape: Some(pb::TensorShapeProto { dim }),
+            })),
+            ..Default::default()
+        }),
+        ..Default::default()
+    }
+}
+
+/// The policy tower of `model` as an ONNX model's bytes; `name` goes in the graph's name.
+pub fn policy_to_onnx(model: &ActorCritic, name: &str) -> Vec<u8> {
+    let net: &Net = &model.pi;
+    let mut nodes = Vec::new();
+    let mut init = Vec::new();
+    let mut cur = "observation".to_string();
+    let first_shape = match net.layers.iter().find(|l| matches!(l, Layer::Conv2d { .. })) {
+        Some(Layer::Conv2d { input: [h, w, c], .. }) => vec![None, Some(*h), Some(*w), Some(*c)],
+        _ => vec![None, Some(net.in_size())],
+    };
+    let mut nchw = false;
+    let mut flat = first_shape.len() == 2;
+    for (i, layer) in net.layers.iter().enumerate() {
+        let out = format!("l{i}");
+        match *layer {
+            Layer::Scale { factor, .. } => {
+                init.push(tensor(&format!("l{i}.factor"), &[], vec![factor]));
+                nodes.push(node("Mul", &[&cur, &format!("l{i}.factor")], &out, vec![]));
+            }
+            Layer::Relu { .. } => nodes.push(node("Relu", &[&cur], &out, vec![])),
+            Layer::Conv2d { input: [_, _, c], filters, kernel: k, stride, offset } => {
+                if !nchw {
+                    let t = format!("l{i}.nchw");
+                    nodes.push(node("Transpose", &[&cur], &t, vec![ints("perm", &[0, 3, 1, 2])]));
+                    cur = t;
+                    nchw = true;
+                }
+                let w = &net.params[offset..offset + filters * k * k * c];
+                let mut wt = vec![0.0f32; w.len()];
+                for f in 0..filters {
+                    for ky in 0..k {
+                        for kx in 0..k {
+                            for ch in 0..c {
+                                wt[((f * c + ch) * k + ky) * k + kx] = w[((f * k + ky) * k + kx) * c + ch];
+                            }
+                        }
+                    }
+                }
+                let b = net.params[offset + w.len()..offset + w.len() + filters].to_vec();
+                init.push(tensor(&format!("l{i}.weight"), &[filters, c, k, k], wt));
+                init.push(tensor(&format!("l{i}.bias"), &[filters], b));
+                nodes.push(node(
+                    "Conv",
+                    &[&cur, &format!("l{i}.weight"), &format!("l{i}.bias")],
+                    &out,
+                    vec![ints("kernel_shape", &[k as i64, k as i64]), ints("strides", &[stride as i64, stride as i64])],
+                ));
+            }
+            Layer::Dense { inp, out: n, offset } => {
+                if nchw {
+                    let t = format!("l{i}.nhwc");
+                    nodes.push(node("Transpose", &[&cur], &t, vec![ints("perm", &[0, 2, 3, 1])]));
+                    cur = t;
+                    nchw = false;
+                }
+                if !flat {
+                    let t = format!("l{i}.flat");
+                    nodes.push(node("Flatten", &[&cur], &t, vec![int("axis", 1)]));
+                    cur = t;
+                    flat = true;
+                }
+                init.push(tensor(&format!("l{i}.weight"), &[n, inp], net.params[offset..offset + inp * n].to_vec()));
+                init.push(tensor(
+                    &format!("l{i}.bias"),
+                    &[n],
+                    net.params[offset + inp * n..offset + inp * n + n].to_vec(),
+                ));
+                nodes.push(node(
+                    "Gemm",
+                    &[&cur, &format!("l{i}.weight"), &format!("l{i}.bias")],
+                    &out,
+                    vec![int("transB", 1)],
+                ));
+            }
+        }
+        cur = out;
+    }
+    let actions = net.out_size();
+    nodes.push(node("Identity", &[&cur], "logits", vec![]));
+    let mut outputs = vec![value_info("logits", &[None, Some(actions)])];
+    if matches!(model.head, Head::Categorical(_)) {
+        nodes.push(node("Softmax", &["logits"], "probabilities", vec![int("axis", 1)]));
+        outputs.push(value_info("probabilities", &[None, Some(actions)]));
+    }
+    let graph = pb::GraphProto {
+        name: Some(name.into()),
+        node: nodes,
+        initializer: init,
+        input: vec![value_info("observation", &first_shape)],
+        output: outputs,
+        ..Default::default()
+    };
+    pb::ModelProto {
+        ir_version: Some(8),
+        producer_name: Some("paddock".into()),
+        producer_version: Some(env!("CARGO_PKG_VERSION").into()),
+        opset_import: vec![pb::OperatorSetIdProto { domain: Some(String::new()), version: Some(13) }],
+        graph: Some(graph),
+        ..Default::default()
+    }
+    .encode_to_vec()
+}
