@@ -103,7 +103,7 @@ pub fn run(seconds: f64) -> Result<()> {
         let bytes = frame_bytes(layout, w, h);
         let (mut total, mut infer) = (Vec::new(), Vec::new());
         let m = slot.current().expect("taken");
-        let mut tape = policy::nn::Tape::default();
+        let mut scratch = deploy::infer::Scratch::default();
         let obs = vec![128.0f32; 120 * 160];
         let t = Instant::now();
         while t.elapsed().as_secs_f64() < seconds {
@@ -111,7 +111,7 @@ pub fn run(seconds: f64) -> Result<()> {
             d.frame(&bytes, t0).map_err(|e| anyhow::anyhow!(e))?;
             total.push(t0.elapsed().as_secs_f64() * 1e3);
             let t1 = Instant::now();
-            std::hint::black_box(m.model.mode(&obs, &mut tape));
+            std::hint::black_box(m.policy.mode(&obs, &mut scratch));
             infer.push(t1.elapsed().as_secs_f64() * 1e3);
         }
         let (p50, p99) = percentiles(total);

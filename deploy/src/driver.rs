@@ -10,10 +10,10 @@
 //! until they return. Every state change is logged.
 
 use crate::frame::{FrameError, preprocess};
+use crate::infer::Scratch;
 use crate::verify::{VerifiedModel, verify};
 use arc_swap::ArcSwapOption;
 use policy::car::{CarConfig, Layout};
-use policy::nn::Tape;
 use policy::signature::TrustedKeys;
 use policy::{Choice, ModelParts};
 use protocol::ros::{self, Header, Servo};
@@ -213,7 +213,7 @@ pub struct Figures {
 pub struct Driver {
     car: CarConfig,
     slot: Arc<ModelSlot>,
-    tape: Tape,
+    scratch: Scratch,
     obs: Vec<f32>,
     last_frame: Option<Instant>,
     last_stop: Option<Instant>,
@@ -234,7 +234,7 @@ impl Driver {
         Driver {
             car,
             slot,
-            tape: Tape::default(),
+            scratch: Scratch::default(),
             obs: Vec::new(),
             last_frame: None,
             last_stop: None,
@@ -308,7 +308,7 @@ impl Driver {
                     });
                 }
                 let t0 = Instant::now();
-                let choice = m.model.mode(&self.obs, &mut self.tape);
+                let choice = m.policy.mode(&self.obs, &mut self.scratch);
                 self.inference.push(t0.elapsed().as_secs_f64() * 1e3);
                 let action = match choice {
                     Choice::Discrete(i) => m.metadata.action_space.discrete(i),

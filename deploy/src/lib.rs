@@ -3,6 +3,8 @@
 //!
 //! - [`frame`]: camera frames (JPEG or raw) to the network's input, as DeepRacer's inference
 //!   node prepares them.
+//! - [`infer`]: the policy tower as the car runs it (the big dense layer in half precision,
+//!   as DeepRacer's car runs FP16).
 //! - [`verify`]: the checks a model passes before it drives (signature, checksum, fit).
 //! - [`driver`]: frames in, commands out; the model slot, the watchdog and the e-stop.
 //!
@@ -11,6 +13,7 @@
 
 pub mod driver;
 pub mod frame;
+pub mod infer;
 pub mod verify;
 
 pub use driver::{CarState, Command, Driver, Follow, ModelSlot, Offer};

@@ -3,6 +3,7 @@
 //! the model's sensors and action space fit the car (`car.toml`); its input is the camera
 //! frame the car produces.
 
+use crate::infer::CarPolicy;
 use policy::car::{CarConfig, ServoMap};
 use policy::model::{CAMERA_SHAPE, input_shape};
 use policy::nn::InputShape;
@@ -23,8 +24,10 @@ pub struct VerifiedModel {
     pub metadata: ModelMetadata,
     /// `manifest.json`.
     pub manifest: Manifest,
-    /// The networks (the car runs the policy tower).
+    /// The networks as trained (f32).
     pub model: ActorCritic,
+    /// The policy tower as the car runs it.
+    pub policy: CarPolicy,
     /// Actions to servo ratios for this model.
     pub servo: ServoMap,
     /// Input rows, columns, channels.
@@ -58,6 +61,7 @@ pub fn verify(parts: ModelParts, trust: &TrustedKeys, car: &CarConfig, source: &
         input,
         metadata: folder.metadata,
         manifest: folder.manifest,
+        policy: CarPolicy::new(&folder.model),
         model: folder.model,
         parts,
     })

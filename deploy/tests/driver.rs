@@ -120,7 +120,7 @@ fn issue_9_no_throttle_before_a_model_then_the_models_choice() {
     let frames = ros::decode_sensor(&aws_frame(2), Layout::Aws).unwrap();
     let mut obs = Vec::new();
     deploy::frame::preprocess(&frames, 120, 160, 1, &mut obs).unwrap();
-    let choice = m.model.mode(&obs, &mut policy::nn::Tape::default());
+    let choice = m.policy.mode(&obs, &mut deploy::infer::Scratch::default());
     let action = match choice {
         policy::Choice::Discrete(i) => m.metadata.action_space.discrete(i).unwrap(),
         policy::Choice::Continuous(_) => unreachable!(),
