@@ -188,6 +188,15 @@ pub enum JobCommand {
         #[command(flatten)]
         net: NetCli,
     },
+    /// Choose the version cars following `best` drive (a checkpoint of the job's run).
+    Promote {
+        /// Job id.
+        id: String,
+        /// Policy version (a checkpoint's).
+        version: u64,
+        #[command(flatten)]
+        net: NetCli,
+    },
     /// A job's event log.
     Logs {
         /// Job id.

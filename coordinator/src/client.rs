@@ -50,6 +50,37 @@ pub fn run(cmd: JobCommand) -> Result<i32> {
             return Ok(if r.ok { 0 } else { 1 });
         }
         JobCommand::Stop { id, net } => (net, Kind::StopJobId(id), false),
+        JobCommand::Promote { id, version, net } => {
+            // The job's learner holds the checkpoints: it answers.
+            let session = net::open(&net_args(&net, true))?;
+            let req = protocol::JobPromote {
+                protocol_version: PROTOCOL_VERSION,
+                job_id: id.clone(),
+                policy_version: version,
+            };
+            let drops = DropCounters::default();
+            // A new session learns where the queryable is over a few hundred milliseconds:
+            // ask again until a learner answers or 10 s have passed.
+            let deadline = std::time::Instant::now() + Duration::from_secs(10);
+            let r = loop {
+                let replies = net::query::<JobReply>(
+                    &session,
+                    &keys::promote(&id),
+                    Some(protocol::encode(&req)),
+                    Duration::from_secs(3),
+                    &drops,
+                )?;
+                if let Some(r) = replies.into_iter().next() {
+                    break r;
+                }
+                if std::time::Instant::now() > deadline {
+                    bail!("no learner answered for job '{id}' (is it running?)");
+                }
+                std::thread::sleep(Duration::from_millis(300));
+            };
+            println!("{}", r.text);
+            return Ok(if r.ok { 0 } else { 1 });
+        }
         JobCommand::Logs { id, follow, net } => (net, Kind::LogsJobId(id), follow),
         JobCommand::Agents { net } => (net, Kind::Agents(true), false),
     };

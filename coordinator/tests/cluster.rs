@@ -596,3 +596,60 @@ fn issue_8_learners_share_updates_drop_the_dead_take_joiners_and_take_over() {
     let v = version(&s);
     c.wait(&id, 60, "training goes on under learner-b", |s| version(s) > v + 1);
 }
+
+#[test]
+fn issue_9_the_learner_signs_what_it_publishes_and_a_person_promotes_the_version_cars_drive() {
+    use policy::signature::TrustedKeys;
+    use protocol::net::{self, DropCounters, NetArgs};
+    use protocol::{PolicyUpdate, keys};
+    let mut c = Cluster::new();
+    c.coordinator();
+    c.learner();
+    c.agent("agent-1");
+    let id = c.start(SPEC);
+    let session = net::open(&NetArgs { connect: vec![c.endpoint.clone()], ..NetArgs::default() }).unwrap();
+    let drops = DropCounters::default();
+    let ask = |key: &str| -> Option<PolicyUpdate> {
+        net::query::<PolicyUpdate>(&session, key, None, Duration::from_secs(3), &drops).unwrap().into_iter().next()
+    };
+    // The best model (after the first evaluation) and the latest, both signed by the run's key.
+    let deadline = Instant::now() + Duration::from_secs(90);
+    let best = loop {
+        if let Some(b) = ask(&keys::best(&id)) {
+            break b;
+        }
+        assert!(Instant::now() < deadline, "no best model published:\n{}", c.logs());
+        std::thread::sleep(Duration::from_millis(500));
+    };
+    let trust = TrustedKeys::load(&[c.path("run/signing.pub")]).unwrap();
+    let latest = ask(&keys::policy(&id)).expect("the latest model");
+    for u in [&best, &latest] {
+        let parts = protocol::exchange::policy_parts(u).unwrap();
+        parts.verify(&trust).unwrap_or_else(|e| panic!("v{}: {e}", u.policy_version));
+    }
+    // A person promotes an older checkpoint: the best key now carries it, signed.
+    c.wait(&id, 60, "several checkpoints", |s| version(s) >= 6);
+    let versions: Vec<u64> = std::fs::read_dir(c.path("run/checkpoints"))
+        .unwrap()
+        .filter_map(|e| policy::ModelParts::read(&e.unwrap().path()).ok())
+        .map(|p| {
+            serde_json::from_str::<serde_json::Value>(&p.manifest_json).unwrap()["policy_version"].as_u64().unwrap()
+        })
+        .collect();
+    // The newest other than the best (older checkpoints are rotated out as training goes on).
+    let old = *versions.iter().filter(|v| **v != best.policy_version).max().expect("another checkpoint");
+    let o = c.cli(&["job", "promote", &id, &old.to_string()]);
+    let text = String::from_utf8_lossy(&o.stdout).to_string() + &String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success() && text.contains("promoted"), "{text}");
+    let promoted = ask(&keys::best(&id)).unwrap();
+    assert_eq!(promoted.policy_version, old);
+    protocol::exchange::policy_parts(&promoted).unwrap().verify(&trust).unwrap();
+    // It stays while training goes on (new evaluations do not displace a person's choice).
+    std::thread::sleep(Duration::from_secs(4));
+    assert_eq!(ask(&keys::best(&id)).unwrap().policy_version, old);
+    // A version the run never saved is refused, naming what there is.
+    let o = c.cli(&["job", "promote", &id, "99999"]);
+    let text = String::from_utf8_lossy(&o.stdout).to_string() + &String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && text.contains("no checkpoint of v99999"), "{text}\n{}", c.logs());
+    c.cli(&["job", "stop", &id]);
+}

@@ -228,6 +228,8 @@ struct ZenohLink<'a> {
     _queryable: zenoh::query::Queryable<()>,
     best: Arc<Mutex<Vec<u8>>>,
     _best_queryable: zenoh::query::Queryable<()>,
+    promotion: Arc<Mutex<Promotion>>,
+    _promote_queryable: zenoh::query::Queryable<()>,
     agents: Vec<String>,
     team: TeamLead<'a>,
     last_table: Instant,
@@ -246,6 +248,20 @@ impl<'a> ZenohLink<'a> {
     ) -> Result<ZenohLink<'a>> {
         let (latest, queryable) = answer_last(session, &keys::policy(&doc.id))?;
         let (best, best_queryable) = answer_last(session, &keys::best(&doc.id))?;
+        let promotion: Arc<Mutex<Promotion>> = Arc::default();
+        let promote_queryable = {
+            let (run, job, best, promotion) =
+                (PathBuf::from(&doc.out), doc.id.clone(), best.clone(), promotion.clone());
+            session
+                .declare_queryable(keys::promote(&doc.id))
+                .callback(move |q| {
+                    let payload = q.payload().map(|p| p.to_bytes().into_owned()).unwrap_or_default();
+                    let reply = promote(&run, &job, &payload, &best, &promotion);
+                    let _ = q.reply(q.key_expr().clone(), protocol::encode(&reply)).wait();
+                })
+                .wait()
+                .map_err(|e| anyhow::anyhow!("{e}"))?
+        };
         Ok(ZenohLink {
             session,
             learner: learner.into(),
@@ -260,6 +276,8 @@ impl<'a> ZenohLink<'a> {
             _queryable: queryable,
             best,
             _best_queryable: best_queryable,
+            promotion,
+            _promote_queryable: promote_queryable,
             agents: table.assignments.iter().map(|a| a.agent_id.clone()).collect(),
             team: TeamLead::new(session, &doc.id, learner, doc.obs_size as usize, drops.clone())?,
             last_table: Instant::now(),
@@ -277,6 +295,66 @@ impl<'a> ZenohLink<'a> {
         self.refused += 1;
         tracing::warn!(job = %self.job, "dropped {what}: {e}");
     }
+}
+
+/// A person's promotion: the version cars following "best" drive, and its publication, which
+/// the run's thread sends (nothing blocking runs in a Zenoh callback).
+#[derive(Default)]
+struct Promotion {
+    version: Option<u64>,
+    pending: Option<Vec<u8>>,
+}
+
+/// Answer a promotion request: find the checkpoint (or model) folder of that version in the run
+/// folder, signed, and make it the job's best model.
+fn promote(
+    run: &std::path::Path,
+    job: &str,
+    payload: &[u8],
+    best: &Mutex<Vec<u8>>,
+    promotion: &Mutex<Promotion>,
+) -> protocol::JobReply {
+    let reply = |ok: bool, text: String| protocol::JobReply {
+        protocol_version: PROTOCOL_VERSION,
+        ok,
+        text,
+        json: String::new(),
+    };
+    let req = match protocol::decode::<protocol::JobPromote>(payload) {
+        Ok(r) if r.job_id == job => r,
+        Ok(r) => return reply(false, format!("this learner runs job '{job}', not '{}'", r.job_id)),
+        Err(e) => return reply(false, format!("not a promotion request: {e}")),
+    };
+    let v = req.policy_version;
+    let mut folders: Vec<PathBuf> = std::fs::read_dir(run.join("checkpoints"))
+        .map(|d| d.filter_map(|e| e.ok().map(|e| e.path())).collect())
+        .unwrap_or_default();
+    folders.push(run.join("model"));
+    let mut have = Vec::new();
+    for f in folders {
+        let Ok(parts) = policy::ModelParts::read(&f) else { continue };
+        let Ok(m) = serde_json::from_str::<Manifest>(&parts.manifest_json) else { continue };
+        if m.policy_version != v {
+            have.push(m.policy_version);
+            continue;
+        }
+        if parts.signature.is_none() {
+            return reply(false, format!("{}: v{v} is not signed; cars would refuse it", f.display()));
+        }
+        let bytes = protocol::encode(&wire::parts_to_wire(job, v, &parts));
+        if let Ok(mut b) = best.lock() {
+            *b = bytes.clone();
+        }
+        if let Ok(mut p) = promotion.lock() {
+            p.version = Some(v);
+            p.pending = Some(bytes);
+        }
+        tracing::info!(job, version = v, folder = %f.display(), "promoted: cars following best drive it");
+        return reply(true, format!("job {job}: v{v} promoted ({}); cars following best drive it", f.display()));
+    }
+    have.sort_unstable();
+    have.dedup();
+    reply(false, format!("job {job} has no checkpoint of v{v} in {}; it has {have:?}", run.display()))
 }
 
 /// A queryable on `key` that answers with the last bytes stored in the returned cell.
@@ -316,6 +394,10 @@ impl Link for ZenohLink<'_> {
     }
 
     fn best(&mut self, p: &PolicyVersion, manifest: &Manifest, signer: &Signer) -> Result<(), LinkError> {
+        if let Some(v) = self.promotion.lock().ok().and_then(|pr| pr.version) {
+            tracing::info!(job = %self.job, promoted = v, best = p.version, "a new best model; cars keep the promoted one");
+            return Ok(());
+        }
         let bytes = protocol::encode(&wire::policy_to_wire(&self.job, p, manifest, Some(signer)));
         if let Ok(mut l) = self.best.lock() {
             *l = bytes.clone();
@@ -339,6 +421,15 @@ impl Link for ZenohLink<'_> {
     }
 
     fn next(&mut self, timeout: Duration) -> Result<Option<Inbound>, LinkError> {
+        let pending = self.promotion.lock().ok().and_then(|mut p| p.pending.take());
+        if let Some(bytes) = pending {
+            self.session
+                .put(keys::best(&self.job), bytes)
+                .congestion_control(zenoh::qos::CongestionControl::Block)
+                .priority(zenoh::qos::Priority::DataLow)
+                .wait()
+                .map_err(link_err)?;
+        }
         let deadline = Instant::now() + timeout;
         loop {
             // The job table: who works on the job, and whether it still runs.

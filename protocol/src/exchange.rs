@@ -239,6 +239,19 @@ pub fn policy_to_wire(
     }
 }
 
+/// A model folder's files, as they are (signature included), as a publication.
+pub fn parts_to_wire(job: &str, policy_version: u64, parts: &policy::ModelParts) -> crate::PolicyUpdate {
+    crate::PolicyUpdate {
+        protocol_version: crate::PROTOCOL_VERSION,
+        job_id: job.into(),
+        policy_version,
+        weights: parts.weights.clone(),
+        model_metadata_json: parts.metadata_json.clone(),
+        manifest_json: parts.manifest_json.clone(),
+        signature_json: parts.signature.as_ref().map(|s| serde_json::to_string(s).expect("JSON")).unwrap_or_default(),
+    }
+}
+
 /// A published model's files as they came (signature included), for a verifier; only the
 /// message's own consistency is checked here (its version against the manifest's is left to
 /// the model's decoding).

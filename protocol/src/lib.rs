@@ -21,6 +21,7 @@
 //! | `paddock/v1/job/{job}/eval/report/{agent}` | [`EvalReport`] | sim agent |
 //! | `paddock/v1/job/{job}/policy` | [`PolicyUpdate`] (publication and "latest" queryable) | learner |
 //! | `paddock/v1/job/{job}/best` | [`PolicyUpdate`] of the best model (publication and queryable) | learner |
+//! | `paddock/v1/job/{job}/promote` | [`JobPromote`] → [`JobReply`] (queryable) | learner |
 //! | `paddock/v1/alive/car/{car}` | liveliness token | on-car agent (`deploy`) |
 //! | `paddock/v1/car/{car}/status` | [`CarStatus`] (once a second) | on-car agent |
 //! | `paddock/v1/car/{car}/control` | [`CarControl`] (the e-stop) | a person (`coordinator cars`) |
@@ -109,6 +110,10 @@ pub mod keys {
     /// A job's best model so far (publication and queryable), signed like every model.
     pub fn best(job: &str) -> String {
         format!("{ROOT}/job/{job}/best")
+    }
+    /// A job's promotion queryable (the learner answers: the version cars following "best" drive).
+    pub fn promote(job: &str) -> String {
+        format!("{ROOT}/job/{job}/promote")
     }
     /// A car's liveliness token.
     pub fn car_alive(car: &str) -> String {
@@ -226,7 +231,8 @@ versioned!(
     TeamJoin,
     Job,
     CarStatus,
-    CarControl
+    CarControl,
+    JobPromote
 );
 
 /// Encode a message.
