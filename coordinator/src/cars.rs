@@ -22,12 +22,21 @@ pub fn new_keys(name: &Path) -> Result<i32> {
 pub fn cars(args: CarsArgs) -> Result<i32> {
     let session = net::open(&args.net.args(true))?;
     if let Some((car, hold)) = args.estop.as_ref().map(|c| (c, true)).or(args.release.as_ref().map(|c| (c, false))) {
-        let alive = net::alive(&session, keys::ALL_CARS_ALIVE, Duration::from_secs(2))?;
-        if !alive.iter().any(|k| keys::last(k) == car) {
-            bail!(
-                "no car '{car}' on the network (alive: {:?})",
-                alive.iter().map(|k| keys::last(k)).collect::<Vec<_>>()
-            );
+        // A new session hears the cars' tokens over a few hundred milliseconds: ask until the
+        // car is there or 5 s have passed.
+        let deadline = Instant::now() + Duration::from_secs(5);
+        loop {
+            let alive = net::alive(&session, keys::ALL_CARS_ALIVE, Duration::from_secs(1))?;
+            if alive.iter().any(|k| keys::last(k) == car) {
+                break;
+            }
+            if Instant::now() > deadline {
+                bail!(
+                    "no car '{car}' on the network (alive: {:?})",
+                    alive.iter().map(|k| keys::last(k)).collect::<Vec<_>>()
+                );
+            }
+            std::thread::sleep(Duration::from_millis(200));
         }
         let m = CarControl { protocol_version: PROTOCOL_VERSION, car_id: car.clone(), estop: hold };
         // Sent a few times: a car that misses one still gets it.

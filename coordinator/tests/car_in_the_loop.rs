@@ -156,7 +156,7 @@ fn issue_9_deploy_drives_the_simulated_car_takes_new_models_refuses_forged_ones_
     ));
     // A car that starts late gets the current model from the queryable, before any frame.
     let s = wait_status(&status_sub, "hilcar", 30.0, "deploy takes the current model", |s| s.has_model);
-    assert_eq!((s.policy_version, s.watchdog.as_str()), (v_old, "no model"), "no frame yet: {s:?}");
+    assert_eq!((s.policy_version, s.watchdog.as_str()), (v_old, "waiting for frames"), "no frame yet: {s:?}");
 
     let sim = spawn(
         Command::new(bin("sim-agent"))
@@ -236,6 +236,27 @@ fn issue_9_deploy_drives_the_simulated_car_takes_new_models_refuses_forged_ones_
     )]);
     let s = wait_status(&status_sub, "hilcar", 20.0, "offline model", |s| s.has_model);
     assert_eq!((s.policy_version, s.job_id.as_str()), (v_new, ""), "{s:?}");
+    // `coordinator cars` lists it; its e-stop holds it until released.
+    let cars = |args: &[&str]| {
+        let o =
+            Command::new(bin("coordinator")).arg("cars").args(args).args(["--connect", &endpoint]).output().unwrap();
+        let text = String::from_utf8_lossy(&o.stdout).to_string() + &String::from_utf8_lossy(&o.stderr);
+        assert!(o.status.success(), "{text}");
+        text
+    };
+    let listed = cars(&["--json"]);
+    let row: serde_json::Value =
+        serde_json::from_str(listed.lines().find(|l| l.contains("hilcar")).expect(&listed)).unwrap();
+    assert_eq!(
+        (row["policy_version"].as_u64(), row["state"].as_str(), row["job"].as_str()),
+        (Some(v_new), Some("waiting for frames"), Some("")),
+        "{row}"
+    );
+    cars(&["--estop", "hilcar"]);
+    wait_status(&status_sub, "hilcar", 10.0, "e-stop held", |s| s.watchdog == "e-stop");
+    assert!(cars(&[]).contains("e-stop"));
+    cars(&["--release", "hilcar"]);
+    wait_status(&status_sub, "hilcar", 10.0, "e-stop released", |s| s.watchdog == "waiting for frames");
     drop(offline);
     // A folder signed by a key the car does not trust is not driven, even offline.
     let stranger_pub = d.join("stranger");

@@ -134,6 +134,8 @@ impl ModelSlot {
 pub enum CarState {
     /// No verified model yet: throttle 0.
     NoModel,
+    /// A model, but no camera frame yet.
+    WaitingForFrames,
     /// Driving with a model.
     Driving,
     /// Frames stopped for longer than the watchdog allows: throttle 0.
@@ -147,6 +149,7 @@ impl CarState {
     pub fn name(self) -> &'static str {
         match self {
             CarState::NoModel => "no model",
+            CarState::WaitingForFrames => "waiting for frames",
             CarState::Driving => "driving",
             CarState::FramesStopped => "frames stopped",
             CarState::EStop => "e-stop",
@@ -249,7 +252,13 @@ impl Driver {
 
     /// The state now.
     pub fn state(&self) -> CarState {
-        self.state
+        if self.estop {
+            CarState::EStop
+        } else if self.last_frame.is_none() {
+            if self.slot.current().is_some() { CarState::WaitingForFrames } else { CarState::NoModel }
+        } else {
+            self.state
+        }
     }
 
     fn set_state(&mut self, s: CarState) {
