@@ -431,6 +431,9 @@ pub struct ValidateArgs {
     /// Positions sampled along the track.
     #[arg(long, default_value_t = 60)]
     pub positions: usize,
+    /// Seconds one call may take (the simulator's `reward_time_limit`).
+    #[arg(long, default_value_t = 1.0)]
+    pub time_limit: f64,
 }
 
 #[derive(Args)]

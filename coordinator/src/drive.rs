@@ -117,8 +117,9 @@ pub fn validate(args: ValidateArgs) -> Result<i32> {
         Some(p) => ModelMetadata::load(p)?.action_space,
         None => ActionSpace::Continuous { steering_angle: (-30.0, 30.0), speed: (0.5, 4.0) },
     };
+    let limit = sim_agent::config::SimConfig { reward_time_limit: args.time_limit, ..Default::default() };
     let mut reward = match RewardFn::from_spec(&args.file) {
-        Ok(r) => r,
+        Ok(r) => r.with_time_limit(limit.reward_time_limit()),
         Err(e) => {
             println!("FAILED: {e}");
             return Ok(1);

@@ -8,7 +8,7 @@
 //! records the reason the learner reports, stops a job the user stops, and keeps the job's
 //! wall-clock limit as a backstop should the learner be gone.
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use coordinator::assign::{assign, assignment};
 use coordinator::jobs::{AgentWork, Db, JobRecord, JobState, now_unix};
 use protocol::job::JobDoc;
@@ -69,7 +69,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
             let reply = match q.payload().map(|p| protocol::decode::<JobRequest>(&p.to_bytes())) {
                 Some(Ok(req)) => handle(&st, &dbc, &sess, req),
                 Some(Err(e)) => {
-                    drops_q.count(&e);
+                    drops_q.refuse("a job request", &e);
                     reply(false, format!("bad request: {e}"), serde_json::Value::Null)
                 }
                 None => reply(false, "empty request".into(), serde_json::Value::Null),
@@ -181,6 +181,7 @@ fn on_status(st: &mut State, db: &Db, ls: LearnerStatus) {
         "dropped_bad": ls.dropped_bad, "run_dir": ls.run_dir, "finished": ls.finished,
         "episodes_received": ls.episodes_received, "eval_laps": ls.eval_laps, "stop_reason": ls.stop_reason,
         "learners": ls.learners, "team_updates": ls.team_updates, "team_failures": ls.team_failures,
+        "drops": ls.drops.iter().map(|d| serde_json::json!({"reason": d.reason, "count": d.count})).collect::<Vec<_>>(),
         "agents": ls.agents.iter().map(|a| serde_json::json!({"agent": a.agent_id, "world": a.world, "steps_per_s": a.steps_per_s})).collect::<Vec<_>>(),
         "worlds": ls.worlds.iter().map(|w| serde_json::json!({"world": w.world, "agents": w.agents, "episodes": w.episodes,
             "mean_progress": w.mean_progress, "mean_reward": w.mean_reward, "steps_per_s": w.steps_per_s})).collect::<Vec<_>>(),
@@ -297,7 +298,13 @@ fn reply(ok: bool, text: String, json: serde_json::Value) -> JobReply {
 fn validate(doc: &JobDoc) -> std::result::Result<(), String> {
     let result = (|| -> Result<()> {
         let name = if doc.reward_name.ends_with(".py") { doc.reward_name.as_str() } else { "reward_function.py" };
-        let mut reward = sim_agent::RewardFn::from_source(name, &doc.reward_source)?;
+        let cfg: sim_agent::config::SimConfig = if doc.sim_config_toml.trim().is_empty() {
+            Default::default()
+        } else {
+            toml::from_str(&doc.sim_config_toml).context("the job's sim config")?
+        };
+        let mut reward =
+            sim_agent::RewardFn::from_source(name, &doc.reward_source)?.with_time_limit(cfg.reward_time_limit());
         let meta = policy::ModelMetadata::parse(&doc.model_metadata_json, "model_metadata.json")?;
         for w in &doc.worlds {
             let track = tracks::world(w)?.track(tracks::Direction::Forward);
@@ -476,6 +483,13 @@ fn status_text(j: &JobRecord, st: &State) -> String {
         n("dropped_bad"),
         n("eval_progress")
     ));
+    for d in l.get("drops").and_then(|v| v.as_array()).into_iter().flatten().take(8) {
+        t.push_str(&format!(
+            "  refused {}× : {}\n",
+            d.get("count").and_then(|v| v.as_u64()).unwrap_or(0),
+            d.get("reason").and_then(|v| v.as_str()).unwrap_or("-")
+        ));
+    }
     let team: Vec<&str> = l
         .get("learners")
         .and_then(|v| v.as_array())

@@ -144,7 +144,7 @@ pub fn train(args: TrainArgs) -> Result<i32> {
     check_sensors(&meta, &mut cfg)?;
     let worlds = worlds_arg.iter().map(|w| resolve_world(w)).collect::<Result<Vec<_>>>()?;
     // Validate the reward before any training: a broken file stops here with its traceback.
-    let mut reward = RewardFn::from_spec(&args.reward)?;
+    let mut reward = RewardFn::from_spec(&args.reward)?.with_time_limit(cfg.reward_time_limit());
     for w in &worlds {
         sim_agent::validate::validate_reward(&mut reward, &w.track(Direction::Forward), &meta.action_space, 20)
             .with_context(|| format!("the reward function {} failed validation on {}", args.reward, w.name))?;

@@ -132,15 +132,27 @@ fn issue_9_deploy_drives_the_simulated_car_takes_new_models_refuses_forged_ones_
         })
         .wait()
         .unwrap();
+    // And its best-model record (what `coordinator job promote` sets): the older model.
+    let best: Arc<Mutex<Vec<u8>>> = Arc::new(Mutex::new(update(job, &older, v_old)));
+    let b2 = best.clone();
+    let _qb = session
+        .declare_queryable(keys::best(job))
+        .callback(move |q| {
+            let b = b2.lock().unwrap().clone();
+            let _ = q.reply(q.key_expr().clone(), b).wait();
+        })
+        .wait()
+        .unwrap();
     // Blocking, as the learner publishes: a 47 MB model must not be dropped under congestion.
-    let publish = |bytes: Vec<u8>| {
+    let publish_on = |key: String, bytes: Vec<u8>| {
         session
-            .put(keys::policy(job), bytes)
+            .put(key, bytes)
             .congestion_control(zenoh::qos::CongestionControl::Block)
             .priority(zenoh::qos::Priority::DataLow)
             .wait()
             .unwrap()
     };
+    let publish = |bytes: Vec<u8>| publish_on(keys::policy(job), bytes);
 
     let mut procs = Procs(vec![]);
     let car_model = d.join("car-model");
@@ -196,6 +208,31 @@ fn issue_9_deploy_drives_the_simulated_car_takes_new_models_refuses_forged_ones_
     publish(update(job, &newer, v_new));
     let s = wait_status(&status_sub, "hilcar", 20.0, "the newer model drives", |s| s.policy_version == v_new);
     assert_eq!(s.swaps, 2, "{s:?}");
+    // A second car follows the job's best model, not its latest: it starts on the best
+    // record's older model although a newer one is the latest, ignores the latest's
+    // publications, and takes the newer one when it becomes the best (a promotion).
+    let best_toml = d.join("best-car.toml");
+    std::fs::write(&best_toml, "id = \"bestcar\"\n").unwrap();
+    let best_sub = net::subscribe(&session, &keys::car_status("bestcar")).unwrap();
+    procs.0.push(spawn(
+        Command::new(bin("deploy"))
+            .args(["--job", job, "--follow", "best", "--connect", &endpoint, "--trust"])
+            .arg(run.join("signing.pub"))
+            .arg("--car")
+            .arg(&best_toml),
+        &d.join("deploy-best.log"),
+    ));
+    let s = wait_status(&best_sub, "bestcar", 30.0, "the best-following car takes the best model", |s| s.has_model);
+    assert_eq!(s.policy_version, v_old, "it follows best, not latest: {s:?}");
+    publish(update(job, &newer, v_new));
+    std::thread::sleep(Duration::from_secs(3));
+    let drops = net::DropCounters::default();
+    while let Some((_, s)) = net::try_next::<CarStatus>(&best_sub, &drops) {
+        assert_eq!(s.policy_version, v_old, "a latest publication moved a best-following car: {s:?}");
+    }
+    *best.lock().unwrap() = update(job, &newer, v_new);
+    publish_on(keys::best(job), update(job, &newer, v_new));
+    wait_status(&best_sub, "bestcar", 20.0, "the promoted model drives", |s| s.policy_version == v_new);
 
     // 5. The simulated car finishes its lap, stops sending frames and times the watchdog.
     let mut sim = Procs(vec![sim]);

@@ -125,6 +125,22 @@ fn reward_validate_passes_deepracers_samples_and_fails_broken_files() {
         assert_eq!(o.status.code(), Some(1), "{f}");
         assert!(stdout(&o).contains("FAILED") && stdout(&o).contains(want), "{f}: {}", stdout(&o));
     }
+    // Issue 10: a reward that never returns is stopped at its time limit, naming the file,
+    // the step and the line where it was stuck.
+    let o = coordinator(
+        dir.path(),
+        &["reward", "validate", &repo("tests/data/rewards/never_returns.py"), "--time-limit", "0.3"],
+    );
+    assert_eq!(o.status.code(), Some(1));
+    let out = stdout(&o);
+    for want in [
+        "never_returns.py",
+        "did not return within the time limit of 300ms at step",
+        "RewardTimeLimit",
+        "never_returns.py\", line",
+    ] {
+        assert!(out.contains(want), "{want}: {out}");
+    }
     // A model_metadata.json's discrete actions feed the sampled states.
     std::fs::write(
         dir.path().join("model_metadata.json"),

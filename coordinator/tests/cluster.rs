@@ -331,6 +331,25 @@ fn issue_4_bad_input_is_counted_and_dropped_and_bad_jobs_are_refused() {
     );
     assert_eq!(c.status("raiser")["state"], "failed");
     assert!(!c.path("runs/raiser").exists(), "nothing trained");
+    // Issue 10: a reward that never returns is stopped at the job's time limit (here 0.5 s),
+    // and the job is refused with the file and the step; the coordinator goes on.
+    let endless = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../tests/data/rewards/never_returns.py");
+    std::fs::write(
+        c.path("endless.toml"),
+        format!(
+            "worlds = [\"reinvent_wood\"]\nreward = {:?}\n[sim]\nreward_time_limit = 0.5\n",
+            endless.canonicalize().unwrap().display().to_string()
+        ),
+    )
+    .unwrap();
+    let o = c.cli(&["job", "start", "endless.toml", "--id", "endless"]);
+    let out = String::from_utf8_lossy(&o.stdout).to_string() + &String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success()
+            && out.contains("never_returns.py")
+            && out.contains("did not return within the time limit of 500ms at step"),
+        "{out}"
+    );
 
     // Garbage on every key the roles subscribe to, while a good job runs.
     let id = c.start("worlds = [\"reinvent_wood\"]\nout = \"run\"\n[stop]\nminutes = 5\n");
@@ -357,6 +376,33 @@ fn issue_4_bad_input_is_counted_and_dropped_and_bad_jobs_are_refused() {
     for g in &garbage {
         let _ = session.get(protocol::keys::CONTROL).payload(g.clone()).timeout(Duration::from_secs(2)).wait();
     }
+    // Issue 10: batches that decode but do not fit the job, sent as agent-1 (a copy of one of
+    // its real batches with one number changed): an action index of 99 killed the learner.
+    let real = net::subscribe(&session, &protocol::keys::experience(&id, "agent-1")).unwrap();
+    let drops = net::DropCounters::default();
+    let until = Instant::now() + Duration::from_secs(30);
+    let batch = loop {
+        if let Some((_, b)) = net::try_next::<protocol::ExperienceBatch>(&real, &drops) {
+            if !b.trajectories.is_empty() {
+                break b;
+            }
+        }
+        assert!(Instant::now() < until, "no experience from agent-1 seen");
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let hostile: [(&str, fn(&mut protocol::Trajectory)); 4] = [
+        ("action", |t| t.discrete_actions[0] = 99),
+        ("reward", |t| t.rewards[0] = 1e9),
+        ("progress", |t| t.progress = 500.0),
+        ("observation", |t| t.obs[0] = f32::INFINITY),
+    ];
+    for (i, (_, change)) in hostile.iter().enumerate() {
+        let mut b = batch.clone();
+        b.seq += 1_000_000 + i as u64;
+        change(&mut b.trajectories[0]);
+        b.trajectories.truncate(1);
+        session.put(protocol::keys::experience(&id, "agent-1"), protocol::encode(&b)).wait().unwrap();
+    }
     // Everyone is still alive and the job goes on, counting what it dropped.
     let v = version(&c.status(&id));
     let s = c.wait(&id, 60, "training after the garbage", |s| {
@@ -366,6 +412,18 @@ fn issue_4_bad_input_is_counted_and_dropped_and_bad_jobs_are_refused() {
     for (name, p) in &mut c.procs.0 {
         assert!(p.try_wait().unwrap().is_none(), "{name} died");
     }
+    // Each is counted under its reason, which `job status` shows.
+    let s = c.wait(&id, 30, "the hostile batches counted", |s| {
+        s["learner"]["drops"]
+            .as_array()
+            .is_some_and(|d| d.iter().any(|r| r["reason"].as_str().unwrap_or("").contains("action")))
+    });
+    let reasons = s["learner"]["drops"].to_string();
+    for want in ["outside the action space", "reward", "progress", "non-finite"] {
+        assert!(reasons.contains(want), "{want}: {reasons}");
+    }
+    let text = String::from_utf8_lossy(&c.cli(&["job", "status", &id]).stdout).to_string();
+    assert!(text.contains("outside the action space of # actions"), "{text}");
 }
 
 #[test]

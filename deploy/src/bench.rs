@@ -3,13 +3,13 @@
 //! - Frame to command, without the network: a 160×120 JPEG frame in (the community car's
 //!   frames, resized at the source) and a 640×480 bgr8 frame (the AWS layout, resized here),
 //!   decoded, prepared and run through the SHALLOW policy tower, p50/p99 per frame; the
-//!   inference alone beside it.
+//!   inference alone beside it; the big dense layer in f16 and in int8 (`precision`).
 //! - A new model to its first frame: the published message decoded, its signature and checksum
 //!   checked, the model loaded and swapped in, then one frame driven with it.
 
 use anyhow::Result;
 use deploy::{Driver, Follow, ModelSlot, Offer};
-use policy::car::{CarConfig, Layout};
+use policy::car::{CarConfig, Layout, Precision};
 use policy::signature::{Signer, TrustedKeys};
 use policy::{ActorCritic, Manifest, ModelMetadata, ModelParts};
 use protocol::ros::{self, CompressedImage, Header, Image, RawFrame};
@@ -88,12 +88,14 @@ pub fn run(seconds: f64) -> Result<()> {
     println!();
     println!("| measurement | p50 | p99 |");
     println!("|---|---|---|");
-    for (layout, w, h, name) in [
-        (ros::Layout::Community, 160, 120, "160×120 JPEG (community car)"),
-        (ros::Layout::Aws, 640, 480, "640×480 bgr8 (AWS layout)"),
+    for (layout, w, h, name, precision) in [
+        (ros::Layout::Community, 160, 120, "160×120 JPEG (community car), f16", Precision::F16),
+        (ros::Layout::Community, 160, 120, "160×120 JPEG (community car), int8", Precision::Int8),
+        (ros::Layout::Aws, 640, 480, "640×480 bgr8 (AWS layout), f16", Precision::F16),
     ] {
         let car = CarConfig {
             layout: if layout == ros::Layout::Community { Layout::Community } else { Layout::Aws },
+            precision,
             ..CarConfig::default()
         };
         let slot = Arc::new(ModelSlot::default());
@@ -104,7 +106,9 @@ pub fn run(seconds: f64) -> Result<()> {
         let (mut total, mut infer) = (Vec::new(), Vec::new());
         let m = slot.current().expect("taken");
         let mut scratch = deploy::infer::Scratch::default();
+        let mut tape = policy::nn::Tape::default();
         let obs = vec![128.0f32; 120 * 160];
+        let mut reference = Vec::new();
         let t = Instant::now();
         while t.elapsed().as_secs_f64() < seconds {
             let t0 = Instant::now();
@@ -114,11 +118,25 @@ pub fn run(seconds: f64) -> Result<()> {
             std::hint::black_box(m.policy.mode(&obs, &mut scratch));
             infer.push(t1.elapsed().as_secs_f64() * 1e3);
         }
+        // The reference, in the same run (its own loop: interleaved, its 23 MB of f32 weights
+        // would evict the car's): the same tower through the training code's forward pass.
+        let t = Instant::now();
+        while precision == Precision::F16 && layout == ros::Layout::Community && t.elapsed().as_secs_f64() < seconds {
+            let t2 = Instant::now();
+            m.model.pi.forward(&obs, 1, &mut tape, faer::Par::Seq);
+            std::hint::black_box(tape.output());
+            reference.push(t2.elapsed().as_secs_f64() * 1e3);
+        }
         let (p50, p99) = percentiles(total);
         println!("| {name}: frame to command (decode, prepare, infer, map) | {p50:.3} ms | {p99:.3} ms |");
         if layout == ros::Layout::Community {
             let (p50, p99) = percentiles(infer);
-            println!("| inference alone (policy tower, batch 1) | {p50:.3} ms | {p99:.3} ms |");
+            let what = if precision == Precision::F16 { "f16" } else { "int8" };
+            println!("| inference alone (policy tower, batch 1), {what} | {p50:.3} ms | {p99:.3} ms |");
+        }
+        if !reference.is_empty() {
+            let (r50, r99) = percentiles(reference);
+            println!("| reference: the same tower in f32 (the training forward pass) | {r50:.3} ms | {r99:.3} ms |");
         }
     }
     // A new model: message decode, signature + checksum + tensors, swap, first frame.

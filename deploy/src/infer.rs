@@ -4,28 +4,156 @@
 //! f32 read per frame, 1.4 of its 1.8 ms here; the convolutions take 0.4). DeepRacer's car runs
 //! its models in FP16 (the model optimizer's `--data_type FP16`); so does this: dense layers
 //! with at least [`HALF_FROM`] weights keep them as f16 (half the memory to stream; subnormal
-//! weights, below 6.1e-5, become zero), and each row's dot product converts and multiplies in
-//! one pass, in f32: eight lanes at a time with AVX2, FMA and F16C where the CPU has them
-//! (`pulp`'s safe runtime dispatch), one at a time otherwise. Every other layer is Paddock's own
-//! f32 code. The logits differ from the f32 tower's by the weights' rounding (a relative 2⁻¹¹),
-//! which a test bounds.
+//! weights, below 6.1e-5, become zero), or, with `car.toml`'s `precision = "int8"`, in 8 bits
+//! with one scale per output (half the bytes again). At batch 1 the layer is bound by reading
+//! its weights from memory: they are laid out by blocks of 64 outputs, input after input, so
+//! that one sequential stream feeds 64 outputs held in registers (`y += x[i] · W[i, block]`),
+//! converting and multiplying in one pass in f32: eight lanes at a time with AVX2 and FMA where
+//! the CPU has them (`pulp`'s safe runtime dispatch), one at a time otherwise. (Skipping the
+//! rows of zero inputs — a ReLU's output is half zeros — read fewer bytes but broke the
+//! prefetcher's stream: slower with cold caches, measured.) Every other layer is Paddock's own f32 code. The
+//! logits differ from the f32 tower's by the weights' rounding (a relative 2⁻¹¹) and the order
+//! of the sums, which a test bounds.
 
 use half::f16;
+use policy::car::Precision;
 use policy::model::{ActorCritic, Choice, Head};
 use policy::nn::{Layer, Net, Tape};
 use pulp::x86::V3;
-use pulp::{f32x8, u16x8, u32x8};
+use pulp::{f32x8, i8x16, i16x8, i32x8, u32x8};
 
 /// Dense layers with at least this many weights run in half precision.
 pub const HALF_FROM: usize = 1 << 20;
 
-/// A dense layer with f16 weights (their bits, `out × inp`, row-major) and f32 biases.
+/// Outputs per block of the half-precision layer: eight accumulators of eight lanes.
+const BLOCK: usize = 64;
+
+/// `2¹¹²`: an f16's exponent bias (15) against an f32's (127).
+const REBIAS: f32 = 5.192_297e33;
+
+/// A dense layer with f16 weights and f32 biases, laid out for a batch of one.
+///
+/// The weights are stored by blocks of [`BLOCK`] outputs, and within a block by input:
+/// weight (input `i`, output `b·BLOCK + k`) is at `(b·inp + i)·BLOCK + k`, the last block
+/// padded with zeros. The layer runs as `y += x[i] · W[i, block]`, input after input, with a
+/// block's outputs held in registers.
 #[derive(Debug)]
 struct HalfDense {
     inp: usize,
     out: usize,
     w: Vec<u16>,
     b: Vec<f32>,
+}
+
+impl HalfDense {
+    /// From Paddock's dense layout (`out × inp` weights, a row per output, then `out` biases).
+    fn new(inp: usize, out: usize, params: &[f32]) -> HalfDense {
+        let blocks = out.div_ceil(BLOCK);
+        let mut w = vec![0u16; blocks * inp * BLOCK];
+        // Written in order; the 64 rows read stay in L1 across consecutive inputs.
+        for (n, v) in w.iter_mut().enumerate() {
+            let (blk, i, k) = (n / (inp * BLOCK), n / BLOCK % inp, n % BLOCK);
+            let o = blk * BLOCK + k;
+            if o < out {
+                *v = to_half(params[o * inp + i]);
+            }
+        }
+        HalfDense { inp, out, w, b: params[inp * out..inp * out + out].to_vec() }
+    }
+}
+
+/// A dense layer with 8-bit weights, one scale per output, and f32 biases; the same blocked
+/// layout as [`HalfDense`], one 64-byte line (aligned) per input and block.
+#[derive(Debug)]
+struct Int8Dense {
+    inp: usize,
+    out: usize,
+    q: Vec<Line>,
+    /// Per output (padded to whole blocks): the weight of one step.
+    scale: Vec<f32>,
+    b: Vec<f32>,
+}
+
+/// One input's weights for one block of outputs.
+#[derive(Clone, Copy, Debug)]
+#[repr(C, align(64))]
+struct Line([i8; BLOCK]);
+
+impl Int8Dense {
+    /// From Paddock's dense layout: `q = round(w / scale)` with `scale = max |w| / 127` per output.
+    fn new(inp: usize, out: usize, params: &[f32]) -> Int8Dense {
+        let blocks = out.div_ceil(BLOCK);
+        let mut scale = vec![0.0f32; blocks * BLOCK];
+        for (o, s) in scale.iter_mut().enumerate().take(out) {
+            let m = params[o * inp..(o + 1) * inp].iter().fold(0.0f32, |m, w| m.max(w.abs()));
+            *s = m / 127.0;
+        }
+        let mut q = vec![Line([0; BLOCK]); blocks * inp];
+        for (n, line) in q.iter_mut().enumerate() {
+            let (blk, i) = (n / inp, n % inp);
+            for (k, v) in line.0.iter_mut().enumerate() {
+                let o = blk * BLOCK + k;
+                if o < out && scale[o] > 0.0 {
+                    *v = (params[o * inp + i] / scale[o]).round().clamp(-127.0, 127.0) as i8;
+                }
+            }
+        }
+        Int8Dense { inp, out, q, scale, b: params[inp * out..inp * out + out].to_vec() }
+    }
+}
+
+/// The 8-bit layer for the input `x`, one weight at a time.
+fn int8_dense_scalar(d: &Int8Dense, x: &[f32], y: &mut [f32]) {
+    for (blk, (lines, yb)) in d.q.chunks_exact(d.inp).zip(y.chunks_mut(BLOCK)).enumerate() {
+        let mut acc = [0.0f32; BLOCK];
+        for (line, x) in lines.iter().zip(x) {
+            for (a, w) in acc.iter_mut().zip(&line.0) {
+                *a += *w as f32 * x;
+            }
+        }
+        for (k, v) in yb.iter_mut().enumerate() {
+            let o = blk * BLOCK + k;
+            *v = d.b[o] + d.scale[o] * acc[k];
+        }
+    }
+}
+
+/// The same, eight lanes at a time: sign-extend eight bytes, convert, multiply-add.
+fn int8_dense_v3(simd: V3, d: &Int8Dense, x: &[f32], y: &mut [f32]) {
+    struct Op<'a> {
+        s: V3,
+        d: &'a Int8Dense,
+        x: &'a [f32],
+        y: &'a mut [f32],
+    }
+    impl pulp::NullaryFnOnce for Op<'_> {
+        type Output = ();
+        #[inline(always)]
+        fn call(self) {
+            let s = self.s;
+            let d = self.d;
+            for (blk, (lines, yb)) in d.q.chunks_exact(d.inp).zip(self.y.chunks_mut(BLOCK)).enumerate() {
+                let mut acc = [s.splat_f32x8(0.0); BLOCK / 8];
+                for (line, &x) in lines.iter().zip(self.x) {
+                    let parts: &[[i8; 8]; BLOCK / 8] = bytemuck::cast_ref(&line.0);
+                    let xv = s.splat_f32x8(x);
+                    for (a, p) in acc.iter_mut().zip(parts) {
+                        let mut b = [0i8; 16];
+                        b[..8].copy_from_slice(p);
+                        let w =
+                            s.convert_i32x8_to_f32x8(s.convert_i8x16_to_i32x8(bytemuck::cast::<[i8; 16], i8x16>(b)));
+                        *a = s.mul_add_f32x8(w, xv, *a);
+                    }
+                }
+                let lanes: [f32; BLOCK] = bytemuck::cast(acc);
+                for (k, v) in yb.iter_mut().enumerate() {
+                    let o = blk * BLOCK + k;
+                    *v = d.b[o] + d.scale[o] * lanes[k];
+                }
+            }
+        }
+    }
+    simd.vectorize(Op { s: simd, d, x, y })
 }
 
 /// f32 to f16 bits, subnormals flushed to (signed) zero.
@@ -42,66 +170,62 @@ fn from_half(h: u16) -> f32 {
     f32::from_bits(if e == 0 { (h & 0x8000) << 16 } else { ((h & 0x8000) << 16) | ((e + 0x1c000) << 13) })
 }
 
-/// `Σ w[i]·x[i]` with `w` in f16 bits, one element at a time.
-fn dot_half_scalar(w: &[u16], x: &[f32]) -> f32 {
-    let mut acc = [0.0f32; 8];
-    let (cw, cx) = (w.chunks_exact(8), x.chunks_exact(8));
-    let (rw, rx) = (cw.remainder(), cx.remainder());
-    for (a, b) in cw.zip(cx) {
-        for k in 0..8 {
-            acc[k] += from_half(a[k]) * b[k];
+/// The layer's outputs for the input `x`, one weight at a time.
+fn half_dense_scalar(d: &HalfDense, x: &[f32], y: &mut [f32]) {
+    for (blk, (wb, yb)) in d.w.chunks_exact(d.inp * BLOCK).zip(y.chunks_mut(BLOCK)).enumerate() {
+        let mut acc = [0.0f32; BLOCK];
+        for (row, x) in wb.chunks_exact(BLOCK).zip(x) {
+            for (a, w) in acc.iter_mut().zip(row) {
+                *a += from_half(*w) * x;
+            }
+        }
+        for (k, v) in yb.iter_mut().enumerate() {
+            *v = d.b[blk * BLOCK + k] + acc[k];
         }
     }
-    let mut s: f32 = acc.iter().sum();
-    for (a, b) in rw.iter().zip(rx) {
-        s += from_half(*a) * b;
-    }
-    s
 }
 
-/// The same, eight lanes at a time (AVX2 + FMA + F16C-level CPUs).
-fn dot_half_v3(simd: V3, w: &[u16], x: &[f32]) -> f32 {
+/// The same, eight lanes at a time (AVX2 + FMA-level CPUs, `pulp`'s safe dispatch).
+///
+/// An f16 becomes an f32 in three integer operations and a multiply, exactly: sign-extend
+/// the 16 bits, shift them left by 13 (the exponent and mantissa land where an f32's do), keep
+/// the sign and those 15 bits, and multiply by 2¹¹² to move the exponent from f16's bias to
+/// f32's. (Zero stays zero; there are no subnormals, [`to_half`] flushes them.)
+fn half_dense_v3(simd: V3, d: &HalfDense, x: &[f32], y: &mut [f32]) {
     struct Op<'a> {
         s: V3,
-        w: &'a [u16],
+        d: &'a HalfDense,
         x: &'a [f32],
+        y: &'a mut [f32],
     }
     impl pulp::NullaryFnOnce for Op<'_> {
-        type Output = f32;
+        type Output = ();
         #[inline(always)]
-        fn call(self) -> f32 {
+        fn call(self) {
             let s = self.s;
-            let (wc, wr) = pulp::as_arrays::<8, u16>(self.w);
-            let (xc, xr) = pulp::as_arrays::<8, f32>(self.x);
-            let (sign_m, abs_m, bias, zero) =
-                (s.splat_u32x8(0x8000), s.splat_u32x8(0x7fff), s.splat_u32x8(0x1c000), s.splat_u32x8(0));
-            // Two accumulators, so that consecutive FMAs do not wait on each other. (Written
-            // out in this loop: a helper closure would not inherit the target features.)
-            let (mut acc0, mut acc1) = (s.splat_f32x8(0.0), s.splat_f32x8(0.0));
-            let mut odd = false;
-            for (a, b) in wc.iter().zip(xc) {
-                let h: u32x8 = s.convert_u16x8_to_u32x8(bytemuck::cast::<[u16; 8], u16x8>(*a));
-                let e = s.and_u32x8(h, abs_m);
-                let sign = s.shl_const_u32x8::<16>(s.and_u32x8(h, sign_m));
-                let v = s.or_u32x8(sign, s.shl_const_u32x8::<13>(s.wrapping_add_u32x8(e, bias)));
-                let wf: f32x8 = bytemuck::cast(s.select_u32x8(s.cmp_eq_u32x8(e, zero), sign, v));
-                let xv: f32x8 = bytemuck::cast(*b);
-                if odd {
-                    acc1 = s.mul_add_f32x8(wf, xv, acc1);
-                } else {
-                    acc0 = s.mul_add_f32x8(wf, xv, acc0);
+            let (mask, rebias) = (s.splat_u32x8(0x8fff_e000), s.splat_f32x8(REBIAS));
+            let d = self.d;
+            for (blk, (wb, yb)) in d.w.chunks_exact(d.inp * BLOCK).zip(self.y.chunks_mut(BLOCK)).enumerate() {
+                let (rows, _) = pulp::as_arrays::<BLOCK, u16>(wb);
+                let mut acc = [s.splat_f32x8(0.0); BLOCK / 8];
+                for (row, &x) in rows.iter().zip(self.x) {
+                    let row: &[[u16; 8]; BLOCK / 8] = bytemuck::cast_ref(row);
+                    let xv = s.splat_f32x8(x);
+                    for (a, w8) in acc.iter_mut().zip(row) {
+                        let h: i32x8 = s.convert_i16x8_to_i32x8(bytemuck::cast::<[u16; 8], i16x8>(*w8));
+                        let bits = s.and_u32x8(s.shl_const_u32x8::<13>(bytemuck::cast(h)), mask);
+                        let wf = s.mul_f32x8(bytemuck::cast::<u32x8, f32x8>(bits), rebias);
+                        *a = s.mul_add_f32x8(wf, xv, *a);
+                    }
                 }
-                odd = !odd;
+                let lanes: [f32; BLOCK] = bytemuck::cast(acc);
+                for (k, v) in yb.iter_mut().enumerate() {
+                    *v = d.b[blk * BLOCK + k] + lanes[k];
+                }
             }
-            let lanes: [f32; 8] = bytemuck::cast(s.add_f32x8(acc0, acc1));
-            let mut total: f32 = lanes.iter().sum();
-            for (a, b) in wr.iter().zip(xr) {
-                total += from_half(*a) * b;
-            }
-            total
         }
     }
-    simd.vectorize(Op { s: simd, w, x })
+    simd.vectorize(Op { s: simd, d, x, y })
 }
 
 /// One stage of the car's tower.
@@ -111,6 +235,8 @@ enum Stage {
     Exact(Net),
     /// A big dense layer in half precision.
     Half(HalfDense),
+    /// A big dense layer in 8 bits.
+    Int8(Int8Dense),
 }
 
 /// The policy tower for the car.
@@ -156,8 +282,8 @@ fn subnet(net: &Net, layers: &[Layer]) -> Net {
 }
 
 impl CarPolicy {
-    /// The car's tower for a model.
-    pub fn new(model: &ActorCritic) -> CarPolicy {
+    /// The car's tower for a model, its big dense layers held in `precision`.
+    pub fn new(model: &ActorCritic, precision: Precision) -> CarPolicy {
         let net = &model.pi;
         let mut stages = Vec::new();
         let mut run: Vec<Layer> = Vec::new();
@@ -168,12 +294,11 @@ impl CarPolicy {
                         stages.push(Stage::Exact(subnet(net, &run)));
                         run.clear();
                     }
-                    stages.push(Stage::Half(HalfDense {
-                        inp,
-                        out,
-                        w: net.params[offset..offset + inp * out].iter().map(|v| to_half(*v)).collect(),
-                        b: net.params[offset + inp * out..offset + inp * out + out].to_vec(),
-                    }));
+                    let p = &net.params[offset..offset + inp * out + out];
+                    stages.push(match precision {
+                        Precision::F16 => Stage::Half(HalfDense::new(inp, out, p)),
+                        Precision::Int8 => Stage::Int8(Int8Dense::new(inp, out, p)),
+                    });
                 }
                 _ => run.push(l.clone()),
             }
@@ -199,13 +324,17 @@ impl CarPolicy {
                 Stage::Half(d) => {
                     s.b.clear();
                     s.b.resize(d.out, 0.0);
-                    for (o, y) in s.b.iter_mut().enumerate() {
-                        let row = &d.w[o * d.inp..(o + 1) * d.inp];
-                        *y = d.b[o]
-                            + match self.simd {
-                                Some(v3) => dot_half_v3(v3, row, &s.a),
-                                None => dot_half_scalar(row, &s.a),
-                            };
+                    match self.simd {
+                        Some(v3) => half_dense_v3(v3, d, &s.a, &mut s.b),
+                        None => half_dense_scalar(d, &s.a, &mut s.b),
+                    }
+                }
+                Stage::Int8(d) => {
+                    s.b.clear();
+                    s.b.resize(d.out, 0.0);
+                    match self.simd {
+                        Some(v3) => int8_dense_v3(v3, d, &s.a, &mut s.b),
+                        None => int8_dense_scalar(d, &s.a, &mut s.b),
                     }
                 }
             }
@@ -236,7 +365,7 @@ mod tests {
     fn the_half_precision_tower_stays_within_the_weights_rounding() {
         let meta = ModelMetadata::default_camera();
         let m = ActorCritic::new(&meta, 120 * 160, &mut rand_chacha::ChaCha8Rng::seed_from_u64(3));
-        let car = CarPolicy::new(&m);
+        let car = CarPolicy::new(&m, Precision::F16);
         assert!(car.stages.iter().any(|s| matches!(s, Stage::Half(_))), "the big dense layer runs in f16");
         let mut s = Scratch::default();
         let mut tape = Tape::default();
@@ -250,22 +379,84 @@ mod tests {
                 assert!((a - b).abs() <= 2e-3 * scale, "{got:?} vs {exact:?}");
             }
         }
-        // Both dot products agree, and the scalar one is the conversion's reference.
-        let w: Vec<u16> = (0..1003).map(|i| to_half((i as f32 - 500.0) * 0.013)).collect();
-        let x: Vec<f32> = (0..1003).map(|i| (i % 17) as f32 - 8.0).collect();
-        let scalar = dot_half_scalar(&w, &x);
-        let exact: f32 = w.iter().zip(&x).map(|(a, b)| f16::from_bits(*a).to_f32() * b).sum();
-        assert!((scalar - exact).abs() < 1e-2, "{scalar} vs {exact}");
+        // Both kernels agree with the f32 product of the rounded weights, with an output count
+        // that leaves the last block part-filled.
+        let (inp, out) = (1003, 150);
+        let params: Vec<f32> = (0..inp * out + out).map(|i| ((i * 37 % 1001) as f32 - 500.0) * 0.0013).collect();
+        let d = HalfDense::new(inp, out, &params);
+        let x: Vec<f32> = (0..inp).map(|i| if i % 3 == 0 { 0.0 } else { (i % 17) as f32 - 8.0 }).collect();
+        let mut y = vec![0.0; out];
+        half_dense_scalar(&d, &x, &mut y);
+        let mut y3 = vec![0.0; out];
         if let Some(v3) = V3::try_new() {
-            assert!((dot_half_v3(v3, &w, &x) - scalar).abs() < 1e-2);
+            half_dense_v3(v3, &d, &x, &mut y3);
+        }
+        for o in 0..out {
+            let terms: Vec<f64> = (0..inp).map(|i| f16::from_f32(params[o * inp + i]).to_f64() * x[i] as f64).collect();
+            let exact = (params[inp * out + o] as f64 + terms.iter().sum::<f64>()) as f32;
+            let tol = 1e-6 * terms.iter().map(|t| t.abs()).sum::<f64>() as f32 + 1e-5;
+            assert!((y[o] - exact).abs() <= tol, "output {o}: {} vs {exact}", y[o]);
+            if V3::try_new().is_some() {
+                assert!((y3[o] - exact).abs() <= tol, "output {o}: {} vs {exact}", y3[o]);
+            }
         }
         assert_eq!((to_half(1e-6), to_half(-1e-6), from_half(to_half(0.5))), (0, 0x8000, 0.5));
         // A small network has no half-precision stage: exactly Paddock's own forward pass.
         let sv = ModelMetadata::default_state_vector();
         let m = ActorCritic::new(&sv, 20, &mut rand_chacha::ChaCha8Rng::seed_from_u64(1));
-        let car = CarPolicy::new(&m);
+        let car = CarPolicy::new(&m, Precision::F16);
         let obs = vec![0.3f32; 20];
         m.pi.forward(&obs, 1, &mut tape, faer::Par::Seq);
         assert_eq!(car.logits(&obs, &mut s), tape.output());
+    }
+
+    #[test]
+    fn the_8_bit_tower_stays_within_its_quantisation_and_picks_the_same_actions() {
+        // The kernels: exactly the quantised weights times their scales.
+        let (inp, out) = (1003, 150);
+        let params: Vec<f32> = (0..inp * out + out).map(|i| ((i * 37 % 1001) as f32 - 500.0) * 0.0013).collect();
+        let d = Int8Dense::new(inp, out, &params);
+        let x: Vec<f32> = (0..inp).map(|i| if i % 3 == 0 { 0.0 } else { (i % 17) as f32 - 8.0 }).collect();
+        let mut y = vec![0.0; out];
+        int8_dense_scalar(&d, &x, &mut y);
+        let mut y3 = vec![0.0; out];
+        if let Some(v3) = V3::try_new() {
+            int8_dense_v3(v3, &d, &x, &mut y3);
+        }
+        for o in 0..out {
+            let q = |i: usize| d.q[(o / BLOCK) * inp + i].0[o % BLOCK] as f64;
+            let terms: Vec<f64> = (0..inp).map(|i| q(i) * x[i] as f64).collect();
+            let exact = (params[inp * out + o] as f64 + d.scale[o] as f64 * terms.iter().sum::<f64>()) as f32;
+            // Each weight within half a step of the original.
+            let step = d.scale[o] as f64;
+            assert!((0..inp).all(|i| (q(i) * step - params[o * inp + i] as f64).abs() <= step * 0.5001));
+            assert!((y[o] - exact).abs() <= 1e-4 * exact.abs().max(1.0), "output {o}: {} vs {exact}", y[o]);
+            if V3::try_new().is_some() {
+                assert!((y3[o] - exact).abs() <= 1e-4 * exact.abs().max(1.0), "output {o}: {} vs {exact}", y3[o]);
+            }
+        }
+        // The tower: logits within 2 % of their scale; the same action wherever the exact
+        // tower's choice is clear by more than that.
+        let meta = ModelMetadata::default_camera();
+        let m = ActorCritic::new(&meta, 120 * 160, &mut rand_chacha::ChaCha8Rng::seed_from_u64(3));
+        let car = CarPolicy::new(&m, Precision::Int8);
+        assert!(car.stages.iter().any(|s| matches!(s, Stage::Int8(_))));
+        let (mut s, mut tape) = (Scratch::default(), Tape::default());
+        for seed in 0..8u32 {
+            let obs: Vec<f32> = (0..120 * 160u32).map(|i| ((i * (seed + 3) + i / 160 * 7) % 256) as f32).collect();
+            m.pi.forward(&obs, 1, &mut tape, faer::Par::Seq);
+            let exact = tape.output().to_vec();
+            let got = car.logits(&obs, &mut s).to_vec();
+            let scale = exact.iter().fold(0.0f32, |a, v| a.max(v.abs()));
+            for (a, b) in got.iter().zip(&exact) {
+                assert!((a - b).abs() <= 2e-2 * scale, "{got:?} vs {exact:?}");
+            }
+            let mut sorted = exact.clone();
+            sorted.sort_by(|a, b| b.total_cmp(a));
+            if sorted[0] - sorted[1] > 4e-2 * scale {
+                let argmax = |v: &[f32]| v.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).unwrap().0;
+                assert_eq!(argmax(&got), argmax(&exact));
+            }
+        }
     }
 }

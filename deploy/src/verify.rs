@@ -61,7 +61,7 @@ pub fn verify(parts: ModelParts, trust: &TrustedKeys, car: &CarConfig, source: &
         input,
         metadata: folder.metadata,
         manifest: folder.manifest,
-        policy: CarPolicy::new(&folder.model),
+        policy: CarPolicy::new(&folder.model, car.precision),
         model: folder.model,
         parts,
     })

@@ -152,7 +152,12 @@ fn follow_job(
     let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(spec.seed);
     let model = policy::ActorCritic::new(&spec.metadata, spec.obs_size, &mut rng);
     let mut ppo = learner::Ppo::new(model, spec.hyper.clone(), 0, spec.seed, spec.par);
-    let view = JobView { job_id: &doc.id, obs_size: spec.obs_size, worlds: &spec.worlds };
+    let view = JobView {
+        job_id: &doc.id,
+        obs_size: spec.obs_size,
+        worlds: &spec.worlds,
+        actions: protocol::Actions::of(&spec.metadata.action_space),
+    };
     let d = drops.clone();
     // Until the job stops (or its table is no longer published: it ended).
     let mut seen = Instant::now();
@@ -220,6 +225,7 @@ struct ZenohLink<'a> {
     job: String,
     obs_size: usize,
     worlds: Vec<String>,
+    actions: protocol::Actions,
     jobs: &'a Sub,
     exp_sub: Sub,
     eval_sub: Sub,
@@ -268,6 +274,9 @@ impl<'a> ZenohLink<'a> {
             job: doc.id.clone(),
             obs_size: doc.obs_size as usize,
             worlds: doc.worlds.clone(),
+            actions: protocol::Actions::of(
+                &policy::ModelMetadata::parse(&doc.model_metadata_json, "the job's model_metadata.json")?.action_space,
+            ),
             jobs,
             exp_sub: net::subscribe(session, &keys::experience_all(&doc.id))?,
             eval_sub: net::subscribe(session, &keys::eval_reports(&doc.id))?,
@@ -287,13 +296,12 @@ impl<'a> ZenohLink<'a> {
     }
 
     fn view(&self) -> JobView<'_> {
-        JobView { job_id: &self.job, obs_size: self.obs_size, worlds: &self.worlds }
+        JobView { job_id: &self.job, obs_size: self.obs_size, worlds: &self.worlds, actions: self.actions }
     }
 
     fn refuse(&mut self, e: &protocol::DecodeError, what: &str) {
-        self.drops.count(e);
+        self.drops.refuse(what, e);
         self.refused += 1;
-        tracing::warn!(job = %self.job, "dropped {what}: {e}");
     }
 }
 
@@ -487,6 +495,12 @@ impl Link for ZenohLink<'_> {
             dropped_stale: s.dropped_stale,
             dropped_duplicate: s.dropped_duplicate,
             dropped_bad: s.dropped_bad + self.drops.total(),
+            drops: self
+                .drops
+                .reasons()
+                .into_iter()
+                .map(|(reason, count)| protocol::DropCount { reason, count })
+                .collect(),
             eval_progress: s.eval_progress,
             finished: s.finished,
             run_dir: s.run_dir.clone(),

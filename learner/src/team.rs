@@ -100,8 +100,7 @@ impl Shares {
                 }
                 Ok(_) => {}
                 Err(e) => {
-                    self.drops.count(&e);
-                    tracing::warn!(job = %self.job, "dropped a gradient share from {from}: {e}");
+                    self.drops.refuse(&format!("a gradient share from {from}"), &e);
                 }
             }
         }
@@ -255,7 +254,11 @@ impl<'a> TeamLead<'a> {
         while let Some((key, j)) = try_next::<TeamJoin>(&self.joins, &self.drops) {
             let from = keys::last(&key).to_string();
             if j.job_id != self.job || j.learner != from || from == self.me || !keys::is_valid_name(&from) {
-                self.drops.malformed.fetch_add(1, Ordering::Relaxed);
+                let e = protocol::DecodeError::Invalid(format!(
+                    "team join for job {:?} from {:?} on {from:?}'s key",
+                    j.job_id, j.learner
+                ));
+                self.drops.refuse("a team join", &e);
                 continue;
             }
             let good = self.good;
@@ -432,8 +435,7 @@ pub fn follow(
         let plan = match wire::team_plan_from_wire(w, view) {
             Ok(p) => p,
             Err(e) => {
-                drops.count(&e);
-                tracing::warn!(job = %view.job_id, "dropped a team plan: {e}");
+                drops.refuse("a team plan", &e);
                 continue;
             }
         };

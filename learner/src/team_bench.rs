@@ -230,7 +230,8 @@ pub fn member(network: &str, net_args: NetArgs, id: &str) -> Result<()> {
     let os = model.obs_size();
     let mut ppo = Ppo::new(model, hyper, 0, 0, Par::Seq);
     let worlds = [WORLD.to_string()];
-    let view = JobView { job_id: JOB, obs_size: os, worlds: &worlds };
+    let actions = protocol::Actions::of(&bench_metadata(network)?.2.action_space);
+    let view = JobView { job_id: JOB, obs_size: os, worlds: &worlds, actions };
     let mut updates = 0u64;
     let end = follow(&session, id, &view, &mut ppo, Arc::new(DropCounters::default()), &mut || true, &mut |_, _| {
         updates += 1

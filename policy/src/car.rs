@@ -37,6 +37,20 @@ pub struct CarConfig {
     pub max_model_steering_deg: f64,
     /// The largest speed (m/s) a model's action space may ask for.
     pub max_model_speed: f64,
+    /// How the big dense layer's weights are held: `f16` (as DeepRacer's car runs its models)
+    /// or `int8` (a scale per output: half the memory again, logits within 2 %).
+    pub precision: Precision,
+}
+
+/// The precision of the car's big dense layer.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Precision {
+    /// Half precision (DeepRacer's FP16 model).
+    #[default]
+    F16,
+    /// 8-bit integers with one scale per output.
+    Int8,
 }
 
 /// The message layout (the same names as `protocol::ros::Layout`, kept here so that this
@@ -75,6 +89,7 @@ impl Default for CarConfig {
             mapping: Mapping::default(),
             max_model_steering_deg: crate::MAX_STEERING_DEG,
             max_model_speed: crate::MAX_SPEED,
+            precision: Precision::F16,
         }
     }
 }

@@ -22,6 +22,8 @@ pub struct JobView<'a> {
     pub obs_size: usize,
     /// Its worlds.
     pub worlds: &'a [String],
+    /// Its model's action space.
+    pub actions: crate::Actions,
 }
 
 fn invalid<T>(m: String) -> Result<T, DecodeError> {
@@ -199,7 +201,7 @@ pub fn experience_from_wire(
     let mut kept = Vec::with_capacity(b.trajectories.len());
     let mut refused = Vec::new();
     for w in b.trajectories {
-        match trajectory_from_wire(w, job.obs_size) {
+        match trajectory_from_wire(w, job.obs_size, job.actions) {
             Ok(t) if !job.worlds.contains(&t.world) => {
                 refused.push(DecodeError::Invalid(format!("episode on {:?}, not one of the job's worlds", t.world)))
             }
@@ -384,7 +386,7 @@ pub fn team_plan_from_wire(w: crate::TeamPlan, job: &JobView<'_>) -> Result<Team
     }
     let mut trajectories = Vec::with_capacity(w.trajectories.len());
     for t in w.trajectories {
-        let t = trajectory_from_wire(t, job.obs_size)?;
+        let t = trajectory_from_wire(t, job.obs_size, job.actions)?;
         if !job.worlds.contains(&t.world) {
             return invalid(format!("episode on {:?}, not one of the job's worlds", t.world));
         }
@@ -463,7 +465,7 @@ mod tests {
     #[test]
     fn issue_8_team_messages_round_trip_and_refuse_what_does_not_fit() {
         let (id, worlds) = job();
-        let view = JobView { job_id: &id, obs_size: 3, worlds: &worlds };
+        let view = JobView { job_id: &id, obs_size: 3, worlds: &worlds, actions: crate::Actions::Discrete(5) };
         let t = policy::Trajectory {
             world: "reinvent_wood".into(),
             obs: vec![0.5; 6],
@@ -515,7 +517,7 @@ mod tests {
     #[test]
     fn messages_that_do_not_fit_the_job_are_refused() {
         let (id, worlds) = job();
-        let view = JobView { job_id: &id, obs_size: 3, worlds: &worlds };
+        let view = JobView { job_id: &id, obs_size: 3, worlds: &worlds, actions: crate::Actions::Discrete(5) };
         let t = policy::Trajectory {
             world: "reinvent_wood".into(),
             obs: vec![0.0; 6],

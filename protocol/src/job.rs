@@ -176,8 +176,7 @@ pub fn fetch(
         match from_wire(j, id) {
             Ok(d) => found = Some(d),
             Err(e) => {
-                drops.count(&e);
-                tracing::warn!("dropped the document of job {id}: {e}");
+                drops.refuse(&format!("the document of job {id}"), &e);
             }
         }
     }

@@ -280,8 +280,42 @@ pub fn trajectory_to_wire(t: &policy::Trajectory, obs_size: usize) -> Trajectory
     }
 }
 
+/// What a trajectory's actions must be: indices below the count, or two numbers per step.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Actions {
+    /// A discrete space of this many actions.
+    Discrete(usize),
+    /// A continuous space (the network's two unit outputs, sampled).
+    Continuous,
+}
+
+impl Actions {
+    /// The kind of a model's action space.
+    pub fn of(space: &policy::ActionSpace) -> Actions {
+        match space {
+            policy::ActionSpace::Discrete(a) => Actions::Discrete(a.len()),
+            policy::ActionSpace::Continuous { .. } => Actions::Continuous,
+        }
+    }
+}
+
+/// Bounds on the numbers a trajectory may carry: beyond them a message is refused, not trained on.
+pub mod limits {
+    /// |reward| per step: `reward validate`'s range.
+    pub const REWARD: f32 = 1e5;
+    /// |observation|, |value estimate| and |log-probability|.
+    pub const VALUE: f32 = 1e7;
+    /// |a| of a continuous action in the network's unit space (samples from the Gaussian may
+    /// leave [-1, 1]; this far out they are nonsense).
+    pub const CONTINUOUS_ACTION: f32 = 1e3;
+}
+
 /// A wire trajectory back, checked for consistent lengths and finite numbers.
-pub fn trajectory_from_wire(w: Trajectory, obs_size: usize) -> Result<policy::Trajectory, DecodeError> {
+pub fn trajectory_from_wire(
+    w: Trajectory,
+    obs_size: usize,
+    actions: Actions,
+) -> Result<policy::Trajectory, DecodeError> {
     let n = w.rewards.len();
     let bad = |m: String| Err(DecodeError::Invalid(m));
     if w.obs_size as usize != obs_size {
@@ -300,10 +334,22 @@ pub fn trajectory_from_wire(w: Trajectory, obs_size: usize) -> Result<policy::Tr
         if w.discrete_actions.len() != n {
             return bad(format!("{} discrete actions for {n} steps", w.discrete_actions.len()));
         }
+        let Actions::Discrete(count) = actions else {
+            return bad("discrete actions for a continuous action space".into());
+        };
+        if let Some(a) = w.discrete_actions.iter().find(|a| **a as usize >= count) {
+            return bad(format!("discrete action {a} outside the action space of {count} actions"));
+        }
         w.discrete_actions.iter().map(|&a| policy::Choice::Discrete(a as usize)).collect()
     } else {
+        if actions != Actions::Continuous {
+            return bad("continuous actions for a discrete action space".into());
+        }
         if w.continuous_actions.len() != 2 * n {
             return bad(format!("{} continuous action values for {n} steps", w.continuous_actions.len()));
+        }
+        if let Some(a) = w.continuous_actions.iter().find(|a| !(a.abs() <= limits::CONTINUOUS_ACTION)) {
+            return bad(format!("continuous action {a} outside ±{}", limits::CONTINUOUS_ACTION));
         }
         w.continuous_actions.chunks(2).map(|c| policy::Choice::Continuous([c[0], c[1]])).collect()
     };
@@ -311,6 +357,18 @@ pub fn trajectory_from_wire(w: Trajectory, obs_size: usize) -> Result<policy::Tr
         && w.progress.is_finite())
     {
         return bad("non-finite numbers".into());
+    }
+    if let Some(r) = w.rewards.iter().find(|r| r.abs() > limits::REWARD) {
+        return bad(format!("reward {r} outside ±{} (the range `reward validate` allows)", limits::REWARD));
+    }
+    if let Some(v) = w.values.iter().chain(&w.obs).find(|v| v.abs() > limits::VALUE) {
+        return bad(format!("observation or value estimate {v} outside ±{}", limits::VALUE));
+    }
+    if let Some(l) = w.logp.iter().find(|l| l.abs() > limits::VALUE || (actions != Actions::Continuous && **l > 0.0)) {
+        return bad(format!("log-probability {l} out of range"));
+    }
+    if !(0.0..=100.0).contains(&w.progress) {
+        return bad(format!("progress {} outside [0, 100]", w.progress));
     }
     if !keys::is_valid_name(&w.world) {
         return bad(format!("world name {:?} is not a valid name", w.world));
@@ -364,20 +422,70 @@ mod tests {
         };
         let bytes = encode(&batch);
         let back: ExperienceBatch = decode(&bytes).unwrap();
-        assert_eq!(trajectory_from_wire(back.trajectories[0].clone(), 3).unwrap(), t);
+        assert_eq!(trajectory_from_wire(back.trajectories[0].clone(), 3, D).unwrap(), t);
         // Garbage, truncation, another version, wrong sizes: errors, never panics.
         assert!(matches!(decode::<ExperienceBatch>(&[0xff, 0xff, 0xff]), Err(DecodeError::Malformed(_))));
         assert!(decode::<ExperienceBatch>(&bytes[..bytes.len() / 2]).is_err());
         let other = ExperienceBatch { protocol_version: 99, ..batch.clone() };
         assert_eq!(decode::<ExperienceBatch>(&encode(&other)).unwrap_err(), DecodeError::Version(99));
         assert!(matches!(decode::<ExperienceBatch>(&vec![0u8; MAX_MESSAGE_BYTES + 1]), Err(DecodeError::TooLarge(_))));
-        assert!(matches!(trajectory_from_wire(batch.trajectories[0].clone(), 4), Err(DecodeError::Invalid(_))));
+        assert!(matches!(trajectory_from_wire(batch.trajectories[0].clone(), 4, D), Err(DecodeError::Invalid(_))));
         let mut short = batch.trajectories[0].clone();
         short.logp.pop();
-        assert!(matches!(trajectory_from_wire(short, 3), Err(DecodeError::Invalid(_))));
+        assert!(matches!(trajectory_from_wire(short, 3, D), Err(DecodeError::Invalid(_))));
         let mut nan = batch.trajectories[0].clone();
         nan.rewards[0] = f32::NAN;
-        assert!(matches!(trajectory_from_wire(nan, 3), Err(DecodeError::Invalid(_))));
+        assert!(matches!(trajectory_from_wire(nan, 3, D), Err(DecodeError::Invalid(_))));
+    }
+
+    const D: Actions = Actions::Discrete(4);
+
+    /// Issue 10: a batch that decodes but does not fit the job (an action index of 99 in a
+    /// space of 10 killed the learner) is refused, one reason per row.
+    #[test]
+    fn issue_10_trajectories_that_do_not_fit_the_job_are_refused() {
+        let t = Trajectory {
+            obs_size: 1,
+            obs: vec![0.5, 0.5],
+            discrete_actions: vec![1, 3],
+            logp: vec![-1.0, -2.0],
+            values: vec![0.1, 0.2],
+            rewards: vec![1.0, 0.5],
+            progress: 42.0,
+            world: "reinvent_wood".into(),
+            ..Default::default()
+        };
+        assert!(trajectory_from_wire(t.clone(), 1, D).is_ok());
+        let cont = Trajectory { discrete_actions: vec![], continuous_actions: vec![0.5, -0.5, 2.0, 0.0], ..t.clone() };
+        assert!(trajectory_from_wire(cont.clone(), 1, Actions::Continuous).is_ok());
+        let rows: &[(&str, Trajectory, Actions)] = &[
+            ("discrete action 99", Trajectory { discrete_actions: vec![1, 99], ..t.clone() }, Actions::Discrete(10)),
+            ("discrete action 3", t.clone(), Actions::Discrete(3)),
+            ("discrete actions for a continuous", t.clone(), Actions::Continuous),
+            ("continuous actions for a discrete", cont.clone(), D),
+            (
+                "continuous action inf",
+                Trajectory { continuous_actions: vec![0.5, f32::INFINITY, 0.0, 0.0], ..cont.clone() },
+                Actions::Continuous,
+            ),
+            (
+                "continuous action 5000",
+                Trajectory { continuous_actions: vec![0.5, 5e3, 0.0, 0.0], ..cont.clone() },
+                Actions::Continuous,
+            ),
+            ("reward 1000000", Trajectory { rewards: vec![1.0, 1e6], ..t.clone() }, D),
+            ("reward -1000000", Trajectory { rewards: vec![-1e6, 1.0], ..t.clone() }, D),
+            ("value estimate 100000000", Trajectory { values: vec![1e8, 1.0], ..t.clone() }, D),
+            ("log-probability 0.5", Trajectory { logp: vec![0.5, -1.0], ..t.clone() }, D),
+            ("progress 140", Trajectory { progress: 140.0, ..t.clone() }, D),
+            ("progress -1", Trajectory { progress: -1.0, ..t.clone() }, D),
+        ];
+        for (why, w, actions) in rows {
+            match trajectory_from_wire(w.clone(), 1, *actions) {
+                Err(DecodeError::Invalid(m)) => assert!(m.contains(why.split(' ').last().unwrap()), "{why}: {m}"),
+                other => panic!("{why}: {other:?}"),
+            }
+        }
     }
 
     #[test]

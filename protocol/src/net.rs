@@ -2,8 +2,11 @@
 //! receives messages, and counts what it drops.
 
 use crate::{DecodeError, Versioned, decode};
+use std::collections::BTreeMap;
 use std::path::PathBuf;
+use std::sync::Mutex;
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, Instant};
 pub use zenoh;
 use zenoh::Wait;
 
@@ -120,15 +123,62 @@ pub fn open_retrying(args: &NetArgs) -> Result<zenoh::Session, NetError> {
     }
 }
 
-/// Counts of messages dropped on receipt, by reason.
+/// Counts of messages dropped on receipt, by reason, and a log that a flood cannot fill.
 #[derive(Debug, Default)]
 pub struct DropCounters {
-    /// Did not decode or was inconsistent.
+    /// Did not decode.
     pub malformed: AtomicU64,
     /// Over the size limit.
     pub oversized: AtomicU64,
     /// Another protocol version.
     pub version: AtomicU64,
+    /// Decoded, but did not fit the job (ids, sizes, action indices, ranges, worlds).
+    pub invalid: AtomicU64,
+    /// Counts per reason (the error's text without its numbers and quoted names, so that one
+    /// check is one reason), at most [`MAX_REASONS`] of them.
+    reasons: Mutex<BTreeMap<String, u64>>,
+    gate: Mutex<LogGate>,
+}
+
+/// Distinct drop reasons kept; the rest are counted under "other".
+pub const MAX_REASONS: usize = 64;
+/// Drops logged per [`LOG_WINDOW`]; the rest are summed up in one line when it ends.
+pub const LOG_BURST: u32 = 10;
+/// The window of the drop log's rate limit.
+pub const LOG_WINDOW: Duration = Duration::from_secs(10);
+
+#[derive(Debug, Default)]
+struct LogGate {
+    since: Option<Instant>,
+    logged: u32,
+    silenced: u64,
+}
+
+/// The reason of a drop: its error's text with numbers and quoted strings taken out.
+pub fn reason(e: &DecodeError) -> String {
+    let text = match e {
+        DecodeError::TooLarge(_) => return "over the size limit".into(),
+        DecodeError::Version(_) => return "another protocol version".into(),
+        DecodeError::Malformed(_) => return "malformed".into(),
+        DecodeError::Invalid(m) => m,
+    };
+    let mut out = String::with_capacity(text.len().min(120));
+    let mut quoted = false;
+    for c in text.chars().take(200) {
+        match c {
+            '"' => {
+                quoted = !quoted;
+                if quoted {
+                    out.push('…');
+                }
+            }
+            _ if quoted => {}
+            '0'..='9' | '.' | '-' | '+' | 'e' if out.ends_with('#') => {}
+            '0'..='9' => out.push('#'),
+            _ => out.push(c),
+        }
+    }
+    out
 }
 
 impl DropCounters {
@@ -137,16 +187,53 @@ impl DropCounters {
         self.malformed.load(Ordering::Relaxed)
             + self.oversized.load(Ordering::Relaxed)
             + self.version.load(Ordering::Relaxed)
+            + self.invalid.load(Ordering::Relaxed)
     }
 
-    /// Count one drop.
+    /// Count one drop (and log it, within the rate limit).
     pub fn count(&self, e: &DecodeError) {
+        self.refuse("a message", e);
+    }
+
+    /// Count one drop of `what` and log it, at most [`LOG_BURST`] lines per [`LOG_WINDOW`].
+    pub fn refuse(&self, what: &str, e: &DecodeError) {
         let c = match e {
             DecodeError::TooLarge(_) => &self.oversized,
             DecodeError::Version(_) => &self.version,
-            DecodeError::Malformed(_) | DecodeError::Invalid(_) => &self.malformed,
+            DecodeError::Malformed(_) => &self.malformed,
+            DecodeError::Invalid(_) => &self.invalid,
         };
         c.fetch_add(1, Ordering::Relaxed);
+        {
+            let mut r = self.reasons.lock().unwrap_or_else(|p| p.into_inner());
+            let key = reason(e);
+            let key = if r.len() < MAX_REASONS || r.contains_key(&key) { key } else { "other".into() };
+            *r.entry(key).or_default() += 1;
+        }
+        let mut g = self.gate.lock().unwrap_or_else(|p| p.into_inner());
+        let now = Instant::now();
+        if g.since.is_none_or(|t| now.duration_since(t) >= LOG_WINDOW) {
+            if g.silenced > 0 {
+                tracing::warn!("{} more dropped messages were not logged (the log is rate-limited)", g.silenced);
+            }
+            *g = LogGate { since: Some(now), logged: 0, silenced: 0 };
+        }
+        if g.logged < LOG_BURST {
+            g.logged += 1;
+            let text = e.to_string();
+            let text: String = text.chars().take(300).collect();
+            tracing::warn!("dropped {what}: {text}");
+        } else {
+            g.silenced += 1;
+        }
+    }
+
+    /// The drops so far per reason, most frequent first.
+    pub fn reasons(&self) -> Vec<(String, u64)> {
+        let r = self.reasons.lock().unwrap_or_else(|p| p.into_inner());
+        let mut v: Vec<(String, u64)> = r.iter().map(|(k, n)| (k.clone(), *n)).collect();
+        v.sort_by(|a, b| b.1.cmp(&a.1).then_with(|| a.0.cmp(&b.0)));
+        v
     }
 }
 
@@ -156,8 +243,7 @@ pub fn decode_sample<M: Versioned>(sample: &zenoh::sample::Sample, drops: &DropC
     match decode::<M>(&bytes) {
         Ok(m) => Some(m),
         Err(e) => {
-            drops.count(&e);
-            tracing::warn!(key = %sample.key_expr(), bytes = bytes.len(), "dropped a message: {e}");
+            drops.refuse(&format!("a message on {} ({} bytes)", sample.key_expr(), bytes.len()), &e);
             None
         }
     }

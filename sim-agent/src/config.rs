@@ -27,6 +27,9 @@ pub struct SimConfig {
     pub observation: ObservationConfig,
     /// Camera domain randomisation (used when the observation is the camera).
     pub camera: CameraConfig,
+    /// Seconds one call of a Python `reward_function` may take: a call past it stops the job
+    /// (and `reward validate`) with the file, the step and where the code was stuck.
+    pub reward_time_limit: f64,
 }
 
 impl Default for SimConfig {
@@ -39,7 +42,17 @@ impl Default for SimConfig {
             episode: EpisodeConfig::default(),
             observation: ObservationConfig::default(),
             camera: CameraConfig::default(),
+            reward_time_limit: 1.0,
         }
+    }
+}
+
+impl SimConfig {
+    /// [`SimConfig::reward_time_limit`] as a duration (at least a millisecond).
+    pub fn reward_time_limit(&self) -> std::time::Duration {
+        std::time::Duration::from_secs_f64(
+            if self.reward_time_limit.is_finite() { self.reward_time_limit } else { 1.0 }.clamp(1e-3, 86_400.0),
+        )
     }
 }
 

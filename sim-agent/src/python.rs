@@ -4,6 +4,13 @@
 //! beside it and installed packages import as usual). Each call fills one reused `dict` with
 //! every params key; the `waypoints` list is built once per episode and shared by that
 //! episode's calls. Calls for many environments run under one GIL acquisition.
+//!
+//! Every call has a time limit (default [`DEFAULT_TIME_LIMIT`]): a watchdog thread per reward
+//! sees a call that has not returned in time and raises `RewardTimeLimit` (a `BaseException`,
+//! so that a reward's `except Exception:` cannot swallow it) in the calling thread with
+//! CPython's `PyThreadState_SetAsyncExc`, reached through `ctypes`; the call then fails with an
+//! error that names the file, the step and where the code was stuck. (Code stuck inside one C
+//! call that holds the GIL cannot be interrupted this way; Python code, loops included, can.)
 
 use crate::params::RewardParams;
 use crate::reward::{RewardError, check_reward, params_json};
@@ -11,10 +18,76 @@ use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList, PyTuple};
 use std::ffi::CString;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
+use std::time::{Duration, Instant};
 use tracks::Track;
 
 static MODULE_COUNTER: AtomicUsize = AtomicUsize::new(0);
+
+/// How long one reward call may take unless the job says otherwise.
+pub const DEFAULT_TIME_LIMIT: Duration = Duration::from_secs(1);
+
+/// The exception raised in a reward call that ran out of time, and the helpers that raise
+/// and withdraw it (plain Python: `ctypes` reaches CPython's C API without `unsafe` here).
+const WATCHDOG_PY: &str = r#"
+import ctypes
+class RewardTimeLimit(BaseException):
+    """The reward function did not return within Paddock's time limit."""
+def fire(ident):
+    return ctypes.pythonapi.PyThreadState_SetAsyncExc(ctypes.c_ulong(ident), ctypes.py_object(RewardTimeLimit))
+def withdraw(ident):
+    ctypes.pythonapi.PyThreadState_SetAsyncExc(ctypes.c_ulong(ident), None)
+def ident():
+    import threading
+    return threading.get_ident()
+"#;
+
+/// The call in flight, shared with the watchdog thread.
+#[derive(Default)]
+struct Flight {
+    /// Number of the call in flight (0: none).
+    call: AtomicU64,
+    /// When it started, in µs since `epoch`.
+    started_us: AtomicU64,
+    /// Python's id of the calling thread.
+    ident: AtomicU64,
+    /// The watchdog raised the time limit in call number `fired`.
+    fired: AtomicU64,
+    /// The reward is gone: the watchdog ends.
+    done: AtomicBool,
+}
+
+/// The watchdog of one reward: wakes every 20 ms (at most a tenth of the limit), and under the
+/// GIL (the calling thread is then paused inside Python) fires on a call past its limit.
+fn watchdog(flight: Arc<Flight>, epoch: Instant, limit: Duration, helpers: Py<PyAny>) {
+    let tick = (limit / 10).clamp(Duration::from_millis(1), Duration::from_millis(20));
+    while !flight.done.load(Ordering::Relaxed) {
+        std::thread::sleep(tick);
+        let call = flight.call.load(Ordering::Acquire);
+        if call == 0 || flight.fired.load(Ordering::Relaxed) == call {
+            continue;
+        }
+        let started = Duration::from_micros(flight.started_us.load(Ordering::Relaxed));
+        if epoch.elapsed().saturating_sub(started) < limit {
+            continue;
+        }
+        Python::attach(|py| {
+            // Still the same call, now that the caller is paused (it holds the GIL between calls).
+            if flight.call.load(Ordering::Acquire) == call {
+                let ident = flight.ident.load(Ordering::Relaxed);
+                if helpers.bind(py).getattr("fire").and_then(|f| f.call1((ident,))).is_ok() {
+                    flight.fired.store(call, Ordering::Release);
+                }
+            }
+        });
+    }
+}
+
+thread_local! {
+    /// Python's id of this thread (asked once per thread).
+    static IDENT: std::cell::Cell<Option<u64>> = const { std::cell::Cell::new(None) };
+}
 
 /// A loaded `reward_function(params)`.
 pub struct PythonReward {
@@ -23,6 +96,18 @@ pub struct PythonReward {
     dict: Py<PyDict>,
     /// Per environment slot: (episode key, that episode's waypoint list).
     waypoints: Vec<Option<(u64, Py<PyList>)>>,
+    /// The time limit per call.
+    limit: Duration,
+    flight: Arc<Flight>,
+    epoch: Instant,
+    helpers: Py<PyAny>,
+    calls: u64,
+}
+
+impl Drop for PythonReward {
+    fn drop(&mut self) {
+        self.flight.done.store(true, Ordering::Relaxed);
+    }
 }
 
 impl PythonReward {
@@ -63,13 +148,47 @@ impl PythonReward {
             if !func.is_callable() {
                 return Err(load_err("reward_function is not callable".into()));
             }
-            Ok(PythonReward {
+            let helpers_code = CString::new(WATCHDOG_PY).expect("no NUL");
+            let helpers = pyo3::types::PyModule::from_code(
+                py,
+                &helpers_code,
+                c"paddock_reward_watchdog.py",
+                &CString::new(format!("paddock_reward_watchdog_{n}")).expect("no NUL"),
+            )
+            .map_err(|e| load_err(format!("the reward watchdog: {e}")))?;
+            let mut reward = PythonReward {
                 path: path.to_path_buf(),
                 func: func.unbind(),
                 dict: PyDict::new(py).unbind(),
                 waypoints: Vec::new(),
-            })
+                limit: Duration::ZERO,
+                flight: Arc::default(),
+                epoch: Instant::now(),
+                helpers: helpers.into_any().unbind(),
+                calls: 0,
+            };
+            reward.set_time_limit(py, DEFAULT_TIME_LIMIT);
+            Ok(reward)
         })
+    }
+
+    /// Let each call take at most `limit` (a new watchdog replaces the old one).
+    pub fn time_limit(&mut self, limit: Duration) {
+        Python::attach(|py| self.set_time_limit(py, limit));
+    }
+
+    fn set_time_limit(&mut self, py: Python<'_>, limit: Duration) {
+        self.flight.done.store(true, Ordering::Relaxed);
+        self.flight = Arc::default();
+        self.limit = limit;
+        let (flight, epoch, helpers) = (self.flight.clone(), self.epoch, self.helpers.clone_ref(py));
+        // Dropped with its reward: `done` ends it within a tick.
+        let spawned = std::thread::Builder::new()
+            .name("reward-watchdog".into())
+            .spawn(move || watchdog(flight, epoch, limit, helpers));
+        if let Err(e) = spawned {
+            tracing::warn!("no watchdog for the reward's time limit: {e}");
+        }
     }
 
     /// The file this reward came from.
@@ -125,7 +244,35 @@ impl PythonReward {
         let waypoints = self.waypoints[slot].as_ref().map(|(_, l)| l.bind(py).clone()).expect("set above");
         let d = self.dict.bind(py);
         fill_dict(py, d, p, &waypoints).map_err(internal)?;
-        let result = self.func.bind(py).call1((d,)).map_err(|e| RewardError::Raised {
+        let ident = match IDENT.get() {
+            Some(i) => i,
+            None => {
+                let i: u64 =
+                    self.helpers.bind(py).getattr("ident").and_then(|f| f.call0()?.extract()).map_err(internal)?;
+                IDENT.set(Some(i));
+                i
+            }
+        };
+        self.calls += 1;
+        let call = self.calls;
+        self.flight.ident.store(ident, Ordering::Relaxed);
+        self.flight.started_us.store(self.epoch.elapsed().as_micros() as u64, Ordering::Relaxed);
+        self.flight.call.store(call, Ordering::Release);
+        let result = self.func.bind(py).call1((d,));
+        self.flight.call.store(0, Ordering::Release);
+        if self.flight.fired.load(Ordering::Acquire) == call {
+            // The limit was raised in this call; if the call returned before the exception
+            // arrived, withdraw it so that it cannot strike later Python code of this thread.
+            let _ = self.helpers.bind(py).getattr("withdraw").and_then(|f| f.call1((ident,)));
+            return Err(RewardError::TimedOut {
+                file: self.path.display().to_string(),
+                step: p.steps,
+                limit: self.limit,
+                traceback: result.err().map(|e| format_traceback(py, &e)).unwrap_or_default(),
+                params: params_json(p),
+            });
+        }
+        let result = result.map_err(|e| RewardError::Raised {
             step: p.steps,
             traceback: format_traceback(py, &e),
             params: params_json(p),

@@ -85,6 +85,14 @@ impl RewardFn {
         Ok(RewardFn::Python(Box::new(PythonReward::from_source(source, name)?)))
     }
 
+    /// Let each call of a Python reward take at most `limit` (built-ins need no limit).
+    pub fn with_time_limit(mut self, limit: std::time::Duration) -> RewardFn {
+        if let RewardFn::Python(p) = &mut self {
+            p.time_limit(limit);
+        }
+        self
+    }
+
     /// A short description for logs.
     pub fn describe(&self) -> String {
         match self {
@@ -115,6 +123,22 @@ pub enum RewardError {
         /// Python's formatted traceback.
         traceback: String,
         /// The params of that step, as JSON (waypoints left out).
+        params: String,
+    },
+    /// `reward_function` did not return within the time limit.
+    #[error(
+        "{file}: reward_function did not return within the time limit of {limit:?} at step {step} (stopped with RewardTimeLimit):\n{traceback}\nparams: {params}"
+    )]
+    TimedOut {
+        /// The reward file.
+        file: String,
+        /// The step.
+        step: f64,
+        /// The limit.
+        limit: std::time::Duration,
+        /// Where the code was when it was stopped.
+        traceback: String,
+        /// The params of that step, as JSON.
         params: String,
     },
     /// `reward_function` returned something that is not an acceptable reward.

@@ -162,7 +162,8 @@ fn start(args: &ServeArgs, id: &str, a: &Assignment, doc: &JobDoc, first_seq: u6
     let cfg = job_config(doc)?;
     let meta = policy::ModelMetadata::parse(&doc.model_metadata_json, "the job's model_metadata.json")?;
     // Compiled in memory; the file keeps its name in tracebacks.
-    let reward = RewardFn::from_source(reward_file_name(&doc.reward_name), &doc.reward_source)?;
+    let reward = RewardFn::from_source(reward_file_name(&doc.reward_name), &doc.reward_source)?
+        .with_time_limit(cfg.reward_time_limit());
     let mut worlds = Vec::new();
     for w in &a.worlds {
         let world = tracks::world(&w.name).with_context(|| format!("assigned world {:?}", w.name))?;
@@ -205,6 +206,7 @@ struct AgentLink<'a> {
     /// The job's worlds (what its messages may name).
     worlds: Vec<String>,
     obs_size: usize,
+    actions: protocol::Actions,
     assign_sub: &'a Sub,
     policy_sub: Sub,
     credit_sub: Sub,
@@ -233,6 +235,9 @@ impl<'a> AgentLink<'a> {
             generation: a.generation,
             worlds: if a.job_worlds.is_empty() { w_names(a) } else { a.job_worlds.clone() },
             obs_size: sim_agent::obs::obs_dim(&cfg.observation),
+            actions: protocol::Actions::of(
+                &policy::ModelMetadata::parse(&doc.model_metadata_json, "the job's model_metadata.json")?.action_space,
+            ),
             assign_sub,
             policy_sub: net::subscribe(session, &keys::policy(&a.job_id))?,
             credit_sub: net::subscribe(session, &keys::credit(&a.job_id))?,
@@ -246,7 +251,7 @@ impl<'a> AgentLink<'a> {
     }
 
     fn view(&self) -> JobView<'_> {
-        JobView { job_id: &self.job, obs_size: self.obs_size, worlds: &self.worlds }
+        JobView { job_id: &self.job, obs_size: self.obs_size, worlds: &self.worlds, actions: self.actions }
     }
 
     fn take_policy(&mut self, u: PolicyUpdate) {
@@ -256,8 +261,7 @@ impl<'a> AgentLink<'a> {
                 self.queue.push_back(WorkerInbound::Policy(p));
             }
             Err(e) => {
-                self.drops.count(&e);
-                tracing::warn!("policy refused: {e}");
+                self.drops.refuse("a policy", &e);
             }
         }
     }
@@ -295,15 +299,14 @@ impl<'a> AgentLink<'a> {
         while let Some((_, c)) = try_next::<protocol::Credit>(&self.credit_sub, self.drops) {
             match wire::credit_from_wire(c, &self.job) {
                 Ok(c) => self.queue.push_back(WorkerInbound::Credit(c)),
-                Err(e) => self.drops.count(&e),
+                Err(e) => self.drops.refuse("a credit", &e),
             }
         }
         while let Some((_, r)) = try_next::<protocol::EvalRequest>(&self.eval_sub, self.drops) {
             match wire::eval_request_from_wire(r, &self.view(), &self.id) {
                 Ok(r) => self.queue.push_back(WorkerInbound::Eval(r)),
                 Err(e) => {
-                    self.drops.count(&e);
-                    tracing::warn!("evaluation request refused: {e}");
+                    self.drops.refuse("an evaluation request", &e);
                 }
             }
         }

@@ -161,3 +161,36 @@ fn issue_8_a_reward_from_a_job_compiles_in_memory_and_keeps_its_name() {
     let e = RewardFn::from_source("broken.py", "def reward_function(params)\n").err().unwrap().to_string();
     assert!(e.contains("broken.py"), "{e}");
 }
+
+/// Issue 10: a reward call has a time limit. The endless one fails with the file, the step and
+/// where it was stuck; the thread then runs other rewards as before (nothing left pending).
+#[test]
+fn issue_10_a_reward_that_never_returns_is_stopped_at_its_time_limit() {
+    let limit = std::time::Duration::from_millis(200);
+    let r = RewardFn::from_spec(&data("never_returns.py")).unwrap().with_time_limit(limit);
+    let t = std::time::Instant::now();
+    let err = lap_with(r).unwrap_err();
+    assert!(t.elapsed() < std::time::Duration::from_secs(10), "took {:?}", t.elapsed());
+    match &err {
+        RewardError::TimedOut { file, step, limit: l, traceback, .. } => {
+            assert!(file.ends_with("never_returns.py") && *l == limit && *step > 1.0, "{err}");
+            assert!(
+                traceback.contains("RewardTimeLimit") && traceback.contains("never_returns.py\", line"),
+                "{traceback}"
+            );
+        }
+        other => panic!("{other}"),
+    }
+    // Ordinary rewards on the same thread afterwards, the same as before.
+    let after = lap(&example("follow_center_line.py")).unwrap();
+    assert!(after.len() > 100 && after.iter().all(|r| r.is_finite()));
+    // A slow but finishing reward within its limit is not disturbed.
+    let slow = RewardFn::from_source(
+        "slow.py",
+        "import time\ndef reward_function(params):\n    time.sleep(0.002)\n    return 1.0\n",
+    )
+    .unwrap()
+    .with_time_limit(limit);
+    let rewards = lap_with(slow).unwrap();
+    assert!(rewards.len() > 100 && rewards[1..].iter().all(|r| *r == 1.0), "{rewards:?}");
+}
