@@ -102,7 +102,7 @@ pub fn run(args: CarArgs) -> Result<()> {
         Layout::Aws => ros::Layout::Aws,
     };
     let keys = CarKeys::new(&car.namespace);
-    let session = net::open_retrying(&args.net.args(true))?;
+    let session = net::open_retrying(&args.net.args(true).as_role(protocol::secure::Role::Car))?;
     let (tx, rx) = channel::<(Servo, Option<Header>, Instant)>();
     let _sub = session
         .declare_subscriber(&keys.servo)
@@ -173,7 +173,9 @@ pub fn run(args: CarArgs) -> Result<()> {
         publisher.put(ros::encode_sensor(vec![frame], layout)).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
         s.frames_sent += 1;
         // The frame period: take the commands that come; note the one that answers this frame.
-        next += period;
+        // A frame sent late (the renderer fell behind its schedule) still gets a whole period
+        // for its answer: the car's lateness is not the driver's.
+        next = (next + period).max(sent + period);
         let mut answered = false;
         loop {
             let left = next.saturating_duration_since(Instant::now());
