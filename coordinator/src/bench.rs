@@ -1,4 +1,4 @@
-//! `coordinator bench cluster|publish`: what distribution costs.
+//! `coordinator bench cluster|pixels|wire|publish`: what distribution costs.
 //!
 //! - `cluster`: useful work end to end: samples trained on per second (the steps of the episodes
 //!   the learner used, every update's optimiser step included), of the single-process trainer
@@ -7,6 +7,8 @@
 //! - `pixels`: wall-clock to 3/3 laps on every world from pixels (domain randomisation on),
 //!   `train` in one process against `up` with 2 agents, in one run; then both final models
 //!   evaluated on the training worlds and on tracks they never saw.
+//! - `wire`: experience throughput agent -> learner, plain TCP against mutual TLS with the
+//!   access rules (the cost of a secured cluster), interleaved rounds in one run.
 //! - `publish`: time from publishing a SHALLOW camera model until 4 agent sessions on loopback
 //!   hold it, and the bytes per env step of experience on the wire.
 
@@ -66,41 +68,77 @@ pub fn cluster(seconds: f64, envs: usize, world: &str) -> Result<()> {
         s["episodes_received"].as_u64().unwrap_or(0)
     );
     for agents in [1usize, 2, 4] {
-        let out = tmp.join(format!("up{agents}"));
         let per = (envs / agents).max(1);
-        let o = Command::new(&me)
-            .args([
-                "up",
-                "--world",
-                world,
-                "--agents",
-                &agents.to_string(),
-                "--envs",
-                &per.to_string(),
-                "--minutes",
-                &minutes,
-                "--out",
-            ])
-            .arg(&out)
-            .output()?;
-        if !o.status.success() {
-            bail!("up failed: {}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
-        }
-        let s: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(out.join("summary.json"))?).context("up's summary")?;
-        let steps = s["learner"]["env_steps"].as_f64().unwrap_or(0.0);
-        let secs = s["ended"].as_f64().unwrap_or(0.0) - s["started"].as_f64().unwrap_or(0.0);
-        let (used, updates) = used_samples(&out.join("run"))?;
-        let rate = used / secs;
-        let stale = s["learner"]["dropped_stale"].as_u64().unwrap_or(0);
-        let received = s["learner"]["episodes_received"].as_u64().unwrap_or(0);
+        let r = up_row(&tmp.join(format!("up{agents}")), world, agents, per, &minutes, None)?;
         println!(
-            "| `up` with {agents} agent process(es) × {per} envs (+ coordinator + learner) | {used:.0} | {updates} | {secs:.1} | {rate:.0} | {:.2}× | {steps:.0} | {stale} of {received} |",
-            rate / base
+            "| `up` with {agents} agent process(es) × {per} envs (+ coordinator + learner) | {:.0} | {} | {:.1} | {:.0} | {:.2}× | {:.0} | {} of {} |",
+            r.used,
+            r.updates,
+            r.secs,
+            r.used / r.secs,
+            r.used / r.secs / base,
+            r.steps,
+            r.stale,
+            r.received
         );
     }
     let _ = std::fs::remove_dir_all(&tmp);
     Ok(())
+}
+
+/// One `up` job's useful work.
+struct UpRow {
+    used: f64,
+    updates: usize,
+    secs: f64,
+    steps: f64,
+    stale: u64,
+    received: u64,
+}
+
+/// Run `up` on one world with `agents` × `per` envs for `minutes` (with `certs`: mutual TLS and
+/// the access rules on every link) and read what it did from its summary and metrics.
+fn up_row(
+    out: &std::path::Path,
+    world: &str,
+    agents: usize,
+    per: usize,
+    minutes: &str,
+    certs: Option<&std::path::Path>,
+) -> Result<UpRow> {
+    let me = std::env::current_exe()?;
+    let mut cmd = Command::new(&me);
+    cmd.args([
+        "up",
+        "--world",
+        world,
+        "--agents",
+        &agents.to_string(),
+        "--envs",
+        &per.to_string(),
+        "--minutes",
+        minutes,
+        "--out",
+    ])
+    .arg(out);
+    if let Some(c) = certs {
+        cmd.arg("--certs").arg(c);
+    }
+    let o = cmd.output()?;
+    if !o.status.success() {
+        bail!("up failed: {}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    }
+    let s: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json"))?).context("up's summary")?;
+    let (used, updates) = used_samples(&out.join("run"))?;
+    Ok(UpRow {
+        used,
+        updates,
+        secs: s["ended"].as_f64().unwrap_or(0.0) - s["started"].as_f64().unwrap_or(0.0),
+        steps: s["learner"]["env_steps"].as_f64().unwrap_or(0.0),
+        stale: s["learner"]["dropped_stale"].as_u64().unwrap_or(0),
+        received: s["learner"]["episodes_received"].as_u64().unwrap_or(0),
+    })
 }
 
 /// Samples trained on (the steps of every update's episodes) and updates, from a run folder.
@@ -348,5 +386,156 @@ pub fn pixels(
         println!("```");
         println!();
     }
+    Ok(())
+}
+
+/// One wire round: a learner session listening on loopback and an agent session connected to
+/// it, both with `certs` (mutual TLS and the access rules) or plain TCP; the agent puts `batch`
+/// as fast as the link takes it for `seconds`. Returns (messages/s, MB/s) received.
+fn wire_round(certs: Option<&std::path::Path>, batch: &[u8], seconds: f64) -> Result<(f64, f64)> {
+    use protocol::secure::Role;
+    use std::sync::atomic::{AtomicU64, Ordering};
+    let port = crate::up::free_port()?;
+    let proto = if certs.is_some() { "tls" } else { "tcp" };
+    let endpoint = format!("{proto}/127.0.0.1:{port}");
+    let base = NetArgs { certs: certs.map(|p| p.to_path_buf()), ..Default::default() };
+    let learner = net::open(&NetArgs { listen: vec![endpoint.clone()], ..base.clone() }.as_role(Role::Learner))?;
+    let agent = net::open(&NetArgs { connect: vec![endpoint.clone()], ..base.clone() }.as_role(Role::Agent))?;
+    let job = "wirebench";
+    let (msgs, bytes) = (Arc::new(AtomicU64::new(0)), Arc::new(AtomicU64::new(0)));
+    let (m2, b2) = (msgs.clone(), bytes.clone());
+    let _sub = learner
+        .declare_subscriber(keys::experience_all(job))
+        .callback(move |s| {
+            m2.fetch_add(1, Ordering::Relaxed);
+            b2.fetch_add(s.payload().len() as u64, Ordering::Relaxed);
+        })
+        .wait()
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let publisher = agent
+        .declare_publisher(keys::experience(job, "agent-1"))
+        .congestion_control(zenoh::qos::CongestionControl::Block)
+        .wait()
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let t0 = Instant::now();
+    while !publisher.matching_status().wait().map_err(|e| anyhow::anyhow!("{e}"))?.matching() {
+        if t0.elapsed() > Duration::from_secs(10) {
+            bail!("{proto}: the learner's subscriber did not reach the agent within 10 s");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    // Warm up, then count what arrives while the agent sends for `seconds`.
+    for _ in 0..20 {
+        publisher.put(batch.to_vec()).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
+    }
+    std::thread::sleep(Duration::from_millis(200));
+    let (m0, b0) = (msgs.load(Ordering::Relaxed), bytes.load(Ordering::Relaxed));
+    let t = Instant::now();
+    while t.elapsed().as_secs_f64() < seconds {
+        publisher.put(batch.to_vec()).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
+    }
+    let dt = t.elapsed().as_secs_f64();
+    let (m1, b1) = (msgs.load(Ordering::Relaxed), bytes.load(Ordering::Relaxed));
+    if m1 == m0 {
+        bail!("{proto}: nothing arrived at the learner");
+    }
+    drop(publisher);
+    let _ = agent.close().wait();
+    let _ = learner.close().wait();
+    Ok(((m1 - m0) as f64 / dt, (b1 - b0) as f64 / dt / 1e6))
+}
+
+/// `bench wire`: experience throughput agent → learner on loopback, plain TCP against mutual
+/// TLS with the access rules, rounds interleaved in one run, medians compared.
+pub fn wire(seconds: f64, rounds: usize, up_seconds: f64) -> Result<()> {
+    let certs = std::env::temp_dir().join(format!("paddock-bench-wire-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&certs);
+    crate::certs::write(&certs, false)?;
+    let batch = |trajectories: usize, steps: usize, obs: usize| {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        use rand::Rng;
+        let t = (0..trajectories)
+            .map(|i| protocol::Trajectory {
+                env: i as u32,
+                episode: i as u64,
+                policy_version: 1,
+                obs_size: obs as u32,
+                obs: (0..steps * obs).map(|_| rng.random::<f32>()).collect(),
+                discrete_actions: (0..steps).map(|_| rng.random_range(0..5)).collect(),
+                logp: vec![-1.6; steps],
+                values: vec![0.5; steps],
+                rewards: vec![1.0; steps],
+                done: true,
+                progress: 50.0,
+                world: "reinvent_base".into(),
+                ..Default::default()
+            })
+            .collect();
+        protocol::encode(&protocol::ExperienceBatch {
+            protocol_version: PROTOCOL_VERSION,
+            job_id: "wirebench".into(),
+            agent_id: "agent-1".into(),
+            seq: 1,
+            trajectories: t,
+            env_steps: (trajectories * steps) as u64,
+            seconds: 1.0,
+            ..Default::default()
+        })
+    };
+    println!(
+        "# coordinator bench wire: experience agent -> learner on loopback, {seconds} s x {rounds} rounds per link, interleaved; medians"
+    );
+    println!();
+    println!("| batch | bytes | TCP msgs/s | TCP MB/s | TLS+ACL msgs/s | TLS+ACL MB/s | TLS+ACL / TCP |");
+    println!("|---|---:|---:|---:|---:|---:|---:|");
+    let workloads = [
+        ("state: 16 episodes x 120 steps x 40 floats", batch(16, 120, 40)),
+        ("camera: 4 episodes x 15 steps x 19200 floats", batch(4, 15, 19200)),
+    ];
+    let median = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    for (name, b) in &workloads {
+        let (mut tcp, mut tls) = (Vec::new(), Vec::new());
+        for r in 0..rounds {
+            // Alternate which goes first, so that neither always has the warmer machine.
+            let order = if r % 2 == 0 { [false, true] } else { [true, false] };
+            for secure in order {
+                let got = wire_round(secure.then_some(certs.as_path()), b, seconds)?;
+                if secure { tls.push(got) } else { tcp.push(got) }
+            }
+        }
+        let (tm, tb) = (median(tcp.iter().map(|x| x.0).collect()), median(tcp.iter().map(|x| x.1).collect()));
+        let (sm, sb) = (median(tls.iter().map(|x| x.0).collect()), median(tls.iter().map(|x| x.1).collect()));
+        println!("| {name} | {} | {tm:.0} | {tb:.0} | {sm:.0} | {sb:.0} | {:.3} |", b.len(), sb / tb);
+    }
+    if up_seconds > 0.0 {
+        // The whole loop: experience the learner trained on, with and without TLS + access
+        // control, `up` with 2 agents on one world, alternating.
+        println!();
+        println!(
+            "| `up`, 2 agents x 8 envs, reinvent_base, {up_seconds:.0} s | samples trained on/s (median of {rounds}) | env steps simulated/s | ratio |"
+        );
+        println!("|---|---:|---:|---:|");
+        let minutes = format!("{}", up_seconds / 60.0);
+        let tmp = std::env::temp_dir().join(format!("paddock-bench-wire-up-{}", std::process::id()));
+        let (mut plain, mut secured) = (Vec::new(), Vec::new());
+        for r in 0..rounds {
+            let order = if r % 2 == 0 { [false, true] } else { [true, false] };
+            for secure in order {
+                let out = tmp.join(format!("{r}-{secure}"));
+                let row = up_row(&out, "reinvent_base", 2, 8, &minutes, secure.then_some(certs.as_path()))?;
+                let got = (row.used / row.secs, row.steps / row.secs);
+                if secure { secured.push(got) } else { plain.push(got) }
+            }
+        }
+        let _ = std::fs::remove_dir_all(&tmp);
+        let (pu, ps) = (median(plain.iter().map(|x| x.0).collect()), median(plain.iter().map(|x| x.1).collect()));
+        let (su, ss) = (median(secured.iter().map(|x| x.0).collect()), median(secured.iter().map(|x| x.1).collect()));
+        println!("| plain TCP | {pu:.0} | {ps:.0} | 1.000 |");
+        println!("| TLS + access control (`--certs`) | {su:.0} | {ss:.0} | {:.3} |", su / pu);
+    }
+    let _ = std::fs::remove_dir_all(&certs);
     Ok(())
 }

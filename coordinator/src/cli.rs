@@ -62,6 +62,12 @@ pub enum Command {
         #[command(subcommand)]
         command: KeysCommand,
     },
+    /// The cluster's TLS credentials: `certs new DIR` writes a CA and one certificate per role
+    /// (coordinator, learner, agent, car, operator) for every role's `--certs DIR`.
+    Certs {
+        #[command(subcommand)]
+        command: CertsCommand,
+    },
     /// The cars (`deploy`) on the network: model, frames/s, latencies, refusals, watchdog;
     /// `--estop CAR` holds a car at throttle 0 until `--release CAR`.
     Cars(CarsArgs),
@@ -69,6 +75,19 @@ pub enum Command {
     Bench {
         #[command(subcommand)]
         command: BenchCommand,
+    },
+}
+
+#[derive(Subcommand)]
+pub enum CertsCommand {
+    /// Write ca.pem, ca.key and <role>.pem/<role>.key for every role into DIR. Copy ca.pem and
+    /// a role's two files to each machine that runs it; keep ca.key off the cluster.
+    New {
+        /// The folder (created if missing).
+        dir: PathBuf,
+        /// Replace credentials already there.
+        #[arg(long)]
+        force: bool,
     },
 }
 
@@ -112,6 +131,19 @@ pub enum BenchCommand {
         /// World.
         #[arg(long, default_value = "reinvent_base")]
         world: String,
+    },
+    /// Experience throughput agent -> learner: plain TCP against mutual TLS with the access
+    /// rules, interleaved rounds in one run.
+    Wire {
+        /// Seconds per round.
+        #[arg(long, default_value_t = 3.0)]
+        seconds: f64,
+        /// Rounds per link (the median is reported).
+        #[arg(long, default_value_t = 5)]
+        rounds: usize,
+        /// Seconds of each `up` job in the end-to-end comparison (0: skip it).
+        #[arg(long, default_value_t = 30.0)]
+        up_seconds: f64,
     },
     /// Publish-to-4-agents latency of a SHALLOW camera model; bytes per env step.
     Publish {
@@ -251,6 +283,10 @@ pub struct UpArgs {
     /// `coordinator keys new NAME`); default: the run folder's `signing.key`, made on first use.
     #[arg(long)]
     pub signing_key: Option<PathBuf>,
+    /// The cluster's credentials (`certs new DIR`): every role on mutual TLS under the access
+    /// rules, as across machines. Plain TCP on loopback without.
+    #[arg(long, value_name = "DIR")]
+    pub certs: Option<PathBuf>,
     /// Output folder (the run folder is OUT/run, the model OUT/run/model).
     #[arg(long)]
     pub out: Option<PathBuf>,

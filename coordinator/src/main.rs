@@ -7,6 +7,7 @@
 
 mod bench;
 mod cars;
+mod certs;
 mod cli;
 mod client;
 mod drive;
@@ -20,13 +21,7 @@ mod up;
 use clap::Parser;
 
 fn main() {
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| "warn,coordinator=info,sim_agent=info".into()),
-        )
-        .with_writer(std::io::stderr)
-        .init();
+    protocol::secure::init_logging("warn,coordinator=info,sim_agent=info");
     let cli = cli::Cli::parse();
     let result = match cli.command {
         cli::Command::Tracks { command } => tracks_cmd::run(command),
@@ -38,13 +33,18 @@ fn main() {
         cli::Command::Evaluate(args) => train::evaluate_cmd(args),
         cli::Command::Clone(args) => train::clone_cmd(args),
         cli::Command::Serve(a) => {
-            serve::serve(serve::ServeArgs { net: client::net_args(&a.net, false), db: a.db }).map(|()| 0)
+            serve::serve(serve::ServeArgs { net: client::net_args(&a.net, false).as_role(protocol::secure::Role::Coordinator), db: a.db }).map(|()| 0)
         }
         cli::Command::Job { command } => client::run(command),
         cli::Command::Agents { net } => client::run(cli::JobCommand::Agents { net }),
         cli::Command::Up(args) => up::up(args),
         cli::Command::Render(args) => render_cmd::render(args),
         cli::Command::Keys { command: cli::KeysCommand::New { name } } => cars::new_keys(&name),
+        cli::Command::Certs { command: cli::CertsCommand::New { dir, force } } => certs::write(&dir, force).map(|names| {
+            println!("wrote {} in {}", names.join(", "), dir.display());
+            println!("each role takes --certs DIR with ca.pem and its own <role>.pem and <role>.key; endpoints are tls/HOST:PORT");
+            0
+        }),
         cli::Command::Cars(args) => cars::cars(args),
         cli::Command::Export { model, onnx } => (|| -> anyhow::Result<i32> {
             let f = policy::folder::load(&model)?;
@@ -61,6 +61,7 @@ fn main() {
         cli::Command::Bench { command } => match command {
             cli::BenchCommand::Cluster { seconds, envs, world } => bench::cluster(seconds, envs, &world).map(|()| 0),
             cli::BenchCommand::Publish { repeats } => bench::publish(repeats).map(|()| 0),
+            cli::BenchCommand::Wire { seconds, rounds, up_seconds } => bench::wire(seconds, rounds, up_seconds).map(|()| 0),
             cli::BenchCommand::Pixels { worlds, unseen, minutes, envs, evals, out } => {
                 bench::pixels(&worlds, &unseen, minutes, envs, evals, &out).map(|()| 0)
             }

@@ -182,6 +182,7 @@ fn on_status(st: &mut State, db: &Db, ls: LearnerStatus) {
         "episodes_received": ls.episodes_received, "eval_laps": ls.eval_laps, "stop_reason": ls.stop_reason,
         "learners": ls.learners, "team_updates": ls.team_updates, "team_failures": ls.team_failures,
         "drops": ls.drops.iter().map(|d| serde_json::json!({"reason": d.reason, "count": d.count})).collect::<Vec<_>>(),
+        "refused": ls.refused.iter().map(|d| serde_json::json!({"reason": d.reason, "count": d.count})).collect::<Vec<_>>(),
         "agents": ls.agents.iter().map(|a| serde_json::json!({"agent": a.agent_id, "world": a.world, "steps_per_s": a.steps_per_s})).collect::<Vec<_>>(),
         "worlds": ls.worlds.iter().map(|w| serde_json::json!({"world": w.world, "agents": w.agents, "episodes": w.episodes,
             "mean_progress": w.mean_progress, "mean_reward": w.mean_reward, "steps_per_s": w.steps_per_s})).collect::<Vec<_>>(),
@@ -372,7 +373,18 @@ fn handle(st: &Arc<Mutex<State>>, db: &Db, _session: &zenoh::Session, req: JobRe
             None => reply(false, format!("no job '{id}'"), serde_json::Value::Null),
         },
         Some(Kind::StatusJobId(id)) => match st.jobs.get(&id) {
-            Some(j) => reply(true, status_text(j, &st), serde_json::to_value(j).unwrap_or_default()),
+            Some(j) => {
+                let mut v = serde_json::to_value(j).unwrap_or_default();
+                if let Some(o) = v.as_object_mut() {
+                    let refused: Vec<serde_json::Value> = protocol::secure::REFUSED
+                        .reasons()
+                        .into_iter()
+                        .map(|(reason, count)| serde_json::json!({"reason": reason, "count": count}))
+                        .collect();
+                    o.insert("coordinator_refused".into(), serde_json::Value::Array(refused));
+                }
+                reply(true, status_text(j, &st), v)
+            }
             None => reply(false, format!("no job '{id}'"), serde_json::Value::Null),
         },
         Some(Kind::List(_)) => {
@@ -502,6 +514,16 @@ fn status_text(j: &JobRecord, st: &State) -> String {
             n("team_updates"),
             n("team_failures")
         ));
+    }
+    for d in l.get("refused").and_then(|v| v.as_array()).into_iter().flatten().take(8) {
+        t.push_str(&format!(
+            "  refused at the learner {}× : {}\n",
+            d.get("count").and_then(|v| v.as_u64()).unwrap_or(0),
+            d.get("reason").and_then(|v| v.as_str()).unwrap_or("-")
+        ));
+    }
+    for (reason, count) in protocol::secure::REFUSED.reasons().into_iter().take(8) {
+        t.push_str(&format!("  refused at the coordinator {count}× : {reason}\n"));
     }
     t.push_str(&format!("  agents alive: {}, learners alive: {}\n", st.agents.len(), st.learners.len()));
     t.push_str("  recent events:\n");

@@ -45,10 +45,18 @@ pub fn free_port() -> Result<u16> {
     Ok(std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?.port())
 }
 
-fn spawn(children: &mut Children, name: &str, bin: &Path, args: &[String], log: &Path) -> Result<()> {
+fn spawn(
+    children: &mut Children,
+    name: &str,
+    bin: &Path,
+    args: &[String],
+    common: &[String],
+    log: &Path,
+) -> Result<()> {
     let out = std::fs::File::create(log)?;
     let child = Command::new(bin)
         .args(args)
+        .args(common)
         .stdin(Stdio::null())
         .stdout(out.try_clone()?)
         .stderr(out)
@@ -73,7 +81,14 @@ pub fn up(args: UpArgs) -> Result<i32> {
     std::fs::create_dir_all(&logs)?;
     let out = out.canonicalize()?;
     let port = free_port()?;
-    let endpoint = format!("tcp/127.0.0.1:{port}");
+    // With credentials every link is mutual TLS under the cluster's access rules, as across
+    // machines; on loopback without them, plain TCP.
+    let certs = match &args.certs {
+        Some(d) => Some(d.canonicalize().with_context(|| format!("--certs {}", d.display()))?),
+        None => None,
+    };
+    let endpoint = format!("{}/127.0.0.1:{port}", if certs.is_some() { "tls" } else { "tcp" });
+    let common: Vec<String> = certs.iter().flat_map(|d| ["--certs".to_string(), d.display().to_string()]).collect();
     let me = std::env::current_exe()?;
     let (learner, agent) = (sibling("learner")?, sibling("sim-agent")?);
     let mut children = Children(Vec::new());
@@ -88,6 +103,7 @@ pub fn up(args: UpArgs) -> Result<i32> {
             "--db".into(),
             out.join("coordinator.redb").display().to_string(),
         ],
+        &common,
         &logs.join("coordinator.log"),
     )?;
     spawn(
@@ -106,6 +122,7 @@ pub fn up(args: UpArgs) -> Result<i32> {
         .into_iter()
         .chain(args.signing_key.iter().flat_map(|k| ["--signing-key".into(), k.display().to_string()]))
         .collect::<Vec<String>>(),
+        &common,
         &logs.join("learner.log"),
     )?;
     let threads = (std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1) / args.agents.max(1)).max(1);
@@ -125,6 +142,7 @@ pub fn up(args: UpArgs) -> Result<i32> {
                 "--threads".into(),
                 threads.to_string(),
             ],
+            &common,
             &logs.join(format!("agent-{i}.log")),
         )?;
     }
@@ -173,7 +191,7 @@ pub fn up(args: UpArgs) -> Result<i32> {
     std::fs::write(&spec_path, &spec)?;
     let id = crate::client::new_job_id(&spec_path, Some("up"));
     let doc = coordinator::jobspec::load(&spec_path, &id)?;
-    let session = net::open(&NetArgs { connect: vec![endpoint.clone()], ..Default::default() })?;
+    let session = net::open(&NetArgs { connect: vec![endpoint.clone()], certs: certs.clone(), ..Default::default() })?;
     let t0 = Instant::now();
     let started = loop {
         match request(&session, Kind::StartJobJson(serde_json::to_string(&doc)?), Duration::from_secs(2)) {

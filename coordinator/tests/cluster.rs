@@ -50,6 +50,8 @@ impl Procs {
 struct Cluster {
     dir: tempfile::TempDir,
     endpoint: String,
+    /// `--certs DIR` for every role and CLI call once [`Cluster::secure`] made credentials.
+    certs: Vec<String>,
     procs: Procs,
     // Last: released after the processes are gone.
     _turn: std::sync::MutexGuard<'static, ()>,
@@ -59,7 +61,25 @@ impl Cluster {
     fn new() -> Cluster {
         let dir = tempfile::tempdir().unwrap();
         let turn = exclusive();
-        Cluster { _turn: turn, endpoint: format!("tcp/127.0.0.1:{}", free_port()), dir, procs: Procs(vec![]) }
+        Cluster {
+            _turn: turn,
+            endpoint: format!("tcp/127.0.0.1:{}", free_port()),
+            certs: vec![],
+            dir,
+            procs: Procs(vec![]),
+        }
+    }
+
+    /// The cluster's credentials (`certs new certs`) for every role from now on, on `tls/`.
+    fn secure(&mut self) {
+        let o = Command::new(bin("coordinator"))
+            .args(["certs", "new", "certs"])
+            .current_dir(self.dir.path())
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        self.endpoint = self.endpoint.replace("tcp/", "tls/");
+        self.certs = vec!["--certs".into(), self.path("certs").display().to_string()];
     }
 
     fn path(&self, p: &str) -> PathBuf {
@@ -73,6 +93,7 @@ impl Cluster {
             Command::new(bin("coordinator"))
                 .args(["serve", "--listen", &ep, "--db"])
                 .arg(db)
+                .args(&self.certs)
                 .current_dir(self.dir.path()),
             &log,
         );
@@ -94,6 +115,7 @@ impl Cluster {
             name,
             Command::new(bin("learner"))
                 .args(["serve", "--connect", &ep, "--id", id, "--checkpoint-seconds", "0"])
+                .args(&self.certs)
                 .current_dir(dir),
             &log,
         );
@@ -105,6 +127,7 @@ impl Cluster {
             id,
             Command::new(bin("sim-agent"))
                 .args(["serve", "--connect", &ep, "--id", id, "--envs", "8", "--threads", "1"])
+                .args(&self.certs)
                 .current_dir(self.dir.path()),
             &log,
         );
@@ -113,6 +136,7 @@ impl Cluster {
     fn cli(&self, args: &[&str]) -> Output {
         let mut a: Vec<&str> = args.to_vec();
         a.extend(["--connect", &self.endpoint]);
+        a.extend(self.certs.iter().map(String::as_str));
         Command::new(bin("coordinator")).args(&a).current_dir(self.dir.path()).output().unwrap()
     }
 
@@ -710,4 +734,228 @@ fn issue_9_the_learner_signs_what_it_publishes_and_a_person_promotes_the_version
     let text = String::from_utf8_lossy(&o.stdout).to_string() + &String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && text.contains("no checkpoint of v99999"), "{text}\n{}", c.logs());
     c.cli(&["job", "stop", &id]);
+}
+
+/// The CLI with another credentials folder (or none) against the cluster's endpoint.
+fn cli_with(c: &Cluster, args: &[&str], extra: &[&str]) -> String {
+    let o = Command::new(bin("coordinator"))
+        .args(args)
+        .args(["--connect", &c.endpoint])
+        .args(extra)
+        .current_dir(c.dir.path())
+        .output()
+        .unwrap();
+    assert!(!o.status.success(), "{args:?} {extra:?} was answered: {}", String::from_utf8_lossy(&o.stdout));
+    String::from_utf8_lossy(&o.stdout).to_string() + &String::from_utf8_lossy(&o.stderr)
+}
+
+/// A folder holding `role`'s certificate and key under the operator's file names: what a
+/// thief who copied one machine's credentials would try.
+fn stolen(c: &Cluster, role: &str) -> String {
+    let d = c.path(&format!("stolen-{role}"));
+    std::fs::create_dir_all(&d).unwrap();
+    std::fs::copy(c.path("certs/ca.pem"), d.join("ca.pem")).unwrap();
+    std::fs::copy(c.path(&format!("certs/{role}.pem")), d.join("operator.pem")).unwrap();
+    std::fs::copy(c.path(&format!("certs/{role}.key")), d.join("operator.key")).unwrap();
+    d.display().to_string()
+}
+
+#[test]
+fn issue_10_only_the_clusters_roles_connect_and_each_does_only_its_part() {
+    use protocol::net::{self, NetArgs, zenoh};
+    use protocol::secure::Role;
+    use zenoh::Wait;
+    let mut c = Cluster::new();
+    c.secure();
+    // The credentials: a CA and one certificate per role; keys readable by their owner only.
+    for f in ["ca.pem", "coordinator.pem", "learner.pem", "agent.pem", "car.pem", "operator.pem"] {
+        assert!(std::fs::read_to_string(c.path("certs").join(f)).unwrap().contains("BEGIN CERTIFICATE"), "{f}");
+    }
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        let mode = std::fs::metadata(c.path("certs/agent.key")).unwrap().permissions().mode();
+        assert_eq!(mode & 0o077, 0, "agent.key is private: {mode:o}");
+    }
+    let o =
+        Command::new(bin("coordinator")).args(["certs", "new", "certs"]).current_dir(c.dir.path()).output().unwrap();
+    assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("--force"), "credentials kept");
+    // Secure by default: no listening beyond loopback without credentials or --insecure.
+    let port = free_port();
+    let wide = format!("tcp/0.0.0.0:{port}");
+    let o = Command::new(bin("coordinator"))
+        .args(["serve", "--listen", &wide, "--db", "open.redb"])
+        .current_dir(c.dir.path())
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("refusing to listen on") && err.contains("--insecure"), "{err}");
+    let mut open = Command::new(bin("coordinator"))
+        .args(["serve", "--listen", &wide, "--db", "open.redb", "--insecure"])
+        .current_dir(c.dir.path())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(Duration::from_secs(2));
+    assert!(open.try_wait().unwrap().is_none(), "--insecure starts");
+    open.kill().unwrap();
+    open.wait().unwrap();
+
+    // A cluster on mutual TLS under the access rules trains as any other.
+    c.coordinator();
+    c.learner();
+    c.agent("agent-1");
+    let id = c.start("worlds = [\"reinvent_wood\"]\nout = \"run\"\n[stop]\nminutes = 5\n");
+    let s = c.wait(&id, 90, "training over TLS", |s| version(s) >= 2);
+    let world = world_of(&s, "agent-1").unwrap();
+
+    // No credentials: plain TCP, TLS without a certificate of its own (trusting the CA, as a
+    // curious peer could), a job with Python in it: nobody answers.
+    let tcp = c.endpoint.replace("tls/", "tcp/");
+    let o = Command::new(bin("coordinator"))
+        .args(["job", "list", "--connect", &tcp])
+        .current_dir(c.dir.path())
+        .output()
+        .unwrap();
+    assert!(!o.status.success(), "plain TCP is not answered");
+    std::fs::write(
+        c.path("anon.json5"),
+        format!(
+            "{{ mode: \"peer\", listen: {{ endpoints: [] }}, connect: {{ endpoints: [{:?}] }}, transport: {{ link: {{ tls: {{ root_ca_certificate: {:?} }} }} }} }}",
+            c.endpoint,
+            c.path("certs/ca.pem").display().to_string()
+        ),
+    )
+    .unwrap();
+    std::fs::write(
+        c.path("evil.py"),
+        "import os\ndef reward_function(params):\n    os.system('touch pwned')\n    return 1.0\n",
+    )
+    .unwrap();
+    std::fs::write(c.path("evil.toml"), "worlds = [\"reinvent_wood\"]\nreward = \"evil.py\"\n").unwrap();
+    for args in [&["job", "list"][..], &["job", "start", "evil.toml"], &["job", "stop", &id], &["job", "status", &id]] {
+        let mut a = args.to_vec();
+        a.extend(["-c", "anon.json5"]);
+        let o = Command::new(bin("coordinator")).args(&a).current_dir(c.dir.path()).output().unwrap();
+        let text = String::from_utf8_lossy(&o.stdout).to_string() + &String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success() && text.contains("no coordinator answered"), "{args:?}: {text}");
+    }
+    // Another role's credentials: a stolen agent, learner or car certificate cannot run jobs.
+    for role in ["agent", "learner", "car"] {
+        let d = stolen(&c, role);
+        for args in
+            [&["job", "list"][..], &["job", "start", "evil.toml"], &["job", "stop", &id], &["job", "status", &id]]
+        {
+            let text = cli_with(&c, args, &["--certs", &d]);
+            assert!(text.contains("no coordinator answered"), "{role} {args:?}: {text}");
+        }
+    }
+    assert!(!c.path("pwned").exists() && !c.dir.path().join("run/../pwned").exists());
+
+    // Roles publishing what is not theirs: an agent re-publishing a model (v1000000) and
+    // re-assigning agent-1, a car sending experience with an action index of 99.
+    let certs = c.path("certs");
+    let as_role = |r: Role| {
+        net::open(
+            &NetArgs { connect: vec![c.endpoint.clone()], certs: Some(certs.clone()), ..Default::default() }.as_role(r),
+        )
+        .unwrap()
+    };
+    let watcher = as_role(Role::Operator);
+    let seen = net::subscribe(&watcher, &protocol::keys::policy(&id)).unwrap();
+    let agent = as_role(Role::Agent);
+    let car = as_role(Role::Car);
+    std::thread::sleep(Duration::from_secs(2));
+    let drops = net::DropCounters::default();
+    let real = net::subscribe(&watcher, &protocol::keys::experience(&id, "agent-1")).unwrap();
+    let until = Instant::now() + Duration::from_secs(30);
+    let batch = loop {
+        if let Some((_, b)) = net::try_next::<protocol::ExperienceBatch>(&real, &drops) {
+            if !b.trajectories.is_empty() {
+                break b;
+            }
+        }
+        assert!(Instant::now() < until, "the operator sees agent-1's experience");
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let update = protocol::PolicyUpdate {
+        protocol_version: protocol::PROTOCOL_VERSION,
+        job_id: id.clone(),
+        policy_version: 1_000_000,
+        ..Default::default()
+    };
+    let hijack = protocol::Assignment {
+        protocol_version: protocol::PROTOCOL_VERSION,
+        agent_id: "agent-1".into(),
+        job_id: "elsewhere".into(),
+        generation: 1_000_000,
+        worlds: vec![protocol::WorldSpec { name: "reinvent_carpet".into(), ..Default::default() }],
+        ..Default::default()
+    };
+    let mut bad = batch.clone();
+    bad.seq += 1_000_000;
+    bad.trajectories.truncate(1);
+    bad.trajectories[0].discrete_actions[0] = 99;
+    let before = c.status(&id)["learner"]["dropped_bad"].as_u64().unwrap_or(0);
+    for _ in 0..5 {
+        net::put(&agent, &protocol::keys::policy(&id), &update).unwrap();
+        net::put(&agent, &protocol::keys::assignment("agent-1"), &hijack).unwrap();
+        net::put(&car, &protocol::keys::experience(&id, "agent-1"), &bad).unwrap();
+        let _ = agent
+            .get(protocol::keys::CONTROL)
+            .timeout(Duration::from_secs(1))
+            .wait()
+            .map(|r| while r.recv().is_ok() {});
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    // The job goes on, untouched: same world, no model from elsewhere, the learner never saw
+    // the hostile batch (refused before decoding), and everyone is alive.
+    let v = version(&c.status(&id));
+    let s = c.wait(&id, 60, "training after the attacks", |s| version(s) > v + 1);
+    assert_eq!(world_of(&s, "agent-1").as_deref(), Some(world.as_str()));
+    assert_eq!(
+        s["learner"]["dropped_bad"].as_u64().unwrap_or(0),
+        before,
+        "the car's batch never reached the learner: {s}"
+    );
+    while let Ok(Some(sample)) = seen.try_recv() {
+        let u = protocol::decode::<protocol::PolicyUpdate>(&sample.payload().to_bytes()).unwrap();
+        assert!(u.policy_version < 1_000_000, "the operator received the agent's model");
+    }
+    for (name, p) in &mut c.procs.0 {
+        assert!(p.try_wait().unwrap().is_none(), "{name} died");
+    }
+    // Counted per reason where it was refused (each node judges what it receives), shown by
+    // `job status` for the coordinator and the learner, logged by every role.
+    let s = c.wait(&id, 30, "the refusals counted", |s| {
+        s["coordinator_refused"].to_string().contains("car may not query on paddock/v1/control")
+            && s["learner"]["refused"].to_string().contains("car may not put on paddock/v1/job/*/experience/agent-1")
+    });
+    let coordinator = s["coordinator_refused"].to_string();
+    for want in [
+        "TLS: a connection refused",
+        "access control: agent may not query on paddock/v1/control",
+        "access control: learner may not query on paddock/v1/control",
+        "access control: car may not query on paddock/v1/control",
+    ] {
+        assert!(coordinator.contains(want), "{want}: {coordinator}");
+    }
+    let text = String::from_utf8_lossy(&c.cli(&["job", "status", &id]).stdout).to_string();
+    assert!(text.contains("refused at the coordinator") && text.contains("refused at the learner"), "{text}");
+    let deadline = Instant::now() + Duration::from_secs(25);
+    loop {
+        let log = std::fs::read_to_string(c.path("agent-1.log")).unwrap();
+        if log.contains("agent may not put on paddock/v1/assign/agent-1")
+            && log.contains("agent may not put on paddock/v1/job/*/policy")
+        {
+            break;
+        }
+        assert!(Instant::now() < deadline, "agent-1 logs what it refused: {log}");
+        std::thread::sleep(Duration::from_secs(1));
+    }
+    // The operator's credentials still stop the job, which ends as any other.
+    let o = c.cli(&["job", "stop", &id]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stdout));
+    c.wait(&id, 60, "the job finished", |s| s["state"] == "finished");
+    assert!(c.path("run/model/model.safetensors").exists());
 }

@@ -62,10 +62,7 @@ enum Sub {
 }
 
 fn main() {
-    tracing_subscriber::fmt()
-        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()))
-        .with_writer(std::io::stderr)
-        .init();
+    protocol::secure::init_logging("info");
     let cli = Cli::parse();
     let result = match cli.command {
         Some(Sub::Bench { seconds }) => bench::run(seconds),
@@ -129,7 +126,7 @@ fn run(cli: Cli) -> Result<()> {
     if cli.job.is_none() && slot.current().is_none() {
         bail!("{}: no model saved there", cli.model_dir.as_ref().expect("checked").display());
     }
-    let session = net::open_retrying(&cli.net.args(cli.job.is_some()))?;
+    let session = net::open_retrying(&cli.net.args(cli.job.is_some()).as_role(protocol::secure::Role::Car))?;
     let car_keys = CarKeys::new(&car.namespace);
     let layout = match car.layout {
         Layout::Community => ros::Layout::Community,

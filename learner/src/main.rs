@@ -92,10 +92,7 @@ fn cores() -> usize {
 }
 
 fn main() {
-    tracing_subscriber::fmt()
-        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()))
-        .with_writer(std::io::stderr)
-        .init();
+    protocol::secure::init_logging("info");
     let result = match Cli::parse().command {
         Command::Bench(b) => (|| {
             if !b.team_only {
@@ -106,9 +103,11 @@ fn main() {
             }
             Ok(())
         })(),
-        Command::BenchMember(m) => team_bench::member(&m.network, m.net.args(true), &m.id),
+        Command::BenchMember(m) => {
+            team_bench::member(&m.network, m.net.args(true).as_role(protocol::secure::Role::Learner), &m.id)
+        }
         Command::Serve(a) => serve::serve(serve::ServeArgs {
-            net: a.net.into(),
+            net: protocol::net::NetArgs::from(a.net).as_role(protocol::secure::Role::Learner),
             id: a.id,
             threads: a.threads.unwrap_or_else(cores),
             checkpoint_seconds: a.checkpoint_seconds,

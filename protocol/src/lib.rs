@@ -44,6 +44,7 @@ pub mod exchange;
 pub mod job;
 pub mod net;
 pub mod ros;
+pub mod secure;
 
 /// The version every message carries; others are dropped.
 pub const PROTOCOL_VERSION: u32 = 2;

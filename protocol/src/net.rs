@@ -1,6 +1,7 @@
 //! Zenoh sessions and typed messaging: how every role opens the network, publishes and
 //! receives messages, and counts what it drops.
 
+use crate::secure::{Credentials, Role};
 use crate::{DecodeError, Versioned, decode};
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -21,6 +22,21 @@ pub struct NetArgs {
     pub config: Option<PathBuf>,
     /// Network interface for multicast scouting (off when `None`).
     pub multicast: Option<String>,
+    /// The cluster's credentials folder (`coordinator certs new DIR`): mutual TLS with this
+    /// role's certificate, and the access rules of [`crate::secure`].
+    pub certs: Option<PathBuf>,
+    /// Listen beyond loopback without credentials (refused otherwise).
+    pub insecure: bool,
+    /// Whose certificate to present (with `certs`); an operator's when unset.
+    pub role: Option<Role>,
+}
+
+impl NetArgs {
+    /// The same endpoints, presenting `role`'s certificate.
+    pub fn as_role(mut self, role: Role) -> NetArgs {
+        self.role = Some(role);
+        self
+    }
 }
 
 /// The network flags every role and client takes (`--connect`, `--listen`, `-c`,
@@ -40,20 +56,34 @@ pub struct NetCli {
     /// Multicast scouting on this interface (e.g. lo); off by default.
     #[arg(long)]
     pub multicast: Option<String>,
+    /// The cluster's credentials folder (made by `coordinator certs new DIR`): connect and
+    /// listen with mutual TLS as this role, under the cluster's access rules. Endpoints are
+    /// then `tls/HOST:PORT`.
+    #[arg(long, value_name = "DIR")]
+    pub certs: Option<PathBuf>,
+    /// Allow listening beyond loopback without credentials: anyone who reaches the port
+    /// joins the cluster. Refused without this flag.
+    #[arg(long)]
+    pub insecure: bool,
 }
 
 impl NetCli {
-    /// The endpoints; a client (`default_connect`) with none dials tcp/127.0.0.1:7447.
+    /// The endpoints; a client (`default_connect`) with none dials port 7447 on loopback
+    /// (`tls/` with credentials, `tcp/` without).
     pub fn args(&self, default_connect: bool) -> NetArgs {
         let mut connect = self.connect.clone();
         if connect.is_empty() && default_connect && self.zenoh_config.is_none() && self.multicast.is_none() {
-            connect.push("tcp/127.0.0.1:7447".into());
+            let proto = if self.certs.is_some() { "tls" } else { "tcp" };
+            connect.push(format!("{proto}/127.0.0.1:7447"));
         }
         NetArgs {
             connect,
             listen: self.listen.clone(),
             config: self.zenoh_config.clone(),
             multicast: self.multicast.clone(),
+            certs: self.certs.clone(),
+            insecure: self.insecure,
+            role: None,
         }
     }
 }
@@ -73,8 +103,44 @@ fn json_list(items: &[String]) -> String {
     format!("[{}]", items.iter().map(|e| format!("{e:?}")).collect::<Vec<_>>().join(","))
 }
 
+/// Whether an endpoint's host is a loopback address (`127.0.0.0/8`, `::1`, `localhost`).
+pub fn is_loopback(endpoint: &str) -> bool {
+    let addr = endpoint.split_once('/').map(|(_, a)| a).unwrap_or(endpoint);
+    let addr = addr.split(['#', '?']).next().unwrap_or(addr);
+    let host = match addr.rsplit_once(':') {
+        Some((h, _)) => h,
+        None => addr,
+    };
+    let host = host.trim_start_matches('[').trim_end_matches(']');
+    host == "localhost" || host.parse::<std::net::IpAddr>().is_ok_and(|ip| ip.is_loopback())
+}
+
+/// The listen endpoints a config holds for its mode (the value may be a list, or one list per
+/// mode).
+fn listen_endpoints(config: &zenoh::Config) -> Vec<String> {
+    let mode = config
+        .get_json("mode")
+        .ok()
+        .and_then(|m| serde_json::from_str::<String>(&m).ok())
+        .unwrap_or_else(|| "peer".into());
+    let Some(v) =
+        config.get_json("listen/endpoints").ok().and_then(|j| serde_json::from_str::<serde_json::Value>(&j).ok())
+    else {
+        return Vec::new();
+    };
+    let list = match &v {
+        serde_json::Value::Object(m) => m.get(&mode).cloned().unwrap_or_default(),
+        other => other.clone(),
+    };
+    list.as_array().into_iter().flatten().filter_map(|e| e.as_str().map(str::to_string)).collect()
+}
+
 /// Open a peer-mode session (or whatever mode the config file says) with the given endpoints.
 /// `connect/exit_on_failure` is always false: roles wait for each other.
+///
+/// With `certs`, every link is mutual TLS with this role's certificate and the access rules
+/// of [`crate::secure`] apply; with neither `certs` nor `insecure`, listening is confined to
+/// loopback (by default `tcp/127.0.0.1:0`) and a non-loopback listen endpoint is refused.
 pub fn open(args: &NetArgs) -> Result<zenoh::Session, NetError> {
     let e = |x: Box<dyn std::error::Error + Send + Sync>| NetError(x.to_string());
     let mut config = match &args.config {
@@ -101,6 +167,49 @@ pub fn open(args: &NetArgs) -> Result<zenoh::Session, NetError> {
     config.insert_json5("connect/exit_on_failure", "false").map_err(e)?;
     if !args.listen.is_empty() {
         config.insert_json5("listen/endpoints", &json_list(&args.listen)).map_err(e)?;
+    } else if args.config.is_none() {
+        // Zenoh's own default is every interface; ours is what the credentials allow.
+        let default = if args.certs.is_some() {
+            "tls/[::]:0"
+        } else if args.insecure {
+            "tcp/[::]:0"
+        } else {
+            "tcp/127.0.0.1:0"
+        };
+        config.insert_json5("listen/endpoints", &json_list(&[default.to_string()])).map_err(e)?;
+    }
+    if let Some(dir) = &args.certs {
+        let role = args.role.unwrap_or(Role::Operator);
+        let c = Credentials::from_dir(dir, role).map_err(|x| NetError(x.to_string()))?;
+        let path = |p: &std::path::Path| format!("{:?}", p.display().to_string());
+        let tls = [
+            ("root_ca_certificate", path(&c.ca)),
+            ("listen_certificate", path(&c.cert)),
+            ("listen_private_key", path(&c.key)),
+            ("connect_certificate", path(&c.cert)),
+            ("connect_private_key", path(&c.key)),
+            // Certificates name roles, not hosts: the CA's signature and the role are checked.
+            ("verify_name_on_connect", "false".into()),
+            ("enable_mtls", "true".into()),
+        ];
+        for (k, v) in tls {
+            config.insert_json5(&format!("transport/link/tls/{k}"), &v).map_err(e)?;
+        }
+        config.insert_json5("access_control", &crate::secure::access_control_json().to_string()).map_err(e)?;
+    }
+    if !args.insecure {
+        let mtls =
+            args.certs.is_some() || config.get_json("transport/link/tls/enable_mtls").is_ok_and(|v| v.trim() == "true");
+        for ep in listen_endpoints(&config) {
+            let secured = mtls && ep.starts_with("tls/");
+            if !is_loopback(&ep) && !secured {
+                return Err(NetError(format!(
+                    "refusing to listen on {ep} without credentials: anyone who reaches it would join the \
+                     cluster. Pass --certs DIR (made by `coordinator certs new DIR`) with a tls/ endpoint, \
+                     listen on 127.0.0.1, or pass --insecure"
+                )));
+            }
+        }
     }
     zenoh::open(config).wait().map_err(e)
 }

@@ -102,7 +102,7 @@ pub fn run(args: CarArgs) -> Result<()> {
         Layout::Aws => ros::Layout::Aws,
     };
     let keys = CarKeys::new(&car.namespace);
-    let session = net::open_retrying(&args.net.args(true))?;
+    let session = net::open_retrying(&args.net.args(true).as_role(protocol::secure::Role::Car))?;
     let (tx, rx) = channel::<(Servo, Option<Header>, Instant)>();
     let _sub = session
         .declare_subscriber(&keys.servo)

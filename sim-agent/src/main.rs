@@ -76,16 +76,13 @@ struct BenchArgs {
 }
 
 fn main() {
-    tracing_subscriber::fmt()
-        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()))
-        .with_writer(std::io::stderr)
-        .init();
+    protocol::secure::init_logging("info");
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Bench(args) => bench(args),
         Command::Car(args) => hil::run(args),
         Command::Serve(a) => serve::serve(serve::ServeArgs {
-            net: a.net.into(),
+            net: protocol::net::NetArgs::from(a.net).as_role(protocol::secure::Role::Agent),
             envs: a.envs,
             id: a.id,
             threads: a.threads.unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)),

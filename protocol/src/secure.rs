@@ -1,0 +1,521 @@
+//! Who may connect and what each may do: the cluster's roles, their TLS credentials (one
+//! certificate per role, signed by the cluster's CA, its common name `paddock-<role>`), the
+//! Zenoh access-control rules that bind each role to its own keys, and the count of what the
+//! network refused.
+//!
+//! Every node enforces the same rules on what it receives (ingress): a message from a peer
+//! whose certificate says `paddock-agent` may only be one an agent sends (experience,
+//! reports, its info, its liveliness token). Zenoh's own mechanisms do the work (mutual TLS in
+//! `zenoh-link-tls`, the ACL interceptor); this module writes their configuration and reads
+//! their refusals back out of their logs ([`RefusalLayer`]) so that `job status` can show them.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+/// A role in the cluster; each holds its own certificate.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum Role {
+    /// The job table, assignments, job control.
+    Coordinator,
+    /// Trains; publishes models, credit, evaluation requests and its status.
+    Learner,
+    /// Simulates; publishes experience, evaluation results and reports.
+    Agent,
+    /// Drives (the on-car agent, or the simulated car of the car-in-the-loop test).
+    Car,
+    /// A person at the CLI: job control, watching, the e-stop.
+    Operator,
+}
+
+impl Role {
+    /// Every role, in the order `certs new` writes them.
+    pub const ALL: [Role; 5] = [Role::Coordinator, Role::Learner, Role::Agent, Role::Car, Role::Operator];
+
+    /// `coordinator`, `learner`, … (the credential files' stem).
+    pub fn name(self) -> &'static str {
+        match self {
+            Role::Coordinator => "coordinator",
+            Role::Learner => "learner",
+            Role::Agent => "agent",
+            Role::Car => "car",
+            Role::Operator => "operator",
+        }
+    }
+
+    /// The certificate's common name, `paddock-<role>`: what the access rules match.
+    pub fn common_name(self) -> String {
+        format!("paddock-{}", self.name())
+    }
+
+    /// The role a certificate's common name names.
+    pub fn from_common_name(cn: &str) -> Option<Role> {
+        Role::ALL.into_iter().find(|r| r.common_name() == cn)
+    }
+}
+
+/// The cluster CA's certificate file in a credentials folder.
+pub const CA_FILE: &str = "ca.pem";
+
+/// One role's credentials: the CA that signs every role, and this role's certificate and key.
+#[derive(Clone, Debug)]
+pub struct Credentials {
+    /// The cluster CA certificate (PEM).
+    pub ca: PathBuf,
+    /// This role's certificate (PEM).
+    pub cert: PathBuf,
+    /// This role's private key (PEM).
+    pub key: PathBuf,
+}
+
+/// Credentials that are missing or not PEM.
+#[derive(Debug, thiserror::Error)]
+#[error("{path}: {what}")]
+pub struct CredentialError {
+    /// The file.
+    pub path: PathBuf,
+    /// What is wrong with it.
+    pub what: String,
+}
+
+impl Credentials {
+    /// `DIR/ca.pem`, `DIR/<role>.pem`, `DIR/<role>.key` (as `coordinator certs new DIR` writes
+    /// them), each checked to exist and hold PEM.
+    pub fn from_dir(dir: &Path, role: Role) -> Result<Credentials, CredentialError> {
+        let c = Credentials {
+            ca: dir.join(CA_FILE),
+            cert: dir.join(format!("{}.pem", role.name())),
+            key: dir.join(format!("{}.key", role.name())),
+        };
+        for (p, label) in [(&c.ca, "CERTIFICATE"), (&c.cert, "CERTIFICATE"), (&c.key, "PRIVATE KEY")] {
+            let text = std::fs::read_to_string(p).map_err(|e| CredentialError {
+                path: p.clone(),
+                what: format!("cannot read it ({e}); make the cluster's credentials with `coordinator certs new DIR`"),
+            })?;
+            if !text.contains("-----BEGIN ") || !text.contains(label) {
+                return Err(CredentialError { path: p.clone(), what: format!("expected a PEM {label}") });
+            }
+        }
+        Ok(c)
+    }
+}
+
+/// Every message kind the access rules know.
+const ALL_MESSAGES: [&str; 9] = [
+    "put",
+    "delete",
+    "declare_subscriber",
+    "query",
+    "declare_queryable",
+    "reply",
+    "liveliness_token",
+    "declare_liveliness_subscriber",
+    "liveliness_query",
+];
+
+const ROS_SENSOR: &str = "**/sensor_fusion_pkg/sensor_msg";
+const ROS_SERVO: &str = "**/deepracer_navigation_pkg/auto_drive";
+
+fn rule(id: &str, messages: &[&str], keys: &[&str]) -> serde_json::Value {
+    serde_json::json!({
+        "id": id,
+        "messages": messages,
+        "flows": ["ingress"],
+        "permission": "allow",
+        "key_exprs": keys,
+    })
+}
+
+/// The access-control section (`access_control` in a Zenoh config) every role runs with:
+/// deny by default, and per role the messages it may send. Only ingress is filtered (each node
+/// judges what it receives), so a node's own sends are never held back.
+pub fn access_control_json() -> serde_json::Value {
+    let job = |k: &str| format!("paddock/v1/job/*/{k}");
+    let s = |v: &[String]| v.to_vec();
+    let mut rules = Vec::new();
+    let mut policies = Vec::new();
+    let mut add = |role: &str, list: Vec<(&str, Vec<&str>, Vec<String>)>| {
+        let mut ids = Vec::new();
+        for (i, (what, msgs, keys)) in list.into_iter().enumerate() {
+            let id = format!("{role}-{i}-{what}");
+            let keys: Vec<&str> = keys.iter().map(String::as_str).collect();
+            rules.push(rule(&id, &msgs, &keys));
+            ids.push(id);
+        }
+        // What a node sends is judged by its receiver; Zenoh filters egress too when the
+        // default is deny, so every node may send anything to a known subject.
+        ids.push("egress".to_string());
+        policies.push(serde_json::json!({ "id": role, "rules": ids, "subjects": [role] }));
+    };
+    add("coordinator", vec![("all", ALL_MESSAGES.to_vec(), vec!["**".into()])]);
+    add(
+        "learner",
+        vec![
+            (
+                "publish",
+                vec!["put"],
+                s(&[job("policy"), job("best"), job("learner"), job("credit"), job("eval/request/*"), job("team/**")]),
+            ),
+            (
+                "subscribe",
+                vec!["declare_subscriber"],
+                s(&["paddock/v1/jobs".into(), job("experience/**"), job("eval/report/*"), job("team/**")]),
+            ),
+            ("ask", vec!["query"], s(&[job("spec")])),
+            ("answer", vec!["declare_queryable", "reply"], s(&[job("policy"), job("best"), job("promote")])),
+            (
+                "alive",
+                vec!["liveliness_token", "declare_liveliness_subscriber", "liveliness_query"],
+                vec!["paddock/v1/alive/learner/*".into()],
+            ),
+        ],
+    );
+    add(
+        "agent",
+        vec![
+            ("publish", vec!["put"], s(&[job("experience/*"), job("eval/report/*"), job("report/*")])),
+            (
+                "subscribe",
+                vec!["declare_subscriber"],
+                s(&["paddock/v1/assign/*".into(), job("policy"), job("credit"), job("eval/request/*")]),
+            ),
+            ("ask", vec!["query"], s(&[job("policy"), job("spec")])),
+            ("answer", vec!["declare_queryable", "reply"], vec!["paddock/v1/agent/*/info".into()]),
+            ("alive", vec!["liveliness_token"], vec!["paddock/v1/alive/agent/*".into()]),
+        ],
+    );
+    add(
+        "car",
+        vec![
+            ("publish", vec!["put"], s(&["paddock/v1/car/*/status".into(), ROS_SENSOR.into(), ROS_SERVO.into()])),
+            (
+                "subscribe",
+                vec!["declare_subscriber"],
+                s(&[
+                    job("policy"),
+                    job("best"),
+                    "paddock/v1/car/*/control".into(),
+                    ROS_SENSOR.into(),
+                    ROS_SERVO.into(),
+                ]),
+            ),
+            ("ask", vec!["query"], s(&[job("policy"), job("best")])),
+            ("alive", vec!["liveliness_token"], vec!["paddock/v1/alive/car/*".into()]),
+        ],
+    );
+    add(
+        "operator",
+        vec![
+            ("control", vec!["query"], s(&["paddock/v1/control".into(), job("promote")])),
+            ("estop", vec!["put"], vec!["paddock/v1/car/*/control".into()]),
+            ("watch", vec!["declare_subscriber"], vec!["paddock/v1/**".into()]),
+            ("alive", vec!["declare_liveliness_subscriber", "liveliness_query"], vec!["paddock/v1/alive/**".into()]),
+        ],
+    );
+    // The car's own ROS bridge (zenoh-bridge-ros2dds on the car) holds no certificate: on
+    // the loopback interface over plain TCP it may carry the camera and the servo, nothing else.
+    add("local-ros", vec![("ros", vec!["put", "declare_subscriber"], vec![ROS_SENSOR.into(), ROS_SERVO.into()])]);
+    let mut egress = rule("egress", &ALL_MESSAGES, &["**"]);
+    egress["flows"] = serde_json::json!(["egress"]);
+    rules.push(egress);
+    let mut subjects: Vec<serde_json::Value> = Role::ALL
+        .iter()
+        .map(|r| serde_json::json!({ "id": r.name(), "cert_common_names": [r.common_name()] }))
+        .collect();
+    subjects.push(serde_json::json!({ "id": "local-ros", "interfaces": ["lo"], "link_protocols": ["tcp"] }));
+    serde_json::json!({
+        "enabled": true,
+        "default_permission": "deny",
+        "rules": rules,
+        "subjects": subjects,
+        "policies": policies,
+    })
+}
+
+/// What the network refused, by reason: connections that failed mutual TLS and messages the
+/// access rules denied (each node's own count).
+#[derive(Debug, Default)]
+pub struct Refusals {
+    total: AtomicU64,
+    reasons: Mutex<BTreeMap<String, u64>>,
+}
+
+/// Distinct refusal reasons kept; the rest count as "other".
+const MAX_REFUSAL_REASONS: usize = 64;
+
+impl Refusals {
+    /// Count one refusal.
+    pub fn count(&self, reason: String) {
+        self.total.fetch_add(1, Ordering::Relaxed);
+        let mut r = self.reasons.lock().unwrap_or_else(|p| p.into_inner());
+        let key = if r.len() < MAX_REFUSAL_REASONS || r.contains_key(&reason) { reason } else { "other".into() };
+        *r.entry(key).or_default() += 1;
+    }
+
+    /// Refusals so far.
+    pub fn total(&self) -> u64 {
+        self.total.load(Ordering::Relaxed)
+    }
+
+    /// Refusals per reason, most frequent first.
+    pub fn reasons(&self) -> Vec<(String, u64)> {
+        let r = self.reasons.lock().unwrap_or_else(|p| p.into_inner());
+        let mut v: Vec<(String, u64)> = r.iter().map(|(k, n)| (k.clone(), *n)).collect();
+        v.sort_by(|a, b| b.1.cmp(&a.1).then_with(|| a.0.cmp(&b.0)));
+        v
+    }
+}
+
+/// This process's refusals (filled by [`RefusalLayer`]).
+pub static REFUSED: std::sync::LazyLock<Refusals> = std::sync::LazyLock::new(Refusals::default);
+
+const ACL_TARGET: &str = "zenoh::net::routing::interceptor::access_control";
+const TLS_TARGET: &str = "zenoh_link_tls";
+
+/// The refusal a Zenoh log line reports, if it reports one: an access-control denial (its
+/// trace line "… on <subject> is unauthorized to Put (ingress) on <key>") or a connection
+/// that failed the TLS handshake (zenoh-link-tls's accept warning).
+pub fn refusal_reason(target: &str, message: &str) -> Option<String> {
+    if target.starts_with(ACL_TARGET) {
+        let (head, rest) = message.split_once(" is unauthorized to ")?;
+        let (what, key) = rest.split_once(" on ")?;
+        if !what.contains("(ingress)") {
+            return None;
+        }
+        let who = who_is(head).unwrap_or_else(|| "a peer".into());
+        let verb = what.trim_end_matches("(ingress)").trim().to_lowercase();
+        return Some(format!("access control: {who} may not {verb} on {}", generalise(key)));
+    }
+    if target.starts_with(TLS_TARGET) && message.contains(". Hint: increase the system open file limit") {
+        let err = message.split(". Hint:").next().unwrap_or(message);
+        let err: String = err.chars().take(120).collect();
+        return Some(format!("TLS: a connection refused ({err})"));
+    }
+    None
+}
+
+/// The roles of the peers seen in access-control lines, by Zenoh id: a line from Zenoh's
+/// cache names the peer by its id only.
+static PEERS: std::sync::LazyLock<Mutex<BTreeMap<String, String>>> = std::sync::LazyLock::new(Default::default);
+
+/// Who the head of an access-control line ("<zid> on <subject>", or "Using cached result:
+/// <zid>") names: the role of its certificate, remembered by Zenoh id.
+fn who_is(head: &str) -> Option<String> {
+    let head = head.trim_start_matches("Using cached result:").trim();
+    let (zid, subject) = match head.split_once(" on ") {
+        Some((z, s)) => (z.trim(), Some(s)),
+        None => (head, None),
+    };
+    let mut peers = PEERS.lock().unwrap_or_else(|p| p.into_inner());
+    match subject.and_then(|s| s.split("CertCommonName(").nth(1)).and_then(|t| t.split(')').next()) {
+        Some(cn) => {
+            let who = Role::from_common_name(cn).map(|r| r.name().to_string()).unwrap_or_else(|| format!("'{cn}'"));
+            if peers.len() < 4096 || peers.contains_key(zid) {
+                peers.insert(zid.to_string(), who.clone());
+            }
+            Some(who)
+        }
+        None => peers.get(zid).cloned(),
+    }
+}
+
+/// A key with the job's id in it replaced by `*`, so that one rule is one reason.
+fn generalise(key: &str) -> String {
+    match key.strip_prefix("paddock/v1/job/") {
+        Some(rest) => match rest.split_once('/') {
+            Some((_, tail)) => format!("paddock/v1/job/*/{tail}"),
+            None => key.to_string(),
+        },
+        None => key.to_string(),
+    }
+}
+
+/// A tracing layer that counts Zenoh's refusals into [`REFUSED`]; give it a filter that
+/// passes the ACL target at TRACE and zenoh-link-tls at WARN ([`init_logging`] does).
+pub struct RefusalLayer;
+
+struct MessageVisitor(String);
+
+impl tracing::field::Visit for MessageVisitor {
+    fn record_debug(&mut self, field: &tracing::field::Field, value: &dyn std::fmt::Debug) {
+        if field.name() == "message" {
+            use std::fmt::Write;
+            let _ = write!(self.0, "{value:?}");
+        }
+    }
+}
+
+thread_local! {
+    /// The key whose permissions Zenoh is computing in advance on this thread, if it is.
+    static CACHING: std::cell::RefCell<Option<String>> = const { std::cell::RefCell::new(None) };
+}
+
+/// Whether an access-control log line is a real decision on a message, not one of the
+/// decisions Zenoh computes in advance, for every kind of message, when a peer declares a key
+/// ("caching permissions for `K`" and then one line per kind on `K`, on the same thread).
+fn is_decision(message: &str) -> bool {
+    if let Some(rest) = message.split_once("caching permissions for `").map(|x| x.1) {
+        let key = rest.split('`').next().unwrap_or("").to_string();
+        CACHING.with(|c| *c.borrow_mut() = Some(key));
+        return false;
+    }
+    let key = message.rsplit_once(" on ").map(|x| x.1).unwrap_or("");
+    CACHING.with(|c| {
+        let mut c = c.borrow_mut();
+        let in_block = !message.starts_with("Using cached result")
+            && (message.contains(" is authorized to ") || message.contains(" is unauthorized to "))
+            && c.as_deref() == Some(key);
+        if !in_block {
+            *c = None;
+        } else if let Some((head, _)) = message.split_once(" is ") {
+            who_is(head);
+        }
+        !in_block
+    })
+}
+
+impl<S: tracing::Subscriber> tracing_subscriber::Layer<S> for RefusalLayer {
+    fn on_event(&self, event: &tracing::Event<'_>, _: tracing_subscriber::layer::Context<'_, S>) {
+        let target = event.metadata().target();
+        let mut v = MessageVisitor(String::new());
+        event.record(&mut v);
+        if target.starts_with(ACL_TARGET) && (!is_decision(&v.0) || !v.0.contains("unauthorized")) {
+            return;
+        }
+        if let Some(r) = refusal_reason(target, &v.0) {
+            REFUSED.count(r);
+        }
+    }
+}
+
+/// Set up every role's log: `RUST_LOG` (or `default`) for what is printed, zenoh-link-tls's
+/// per-connection warnings folded into one line every 10 s (a peer that keeps knocking must not
+/// fill the log), and [`RefusalLayer`] counting refusals.
+pub fn init_logging(default: &str) {
+    use tracing_subscriber::layer::SubscriberExt;
+    use tracing_subscriber::util::SubscriberInitExt;
+    use tracing_subscriber::{EnvFilter, Layer, filter::LevelFilter, filter::Targets};
+    let spec = std::env::var("RUST_LOG").ok().filter(|s| !s.trim().is_empty()).unwrap_or_else(|| default.to_string());
+    let printed = EnvFilter::try_new(format!("{spec},{TLS_TARGET}=error"))
+        .unwrap_or_else(|_| EnvFilter::new(format!("{default},{TLS_TARGET}=error")));
+    let counted = Targets::new().with_target(ACL_TARGET, LevelFilter::TRACE).with_target(TLS_TARGET, LevelFilter::WARN);
+    let _ = tracing_subscriber::registry()
+        .with(tracing_subscriber::fmt::layer().with_writer(std::io::stderr).with_filter(printed))
+        .with(RefusalLayer.with_filter(counted))
+        .try_init();
+    std::thread::Builder::new()
+        .name("refusal-log".into())
+        .spawn(|| {
+            let mut last = 0;
+            loop {
+                std::thread::sleep(std::time::Duration::from_secs(10));
+                let now = REFUSED.total();
+                if now > last {
+                    let top: Vec<String> =
+                        REFUSED.reasons().into_iter().take(4).map(|(r, n)| format!("{n}× {r}")).collect();
+                    tracing::warn!("the network refused {} more (total {now}): {}", now - last, top.join("; "));
+                    last = now;
+                }
+            }
+        })
+        .ok();
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_rules_are_a_valid_zenoh_access_control_section() {
+        use zenoh::Wait;
+        let mut c = zenoh::Config::default();
+        c.insert_json5("access_control", &access_control_json().to_string()).expect("zenoh accepts the rules");
+        c.insert_json5("listen/endpoints", "[]").unwrap();
+        c.insert_json5("scouting/multicast/enabled", "false").unwrap();
+        // Zenoh checks the rules (ids, subjects, policies) when a session opens.
+        zenoh::open(c).wait().expect("a session opens with the rules");
+    }
+
+    #[test]
+    fn refusals_are_read_from_zenohs_log_lines() {
+        let table = [
+            (
+                "zenoh::net::routing::interceptor::access_control",
+                "a1b2 on lo+CertCommonName(paddock-agent)+Tls+a1b2 is unauthorized to Put (ingress) on paddock/v1/job/j7/policy",
+                Some("access control: agent may not put on paddock/v1/job/*/policy"),
+            ),
+            (
+                "zenoh::net::routing::interceptor::access_control",
+                "Using cached result: a1b2 is unauthorized to Query (ingress) on paddock/v1/control",
+                Some("access control: agent may not query on paddock/v1/control"),
+            ),
+            (
+                "zenoh::net::routing::interceptor::access_control",
+                "Using cached result: ffff is unauthorized to Query (ingress) on paddock/v1/control",
+                Some("access control: a peer may not query on paddock/v1/control"),
+            ),
+            (
+                "zenoh::net::routing::interceptor::access_control",
+                "a1b2 on CertCommonName(paddock-car) is authorized to Put (ingress) on paddock/v1/car/c/status",
+                None,
+            ),
+            (
+                "zenoh::net::routing::interceptor::access_control",
+                "a1b2 on x is unauthorized to Put (egress) on paddock/v1/jobs",
+                None,
+            ),
+            (
+                "zenoh_link_tls::unicast",
+                "received fatal alert: CertificateRequired. Hint: increase the system open file limit.",
+                Some("TLS: a connection refused (received fatal alert: CertificateRequired)"),
+            ),
+            ("zenoh_link_tls::unicast", "Skipping name verification of TLS server", None),
+            ("zenoh::net::runtime", "anything", None),
+        ];
+        for (target, line, want) in table {
+            assert_eq!(refusal_reason(target, line).as_deref(), want, "{line}");
+        }
+    }
+
+    #[test]
+    fn permissions_computed_in_advance_are_not_refusals() {
+        let k = "paddock/v1/job/j/experience";
+        let lines = [
+            (format!("ACL (ingress): caching permissions for `{k}` ..."), false),
+            (format!("z on CertCommonName(paddock-agent) is unauthorized to Query (ingress) on {k}"), false),
+            (format!("z on CertCommonName(paddock-agent) is authorized to Put (ingress) on {k}"), false),
+            (format!("z on CertCommonName(paddock-agent) is unauthorized to Reply (ingress) on {k}"), false),
+            (format!("Using cached result: z is authorized to Put (ingress) on {k}"), true),
+            (format!("z on CertCommonName(paddock-agent) is unauthorized to Query (ingress) on {k}"), true),
+            (
+                "z on CertCommonName(paddock-agent) is unauthorized to Put (ingress) on paddock/v1/jobs".to_string(),
+                true,
+            ),
+        ];
+        for (line, want) in lines {
+            assert_eq!(is_decision(&line), want, "{line}");
+        }
+    }
+
+    #[test]
+    fn credentials_name_the_missing_file() {
+        let dir = std::env::temp_dir().join(format!("paddock-creds-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let e = Credentials::from_dir(&dir, Role::Agent).unwrap_err();
+        assert!(e.to_string().contains("ca.pem"), "{e}");
+        std::fs::write(dir.join("ca.pem"), "-----BEGIN CERTIFICATE-----\n").unwrap();
+        std::fs::write(dir.join("agent.pem"), "not pem").unwrap();
+        let e = Credentials::from_dir(&dir, Role::Agent).unwrap_err();
+        assert!(e.to_string().contains("agent.pem") && e.to_string().contains("PEM CERTIFICATE"), "{e}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn roles_round_trip_through_their_common_names() {
+        for r in Role::ALL {
+            assert_eq!(Role::from_common_name(&r.common_name()), Some(r));
+        }
+        assert_eq!(Role::from_common_name("paddock-root"), None);
+    }
+}
