@@ -489,7 +489,7 @@ pub fn wire(seconds: f64, rounds: usize, up_seconds: f64) -> Result<()> {
     println!("| batch | bytes | TCP msgs/s | TCP MB/s | TLS+ACL msgs/s | TLS+ACL MB/s | TLS+ACL / TCP |");
     println!("|---|---:|---:|---:|---:|---:|---:|");
     let workloads = [
-        ("state: 16 episodes x 120 steps x 40 floats", batch(16, 120, 40)),
+        ("state: 16 episodes x 120 steps x 27 floats", batch(16, 120, 27)),
         ("camera: 4 episodes x 15 steps x 19200 floats", batch(4, 15, 19200)),
     ];
     let median = |mut v: Vec<f64>| {

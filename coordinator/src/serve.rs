@@ -182,6 +182,8 @@ fn on_status(st: &mut State, db: &Db, ls: LearnerStatus) {
         "episodes_received": ls.episodes_received, "eval_laps": ls.eval_laps, "stop_reason": ls.stop_reason,
         "learners": ls.learners, "team_updates": ls.team_updates, "team_failures": ls.team_failures,
         "drops": ls.drops.iter().map(|d| serde_json::json!({"reason": d.reason, "count": d.count})).collect::<Vec<_>>(),
+        "write_failures": ls.write_failures,
+        "write_error": ls.write_error,
         "refused": ls.refused.iter().map(|d| serde_json::json!({"reason": d.reason, "count": d.count})).collect::<Vec<_>>(),
         "agents": ls.agents.iter().map(|a| serde_json::json!({"agent": a.agent_id, "world": a.world, "steps_per_s": a.steps_per_s})).collect::<Vec<_>>(),
         "worlds": ls.worlds.iter().map(|w| serde_json::json!({"world": w.world, "agents": w.agents, "episodes": w.episodes,
@@ -372,6 +374,15 @@ fn handle(st: &Arc<Mutex<State>>, db: &Db, _session: &zenoh::Session, req: JobRe
             Some(j) => reply(false, format!("job {id} is {:?}, not running", j.state), serde_json::Value::Null),
             None => reply(false, format!("no job '{id}'"), serde_json::Value::Null),
         },
+        Some(Kind::Event(ev)) => match st.jobs.get_mut(&ev.job_id) {
+            Some(j) if ev.text.len() <= 500 && !ev.text.chars().any(|c| c.is_control()) => {
+                j.event(ev.text);
+                db.save_or_log(j);
+                reply(true, "recorded".into(), serde_json::Value::Null)
+            }
+            Some(_) => reply(false, "an event is one line of at most 500 bytes".into(), serde_json::Value::Null),
+            None => reply(false, format!("no job '{}'", ev.job_id), serde_json::Value::Null),
+        },
         Some(Kind::StatusJobId(id)) => match st.jobs.get(&id) {
             Some(j) => {
                 let mut v = serde_json::to_value(j).unwrap_or_default();
@@ -513,6 +524,13 @@ fn status_text(j: &JobRecord, st: &State) -> String {
             team.join(", "),
             n("team_updates"),
             n("team_failures")
+        ));
+    }
+    if n("write_failures") > 0.0 {
+        t.push_str(&format!(
+            "  WRITES FAILED in the run folder: {} (last: {})\n",
+            n("write_failures"),
+            l.get("write_error").and_then(|v| v.as_str()).unwrap_or("-")
         ));
     }
     for d in l.get("refused").and_then(|v| v.as_array()).into_iter().flatten().take(8) {

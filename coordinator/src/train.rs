@@ -225,6 +225,13 @@ pub fn train(args: TrainArgs) -> Result<i32> {
         ),
         None => println!("no evaluation ran"),
     }
+    if summary.write_failures.0 > 0 {
+        eprintln!(
+            "warning: {} write(s) to the run folder failed; the last: {}",
+            summary.write_failures.0, summary.write_failures.1
+        );
+        return Ok(3);
+    }
     Ok(0)
 }
 

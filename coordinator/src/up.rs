@@ -1,6 +1,8 @@
 //! `coordinator up`: one machine, one command. Starts `coordinator serve`, a learner and N
 //! sim agents as child processes talking through real Zenoh sessions on loopback, runs one
-//! job to its stop condition, and leaves the model folder and a summary.
+//! job to its stop condition, and leaves the model folder and a summary. It supervises them: a
+//! role that dies is started again (the learner from its last checkpoint, the coordinator from
+//! its database), and the event goes to the job's log; `logs/pids.json` names the processes.
 
 use crate::cli::UpArgs;
 use crate::client::request;
@@ -12,17 +14,69 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
+/// One supervised role: how to start it again.
+struct Role {
+    name: String,
+    child: Child,
+    bin: PathBuf,
+    args: Vec<String>,
+    log: PathBuf,
+    restarts: u32,
+}
+
 /// Children that are killed when this value is dropped.
-struct Children(Vec<(String, Child)>);
+struct Children(Vec<Role>);
 
 impl Drop for Children {
     fn drop(&mut self) {
-        for (_, c) in &mut self.0 {
-            let _ = c.kill();
+        for r in &mut self.0 {
+            let _ = r.child.kill();
         }
-        for (_, c) in &mut self.0 {
-            let _ = c.wait();
+        for r in &mut self.0 {
+            let _ = r.child.wait();
         }
+    }
+}
+
+/// Restarts of one role before `up` gives up on the job.
+const MAX_RESTARTS: u32 = 10;
+
+fn start(bin: &Path, args: &[String], log: &Path) -> Result<Child> {
+    let out = std::fs::OpenOptions::new().create(true).append(true).open(log)?;
+    Command::new(bin)
+        .args(args)
+        .stdin(Stdio::null())
+        .stdout(out.try_clone()?)
+        .stderr(out)
+        .spawn()
+        .with_context(|| format!("starting {}", bin.display()))
+}
+
+impl Children {
+    /// Start again every role that exited (the learner resumes from its last checkpoint, the
+    /// coordinator from its database); what happened, one line each.
+    fn supervise(&mut self) -> Result<Vec<String>> {
+        let mut events = Vec::new();
+        for r in &mut self.0 {
+            let Ok(Some(status)) = r.child.try_wait() else { continue };
+            if r.restarts >= MAX_RESTARTS {
+                bail!("{} exited {} times (last: {status}); see {}", r.name, r.restarts + 1, r.log.display());
+            }
+            r.restarts += 1;
+            r.child = start(&r.bin, &r.args, &r.log)?;
+            events
+                .push(format!("up: {} exited ({status}) and was restarted ({} of {MAX_RESTARTS})", r.name, r.restarts));
+        }
+        Ok(events)
+    }
+
+    /// The process id of each role, by name (for `logs/pids.json`).
+    fn pids(&self) -> serde_json::Value {
+        self.0
+            .iter()
+            .map(|r| (r.name.clone(), serde_json::json!(r.child.id())))
+            .collect::<serde_json::Map<_, _>>()
+            .into()
     }
 }
 
@@ -53,16 +107,17 @@ fn spawn(
     common: &[String],
     log: &Path,
 ) -> Result<()> {
-    let out = std::fs::File::create(log)?;
-    let child = Command::new(bin)
-        .args(args)
-        .args(common)
-        .stdin(Stdio::null())
-        .stdout(out.try_clone()?)
-        .stderr(out)
-        .spawn()
-        .with_context(|| format!("starting {}", bin.display()))?;
-    children.0.push((name.to_string(), child));
+    let args: Vec<String> = args.iter().chain(common).cloned().collect();
+    let _ = std::fs::remove_file(log);
+    let child = start(bin, &args, log)?;
+    children.0.push(Role {
+        name: name.to_string(),
+        child,
+        bin: bin.to_path_buf(),
+        args,
+        log: log.to_path_buf(),
+        restarts: 0,
+    });
     Ok(())
 }
 
@@ -219,13 +274,22 @@ pub fn up(args: UpArgs) -> Result<i32> {
     );
     let bar = ProgressBar::new((args.minutes * 60.0) as u64)
         .with_style(ProgressStyle::with_template("{elapsed_precise} [{bar:25}] {msg}").expect("template"));
+    std::fs::write(logs.join("pids.json"), children.pids().to_string())?;
+    let mut pending: Vec<String> = Vec::new();
     let final_json = loop {
         std::thread::sleep(Duration::from_secs(1));
-        for (name, c) in &mut children.0 {
-            if let Ok(Some(status)) = c.try_wait() {
-                bail!("{name} exited ({status}); see {}", logs.join(format!("{name}.log")).display());
-            }
+        // A role that dies is started again; the event goes to the job's log (once the
+        // coordinator answers: it may be the one restarting).
+        for e in children.supervise()? {
+            bar.println(&e);
+            tracing::warn!("{e}");
+            pending.push(e);
+            std::fs::write(logs.join("pids.json"), children.pids().to_string())?;
         }
+        pending.retain(|e| {
+            let ev = protocol::JobEvent { job_id: id.clone(), text: e.clone() };
+            !request(&session, Kind::Event(ev), Duration::from_secs(2)).is_ok_and(|r| r.ok)
+        });
         let Ok(r) = request(&session, Kind::StatusJobId(id.clone()), Duration::from_secs(3)) else { continue };
         let v: serde_json::Value = serde_json::from_str(&r.json).unwrap_or_default();
         let l = v.get("learner").cloned().unwrap_or_default();

@@ -959,3 +959,92 @@ fn issue_10_only_the_clusters_roles_connect_and_each_does_only_its_part() {
     c.wait(&id, 60, "the job finished", |s| s["state"] == "finished");
     assert!(c.path("run/model/model.safetensors").exists());
 }
+
+#[test]
+fn issue_10_chaos_up_restarts_whatever_is_killed_and_the_job_completes_with_whole_records() {
+    let _turn = exclusive();
+    let dir = tempfile::tempdir().unwrap();
+    let log = std::fs::File::create(dir.path().join("up.out")).unwrap();
+    let mut up = Command::new(bin("coordinator"))
+        .args(["up", "--agents", "2", "--envs", "8", "--minutes", "1.5", "--checkpoint-seconds", "1", "--out", "up"])
+        .current_dir(dir.path())
+        .stdout(log.try_clone().unwrap())
+        .stderr(log)
+        .spawn()
+        .unwrap();
+    // A bounded number of SIGKILLs at random moments, of random roles: each of the learner and
+    // the coordinator at least once, an agent at least once (the seed is printed to replay it).
+    let seed = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().subsec_nanos() as u64 | 1;
+    eprintln!("chaos seed {seed}");
+    let mut x = seed;
+    let mut next = move |n: u64| {
+        x ^= x << 13;
+        x ^= x >> 7;
+        x ^= x << 17;
+        x % n
+    };
+    let mut victims = vec!["learner", "coordinator", if next(2) == 0 { "agent-1" } else { "agent-2" }];
+    victims.push(["agent-1", "agent-2", "learner", "coordinator"][next(4) as usize]);
+    for i in (1..victims.len()).rev() {
+        victims.swap(i, next(i as u64 + 1) as usize);
+    }
+    let pids = dir.path().join("up/logs/pids.json");
+    let mut killed = Vec::new();
+    std::thread::sleep(Duration::from_secs(12));
+    for v in &victims {
+        std::thread::sleep(Duration::from_secs(6 + next(8)));
+        let p: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&pids).unwrap()).unwrap();
+        let pid = p[v].as_u64().unwrap_or_else(|| panic!("{v} in {p}"));
+        let o = Command::new("kill").args(["-9", &pid.to_string()]).output().unwrap();
+        assert!(o.status.success(), "kill {v} ({pid})");
+        killed.push(*v);
+        // The next victim's pid must be the restarted one.
+        let deadline = Instant::now() + Duration::from_secs(10);
+        while std::fs::read_to_string(&pids).unwrap().contains(&format!(":{pid}")) {
+            assert!(Instant::now() < deadline, "{v} was not restarted");
+            std::thread::sleep(Duration::from_millis(200));
+        }
+    }
+    let deadline = Instant::now() + Duration::from_secs(300);
+    let status = loop {
+        if let Some(s) = up.try_wait().unwrap() {
+            break s;
+        }
+        assert!(Instant::now() < deadline, "up did not end");
+        std::thread::sleep(Duration::from_secs(1));
+    };
+    let out = std::fs::read_to_string(dir.path().join("up.out")).unwrap();
+    assert!(status.success(), "killed {killed:?}: {out}");
+    // The job finished and its log tells what happened.
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.path().join("up/summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["state"], "finished", "{summary}");
+    let events = summary["log"].to_string();
+    for v in &killed {
+        assert!(events.contains(&format!("up: {v} exited")), "{v}: {events}");
+    }
+    // No update recorded twice, none missing: iterations 1, 2, … in order, each line whole.
+    let run = dir.path().join("up/run");
+    let metrics = std::fs::read_to_string(run.join("metrics.jsonl")).unwrap();
+    let its: Vec<u64> = metrics
+        .lines()
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["iteration"].as_u64().unwrap())
+        .collect();
+    assert!(its.len() >= 3, "{metrics}");
+    assert_eq!(its, (1..=its.len() as u64).collect::<Vec<_>>(), "{metrics}");
+    // No episode trained on twice: the learner never counted a duplicate as new, and trained on
+    // no more than was delivered.
+    let l = &summary["learner"];
+    assert!(l["episodes"].as_u64().unwrap() <= l["episodes_received"].as_u64().unwrap(), "{l}");
+    // Every checkpoint and the model folder load.
+    let mut folders = vec![run.join("model")];
+    for e in std::fs::read_dir(run.join("checkpoints")).unwrap().flatten() {
+        if e.path().is_dir() {
+            folders.push(e.path());
+        }
+    }
+    assert!(folders.len() >= 2);
+    for f in folders {
+        policy::folder::load(&f).unwrap_or_else(|e| panic!("{}: {e}", f.display()));
+    }
+}

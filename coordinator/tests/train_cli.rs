@@ -201,3 +201,67 @@ fn issue_5_a_camera_model_learns_to_lap_from_pixels() {
     let laps: usize = text(&e).lines().filter(|l| l.starts_with("trial ") && l.contains("lap_complete")).count();
     assert!(laps >= 2, "the camera model laps in an independent evaluation too:\n{}", text(&e));
 }
+
+fn is_root() -> bool {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| s.lines().find(|l| l.starts_with("Uid:")).map(|l| l.split_whitespace().nth(1) == Some("0")))
+        .unwrap_or(false)
+}
+
+/// A small tmpfs, unmounted when dropped.
+struct SmallDisk(PathBuf);
+
+impl Drop for SmallDisk {
+    fn drop(&mut self) {
+        let _ = Command::new("umount").arg(&self.0).output();
+    }
+}
+
+#[test]
+fn issue_10_a_full_disk_is_reported_and_the_last_checkpoint_stays_whole() {
+    if !is_root() {
+        eprintln!("SKIPPED: mounting a small tmpfs needs root (CI runs as root)");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let mnt = dir.path().join("small");
+    std::fs::create_dir(&mnt).unwrap();
+    // Room for the run's inputs and a few checkpoints of the state model, not for all of them.
+    let o = Command::new("mount").args(["-t", "tmpfs", "-o", "size=800k", "tmpfs"]).arg(&mnt).output().unwrap();
+    if !o.status.success() {
+        eprintln!("SKIPPED: cannot mount a tmpfs here: {}", String::from_utf8_lossy(&o.stderr));
+        return;
+    }
+    let _disk = SmallDisk(mnt.clone());
+    let o = coordinator(
+        dir.path(),
+        &[
+            "train",
+            "--world",
+            "reinvent_base",
+            "--minutes",
+            "0.5",
+            "--target-laps",
+            "0",
+            "--checkpoint-seconds",
+            "1",
+            "--out",
+            "small/run",
+        ],
+    );
+    let t = text(&o);
+    // Training went on to its stop, and said what it could not write.
+    assert_eq!(o.status.code(), Some(3), "{t}");
+    assert!(t.contains("stopped after") && t.contains("write(s) to the run folder failed"), "{t}");
+    assert!(t.contains("No space left on device"), "{t}");
+    // The checkpoint a restart resumes from is whole, and nothing half-written is left.
+    let index: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(mnt.join("run/checkpoints/deepracer_checkpoints.json")).unwrap())
+            .unwrap();
+    let last = index["last_checkpoint"]["name"].as_str().unwrap();
+    policy::folder::load(&mnt.join("run/checkpoints").join(last)).unwrap();
+    for e in std::fs::read_dir(mnt.join("run/checkpoints")).unwrap().flatten() {
+        assert!(!e.file_name().to_string_lossy().contains(".tmp-"), "{:?} left behind", e.path());
+    }
+}

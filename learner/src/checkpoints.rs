@@ -112,6 +112,8 @@ pub enum OpenMode {
 #[derive(Clone, Debug)]
 pub struct RunDir {
     root: PathBuf,
+    /// Writes that failed (a checkpoint on a full disk, say): how many, and the last error.
+    failures: std::sync::Arc<std::sync::Mutex<(u64, String)>>,
 }
 
 impl RunDir {
@@ -127,7 +129,21 @@ impl RunDir {
             _ => {}
         }
         std::fs::create_dir_all(root.join("checkpoints")).map_err(io(root))?;
-        Ok(RunDir { root: root.to_path_buf() })
+        Ok(RunDir { root: root.to_path_buf(), failures: Default::default() })
+    }
+
+    /// Note a write that failed (and what stayed in its place); it is reported in the run's
+    /// status until the run ends.
+    pub fn note_failure(&self, what: String) {
+        tracing::error!("{what}");
+        let mut f = self.failures.lock().unwrap_or_else(|p| p.into_inner());
+        f.0 += 1;
+        f.1 = what;
+    }
+
+    /// Writes that failed so far, and the last one's error.
+    pub fn failures(&self) -> (u64, String) {
+        self.failures.lock().unwrap_or_else(|p| p.into_inner()).clone()
     }
 
     /// The run folder.
@@ -168,6 +184,11 @@ impl RunDir {
     /// Returns whether it is the new best.
     pub fn record(&self, rec: CheckpointRecord) -> Result<bool, RunError> {
         let mut index = self.index()?;
+        // A checkpoint whose folder could not be written (a full disk) is neither best nor
+        // last: the index names only folders that load.
+        if !self.checkpoint_dir(&rec.name).join("manifest.json").exists() {
+            return Ok(false);
+        }
         let best = index.best_checkpoint.as_ref().is_none_or(|b| rec.better_than(b));
         if best {
             index.best_checkpoint = Some(rec.clone());
@@ -191,9 +212,10 @@ impl RunDir {
             .collect();
         names.sort();
         let best = index.best_checkpoint.as_ref().map(|b| b.name.clone());
+        let last = index.last_checkpoint.as_ref().map(|b| b.name.clone());
         let keep_from = names.len().saturating_sub(KEEP_LAST);
         for (i, n) in names.iter().enumerate() {
-            if i < keep_from && Some(n) != best.as_ref() {
+            if i < keep_from && Some(n) != best.as_ref() && Some(n) != last.as_ref() {
                 let p = dir.join(n);
                 std::fs::remove_dir_all(&p).map_err(io(&p))?;
             }
@@ -226,6 +248,32 @@ impl RunDir {
         writeln!(f, "{line}").map_err(io(&p))
     }
 
+    /// On resuming from the checkpoint of `iteration`: keep in `metrics.jsonl` and
+    /// `evaluations.jsonl` only what that checkpoint had seen (iterations up to it, whole
+    /// lines), so that the updates made again after a crash are not recorded twice. Rewritten
+    /// atomically; returns the lines dropped.
+    pub fn rewind_records(&self, iteration: u64) -> Result<usize, RunError> {
+        let mut dropped = 0;
+        for name in ["metrics.jsonl", "evaluations.jsonl"] {
+            let p = self.root.join(name);
+            let Ok(text) = std::fs::read_to_string(&p) else { continue };
+            let mut kept = String::with_capacity(text.len());
+            for line in text.split_inclusive('\n') {
+                let whole = line.ends_with('\n');
+                let it =
+                    serde_json::from_str::<serde_json::Value>(line.trim()).ok().and_then(|v| v["iteration"].as_u64());
+                match it {
+                    Some(i) if whole && i <= iteration => kept.push_str(line),
+                    _ => dropped += 1,
+                }
+            }
+            if kept.len() != text.len() {
+                write_atomic(&p, kept.as_bytes())?;
+            }
+        }
+        Ok(dropped)
+    }
+
     /// Write a file at the run folder's top (atomically).
     pub fn write_file(&self, name: &str, bytes: &[u8]) -> Result<(), RunError> {
         write_atomic(&self.root.join(name), bytes)
@@ -248,6 +296,31 @@ mod tests {
     }
 
     #[test]
+    fn issue_10_a_resumed_run_records_each_update_once() {
+        let dir = std::env::temp_dir().join(format!("paddock-rewind-test-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let run = RunDir::open(&dir, OpenMode::New).unwrap();
+        for i in 1..=5u64 {
+            run.append_metrics(&serde_json::json!({"iteration": i})).unwrap();
+        }
+        run.append_evaluation(&serde_json::json!({"iteration": 2})).unwrap();
+        run.append_evaluation(&serde_json::json!({"iteration": 4})).unwrap();
+        // A crash in the middle of a line.
+        std::fs::OpenOptions::new()
+            .append(true)
+            .open(dir.join("metrics.jsonl"))
+            .and_then(|mut f| std::io::Write::write_all(&mut f, b"{\"iteration\": 6, \"po"))
+            .unwrap();
+        assert_eq!(run.rewind_records(3).unwrap(), 4);
+        let m = std::fs::read_to_string(dir.join("metrics.jsonl")).unwrap();
+        assert_eq!(m, "{\"iteration\":1}\n{\"iteration\":2}\n{\"iteration\":3}\n");
+        let e = std::fs::read_to_string(dir.join("evaluations.jsonl")).unwrap();
+        assert_eq!(e, "{\"iteration\":2}\n");
+        assert_eq!(run.rewind_records(3).unwrap(), 0);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
     fn best_is_progress_then_lap_time_and_old_checkpoints_are_pruned() {
         let dir = std::env::temp_dir().join(format!("paddock-ckpt-test-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
@@ -259,12 +332,19 @@ mod tests {
             (4, 100.0, Some(11.5), true),
             (5, 90.0, None, false),
         ];
+        let make = |i: u64| {
+            let d = run.checkpoint_dir(&RunDir::checkpoint_name(i));
+            std::fs::create_dir_all(&d).unwrap();
+            std::fs::write(d.join("manifest.json"), "{}").unwrap();
+        };
+        // Never written (a full disk): recorded as evaluated, but neither best nor last.
+        assert!(!run.record(rec(0, 100.0, Some(1.0))).unwrap());
         for (i, p, lap, best) in table {
-            std::fs::create_dir_all(run.checkpoint_dir(&RunDir::checkpoint_name(i))).unwrap();
+            make(i);
             assert_eq!(run.record(rec(i, p, lap)).unwrap(), best, "iteration {i}");
         }
         for i in 6..=9 {
-            std::fs::create_dir_all(run.checkpoint_dir(&RunDir::checkpoint_name(i))).unwrap();
+            make(i);
             run.record(rec(i, 10.0, None)).unwrap();
         }
         let index = run.index().unwrap();

@@ -418,6 +418,10 @@ pub struct RunStatus {
     pub worlds: Vec<WorldFigures>,
     /// Per worker: (id, environment steps per second lately).
     pub workers: Vec<(String, f64)>,
+    /// Writes to the run folder that failed (checkpoints on a full disk, say).
+    pub write_failures: u64,
+    /// The last failed write's error (empty: none failed).
+    pub write_error: String,
 }
 
 /// How a run ended.
@@ -443,6 +447,8 @@ pub struct Summary {
     pub policy_version: u64,
     /// The run folder.
     pub run_dir: PathBuf,
+    /// Writes to the run folder that failed, and the last one's error.
+    pub write_failures: (u64, String),
 }
 
 /// An evaluation under way: one request per world.
@@ -579,6 +585,10 @@ fn open(spec: &RunSpec) -> Result<(RunDir, ActorCritic, u64, Option<Parent>, u64
             )));
         }
         let iteration = index.last_checkpoint.map(|l| l.iteration).unwrap_or(0);
+        let dropped = run.rewind_records(iteration)?;
+        if dropped > 0 {
+            tracing::warn!(run = %spec.name, iteration, dropped, "records after the last checkpoint dropped: those updates are made again");
+        }
         tracing::info!(run = %spec.name, from = %dir.display(), version = f.manifest.policy_version, "resuming");
         return Ok((run, f.model, f.manifest.policy_version, f.manifest.parent, iteration));
     }
@@ -614,6 +624,18 @@ fn signer_for(spec: &RunSpec, run: &RunDir) -> Result<Signer, RunFailure> {
         None => Signer::load_or_create(&run.root().join("signing.key")),
     };
     r.map_err(|e| RunFailure::Inputs(format!("signing key: {e}")))
+}
+
+/// A write to the run folder that training does not stop for: a failure is noted (logged, and
+/// reported in the run's status) and `None`.
+fn noted<T, E: std::fmt::Display>(run: &RunDir, what: &str, r: Result<T, E>) -> Option<T> {
+    match r {
+        Ok(v) => Some(v),
+        Err(e) => {
+            run.note_failure(format!("{what}: {e}"));
+            None
+        }
+    }
 }
 
 fn mean(xs: impl Iterator<Item = f64>) -> f64 {
@@ -830,7 +852,11 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
                 dropped_bad: bad,
                 refused: stats.refused.clone(),
             };
-            run.append_metrics(&serde_json::to_value(&rec).expect("JSON"))?;
+            noted(
+                &run,
+                "metrics.jsonl: an update's line not written",
+                run.append_metrics(&serde_json::to_value(&rec).expect("JSON")),
+            );
             observer.iteration(&rec);
             last_status = Instant::now() - Duration::from_secs(60);
         }
@@ -882,15 +908,38 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
                     "env_steps": env_steps, "seconds": start.elapsed().as_secs_f64(), "hyperparameters": hyper}),
             );
             if saved_iteration != Some(iteration) {
-                folder::save_signed(&run.checkpoint_dir(&name), &spec.metadata, &ppo.model, &manifest, Some(&signer))?;
-                run.record_last(CheckpointRecord {
-                    name: name.clone(),
-                    iteration,
-                    policy_version: ppo.version,
-                    avg_eval_metric: 0.0,
-                    avg_lap_time: None,
-                    time_stamp: start.elapsed().as_secs_f64(),
-                })?;
+                // A checkpoint that cannot be written (a full disk) is reported and training
+                // goes on: the previous checkpoint stays the one a restart resumes from.
+                let written = folder::save_signed(
+                    &run.checkpoint_dir(&name),
+                    &spec.metadata,
+                    &ppo.model,
+                    &manifest,
+                    Some(&signer),
+                )
+                .map_err(|e| e.to_string())
+                .and_then(|_| {
+                    run.record_last(CheckpointRecord {
+                        name: name.clone(),
+                        iteration,
+                        policy_version: ppo.version,
+                        avg_eval_metric: 0.0,
+                        avg_lap_time: None,
+                        time_stamp: start.elapsed().as_secs_f64(),
+                    })
+                    .map_err(|e| e.to_string())
+                });
+                if let Err(e) = written {
+                    let kept = run
+                        .index()
+                        .ok()
+                        .and_then(|i| i.last_checkpoint)
+                        .map(|l| l.name)
+                        .unwrap_or_else(|| "none".into());
+                    run.note_failure(format!(
+                        "checkpoint {name} not written ({e}); the last checkpoint is still {kept}"
+                    ));
+                }
                 saved_iteration = Some(iteration);
             }
             last_eval = Some(Instant::now());
@@ -959,10 +1008,14 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
                 obj.insert("eval_lap_time".into(), serde_json::json!(lap_time));
                 obj.insert("eval_worlds".into(), serde_json::to_value(&per_world).expect("JSON"));
             }
-            let is_best = run.record(rec.clone())?;
+            let is_best = noted(&run, "the checkpoint index not written", run.record(rec.clone())).unwrap_or(false);
             evaluated_version = Some(p.version);
             if is_best || !run.model_dir().join("manifest.json").exists() {
-                folder::save_signed(&run.model_dir(), &spec.metadata, &p.model, &manifest, Some(&signer))?;
+                noted(
+                    &run,
+                    &format!("the best model (v{}) not written; model/ holds the previous best", p.version),
+                    folder::save_signed(&run.model_dir(), &spec.metadata, &p.model, &manifest, Some(&signer)),
+                );
             }
             if is_best {
                 let best_policy =
@@ -987,7 +1040,11 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
                 trials: spec.eval_trials as usize,
                 best: is_best,
             };
-            run.append_evaluation(&serde_json::to_value(&e).expect("JSON"))?;
+            noted(
+                &run,
+                "evaluations.jsonl: an evaluation's line not written",
+                run.append_evaluation(&serde_json::to_value(&e).expect("JSON")),
+            );
             observer.evaluation(&e);
             // The final evaluation (of the last version) closes a stopping run.
             if stop_reason.is_some() && p.version == ppo.version {
@@ -1062,16 +1119,19 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
     s.finished = true;
     s.stop_reason = Some(reason.clone());
     link.status(&s)?;
-    run.write_file(
+    let (write_failures, write_error) = run.failures();
+    let summary = run.write_file(
         "summary.json",
         serde_json::to_string_pretty(&serde_json::json!({
             "run": spec.name, "worlds": spec.worlds, "iterations": iteration, "episodes": episodes,
             "episodes_received": received, "dropped_stale": stale, "env_steps": env_steps,
             "seconds": seconds, "stop_reason": reason, "best": best, "policy_version": ppo.version,
+            "write_failures": write_failures, "write_error": write_error,
         }))
         .expect("JSON")
         .as_bytes(),
-    )?;
+    );
+    noted(&run, "summary.json not written", summary);
     tracing::info!(run = %spec.name, version = ppo.version, "run finished: {reason}");
     Ok(Summary {
         stop_reason: reason,
@@ -1084,6 +1144,7 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
         best,
         policy_version: ppo.version,
         run_dir: spec.out.clone(),
+        write_failures: run.failures(),
     })
 }
 
@@ -1154,5 +1215,7 @@ fn status(
         run_dir: run.root().display().to_string(),
         worlds,
         workers,
+        write_failures: run.failures().0,
+        write_error: run.failures().1,
     }
 }

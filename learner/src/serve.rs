@@ -501,6 +501,8 @@ impl Link for ZenohLink<'_> {
                 .into_iter()
                 .map(|(reason, count)| protocol::DropCount { reason, count })
                 .collect(),
+            write_failures: s.write_failures,
+            write_error: s.write_error.clone(),
             refused: protocol::secure::REFUSED
                 .reasons()
                 .into_iter()

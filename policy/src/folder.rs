@@ -196,14 +196,24 @@ impl ModelParts {
         let _ = std::fs::remove_dir_all(&tmp);
         std::fs::create_dir_all(&tmp).map_err(io(&tmp))?;
         let write = |file: &str, bytes: &[u8]| -> Result<(), ModelError> {
+            use std::io::Write;
             let p = tmp.join(file);
-            std::fs::write(&p, bytes).map_err(io(&p))
+            let mut f = std::fs::File::create(&p).map_err(io(&p))?;
+            f.write_all(bytes).and_then(|()| f.sync_all()).map_err(io(&p))
         };
-        write("model.safetensors", &self.weights)?;
-        write("model_metadata.json", self.metadata_json.as_bytes())?;
-        write("manifest.json", self.manifest_json.as_bytes())?;
-        if let Some(sig) = &self.signature {
-            write("signature.json", serde_json::to_string_pretty(sig).expect("JSON").as_bytes())?;
+        let written = (|| {
+            write("model.safetensors", &self.weights)?;
+            write("model_metadata.json", self.metadata_json.as_bytes())?;
+            write("manifest.json", self.manifest_json.as_bytes())?;
+            if let Some(sig) = &self.signature {
+                write("signature.json", serde_json::to_string_pretty(sig).expect("JSON").as_bytes())?;
+            }
+            Ok(())
+        })();
+        if let Err(e) = written {
+            // Nothing half-written is left behind; the folder at `dir`, if any, is untouched.
+            let _ = std::fs::remove_dir_all(&tmp);
+            return Err(e);
         }
         let old: PathBuf = parent.join(format!(".{name}.old-{}", std::process::id()));
         if dir.exists() {
