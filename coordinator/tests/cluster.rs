@@ -900,6 +900,13 @@ fn issue_10_only_the_clusters_roles_connect_and_each_does_only_its_part() {
     for _ in 0..5 {
         net::put(&agent, &protocol::keys::policy(&id), &update).unwrap();
         net::put(&agent, &protocol::keys::assignment("agent-1"), &hijack).unwrap();
+        let table = protocol::AssignmentTable {
+            protocol_version: protocol::PROTOCOL_VERSION,
+            job_id: id.clone(),
+            running: false,
+            ..Default::default()
+        };
+        net::put(&agent, protocol::keys::JOBS, &table).unwrap();
         net::put(&car, &protocol::keys::experience(&id, "agent-1"), &bad).unwrap();
         let _ = agent
             .get(protocol::keys::CONTROL)
@@ -930,6 +937,7 @@ fn issue_10_only_the_clusters_roles_connect_and_each_does_only_its_part() {
     let s = c.wait(&id, 30, "the refusals counted", |s| {
         s["coordinator_refused"].to_string().contains("car may not query on paddock/v1/control")
             && s["learner"]["refused"].to_string().contains("car may not put on paddock/v1/job/*/experience/agent-1")
+            && s["learner"]["refused"].to_string().contains("agent may not put on paddock/v1/jobs")
     });
     let coordinator = s["coordinator_refused"].to_string();
     for want in [
