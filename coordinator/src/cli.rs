@@ -210,6 +210,10 @@ pub enum JobCommand {
         /// Print JSON.
         #[arg(long)]
         json: bool,
+        /// Keep showing it, refreshed every 2 s, until the job ends (exit status 0 if it
+        /// finished, 1 if it failed).
+        #[arg(long)]
+        watch: bool,
         #[command(flatten)]
         net: NetCli,
     },

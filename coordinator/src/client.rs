@@ -22,6 +22,44 @@ pub fn request(session: &zenoh::Session, kind: Kind, timeout: Duration) -> Resul
 
 use protocol::net::zenoh;
 
+/// `job status --watch`: the status, redrawn every 2 s (the screen cleared first on a
+/// terminal), until the job has finished or failed; a coordinator that does not answer for a
+/// while (restarting) is waited for.
+fn watch_status(session: &zenoh::Session, id: &str, json: bool) -> Result<i32> {
+    use std::io::IsTerminal;
+    let tty = std::io::stdout().is_terminal();
+    let mut silent_since: Option<std::time::Instant> = None;
+    loop {
+        match request(session, Kind::StatusJobId(id.to_string()), Duration::from_secs(3)) {
+            Ok(r) if r.ok => {
+                silent_since = None;
+                if tty {
+                    print!("\x1b[2J\x1b[H");
+                }
+                println!("{}", if json { &r.json } else { &r.text });
+                let v: serde_json::Value = serde_json::from_str(&r.json).unwrap_or_default();
+                match v.get("state").and_then(|s| s.as_str()) {
+                    Some("finished") => return Ok(0),
+                    Some("failed") => return Ok(1),
+                    _ => {}
+                }
+            }
+            Ok(r) => {
+                println!("{}", r.text);
+                return Ok(1);
+            }
+            Err(e) => {
+                let since = *silent_since.get_or_insert_with(std::time::Instant::now);
+                if since.elapsed() > Duration::from_secs(60) {
+                    return Err(e.context("the coordinator has not answered for a minute"));
+                }
+                eprintln!("(waiting for the coordinator: {e:#})");
+            }
+        }
+        std::thread::sleep(Duration::from_secs(2));
+    }
+}
+
 /// A job id from a spec file's name and the time.
 pub fn new_job_id(path: &std::path::Path, name: Option<&str>) -> String {
     let stem = name
@@ -43,11 +81,14 @@ pub fn run(cmd: JobCommand) -> Result<i32> {
             (net, Kind::StartJobJson(serde_json::to_string(&doc)?), false)
         }
         JobCommand::List { net } => (net, Kind::List(true), false),
-        JobCommand::Status { id, json, net } => {
+        JobCommand::Status { id, json, watch, net } => {
             let session = net::open(&net_args(&net, true))?;
-            let r = request(&session, Kind::StatusJobId(id), Duration::from_secs(5))?;
-            println!("{}", if json { r.json } else { r.text });
-            return Ok(if r.ok { 0 } else { 1 });
+            if !watch {
+                let r = request(&session, Kind::StatusJobId(id), Duration::from_secs(5))?;
+                println!("{}", if json { r.json } else { r.text });
+                return Ok(if r.ok { 0 } else { 1 });
+            }
+            return watch_status(&session, &id, json);
         }
         JobCommand::Stop { id, net } => (net, Kind::StopJobId(id), false),
         JobCommand::Promote { id, version, net } => {

@@ -21,7 +21,9 @@ mod up;
 use clap::Parser;
 
 fn main() {
-    protocol::secure::init_logging("warn,coordinator=info,sim_agent=info");
+    // Paddock's own messages; the libraries' warnings (Zenoh's scouting chatter) only when
+    // RUST_LOG asks for them.
+    protocol::secure::init_logging("warn,zenoh=error,coordinator=info,sim_agent=info");
     let cli = cli::Cli::parse();
     let result = match cli.command {
         cli::Command::Tracks { command } => tracks_cmd::run(command),

@@ -41,6 +41,14 @@ impl Drop for Children {
 /// Restarts of one role before `up` gives up on the job.
 const MAX_RESTARTS: u32 = 10;
 
+/// `logs/pids.json`, replaced whole (a reader never sees half of it).
+fn write_pids(logs: &Path, children: &Children) -> Result<()> {
+    let tmp = logs.join(".pids.json.tmp");
+    std::fs::write(&tmp, children.pids().to_string())?;
+    std::fs::rename(&tmp, logs.join("pids.json"))?;
+    Ok(())
+}
+
 fn start(bin: &Path, args: &[String], log: &Path) -> Result<Child> {
     let out = std::fs::OpenOptions::new().create(true).append(true).open(log)?;
     Command::new(bin)
@@ -274,7 +282,7 @@ pub fn up(args: UpArgs) -> Result<i32> {
     );
     let bar = ProgressBar::new((args.minutes * 60.0) as u64)
         .with_style(ProgressStyle::with_template("{elapsed_precise} [{bar:25}] {msg}").expect("template"));
-    std::fs::write(logs.join("pids.json"), children.pids().to_string())?;
+    write_pids(&logs, &children)?;
     let mut pending: Vec<String> = Vec::new();
     let final_json = loop {
         std::thread::sleep(Duration::from_secs(1));
@@ -284,7 +292,7 @@ pub fn up(args: UpArgs) -> Result<i32> {
             bar.println(&e);
             tracing::warn!("{e}");
             pending.push(e);
-            std::fs::write(logs.join("pids.json"), children.pids().to_string())?;
+            write_pids(&logs, &children)?;
         }
         pending.retain(|e| {
             let ev = protocol::JobEvent { job_id: id.clone(), text: e.clone() };

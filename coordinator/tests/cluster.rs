@@ -961,11 +961,25 @@ fn issue_10_only_the_clusters_roles_connect_and_each_does_only_its_part() {
         assert!(Instant::now() < deadline, "agent-1 logs what it refused: {log}");
         std::thread::sleep(Duration::from_secs(1));
     }
-    // The operator's credentials still stop the job, which ends as any other.
+    // The operator's credentials still stop the job, which ends as any other; a watcher sees
+    // it live and leaves when it has finished.
+    let watch = Command::new(bin("coordinator"))
+        .args(["job", "status", &id, "--watch", "--connect", &c.endpoint])
+        .args(&c.certs)
+        .current_dir(c.dir.path())
+        .stdout(Stdio::piped())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(Duration::from_secs(5));
     let o = c.cli(&["job", "stop", &id]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stdout));
     c.wait(&id, 60, "the job finished", |s| s["state"] == "finished");
     assert!(c.path("run/model/model.safetensors").exists());
+    let o = watch.wait_with_output().unwrap();
+    let frames = String::from_utf8_lossy(&o.stdout).to_string();
+    assert!(o.status.success(), "{frames}");
+    let n = frames.matches(&format!("job {id}: ")).count();
+    assert!(n >= 2 && frames.contains("Finished"), "{n} frames: {frames}");
 }
 
 #[test]
@@ -1008,7 +1022,12 @@ fn issue_10_chaos_up_restarts_whatever_is_killed_and_the_job_completes_with_whol
         killed.push(*v);
         // The next victim's pid must be the restarted one.
         let deadline = Instant::now() + Duration::from_secs(10);
-        while std::fs::read_to_string(&pids).unwrap().contains(&format!(":{pid}")) {
+        let now = || -> u64 {
+            serde_json::from_str::<serde_json::Value>(&std::fs::read_to_string(&pids).unwrap()).unwrap()[v]
+                .as_u64()
+                .unwrap_or(0)
+        };
+        while now() == pid {
             assert!(Instant::now() < deadline, "{v} was not restarted");
             std::thread::sleep(Duration::from_millis(200));
         }
@@ -1040,6 +1059,12 @@ fn issue_10_chaos_up_restarts_whatever_is_killed_and_the_job_completes_with_whol
         .collect();
     assert!(its.len() >= 3, "{metrics}");
     assert_eq!(its, (1..=its.len() as u64).collect::<Vec<_>>(), "{metrics}");
+    // The totals carry on across restarts (a restarted learner does not start counting over).
+    let totals: Vec<u64> = metrics
+        .lines()
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["total_episodes"].as_u64().unwrap())
+        .collect();
+    assert!(totals.windows(2).all(|w| w[0] < w[1]), "{totals:?}");
     // No episode trained on twice: the learner never counted a duplicate as new, and trained on
     // no more than was delivered.
     let l = &summary["learner"];

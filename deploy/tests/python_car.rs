@@ -56,6 +56,13 @@ fn rgb_frame(i: u32) -> Vec<u8> {
 }
 
 fn check_layout(layout: &str) {
+    check(layout, false);
+}
+
+/// The car's bridge speaks to `deploy` over plain TCP on loopback, with no certificate; with
+/// `certs` the on-car agent runs under the cluster's credentials and access rules, which give
+/// a peer on loopback TCP (the `local-ros` subject) the camera and the servo keys only.
+fn check(layout: &str, certs: bool) {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     let (folder, public) = model_folder(d);
@@ -90,7 +97,15 @@ fn check_layout(layout: &str) {
         .spawn()
         .unwrap();
     std::thread::sleep(std::time::Duration::from_millis(500));
-    let mut deploy = Command::new(env!("CARGO_BIN_EXE_deploy"))
+    let mut deploy = Command::new(env!("CARGO_BIN_EXE_deploy"));
+    if certs {
+        // The cluster's credentials, made by the coordinator built beside `deploy`.
+        let coordinator = PathBuf::from(env!("CARGO_BIN_EXE_deploy")).with_file_name("coordinator");
+        let o = Command::new(&coordinator).args(["certs", "new"]).arg(d.join("certs")).output().unwrap();
+        assert!(o.status.success(), "{}: {}", coordinator.display(), String::from_utf8_lossy(&o.stderr));
+        deploy.arg("--certs").arg(d.join("certs"));
+    }
+    let mut deploy = deploy
         .args(["--connect", &endpoint, "--trust"])
         .arg(&public)
         .arg("--car")
@@ -160,4 +175,9 @@ fn issue_9_a_python_car_speaks_cdr_with_deploy_community_layout() {
 #[test]
 fn issue_9_a_python_car_speaks_cdr_with_deploy_aws_layout() {
     check_layout("aws");
+}
+
+#[test]
+fn issue_10_the_cars_bridge_on_loopback_works_under_the_clusters_access_rules() {
+    check("community", true);
 }

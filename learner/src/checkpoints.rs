@@ -274,6 +274,12 @@ impl RunDir {
         Ok(dropped)
     }
 
+    /// The last line of `metrics.jsonl` (where a resumed run takes its totals from).
+    pub fn last_metrics(&self) -> Option<serde_json::Value> {
+        let text = std::fs::read_to_string(self.root.join("metrics.jsonl")).ok()?;
+        text.lines().rev().find_map(|l| serde_json::from_str(l).ok())
+    }
+
     /// Write a file at the run folder's top (atomically).
     pub fn write_file(&self, name: &str, bytes: &[u8]) -> Result<(), RunError> {
         write_atomic(&self.root.join(name), bytes)

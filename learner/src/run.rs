@@ -655,6 +655,13 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
         return Err(RunFailure::Inputs("the run names no world".into()));
     }
     let (run, model, version, parent, first_iteration) = open(spec)?;
+    // A learner restarted mid-job goes on from the run's records: the training time, episodes
+    // and env steps so far count towards the job's stop rules (it does not start over). A
+    // person's `train --resume` asks for a new stretch of training instead.
+    let mid_job = matches!(spec.start, Start::ResumeOrNew { .. });
+    let resumed = if first_iteration > 0 && mid_job { run.last_metrics() } else { None };
+    let so_far = |k: &str| resumed.as_ref().and_then(|m| m[k].as_f64()).unwrap_or(0.0);
+    let start = start.checked_sub(Duration::from_secs_f64(so_far("time_s"))).unwrap_or(start);
     let signer = signer_for(spec, &run)?;
     run.write_file("model_metadata.json", spec.metadata.to_json().as_bytes())?;
     run.write_file("hyperparameters.json", spec.hyper.to_json().as_bytes())?;
@@ -693,8 +700,9 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
     let mut windows: BTreeMap<String, WorldWindow> = BTreeMap::new();
     let mut per_worker: BTreeMap<String, VecDeque<(Instant, u64)>> = BTreeMap::new();
     let mut recent: VecDeque<(f64, f64)> = VecDeque::new();
-    let (mut dup, mut stale, mut bad, mut received) = (0u64, 0u64, 0u64, 0u64);
-    let (mut episodes, mut env_steps, mut iteration, mut max_lag) = (0u64, 0u64, first_iteration, 0u64);
+    let (episodes0, env_steps0) = (so_far("total_episodes") as u64, so_far("env_steps") as u64);
+    let (mut dup, mut stale, mut bad, mut received) = (0u64, 0u64, 0u64, episodes0);
+    let (mut episodes, mut env_steps, mut iteration, mut max_lag) = (episodes0, env_steps0, first_iteration, 0u64);
     let mut iterations_here = 0u64;
     let mut best = run.index()?.best_checkpoint;
     let mut last_eval: Option<Instant> = None;
