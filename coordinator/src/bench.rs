@@ -445,6 +445,24 @@ fn wire_round(certs: Option<&std::path::Path>, batch: &[u8], seconds: f64) -> Re
     Ok(((m1 - m0) as f64 / dt, (b1 - b0) as f64 / dt / 1e6))
 }
 
+/// Run `measure(plain)` and `measure(secured)` `rounds` times each, alternating which goes
+/// first (neither always gets the warmer machine); the medians of each pair's two figures,
+/// plain first.
+fn interleaved(rounds: usize, mut measure: impl FnMut(bool) -> Result<(f64, f64)>) -> Result<[(f64, f64); 2]> {
+    let mut runs: [Vec<(f64, f64)>; 2] = [Vec::new(), Vec::new()];
+    for r in 0..rounds {
+        let order = if r % 2 == 0 { [false, true] } else { [true, false] };
+        for secure in order {
+            runs[secure as usize].push(measure(secure)?);
+        }
+    }
+    let median = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    Ok(runs.map(|v| (median(v.iter().map(|x| x.0).collect()), median(v.iter().map(|x| x.1).collect()))))
+}
+
 /// `bench wire`: experience throughput agent → learner on loopback, plain TCP against mutual
 /// TLS with the access rules, rounds interleaved in one run, medians compared.
 pub fn wire(seconds: f64, rounds: usize, up_seconds: f64) -> Result<()> {
@@ -492,22 +510,9 @@ pub fn wire(seconds: f64, rounds: usize, up_seconds: f64) -> Result<()> {
         ("state: 16 episodes x 120 steps x 27 floats", batch(16, 120, 27)),
         ("camera: 4 episodes x 15 steps x 19200 floats", batch(4, 15, 19200)),
     ];
-    let median = |mut v: Vec<f64>| {
-        v.sort_by(f64::total_cmp);
-        v[v.len() / 2]
-    };
     for (name, b) in &workloads {
-        let (mut tcp, mut tls) = (Vec::new(), Vec::new());
-        for r in 0..rounds {
-            // Alternate which goes first, so that neither always has the warmer machine.
-            let order = if r % 2 == 0 { [false, true] } else { [true, false] };
-            for secure in order {
-                let got = wire_round(secure.then_some(certs.as_path()), b, seconds)?;
-                if secure { tls.push(got) } else { tcp.push(got) }
-            }
-        }
-        let (tm, tb) = (median(tcp.iter().map(|x| x.0).collect()), median(tcp.iter().map(|x| x.1).collect()));
-        let (sm, sb) = (median(tls.iter().map(|x| x.0).collect()), median(tls.iter().map(|x| x.1).collect()));
+        let [(tm, tb), (sm, sb)] =
+            interleaved(rounds, |secure| wire_round(secure.then_some(certs.as_path()), b, seconds))?;
         println!("| {name} | {} | {tm:.0} | {tb:.0} | {sm:.0} | {sb:.0} | {:.3} |", b.len(), sb / tb);
     }
     if up_seconds > 0.0 {
@@ -520,19 +525,14 @@ pub fn wire(seconds: f64, rounds: usize, up_seconds: f64) -> Result<()> {
         println!("|---|---:|---:|---:|");
         let minutes = format!("{}", up_seconds / 60.0);
         let tmp = std::env::temp_dir().join(format!("paddock-bench-wire-up-{}", std::process::id()));
-        let (mut plain, mut secured) = (Vec::new(), Vec::new());
-        for r in 0..rounds {
-            let order = if r % 2 == 0 { [false, true] } else { [true, false] };
-            for secure in order {
-                let out = tmp.join(format!("{r}-{secure}"));
-                let row = up_row(&out, "reinvent_base", 2, 8, &minutes, secure.then_some(certs.as_path()))?;
-                let got = (row.used / row.secs, row.steps / row.secs);
-                if secure { secured.push(got) } else { plain.push(got) }
-            }
-        }
+        let mut n = 0;
+        let [(pu, ps), (su, ss)] = interleaved(rounds, |secure| {
+            n += 1;
+            let row =
+                up_row(&tmp.join(n.to_string()), "reinvent_base", 2, 8, &minutes, secure.then_some(certs.as_path()))?;
+            Ok((row.used / row.secs, row.steps / row.secs))
+        })?;
         let _ = std::fs::remove_dir_all(&tmp);
-        let (pu, ps) = (median(plain.iter().map(|x| x.0).collect()), median(plain.iter().map(|x| x.1).collect()));
-        let (su, ss) = (median(secured.iter().map(|x| x.0).collect()), median(secured.iter().map(|x| x.1).collect()));
         println!("| plain TCP | {pu:.0} | {ps:.0} | 1.000 |");
         println!("| TLS + access control (`--certs`) | {su:.0} | {ss:.0} | {:.3} |", su / pu);
     }

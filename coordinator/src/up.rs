@@ -146,10 +146,11 @@ pub fn up(args: UpArgs) -> Result<i32> {
     let port = free_port()?;
     // With credentials every link is mutual TLS under the cluster's access rules, as across
     // machines; on loopback without them, plain TCP.
-    let certs = match &args.certs {
-        Some(d) => Some(d.canonicalize().with_context(|| format!("--certs {}", d.display()))?),
-        None => None,
-    };
+    let certs = args
+        .certs
+        .as_deref()
+        .map(|d| d.canonicalize().with_context(|| format!("--certs {}", d.display())))
+        .transpose()?;
     let endpoint = format!("{}/127.0.0.1:{port}", if certs.is_some() { "tls" } else { "tcp" });
     let common: Vec<String> = certs.iter().flat_map(|d| ["--certs".to_string(), d.display().to_string()]).collect();
     let me = std::env::current_exe()?;

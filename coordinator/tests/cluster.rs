@@ -195,6 +195,23 @@ impl Cluster {
     }
 }
 
+/// One of `agent`'s real experience batches (with trajectories) on `job`, as `session` sees it.
+fn a_real_batch(session: &protocol::net::zenoh::Session, job: &str, agent: &str) -> protocol::ExperienceBatch {
+    use protocol::net;
+    let real = net::subscribe(session, &protocol::keys::experience(job, agent)).unwrap();
+    let drops = net::DropCounters::default();
+    let until = Instant::now() + Duration::from_secs(30);
+    loop {
+        if let Some((_, b)) = net::try_next::<protocol::ExperienceBatch>(&real, &drops) {
+            if !b.trajectories.is_empty() {
+                return b;
+            }
+        }
+        assert!(Instant::now() < until, "no experience from {agent} seen");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
 fn version(s: &serde_json::Value) -> u64 {
     s["learner"]["policy_version"].as_u64().unwrap_or(0)
 }
@@ -402,18 +419,7 @@ fn issue_4_bad_input_is_counted_and_dropped_and_bad_jobs_are_refused() {
     }
     // Issue 10: batches that decode but do not fit the job, sent as agent-1 (a copy of one of
     // its real batches with one number changed): an action index of 99 killed the learner.
-    let real = net::subscribe(&session, &protocol::keys::experience(&id, "agent-1")).unwrap();
-    let drops = net::DropCounters::default();
-    let until = Instant::now() + Duration::from_secs(30);
-    let batch = loop {
-        if let Some((_, b)) = net::try_next::<protocol::ExperienceBatch>(&real, &drops) {
-            if !b.trajectories.is_empty() {
-                break b;
-            }
-        }
-        assert!(Instant::now() < until, "no experience from agent-1 seen");
-        std::thread::sleep(Duration::from_millis(20));
-    };
+    let batch = a_real_batch(&session, &id, "agent-1");
     let hostile: [(&str, fn(&mut protocol::Trajectory)); 4] = [
         ("action", |t| t.discrete_actions[0] = 99),
         ("reward", |t| t.rewards[0] = 1e9),
@@ -866,18 +872,7 @@ fn issue_10_only_the_clusters_roles_connect_and_each_does_only_its_part() {
     let agent = as_role(Role::Agent);
     let car = as_role(Role::Car);
     std::thread::sleep(Duration::from_secs(2));
-    let drops = net::DropCounters::default();
-    let real = net::subscribe(&watcher, &protocol::keys::experience(&id, "agent-1")).unwrap();
-    let until = Instant::now() + Duration::from_secs(30);
-    let batch = loop {
-        if let Some((_, b)) = net::try_next::<protocol::ExperienceBatch>(&real, &drops) {
-            if !b.trajectories.is_empty() {
-                break b;
-            }
-        }
-        assert!(Instant::now() < until, "the operator sees agent-1's experience");
-        std::thread::sleep(Duration::from_millis(20));
-    };
+    let batch = a_real_batch(&watcher, &id, "agent-1");
     let update = protocol::PolicyUpdate {
         protocol_version: protocol::PROTOCOL_VERSION,
         job_id: id.clone(),

@@ -1204,6 +1204,7 @@ fn status(
             (!q.is_empty()).then(|| (id.clone(), q.iter().map(|r| r.1).sum::<u64>() as f64 / span))
         })
         .collect();
+    let (write_failures, write_error) = run.failures();
     RunStatus {
         policy_version: ppo.version,
         iteration,
@@ -1223,7 +1224,7 @@ fn status(
         run_dir: run.root().display().to_string(),
         worlds,
         workers,
-        write_failures: run.failures().0,
-        write_error: run.failures().1,
+        write_failures,
+        write_error,
     }
 }
