@@ -54,15 +54,11 @@ pub fn drive(args: DriveArgs) -> Result<i32> {
             let action = driver.act(&env);
             env.advance(action);
             let r = env.reward_with(&mut reward)?;
-            let params = env.params().clone();
             let o = env.finish(r);
-            path.push(P2::new(params.x, params.y));
+            path.push(P2::new(o.trace.x, o.trace.y));
             if let Some(t) = trace.as_mut() {
-                let wall = std::time::SystemTime::now()
-                    .duration_since(std::time::UNIX_EPOCH)
-                    .map(|d| d.as_secs_f64())
-                    .unwrap_or(0.0);
-                t.row(lap as u64 - 1, env.track(), &params, ActionTaken::Continuous(action), &o, wall)?;
+                let wall = sim_agent::rollout::unix_now();
+                t.row(lap as u64 - 1, env.track().length(), ActionTaken::Continuous(action), &o, wall)?;
             }
             bar.set_message(format!("progress {:.1} %", o.progress));
             if let (Some(_), Some(t)) = (args.time_limit, o.lap_time) {

@@ -134,8 +134,11 @@ pub fn parse(text: &str, base: &Path, origin: &str, id: &str) -> Result<JobDoc> 
     if spec.stop.minutes <= 0.0 || !spec.stop.minutes.is_finite() {
         bail!("{origin}: field 'stop.minutes' must be a positive number of minutes");
     }
+    let tracks =
+        spec.worlds.iter().map(|w| Ok(sim_agent::track_lines(&tracks::world(w)?))).collect::<Result<Vec<_>>>()?;
     Ok(JobDoc {
         id: id.to_string(),
+        tracks,
         worlds: spec.worlds,
         reward_name,
         reward_source,

@@ -180,6 +180,7 @@ pub fn train(args: TrainArgs) -> Result<i32> {
         par: if camera { Par::rayon(threads) } else { Par::Seq },
         adopt: None,
         signing_key: args.signing_key.clone(),
+        tracks: worlds.iter().map(sim_agent::track_lines).collect(),
     };
     let worker = Worker::new(WorkerSetup {
         id: "local".into(),

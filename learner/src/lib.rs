@@ -3,6 +3,7 @@
 //! - [`hyperparams`]: `hyperparameters.json`, read unchanged.
 //! - [`ppo`]: GAE, the clipped surrogate, the value loss, their gradients, the update.
 //! - [`checkpoints`]: run folders, atomic checkpoints, best/last records.
+//! - [`record`]: the run's logs: DeepRacer's sim-trace and metrics JSON (DRfC's layout), MCAP.
 //! - [`run`]: one training run (flow control, updates, evaluations on the workers,
 //!   checkpoints, stop rules) over any [`run::Link`]: in-process channels or Zenoh.
 //!
@@ -13,6 +14,7 @@
 pub mod checkpoints;
 pub mod hyperparams;
 pub mod ppo;
+pub mod record;
 pub mod run;
 
 pub use hyperparams::{Hyperparameters, LossType};

@@ -18,6 +18,7 @@
 use crate::checkpoints::{CheckpointRecord, OpenMode, RunDir, RunError};
 use crate::hyperparams::Hyperparameters;
 use crate::ppo::{Ppo, PpoState, UpdateStats};
+use crate::record::Recorder;
 use faer::Par;
 use policy::exchange::{Credit, EvalReport, EvalRequest, Experience, PolicyVersion, Trial, summarise};
 use policy::folder::{self, Manifest, Parent};
@@ -286,6 +287,9 @@ pub struct RunSpec {
     /// The key that signs every published model and model folder (PKCS#8 PEM); `None`: the
     /// run folder's `signing.key`, made on first use (its `signing.pub` is what cars trust).
     pub signing_key: Option<PathBuf>,
+    /// The worlds' tracks as lines, drawn in the MCAP log (a world without lines is logged
+    /// without its track).
+    pub tracks: Vec<policy::TrackLines>,
 }
 
 /// One update, as `metrics.jsonl` records it.
@@ -360,6 +364,8 @@ pub struct EvalRecord {
     pub trials: usize,
     /// This became the best model.
     pub best: bool,
+    /// Per world, the folder of its evaluation sim-trace (`evaluation-<YYYYMMDDHHMMSS>`).
+    pub simtrace: Vec<(String, String)>,
 }
 
 /// Per-world figures over the last 10 s.
@@ -665,7 +671,14 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
     let signer = signer_for(spec, &run)?;
     run.write_file("model_metadata.json", spec.metadata.to_json().as_bytes())?;
     run.write_file("hyperparameters.json", spec.hyper.to_json().as_bytes())?;
+    // deepracer-for-cloud's place for it (`ip/`), where deepracer-utils looks.
+    run.write_file("ip/hyperparameters.json", spec.hyper.to_json().as_bytes())?;
     run.write_file("sim.toml", spec.sim_toml.as_bytes())?;
+    let mut recorder = noted(
+        &run,
+        "the run's logs (sim-trace, metrics JSON, MCAP) not opened",
+        Recorder::open(&spec.out, &spec.metadata.action_space, &spec.tracks, first_iteration),
+    );
     let metadata = Arc::new(spec.metadata.clone());
     let hyper = &spec.hyper;
     let want = hyper.num_episodes_between_training.max(1) as u64;
@@ -696,6 +709,7 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
     tracing::info!(run = %spec.name, version = ppo.version, folder = %spec.out.display(), "training");
 
     let mut buffer: Vec<Trajectory> = Vec::new();
+    let mut buffer_from: Vec<String> = Vec::new(); // the worker of each buffered trajectory
     let mut seen: HashMap<String, BTreeSet<u64>> = HashMap::new();
     let mut windows: BTreeMap<String, WorldWindow> = BTreeMap::new();
     let mut per_worker: BTreeMap<String, VecDeque<(Instant, u64)>> = BTreeMap::new();
@@ -780,6 +794,7 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
                         w.recent.push_back((now, e.worker.clone(), t.progress, episode_reward(&t)));
                         w.episodes += 1;
                         buffer.push(t);
+                        buffer_from.push(e.worker.clone());
                     }
                 }
             }
@@ -807,7 +822,11 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
 
         // 2. Update when the episodes are in.
         if buffer.len() as u64 >= want && stop_reason.is_none() {
-            let trajs = std::mem::take(&mut buffer);
+            // Exactly the episodes an iteration takes (DeepRacer's `num_episodes_between_training`),
+            // the first to arrive; the rest wait for the next update.
+            let take = (want as usize).min(buffer.len());
+            let trajs: Vec<Trajectory> = buffer.drain(..take).collect();
+            let from: Vec<String> = buffer_from.drain(..take).collect();
             let lag = trajs.iter().map(|t| ppo.version - t.policy_version).max().unwrap_or(0);
             max_lag = max_lag.max(lag);
             let wait_s = wait_since.elapsed().as_secs_f64();
@@ -831,6 +850,17 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
                 tracing::warn!(run = %spec.name, iteration, "{why}");
             }
             publish(&ppo, link)?;
+            // Episodes left for the next update that this one made too old: stale.
+            let mut i = 0;
+            while i < buffer.len() {
+                if ppo.version - buffer[i].policy_version > spec.max_policy_lag {
+                    buffer.remove(i);
+                    buffer_from.remove(i);
+                    stale += 1;
+                } else {
+                    i += 1;
+                }
+            }
             round = None;
             last_grant = Instant::now() - Duration::from_secs(60);
             let steps: usize = trajs.iter().map(|t| t.len()).sum();
@@ -865,6 +895,13 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
                 "metrics.jsonl: an update's line not written",
                 run.append_metrics(&serde_json::to_value(&rec).expect("JSON")),
             );
+            if let Some(r) = recorder.as_mut() {
+                noted(
+                    &run,
+                    "an update's sim-trace, metrics JSON or MCAP not written",
+                    r.iteration(&rec, &trajs, &from),
+                );
+            }
             observer.iteration(&rec);
             last_status = Instant::now() - Duration::from_secs(60);
         }
@@ -1038,7 +1075,7 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
                     if t.laps > 0 && min_laps >= t.laps.min(spec.eval_trials as usize) { lap_streak + 1 } else { 0 };
             }
             last_eval_figures = (progress, min_laps as u64);
-            let e = EvalRecord {
+            let mut e = EvalRecord {
                 iteration: p.iteration,
                 policy_version: p.version,
                 worlds: per_world,
@@ -1047,7 +1084,16 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
                 min_laps,
                 trials: spec.eval_trials as usize,
                 best: is_best,
+                simtrace: Vec::new(),
             };
+            if let Some(r) = recorder.as_mut() {
+                e.simtrace = noted(
+                    &run,
+                    "an evaluation's sim-trace, metrics JSON or MCAP not written",
+                    r.evaluation(&e, &p.done),
+                )
+                .unwrap_or_default();
+            }
             noted(
                 &run,
                 "evaluations.jsonl: an evaluation's line not written",
@@ -1127,6 +1173,9 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
     s.finished = true;
     s.stop_reason = Some(reason.clone());
     link.status(&s)?;
+    if let Some(r) = recorder.as_mut() {
+        noted(&run, "the run's logs not closed", r.finish());
+    }
     let (write_failures, write_error) = run.failures();
     let summary = run.write_file(
         "summary.json",

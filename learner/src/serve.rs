@@ -215,6 +215,7 @@ fn spec_of(doc: &JobDoc, args: &ServeArgs) -> Result<RunSpec> {
         par: if camera { Par::rayon(args.threads) } else { Par::Seq },
         adopt: None,
         signing_key: args.signing_key.clone(),
+        tracks: doc.tracks.clone(),
     })
 }
 

@@ -75,7 +75,7 @@ pub struct EvalRequest {
 }
 
 /// One evaluation trial.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct Trial {
     /// Progress reached (%).
     pub progress: f64,
@@ -87,6 +87,15 @@ pub struct Trial {
     pub steps: u64,
     /// How the trial ended (DeepRacer's status label).
     pub status: String,
+    /// Per step (when the job records): what the policy chose, the reward and the
+    /// sim-trace fields, for DeepRacer's evaluation sim-trace. Empty otherwise.
+    pub choices: Vec<crate::Choice>,
+    /// Rewards, one per step of `choices`.
+    pub rewards: Vec<f32>,
+    /// The sim-trace fields, one per step of `choices`.
+    pub trace: Vec<crate::StepTrace>,
+    /// Length of the track driven (m); DeepRacer's `track_len` column.
+    pub track_len: f64,
 }
 
 /// The answer to an [`EvalRequest`].

@@ -1,5 +1,7 @@
 //! Experience: what acting produces and learning consumes. Every trajectory carries the
-//! policy version that acted, so staleness can be measured and bounded.
+//! policy version that acted, so staleness can be measured and bounded, and (when the job
+//! records) each step's sim-trace fields, so the learner can write DeepRacer's logs without
+//! a simulator of its own.
 
 use crate::model::Choice;
 
@@ -30,6 +32,111 @@ pub struct Trajectory {
     pub progress: f64,
     /// A lap was completed.
     pub lap_complete: bool,
+    /// Length of the track driven (m); DeepRacer's `track_len` column.
+    pub track_len: f64,
+    /// Per step, what DeepRacer's sim-trace row holds beyond the action and reward; empty
+    /// when the job does not record.
+    pub trace: Vec<StepTrace>,
+}
+
+/// DeepRacer's `episode_status` values (the sim-trace labels, §4.1 of the reference).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum EpisodeStatus {
+    /// The first step of an episode.
+    #[default]
+    Prepare,
+    /// Driving.
+    InProgress,
+    /// All four wheels off the road.
+    OffTrack,
+    /// Progress fell for too many steps in a row.
+    Reversed,
+    /// The car stopped moving.
+    Immobilized,
+    /// Progress reached 100.
+    LapComplete,
+    /// The race's time limit ran out.
+    TimeUp,
+}
+
+impl EpisodeStatus {
+    /// Every status, in code order ([`EpisodeStatus::code`]).
+    pub const ALL: [EpisodeStatus; 7] = [
+        EpisodeStatus::Prepare,
+        EpisodeStatus::InProgress,
+        EpisodeStatus::OffTrack,
+        EpisodeStatus::Reversed,
+        EpisodeStatus::Immobilized,
+        EpisodeStatus::LapComplete,
+        EpisodeStatus::TimeUp,
+    ];
+
+    /// The label DeepRacer's sim-trace writes.
+    pub fn label(self) -> &'static str {
+        match self {
+            EpisodeStatus::Prepare => "prepare",
+            EpisodeStatus::InProgress => "in_progress",
+            EpisodeStatus::OffTrack => "off_track",
+            EpisodeStatus::Reversed => "reversed",
+            EpisodeStatus::Immobilized => "immobilized",
+            EpisodeStatus::LapComplete => "lap_complete",
+            EpisodeStatus::TimeUp => "time_up",
+        }
+    }
+
+    /// The label DeepRacer's metrics JSON writes (`"Lap complete"`, `"Off track"`, …).
+    pub fn metrics_label(self) -> &'static str {
+        match self {
+            EpisodeStatus::Prepare => "Prepare",
+            EpisodeStatus::InProgress => "In progress",
+            EpisodeStatus::OffTrack => "Off track",
+            EpisodeStatus::Reversed => "Reversed",
+            EpisodeStatus::Immobilized => "Immobilized",
+            EpisodeStatus::LapComplete => "Lap complete",
+            EpisodeStatus::TimeUp => "Time Up",
+        }
+    }
+
+    /// A small number for the wire.
+    pub fn code(self) -> u32 {
+        EpisodeStatus::ALL.iter().position(|s| *s == self).expect("listed") as u32
+    }
+
+    /// The status with this code, if any.
+    pub fn from_code(code: u32) -> Option<EpisodeStatus> {
+        EpisodeStatus::ALL.get(code as usize).copied()
+    }
+}
+
+/// One step's sim-trace fields (DeepRacer's `StepMetrics`, §4.1), apart from the episode
+/// counter, the action and the reward, which the trajectory holds.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct StepTrace {
+    /// The car's reference point, x (m) (`X`).
+    pub x: f64,
+    /// The car's reference point, y (m) (`Y`).
+    pub y: f64,
+    /// Heading (degrees) (`yaw`).
+    pub yaw: f32,
+    /// Commanded steering (degrees) (`steer`).
+    pub steer: f32,
+    /// Commanded speed (m/s) (`throttle`).
+    pub throttle: f32,
+    /// Progress (%) after the step.
+    pub progress: f32,
+    /// The nearer of the two closest waypoints (`closest_waypoint`).
+    pub closest_waypoint: u32,
+    /// `all_wheels_on_track`.
+    pub all_wheels_on_track: bool,
+    /// `episode_status`.
+    pub status: EpisodeStatus,
+    /// Simulation time since the episode started (s) (`tstamp`).
+    pub tstamp: f64,
+    /// Penalty seconds still to serve (`pause_duration`).
+    pub pause_duration: f32,
+    /// Unix time when the step was taken (`wall_clock`).
+    pub wall_clock: f64,
 }
 
 impl Trajectory {
@@ -42,4 +149,20 @@ impl Trajectory {
     pub fn is_empty(&self) -> bool {
         self.rewards.is_empty()
     }
+}
+
+/// A world's track as lines (centre, inner and outer borders, in the driving direction), for
+/// logs and charts drawn where no simulator runs (the learner's MCAP, reports).
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct TrackLines {
+    /// The world's name.
+    pub world: String,
+    /// Centre-line length (m).
+    pub length: f64,
+    /// Centre line (the waypoints), x–y in metres.
+    pub centre: Vec<[f64; 2]>,
+    /// Inner border.
+    pub inner: Vec<[f64; 2]>,
+    /// Outer border.
+    pub outer: Vec<[f64; 2]>,
 }

@@ -8,6 +8,7 @@
 //! - [`car`]: `car.toml`, what a physical car can run and how actions become servo ratios.
 //! - [`signature`]: ed25519 signatures over a model's files, and the keys a car trusts.
 //! - [`experience`]: trajectories, tagged with the policy version that produced them.
+//! - [`simtrace`]: DeepRacer's sim-trace CSV rows.
 //! - [`exchange`]: what the learner and the sim workers say to each other (credits,
 //!   experience, evaluation requests and reports), as plain values.
 //!
@@ -21,8 +22,9 @@ pub mod metadata;
 pub mod model;
 pub mod nn;
 pub mod signature;
+pub mod simtrace;
 
-pub use experience::Trajectory;
+pub use experience::{EpisodeStatus, StepTrace, TrackLines, Trajectory};
 pub use folder::{Manifest, ModelError, ModelFolder, ModelParts};
 pub use metadata::{
     Action, ActionSpace, MAX_SPEED, MAX_STEERING_DEG, MIN_SPEED, MetadataError, ModelMetadata, NeuralNetwork, Sensor,

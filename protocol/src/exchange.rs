@@ -4,7 +4,7 @@
 //! the job it claims to be for (its id, its model's observation size, its worlds, the sender
 //! the key names), and anything that does not fit is an error the caller counts and drops.
 
-use crate::{DecodeError, keys, trajectory_from_wire, trajectory_to_wire};
+use crate::{DecodeError, keys, limits, trajectory_from_wire, trajectory_to_wire};
 use policy::exchange as ex;
 use policy::folder::{self, Manifest};
 use std::sync::Arc;
@@ -106,12 +106,20 @@ pub fn eval_report_to_wire(job: &str, r: &ex::EvalReport) -> crate::EvalReport {
     let (trials, error) = match &r.trials {
         Ok(t) => (
             t.iter()
-                .map(|t| crate::EvalTrial {
-                    progress: t.progress,
-                    lap_time: t.lap_time,
-                    off_track: t.off_track,
-                    steps: t.steps,
-                    status: t.status.clone(),
+                .map(|t| {
+                    let (discrete_actions, continuous_actions) = crate::choices_to_wire(&t.choices);
+                    crate::EvalTrial {
+                        progress: t.progress,
+                        lap_time: t.lap_time,
+                        off_track: t.off_track,
+                        steps: t.steps,
+                        status: t.status.clone(),
+                        discrete_actions,
+                        continuous_actions,
+                        rewards: t.rewards.clone(),
+                        trace: crate::trace_to_wire(&t.trace),
+                        track_len: t.track_len,
+                    }
                 })
                 .collect(),
             String::new(),
@@ -152,16 +160,33 @@ pub fn eval_report_from_wire(
         return invalid("evaluation trials out of range (progress 0–100 %, finite lap times)".into());
     }
     let trials = if w.error.is_empty() {
-        Ok(w.trials
-            .into_iter()
-            .map(|t| ex::Trial {
+        let mut trials = Vec::with_capacity(w.trials.len());
+        for t in w.trials {
+            let n = t.rewards.len();
+            if n as u64 > SANITY_LIMIT * 10 || !t.rewards.iter().all(|r| r.is_finite() && r.abs() <= limits::REWARD) {
+                return invalid("evaluation trial rewards out of range".into());
+            }
+            if !(t.track_len.is_finite() && (0.0..=1e5).contains(&t.track_len)) {
+                return invalid(format!("track length {} out of range", t.track_len));
+            }
+            let choices = if n == 0 && t.trace.is_none() {
+                Vec::new()
+            } else {
+                crate::choices_from_wire(&t.discrete_actions, &t.continuous_actions, n, job.actions)?
+            };
+            trials.push(ex::Trial {
                 progress: t.progress,
                 lap_time: t.lap_time,
                 off_track: t.off_track,
                 steps: t.steps,
                 status: t.status,
-            })
-            .collect())
+                choices,
+                rewards: t.rewards,
+                trace: crate::trace_from_wire(t.trace, n)?,
+                track_len: t.track_len,
+            });
+        }
+        Ok(trials)
     } else {
         Err(w.error)
     };
@@ -574,13 +599,41 @@ mod tests {
                 progress: 100.0,
                 lap_time: Some(9.5),
                 off_track: 0,
-                steps: 140,
+                steps: 2,
                 status: "lap_complete".into(),
+                choices: vec![policy::Choice::Discrete(1), policy::Choice::Discrete(0)],
+                rewards: vec![0.0, 1.5],
+                trace: vec![
+                    policy::StepTrace { x: 1.0, y: 2.0, tstamp: 0.066, wall_clock: 1.8e9, ..Default::default() },
+                    policy::StepTrace {
+                        x: 1.1,
+                        progress: 100.0,
+                        status: policy::EpisodeStatus::LapComplete,
+                        closest_waypoint: 7,
+                        ..Default::default()
+                    },
+                ],
+                track_len: 17.6,
             }]),
         };
         assert_eq!(eval_report_from_wire(eval_report_to_wire(&id, &rep), &view, "a1").unwrap(), rep);
         let mut lie = eval_report_to_wire(&id, &rep);
         lie.trials[0].progress = 1e9;
         assert!(eval_report_from_wire(lie, &view, "a1").is_err(), "progress over 100 % is refused");
+        // Issue 11: the trial's sim-trace rows are checked like experience.
+        let lies: [(&str, fn(&mut crate::EvalTrial)); 5] = [
+            ("a column short", |t| {
+                t.trace.as_mut().unwrap().x.pop();
+            }),
+            ("an unknown status", |t| t.trace.as_mut().unwrap().status[1] = 99),
+            ("a position at infinity", |t| t.trace.as_mut().unwrap().y[0] = f64::INFINITY),
+            ("an action outside the space", |t| t.discrete_actions[0] = 99),
+            ("a reward beyond ±1e5", |t| t.rewards[0] = 1e9),
+        ];
+        for (what, lie) in lies {
+            let mut w = eval_report_to_wire(&id, &rep);
+            lie(&mut w.trials[0]);
+            assert!(eval_report_from_wire(w, &view, "a1").is_err(), "{what} is refused");
+        }
     }
 }

@@ -79,6 +79,9 @@ pub struct JobDoc {
     pub obs_size: u64,
     /// The simulator's observation settings (JSON), for the model's manifest.
     pub observation_json: String,
+    /// The worlds' tracks as lines, for the learner's logs (MCAP) and reports.
+    #[serde(default)]
+    pub tracks: Vec<policy::TrackLines>,
 }
 
 /// A job on the wire.
@@ -111,7 +114,56 @@ pub fn to_wire(d: &JobDoc) -> crate::Job {
         eval_trials: d.eval_trials,
         obs_size: d.obs_size,
         observation_json: d.observation_json.clone(),
+        tracks: d
+            .tracks
+            .iter()
+            .map(|t| {
+                let flat = |l: &[[f64; 2]]| l.iter().flatten().copied().collect::<Vec<f64>>();
+                crate::TrackLines {
+                    world: t.world.clone(),
+                    length: t.length,
+                    centre: flat(&t.centre),
+                    inner: flat(&t.inner),
+                    outer: flat(&t.outer),
+                }
+            })
+            .collect(),
     }
+}
+
+/// A job's track lines back: one per job world at most, points in pairs, finite, within
+/// ±10 km, at most 100,000 per line.
+fn tracks_from_wire(
+    id: &str,
+    worlds: &[String],
+    w: Vec<crate::TrackLines>,
+) -> Result<Vec<policy::TrackLines>, crate::DecodeError> {
+    let mut out = Vec::with_capacity(w.len());
+    for t in w {
+        let lines = [&t.centre, &t.inner, &t.outer];
+        let fits = worlds.contains(&t.world)
+            && !out.iter().any(|o: &policy::TrackLines| o.world == t.world)
+            && t.length.is_finite()
+            && t.length > 0.0
+            && lines
+                .iter()
+                .all(|l| l.len() % 2 == 0 && l.len() <= 200_000 && l.iter().all(|v| v.is_finite() && v.abs() <= 1e4));
+        if !fits {
+            return Err(crate::DecodeError::Invalid(format!(
+                "job {id}: the lines of track {:?} (a job world, once, finite points in pairs)",
+                t.world
+            )));
+        }
+        let pairs = |l: &[f64]| l.chunks(2).map(|c| [c[0], c[1]]).collect::<Vec<[f64; 2]>>();
+        out.push(policy::TrackLines {
+            world: t.world,
+            length: t.length,
+            centre: pairs(&t.centre),
+            inner: pairs(&t.inner),
+            outer: pairs(&t.outer),
+        });
+    }
+    Ok(out)
 }
 
 /// A job back: the one asked for (`id`), with a name, worlds and sizes that make sense.
@@ -133,7 +185,9 @@ pub fn from_wire(j: crate::Job, id: &str) -> Result<JobDoc, crate::DecodeError> 
     if !(s.minutes.is_finite() && s.minutes > 0.0) {
         return bad(format!("job {id}: stop after {} minutes", s.minutes));
     }
+    let tracks = tracks_from_wire(&j.id, &j.worlds, j.tracks)?;
     Ok(JobDoc {
+        tracks,
         id: j.id,
         worlds: j.worlds,
         reward_name: j.reward_name,
@@ -205,6 +259,13 @@ mod tests {
             eval_trials: 3,
             obs_size: 27,
             observation_json: "{}".into(),
+            tracks: vec![policy::TrackLines {
+                world: "reinvent_wood".into(),
+                length: 17.7,
+                centre: vec![[0.0, 0.0], [1.0, 0.5]],
+                inner: vec![[0.0, 0.5]],
+                outer: vec![[0.0, -0.5]],
+            }],
         }
     }
 
@@ -221,6 +282,9 @@ mod tests {
             |j: &mut crate::Job| j.stop = None,
             |j: &mut crate::Job| j.stop.as_mut().unwrap().minutes = f64::NAN,
             |j: &mut crate::Job| j.worlds.push("../etc".into()),
+            |j: &mut crate::Job| j.tracks[0].world = "reinvent_base".into(),
+            |j: &mut crate::Job| j.tracks[0].centre.push(1.0),
+            |j: &mut crate::Job| j.tracks[0].inner[0] = f64::NAN,
         ] {
             let mut j = to_wire(&d);
             f(&mut j);

@@ -253,16 +253,142 @@ pub fn decode<M: Versioned>(bytes: &[u8]) -> Result<M, DecodeError> {
     Ok(m)
 }
 
-/// A `policy::Trajectory` on the wire.
-pub fn trajectory_to_wire(t: &policy::Trajectory, obs_size: usize) -> Trajectory {
+/// Choices as the wire's two columns (discrete indices, continuous pairs).
+pub fn choices_to_wire(choices: &[policy::Choice]) -> (Vec<u32>, Vec<f32>) {
     let mut discrete = Vec::new();
     let mut continuous = Vec::new();
-    for c in &t.choices {
+    for c in choices {
         match c {
             policy::Choice::Discrete(i) => discrete.push(*i as u32),
             policy::Choice::Continuous(x) => continuous.extend_from_slice(x),
         }
     }
+    (discrete, continuous)
+}
+
+/// Steps' sim-trace fields on the wire (`None` when none were recorded).
+pub fn trace_to_wire(trace: &[policy::StepTrace]) -> Option<StepTraces> {
+    if trace.is_empty() {
+        return None;
+    }
+    let col = |f: &dyn Fn(&policy::StepTrace) -> f64| trace.iter().map(f).collect::<Vec<f64>>();
+    let colf = |f: &dyn Fn(&policy::StepTrace) -> f32| trace.iter().map(f).collect::<Vec<f32>>();
+    Some(StepTraces {
+        x: col(&|s| s.x),
+        y: col(&|s| s.y),
+        yaw: colf(&|s| s.yaw),
+        steer: colf(&|s| s.steer),
+        throttle: colf(&|s| s.throttle),
+        progress: colf(&|s| s.progress),
+        closest_waypoint: trace.iter().map(|s| s.closest_waypoint).collect(),
+        all_wheels_on_track: trace.iter().map(|s| s.all_wheels_on_track).collect(),
+        status: trace.iter().map(|s| s.status.code()).collect(),
+        tstamp: col(&|s| s.tstamp),
+        pause_duration: colf(&|s| s.pause_duration),
+        wall_clock: col(&|s| s.wall_clock),
+    })
+}
+
+/// Steps' sim-trace fields back: none, or one of each per step, every number finite and in
+/// range (positions within ±10 km, angles and speeds within ±10⁴, progress 0–100 %, known
+/// statuses, times not negative).
+pub fn trace_from_wire(w: Option<StepTraces>, steps: usize) -> Result<Vec<policy::StepTrace>, DecodeError> {
+    let Some(w) = w else { return Ok(Vec::new()) };
+    let bad = |m: String| Err(DecodeError::Invalid(m));
+    let lens = [
+        w.x.len(),
+        w.y.len(),
+        w.yaw.len(),
+        w.steer.len(),
+        w.throttle.len(),
+        w.progress.len(),
+        w.closest_waypoint.len(),
+        w.all_wheels_on_track.len(),
+        w.status.len(),
+        w.tstamp.len(),
+        w.pause_duration.len(),
+        w.wall_clock.len(),
+    ];
+    if lens.iter().any(|&l| l != steps) {
+        return bad(format!("sim-trace columns of {lens:?} rows for {steps} steps"));
+    }
+    let within = |v: f64, limit: f64| v.is_finite() && v.abs() <= limit;
+    if !w.x.iter().chain(&w.y).all(|&v| within(v, 1e4)) {
+        return bad("sim-trace position not finite or beyond ±10 km".into());
+    }
+    if !w.yaw.iter().chain(&w.steer).chain(&w.throttle).all(|&v| within(v as f64, 1e4)) {
+        return bad("sim-trace heading, steering or speed not finite or beyond ±1e4".into());
+    }
+    if !w.progress.iter().all(|&p| p.is_finite() && (0.0..=100.0 + 1e-3).contains(&p)) {
+        return bad("sim-trace progress outside [0, 100]".into());
+    }
+    if !w.tstamp.iter().chain(&w.wall_clock).all(|&t| t.is_finite() && (0.0..=1e12).contains(&t))
+        || !w.pause_duration.iter().all(|&t| t.is_finite() && (0.0..=1e4).contains(&t))
+    {
+        return bad("sim-trace times not finite or negative".into());
+    }
+    if let Some(c) = w.closest_waypoint.iter().find(|&&c| c as u64 > exchange::SANITY_LIMIT) {
+        return bad(format!("sim-trace waypoint {c} beyond {}", exchange::SANITY_LIMIT));
+    }
+    let mut out = Vec::with_capacity(steps);
+    for i in 0..steps {
+        let Some(status) = policy::EpisodeStatus::from_code(w.status[i]) else {
+            return bad(format!("sim-trace status code {} unknown", w.status[i]));
+        };
+        out.push(policy::StepTrace {
+            x: w.x[i],
+            y: w.y[i],
+            yaw: w.yaw[i],
+            steer: w.steer[i],
+            throttle: w.throttle[i],
+            progress: w.progress[i],
+            closest_waypoint: w.closest_waypoint[i],
+            all_wheels_on_track: w.all_wheels_on_track[i],
+            status,
+            tstamp: w.tstamp[i],
+            pause_duration: w.pause_duration[i],
+            wall_clock: w.wall_clock[i],
+        });
+    }
+    Ok(out)
+}
+
+/// The wire's two action columns back as `n` choices of the job's action space.
+pub fn choices_from_wire(
+    discrete: &[u32],
+    continuous: &[f32],
+    n: usize,
+    actions: Actions,
+) -> Result<Vec<policy::Choice>, DecodeError> {
+    let bad = |m: String| Err(DecodeError::Invalid(m));
+    if !discrete.is_empty() || continuous.is_empty() {
+        if discrete.len() != n {
+            return bad(format!("{} discrete actions for {n} steps", discrete.len()));
+        }
+        let Actions::Discrete(count) = actions else {
+            return bad("discrete actions for a continuous action space".into());
+        };
+        if let Some(a) = discrete.iter().find(|a| **a as usize >= count) {
+            return bad(format!("discrete action {a} outside the action space of {count} actions"));
+        }
+        Ok(discrete.iter().map(|&a| policy::Choice::Discrete(a as usize)).collect())
+    } else {
+        if actions != Actions::Continuous {
+            return bad("continuous actions for a discrete action space".into());
+        }
+        if continuous.len() != 2 * n {
+            return bad(format!("{} continuous action values for {n} steps", continuous.len()));
+        }
+        if let Some(a) = continuous.iter().find(|a| !(a.abs() <= limits::CONTINUOUS_ACTION)) {
+            return bad(format!("continuous action {a} outside ±{}", limits::CONTINUOUS_ACTION));
+        }
+        Ok(continuous.chunks(2).map(|c| policy::Choice::Continuous([c[0], c[1]])).collect())
+    }
+}
+
+/// A `policy::Trajectory` on the wire.
+pub fn trajectory_to_wire(t: &policy::Trajectory, obs_size: usize) -> Trajectory {
+    let (discrete, continuous) = choices_to_wire(&t.choices);
     Trajectory {
         env: t.env,
         episode: t.episode,
@@ -278,6 +404,8 @@ pub fn trajectory_to_wire(t: &policy::Trajectory, obs_size: usize) -> Trajectory
         progress: t.progress,
         lap_complete: t.lap_complete,
         world: t.world.clone(),
+        trace: trace_to_wire(&t.trace),
+        track_len: t.track_len,
     }
 }
 
@@ -331,29 +459,11 @@ pub fn trajectory_from_wire(
             w.values.len()
         ));
     }
-    let choices: Vec<policy::Choice> = if !w.discrete_actions.is_empty() || w.continuous_actions.is_empty() {
-        if w.discrete_actions.len() != n {
-            return bad(format!("{} discrete actions for {n} steps", w.discrete_actions.len()));
-        }
-        let Actions::Discrete(count) = actions else {
-            return bad("discrete actions for a continuous action space".into());
-        };
-        if let Some(a) = w.discrete_actions.iter().find(|a| **a as usize >= count) {
-            return bad(format!("discrete action {a} outside the action space of {count} actions"));
-        }
-        w.discrete_actions.iter().map(|&a| policy::Choice::Discrete(a as usize)).collect()
-    } else {
-        if actions != Actions::Continuous {
-            return bad("continuous actions for a discrete action space".into());
-        }
-        if w.continuous_actions.len() != 2 * n {
-            return bad(format!("{} continuous action values for {n} steps", w.continuous_actions.len()));
-        }
-        if let Some(a) = w.continuous_actions.iter().find(|a| !(a.abs() <= limits::CONTINUOUS_ACTION)) {
-            return bad(format!("continuous action {a} outside ±{}", limits::CONTINUOUS_ACTION));
-        }
-        w.continuous_actions.chunks(2).map(|c| policy::Choice::Continuous([c[0], c[1]])).collect()
-    };
+    let choices = choices_from_wire(&w.discrete_actions, &w.continuous_actions, n, actions)?;
+    let trace = trace_from_wire(w.trace, n)?;
+    if !(w.track_len.is_finite() && (0.0..=1e5).contains(&w.track_len)) {
+        return bad(format!("track length {} out of range", w.track_len));
+    }
     if !(w.obs.iter().chain(&w.logp).chain(&w.values).chain(&w.rewards).all(|x| x.is_finite())
         && w.progress.is_finite())
     {
@@ -387,6 +497,8 @@ pub fn trajectory_from_wire(
         done: w.done,
         progress: w.progress,
         lap_complete: w.lap_complete,
+        track_len: w.track_len,
+        trace,
     })
 }
 
@@ -409,6 +521,7 @@ mod tests {
             done: true,
             progress: 42.0,
             lap_complete: false,
+            ..Default::default()
         };
         let batch = ExperienceBatch {
             protocol_version: PROTOCOL_VERSION,

@@ -30,6 +30,9 @@ pub struct SimConfig {
     /// Seconds one call of a Python `reward_function` may take: a call past it stops the job
     /// (and `reward validate`) with the file, the step and where the code was stuck.
     pub reward_time_limit: f64,
+    /// Record every step's sim-trace fields and send them with the experience: the learner
+    /// writes DeepRacer's sim-trace CSVs, metrics JSON and an MCAP log into the run folder.
+    pub record_trace: bool,
 }
 
 impl Default for SimConfig {
@@ -43,6 +46,7 @@ impl Default for SimConfig {
             observation: ObservationConfig::default(),
             camera: CameraConfig::default(),
             reward_time_limit: 1.0,
+            record_trace: true,
         }
     }
 }

@@ -23,40 +23,7 @@ use rand_distr::{Distribution, StandardNormal};
 use std::sync::Arc;
 use tracks::Track;
 
-/// DeepRacer's `episode_status` values (sim-trace labels).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
-#[serde(rename_all = "snake_case")]
-pub enum EpisodeStatus {
-    /// The first step of an episode.
-    Prepare,
-    /// Driving.
-    InProgress,
-    /// All four wheels off the road.
-    OffTrack,
-    /// Progress fell for too many steps in a row.
-    Reversed,
-    /// The car stopped moving.
-    Immobilized,
-    /// Progress reached 100.
-    LapComplete,
-    /// The race's time limit ran out.
-    TimeUp,
-}
-
-impl EpisodeStatus {
-    /// The label DeepRacer's sim-trace writes.
-    pub fn label(self) -> &'static str {
-        match self {
-            EpisodeStatus::Prepare => "prepare",
-            EpisodeStatus::InProgress => "in_progress",
-            EpisodeStatus::OffTrack => "off_track",
-            EpisodeStatus::Reversed => "reversed",
-            EpisodeStatus::Immobilized => "immobilized",
-            EpisodeStatus::LapComplete => "lap_complete",
-            EpisodeStatus::TimeUp => "time_up",
-        }
-    }
-}
+pub use policy::EpisodeStatus;
 
 /// Training or evaluation rules.
 #[derive(Clone, Debug, PartialEq)]
@@ -111,6 +78,8 @@ pub struct StepOutcome {
     pub resets: u32,
     /// Laps completed in the episode so far.
     pub laps: u32,
+    /// The step's sim-trace fields (`wall_clock` is left 0: the caller stamps it).
+    pub trace: policy::StepTrace,
 }
 
 /// The parts of a world an environment needs.
@@ -351,6 +320,24 @@ impl Env {
             self.immobile_count = 0;
         }
         self.done = p.ends;
+        let q = &p.params;
+        let [prev, next] = q.closest_waypoints;
+        let wp = self.spec.track.waypoints();
+        let here = tracks::P2::new(q.x, q.y);
+        let trace = policy::StepTrace {
+            x: q.x,
+            y: q.y,
+            yaw: q.heading as f32,
+            steer: q.steering_angle as f32,
+            throttle: q.speed as f32,
+            progress: progress as f32,
+            closest_waypoint: if (wp[next] - here).norm() < (wp[prev] - here).norm() { next } else { prev } as u32,
+            all_wheels_on_track: q.all_wheels_on_track,
+            status: p.status,
+            tstamp: q.sim_time,
+            pause_duration: 0.0,
+            wall_clock: 0.0,
+        };
         StepOutcome {
             reward,
             done: p.ends,
@@ -363,6 +350,7 @@ impl Env {
             episode_reward: self.episode_reward,
             resets: self.resets,
             laps: self.laps,
+            trace,
         }
     }
 

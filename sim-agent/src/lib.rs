@@ -37,6 +37,19 @@ pub use env::{Env, EnvError, EnvSpec, EpisodeStatus, EvalRules, Mode, StepOutcom
 pub use reward::{BuiltinReward, RewardError, RewardFn};
 pub use vec_env::VecEnv;
 
+/// A world's track as lines (forward direction), for logs written where no simulator runs.
+pub fn track_lines(w: &tracks::World) -> policy::TrackLines {
+    let t = w.track(tracks::Direction::Forward);
+    let pts = |l: &[tracks::P2]| l.iter().map(|p| [p.x, p.y]).collect::<Vec<[f64; 2]>>();
+    policy::TrackLines {
+        world: w.name.clone(),
+        length: t.length(),
+        centre: pts(t.waypoints()),
+        inner: pts(t.inner().points()),
+        outer: pts(t.outer().points()),
+    }
+}
+
 impl Env {
     /// The reward of the step [`Env::advance`] just ran, by any reward function (Python
     /// rewards use slot 0); 0 on the `prepare` step.

@@ -24,6 +24,8 @@ pub struct Collector {
     pub env_steps: u64,
     /// Episodes completed so far.
     pub episodes: u64,
+    /// Keep each step's sim-trace fields in the trajectories (`SimConfig::record_trace`).
+    pub record: bool,
 }
 
 impl Collector {
@@ -34,11 +36,14 @@ impl Collector {
                 world: vec.envs()[i].spec().name.clone(),
                 env: i as u32,
                 episode: vec.envs()[i].episode(),
+                track_len: vec.envs()[i].track().length(),
                 ..Default::default()
             })
             .collect();
         let pinned = vec![None; vec.len()];
+        let record = vec.envs().first().is_some_and(|e| e.config().record_trace);
         Collector {
+            record,
             vec,
             space,
             open,
@@ -100,9 +105,13 @@ impl Collector {
             }
             let outcomes = self.vec.step(&actions)?.to_vec();
             self.env_steps += n as u64;
+            let wall_clock = if self.record { unix_now() } else { 0.0 };
             for (i, o) in outcomes.iter().enumerate() {
                 let t = &mut self.open[i];
                 t.rewards.push(o.reward as f32);
+                if self.record {
+                    t.trace.push(policy::StepTrace { wall_clock, ..o.trace });
+                }
                 if o.done {
                     t.done = true;
                     t.progress = o.progress;
@@ -111,6 +120,7 @@ impl Collector {
                         world: self.vec.envs()[i].spec().name.clone(),
                         env: i as u32,
                         episode: self.vec.envs()[i].episode(),
+                        track_len: self.vec.envs()[i].track().length(),
                         policy_version: version,
                         ..Default::default()
                     };
@@ -124,8 +134,13 @@ impl Collector {
     }
 }
 
+/// Seconds since the Unix epoch (DeepRacer's `wall_clock`, Python's `time.time()`).
+pub fn unix_now() -> f64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs_f64()).unwrap_or(0.0)
+}
+
 /// One evaluation trial's result.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct TrialResult {
     /// Progress reached (%).
     pub progress: f64,
@@ -137,6 +152,20 @@ pub struct TrialResult {
     pub steps: u64,
     /// How the trial ended.
     pub status: EpisodeStatus,
+    /// Per step, when the configuration records (`record_trace`): the choice, the reward
+    /// and the sim-trace fields (DeepRacer's evaluation sim-trace).
+    pub log: TrialLog,
+}
+
+/// A trial's steps, as its sim-trace needs them.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct TrialLog {
+    /// What the policy chose.
+    pub choices: Vec<policy::Choice>,
+    /// Rewards.
+    pub rewards: Vec<f32>,
+    /// The sim-trace fields.
+    pub trace: Vec<policy::StepTrace>,
 }
 
 /// Run `trials` evaluation trials in parallel from the start line, with the policy's most
@@ -158,13 +187,20 @@ pub fn evaluate(
             .map_err(|e| RewardError::Load { origin: "evaluation".into(), msg: e.to_string() })?;
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let mut results: Vec<Option<TrialResult>> = vec![None; trials];
+    let mut logs: Vec<TrialLog> = vec![TrialLog::default(); trials];
     let cap = cfg.episode.max_steps;
     let mut steps = 0u64;
     while results.iter().any(|r| r.is_none()) && steps < cap {
         let acts = model.act(vec.observations(), trials, true, &mut rng, Par::Seq);
         let actions: Vec<policy::Action> = acts.iter().map(|a| a.choice.to_action(space)).collect();
         let outcomes = vec.step(&actions)?;
-        for (r, o) in results.iter_mut().zip(outcomes) {
+        let wall_clock = if cfg.record_trace { unix_now() } else { 0.0 };
+        for (((r, o), log), a) in results.iter_mut().zip(outcomes).zip(&mut logs).zip(&acts) {
+            if r.is_none() && cfg.record_trace {
+                log.choices.push(a.choice);
+                log.rewards.push(o.reward as f32);
+                log.trace.push(policy::StepTrace { wall_clock, ..o.trace });
+            }
             if r.is_none() && o.done {
                 *r = Some(TrialResult {
                     progress: o.progress,
@@ -172,6 +208,7 @@ pub fn evaluate(
                     off_track: o.resets + u32::from(o.status == EpisodeStatus::OffTrack),
                     steps: o.steps,
                     status: o.status,
+                    log: std::mem::take(log),
                 });
             }
         }

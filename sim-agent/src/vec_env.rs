@@ -285,5 +285,6 @@ fn placeholder() -> StepOutcome {
         episode_reward: 0.0,
         resets: 0,
         laps: 0,
+        trace: policy::StepTrace::default(),
     }
 }

@@ -263,7 +263,8 @@ impl Worker {
             r.seed,
             self.threads,
         )?;
-        Ok(trials.into_iter().map(Trial::from).collect())
+        let track_len = spec.track.length();
+        Ok(trials.into_iter().map(|t| Trial { track_len, ..Trial::from(t) }).collect())
     }
 
     /// The worker's loop: take messages, work, send, until the link says [`WorkerInbound::End`]
@@ -298,6 +299,10 @@ impl From<TrialResult> for Trial {
             off_track: t.off_track,
             steps: t.steps,
             status: t.status.label().to_string(),
+            choices: t.log.choices,
+            rewards: t.log.rewards,
+            trace: t.log.trace,
+            track_len: 0.0,
         }
     }
 }

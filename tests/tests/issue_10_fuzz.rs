@@ -87,6 +87,20 @@ fn trajectory(world: &str, steps: usize) -> policy::Trajectory {
         done: true,
         progress: 40.0,
         lap_complete: false,
+        track_len: 17.6,
+        // Issue 11: the steps' sim-trace columns are decoded (and fuzzed) too.
+        trace: (0..steps)
+            .map(|i| policy::StepTrace {
+                x: i as f64 * 0.1,
+                y: 1.0,
+                progress: i as f32,
+                closest_waypoint: i as u32,
+                status: policy::EpisodeStatus::InProgress,
+                tstamp: i as f64 / 15.0,
+                wall_clock: 1.8e9,
+                ..Default::default()
+            })
+            .collect(),
     }
 }
 

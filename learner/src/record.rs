@@ -1,0 +1,461 @@
+//! The run's logs in the formats the DeepRacer community and the robotics world read, written
+//! by the learner from the experience it trains on (agents write nothing on their machines):
+//!
+//! - DeepRacer's sim-trace (§4.1 of the reference) in deepracer-for-cloud's folder layout
+//!   (§7.5): `<worker>/training-simtrace/<N>-iteration.csv` per worker (numbered by first
+//!   delivery, `metrics/workers.json`) and `evaluation-<YYYYMMDDHHMMSS>/evaluation-simtrace/
+//!   0-iteration.csv` per world evaluated, so `deepracer-utils` loads a run folder as it
+//!   loads a DRfC model folder;
+//! - DeepRacer's metrics JSON (§4.3): `metrics/TrainingMetrics[_<i>].json` (training and
+//!   evaluation episodes) and `metrics/evaluation/evaluation-<ts>.json` per evaluation;
+//! - `trace.mcap` for Foxglove: the tracks (`foxglove.SceneUpdate`), each step's pose
+//!   (`foxglove.PoseInFrame`) and figures, each update's figures, each evaluation trial, as
+//!   JSON with JSON schemas. Episodes are laid end to end on the log's timeline (each at
+//!   simulation speed, a second apart), so scrubbing plays one episode after another;
+//!   `publish_time` is the wall clock when the step was taken.
+//!
+//! Only trajectories that carry their steps' traces (`record_trace`, on by default) are
+//! written; only what the learner trains on is written (as DeepRacer logs only what its
+//! trainer receives).
+
+use crate::run::{EvalRecord, IterationRecord};
+use policy::exchange::Trial;
+use policy::simtrace::{HEADER, action_text, write_row, write_trajectory};
+use policy::{ActionSpace, StepTrace, TrackLines, Trajectory};
+use serde_json::{Value, json};
+use std::collections::BTreeMap;
+use std::fs::File;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+/// The MCAP file of a new run (a resumed run writes `trace-<iteration>.mcap`).
+pub const MCAP_FILE: &str = "trace.mcap";
+
+/// Writes a run's logs. Errors are returned for the caller to note; nothing here stops a run.
+pub struct Recorder {
+    dir: PathBuf,
+    space: ActionSpace,
+    workers: Vec<String>,
+    /// Per worker: training episodes written (DeepRacer's 0-based episode counter).
+    episodes: Vec<u64>,
+    /// Per worker: its metrics JSON entries.
+    metrics: Vec<Vec<Value>>,
+    metrics_dirty: bool,
+    metrics_written: Instant,
+    mcap: Option<Mcap>,
+    /// The next free instant on the MCAP timeline (ns since the Unix epoch).
+    cursor: u64,
+    last_eval_stamp: String,
+}
+
+/// Write `bytes` to `path` whole (a temporary file, then a rename).
+fn write_whole(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    crate::checkpoints::write_atomic(path, bytes).map_err(std::io::Error::other)
+}
+
+fn ms(seconds: f64) -> i64 {
+    (seconds * 1000.0).round() as i64
+}
+
+fn ns(seconds: f64) -> u64 {
+    (seconds.max(0.0) * 1e9) as u64
+}
+
+/// A metrics JSON entry for one episode (§4.3).
+fn episode_metrics(trace: &[StepTrace], rewards: &[f32], progress: f64) -> Value {
+    let start = trace.first().map(|t| t.tstamp).unwrap_or(0.0);
+    let end = trace.last().map(|t| t.tstamp).unwrap_or(0.0);
+    let status = trace.last().map(|t| t.status).unwrap_or_default();
+    json!({
+        "reward_score": rewards.iter().map(|&r| r as f64).sum::<f64>().round() as i64,
+        "metric_time": ms(end),
+        "start_time": ms(start),
+        "elapsed_time_in_milliseconds": ms(end - start),
+        "completion_percentage": progress.floor() as i64,
+        "episode_status": status.metrics_label(),
+    })
+}
+
+impl Recorder {
+    /// Open the logs of the run folder `dir`: a new run starts them; a resumed run (first
+    /// iteration > 0) goes on with its workers' numbers, episode counters and metrics.
+    pub fn open(
+        dir: &Path,
+        space: &ActionSpace,
+        tracks: &[TrackLines],
+        first_iteration: u64,
+    ) -> std::io::Result<Recorder> {
+        let mut r = Recorder {
+            dir: dir.to_path_buf(),
+            space: space.clone(),
+            workers: Vec::new(),
+            episodes: Vec::new(),
+            metrics: Vec::new(),
+            metrics_dirty: false,
+            metrics_written: Instant::now(),
+            mcap: None,
+            cursor: ns(crate::record::unix_now()),
+            last_eval_stamp: String::new(),
+        };
+        if first_iteration > 0 {
+            if let Ok(text) = std::fs::read_to_string(dir.join("metrics/workers.json")) {
+                r.workers = serde_json::from_str(&text).unwrap_or_default();
+            }
+            for i in 0..r.workers.len() {
+                let entries: Vec<Value> = std::fs::read_to_string(r.metrics_path(i))
+                    .ok()
+                    .and_then(|t| serde_json::from_str::<Value>(&t).ok())
+                    .and_then(|v| v["metrics"].as_array().cloned())
+                    .unwrap_or_default();
+                r.episodes.push(entries.iter().filter(|e| e["phase"] == "training").count() as u64);
+                r.metrics.push(entries);
+            }
+        }
+        let name = if first_iteration > 0 { format!("trace-{first_iteration}.mcap") } else { MCAP_FILE.into() };
+        let mut mcap = Mcap::create(&dir.join(name))?;
+        mcap.tracks(tracks, r.cursor)?;
+        r.mcap = Some(mcap);
+        Ok(r)
+    }
+
+    fn metrics_path(&self, worker: usize) -> PathBuf {
+        let name =
+            if worker == 0 { "TrainingMetrics.json".to_string() } else { format!("TrainingMetrics_{worker}.json") };
+        self.dir.join("metrics").join(name)
+    }
+
+    fn worker_index(&mut self, worker: &str) -> std::io::Result<usize> {
+        if let Some(i) = self.workers.iter().position(|w| w == worker) {
+            return Ok(i);
+        }
+        self.workers.push(worker.to_string());
+        self.episodes.push(0);
+        self.metrics.push(Vec::new());
+        write_whole(&self.dir.join("metrics/workers.json"), serde_json::to_string(&self.workers)?.as_bytes())?;
+        Ok(self.workers.len() - 1)
+    }
+
+    /// One update: its episodes' sim-trace (`from[i]` is the worker of `trajs[i]`), metrics
+    /// and MCAP messages, and the update's figures.
+    pub fn iteration(&mut self, rec: &IterationRecord, trajs: &[Trajectory], from: &[String]) -> std::io::Result<()> {
+        let mut by_worker: BTreeMap<usize, Vec<&Trajectory>> = BTreeMap::new();
+        for (t, w) in trajs.iter().zip(from) {
+            if !t.trace.is_empty() && t.trace.len() == t.len() {
+                let i = self.worker_index(w)?;
+                by_worker.entry(i).or_default().push(t);
+            }
+        }
+        // DeepRacer numbers iteration files from 0.
+        let file = format!("{}-iteration.csv", rec.iteration.saturating_sub(1));
+        for (i, ts) in &by_worker {
+            let path = self.dir.join(i.to_string()).join("training-simtrace").join(&file);
+            std::fs::create_dir_all(path.parent().expect("has a parent"))?;
+            let mut out = BufWriter::new(File::create(&path)?);
+            writeln!(out, "{HEADER}")?;
+            for (trial, t) in ts.iter().enumerate() {
+                let episode = self.episodes[*i];
+                write_trajectory(&mut out, episode, t, &self.space)?;
+                self.episodes[*i] += 1;
+                let mut m = episode_metrics(&t.trace, &t.rewards, t.progress);
+                m["episode"] = json!(episode + 1);
+                m["trial"] = json!(trial + 1);
+                m["phase"] = json!("training");
+                self.metrics[*i].push(m);
+                if let Some(mcap) = self.mcap.as_mut() {
+                    self.cursor = mcap.episode(self.cursor, "/training", &self.workers[*i], episode, t, &self.space)?;
+                }
+            }
+            out.flush()?;
+        }
+        self.metrics_dirty = true;
+        if let Some(mcap) = self.mcap.as_mut() {
+            mcap.figures("/learner/iteration", "paddock.Iteration", self.cursor, &serde_json::to_value(rec)?)?;
+        }
+        if self.metrics_written.elapsed() >= Duration::from_secs(5) {
+            self.write_metrics()?;
+        }
+        Ok(())
+    }
+
+    /// One evaluation: per world, an `evaluation-<ts>` sim-trace folder and a metrics file,
+    /// evaluation entries in worker 0's training metrics, the trials in the MCAP. Returns
+    /// the folders written, per world.
+    pub fn evaluation(
+        &mut self,
+        e: &EvalRecord,
+        trials: &BTreeMap<String, Vec<Trial>>,
+    ) -> std::io::Result<Vec<(String, String)>> {
+        let mut written = Vec::new();
+        for (world, ts) in trials {
+            if ts.is_empty() || ts.iter().any(|t| t.trace.is_empty() || t.trace.len() != t.rewards.len()) {
+                continue;
+            }
+            let stamp = self.eval_stamp();
+            let folder = format!("evaluation-{stamp}");
+            let csv = self.dir.join(&folder).join("evaluation-simtrace").join("0-iteration.csv");
+            std::fs::create_dir_all(csv.parent().expect("has a parent"))?;
+            let mut out = BufWriter::new(File::create(&csv)?);
+            writeln!(out, "{HEADER}")?;
+            let mut entries = Vec::new();
+            let episode0 = self.episodes.first().copied().unwrap_or(0);
+            for (k, t) in ts.iter().enumerate() {
+                let n = t.trace.len();
+                for (s, ((tr, c), r)) in t.trace.iter().zip(&t.choices).zip(&t.rewards).enumerate() {
+                    let action = action_text(c, &self.space);
+                    write_row(&mut out, k as u64, s as u64 + 1, tr, &action, *r as f64, s + 1 == n, t.track_len)?;
+                }
+                let mut m = episode_metrics(&t.trace, &t.rewards, t.progress);
+                let resets = t.off_track.saturating_sub(u32::from(t.status == "off_track"));
+                let eval_entry = json!({
+                    "completion_percentage": m["completion_percentage"],
+                    "metric_time": m["metric_time"],
+                    "start_time": m["start_time"],
+                    "elapsed_time_in_milliseconds": m["elapsed_time_in_milliseconds"],
+                    "episode_status": m["episode_status"],
+                    "crash_count": 0,
+                    "immobilized_count": u32::from(t.status == "immobilized"),
+                    "off_track_count": t.off_track,
+                    "reversed_count": u32::from(t.status == "reversed"),
+                    "reset_count": resets,
+                    "trial": k + 1,
+                });
+                entries.push(eval_entry);
+                m["episode"] = json!(episode0);
+                m["trial"] = json!(k + 1);
+                m["phase"] = json!("evaluation");
+                if self.metrics.is_empty() {
+                    self.worker_index("evaluation")?;
+                }
+                self.metrics[0].push(m);
+                if let Some(mcap) = self.mcap.as_mut() {
+                    let as_traj = Trajectory {
+                        world: world.clone(),
+                        episode: k as u64,
+                        policy_version: e.policy_version,
+                        choices: t.choices.clone(),
+                        rewards: t.rewards.clone(),
+                        done: true,
+                        progress: t.progress,
+                        track_len: t.track_len,
+                        trace: t.trace.clone(),
+                        ..Default::default()
+                    };
+                    self.cursor =
+                        mcap.episode(self.cursor, "/evaluation", "evaluation", k as u64, &as_traj, &self.space)?;
+                }
+            }
+            out.flush()?;
+            write_whole(
+                &self.dir.join("metrics/evaluation").join(format!("{folder}.json")),
+                serde_json::to_string(&json!({ "metrics": entries }))?.as_bytes(),
+            )?;
+            written.push((world.clone(), folder));
+        }
+        if let Some(mcap) = self.mcap.as_mut() {
+            mcap.figures("/learner/evaluation", "paddock.Evaluation", self.cursor, &serde_json::to_value(e)?)?;
+        }
+        self.metrics_dirty = true;
+        self.write_metrics()?;
+        Ok(written)
+    }
+
+    /// A folder stamp (UTC, to the second) not used before in this run folder.
+    fn eval_stamp(&mut self) -> String {
+        let mut t = chrono::Utc::now();
+        loop {
+            let s = t.format("%Y%m%d%H%M%S").to_string();
+            if s > self.last_eval_stamp && !self.dir.join(format!("evaluation-{s}")).exists() {
+                self.last_eval_stamp = s.clone();
+                return s;
+            }
+            t += chrono::Duration::seconds(1);
+        }
+    }
+
+    /// Rewrite every worker's metrics JSON (when something changed).
+    pub fn write_metrics(&mut self) -> std::io::Result<()> {
+        if !self.metrics_dirty {
+            return Ok(());
+        }
+        for i in 0..self.metrics.len() {
+            let doc = json!({"metrics": self.metrics[i], "version": 2.0, "best_model_metric": "progress"});
+            write_whole(&self.metrics_path(i), serde_json::to_string(&doc)?.as_bytes())?;
+        }
+        self.metrics_dirty = false;
+        self.metrics_written = Instant::now();
+        Ok(())
+    }
+
+    /// Write what is pending and close the MCAP file (its summary and index).
+    pub fn finish(&mut self) -> std::io::Result<()> {
+        self.write_metrics()?;
+        if let Some(mut m) = self.mcap.take() {
+            m.finish()?;
+        }
+        Ok(())
+    }
+}
+
+/// Seconds since the Unix epoch.
+pub fn unix_now() -> f64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs_f64()).unwrap_or(0.0)
+}
+
+fn mcap_err(e: mcap::McapError) -> std::io::Error {
+    std::io::Error::other(e)
+}
+
+/// Foxglove's `foxglove.PoseInFrame`, as a JSON schema.
+const POSE_IN_FRAME: &str = r#"{"title":"foxglove.PoseInFrame","description":"A timestamped pose for an object or reference frame in 3D space","type":"object","properties":{"timestamp":{"type":"object","properties":{"sec":{"type":"integer","minimum":0},"nsec":{"type":"integer","minimum":0,"maximum":999999999}}},"frame_id":{"type":"string"},"pose":{"type":"object","properties":{"position":{"type":"object","properties":{"x":{"type":"number"},"y":{"type":"number"},"z":{"type":"number"}}},"orientation":{"type":"object","properties":{"x":{"type":"number"},"y":{"type":"number"},"z":{"type":"number"},"w":{"type":"number"}}}}}}}"#;
+
+/// Foxglove's `foxglove.SceneUpdate` (the parts used: entities of line strips), as a JSON schema.
+const SCENE_UPDATE: &str = r#"{"title":"foxglove.SceneUpdate","description":"An update to the entities displayed in a 3D scene","type":"object","properties":{"deletions":{"type":"array","items":{"type":"object"}},"entities":{"type":"array","items":{"type":"object","properties":{"timestamp":{"type":"object","properties":{"sec":{"type":"integer"},"nsec":{"type":"integer"}}},"frame_id":{"type":"string"},"id":{"type":"string"},"lifetime":{"type":"object","properties":{"sec":{"type":"integer"},"nsec":{"type":"integer"}}},"frame_locked":{"type":"boolean"},"metadata":{"type":"array"},"arrows":{"type":"array"},"cubes":{"type":"array"},"spheres":{"type":"array"},"cylinders":{"type":"array"},"lines":{"type":"array","items":{"type":"object","properties":{"type":{"type":"integer"},"pose":{"type":"object"},"thickness":{"type":"number"},"scale_invariant":{"type":"boolean"},"points":{"type":"array","items":{"type":"object","properties":{"x":{"type":"number"},"y":{"type":"number"},"z":{"type":"number"}}}},"color":{"type":"object","properties":{"r":{"type":"number"},"g":{"type":"number"},"b":{"type":"number"},"a":{"type":"number"}}},"colors":{"type":"array"},"indices":{"type":"array"}}}},"triangles":{"type":"array"},"texts":{"type":"array"},"models":{"type":"array"}}}}}}"#;
+
+/// One step's figures (Paddock's own schema).
+const STEP: &str = r#"{"title":"paddock.Step","type":"object","properties":{"world":{"type":"string"},"worker":{"type":"string"},"episode":{"type":"integer"},"step":{"type":"integer"},"policy_version":{"type":"integer"},"action":{"type":"string"},"steer":{"type":"number"},"throttle":{"type":"number"},"reward":{"type":"number"},"progress":{"type":"number"},"all_wheels_on_track":{"type":"boolean"},"closest_waypoint":{"type":"integer"},"status":{"type":"string"}}}"#;
+
+fn stamp(t_ns: u64) -> Value {
+    json!({"sec": t_ns / 1_000_000_000, "nsec": t_ns % 1_000_000_000})
+}
+
+/// The MCAP log.
+struct Mcap {
+    out: mcap::Writer<BufWriter<File>>,
+    schemas: BTreeMap<&'static str, u16>,
+    channels: BTreeMap<String, u16>,
+    sequence: u32,
+}
+
+impl Mcap {
+    fn create(path: &Path) -> std::io::Result<Mcap> {
+        let out = mcap::WriteOptions::new()
+            .compression(Some(mcap::Compression::Zstd))
+            .profile("")
+            .create(BufWriter::new(File::create(path)?))
+            .map_err(mcap_err)?;
+        Ok(Mcap { out, schemas: BTreeMap::new(), channels: BTreeMap::new(), sequence: 0 })
+    }
+
+    fn channel(&mut self, topic: &str, schema: &'static str, text: &str) -> std::io::Result<u16> {
+        if let Some(c) = self.channels.get(topic) {
+            return Ok(*c);
+        }
+        let sid = match self.schemas.get(schema) {
+            Some(s) => *s,
+            None => {
+                let s = self.out.add_schema(schema, "jsonschema", text.as_bytes()).map_err(mcap_err)?;
+                self.schemas.insert(schema, s);
+                s
+            }
+        };
+        let c = self.out.add_channel(sid, topic, "json", &BTreeMap::new()).map_err(mcap_err)?;
+        self.channels.insert(topic.to_string(), c);
+        Ok(c)
+    }
+
+    fn write(&mut self, channel: u16, log_time: u64, publish_time: u64, v: &Value) -> std::io::Result<()> {
+        self.sequence = self.sequence.wrapping_add(1);
+        let header =
+            mcap::records::MessageHeader { channel_id: channel, sequence: self.sequence, log_time, publish_time };
+        self.out.write_to_known_channel(&header, &serde_json::to_vec(v)?).map_err(mcap_err)
+    }
+
+    /// The tracks' lines, once, at the start of the log: centre line dashed grey, borders white.
+    fn tracks(&mut self, tracks: &[TrackLines], at: u64) -> std::io::Result<()> {
+        if tracks.is_empty() {
+            return Ok(());
+        }
+        let c = self.channel("/track", "foxglove.SceneUpdate", SCENE_UPDATE)?;
+        let line = |pts: &[[f64; 2]], rgb: [f64; 3], thickness: f64| {
+            json!({
+                "type": 0,
+                "pose": {"position": {"x": 0.0, "y": 0.0, "z": 0.0}, "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}},
+                "thickness": thickness,
+                "scale_invariant": false,
+                "points": pts.iter().map(|p| json!({"x": p[0], "y": p[1], "z": 0.0})).collect::<Vec<_>>(),
+                "color": {"r": rgb[0], "g": rgb[1], "b": rgb[2], "a": 1.0},
+                "colors": [],
+                "indices": [],
+            })
+        };
+        let entities: Vec<Value> = tracks
+            .iter()
+            .map(|t| {
+                json!({
+                    "timestamp": stamp(at),
+                    "frame_id": "track",
+                    "id": t.world,
+                    "lifetime": {"sec": 0, "nsec": 0},
+                    "frame_locked": false,
+                    "metadata": [{"key": "length_m", "value": format!("{:.3}", t.length)}],
+                    "arrows": [], "cubes": [], "spheres": [], "cylinders": [], "triangles": [], "texts": [], "models": [],
+                    "lines": [line(&t.outer, [1.0, 1.0, 1.0], 0.05), line(&t.inner, [1.0, 1.0, 1.0], 0.05), line(&t.centre, [1.0, 0.8, 0.0], 0.02)],
+                })
+            })
+            .collect();
+        self.write(c, at, at, &json!({"deletions": [], "entities": entities}))
+    }
+
+    /// One episode's steps from `at` on (log time = `at` + simulation time); returns where the
+    /// next episode starts (a second after this one's end).
+    fn episode(
+        &mut self,
+        at: u64,
+        prefix: &str,
+        worker: &str,
+        episode: u64,
+        t: &Trajectory,
+        space: &ActionSpace,
+    ) -> std::io::Result<u64> {
+        let pose = self.channel(&format!("{prefix}/pose"), "foxglove.PoseInFrame", POSE_IN_FRAME)?;
+        let step = self.channel(&format!("{prefix}/step"), "paddock.Step", STEP)?;
+        let t0 = t.trace.first().map(|s| s.tstamp).unwrap_or(0.0);
+        let mut end = at;
+        for (i, ((s, c), r)) in t.trace.iter().zip(&t.choices).zip(&t.rewards).enumerate() {
+            let log = at + ns(s.tstamp - t0);
+            let publish = ns(s.wall_clock);
+            let half = (s.yaw as f64).to_radians() / 2.0;
+            self.write(
+                pose,
+                log,
+                publish,
+                &json!({
+                    "timestamp": stamp(log),
+                    "frame_id": "track",
+                    "pose": {"position": {"x": s.x, "y": s.y, "z": 0.0},
+                             "orientation": {"x": 0.0, "y": 0.0, "z": half.sin(), "w": half.cos()}},
+                }),
+            )?;
+            self.write(
+                step,
+                log,
+                publish,
+                &json!({
+                    "world": t.world, "worker": worker, "episode": episode, "step": i + 1,
+                    "policy_version": t.policy_version, "action": action_text(c, space),
+                    "steer": s.steer, "throttle": s.throttle, "reward": r, "progress": s.progress,
+                    "all_wheels_on_track": s.all_wheels_on_track, "closest_waypoint": s.closest_waypoint,
+                    "status": s.status.label(),
+                }),
+            )?;
+            end = log;
+        }
+        Ok(end + 1_000_000_000)
+    }
+
+    /// A record of figures (an update's, an evaluation's) under Paddock's own schema.
+    fn figures(&mut self, topic: &str, schema: &'static str, at: u64, v: &Value) -> std::io::Result<()> {
+        let text: &'static str = if schema == "paddock.Iteration" {
+            r#"{"title":"paddock.Iteration","description":"One PPO update: metrics.jsonl's line","type":"object"}"#
+        } else {
+            r#"{"title":"paddock.Evaluation","description":"One evaluation over every world: evaluations.jsonl's line","type":"object"}"#
+        };
+        let c = self.channel(topic, schema, text)?;
+        self.write(c, at, ns(unix_now()), v)
+    }
+
+    fn finish(&mut self) -> std::io::Result<()> {
+        self.out.finish().map(|_| ()).map_err(mcap_err)
+    }
+}
