@@ -539,3 +539,99 @@ pub fn wire(seconds: f64, rounds: usize, up_seconds: f64) -> Result<()> {
     let _ = std::fs::remove_dir_all(&certs);
     Ok(())
 }
+
+/// `bench record`: what recording (sim-trace, metrics JSON, MCAP) costs. The same training
+/// with `record_trace` on and off, rounds interleaved in one run: `train` in one process and
+/// `up` with 2 agents, on reinvent_base, state vector; medians of env steps/s and samples
+/// trained on/s.
+pub fn record(seconds: f64, rounds: usize) -> Result<()> {
+    let me = std::env::current_exe()?;
+    let tmp = std::env::temp_dir().join(format!("paddock-bench-record-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&tmp);
+    std::fs::create_dir_all(&tmp)?;
+    let minutes = format!("{}", seconds / 60.0);
+    println!(
+        "# coordinator bench record: recording on against off, {seconds} s x {rounds} rounds each, interleaved; medians"
+    );
+    println!();
+    println!("| setup | recording | env steps/s | samples trained on/s | run folder MB | on / off (steps/s) |");
+    println!("|---|---|---:|---:|---:|---:|");
+    let mut n = 0;
+    for setup in ["train", "up"] {
+        let mut sizes = [0.0f64; 2];
+        let [(off_steps, off_used), (on_steps, on_used)] = interleaved(rounds, |on| {
+            n += 1;
+            let out = tmp.join(n.to_string());
+            let set = format!("record_trace={on}");
+            let (steps, used, secs, run) = if setup == "train" {
+                let args: Vec<String> = [
+                    "train",
+                    "--world",
+                    "reinvent_base",
+                    "--target-laps",
+                    "0",
+                    "--minutes",
+                    &minutes,
+                    "--set",
+                    &set,
+                    "--out",
+                ]
+                .iter()
+                .map(|s| s.to_string())
+                .chain([out.display().to_string()])
+                .collect();
+                child(&me, &tmp, &args)?;
+                let s: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("summary.json"))?)?;
+                let (used, _) = used_samples(&out)?;
+                (s["env_steps"].as_f64().unwrap_or(0.0), used, s["seconds"].as_f64().unwrap_or(1.0), out.clone())
+            } else {
+                let mut cmd = Command::new(&me);
+                cmd.args([
+                    "up",
+                    "--world",
+                    "reinvent_base",
+                    "--agents",
+                    "2",
+                    "--envs",
+                    "8",
+                    "--minutes",
+                    &minutes,
+                    "--set",
+                    &set,
+                    "--out",
+                ])
+                .arg(&out);
+                eprintln!("bench: coordinator up ... --set {set}");
+                let o = cmd.output()?;
+                if !o.status.success() {
+                    bail!("up failed: {}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+                }
+                let s: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("summary.json"))?)?;
+                let (used, _) = used_samples(&out.join("run"))?;
+                let secs = s["ended"].as_f64().unwrap_or(0.0) - s["started"].as_f64().unwrap_or(0.0);
+                (s["learner"]["env_steps"].as_f64().unwrap_or(0.0), used, secs, out.join("run"))
+            };
+            sizes[on as usize] = folder_bytes(&run) as f64 / 1e6;
+            let _ = std::fs::remove_dir_all(&out);
+            Ok((steps / secs.max(1e-9), used / secs.max(1e-9)))
+        })?;
+        println!("| `{setup}` | off | {off_steps:.0} | {off_used:.0} | {:.1} | 1.000 |", sizes[0]);
+        println!("| `{setup}` | on | {on_steps:.0} | {on_used:.0} | {:.1} | {:.3} |", sizes[1], on_steps / off_steps);
+    }
+    let _ = std::fs::remove_dir_all(&tmp);
+    Ok(())
+}
+
+/// Bytes under `dir`.
+fn folder_bytes(dir: &std::path::Path) -> u64 {
+    std::fs::read_dir(dir)
+        .map(|rd| {
+            rd.flatten()
+                .map(|e| match e.file_type() {
+                    Ok(t) if t.is_dir() => folder_bytes(&e.path()),
+                    _ => e.metadata().map(|m| m.len()).unwrap_or(0),
+                })
+                .sum()
+        })
+        .unwrap_or(0)
+}

@@ -45,6 +45,15 @@ pub enum Command {
     },
     /// One machine, one command: coordinator, learner and sim agents on loopback, one job.
     Up(UpArgs),
+    /// Charts (SVG and PNG) and an HTML page of a run folder: training graph, evaluations,
+    /// racing line, reward along the track, actions, hyperparameters.
+    Report {
+        /// The run folder (`train --out`, or `up`'s `<out>/run`).
+        run: PathBuf,
+        /// Where the report goes (default: RUN/report).
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
     /// Render the car's camera view (160x120) to a PNG; --grid for several worlds side by side.
     Render(RenderArgs),
     /// Write a model's policy tower in another format: `export MODEL_DIR --onnx FILE`.
@@ -145,6 +154,16 @@ pub enum BenchCommand {
         #[arg(long, default_value_t = 30.0)]
         up_seconds: f64,
     },
+    /// What recording the run's logs (sim-trace, metrics JSON, MCAP) costs: steps/s with
+    /// `record_trace` on and off, `train` and `up`, interleaved rounds in one run.
+    Record {
+        /// Seconds per training.
+        #[arg(long, default_value_t = 30.0)]
+        seconds: f64,
+        /// Rounds per setting (the median is reported).
+        #[arg(long, default_value_t = 3)]
+        rounds: usize,
+    },
     /// Publish-to-4-agents latency of a SHALLOW camera model; bytes per env step.
     Publish {
         /// Publications to time.
@@ -233,6 +252,17 @@ pub enum JobCommand {
         #[command(flatten)]
         net: NetCli,
     },
+    /// A job's report (charts and an HTML page, see `coordinator report`), from its learner's
+    /// run folder on this machine.
+    Report {
+        /// Job id.
+        id: String,
+        /// Where the report goes (default: the run folder's report/).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        #[command(flatten)]
+        net: NetCli,
+    },
     /// A job's event log.
     Logs {
         /// Job id.
@@ -270,6 +300,13 @@ pub struct UpArgs {
     /// ...in this many consecutive evaluations.
     #[arg(long, default_value_t = 1)]
     pub target_evals: u32,
+    /// Stop at a plateau: this many evaluations in a row without improving the best mean
+    /// progress by a point (plateaus are reported after 5 either way).
+    #[arg(long)]
+    pub stop_on_plateau: Option<u32>,
+    /// Stop when evaluation progress collapses after a peak (the best model is kept).
+    #[arg(long)]
+    pub stop_on_collapse: bool,
     /// Reward: a DeepRacer Python file or builtin:NAME.
     #[arg(long)]
     pub reward: Option<String>,
@@ -342,6 +379,13 @@ pub struct TrainArgs {
     /// Consecutive evaluations that must reach --target-laps before training stops.
     #[arg(long, default_value_t = 2)]
     pub target_evals: usize,
+    /// Stop at a plateau: this many evaluations in a row without improving the best mean
+    /// progress by a point (plateaus are reported after 5 either way).
+    #[arg(long)]
+    pub stop_on_plateau: Option<usize>,
+    /// Stop when evaluation progress collapses after a peak (the best model is kept).
+    #[arg(long)]
+    pub stop_on_collapse: bool,
     /// Stop after this many episodes trained on.
     #[arg(long)]
     pub max_episodes: Option<u64>,

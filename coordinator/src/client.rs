@@ -90,6 +90,22 @@ pub fn run(cmd: JobCommand) -> Result<i32> {
             }
             return watch_status(&session, &id, json);
         }
+        JobCommand::Report { id, out, net } => {
+            let session = net::open(&net_args(&net, true))?;
+            let r = request(&session, Kind::StatusJobId(id.clone()), Duration::from_secs(5))?;
+            if !r.ok {
+                anyhow::bail!("{}", r.text);
+            }
+            let v: serde_json::Value = serde_json::from_str(&r.json)?;
+            let run = v["learner"]["run_dir"]
+                .as_str()
+                .filter(|d| !d.is_empty() && !d.starts_with("error:"))
+                .map(std::path::PathBuf::from)
+                .ok_or_else(|| anyhow::anyhow!("job {id}: no learner has reported its run folder yet"))?;
+            let page = crate::report::write(&run, out.as_deref(), &format!("Paddock job {id}"))?;
+            println!("report       {}", page.display());
+            return Ok(0);
+        }
         JobCommand::Stop { id, net } => (net, Kind::StopJobId(id), false),
         JobCommand::Promote { id, version, net } => {
             // The job's learner holds the checkpoints: it answers.

@@ -3,7 +3,7 @@
 //! The track catalog (`tracks list|show|import`), reward validation (`reward validate`),
 //! the scripted driver (`drive`), PPO in one process (`train`, `evaluate`, `clone`), and the
 //! cluster: the coordinator role (`serve`), job control (`job …`, `agents`) and the
-//! one-machine launcher (`up`).
+//! one-machine launcher (`up`), reports of a run (`report`, `job report`).
 
 mod bench;
 mod cars;
@@ -13,6 +13,7 @@ mod client;
 mod drive;
 mod local;
 mod render_cmd;
+mod report;
 mod serve;
 mod tracks_cmd;
 mod train;
@@ -41,6 +42,12 @@ fn main() {
         cli::Command::Agents { net } => client::run(cli::JobCommand::Agents { net }),
         cli::Command::Up(args) => up::up(args),
         cli::Command::Render(args) => render_cmd::render(args),
+        cli::Command::Report { run, out } => (|| -> anyhow::Result<i32> {
+            let title = format!("Paddock run {}", run.display());
+            let page = report::write(&run, out.as_deref(), &title)?;
+            println!("report       {}", page.display());
+            Ok(0)
+        })(),
         cli::Command::Keys { command: cli::KeysCommand::New { name } } => cars::new_keys(&name),
         cli::Command::Certs { command: cli::CertsCommand::New { dir, force } } => certs::write(&dir, force).map(|names| {
             println!("wrote {} in {}", names.join(", "), dir.display());
@@ -63,6 +70,7 @@ fn main() {
         cli::Command::Bench { command } => match command {
             cli::BenchCommand::Cluster { seconds, envs, world } => bench::cluster(seconds, envs, &world).map(|()| 0),
             cli::BenchCommand::Publish { repeats } => bench::publish(repeats).map(|()| 0),
+            cli::BenchCommand::Record { seconds, rounds } => bench::record(seconds, rounds).map(|()| 0),
             cli::BenchCommand::Wire { seconds, rounds, up_seconds } => bench::wire(seconds, rounds, up_seconds).map(|()| 0),
             cli::BenchCommand::Pixels { worlds, unseen, minutes, envs, evals, out } => {
                 bench::pixels(&worlds, &unseen, minutes, envs, evals, &out).map(|()| 0)

@@ -184,6 +184,7 @@ fn on_status(st: &mut State, db: &Db, ls: LearnerStatus) {
         "drops": ls.drops.iter().map(|d| serde_json::json!({"reason": d.reason, "count": d.count})).collect::<Vec<_>>(),
         "write_failures": ls.write_failures,
         "write_error": ls.write_error,
+        "trend": ls.trend,
         "refused": ls.refused.iter().map(|d| serde_json::json!({"reason": d.reason, "count": d.count})).collect::<Vec<_>>(),
         "agents": ls.agents.iter().map(|a| serde_json::json!({"agent": a.agent_id, "world": a.world, "steps_per_s": a.steps_per_s})).collect::<Vec<_>>(),
         "worlds": ls.worlds.iter().map(|w| serde_json::json!({"world": w.world, "agents": w.agents, "episodes": w.episodes,
@@ -525,6 +526,9 @@ fn status_text(j: &JobRecord, st: &State) -> String {
             n("team_updates"),
             n("team_failures")
         ));
+    }
+    if let Some(trend) = l.get("trend").and_then(|v| v.as_str()).filter(|t| !t.is_empty()) {
+        t.push_str(&format!("  WHEN TO STOP: {trend}\n"));
     }
     if n("write_failures") > 0.0 {
         t.push_str(&format!(

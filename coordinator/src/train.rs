@@ -105,7 +105,10 @@ impl Observer for Terminal {
                 e.policy_version,
                 worlds.join(" | "),
                 if e.best { "(best so far)" } else { "" }
-            )
+            );
+            if !e.trend.is_empty() {
+                println!("     {}", e.trend);
+            }
         });
     }
 }
@@ -175,6 +178,8 @@ pub fn train(args: TrainArgs) -> Result<i32> {
             env_steps_budget: args.env_steps,
             target_laps: (args.target_laps > 0)
                 .then(|| TargetLaps { laps: args.target_laps, evaluations: args.target_evals.max(1) }),
+            plateau_evals: args.stop_on_plateau,
+            stop_on_collapse: args.stop_on_collapse,
         },
         // The camera networks are big enough to split over the cores; the MLP is not.
         par: if camera { Par::rayon(threads) } else { Par::Seq },

@@ -228,6 +228,12 @@ pub fn up(args: UpArgs) -> Result<i32> {
     if let Some(l) = args.target_laps {
         target += &format!("target_laps = {l}\ntarget_evals = {}\n", args.target_evals.max(1));
     }
+    if let Some(p) = args.stop_on_plateau {
+        target += &format!("plateau_evals = {p}\n");
+    }
+    if args.stop_on_collapse {
+        target += "stop_on_collapse = true\n";
+    }
     // `--set` overrides, checked against the simulator configuration now, kept in the spec.
     let sim: sim_agent::SimConfig = sim_agent::config::load_config(None, &args.sets)?;
     let sim_table = if args.sets.is_empty() {

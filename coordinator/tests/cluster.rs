@@ -575,11 +575,40 @@ fn assert_no_waste(summary: &serde_json::Value, metrics: &[serde_json::Value], s
     assert!(received > 0.0 && stale <= 0.05 * received, "{stale} of {received} episodes dropped stale");
 }
 
+/// Issue 11: the learner wrote the cluster's logs from what the agents sent: one sim-trace
+/// folder per agent (deepracer-for-cloud's multi-worker layout), every step trained on once,
+/// each agent's metrics JSON naming every world it drove, and the MCAP file.
+fn assert_cluster_logs(run: &Path, metrics: &[serde_json::Value]) {
+    let steps: u64 = metrics.iter().map(|m| m["steps"].as_u64().unwrap()).sum();
+    let mut rows = 0u64;
+    let mut worlds = std::collections::BTreeSet::new();
+    for worker in ["0", "1"] {
+        let dir = run.join(worker).join("training-simtrace");
+        let files: Vec<_> = std::fs::read_dir(&dir).unwrap_or_else(|e| panic!("{}: {e}", dir.display())).collect();
+        assert!(!files.is_empty(), "{}: no sim-trace", dir.display());
+        for f in files {
+            let text = std::fs::read_to_string(f.unwrap().path()).unwrap();
+            assert!(text.starts_with("episode,steps,X,Y,yaw,"), "DeepRacer's header");
+            rows += text.lines().count() as u64 - 1;
+        }
+        let name = if worker == "0" { "TrainingMetrics.json".to_string() } else { format!("TrainingMetrics_{worker}.json") };
+        let m: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(run.join("metrics").join(name)).unwrap()).unwrap();
+        for e in m["metrics"].as_array().unwrap().iter().filter(|e| e["phase"] == "training") {
+            worlds.insert(e["world"].as_str().unwrap().to_string());
+        }
+    }
+    assert_eq!(rows, steps, "one sim-trace row per step trained on");
+    assert_eq!(worlds.len(), 3, "{worlds:?}");
+    assert!(std::fs::metadata(run.join("trace.mcap")).unwrap().len() > 10_000, "the MCAP log");
+}
+
 #[test]
 fn issue_8_three_worlds_two_agents_state_every_world_trained_nothing_wasted() {
     let dir = tempfile::tempdir().unwrap();
     let (summary, metrics, seconds) = up_three_worlds(dir.path(), &["--envs", "6", "--minutes", "1"]);
     assert_no_waste(&summary, &metrics, seconds, 10);
+    assert_cluster_logs(&dir.path().join("up/run"), &metrics);
     // Each agent drove all three worlds at once: no hopping between worlds.
     let log = summary["log"].as_array().unwrap().iter().filter_map(|l| l.as_str()).collect::<Vec<_>>().join("\n");
     assert!(log.contains("reinvent_carpet+reinvent_concrete+reinvent_wood"), "{log}");

@@ -155,3 +155,45 @@ fn issue_11_deepracer_utils_and_mcap_read_a_training_run() {
     assert_eq!(got["mcap_schemas"]["/track"], "foxglove.SceneUpdate");
     assert_eq!(got["first_pose_frame"], "track");
 }
+
+/// Fraction of a PNG's pixels that are not white.
+fn inked(png: &Path) -> f64 {
+    let img = image::open(png).unwrap_or_else(|e| panic!("{}: {e}", png.display())).to_rgb8();
+    let ink = img.pixels().filter(|p| p.0 != [255, 255, 255]).count();
+    ink as f64 / (img.width() * img.height()) as f64
+}
+
+#[test]
+fn issue_11_report_draws_a_run_folder() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let coordinator = env!("CARGO_BIN_EXE_coordinator");
+    let out = Command::new(coordinator)
+        .args(["train", "--world", "reinvent_base", "--seed", "2", "--out"])
+        .arg(&run)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let out = Command::new(coordinator).arg("report").arg(&run).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(String::from_utf8_lossy(&out.stdout).contains("index.html"));
+    let report = run.join("report");
+    let html = std::fs::read_to_string(report.join("index.html")).unwrap();
+    for chart in
+        ["reward", "progress", "evaluations", "racing-line-reinvent_base", "reward-map-reinvent_base", "actions"]
+    {
+        let svg = std::fs::read_to_string(report.join(format!("{chart}.svg"))).unwrap();
+        assert!(svg.starts_with("<svg") && svg.contains("<text"), "{chart}.svg: an SVG with its labels");
+        let ink = inked(&report.join(format!("{chart}.png")));
+        assert!(ink > 0.01 && ink < 0.9, "{chart}.png: drawn, not blank or solid ({ink:.3})");
+        assert!(html.contains(&format!("src=\"{chart}.svg\"")), "the page shows {chart}");
+    }
+    assert!(html.contains("<th>batch_size</th><td>64</td>"), "the page lists the hyperparameters");
+    assert!(html.contains("best model</th><td>iteration"), "the page names the best model");
+
+    // A folder that is not a run: a clear error naming it.
+    let out = Command::new(coordinator).arg("report").arg(dir.path()).output().unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("not a run folder") && err.contains(&dir.path().display().to_string()), "{err}");
+}

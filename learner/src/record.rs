@@ -7,7 +7,8 @@
 //!   0-iteration.csv` per world evaluated, so `deepracer-utils` loads a run folder as it
 //!   loads a DRfC model folder;
 //! - DeepRacer's metrics JSON (§4.3): `metrics/TrainingMetrics[_<i>].json` (training and
-//!   evaluation episodes) and `metrics/evaluation/evaluation-<ts>.json` per evaluation;
+//!   evaluation episodes; Paddock adds each episode's `world` and `paddock_iteration`) and
+//!   `metrics/evaluation/evaluation-<ts>.json` per evaluation; `tracks.json`, the worlds' lines;
 //! - `trace.mcap` for Foxglove: the tracks (`foxglove.SceneUpdate`), each step's pose
 //!   (`foxglove.PoseInFrame`) and figures, each update's figures, each evaluation trial, as
 //!   JSON with JSON schemas. Episodes are laid end to end on the log's timeline (each at
@@ -112,6 +113,10 @@ impl Recorder {
                 r.metrics.push(entries);
             }
         }
+        if !tracks.is_empty() {
+            // The worlds' lines, for reports drawn from the run folder alone.
+            write_whole(&dir.join("tracks.json"), serde_json::to_string(tracks)?.as_bytes())?;
+        }
         let name = if first_iteration > 0 { format!("trace-{first_iteration}.mcap") } else { MCAP_FILE.into() };
         let mut mcap = Mcap::create(&dir.join(name))?;
         mcap.tracks(tracks, r.cursor)?;
@@ -161,6 +166,9 @@ impl Recorder {
                 m["episode"] = json!(episode + 1);
                 m["trial"] = json!(trial + 1);
                 m["phase"] = json!("training");
+                // Paddock's additions (deepracer-utils ignores them): which world, which update.
+                m["world"] = json!(t.world);
+                m["paddock_iteration"] = json!(rec.iteration);
                 self.metrics[*i].push(m);
                 if let Some(mcap) = self.mcap.as_mut() {
                     self.cursor = mcap.episode(self.cursor, "/training", &self.workers[*i], episode, t, &self.space)?;
@@ -224,6 +232,8 @@ impl Recorder {
                 m["episode"] = json!(episode0);
                 m["trial"] = json!(k + 1);
                 m["phase"] = json!("evaluation");
+                m["world"] = json!(world);
+                m["paddock_iteration"] = json!(e.iteration);
                 if self.metrics.is_empty() {
                     self.worker_index("evaluation")?;
                 }

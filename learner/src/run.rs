@@ -19,6 +19,7 @@ use crate::checkpoints::{CheckpointRecord, OpenMode, RunDir, RunError};
 use crate::hyperparams::Hyperparameters;
 use crate::ppo::{Ppo, PpoState, UpdateStats};
 use crate::record::Recorder;
+use crate::trend::{Trend, TrendRules, Verdict};
 use faer::Par;
 use policy::exchange::{Credit, EvalReport, EvalRequest, Experience, PolicyVersion, Trial, summarise};
 use policy::folder::{self, Manifest, Parent};
@@ -151,6 +152,13 @@ pub struct StopRules {
     pub env_steps_budget: Option<u64>,
     /// Laps in consecutive evaluations.
     pub target_laps: Option<TargetLaps>,
+    /// Stop at a plateau: this many evaluations in a row without improving on the best mean
+    /// progress by a point (`None`: report plateaus after 5, do not stop).
+    #[serde(default)]
+    pub plateau_evals: Option<usize>,
+    /// Stop when evaluation progress collapses after a peak (the best model is kept).
+    #[serde(default)]
+    pub stop_on_collapse: bool,
 }
 
 impl Default for StopRules {
@@ -163,6 +171,8 @@ impl Default for StopRules {
             window: 20,
             env_steps_budget: None,
             target_laps: None,
+            plateau_evals: None,
+            stop_on_collapse: false,
         }
     }
 }
@@ -366,6 +376,8 @@ pub struct EvalRecord {
     pub best: bool,
     /// Per world, the folder of its evaluation sim-trace (`evaluation-<YYYYMMDDHHMMSS>`).
     pub simtrace: Vec<(String, String)>,
+    /// How the evaluations are going (plateau, collapse), empty while improving.
+    pub trend: String,
 }
 
 /// Per-world figures over the last 10 s.
@@ -428,6 +440,8 @@ pub struct RunStatus {
     pub write_failures: u64,
     /// The last failed write's error (empty: none failed).
     pub write_error: String,
+    /// How the evaluations are going (plateau, collapse), empty while improving.
+    pub trend: String,
 }
 
 /// How a run ended.
@@ -725,6 +739,11 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
     let mut last_eval_figures = (0.0, 0u64);
     let mut lap_streak = 0usize;
     let mut pending: Option<PendingEval> = None;
+    let mut trend = Trend::new(TrendRules {
+        plateau_evals: spec.stop.plateau_evals.unwrap_or(TrendRules::default().plateau_evals),
+        ..TrendRules::default()
+    });
+    let mut verdict = Verdict::Improving;
     let mut turns = EvalTurns::default();
     let mut last_eval_ask = Instant::now();
     let mut round: Option<Round> = None;
@@ -1085,7 +1104,27 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
                 trials: spec.eval_trials as usize,
                 best: is_best,
                 simtrace: Vec::new(),
+                trend: String::new(),
             };
+            let now = trend.push(p.iteration, progress);
+            if std::mem::discriminant(&now) != std::mem::discriminant(&verdict) {
+                match &now {
+                    Verdict::Improving => tracing::info!(run = %spec.name, "evaluation progress improving again"),
+                    v => tracing::warn!(run = %spec.name, "{}", v.describe()),
+                }
+            }
+            verdict = now;
+            e.trend = verdict.describe();
+            let asked = match &verdict {
+                Verdict::Plateau { .. } => spec.stop.plateau_evals.is_some(),
+                Verdict::Collapse { .. } => spec.stop.stop_on_collapse,
+                Verdict::Improving => false,
+            };
+            if asked && stop_reason.is_none() {
+                tracing::info!(run = %spec.name, "stopping: {}", verdict.describe());
+                stop_reason = Some(verdict.describe());
+                round = None;
+            }
             if let Some(r) = recorder.as_mut() {
                 e.simtrace = noted(
                     &run,
@@ -1151,7 +1190,7 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
                 &mut per_worker,
                 &run,
             );
-            link.status(&RunStatus { stop_reason: stop_reason.clone(), ..s })?;
+            link.status(&RunStatus { stop_reason: stop_reason.clone(), trend: verdict.describe(), ..s })?;
         }
     }
     let seconds = start.elapsed().as_secs_f64();
@@ -1171,6 +1210,7 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
         &run,
     );
     s.finished = true;
+    s.trend = verdict.describe();
     s.stop_reason = Some(reason.clone());
     link.status(&s)?;
     if let Some(r) = recorder.as_mut() {
@@ -1183,7 +1223,7 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
             "run": spec.name, "worlds": spec.worlds, "iterations": iteration, "episodes": episodes,
             "episodes_received": received, "dropped_stale": stale, "env_steps": env_steps,
             "seconds": seconds, "stop_reason": reason, "best": best, "policy_version": ppo.version,
-            "write_failures": write_failures, "write_error": write_error,
+            "write_failures": write_failures, "write_error": write_error, "trend": verdict.describe(),
         }))
         .expect("JSON")
         .as_bytes(),
@@ -1275,5 +1315,6 @@ fn status(
         workers,
         write_failures,
         write_error,
+        trend: String::new(),
     }
 }

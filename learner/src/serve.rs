@@ -211,6 +211,8 @@ fn spec_of(doc: &JobDoc, args: &ServeArgs) -> Result<RunSpec> {
             target_laps: s
                 .target_laps
                 .map(|l| TargetLaps { laps: l as usize, evaluations: s.target_evals.max(1) as usize }),
+            plateau_evals: (s.plateau_evals > 0).then_some(s.plateau_evals as usize),
+            stop_on_collapse: s.stop_on_collapse,
         },
         par: if camera { Par::rayon(args.threads) } else { Par::Seq },
         adopt: None,
@@ -504,6 +506,7 @@ impl Link for ZenohLink<'_> {
                 .collect(),
             write_failures: s.write_failures,
             write_error: s.write_error.clone(),
+            trend: s.trend.clone(),
             refused: protocol::secure::REFUSED
                 .reasons()
                 .into_iter()

@@ -25,6 +25,11 @@ pub struct StopSpec {
     pub target_laps: Option<u32>,
     /// ...in this many consecutive evaluations.
     pub target_evals: u32,
+    /// Stop at a plateau: this many evaluations in a row without improving the best mean
+    /// progress by a point (0: report plateaus, do not stop).
+    pub plateau_evals: u32,
+    /// Stop when evaluation progress collapses after a peak (the best model is kept).
+    pub stop_on_collapse: bool,
 }
 
 impl Default for StopSpec {
@@ -38,6 +43,8 @@ impl Default for StopSpec {
             env_steps_budget: None,
             target_laps: None,
             target_evals: 1,
+            plateau_evals: 0,
+            stop_on_collapse: false,
         }
     }
 }
@@ -110,6 +117,8 @@ pub fn to_wire(d: &JobDoc) -> crate::Job {
             env_steps_budget: s.env_steps_budget,
             target_laps: s.target_laps,
             target_evals: s.target_evals,
+            plateau_evals: s.plateau_evals,
+            stop_on_collapse: s.stop_on_collapse,
         }),
         eval_trials: d.eval_trials,
         obs_size: d.obs_size,
@@ -209,6 +218,8 @@ pub fn from_wire(j: crate::Job, id: &str) -> Result<JobDoc, crate::DecodeError> 
             env_steps_budget: s.env_steps_budget,
             target_laps: s.target_laps,
             target_evals: s.target_evals,
+            plateau_evals: s.plateau_evals,
+            stop_on_collapse: s.stop_on_collapse,
         },
         eval_trials: j.eval_trials,
         obs_size: j.obs_size,
