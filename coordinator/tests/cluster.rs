@@ -591,7 +591,8 @@ fn assert_cluster_logs(run: &Path, metrics: &[serde_json::Value]) {
             assert!(text.starts_with("episode,steps,X,Y,yaw,"), "DeepRacer's header");
             rows += text.lines().count() as u64 - 1;
         }
-        let name = if worker == "0" { "TrainingMetrics.json".to_string() } else { format!("TrainingMetrics_{worker}.json") };
+        let name =
+            if worker == "0" { "TrainingMetrics.json".to_string() } else { format!("TrainingMetrics_{worker}.json") };
         let m: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(run.join("metrics").join(name)).unwrap()).unwrap();
         for e in m["metrics"].as_array().unwrap().iter().filter(|e| e["phase"] == "training") {

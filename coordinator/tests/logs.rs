@@ -197,3 +197,28 @@ fn issue_11_report_draws_a_run_folder() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("not a run folder") && err.contains(&dir.path().display().to_string()), "{err}");
 }
+
+#[test]
+fn issue_11_train_stops_at_a_plateau_when_asked_and_says_so() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    // The state vector laps within seconds; without a lap target it would train 2 minutes.
+    let out = Command::new(env!("CARGO_BIN_EXE_coordinator"))
+        .args(["train", "--world", "reinvent_base", "--seed", "3", "--target-laps", "0", "--minutes", "2"])
+        .args(["--stop-on-plateau", "2", "--out"])
+        .arg(&run)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{stdout}{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        stdout.contains("stopped after") && stdout.contains("plateau: evaluation progress has not improved for 2"),
+        "{stdout}"
+    );
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("summary.json")).unwrap()).unwrap();
+    assert!(summary["stop_reason"].as_str().unwrap().starts_with("plateau"), "{summary}");
+    assert!(summary["seconds"].as_f64().unwrap() < 100.0, "stopped early: {summary}");
+    let evals = lines(&run.join("evaluations.jsonl"));
+    assert!(evals.iter().any(|e| e["trend"].as_str().unwrap().starts_with("plateau")), "recorded per evaluation");
+}
