@@ -190,6 +190,8 @@ pub struct Standing {
     pub window: Option<(f64, f64)>,
     /// Consecutive evaluations that met the lap target.
     pub lap_streak: usize,
+    /// How the evaluations are going.
+    pub verdict: Verdict,
 }
 
 impl StopRules {
@@ -233,6 +235,11 @@ impl StopRules {
                 t.laps,
                 t.evaluations.max(1)
             ));
+        }
+        match &s.verdict {
+            Verdict::Plateau { .. } if self.plateau_evals.is_some() => return Some(s.verdict.describe()),
+            Verdict::Collapse { .. } if self.stop_on_collapse => return Some(s.verdict.describe()),
+            _ => {}
         }
         None
     }
@@ -1115,16 +1122,7 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
             }
             verdict = now;
             e.trend = verdict.describe();
-            let asked = match &verdict {
-                Verdict::Plateau { .. } => spec.stop.plateau_evals.is_some(),
-                Verdict::Collapse { .. } => spec.stop.stop_on_collapse,
-                Verdict::Improving => false,
-            };
-            if asked && stop_reason.is_none() {
-                tracing::info!(run = %spec.name, "stopping: {}", verdict.describe());
-                stop_reason = Some(verdict.describe());
-                round = None;
-            }
+
             if let Some(r) = recorder.as_mut() {
                 e.simtrace = noted(
                     &run,
@@ -1154,6 +1152,7 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
                 env_steps,
                 window: full.then(|| (mean(recent.iter().map(|r| r.0)), mean(recent.iter().map(|r| r.1)))),
                 lap_streak,
+                verdict: verdict.clone(),
             };
             if let Some(why) = spec.stop.check(hyper, &standing) {
                 tracing::info!(run = %spec.name, "stopping: {why}");

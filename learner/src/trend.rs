@@ -8,10 +8,11 @@
 use serde::Serialize;
 
 /// How the evaluations are going.
-#[derive(Clone, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
 #[serde(tag = "kind", rename_all = "snake_case")]
 pub enum Verdict {
     /// Still improving (or too early to say).
+    #[default]
     Improving,
     /// No evaluation improved on the best for `evals` evaluations.
     Plateau {

@@ -3,6 +3,7 @@
 
 use learner::Hyperparameters;
 use learner::run::{Standing, StopRules, TargetLaps};
+use learner::trend::Verdict;
 
 #[test]
 fn issue_8_each_stop_rule_fires_on_its_own_figure_and_not_before() {
@@ -14,9 +15,20 @@ fn issue_8_each_stop_rule_fires_on_its_own_figure_and_not_before() {
         window: 20,
         env_steps_budget: Some(1_000_000),
         target_laps: Some(TargetLaps { laps: 3, evaluations: 2 }),
+        plateau_evals: Some(5),
+        stop_on_collapse: true,
     };
     let hyper = Hyperparameters { term_cond_max_episodes: 800, term_cond_avg_score: 250.0, ..Default::default() };
-    let quiet = Standing { seconds: 10.0, episodes: 100, env_steps: 5_000, window: Some((50.0, 100.0)), lap_streak: 0 };
+    let quiet = Standing {
+        seconds: 10.0,
+        episodes: 100,
+        env_steps: 5_000,
+        window: Some((50.0, 100.0)),
+        lap_streak: 0,
+        verdict: Verdict::Improving,
+    };
+    let plateau = Verdict::Plateau { best: 80.0, best_iteration: 12, evals: 5 };
+    let collapse = Verdict::Collapse { best: 100.0, best_iteration: 40, now: 30.0 };
     // (what changes, the reason's words; None: no stop)
     let table: Vec<(Standing, Option<&str>)> = vec![
         (quiet.clone(), None),
@@ -29,6 +41,9 @@ fn issue_8_each_stop_rule_fires_on_its_own_figure_and_not_before() {
         (Standing { env_steps: 1_000_000, ..quiet.clone() }, Some("compute budget of 1000000 env steps")),
         (Standing { lap_streak: 1, ..quiet.clone() }, None),
         (Standing { lap_streak: 2, ..quiet.clone() }, Some("target laps reached")),
+        // Issue 11: plateaus and collapses stop a run that asks for it.
+        (Standing { verdict: plateau.clone(), ..quiet.clone() }, Some("plateau: evaluation progress has not improved")),
+        (Standing { verdict: collapse.clone(), ..quiet.clone() }, Some("collapse: evaluation progress fell to 30.0 %")),
     ];
     for (standing, want) in table {
         let got = rules.check(&hyper, &standing);
@@ -41,6 +56,10 @@ fn issue_8_each_stop_rule_fires_on_its_own_figure_and_not_before() {
     let loose = StopRules { max_episodes: None, target_reward: None, ..rules.clone() };
     let r = loose.check(&hyper, &Standing { episodes: 800, ..quiet.clone() });
     assert!(r.as_deref().is_some_and(|r| r.contains("term_cond_max_episodes")), "{r:?}");
-    let r = loose.check(&hyper, &Standing { window: Some((50.0, 250.0)), ..quiet });
+    let r = loose.check(&hyper, &Standing { window: Some((50.0, 250.0)), ..quiet.clone() });
     assert!(r.as_deref().is_some_and(|r| r.contains("term_cond_avg_score")), "{r:?}");
+    // A run that did not ask to stop at plateaus or collapses is told about them, not stopped.
+    let told = StopRules { plateau_evals: None, stop_on_collapse: false, ..rules.clone() };
+    assert_eq!(told.check(&hyper, &Standing { verdict: plateau, ..quiet.clone() }), None);
+    assert_eq!(told.check(&hyper, &Standing { verdict: collapse, ..quiet.clone() }), None);
 }

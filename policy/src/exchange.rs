@@ -54,6 +54,24 @@ pub struct Experience {
     pub env_steps: u64,
     /// Wall time it took (s).
     pub seconds: f64,
+    /// What one of the worker's cars sees now (camera jobs, at most once a second), for
+    /// people watching the job; not training data, and not sent to the learner.
+    pub frame: Option<Frame>,
+}
+
+/// A camera frame, grey levels row by row.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Frame {
+    /// The world the car drives.
+    pub world: String,
+    /// Width (pixels).
+    pub width: u32,
+    /// Height (pixels).
+    pub height: u32,
+    /// `width × height` grey levels.
+    pub gray: Vec<u8>,
+    /// The policy version driving.
+    pub policy_version: u64,
 }
 
 /// Run evaluation trials of one policy version on one world (DeepRacer's evaluation worker:

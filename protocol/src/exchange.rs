@@ -242,9 +242,42 @@ pub fn experience_from_wire(
             trajectories: kept,
             env_steps: b.env_steps,
             seconds: b.seconds,
+            frame: None,
         },
         refused,
     ))
+}
+
+/// A camera frame on the wire, for watchers.
+pub fn frame_to_wire(job: &str, agent: &str, f: &ex::Frame) -> crate::CameraFrame {
+    crate::CameraFrame {
+        protocol_version: crate::PROTOCOL_VERSION,
+        job_id: job.into(),
+        agent_id: agent.into(),
+        world: f.world.clone(),
+        width: f.width,
+        height: f.height,
+        gray: f.gray.clone(),
+        policy_version: f.policy_version,
+    }
+}
+
+/// A camera frame back: for `job`, from `agent` (the key's), its size what it says (at most
+/// 4096 × 4096).
+pub fn frame_from_wire(w: crate::CameraFrame, job: &str, agent: &str) -> Result<ex::Frame, DecodeError> {
+    same_job(&w.job_id, job)?;
+    if w.agent_id != agent {
+        return invalid(format!("frame from {:?} on {agent:?}'s key", w.agent_id));
+    }
+    if w.width == 0
+        || w.height == 0
+        || w.width > 4096
+        || w.height > 4096
+        || w.gray.len() as u64 != w.width as u64 * w.height as u64
+    {
+        return invalid(format!("frame of {}×{} with {} pixels", w.width, w.height, w.gray.len()));
+    }
+    Ok(ex::Frame { world: w.world, width: w.width, height: w.height, gray: w.gray, policy_version: w.policy_version })
 }
 
 /// A policy version on the wire (the model folder's three files).
@@ -562,6 +595,7 @@ mod tests {
             trajectories: vec![t.clone(), off_world],
             env_steps: 4,
             seconds: 0.5,
+            frame: None,
         };
         let wire = experience_to_wire(&id, &e, 3);
         let (back, refused) = experience_from_wire(wire.clone(), &view, "a1").unwrap();

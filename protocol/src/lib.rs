@@ -168,6 +168,14 @@ pub mod keys {
     }
     /// The coordinator's job-control queryable.
     pub const CONTROL: &str = "paddock/v1/control";
+    /// What one of an agent's cars sees (camera jobs), for watchers.
+    pub fn camera(job: &str, agent: &str) -> String {
+        format!("{ROOT}/job/{job}/camera/{agent}")
+    }
+    /// Every agent's camera frames of a job.
+    pub fn cameras(job: &str) -> String {
+        format!("{ROOT}/job/{job}/camera/*")
+    }
     /// An agent's failure report for a job.
     pub fn agent_report(job: &str, agent: &str) -> String {
         format!("{ROOT}/job/{job}/report/{agent}")
@@ -215,6 +223,7 @@ macro_rules! versioned {
     ($($t:ty),*) => {$(impl Versioned for $t { fn version(&self) -> u32 { self.protocol_version } })*};
 }
 versioned!(
+    CameraFrame,
     AgentInfo,
     Assignment,
     AssignmentTable,

@@ -174,7 +174,7 @@ pub fn access_control_json() -> serde_json::Value {
     add(
         "agent",
         vec![
-            ("publish", vec!["put"], s(&[job("experience/*"), job("eval/report/*"), job("report/*")])),
+            ("publish", vec!["put"], s(&[job("experience/*"), job("eval/report/*"), job("report/*"), job("camera/*")])),
             (
                 "subscribe",
                 vec!["declare_subscriber"],

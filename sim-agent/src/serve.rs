@@ -336,11 +336,21 @@ impl WorkerLink for AgentLink<'_> {
 
     fn send(&mut self, out: WorkerOutbound) -> Result<(), WorkerError> {
         let r = match out {
-            WorkerOutbound::Experience(e) => net::put(
-                self.session,
-                &keys::experience(&self.job, &self.id),
-                &wire::experience_to_wire(&self.job, &e, self.obs_size),
-            ),
+            WorkerOutbound::Experience(e) => {
+                if let Some(f) = &e.frame {
+                    // For watchers only: a lost frame is no loss.
+                    let _ = net::put(
+                        self.session,
+                        &keys::camera(&self.job, &self.id),
+                        &wire::frame_to_wire(&self.job, &self.id, f),
+                    );
+                }
+                net::put(
+                    self.session,
+                    &keys::experience(&self.job, &self.id),
+                    &wire::experience_to_wire(&self.job, &e, self.obs_size),
+                )
+            }
             WorkerOutbound::Eval(r) => net::put(
                 self.session,
                 &keys::eval_report(&self.job, &self.id),

@@ -111,6 +111,7 @@ pub struct Worker {
     resend: Option<EvalReport>,
     seq: u64,
     steps_reported: u64,
+    last_frame: Option<Instant>,
 }
 
 impl Worker {
@@ -135,6 +136,7 @@ impl Worker {
             resend: None,
             seq: s.first_seq,
             steps_reported: 0,
+            last_frame: None,
         })
     }
 
@@ -209,6 +211,7 @@ impl Worker {
                 self.seq += 1;
                 let env_steps = self.collector.env_steps - self.steps_reported;
                 self.steps_reported = self.collector.env_steps;
+                let frame = self.frame(p.version);
                 return Ok(Some(WorkerOutbound::Experience(Experience {
                     worker: self.id.clone(),
                     seq: self.seq,
@@ -216,6 +219,7 @@ impl Worker {
                     trajectories,
                     env_steps,
                     seconds: t0.elapsed().as_secs_f64(),
+                    frame,
                 })));
             }
             if self.version().is_some_and(|v| v > version) {
@@ -242,6 +246,30 @@ impl Worker {
             return Ok(Some(WorkerOutbound::Eval(report)));
         }
         Ok(None)
+    }
+
+    /// What environment 0's camera sees now, at most once a second (camera jobs only).
+    fn frame(&mut self, version: u64) -> Option<policy::exchange::Frame> {
+        let v = self.collector.vec_env();
+        if v.renderer().is_none()
+            || v.is_empty()
+            || self.last_frame.is_some_and(|t| t.elapsed() < Duration::from_secs(1))
+        {
+            return None;
+        }
+        self.last_frame = Some(Instant::now());
+        let dim = v.obs_dim();
+        let (width, height) = (crate::camera::WIDTH, crate::camera::HEIGHT);
+        if dim != (width * height) as usize {
+            return None;
+        }
+        Some(policy::exchange::Frame {
+            world: v.envs()[0].spec().name.clone(),
+            width,
+            height,
+            gray: v.observations()[..dim].iter().map(|&p| p.clamp(0.0, 255.0) as u8).collect(),
+            policy_version: version,
+        })
     }
 
     fn evaluate(&self, p: &PolicyVersion, r: &EvalRequest) -> Result<Vec<Trial>, WorkerError> {

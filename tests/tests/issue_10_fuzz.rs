@@ -114,6 +114,7 @@ fn message_seeds() -> Vec<Vec<u8>> {
         trajectories: vec![t.clone(), t.clone()],
         env_steps: 8,
         seconds: 0.5,
+        frame: None,
     };
     let c = policy::exchange::Credit { version: 4, round: 2, episodes: [("a1".to_string(), 10u64)].into() };
     let meta = policy::ModelMetadata::default_state_vector();
@@ -132,6 +133,17 @@ fn message_seeds() -> Vec<Vec<u8>> {
     vec![
         encode(&ex::experience_to_wire("job1", &e, 3)),
         encode(&ex::credit_to_wire("job1", &c)),
+        encode(&ex::frame_to_wire(
+            "job1",
+            "a1",
+            &policy::exchange::Frame {
+                world: "reinvent_wood".into(),
+                width: 4,
+                height: 2,
+                gray: vec![7; 8],
+                policy_version: 2,
+            },
+        )),
         encode(&ex::parts_to_wire("job1", 3, &parts)),
         encode(&ex::share_to_wire("job1", "l1", 9, 4, &[1.0, 2.0], &[3.0])),
         encode(&protocol::JobRequest { protocol_version: protocol::PROTOCOL_VERSION, ..Default::default() }),
@@ -160,6 +172,9 @@ fn every_message(bytes: &[u8]) {
     let _ = decode::<protocol::JobPromote>(bytes);
     if let Ok(m) = decode::<protocol::ExperienceBatch>(bytes) {
         let _ = ex::experience_from_wire(m, &view, "a1");
+    }
+    if let Ok(m) = decode::<protocol::CameraFrame>(bytes) {
+        let _ = ex::frame_from_wire(m, "job1", "a1");
     }
     if let Ok(m) = decode::<protocol::Credit>(bytes) {
         let _ = ex::credit_from_wire(m, "job1");
