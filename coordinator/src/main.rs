@@ -10,6 +10,7 @@ mod cars;
 mod certs;
 mod cli;
 mod client;
+mod dashboard;
 mod drive;
 mod local;
 mod render_cmd;
@@ -42,6 +43,7 @@ fn main() {
         cli::Command::Agents { net } => client::run(cli::JobCommand::Agents { net }),
         cli::Command::Up(args) => up::up(args),
         cli::Command::Render(args) => render_cmd::render(args),
+        cli::Command::Dashboard { job, bind, net } => dashboard::dashboard(job, bind, net),
         cli::Command::Report { run, out } => (|| -> anyhow::Result<i32> {
             let title = format!("Paddock run {}", run.display());
             let page = report::write(&run, out.as_deref(), &title)?;
