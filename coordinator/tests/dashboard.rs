@@ -1,7 +1,8 @@
 //! Issue 11: `coordinator dashboard JOB` shows a job live: a camera job runs under `up`, the
 //! dashboard serves its page, and headless Chromium (Debian's package, which `./paddock test`
 //! installs) renders it; the screenshot must show the training graph's line and the camera
-//! frame of an agent, and `/status.json` what the coordinator says.
+//! frame of an agent, and `/status.json` what the coordinator says. Once the job is stopped,
+//! the run's MCAP holds the camera frames of its evaluation laps (Foxglove's `mcap` reader).
 
 use std::io::{BufRead, BufReader, Read, Write};
 use std::path::{Path, PathBuf};
@@ -144,11 +145,38 @@ fn issue_11_the_dashboard_shows_the_graph_and_the_camera_live_in_chromium() {
     let o = Command::new(coordinator).args(["job", "stop", &job, "--connect", &endpoint]).output().unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let mut up = up;
-    let deadline = Instant::now() + Duration::from_secs(60);
+    let deadline = Instant::now() + Duration::from_secs(90);
     while up.0.try_wait().unwrap().is_none() && Instant::now() < deadline {
         std::thread::sleep(Duration::from_millis(500));
     }
+    assert!(up.0.try_wait().unwrap().is_some(), "up ended after the job was stopped");
+
+    // The run's MCAP holds what the car saw in its evaluation laps, read by Foxglove's reader.
+    let py =
+        std::env::var_os("PADDOCK_PYTHON").unwrap_or_else(|| panic!("PADDOCK_PYTHON is not set: run `./paddock test`"));
+    let o = Command::new(py).arg("-c").arg(FRAMES).arg(dir.path().join("up/run/trace.mcap")).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert!(v["frames"].as_u64().unwrap() > 10, "{v}");
+    assert_eq!(v["schema"], "foxglove.RawImage");
+    assert_eq!(v["pixels"], 160 * 120);
+    assert!(v["levels"].as_u64().unwrap() > 20, "a picture, not a flat frame: {v}");
 }
+
+/// Counts the MCAP's evaluation camera frames with Foxglove's `mcap` package.
+const FRAMES: &str = r#"
+import base64, json, sys
+from mcap.reader import make_reader
+n, schema, pixels, levels = 0, None, 0, 0
+with open(sys.argv[1], "rb") as f:
+    for s, c, m in make_reader(f).iter_messages(topics=["/evaluation/camera"]):
+        d = json.loads(m.data)
+        data = base64.b64decode(d["data"])
+        n, schema, pixels = n + 1, s.name, len(data)
+        assert d["width"] * d["height"] == len(data) and d["encoding"] == "mono8"
+        levels = max(levels, len(set(data)))
+print(json.dumps({"frames": n, "schema": schema, "pixels": pixels, "levels": levels}))
+"#;
 
 /// The graph's progress line (#1f77b4) is drawn, and a camera frame (grey levels, many of
 /// them) fills its box.

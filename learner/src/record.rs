@@ -10,7 +10,8 @@
 //!   evaluation episodes; Paddock adds each episode's `world` and `paddock_iteration`) and
 //!   `metrics/evaluation/evaluation-<ts>.json` per evaluation; `tracks.json`, the worlds' lines;
 //! - `trace.mcap` for Foxglove: the tracks (`foxglove.SceneUpdate`), each step's pose
-//!   (`foxglove.PoseInFrame`) and figures, each update's figures, each evaluation trial, as
+//!   (`foxglove.PoseInFrame`) and figures, each update's figures, each evaluation trial (and,
+//!   in camera jobs, what the car saw in the first trial, `foxglove.RawImage` mono8), as
 //!   JSON with JSON schemas. Episodes are laid end to end on the log's timeline (each at
 //!   simulation speed, a second apart), so scrubbing plays one episode after another;
 //!   `publish_time` is the wall clock when the step was taken.
@@ -251,8 +252,9 @@ impl Recorder {
                         trace: t.trace.clone(),
                         ..Default::default()
                     };
-                    self.cursor =
-                        mcap.episode(self.cursor, "/evaluation", "evaluation", k as u64, &as_traj, &self.space)?;
+                    let at = self.cursor;
+                    self.cursor = mcap.episode(at, "/evaluation", "evaluation", k as u64, &as_traj, &self.space)?;
+                    mcap.frames(at, &t.trace, &t.frames)?;
                 }
             }
             out.flush()?;
@@ -321,6 +323,9 @@ const POSE_IN_FRAME: &str = r#"{"title":"foxglove.PoseInFrame","description":"A 
 
 /// Foxglove's `foxglove.SceneUpdate` (the parts used: entities of line strips), as a JSON schema.
 const SCENE_UPDATE: &str = r#"{"title":"foxglove.SceneUpdate","description":"An update to the entities displayed in a 3D scene","type":"object","properties":{"deletions":{"type":"array","items":{"type":"object"}},"entities":{"type":"array","items":{"type":"object","properties":{"timestamp":{"type":"object","properties":{"sec":{"type":"integer"},"nsec":{"type":"integer"}}},"frame_id":{"type":"string"},"id":{"type":"string"},"lifetime":{"type":"object","properties":{"sec":{"type":"integer"},"nsec":{"type":"integer"}}},"frame_locked":{"type":"boolean"},"metadata":{"type":"array"},"arrows":{"type":"array"},"cubes":{"type":"array"},"spheres":{"type":"array"},"cylinders":{"type":"array"},"lines":{"type":"array","items":{"type":"object","properties":{"type":{"type":"integer"},"pose":{"type":"object"},"thickness":{"type":"number"},"scale_invariant":{"type":"boolean"},"points":{"type":"array","items":{"type":"object","properties":{"x":{"type":"number"},"y":{"type":"number"},"z":{"type":"number"}}}},"color":{"type":"object","properties":{"r":{"type":"number"},"g":{"type":"number"},"b":{"type":"number"},"a":{"type":"number"}}},"colors":{"type":"array"},"indices":{"type":"array"}}}},"triangles":{"type":"array"},"texts":{"type":"array"},"models":{"type":"array"}}}}}}"#;
+
+/// Foxglove's `foxglove.RawImage`, as a JSON schema (`data` in base64, as Foxglove reads JSON).
+const RAW_IMAGE: &str = r#"{"title":"foxglove.RawImage","description":"A raw image","type":"object","properties":{"timestamp":{"type":"object","properties":{"sec":{"type":"integer","minimum":0},"nsec":{"type":"integer","minimum":0,"maximum":999999999}}},"frame_id":{"type":"string"},"width":{"type":"integer","minimum":0},"height":{"type":"integer","minimum":0},"encoding":{"type":"string"},"step":{"type":"integer","minimum":0},"data":{"type":"string","contentEncoding":"base64"}}}"#;
 
 /// One step's figures (Paddock's own schema).
 const STEP: &str = r#"{"title":"paddock.Step","type":"object","properties":{"world":{"type":"string"},"worker":{"type":"string"},"episode":{"type":"integer"},"step":{"type":"integer"},"policy_version":{"type":"integer"},"action":{"type":"string"},"steer":{"type":"number"},"throttle":{"type":"number"},"reward":{"type":"number"},"progress":{"type":"number"},"all_wheels_on_track":{"type":"boolean"},"closest_waypoint":{"type":"integer"},"status":{"type":"string"}}}"#;
@@ -452,6 +457,37 @@ impl Mcap {
             end = log;
         }
         Ok(end + 1_000_000_000)
+    }
+
+    /// An evaluation trial's camera frames (grey, `mono8`), each at its step's place on the
+    /// timeline of the trial that starts at `at`.
+    fn frames(&mut self, at: u64, trace: &[StepTrace], frames: &[policy::exchange::Frame]) -> std::io::Result<()> {
+        if frames.is_empty() {
+            return Ok(());
+        }
+        use base64::Engine as _;
+        let c = self.channel("/evaluation/camera", "foxglove.RawImage", RAW_IMAGE)?;
+        let t0 = trace.first().map(|s| s.tstamp).unwrap_or(0.0);
+        for f in frames {
+            let here = trace.get(f.step.saturating_sub(1) as usize);
+            let log = at + ns(here.map(|s| s.tstamp).unwrap_or(t0) - t0);
+            let publish = here.map(|s| ns(s.wall_clock)).unwrap_or(log);
+            self.write(
+                c,
+                log,
+                publish,
+                &json!({
+                    "timestamp": stamp(log),
+                    "frame_id": "camera",
+                    "width": f.width,
+                    "height": f.height,
+                    "encoding": "mono8",
+                    "step": f.width,
+                    "data": base64::engine::general_purpose::STANDARD.encode(&f.gray),
+                }),
+            )?;
+        }
+        Ok(())
     }
 
     /// A record of figures (an update's, an evaluation's) under Paddock's own schema.

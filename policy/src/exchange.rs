@@ -72,6 +72,8 @@ pub struct Frame {
     pub gray: Vec<u8>,
     /// The policy version driving.
     pub policy_version: u64,
+    /// The episode's step it was seen at, before acting (0: a live frame).
+    pub step: u64,
 }
 
 /// Run evaluation trials of one policy version on one world (DeepRacer's evaluation worker:
@@ -114,6 +116,9 @@ pub struct Trial {
     pub trace: Vec<crate::StepTrace>,
     /// Length of the track driven (m); DeepRacer's `track_len` column.
     pub track_len: f64,
+    /// Camera jobs that record: what the car saw in this trial, every second step (the first
+    /// trial of a request only), for the MCAP log.
+    pub frames: Vec<Frame>,
 }
 
 /// The answer to an [`EvalRequest`].

@@ -119,6 +119,7 @@ pub fn eval_report_to_wire(job: &str, r: &ex::EvalReport) -> crate::EvalReport {
                         rewards: t.rewards.clone(),
                         trace: crate::trace_to_wire(&t.trace),
                         track_len: t.track_len,
+                        frames: t.frames.iter().map(|f| frame_to_wire(job, &r.worker, f)).collect(),
                     }
                 })
                 .collect(),
@@ -174,7 +175,13 @@ pub fn eval_report_from_wire(
             } else {
                 crate::choices_from_wire(&t.discrete_actions, &t.continuous_actions, n, job.actions)?
             };
+            if t.frames.len() as u64 > SANITY_LIMIT / 10 {
+                return invalid(format!("{} frames in one trial", t.frames.len()));
+            }
+            let frames =
+                t.frames.into_iter().map(|f| frame_from_wire(f, job.job_id, agent)).collect::<Result<Vec<_>, _>>()?;
             trials.push(ex::Trial {
+                frames,
                 progress: t.progress,
                 lap_time: t.lap_time,
                 off_track: t.off_track,
@@ -259,6 +266,7 @@ pub fn frame_to_wire(job: &str, agent: &str, f: &ex::Frame) -> crate::CameraFram
         height: f.height,
         gray: f.gray.clone(),
         policy_version: f.policy_version,
+        step: f.step,
     }
 }
 
@@ -277,7 +285,14 @@ pub fn frame_from_wire(w: crate::CameraFrame, job: &str, agent: &str) -> Result<
     {
         return invalid(format!("frame of {}×{} with {} pixels", w.width, w.height, w.gray.len()));
     }
-    Ok(ex::Frame { world: w.world, width: w.width, height: w.height, gray: w.gray, policy_version: w.policy_version })
+    Ok(ex::Frame {
+        world: w.world,
+        width: w.width,
+        height: w.height,
+        gray: w.gray,
+        policy_version: w.policy_version,
+        step: w.step,
+    })
 }
 
 /// A policy version on the wire (the model folder's three files).
@@ -648,6 +663,14 @@ mod tests {
                     },
                 ],
                 track_len: 17.6,
+                frames: vec![ex::Frame {
+                    world: "reinvent_carpet".into(),
+                    width: 2,
+                    height: 2,
+                    gray: vec![0, 80, 160, 240],
+                    policy_version: 4,
+                    step: 1,
+                }],
             }]),
         };
         assert_eq!(eval_report_from_wire(eval_report_to_wire(&id, &rep), &view, "a1").unwrap(), rep);
@@ -655,7 +678,8 @@ mod tests {
         lie.trials[0].progress = 1e9;
         assert!(eval_report_from_wire(lie, &view, "a1").is_err(), "progress over 100 % is refused");
         // Issue 11: the trial's sim-trace rows are checked like experience.
-        let lies: [(&str, fn(&mut crate::EvalTrial)); 5] = [
+        let lies: [(&str, fn(&mut crate::EvalTrial)); 6] = [
+            ("a frame whose pixels are not its size", |t| t.frames[0].gray.push(9)),
             ("a column short", |t| {
                 t.trace.as_mut().unwrap().x.pop();
             }),

@@ -166,6 +166,8 @@ pub struct TrialLog {
     pub rewards: Vec<f32>,
     /// The sim-trace fields.
     pub trace: Vec<policy::StepTrace>,
+    /// Camera jobs, first trial: what the car saw every second step (before acting).
+    pub frames: Vec<policy::exchange::Frame>,
 }
 
 /// Run `trials` evaluation trials in parallel from the start line, with the policy's most
@@ -190,7 +192,20 @@ pub fn evaluate(
     let mut logs: Vec<TrialLog> = vec![TrialLog::default(); trials];
     let cap = cfg.episode.max_steps;
     let mut steps = 0u64;
+    let dim = vec.obs_dim();
+    let camera =
+        cfg.record_trace && vec.renderer().is_some() && dim == (crate::camera::WIDTH * crate::camera::HEIGHT) as usize;
     while results.iter().any(|r| r.is_none()) && steps < cap {
+        if camera && results[0].is_none() && steps % 2 == 0 {
+            logs[0].frames.push(policy::exchange::Frame {
+                world: spec.name.clone(),
+                width: crate::camera::WIDTH,
+                height: crate::camera::HEIGHT,
+                gray: vec.observations()[..dim].iter().map(|&p| p.clamp(0.0, 255.0) as u8).collect(),
+                policy_version: 0,
+                step: steps + 1,
+            });
+        }
         let acts = model.act(vec.observations(), trials, true, &mut rng, Par::Seq);
         let actions: Vec<policy::Action> = acts.iter().map(|a| a.choice.to_action(space)).collect();
         let outcomes = vec.step(&actions)?;

@@ -269,6 +269,7 @@ impl Worker {
             height,
             gray: v.observations()[..dim].iter().map(|&p| p.clamp(0.0, 255.0) as u8).collect(),
             policy_version: version,
+            step: 0,
         })
     }
 
@@ -292,7 +293,16 @@ impl Worker {
             self.threads,
         )?;
         let track_len = spec.track.length();
-        Ok(trials.into_iter().map(|t| Trial { track_len, ..Trial::from(t) }).collect())
+        Ok(trials
+            .into_iter()
+            .map(|t| {
+                let mut t = Trial { track_len, ..Trial::from(t) };
+                for f in &mut t.frames {
+                    f.policy_version = p.version;
+                }
+                t
+            })
+            .collect())
     }
 
     /// The worker's loop: take messages, work, send, until the link says [`WorkerInbound::End`]
@@ -331,6 +341,7 @@ impl From<TrialResult> for Trial {
             rewards: t.log.rewards,
             trace: t.log.trace,
             track_len: 0.0,
+            frames: t.log.frames,
         }
     }
 }

@@ -142,6 +142,7 @@ fn message_seeds() -> Vec<Vec<u8>> {
                 height: 2,
                 gray: vec![7; 8],
                 policy_version: 2,
+                step: 3,
             },
         )),
         encode(&ex::parts_to_wire("job1", 3, &parts)),
