@@ -76,12 +76,16 @@ pub fn run(command: TracksCommand) -> Result<i32> {
 fn print_summary(s: &TrackSummary) {
     println!("track        {}", s.name);
     println!("rows         {}", s.rows);
+    println!("waypoints    {}", s.waypoints);
     println!("length       {:.3} m", s.length);
     println!("width        min {:.3} m, mean {:.3} m, max {:.3} m", s.min_width, s.mean_width, s.max_width);
     println!("closed       {}", if s.closed { "yes (loop)" } else { "no (open)" });
     println!("direction    {}", s.direction);
     if !s.repeated_rows.is_empty() {
-        println!("repeated     rows {:?} repeat the row before (kept, as DeepRacer keeps them)", s.repeated_rows);
+        println!(
+            "repeated     rows {:?} repeat the row before (dropped on load, as DeepRacer's simapp drops them)",
+            s.repeated_rows
+        );
     }
 }
 

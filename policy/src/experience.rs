@@ -58,11 +58,13 @@ pub enum EpisodeStatus {
     LapComplete,
     /// The race's time limit ran out.
     TimeUp,
+    /// Evaluation: the car waits out a reset's time penalty, held where it was put back.
+    Pause,
 }
 
 impl EpisodeStatus {
     /// Every status, in code order ([`EpisodeStatus::code`]).
-    pub const ALL: [EpisodeStatus; 7] = [
+    pub const ALL: [EpisodeStatus; 8] = [
         EpisodeStatus::Prepare,
         EpisodeStatus::InProgress,
         EpisodeStatus::OffTrack,
@@ -70,6 +72,7 @@ impl EpisodeStatus {
         EpisodeStatus::Immobilized,
         EpisodeStatus::LapComplete,
         EpisodeStatus::TimeUp,
+        EpisodeStatus::Pause,
     ];
 
     /// The label DeepRacer's sim-trace writes.
@@ -82,6 +85,7 @@ impl EpisodeStatus {
             EpisodeStatus::Immobilized => "immobilized",
             EpisodeStatus::LapComplete => "lap_complete",
             EpisodeStatus::TimeUp => "time_up",
+            EpisodeStatus::Pause => "pause",
         }
     }
 
@@ -95,6 +99,7 @@ impl EpisodeStatus {
             EpisodeStatus::Immobilized => "Immobilized",
             EpisodeStatus::LapComplete => "Lap complete",
             EpisodeStatus::TimeUp => "Time Up",
+            EpisodeStatus::Pause => "Pause",
         }
     }
 

@@ -1,12 +1,20 @@
 //! The 1/18 car in rapier3d: a chassis body on four ray-cast wheels
 //! (`DynamicRayCastVehicleController`), at DeepRacer's scale and limits.
 //!
-//! Geometry follows DeepRacer's URDF (wheelbase 0.164 m, track ≈0.16 m, wheel radius
-//! 0.035 m, chassis 5 kg + 4 × 0.34 kg wheels). The world is z-up, x forward, matching the
-//! track files. Steering is set directly (DeepRacer commands the hinge position), with
-//! Ackermann geometry so that the front wheels share one turn centre; speed is
-//! tracked by a proportional drive force on all four wheels (DeepRacer commands each wheel's
-//! velocity), limited by tyre grip.
+//! Geometry follows DeepRacer's URDF (wheelbase 0.164 m, rear wheels at ±0.08105 m, front
+//! at ±0.079601 m, wheel radius 0.035 m, chassis 5 kg + 4 × 0.34 kg wheels). The world is
+//! z-up, x forward, matching the track files. Steering is set directly (DeepRacer commands
+//! the hinge position), with Ackermann geometry so that the front wheels share one turn
+//! centre; speed is tracked by a proportional drive force on all four wheels (DeepRacer
+//! commands each wheel's velocity).
+//!
+//! Traction (issue 12): the drive force is limited by the tyres' grip, `μ·m·g` over the four
+//! wheels. The controller's own limit lets a wheel push twice its grip forwards (its
+//! friction ellipse is 2:1), so a full-throttle command from rest pushed ≈5 g at the contact
+//! patches, pitched the chassis past vertical, and the car drove on upside down. Limited,
+//! the car pitches a few degrees, reaches 4 m/s and stops in the distance of a
+//! friction-limited point mass, and slides wide at full lock as the grip limit says
+//! ([`crate::handling`] measures all of it).
 //!
 //! The rapier trap (../shared/reference/stack-notes.md): the controller's side-friction
 //! effective mass uses `|I⁻¹(r×n)|²` where the impulse maths needs `(r×n)·I⁻¹(r×n)`. For a
@@ -26,8 +34,10 @@ pub struct CarParams {
     pub wheelbase: f64,
     /// Distance from the chassis origin forward to the front axle (m).
     pub front_axle_x: f64,
-    /// Lateral distance between left and right wheels (m).
-    pub track_width: f64,
+    /// Lateral distance between the front wheels (m).
+    pub front_track: f64,
+    /// Lateral distance between the rear wheels (m).
+    pub rear_track: f64,
     /// Wheel radius (m).
     pub wheel_radius: f64,
     /// Total mass (kg).
@@ -49,9 +59,10 @@ pub struct CarParams {
 impl Default for CarParams {
     fn default() -> Self {
         CarParams {
-            wheelbase: 0.164,
+            wheelbase: 0.082311 + 0.081663,
             front_axle_x: 0.082311,
-            track_width: 0.1606,
+            front_track: 2.0 * 0.079601,
+            rear_track: 2.0 * 0.08105,
             wheel_radius: 0.035,
             mass: 5.0 + 4.0 * 0.34055,
             footprint: [0.32352, 0.1961],
@@ -92,6 +103,7 @@ pub struct Car {
     chassis: RigidBodyHandle,
     vehicle: DynamicRayCastVehicleController,
     params: CarParams,
+    friction: f64,
     /// Wheel centres in the chassis frame (x, y): left rear, left front, right rear, right front.
     wheel_xy: [[f64; 2]; 4],
     ride_height: f32,
@@ -144,7 +156,7 @@ impl Car {
             };
             vehicle.add_wheel(connection, Vector::new(0.0, 0.0, -1.0), axle, REST_LENGTH, radius, &tuning);
         }
-        Car { world, chassis, vehicle, params: params.clone(), wheel_xy, ride_height }
+        Car { world, chassis, vehicle, params: params.clone(), friction, wheel_xy, ride_height }
     }
 
     /// Place the car at rest at (x, y) facing `yaw`.
@@ -164,14 +176,17 @@ impl Car {
     /// Advance one physics step holding steering `steer_rad` (+ = left) and target `speed` (m/s).
     pub fn step(&mut self, steer_rad: f64, speed: f64) {
         let state = self.state();
-        let drive = self.params.mass * (speed - state.forward_speed) / self.params.speed_time_constant;
+        let wanted = self.params.mass * (speed - state.forward_speed) / self.params.speed_time_constant;
+        // The tyres cannot push harder than their grip (see the module doc).
+        let limit = self.friction * self.params.mass * 9.81;
+        let drive = wanted.clamp(-limit, limit);
         // Ackermann geometry: both front wheels point at the turn centre of a bicycle model
         // steered by `steer_rad`, so neither tyre scrubs against the other.
         let (left, right) = if steer_rad.abs() < 1e-9 {
             (0.0, 0.0)
         } else {
             let radius = self.params.wheelbase / steer_rad.tan(); // signed, + = left turn
-            let half = self.params.track_width / 2.0;
+            let half = self.params.front_track / 2.0;
             ((self.params.wheelbase / (radius - half)).atan(), (self.params.wheelbase / (radius + half)).atan())
         };
         for (i, w) in self.vehicle.wheels_mut().iter_mut().enumerate() {
@@ -190,6 +205,19 @@ impl Car {
         );
         self.vehicle.update_vehicle(self.world.integration_parameters.dt, q);
         self.world.step();
+    }
+
+    /// Roll and pitch of the chassis (radians): the angles its up axis leans sideways and
+    /// forwards. A car on its wheels keeps both small.
+    pub fn tilt(&self) -> (f64, f64) {
+        let rot = self.world.bodies[self.chassis].rotation();
+        let (fwd, left) = (rot * Vector::X, rot * Vector::Y);
+        ((left.z as f64).asin(), (-(fwd.z as f64)).asin())
+    }
+
+    /// Height of the chassis origin above the ground (m).
+    pub fn height(&self) -> f64 {
+        self.world.bodies[self.chassis].translation().z as f64
     }
 
     /// The planar state of the chassis.
@@ -225,8 +253,8 @@ impl Car {
 /// Wheel centres in the chassis frame: left rear, left front, right rear, right front.
 pub fn wheel_layout(params: &CarParams) -> [[f64; 2]; 4] {
     let rear_x = params.front_axle_x - params.wheelbase;
-    let half = params.track_width / 2.0;
-    [[rear_x, half], [params.front_axle_x, half], [rear_x, -half], [params.front_axle_x, -half]]
+    let (front, rear) = (params.front_track / 2.0, params.rear_track / 2.0);
+    [[rear_x, rear], [params.front_axle_x, front], [rear_x, -rear], [params.front_axle_x, -front]]
 }
 
 /// Wheel centres in the world plane for a car origin at (x, y) with yaw `yaw`.

@@ -6,11 +6,15 @@
 //! does both with a built-in reward.
 //!
 //! Rules (§6.1–6.2 of the reference): the first step of an episode is DeepRacer's `prepare`
-//! step (reward 0, reward function not called); then `lap_complete` at progress 100,
-//! `off_track` when all four wheels are off, `reversed` after 15 steps of falling progress,
-//! `immobilized` after 15 steps of moving under 0.3 mm. Training ends an episode on any of
-//! them and moves the next start 5 % along the track. Evaluation starts each trial at the
-//! start line and may reset an off-track car with a time penalty instead of ending.
+//! step (the car is held where it starts, the action is logged but not driven, reward 0,
+//! reward function not called); then `lap_complete` at progress 100, `off_track` when all
+//! four wheels are off, `reversed` after 15 steps of falling progress, `immobilized` after 15
+//! steps of moving under 0.3 mm. Training ends an episode on any of them and moves the next
+//! start 5 % along the track. Evaluation starts each trial at the start line and may reset
+//! an off-track car instead of ending: the car is put back in the lane nearer to where it
+//! was, at the previous step's progress, and waits out the penalty in `pause` steps at the
+//! control rate (held, reward 0, the remaining seconds in `pause_duration`), as DeepRacer's
+//! evaluation worker does. The clock (`tstamp`, `sim_time`) runs on across episodes.
 
 use crate::car::Car;
 use crate::config::{NoiseConfig, SimConfig};
@@ -37,10 +41,10 @@ pub enum Mode {
 /// Evaluation rules (DeepRacer's evaluation worker; defaults are its values).
 #[derive(Clone, Debug, PartialEq)]
 pub struct EvalRules {
-    /// Off-track/reversed/immobilised events a trial survives: the car is put back on the
-    /// centre line where it left and pays `penalty_s` (DeepRacer's `NUMBER_OF_RESETS`).
+    /// Off-track/reversed/immobilised events a trial survives: the car is put back in the
+    /// nearer lane where it left and pays `penalty_s` (DeepRacer's `NUMBER_OF_RESETS`).
     pub max_resets: u32,
-    /// Time penalty per reset (s) (`OFF_TRACK_PENALTY`).
+    /// Time penalty per reset (s) (`OFF_TRACK_PENALTY`), waited out in `pause` steps.
     pub penalty_s: f64,
     /// A race: keep lapping until this much time has passed (the 4-minute race is 240 s),
     /// counting laps; `None` ends each trial at its first lap.
@@ -121,6 +125,12 @@ pub struct Env {
     car: Car,
     rng: ChaCha8Rng,
     dt: f64,
+    /// The simulation clock: runs on across episodes (s).
+    world_time: f64,
+    /// `world_time` when this episode started.
+    episode_start: f64,
+    /// A reset's penalty being waited out: `pause` steps left and the seconds they stand for.
+    pause: Option<(u32, f64)>,
     episode: u64,
     next_start: f64,
     start_ndist: f64,
@@ -144,6 +154,12 @@ struct Pending {
     truncated: bool,
     lap_time: Option<f64>,
     prepare: bool,
+    /// A `pause` step: held, reward 0, the reward function not called.
+    paused: bool,
+    /// This step's `pause_duration` (s).
+    pause_duration: f64,
+    /// Where the car stood before this step (for the reset's lane).
+    before: Pose,
 }
 
 /// Why an environment could not be built.
@@ -170,6 +186,9 @@ impl Env {
             car,
             rng: ChaCha8Rng::seed_from_u64(seed),
             dt,
+            world_time: 0.0,
+            episode_start: 0.0,
+            pause: None,
             episode: 0,
             next_start: first_start.rem_euclid(1.0),
             start_ndist: 0.0,
@@ -202,8 +221,10 @@ impl Env {
         self.episode += 1;
         self.start_ndist = start;
         self.place_on_centre_line(start);
-        self.clock = EpisodeClock { start_ndist: start, prev_progress: 0.0, steps: 0, sim_time: 0.0 };
-        self.lap_start_time = 0.0;
+        self.episode_start = self.world_time;
+        self.clock = EpisodeClock { start_ndist: start, prev_progress: 0.0, steps: 0, sim_time: self.world_time };
+        self.lap_start_time = self.world_time;
+        self.pause = None;
         self.reverse_count = 0;
         self.immobile_count = 0;
         self.resets = 0;
@@ -230,27 +251,44 @@ impl Env {
         // DeepRacer's send_action clamps to the car's limits; noise is Paddock's actuator model.
         let steer = (action.steering_angle + noise.steering_deg * n1).clamp(-MAX_STEERING_DEG, MAX_STEERING_DEG);
         let speed = (action.speed * (1.0 + noise.speed_fraction * n2)).clamp(MIN_SPEED, MAX_SPEED);
-        let steer_rad = steer.to_radians();
-        for _ in 0..self.cfg.physics_substeps {
-            self.car.step(steer_rad, speed);
-        }
-        self.executed_steer_deg = steer;
-        let state = self.car.state();
+        let prepare = self.clock.steps == 0;
+        let paused = self.pause.is_some();
         let last = self.pose;
-        self.pose = Pose { x: state.x, y: state.y, yaw: state.yaw };
+        if prepare || paused {
+            // DeepRacer's prepare and pause phases send zero speed and pin the car where it
+            // stands; the model's action is only logged.
+            self.car.reset(last.x, last.y, last.yaw);
+            self.executed_steer_deg = 0.0;
+        } else {
+            let steer_rad = steer.to_radians();
+            for _ in 0..self.cfg.physics_substeps {
+                self.car.step(steer_rad, speed);
+            }
+            self.executed_steer_deg = steer;
+            let state = self.car.state();
+            self.pose = Pose { x: state.x, y: state.y, yaw: state.yaw };
+        }
         self.clock.steps += 1;
-        self.clock.sim_time += self.dt;
-        let wheels = self.car.wheel_points(&state);
+        self.world_time += self.dt;
+        self.clock.sim_time = self.world_time;
+        let wheels = self.car.wheel_points(&self.car.state());
         let params = compute_params(&self.spec.track, &self.pose, &wheels, action, &self.clock);
 
-        let prepare = self.clock.steps == 1;
         let ep = &self.cfg.episode;
-        let mut status = if prepare { EpisodeStatus::Prepare } else { EpisodeStatus::InProgress };
-        if !prepare {
+        let mut pause_duration = 0.0;
+        let mut status = if prepare {
+            EpisodeStatus::Prepare
+        } else if let Some((rows, seconds)) = self.pause {
+            // The penalty counts down by the step's sim time; the row that reaches 0 is the
+            // last `pause` row (DeepRacer's `TrackerManager`).
+            self.pause = (rows > 1).then(|| (rows - 1, seconds - self.dt));
+            pause_duration = (seconds - self.dt).max(0.0);
+            EpisodeStatus::Pause
+        } else {
             let moved = ((self.pose.x - last.x).powi(2) + (self.pose.y - last.y).powi(2)).sqrt();
             self.immobile_count = if moved <= ep.immobilized_distance { self.immobile_count + 1 } else { 0 };
             self.reverse_count = if params.progress < self.clock.prev_progress { self.reverse_count + 1 } else { 0 };
-            status = if params.progress >= 100.0 {
+            if params.progress >= 100.0 {
                 EpisodeStatus::LapComplete
             } else if params.is_offtrack {
                 EpisodeStatus::OffTrack
@@ -260,11 +298,11 @@ impl Env {
                 EpisodeStatus::Reversed
             } else {
                 EpisodeStatus::InProgress
-            };
-        }
-        let lap_time = (status == EpisodeStatus::LapComplete).then(|| self.clock.sim_time - self.lap_start_time);
+            }
+        };
+        let lap_time = (status == EpisodeStatus::LapComplete).then(|| self.world_time - self.lap_start_time);
         let mut ends = match status {
-            EpisodeStatus::Prepare | EpisodeStatus::InProgress => false,
+            EpisodeStatus::Prepare | EpisodeStatus::InProgress | EpisodeStatus::Pause => false,
             EpisodeStatus::LapComplete => !matches!(&self.mode, Mode::Evaluation(r) if r.time_limit_s.is_some()),
             EpisodeStatus::OffTrack | EpisodeStatus::Reversed | EpisodeStatus::Immobilized => match &self.mode {
                 Mode::Training => true,
@@ -273,13 +311,23 @@ impl Env {
             EpisodeStatus::TimeUp => true,
         };
         if let Mode::Evaluation(EvalRules { time_limit_s: Some(limit), .. }) = self.mode {
-            if !ends && self.clock.sim_time >= limit {
+            if !ends && self.world_time - self.episode_start >= limit {
                 status = EpisodeStatus::TimeUp;
                 ends = true;
             }
         }
         let truncated = !ends && self.clock.steps >= ep.max_steps;
-        self.pending = Some(Pending { params, status, ends: ends || truncated, truncated, lap_time, prepare });
+        self.pending = Some(Pending {
+            params,
+            status,
+            ends: ends || truncated,
+            truncated,
+            lap_time,
+            prepare,
+            paused: status == EpisodeStatus::Pause,
+            pause_duration,
+            before: last,
+        });
     }
 
     /// The params of the step [`Env::advance`] just ran.
@@ -287,35 +335,46 @@ impl Env {
         &self.pending.as_ref().expect("advance() first").params
     }
 
-    /// Whether that step calls the reward function (every step but `prepare`).
+    /// Whether that step calls the reward function (every step but `prepare` and `pause`).
     pub fn needs_reward(&self) -> bool {
-        !self.pending.as_ref().expect("advance() first").prepare
+        let p = self.pending.as_ref().expect("advance() first");
+        !(p.prepare || p.paused)
     }
 
-    /// Close the step with its reward (ignored on the `prepare` step, whose reward is 0).
+    /// Close the step with its reward (ignored on `prepare` and `pause` steps: reward 0).
     pub fn finish(&mut self, reward: f64) -> StepOutcome {
         let p = self.pending.take().expect("advance() first");
-        let reward = if p.prepare { 0.0 } else { reward };
+        let reward = if p.prepare || p.paused { 0.0 } else { reward };
         self.episode_reward += reward;
         let progress = p.params.progress;
+        // The previous step's progress, before this step's replaces it (a reset goes there).
+        let before_progress = self.clock.prev_progress;
         // DeepRacer: prev_progress = 0 after a completed lap, else this step's progress.
         self.clock.prev_progress = if progress >= 100.0 { 0.0 } else { progress };
         if p.status == EpisodeStatus::LapComplete {
             self.laps += 1;
-            self.lap_start_time = self.clock.sim_time;
+            self.lap_start_time = self.world_time;
         }
         let failed = matches!(p.status, EpisodeStatus::OffTrack | EpisodeStatus::Reversed | EpisodeStatus::Immobilized);
+        let mut pause_duration = p.pause_duration;
         if failed && !p.ends {
-            // Evaluation reset: back on the centre line where progress last stood, plus the penalty.
+            // Evaluation reset (DeepRacer's `_judge_action_at_run_phase`): back at the previous
+            // step's progress in the lane nearer to where the car stood, then the penalty
+            // waited out in `pause` steps at the control rate.
             let penalty = match &self.mode {
                 Mode::Evaluation(r) => r.penalty_s,
                 Mode::Training => 0.0,
             };
             self.resets += 1;
-            let prev = self.clock.prev_progress;
-            let back = self.start_ndist + prev.max(0.0) / 100.0;
-            self.place_on_centre_line(back.rem_euclid(1.0));
-            self.clock.sim_time += penalty;
+            let track = &self.spec.track;
+            let along = (self.start_ndist + before_progress.max(0.0) / 100.0) * track.length();
+            let (at, heading) = track.reset_pose(along, tracks::P2::new(p.before.x, p.before.y));
+            self.car.reset(at.x, at.y, heading);
+            self.pose = Pose { x: at.x, y: at.y, yaw: heading };
+            self.executed_steer_deg = 0.0;
+            let rows = (penalty / self.dt - 1e-9).ceil().max(0.0) as u32;
+            self.pause = (rows > 0).then_some((rows, penalty));
+            pause_duration = penalty;
             self.reverse_count = 0;
             self.immobile_count = 0;
         }
@@ -335,7 +394,7 @@ impl Env {
             all_wheels_on_track: q.all_wheels_on_track,
             status: p.status,
             tstamp: q.sim_time,
-            pause_duration: 0.0,
+            pause_duration: pause_duration as f32,
             wall_clock: 0.0,
         };
         StepOutcome {
@@ -345,7 +404,7 @@ impl Env {
             status: p.status,
             progress,
             steps: self.clock.steps,
-            sim_time: self.clock.sim_time,
+            sim_time: self.world_time - self.episode_start,
             lap_time: p.lap_time,
             episode_reward: self.episode_reward,
             resets: self.resets,

@@ -1,6 +1,7 @@
 //! The simulator, a plain library: no transport, testable without a network.
 //!
 //! - [`car`]: the rapier car.
+//! - [`handling`]: its measured handling per surface against the simple models.
 //! - [`camera`]: the front camera, rendered with wgpu (GPU or lavapipe), batched.
 //! - [`env`]: one environment, DeepRacer's step loop and episode rules.
 //! - [`params`]: reward `params` from a pose.
@@ -22,6 +23,7 @@ pub mod car;
 pub mod config;
 pub mod driver;
 pub mod env;
+pub mod handling;
 pub mod obs;
 pub mod params;
 pub mod python;

@@ -1,6 +1,6 @@
 //! The `sim-agent` binary: `serve` (the network role: takes world assignments from a
-//! coordinator and streams experience to a learner over Zenoh) and `bench` (the simulator's
-//! speed).
+//! coordinator and streams experience to a learner over Zenoh), `bench` (the simulator's
+//! speed), `car` (the simulated physical car) and `handling` (the car's figures per surface).
 
 mod hil;
 mod serve;
@@ -33,6 +33,13 @@ enum Command {
     /// Play the physical car for `deploy`: camera frames out in the car's layout at 15 Hz,
     /// servo commands in, DeepRacer's evaluation rules (hardware in the loop, no car).
     Car(hil::CarArgs),
+    /// Measure the car on every surface (top speed, acceleration, stopping distance, turning
+    /// radius at full lock, roll and pitch) beside the simple models; prints Markdown.
+    Handling {
+        /// Simulator configuration file (its `[car]` section is measured).
+        #[arg(long)]
+        config: Option<PathBuf>,
+    },
 }
 
 #[derive(clap::Args)]
@@ -75,12 +82,19 @@ struct BenchArgs {
     sets: Vec<String>,
 }
 
+fn handling(config: Option<PathBuf>) -> Result<()> {
+    let cfg: SimConfig = load_config(config.as_deref(), &[]).context("loading the simulator configuration")?;
+    print!("{}", sim_agent::handling::markdown(&cfg.car));
+    Ok(())
+}
+
 fn main() {
     protocol::secure::init_logging("info");
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Bench(args) => bench(args),
         Command::Car(args) => hil::run(args),
+        Command::Handling { config } => handling(config),
         Command::Serve(a) => serve::serve(serve::ServeArgs {
             net: protocol::net::NetArgs::from(a.net).as_role(protocol::secure::Role::Agent),
             envs: a.envs,

@@ -53,7 +53,8 @@ pub struct RewardParams {
     pub object_in_camera: bool,
     /// Distance along the centre line from the start line (m) (`ndist * track_length`).
     pub projection_distance: f64,
-    /// Simulation time (s).
+    /// Simulation time (s): the environment's clock, which runs on across its episodes as
+    /// Gazebo's `/clock` does (DeepRacer's `sim_time` param and sim-trace `tstamp`).
     pub sim_time: f64,
 }
 
@@ -84,7 +85,8 @@ pub struct EpisodeClock {
     pub prev_progress: f64,
     /// Steps counted so far including this one.
     pub steps: u64,
-    /// Simulation time (s).
+    /// Simulation time (s): the environment's clock, which runs on across its episodes as
+    /// Gazebo's `/clock` does (DeepRacer's `sim_time` param and sim-trace `tstamp`).
     pub sim_time: f64,
 }
 

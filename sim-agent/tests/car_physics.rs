@@ -75,3 +75,34 @@ fn grip_differs_between_surfaces_when_cornering_hard() {
     // And every radius exceeds the kinematic one: the tyres slide.
     assert!(by_grip.iter().all(|&(_, r)| r > bicycle_radius(20.0) * 1.1), "{by_grip:?}");
 }
+
+/// Issue 12: at full throttle the car flipped (the drive force reached ≈5 g at the contact
+/// patches and pitched the chassis past vertical). On every surface, from rest at 4 m/s,
+/// braking from 4 m/s, and at full lock at 4 m/s, the chassis stays on its wheels: roll and
+/// pitch stay small, the heading never jumps, and the car reaches and sheds its speed as a
+/// friction-limited point mass would (within 25 %).
+#[test]
+fn issue_12_full_throttle_braking_and_full_lock_at_4_m_s_keep_the_car_on_its_wheels() {
+    use sim_agent::handling::{Manoeuvre, hold, measure};
+    for surface in Surface::ALL {
+        let h = measure(&CarParams::default(), surface);
+        let c = &h.chassis;
+        assert!(c.max_pitch_deg < 8.0 && c.max_roll_deg < 3.0, "{surface:?}: {c:?}");
+        assert!(c.max_heading_step_deg < 6.0, "{surface:?}: the heading jumped: {c:?}");
+        assert!(c.height.0 > 0.03 && c.height.1 < 0.08, "{surface:?}: the chassis left its ride height: {c:?}");
+        assert!((h.top_speed - 4.0).abs() < 0.05, "{surface:?}: top speed {}", h.top_speed);
+        assert!((h.time_to_top / h.time_to_top_model - 1.0).abs() < 0.25, "{surface:?}: {h:?}");
+        assert!((h.stopping_distance / h.stopping_distance_model - 1.0).abs() < 0.25, "{surface:?}: {h:?}");
+        // At full lock the radius follows the bicycle model slowly and the grip limit fast.
+        for &(v, r, _, grip) in &h.radius_full_lock {
+            assert!((r / grip - 1.0).abs() < 0.3, "{surface:?} at {v} m/s: radius {r:.3} vs {grip:.3}");
+        }
+        // And the flip's own recipe: 4 m/s from rest for 10 s, heading held.
+        let mut car = Car::new(&CarParams::default(), surface.friction(), DT);
+        car.reset(0.0, 0.0, 1.0);
+        let mut m = Manoeuvre::default();
+        hold(&mut car, 0.0, 4.0, 10.0, &mut m);
+        let s = car.state();
+        assert!((s.yaw - 1.0).abs() < 0.01 && (s.forward_speed - 4.0).abs() < 0.05, "{surface:?}: {s:?} {m:?}");
+    }
+}

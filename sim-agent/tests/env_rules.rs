@@ -137,17 +137,101 @@ fn training_starts_move_round_robin_and_evaluation_starts_at_the_line() {
     assert!(q.distance_from_center < 1e-6 && q.ndist < 1e-9);
 }
 
+/// Issue 12: an evaluation reset as DeepRacer's evaluation worker does it (§6.2), checked row
+/// by row: the `off_track` row carries the whole penalty in `pause_duration`; the car is put
+/// back at the previous row's progress in the lane nearer to where it stood; it waits there
+/// for `penalty × 15` `pause` rows (reward 0, steps and clock running at 15 Hz, the remaining
+/// seconds counting down to 0); driving resumes with `in_progress`. When the resets run out
+/// the `off_track` row ends the trial.
 #[test]
-fn evaluation_resets_an_off_track_car_with_a_penalty_until_resets_run_out() {
-    let rules = EvalRules { max_resets: 2, penalty_s: 5.0, time_limit_s: None };
+fn issue_12_an_evaluation_reset_waits_out_its_penalty_in_pause_rows_in_the_nearer_lane() {
+    let rules = EvalRules { max_resets: 2, penalty_s: 2.0, time_limit_s: None };
     let mut env = Env::new(base(), Arc::new(quiet()), Mode::Evaluation(rules), 1, 0.0).unwrap();
-    let steps = run_until_done(&mut env, |_| Action { steering_angle: 0.0, speed: 2.0 });
-    let off: Vec<&StepOutcome> = steps.iter().filter(|s| s.status == EpisodeStatus::OffTrack).collect();
-    assert_eq!(off.len(), 3, "two resets, then the episode ends");
-    assert!(!off[0].done && !off[1].done && off[2].done);
-    assert_eq!(off[2].resets, 2);
-    let last = steps.last().unwrap();
-    assert!((last.sim_time - (last.steps as f64 / 15.0 + 10.0)).abs() < 1e-9, "two 5 s penalties: {last:?}");
+    let dt = 1.0 / 15.0;
+    let (mut rows, mut poses) = (Vec::new(), vec![env.pose()]);
+    while rows.last().is_none_or(|o: &StepOutcome| !o.done) {
+        rows.push(env.step(Action { steering_angle: 0.0, speed: 2.0 }, REWARD).unwrap());
+        poses.push(env.pose());
+        assert!(rows.len() < 5000);
+    }
+    // The clock and the step counter run on through the pauses.
+    for (i, w) in rows.windows(2).enumerate() {
+        assert_eq!(w[1].steps, w[0].steps + 1, "row {i}");
+        assert!(
+            (w[1].trace.tstamp - w[0].trace.tstamp - dt).abs() < 1e-9,
+            "row {i}: {} then {}",
+            w[0].trace.tstamp,
+            w[1].trace.tstamp
+        );
+    }
+    let last = rows.last().unwrap();
+    assert!((last.sim_time - last.steps as f64 * dt).abs() < 1e-9, "no jump in the clock: {last:?}");
+    let off: Vec<usize> = (0..rows.len()).filter(|&i| rows[i].status == EpisodeStatus::OffTrack).collect();
+    assert_eq!(off.len(), 3, "two resets, then the trial ends");
+    assert_eq!(*off.last().unwrap(), rows.len() - 1);
+    assert_eq!((last.done, last.resets, last.trace.pause_duration), (true, 2, 0.0));
+    let track = env.track().clone();
+    for &i in &off[..2] {
+        let o = &rows[i];
+        assert!(!o.done && o.trace.pause_duration == 2.0, "row {i}: {o:?}");
+        // Put back at the previous row's progress, in the lane nearer to the pose before.
+        let held = poses[i + 1];
+        let along = rows[i - 1].progress / 100.0 * track.length();
+        let (at, heading) = track.reset_pose(along, P2::new(poses[i].x, poses[i].y));
+        assert!((held.x - at.x).abs() < 1e-6 && (held.y - at.y).abs() < 1e-6 && (held.yaw - heading).abs() < 1e-6);
+        let q = track.query(P2::new(held.x, held.y));
+        assert!((q.ndist * track.length() - along).abs() < 0.02, "at the previous row's progress");
+        assert!((q.distance_from_center - q.track_width / 4.0).abs() < 0.01, "in a lane: {q:?}");
+        let before = track.query(P2::new(poses[i].x, poses[i].y));
+        assert_eq!(q.is_left_of_center, before.is_left_of_center, "the nearer lane");
+        // 30 pause rows, held, reward 0, counting down to 0.
+        for k in 1..=30 {
+            let r = &rows[i + k];
+            assert_eq!((r.status, r.reward, r.done), (EpisodeStatus::Pause, 0.0, false), "row {}", i + k);
+            let want = (2.0 - k as f64 * dt).max(0.0);
+            assert!((r.trace.pause_duration as f64 - want).abs() < 1e-5, "pause row {k}: {}", r.trace.pause_duration);
+            assert_eq!(poses[i + k + 1], held, "the car is held during the pause");
+        }
+        let resumed = &rows[i + 31];
+        assert_eq!((resumed.status, resumed.trace.pause_duration), (EpisodeStatus::InProgress, 0.0));
+        assert!(resumed.reward > 0.0, "the reward function runs again");
+        assert_ne!(poses[i + 32], held, "and the car drives on");
+    }
+}
+
+/// Issue 12: DeepRacer holds the car in the `prepare` step (it sends zero speed and pins the
+/// model), so the first row is where the car starts; Gazebo's clock runs on from one trial
+/// to the next, so `tstamp` does too.
+#[test]
+fn issue_12_the_prepare_step_holds_the_car_and_the_clock_runs_on_across_trials() {
+    let mut env = Env::new(base(), Arc::new(quiet()), Mode::Evaluation(EvalRules::default()), 1, 0.0).unwrap();
+    let driver = PurePursuit::default();
+    let mut last_tstamp: Option<f64> = None;
+    for trial in 0..2 {
+        let start = env.pose();
+        let first = env.step(Action { steering_angle: 30.0, speed: 4.0 }, REWARD).unwrap();
+        assert_eq!(first.status, EpisodeStatus::Prepare);
+        assert_eq!(env.pose(), start, "trial {trial}: held in prepare");
+        assert!(env.car_state().forward_speed.abs() < 1e-9);
+        let front = P2::new(start.x + 0.14 * start.yaw.cos(), start.y + 0.14 * start.yaw.sin());
+        let want = env.track().query(front).ndist * 100.0;
+        assert!(
+            (first.progress - want).abs() < 1e-9,
+            "trial {trial}: progress {} vs the start's {want}",
+            first.progress
+        );
+        if let Some(t) = last_tstamp {
+            assert!(
+                (first.trace.tstamp - t - 1.0 / 15.0).abs() < 1e-9,
+                "trial {trial}: {} after {t}",
+                first.trace.tstamp
+            );
+        }
+        let rows = run_until_done(&mut env, |e| driver.act(e));
+        last_tstamp = Some(rows.last().unwrap().trace.tstamp);
+        env.reset();
+    }
+    assert!(last_tstamp.unwrap() > 20.0, "two laps of sim time");
 }
 
 #[test]
@@ -181,6 +265,7 @@ fn params_use_the_point_ahead_and_the_commanded_action() {
     cfg.noise.steering_deg = 5.0;
     let mut env = Env::new(base(), Arc::new(cfg), Mode::Training, 9, 0.0).unwrap();
     let a = Action { steering_angle: 12.5, speed: 1.25 };
+    env.step(a, REWARD).unwrap(); // prepare: the car is held
     env.advance(a);
     let p = env.params().clone();
     env.finish(0.0);
@@ -191,7 +276,7 @@ fn params_use_the_point_ahead_and_the_commanded_action() {
     assert_eq!((p.steering_angle, p.speed), (12.5, 1.25), "params report the command, not the noisy execution");
     assert_ne!(env.executed_steering_deg(), 12.5, "the car executed a noisy command");
     assert!(!p.is_reversed && p.all_wheels_on_track && !p.is_offtrack);
-    assert_eq!(p.steps, 1.0);
+    assert_eq!(p.steps, 2.0);
     let rev = EnvSpec::from_world(&tracks::world("reinvent_base").unwrap(), Direction::Reversed);
     let mut env = Env::new(rev, Arc::new(quiet()), Mode::Training, 9, 0.0).unwrap();
     env.advance(a);
@@ -206,6 +291,7 @@ fn a_world_can_carry_its_own_noise() {
     let mut cfg = SimConfig::default();
     cfg.noise.steering_deg = 10.0;
     let mut env = Env::new(spec, Arc::new(cfg), Mode::Training, 3, 0.0).unwrap();
+    env.step(Action { steering_angle: 7.0, speed: 1.0 }, REWARD).unwrap(); // prepare: held
     env.advance(Action { steering_angle: 7.0, speed: 1.0 });
     assert_eq!(env.executed_steering_deg(), 7.0);
 }
@@ -213,6 +299,7 @@ fn a_world_can_carry_its_own_noise() {
 #[test]
 fn commands_are_clamped_to_the_cars_limits() {
     let mut env = Env::new(base(), Arc::new(quiet()), Mode::Training, 1, 0.0).unwrap();
+    env.step(Action { steering_angle: 80.0, speed: 9.0 }, REWARD).unwrap(); // prepare: held
     env.advance(Action { steering_angle: 80.0, speed: 9.0 });
     assert_eq!(env.executed_steering_deg(), 30.0);
     assert_eq!(env.params().speed, 9.0, "params keep the command as given, as DeepRacer does");

@@ -230,6 +230,9 @@ pub struct Track {
     center: Polyline,
     inner: Polyline,
     outer: Polyline,
+    /// The lanes: midlines between the centre line and each border, row by row (DeepRacer's
+    /// `inner_lane` / `outer_lane`), where a reset puts the car.
+    lanes: [Polyline; 2],
     /// Normalised distance of each centre vertex, last = 1.0 (`TrackLine.ndists`).
     ndists: Vec<f64>,
     road_edges: Vec<(P2, P2)>,
@@ -242,8 +245,10 @@ const GRID_MARGIN: f64 = 1.5;
 const ROAD_CELL: f64 = 0.2;
 
 impl Track {
-    /// Build the geometry from validated rows for one direction.
+    /// Build the geometry from validated rows for one direction. Repeated rows are dropped
+    /// first ([`TrackRows::sanitized`]), as DeepRacer's simapp drops them.
     pub fn new(name: &str, rows: &TrackRows, direction: Direction) -> Track {
+        let rows = &rows.sanitized();
         let closed = rows.is_closed();
         let rev = |v: &Vec<P2>| -> Vec<P2> {
             let mut v = v.clone();
@@ -255,6 +260,10 @@ impl Track {
         let center = Polyline::new(rev(&rows.center), GRID_MARGIN);
         let inner = Polyline::new(rev(&rows.inner), GRID_MARGIN);
         let outer = Polyline::new(rev(&rows.outer), GRID_MARGIN);
+        let lane = |border: &Vec<P2>| -> Vec<P2> {
+            rev(&border.iter().zip(&rows.center).map(|(b, c)| P2::from((b.coords + c.coords) / 2.0)).collect())
+        };
+        let lanes = [Polyline::new(lane(&rows.inner), GRID_MARGIN), Polyline::new(lane(&rows.outer), GRID_MARGIN)];
         let forward_ccw = if closed { signed_area(&rows.center) > 0.0 } else { true };
         let ccw = forward_ccw ^ (direction == Direction::Reversed);
         let len = center.length();
@@ -277,6 +286,7 @@ impl Track {
             center,
             inner,
             outer,
+            lanes,
             ndists,
             road_edges,
             road_grid: OnceLock::new(),
@@ -326,19 +336,6 @@ impl Track {
     /// The outer border.
     pub fn outer(&self) -> &Polyline {
         &self.outer
-    }
-
-    /// Width between border rows: (min, mean, max) over all rows, as STATS.md counts them (m).
-    pub fn width_stats(&self) -> (f64, f64, f64) {
-        let n = self.center.points().len();
-        let widths = (0..n).map(|i| (self.inner.points()[i] - self.outer.points()[i]).norm());
-        let (mut lo, mut hi, mut sum) = (f64::MAX, 0.0f64, 0.0);
-        for w in widths {
-            lo = lo.min(w);
-            hi = hi.max(w);
-            sum += w;
-        }
-        (lo, sum / n as f64, hi)
     }
 
     /// `closest_waypoints` for a normalised distance (`find_prev_next` with `bisect_right`).
@@ -435,6 +432,26 @@ impl Track {
         let len = self.length();
         let along = if self.closed { along.rem_euclid(len) } else { along.clamp(0.0, len) };
         (self.center.interpolate(along), self.center.direction_at(along))
+    }
+
+    /// Where DeepRacer puts a car back after it left the track (`_get_car_reset_model_state`):
+    /// the centre-line point at distance `along`, projected onto the inner and the outer lane;
+    /// of the two, the one nearer to `near` (the car's position before it left), facing along
+    /// its lane (forward difference).
+    pub fn reset_pose(&self, along: f64, near: P2) -> (P2, f64) {
+        let len = self.length();
+        let along = if self.closed { along.rem_euclid(len) } else { along.clamp(0.0, len) };
+        let c = self.center.interpolate(along);
+        let [a, b] = [&self.lanes[0], &self.lanes[1]].map(|lane| {
+            let p = lane.project(c);
+            (p.point, lane.direction_at(p.along))
+        });
+        if (a.0 - near).norm() < (b.0 - near).norm() { a } else { b }
+    }
+
+    /// The inner and outer lanes (midlines between the centre line and each border).
+    pub fn lanes(&self) -> &[Polyline; 2] {
+        &self.lanes
     }
 }
 

@@ -63,6 +63,8 @@ pub struct TrackSummary {
     pub name: String,
     /// Rows in the file.
     pub rows: usize,
+    /// Waypoints reward functions see: the rows less the repeated ones.
+    pub waypoints: usize,
     /// Centre-line length (m).
     pub length: f64,
     /// Narrowest width between border rows (m).
@@ -75,7 +77,7 @@ pub struct TrackSummary {
     pub closed: bool,
     /// "ccw", "cw", or "open".
     pub direction: &'static str,
-    /// Rows that repeat the previous row (kept, as DeepRacer keeps them).
+    /// Rows that repeat the previous row (dropped on load, as DeepRacer's simapp drops them).
     pub repeated_rows: Vec<usize>,
 }
 
@@ -83,10 +85,11 @@ impl TrackSummary {
     /// Summarise a track (forward direction).
     pub fn of(name: &str, rows: &TrackRows) -> TrackSummary {
         let track = Track::new(name, rows, Direction::Forward);
-        let (min_width, mean_width, max_width) = track.width_stats();
+        let (min_width, mean_width, max_width) = rows.width_stats();
         TrackSummary {
             name: name.to_string(),
             rows: rows.len(),
+            waypoints: track.waypoints().len(),
             length: track.length(),
             min_width,
             mean_width,

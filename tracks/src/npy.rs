@@ -10,7 +10,8 @@ use npyz::{DType, Order, TypeChar};
 
 /// The raw rows of a track file, validated: at least 3 finite rows, no zero-length
 /// centre-line segment (other than a whole row repeated, which DeepRacer's own files do),
-/// no border crossing the centre line.
+/// no border crossing the centre line. [`TrackRows::sanitized`] drops the repeats, as
+/// DeepRacer's simapp does when it loads a track; [`crate::Track`] is built from that.
 #[derive(Clone, Debug, PartialEq)]
 pub struct TrackRows {
     /// Centre line, one point per row.
@@ -32,9 +33,8 @@ impl TrackRows {
         self.center.is_empty()
     }
 
-    /// Whether row `i` repeats row `i - 1` in all six values. DeepRacer's own files do this
-    /// (e.g. `AWS_track` row 187); shapely keeps such points, and so do we, so that
-    /// waypoint indices match what reward functions see.
+    /// Whether row `i` repeats row `i - 1` in all six values (within 1e-9 m). DeepRacer's own
+    /// files do this (e.g. `AWS_track` row 187, `reInvent2019_track` row 39).
     pub fn repeats_previous(&self, i: usize) -> bool {
         i > 0
             && (self.center[i] - self.center[i - 1]).norm() <= CLOSE_EPS
@@ -42,9 +42,36 @@ impl TrackRows {
             && (self.outer[i] - self.outer[i - 1]).norm() <= CLOSE_EPS
     }
 
-    /// Rows that repeat the previous row exactly (kept, as DeepRacer keeps them).
+    /// Rows that repeat the previous row (dropped by [`TrackRows::sanitized`]).
     pub fn repeated_rows(&self) -> Vec<usize> {
         (1..self.len()).filter(|&i| self.repeats_previous(i)).collect()
+    }
+
+    /// The rows without those that repeat the previous one: DeepRacer's simapp removes
+    /// consecutive duplicate waypoints when it loads a track (its waypoint sanitising, eps
+    /// 1e-9), so `reInvent2019_track`'s 155 rows give reward functions 154 `waypoints` and
+    /// `closest_waypoints` count from that list. Validation allows a repeated centre point
+    /// only as a whole repeated row, so dropping the row changes no line's shape.
+    pub fn sanitized(&self) -> TrackRows {
+        let keep: Vec<usize> = (0..self.len()).filter(|&i| !self.repeats_previous(i)).collect();
+        TrackRows {
+            center: keep.iter().map(|&i| self.center[i]).collect(),
+            inner: keep.iter().map(|&i| self.inner[i]).collect(),
+            outer: keep.iter().map(|&i| self.outer[i]).collect(),
+        }
+    }
+
+    /// Width between border rows: (min, mean, max) over every row of the file, as STATS.md
+    /// counts them (m).
+    pub fn width_stats(&self) -> (f64, f64, f64) {
+        let n = self.len();
+        let (mut lo, mut hi, mut sum) = (f64::MAX, 0.0f64, 0.0);
+        for w in self.inner.iter().zip(&self.outer).map(|(i, o)| (i - o).norm()) {
+            lo = lo.min(w);
+            hi = hi.max(w);
+            sum += w;
+        }
+        (lo, sum / n as f64, hi)
     }
 
     /// A closed loop repeats its first row as its last, as every DeepRacer loop file does.

@@ -16,13 +16,15 @@ fn a_hand_written_file_loads_with_the_right_figures() {
 }
 
 #[test]
-fn whole_repeated_rows_are_kept_as_deepracer_keeps_them() {
+fn issue_12_whole_repeated_rows_load_and_are_dropped_as_deepracer_drops_them() {
     let mut rows = rectangle_rows();
     rows.insert(2, rows[1]);
     let parsed = parse_track_npy(&f8_rows(&rows), "rep.npy").unwrap();
     assert_eq!(parsed.len(), 6);
     assert_eq!(parsed.repeated_rows(), vec![2]);
+    assert_eq!(parsed.sanitized(), parse_track_npy(&f8_rows(&rectangle_rows()), "rect.npy").unwrap());
     let s = TrackSummary::of("rep", &parsed);
+    assert_eq!((s.rows, s.waypoints), (6, 5));
     assert!((s.length - 12.0).abs() < 1e-12);
 }
 
