@@ -106,3 +106,18 @@ fn issue_12_full_throttle_braking_and_full_lock_at_4_m_s_keep_the_car_on_its_whe
         assert!((s.yaw - 1.0).abs() < 0.01 && (s.forward_speed - 4.0).abs() < 0.05, "{surface:?}: {s:?} {m:?}");
     }
 }
+
+/// Issue 12: the wheel centres `all_wheels_on_track` and `is_offtrack` test are DeepRacer's
+/// URDF links, front and rear axles each with its own half-track (left rear, left front,
+/// right rear, right front, as `LINK_NAMES`), not an averaged one.
+#[test]
+fn issue_12_the_wheels_sit_where_deepracers_urdf_puts_them() {
+    let urdf = [[-0.081663, 0.08105], [0.082311, 0.079601], [-0.081663, -0.08105], [0.082311, -0.079601]];
+    let wheels = sim_agent::car::wheel_layout(&CarParams::default());
+    for (w, u) in wheels.iter().zip(urdf) {
+        assert!((w[0] - u[0]).abs() < 1e-12 && (w[1] - u[1]).abs() < 1e-12, "{wheels:?}");
+    }
+    // Placed at a pose: rotated and moved with the car.
+    let at = sim_agent::car::wheel_points_at(&CarParams::default(), 1.0, 2.0, std::f64::consts::FRAC_PI_2);
+    assert!((at[1][0] - (1.0 - 0.079601)).abs() < 1e-12 && (at[1][1] - (2.0 + 0.082311)).abs() < 1e-12, "{at:?}");
+}

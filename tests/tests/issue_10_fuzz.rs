@@ -289,6 +289,37 @@ proptest! {
     }
 }
 
+/// A small state-vector model's parts: the seed of the model-folder target.
+fn model_parts() -> policy::ModelParts {
+    let meta = policy::ModelMetadata::default_state_vector();
+    let model =
+        policy::ActorCritic::new(&meta, 3, &mut <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(2));
+    let manifest = policy::Manifest {
+        format: "paddock-model-1".into(),
+        policy_version: 5,
+        parent: None,
+        weights_sha256: String::new(),
+        obs_size: 3,
+        observation: serde_json::json!({}),
+        training: serde_json::json!({}),
+    };
+    policy::ModelParts::new(&meta, &model, &manifest, None)
+}
+
+proptest! {
+    #![proptest_config(config())]
+
+    /// A model folder whose weights file is damaged or forged but whose manifest names its
+    /// checksum (so the bytes reach the safetensors parser and the tensor checks).
+    #[test]
+    fn issue_10_fuzz_model_folder_weights(bytes in inputs(vec![model_parts().weights])) {
+        let parts = model_parts();
+        let mut manifest: serde_json::Value = serde_json::from_str(&parts.manifest_json).unwrap();
+        manifest["weights_sha256"] = policy::folder::sha256_hex(&bytes).into();
+        let _ = policy::folder::from_parts(&parts.metadata_json, &manifest.to_string(), &bytes, Path::new("fuzz"));
+    }
+}
+
 /// The allocator's limit is real: a request beyond it fails (and the run would abort).
 #[test]
 fn the_heap_limit_is_in_force() {
