@@ -125,9 +125,7 @@ pub struct Env {
     car: Car,
     rng: ChaCha8Rng,
     dt: f64,
-    /// The simulation clock: runs on across episodes (s).
-    world_time: f64,
-    /// `world_time` when this episode started.
+    /// `clock.sim_time` (which runs on across episodes) when this episode started.
     episode_start: f64,
     /// A reset's penalty being waited out: `pause` steps left and the seconds they stand for.
     pause: Option<(u32, f64)>,
@@ -154,8 +152,6 @@ struct Pending {
     truncated: bool,
     lap_time: Option<f64>,
     prepare: bool,
-    /// A `pause` step: held, reward 0, the reward function not called.
-    paused: bool,
     /// This step's `pause_duration` (s).
     pause_duration: f64,
     /// Where the car stood before this step (for the reset's lane).
@@ -186,7 +182,6 @@ impl Env {
             car,
             rng: ChaCha8Rng::seed_from_u64(seed),
             dt,
-            world_time: 0.0,
             episode_start: 0.0,
             pause: None,
             episode: 0,
@@ -221,9 +216,10 @@ impl Env {
         self.episode += 1;
         self.start_ndist = start;
         self.place_on_centre_line(start);
-        self.episode_start = self.world_time;
-        self.clock = EpisodeClock { start_ndist: start, prev_progress: 0.0, steps: 0, sim_time: self.world_time };
-        self.lap_start_time = self.world_time;
+        let now = self.clock.sim_time;
+        self.episode_start = now;
+        self.clock = EpisodeClock { start_ndist: start, prev_progress: 0.0, steps: 0, sim_time: now };
+        self.lap_start_time = now;
         self.pause = None;
         self.reverse_count = 0;
         self.immobile_count = 0;
@@ -252,11 +248,11 @@ impl Env {
         let steer = (action.steering_angle + noise.steering_deg * n1).clamp(-MAX_STEERING_DEG, MAX_STEERING_DEG);
         let speed = (action.speed * (1.0 + noise.speed_fraction * n2)).clamp(MIN_SPEED, MAX_SPEED);
         let prepare = self.clock.steps == 0;
-        let paused = self.pause.is_some();
+        // DeepRacer's prepare and pause phases send zero speed and pin the car where it
+        // stands; the model's action is only logged.
+        let held = prepare || self.pause.is_some();
         let last = self.pose;
-        if prepare || paused {
-            // DeepRacer's prepare and pause phases send zero speed and pin the car where it
-            // stands; the model's action is only logged.
+        if held {
             self.car.reset(last.x, last.y, last.yaw);
             self.executed_steer_deg = 0.0;
         } else {
@@ -265,13 +261,14 @@ impl Env {
                 self.car.step(steer_rad, speed);
             }
             self.executed_steer_deg = steer;
-            let state = self.car.state();
+        }
+        let state = self.car.state();
+        if !held {
             self.pose = Pose { x: state.x, y: state.y, yaw: state.yaw };
         }
         self.clock.steps += 1;
-        self.world_time += self.dt;
-        self.clock.sim_time = self.world_time;
-        let wheels = self.car.wheel_points(&self.car.state());
+        self.clock.sim_time += self.dt;
+        let wheels = self.car.wheel_points(&state);
         let params = compute_params(&self.spec.track, &self.pose, &wheels, action, &self.clock);
 
         let ep = &self.cfg.episode;
@@ -300,7 +297,7 @@ impl Env {
                 EpisodeStatus::InProgress
             }
         };
-        let lap_time = (status == EpisodeStatus::LapComplete).then(|| self.world_time - self.lap_start_time);
+        let lap_time = (status == EpisodeStatus::LapComplete).then(|| self.clock.sim_time - self.lap_start_time);
         let mut ends = match status {
             EpisodeStatus::Prepare | EpisodeStatus::InProgress | EpisodeStatus::Pause => false,
             EpisodeStatus::LapComplete => !matches!(&self.mode, Mode::Evaluation(r) if r.time_limit_s.is_some()),
@@ -311,7 +308,7 @@ impl Env {
             EpisodeStatus::TimeUp => true,
         };
         if let Mode::Evaluation(EvalRules { time_limit_s: Some(limit), .. }) = self.mode {
-            if !ends && self.world_time - self.episode_start >= limit {
+            if !ends && self.clock.sim_time - self.episode_start >= limit {
                 status = EpisodeStatus::TimeUp;
                 ends = true;
             }
@@ -324,7 +321,6 @@ impl Env {
             truncated,
             lap_time,
             prepare,
-            paused: status == EpisodeStatus::Pause,
             pause_duration,
             before: last,
         });
@@ -338,13 +334,13 @@ impl Env {
     /// Whether that step calls the reward function (every step but `prepare` and `pause`).
     pub fn needs_reward(&self) -> bool {
         let p = self.pending.as_ref().expect("advance() first");
-        !(p.prepare || p.paused)
+        !(p.prepare || p.status == EpisodeStatus::Pause)
     }
 
     /// Close the step with its reward (ignored on `prepare` and `pause` steps: reward 0).
     pub fn finish(&mut self, reward: f64) -> StepOutcome {
         let p = self.pending.take().expect("advance() first");
-        let reward = if p.prepare || p.paused { 0.0 } else { reward };
+        let reward = if p.prepare || p.status == EpisodeStatus::Pause { 0.0 } else { reward };
         self.episode_reward += reward;
         let progress = p.params.progress;
         // The previous step's progress, before this step's replaces it (a reset goes there).
@@ -353,7 +349,7 @@ impl Env {
         self.clock.prev_progress = if progress >= 100.0 { 0.0 } else { progress };
         if p.status == EpisodeStatus::LapComplete {
             self.laps += 1;
-            self.lap_start_time = self.world_time;
+            self.lap_start_time = self.clock.sim_time;
         }
         let failed = matches!(p.status, EpisodeStatus::OffTrack | EpisodeStatus::Reversed | EpisodeStatus::Immobilized);
         let mut pause_duration = p.pause_duration;
@@ -404,7 +400,7 @@ impl Env {
             status: p.status,
             progress,
             steps: self.clock.steps,
-            sim_time: self.world_time - self.episode_start,
+            sim_time: self.clock.sim_time - self.episode_start,
             lap_time: p.lap_time,
             episode_reward: self.episode_reward,
             resets: self.resets,

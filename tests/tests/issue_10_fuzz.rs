@@ -117,19 +117,7 @@ fn message_seeds() -> Vec<Vec<u8>> {
         frame: None,
     };
     let c = policy::exchange::Credit { version: 4, round: 2, episodes: [("a1".to_string(), 10u64)].into() };
-    let meta = policy::ModelMetadata::default_state_vector();
-    let model =
-        policy::ActorCritic::new(&meta, 3, &mut <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(1));
-    let manifest = policy::Manifest {
-        format: "paddock-model-1".into(),
-        policy_version: 3,
-        parent: None,
-        weights_sha256: String::new(),
-        obs_size: 3,
-        observation: serde_json::json!({}),
-        training: serde_json::json!({}),
-    };
-    let parts = policy::ModelParts::new(&meta, &model, &manifest, None);
+    let parts = model_parts();
     vec![
         encode(&ex::experience_to_wire("job1", &e, 3)),
         encode(&ex::credit_to_wire("job1", &c)),
@@ -289,14 +277,14 @@ proptest! {
     }
 }
 
-/// A small state-vector model's parts: the seed of the model-folder target.
+/// A small state-vector model's parts: in the model update seed and the model-folder target.
 fn model_parts() -> policy::ModelParts {
     let meta = policy::ModelMetadata::default_state_vector();
     let model =
-        policy::ActorCritic::new(&meta, 3, &mut <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(2));
+        policy::ActorCritic::new(&meta, 3, &mut <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(1));
     let manifest = policy::Manifest {
         format: "paddock-model-1".into(),
-        policy_version: 5,
+        policy_version: 3,
         parent: None,
         weights_sha256: String::new(),
         obs_size: 3,

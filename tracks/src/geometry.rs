@@ -448,11 +448,6 @@ impl Track {
         });
         if (a.0 - near).norm() < (b.0 - near).norm() { a } else { b }
     }
-
-    /// The inner and outer lanes (midlines between the centre line and each border).
-    pub fn lanes(&self) -> &[Polyline; 2] {
-        &self.lanes
-    }
 }
 
 /// Shoelace signed area (positive = counter-clockwise).
