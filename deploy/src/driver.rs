@@ -76,6 +76,15 @@ pub struct ModelSlot {
     last_refusal: Mutex<String>,
 }
 
+/// Make the calling thread a background one (Linux niceness 19): a model's decode, checksum
+/// and load take about 200 ms of CPU, and on a car's few cores they must never hold back the
+/// thread that answers frames (the frame period is 66 ms). The kernel still gives the loader
+/// every cycle the drive loop leaves idle.
+pub fn background_thread() -> Result<(), String> {
+    thread_priority::set_current_thread_priority(thread_priority::ThreadPriority::Min)
+        .map_err(|e| format!("lowering the loader thread's priority: {e:?}"))
+}
+
 impl ModelSlot {
     /// The model driving now.
     pub fn current(&self) -> Option<Arc<VerifiedModel>> {

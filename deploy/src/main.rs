@@ -2,9 +2,10 @@
 //!
 //! Threads: Zenoh's callbacks put the newest camera message in a one-frame mailbox (an older
 //! one not yet driven is replaced and counted) and hand model publications to the loader; the
-//! loader verifies each model and swaps it into the [`ModelSlot`]; the drive loop answers every
-//! frame with a `ServoCtrlMsg` and runs the watchdog between frames; once a second the car's
-//! status goes out beside its liveliness token.
+//! loader (a background thread, niceness 19) verifies each model and swaps it into the
+//! [`ModelSlot`]; the drive loop answers every frame with a `ServoCtrlMsg` and runs the
+//! watchdog between frames; once a second the car's status goes out beside its liveliness
+//! token.
 
 mod bench;
 
@@ -173,7 +174,12 @@ fn run(cli: Cli) -> Result<()> {
     let loader = {
         let (slot, car, dir, job, follow) =
             (slot.clone(), car.clone(), cli.model_dir.clone(), cli.job.clone().unwrap_or_default(), cli.follow.clone());
-        std::thread::spawn(move || load_models(model_rx, &slot, &trust, &car, dir.as_deref(), &job, &follow))
+        std::thread::spawn(move || {
+            if let Err(e) = deploy::driver::background_thread() {
+                tracing::warn!("{e}; models load at the drive loop's priority");
+            }
+            load_models(model_rx, &slot, &trust, &car, dir.as_deref(), &job, &follow)
+        })
     };
 
     // The e-stop.
