@@ -7,7 +7,7 @@ mod team_bench;
 
 use faer::Par;
 use learner::Hyperparameters;
-use learner::ppo::{Batch, Workspace, loss_and_grad_with};
+use learner::ppo::{Batch, Workspace, loss_and_grad_factored};
 use policy::{ActorCritic, ModelMetadata};
 use rand::{Rng, SeedableRng};
 use std::time::Instant;
@@ -164,23 +164,27 @@ fn bench(network: &str, seconds: f64, threads: usize) -> anyhow::Result<()> {
     };
     let idx: Vec<usize> = (0..n).collect();
     let h = Hyperparameters::default();
-    // What one minibatch costs in training: forward + backward of both towers, and (`adam`)
-    // the optimiser step over every parameter, as `Ppo::update` does it.
+    // What one minibatch costs in training: forward + backward of both towers (the big dense
+    // layers' weight gradients left as factors), and (`adam`) the whole gradient step as
+    // `Ppo::update` takes it: those gradients multiplied out block by block and Adam applied
+    // to each block while it is in cache, over every parameter.
     let time = |par: Par, secs: f64, adam: bool| {
         let mut ws = Workspace::default();
-        let mut m = model.clone();
-        let mut opt_pi = policy::nn::Adam::new(m.pi.params.len(), 3e-4);
-        let mut opt_v = policy::nn::Adam::new(m.v.params.len(), 3e-4);
-        std::hint::black_box(loss_and_grad_with(&mut ws, &m, &batch, &idx, &h, par));
+        let mut ppo = learner::ppo::Ppo::new(model.clone(), h.clone(), 0, 1, par);
+        let defer = (model.pi.factorable(n), model.v.factorable(n));
+        let mut once = || {
+            if adam {
+                std::hint::black_box(ppo.gradient_step(&batch, &idx));
+            } else {
+                let lg = loss_and_grad_factored(&mut ws, &model, &batch, &idx, &h, par, (&defer.0, &defer.1));
+                ws.recycle(std::hint::black_box(lg));
+            }
+        };
+        once();
         let t = Instant::now();
         let mut k = 0;
         while t.elapsed().as_secs_f64() < secs || k < 2 {
-            let lg = loss_and_grad_with(&mut ws, &m, &batch, &idx, &h, par);
-            if adam {
-                opt_pi.step_with(&mut m.pi.params, &lg.grad_pi, par);
-                opt_v.step_with(&mut m.v.params, &lg.grad_v, par);
-            }
-            ws.recycle(std::hint::black_box(lg));
+            once();
             k += 1;
         }
         (k * n) as f64 / t.elapsed().as_secs_f64()
@@ -215,14 +219,22 @@ fn bench(network: &str, seconds: f64, threads: usize) -> anyhow::Result<()> {
         let fb = time(par, seconds, false);
         let full = time(par, seconds, true);
         let ceiling = gemm_only(par);
-        println!("| {t} thread(s): forward + backward | {fb:.0} |");
+        println!("| {t} thread(s): forward + backward (the big dense layers' weight gradients as factors) | {fb:.0} |");
         println!(
-            "| {t} thread(s): forward + backward + Adam (one training step) | {full:.0} (Adam {:.0} % of the step) |",
+            "| {t} thread(s): forward + backward + optimiser (one training step) | {full:.0} (the optimiser step {:.0} % of it) |",
             100.0 * (1.0 - full / fb)
         );
         println!(
             "| {t} thread(s): reference, the same GEMMs alone (the ceiling) | {ceiling:.0} (the training step reaches {:.0} %) |",
             100.0 * full / ceiling
+        );
+        // Adam alone over every parameter (a memory-bound pass: weights, both moments read
+        // and written, the gradient read): what a step costs beyond its GEMMs at the least.
+        let adam_ms = adam_alone(&model, par, seconds.min(3.0));
+        let best = n as f64 / (n as f64 / ceiling + adam_ms / 1e3);
+        println!(
+            "| {t} thread(s): Adam alone over the {params} parameters | {adam_ms:.1} ms a step: GEMMs + Adam alone would make {best:.0}, {:.0} % of the ceiling |",
+            100.0 * best / ceiling
         );
     }
     let single: Vec<f32> = batch.obs[..os].to_vec();
@@ -248,6 +260,31 @@ fn bench(network: &str, seconds: f64, threads: usize) -> anyhow::Result<()> {
     let ms_pi = t.elapsed().as_secs_f64() * 1e3 / k as f64;
     println!("| inference at batch 1 (policy tower only, as on the car), 1 thread | {ms_pi:.3} ms |");
     Ok(())
+}
+
+/// Milliseconds per Adam step over both towers' parameters, on a gradient already in memory.
+fn adam_alone(model: &ActorCritic, par: Par, seconds: f64) -> f64 {
+    let mut opts = [
+        (
+            model.pi.params.clone(),
+            vec![1e-3f32; model.pi.params.len()],
+            policy::nn::Adam::new(model.pi.params.len(), 3e-4),
+        ),
+        (
+            model.v.params.clone(),
+            vec![1e-3f32; model.v.params.len()],
+            policy::nn::Adam::new(model.v.params.len(), 3e-4),
+        ),
+    ];
+    let t = Instant::now();
+    let mut k = 0;
+    while t.elapsed().as_secs_f64() < seconds || k < 3 {
+        for (p, g, opt) in opts.iter_mut() {
+            opt.step_with(p, g, par);
+        }
+        k += 1;
+    }
+    t.elapsed().as_secs_f64() * 1e3 / k as f64
 }
 
 /// (m, n, k, a_t, b_t) of every GEMM one tower's forward and backward make for a batch.

@@ -10,7 +10,7 @@
 use crate::hyperparams::{Hyperparameters, LossType};
 use faer::Par;
 use policy::model::{LOG_STD_RANGE, clip_log_std, gaussian_entropy, gaussian_logp, log_softmax};
-use policy::nn::{Adam, Factors, Tape, gemm};
+use policy::nn::{Adam, FactoredGrad, Factors, Tape};
 use policy::{ActorCritic, Choice, Head, Trajectory};
 use rand::SeedableRng;
 use rand::seq::SliceRandom;
@@ -173,14 +173,24 @@ pub fn loss_and_grad_factored(
     let n = idx.len();
     let os = batch.obs_size;
     let Workspace { tape_pi, tape_v, obs, grad_pi, grad_v } = ws;
-    let take_zeroed = |buf: &mut Vec<f32>, len: usize| {
+    // Zeroed but for the deferred layers' weights, which the backward pass leaves alone
+    // (46 MB for SHALLOW's two towers, not written on every minibatch).
+    let take_zeroed = |buf: &mut Vec<f32>, net: &policy::nn::Net, defer: &[usize]| {
         let mut v = std::mem::take(buf);
-        v.clear();
-        v.resize(len, 0.0);
+        if v.len() != net.params.len() {
+            v.clear();
+            v.resize(net.params.len(), 0.0);
+            return v;
+        }
+        let mut at = 0;
+        for (a, b) in deferred_ranges(net, defer).into_iter().chain(std::iter::once((v.len(), v.len()))) {
+            v[at..a].fill(0.0);
+            at = b;
+        }
         v
     };
-    let grad_pi = take_zeroed(grad_pi, model.pi.params.len());
-    let grad_v = take_zeroed(grad_v, model.v.params.len());
+    let grad_pi = take_zeroed(grad_pi, &model.pi, defer.0);
+    let grad_v = take_zeroed(grad_v, &model.v, defer.1);
     obs.clear();
     for &i in idx {
         obs.extend_from_slice(&batch.obs[i * os..(i + 1) * os]);
@@ -277,6 +287,48 @@ pub fn loss_and_grad_factored(
     out_stats.total = out_stats.policy_loss - h.beta_entropy * out_stats.entropy + out_stats.value_loss;
     out_stats.grad_log_std = g_log_std;
     out_stats
+}
+
+/// The weights of the dense layers `defer` (layer indices of `net`), as sorted parameter
+/// ranges.
+fn deferred_ranges(net: &policy::nn::Net, defer: &[usize]) -> Vec<(usize, usize)> {
+    let mut r: Vec<(usize, usize)> = defer
+        .iter()
+        .filter_map(|&i| match net.layers[i] {
+            policy::nn::Layer::Dense { inp, out, offset } => Some((offset, offset + inp * out)),
+            _ => None,
+        })
+        .collect();
+    r.sort_unstable();
+    r
+}
+
+/// The factored layers' weight gradients of both towers as the optimiser takes them: this
+/// learner's own factors, or every team member's shares in rank order (`every`, as
+/// [`reduce`] received them: per member, layer by layer, `x` then `d`).
+fn factored_grads<'a>(
+    lg: &'a LossGrad,
+    every: Option<(&'a [Vec<f32>], &[usize])>,
+) -> (Vec<FactoredGrad<'a>>, Vec<FactoredGrad<'a>>) {
+    let mut all: Vec<FactoredGrad<'a>> = (lg.factors_pi.iter().chain(&lg.factors_v))
+        .map(|f| FactoredGrad {
+            offset: f.offset,
+            n_in: f.n_in,
+            n_out: f.n_out,
+            shares: if every.is_none() { vec![(&f.x[..], &f.d[..])] } else { Vec::new() },
+        })
+        .collect();
+    if let Some((every, shares)) = every {
+        for (fr, &b) in every.iter().zip(shares) {
+            let mut pos = 0;
+            for g in all.iter_mut() {
+                g.shares.push((&fr[pos..pos + b * g.n_in], &fr[pos + b * g.n_in..pos + b * (g.n_in + g.n_out)]));
+                pos += b * (g.n_in + g.n_out);
+            }
+        }
+    }
+    let v = all.split_off(lg.factors_pi.len());
+    (all, v)
 }
 
 /// What one training iteration did.
@@ -430,9 +482,9 @@ impl Ppo {
         let saved = (self.model.clone(), self.opt_pi.clone(), self.opt_v.clone(), self.opt_log_std.clone());
         let mut order: Vec<usize> = (0..n).collect();
         let mut ws = std::mem::take(&mut self.ws);
-        let (_, size) = group.shard();
-        let defer =
-            if size > 1 { (self.model.pi.factorable(bs), self.model.v.factorable(bs)) } else { Default::default() };
+        // The big dense layers' weight gradients stay factors until the optimiser multiplies
+        // them out block by block (alone or in a team: one path).
+        let defer = (self.model.pi.factorable(bs), self.model.v.factorable(bs));
         for _ in 0..self.hyper.num_epochs {
             order.shuffle(&mut shuffle);
             for mb in order.chunks_exact(bs) {
@@ -447,24 +499,26 @@ impl Ppo {
                     self.par,
                     (&defer.0, &defer.1),
                 );
+                let mut team = None;
                 if size > 1 {
                     let shares: Vec<usize> =
                         (0..size).map(|r| mb.len() * (r + 1) / size - mb.len() * r / size).collect();
-                    if let Err(why) = reduce(group, stats.gradient_steps as u64, &mut lg, &shares, rank) {
-                        (self.model, self.opt_pi, self.opt_v, self.opt_log_std) = saved;
-                        self.ws = ws;
-                        stats.refused =
-                            Some(format!("the learner group failed: {why}; weights kept at version {}", self.version));
-                        stats.policy_version = self.version;
-                        stats.group_failed = true;
-                        return stats;
+                    match reduce(group, stats.gradient_steps as u64, &mut lg, &shares, rank) {
+                        Ok(every) => team = Some((every, shares)),
+                        Err(why) => {
+                            (self.model, self.opt_pi, self.opt_v, self.opt_log_std) = saved;
+                            self.ws = ws;
+                            stats.refused = Some(format!(
+                                "the learner group failed: {why}; weights kept at version {}",
+                                self.version
+                            ));
+                            stats.policy_version = self.version;
+                            stats.group_failed = true;
+                            return stats;
+                        }
                     }
                 }
-                let finite = lg.total.is_finite()
-                    && lg.grad_pi.iter().all(|g| g.is_finite())
-                    && lg.grad_v.iter().all(|g| g.is_finite())
-                    && lg.grad_log_std.iter().all(|g| g.is_finite());
-                if !finite {
+                if !self.apply(&lg, team.as_ref().map(|(e, s)| (&e[..], &s[..]))) {
                     (self.model, self.opt_pi, self.opt_v, self.opt_log_std) = saved;
                     self.ws = ws;
                     stats.refused = Some(format!(
@@ -473,11 +527,6 @@ impl Ppo {
                     ));
                     stats.policy_version = self.version;
                     return stats;
-                }
-                self.opt_pi.step_with(&mut self.model.pi.params, &lg.grad_pi, self.par);
-                self.opt_v.step_with(&mut self.model.v.params, &lg.grad_v, self.par);
-                if let Head::Gaussian { log_std } = &mut self.model.head {
-                    self.opt_log_std.step(log_std, &lg.grad_log_std);
                 }
                 stats.policy_loss += lg.policy_loss;
                 stats.value_loss += lg.value_loss;
@@ -498,6 +547,34 @@ impl Ppo {
         self.version += 1;
         stats.policy_version = self.version;
         stats
+    }
+
+    /// The optimiser step of one minibatch: Adam on both towers (the factored layers'
+    /// gradients multiplied out from this learner's factors, or from every team member's
+    /// shares in `team`) and on the log-std. Returns whether the loss and every gradient value
+    /// were finite; when not, the caller restores the state it saved.
+    fn apply(&mut self, lg: &LossGrad, team: Option<(&[Vec<f32>], &[usize])>) -> bool {
+        let (f_pi, f_v) = factored_grads(lg, team);
+        let mut finite = lg.total.is_finite() && lg.grad_log_std.iter().all(|g| g.is_finite());
+        finite &= self.opt_pi.step_factored(&mut self.model.pi.params, &lg.grad_pi, &f_pi, self.par);
+        finite &= self.opt_v.step_factored(&mut self.model.v.params, &lg.grad_v, &f_v, self.par);
+        if let Head::Gaussian { log_std } = &mut self.model.head {
+            self.opt_log_std.step(log_std, &lg.grad_log_std);
+        }
+        finite
+    }
+
+    /// One gradient step of a learner alone on the samples `idx` of `batch`, as an update
+    /// takes each minibatch (forward, backward, the optimiser step): what `learner bench`
+    /// times. No refusal here: returns whether the numbers were finite.
+    pub fn gradient_step(&mut self, batch: &Batch, idx: &[usize]) -> bool {
+        let defer = (self.model.pi.factorable(idx.len()), self.model.v.factorable(idx.len()));
+        let mut ws = std::mem::take(&mut self.ws);
+        let lg = loss_and_grad_factored(&mut ws, &self.model, batch, idx, &self.hyper, self.par, (&defer.0, &defer.1));
+        let ok = self.apply(&lg, None);
+        ws.recycle(lg);
+        self.ws = ws;
+        ok
     }
 
     /// The state a joining member takes over.
@@ -583,14 +660,14 @@ fn kept<'a>(grad: &'a [f32], skip: &'a [(usize, usize)]) -> impl Iterator<Item =
 /// Weight this learner's share of a minibatch (`shares[rank]` of all its samples) and sum it
 /// over the group: gradients of both towers (but the factored layers' weights), the log-std
 /// gradient and the loss figures in one vector; the factored layers' weight gradients as
-/// every member's factors, multiplied out and added in rank order.
+/// every member's factors, returned in rank order for the optimiser to multiply out.
 fn reduce(
     group: &mut dyn Reducer,
     step: u64,
     lg: &mut LossGrad,
     shares: &[usize],
     rank: usize,
-) -> Result<(), GroupError> {
+) -> Result<Vec<Vec<f32>>, GroupError> {
     let (mine, all) = (shares[rank], shares.iter().sum::<usize>());
     let w = mine as f32 / all as f32;
     let (skip_pi, skip_v) = (skipped(&lg.factors_pi), skipped(&lg.factors_v));
@@ -625,8 +702,7 @@ fn reduce(
     let f = &values[at + 2..];
     (lg.policy_loss, lg.value_loss, lg.entropy, lg.total, lg.approx_kl, lg.clip_fraction) =
         (f[0] as f64, f[1] as f64, f[2] as f64, f[3] as f64, f[4] as f64, f[5] as f64);
-    // The factored layers: dW = Σ_r d_rᵀ x_r, rank by rank, on one thread (the same numbers
-    // on every member whatever its cores).
+    // The factored layers' shares: multiplied out by the optimiser, rank by rank.
     let per_sample: usize = layers.iter().map(|f| f.n_in + f.n_out).sum();
     if every.len() != shares.len() {
         return Err(GroupError(format!("{} members' factors for a group of {}", every.len(), shares.len())));
@@ -640,25 +716,7 @@ fn reduce(
             )));
         }
     }
-    let mut pos = vec![0usize; shares.len()];
-    let n_pi = lg.factors_pi.len();
-    for (k, (offset, n_in, n_out)) in
-        layers.iter().map(|f| (f.offset, f.n_in, f.n_out)).collect::<Vec<_>>().into_iter().enumerate()
-    {
-        let grad = if k < n_pi { &mut lg.grad_pi } else { &mut lg.grad_v };
-        let gw = &mut grad[offset..offset + n_in * n_out];
-        gw.fill(0.0);
-        for (r, fr) in every.iter().enumerate() {
-            let b = shares[r];
-            let x = &fr[pos[r]..pos[r] + b * n_in];
-            let d = &fr[pos[r] + b * n_in..pos[r] + b * (n_in + n_out)];
-            pos[r] += b * (n_in + n_out);
-            if b > 0 {
-                gemm(gw, n_out, n_in, b, d, true, x, false, true, Par::Seq);
-            }
-        }
-    }
-    Ok(())
+    Ok(every)
 }
 
 fn explained_variance(b: &Batch) -> f64 {

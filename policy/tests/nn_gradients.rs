@@ -136,3 +136,66 @@ fn adam_minimises_a_quadratic() {
     assert_eq!(opt.eps, 1e-5);
     assert_eq!(opt.beta2, 0.999);
 }
+
+/// Issue 8: a dense layer's weight gradient left as factors and multiplied out block by block
+/// inside the Adam step gives the step Adam takes on the multiplied-out gradient; the same
+/// bits on one thread or two; and a non-finite value anywhere is reported.
+#[test]
+fn issue_8_adam_on_factored_weight_gradients_matches_the_multiplied_out_step() {
+    use policy::nn::{FACTORED_ROWS, FactoredGrad, Factors};
+    let mut rng = ChaCha8Rng::seed_from_u64(8);
+    // 37 inputs → 21 outputs (21 is not a multiple of FACTORED_ROWS) → ReLU → 3.
+    let net =
+        Net::new(InputShape::Flat(37), &[LayerSpec::Dense(21), LayerSpec::Relu, LayerSpec::Dense(3)], None, &mut rng);
+    assert_ne!(21 % FACTORED_ROWS, 0);
+    let (batch, n) = (5, net.params.len());
+    let x: Vec<f32> = (0..batch * 37).map(|_| rng.random_range(-1.0..1.0)).collect();
+    let c: Vec<f32> = (0..batch * 3).map(|_| rng.random_range(-1.0..1.0)).collect();
+    let mut tape = Tape::default();
+    net.forward(&x, batch, &mut tape, Par::Seq);
+    let mut whole = vec![0.0f32; n];
+    net.backward(&mut tape, &c, &mut whole, Par::Seq);
+    net.forward(&x, batch, &mut tape, Par::Seq);
+    let mut rest = vec![0.0f32; n];
+    let mut factors: Vec<Factors> = Vec::new();
+    net.backward_factored(&mut tape, &c, &mut rest, Par::Seq, &[0], &mut factors);
+    assert_eq!(factors.len(), 1);
+    let f = &factors[0];
+    // Two shares (as two learners of a team would send them) and one.
+    let split = 2 * f.n_in;
+    let one = vec![(&f.x[..], &f.d[..])];
+    let two = vec![(&f.x[..split], &f.d[..2 * f.n_out]), (&f.x[split..], &f.d[2 * f.n_out..])];
+    let step = |shares: &Vec<(&[f32], &[f32])>, par: Par, bad: Option<usize>| {
+        let mut p = net.params.clone();
+        let mut opt = Adam::new(n, 1e-3);
+        let mut g = rest.clone();
+        if let Some(i) = bad {
+            g[i] = f32::NAN;
+        }
+        let mut ok = true;
+        for _ in 0..3 {
+            let fg = FactoredGrad { offset: f.offset, n_in: f.n_in, n_out: f.n_out, shares: shares.clone() };
+            ok &= opt.step_factored(&mut p, &g, &[fg], par);
+        }
+        (p, ok)
+    };
+    let mut reference = net.params.clone();
+    let mut opt = Adam::new(n, 1e-3);
+    for _ in 0..3 {
+        opt.step(&mut reference, &whole);
+    }
+    for shares in [&one, &two] {
+        let (p, ok) = step(shares, Par::Seq, None);
+        assert!(ok);
+        let worst = p.iter().zip(&reference).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+        let moved = net.params.iter().zip(&reference).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+        assert!(worst <= 1e-4 * moved, "off by {worst} of a {moved} move");
+        assert_eq!(p, step(shares, Par::rayon(2), None).0, "the same bits on two threads");
+    }
+    // A NaN outside the factored weights, and one inside (an input of the factors).
+    assert!(!step(&one, Par::Seq, Some(n - 1)).1);
+    let mut bad_x = f.x.clone();
+    bad_x[3] = f32::INFINITY;
+    let bad = vec![(&bad_x[..], &f.d[..])];
+    assert!(!step(&bad, Par::Seq, None).1);
+}
