@@ -144,10 +144,12 @@ impl Cluster {
         self.start_as(spec, "job1")
     }
 
-    /// Start a job (waiting for the coordinator to answer).
+    /// Start a job (waiting for the coordinator to answer). A query sent while the roles are
+    /// still starting may reach no queryable and wait out the CLI's 10 s; a fresh-clone CI run
+    /// on two busy cores once used up 20 s that way under TLS, so a minute.
     fn start_as(&self, spec: &str, id: &str) -> String {
         std::fs::write(self.path("job.toml"), spec).unwrap();
-        let deadline = Instant::now() + Duration::from_secs(20);
+        let deadline = Instant::now() + Duration::from_secs(60);
         loop {
             let o = self.cli(&["job", "start", "job.toml", "--id", id]);
             if o.status.success() {
