@@ -574,9 +574,9 @@ impl Step {
             }
             self.apply(p, g, m, v)
         };
-        let blocks = p.chunks_mut(len).zip(m.chunks_mut(len)).zip(v.chunks_mut(len)).enumerate();
         if matches!(par, Par::Seq) {
             let mut scratch = Vec::with_capacity(len);
+            let blocks = p.chunks_mut(len).zip(m.chunks_mut(len)).zip(v.chunks_mut(len)).enumerate();
             return blocks.map(|b| block(&mut scratch, b)).fold(0, |a, b| a | b);
         }
         use rayon::prelude::*;
