@@ -295,18 +295,45 @@ fn child(me: &std::path::Path, dir: &std::path::Path, args: &[String]) -> Result
     Ok(text)
 }
 
+/// Wall-clock (s, from the run's start) of each iteration in a run's `metrics.jsonl`.
+fn iteration_times(run: &std::path::Path) -> Result<Vec<f64>> {
+    let text = std::fs::read_to_string(run.join("metrics.jsonl")).with_context(|| format!("{}", run.display()))?;
+    text.lines()
+        .map(|l| Ok(serde_json::from_str::<serde_json::Value>(l)?["time_s"].as_f64().unwrap_or(f64::NAN)))
+        .collect()
+}
+
+/// One seed's two runs.
+struct PixelsRun {
+    seed: u64,
+    train_s: f64,
+    up_s: f64,
+    train_reason: String,
+    up_reason: String,
+    /// (updates, samples trained on) of each.
+    train: (usize, f64),
+    up: (usize, f64),
+    /// Each iteration's wall-clock in each.
+    train_times: Vec<f64>,
+    up_times: Vec<f64>,
+}
+
 pub fn pixels(
     worlds: &[String],
     unseen: &[String],
     minutes: f64,
     envs: usize,
     evals: u32,
+    seeds: &[u64],
     out: &std::path::Path,
 ) -> Result<()> {
+    if seeds.is_empty() {
+        bail!("--seeds: give at least one seed");
+    }
     let me = std::env::current_exe()?;
     std::fs::create_dir_all(out)?;
     let dir = out.canonicalize()?;
-    let common = |v: &mut Vec<String>| {
+    let common = |v: &mut Vec<String>, seed: u64| {
         for w in worlds {
             v.extend(["--world".into(), w.clone()]);
         }
@@ -324,67 +351,139 @@ pub fn pixels(
             .map(String::from),
         );
         v.extend(["--minutes".into(), minutes.to_string(), "--target-evals".into(), evals.to_string()]);
+        v.extend(["--seed".into(), seed.to_string()]);
     };
-    let mut train =
-        vec!["train".to_string(), "--envs".into(), envs.to_string(), "--out".into(), "train".into(), "--force".into()];
-    common(&mut train);
-    let t0 = Instant::now();
-    let text = child(&me, &dir, &train)?;
-    let train_s = t0.elapsed().as_secs_f64();
-    let train_reason = text.lines().find(|l| l.starts_with("stopped after")).unwrap_or("").to_string();
-    let mut up = vec![
-        "up".to_string(),
-        "--agents".into(),
-        "2".into(),
-        "--envs".into(),
-        (envs / 2).max(1).to_string(),
-        "--out".into(),
-        "up".into(),
-        "--force".into(),
-    ];
-    common(&mut up);
-    let t0 = Instant::now();
-    let text = child(&me, &dir, &up)?;
-    let up_s = t0.elapsed().as_secs_f64();
-    let up_reason =
-        text.lines().find(|l| l.contains(": Finished") || l.contains(": Failed")).unwrap_or("").trim().to_string();
-    let metrics = |run: &std::path::Path| -> Result<(usize, f64)> {
-        let (used, updates) = used_samples(run)?;
-        Ok((updates, used))
-    };
-    let (tu, ts) = metrics(&dir.join("train"))?;
-    let (uu, us) = metrics(&dir.join("up/run"))?;
+    let mut runs = Vec::new();
+    for &seed in seeds {
+        let here = dir.join(format!("seed-{seed}"));
+        std::fs::create_dir_all(&here)?;
+        let mut train = vec![
+            "train".to_string(),
+            "--envs".into(),
+            envs.to_string(),
+            "--out".into(),
+            "train".into(),
+            "--force".into(),
+        ];
+        common(&mut train, seed);
+        let t0 = Instant::now();
+        let text = child(&me, &here, &train)?;
+        let train_s = t0.elapsed().as_secs_f64();
+        let train_reason = text.lines().find(|l| l.starts_with("stopped after")).unwrap_or("").to_string();
+        let mut up = vec![
+            "up".to_string(),
+            "--agents".into(),
+            "2".into(),
+            "--envs".into(),
+            (envs / 2).max(1).to_string(),
+            "--out".into(),
+            "up".into(),
+            "--force".into(),
+        ];
+        common(&mut up, seed);
+        let t0 = Instant::now();
+        let text = child(&me, &here, &up)?;
+        let up_s = t0.elapsed().as_secs_f64();
+        let up_reason =
+            text.lines().find(|l| l.contains(": Finished") || l.contains(": Failed")).unwrap_or("").trim().to_string();
+        let (ts, tu) = used_samples(&here.join("train"))?;
+        let (us, uu) = used_samples(&here.join("up/run"))?;
+        runs.push(PixelsRun {
+            seed,
+            train_s,
+            up_s,
+            train_reason,
+            up_reason,
+            train: (tu, ts),
+            up: (uu, us),
+            train_times: iteration_times(&here.join("train"))?,
+            up_times: iteration_times(&here.join("up/run"))?,
+        });
+    }
     println!(
-        "# coordinator bench pixels: {} from pixels, domain randomisation on, {envs} environments",
+        "# coordinator bench pixels: {} from pixels, domain randomisation on, {envs} environments, seeds {seeds:?}",
         worlds.join(", ")
     );
     println!();
-    println!("| setup | wall-clock s (process start to model) | updates | samples trained on | how it stopped |");
-    println!("|---|---|---|---|---|");
-    println!("| `train` in one process | {train_s:.0} | {tu} | {ts:.0} | {train_reason} |");
     println!(
-        "| `up`, 2 agents × {} envs (+ coordinator + learner) | {up_s:.0} | {uu} | {us:.0} | {up_reason} |",
-        (envs / 2).max(1)
+        "| seed | setup | wall-clock s (process start to model) | updates | samples trained on | how it stopped |"
+    );
+    println!("|---|---|---|---|---|---|");
+    for r in &runs {
+        println!(
+            "| {} | `train` in one process | {:.0} | {} | {:.0} | {} |",
+            r.seed, r.train_s, r.train.0, r.train.1, r.train_reason
+        );
+        println!(
+            "| {} | `up`, 2 agents × {} envs (+ coordinator + learner) | {:.0} | {} | {:.0} | {} |",
+            r.seed,
+            (envs / 2).max(1),
+            r.up_s,
+            r.up.0,
+            r.up.1,
+            r.up_reason
+        );
+    }
+    println!();
+    let median = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        let n = v.len();
+        if n % 2 == 1 { v[n / 2] } else { (v[n / 2 - 1] + v[n / 2]) / 2.0 }
+    };
+    let (mt, mu) = (median(runs.iter().map(|r| r.train_s).collect()), median(runs.iter().map(|r| r.up_s).collect()));
+    println!(
+        "Time to the stop, medians over {} seed(s): `train` {mt:.0} s, `up` {mu:.0} s: `up` took {:.2}× one process.",
+        runs.len(),
+        mu / mt
     );
     println!();
-    println!("Ratio: `up` took {:.2}× the wall-clock of one process.", up_s / train_s);
+    // The pace of learning, apart from when the stop rule fires: the wall-clock at which each
+    // setup finished the same PPO iteration (the same number of episodes trained on).
+    println!("Pace: wall-clock (s from the run's start) at the end of the same PPO iteration.");
+    println!();
+    println!("| seed | iteration | `train` s | `up` s | `up` / `train` |");
+    println!("|---|---|---|---|---|");
+    let mut ratios = Vec::new();
+    for r in &runs {
+        let common = r.train_times.len().min(r.up_times.len());
+        let marks: Vec<usize> = [common / 4, common / 2, common].into_iter().filter(|&k| k > 0).collect();
+        let mut seen = Vec::new();
+        for k in marks {
+            if seen.contains(&k) {
+                continue;
+            }
+            seen.push(k);
+            let (t, u) = (r.train_times[k - 1], r.up_times[k - 1]);
+            println!("| {} | {k} | {t:.0} | {u:.0} | {:.2} |", r.seed, u / t);
+            if k == common {
+                ratios.push(u / t);
+            }
+        }
+    }
+    if !ratios.is_empty() {
+        println!();
+        println!("Pace at the last iteration both reached, median over seeds: `up` / `train` = {:.2}.", median(ratios));
+    }
     println!();
     // Both models on the training worlds and on tracks they never saw.
     let all: Vec<String> = worlds.iter().chain(unseen).cloned().collect();
-    for (name, model) in [("train", "train/model"), ("up", "up/run/model")] {
-        let mut args = vec!["evaluate".to_string(), model.into(), "--trials".into(), "3".into()];
-        for w in &all {
-            args.extend(["--world".into(), w.clone()]);
+    for r in &runs {
+        let here = dir.join(format!("seed-{}", r.seed));
+        for (name, model) in [("train", "train/model"), ("up", "up/run/model")] {
+            let mut args = vec!["evaluate".to_string(), model.into(), "--trials".into(), "3".into()];
+            for w in &all {
+                args.extend(["--world".into(), w.clone()]);
+            }
+            let text = child(&me, &here, &args)?;
+            println!("seed {}, {name} model ({}):", r.seed, here.join(model).display());
+            println!();
+            println!("```");
+            for l in text.lines().skip_while(|l| !l.starts_with("WORLD")) {
+                println!("{l}");
+            }
+            println!("```");
+            println!();
         }
-        let text = child(&me, &dir, &args)?;
-        println!("{name} model ({}):", dir.join(model).display());
-        println!();
-        println!("```");
-        for l in text.lines().skip_while(|l| !l.starts_with("WORLD")) {
-            println!("{l}");
-        }
-        println!("```");
-        println!();
     }
     Ok(())
 }

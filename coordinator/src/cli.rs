@@ -199,6 +199,10 @@ pub enum BenchCommand {
         /// Consecutive 3/3 evaluations (on every world) that end a training.
         #[arg(long, default_value_t = 2)]
         evals: u32,
+        /// Seeds: both setups are run once per seed (`train --seed S`, `up --seed S`) and
+        /// compared seed by seed and by their medians.
+        #[arg(long, default_value = "1", value_delimiter = ',')]
+        seeds: Vec<u64>,
         /// Where the runs go (kept, with their models).
         #[arg(long, default_value = "runs/bench-pixels")]
         out: PathBuf,
@@ -339,6 +343,9 @@ pub struct UpArgs {
     /// rules, as across machines. Plain TCP on loopback without.
     #[arg(long, value_name = "DIR")]
     pub certs: Option<PathBuf>,
+    /// Random seed of the job (the learner's initial weights, every environment's noise).
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
     /// Output folder (the run folder is OUT/run, the model OUT/run/model).
     #[arg(long)]
     pub out: Option<PathBuf>,

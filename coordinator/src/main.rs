@@ -74,8 +74,8 @@ fn main() {
             cli::BenchCommand::Publish { repeats } => bench::publish(repeats).map(|()| 0),
             cli::BenchCommand::Record { seconds, rounds } => bench::record(seconds, rounds).map(|()| 0),
             cli::BenchCommand::Wire { seconds, rounds, up_seconds } => bench::wire(seconds, rounds, up_seconds).map(|()| 0),
-            cli::BenchCommand::Pixels { worlds, unseen, minutes, envs, evals, out } => {
-                bench::pixels(&worlds, &unseen, minutes, envs, evals, &out).map(|()| 0)
+            cli::BenchCommand::Pixels { worlds, unseen, minutes, envs, evals, seeds, out } => {
+                bench::pixels(&worlds, &unseen, minutes, envs, evals, &seeds, &out).map(|()| 0)
             }
         },
     };

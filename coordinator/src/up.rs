@@ -252,9 +252,10 @@ pub fn up(args: UpArgs) -> Result<i32> {
         other => bail!("--sensor is {other:?}, expected \"state\" or \"camera\""),
     };
     let spec = format!(
-        "# Written by `coordinator up`; `coordinator job start` takes this file as it is.\nworlds = {worlds:?}\n{reward_line}{meta_line}out = {:?}\nenvs_per_agent = {}\n[stop]\nminutes = {}\n{target}{sim_table}",
+        "# Written by `coordinator up`; `coordinator job start` takes this file as it is.\nworlds = {worlds:?}\n{reward_line}{meta_line}out = {:?}\nenvs_per_agent = {}\nseed = {}\n[stop]\nminutes = {}\n{target}{sim_table}",
         out.join("run").display().to_string(),
         args.envs,
+        args.seed,
         args.minutes
     );
     let spec_path = out.join("job.toml");

@@ -240,7 +240,8 @@ fn issue_4_up_runs_a_job_to_its_stop_and_the_model_improves() {
     let _turn = exclusive();
     let dir = tempfile::tempdir().unwrap();
     let o = Command::new(bin("coordinator"))
-        .args(["up", "--agents", "2", "--envs", "8", "--minutes", "2", "--target-progress", "80", "--out", "up"])
+        .args(["up", "--agents", "2", "--envs", "8", "--minutes", "2", "--target-progress", "80", "--seed", "7"])
+        .args(["--out", "up"])
         .current_dir(dir.path())
         .output()
         .unwrap();
@@ -249,6 +250,10 @@ fn issue_4_up_runs_a_job_to_its_stop_and_the_model_improves() {
     assert!(text.contains("Finished") && text.contains("reached the target 80"), "{text}");
     let model = dir.path().join("up/run/model");
     assert!(model.join("model.safetensors").exists() && dir.path().join("up/summary.json").exists());
+    // `--seed` reaches the job the learner and the agents run.
+    let job = std::fs::read_to_string(dir.path().join("up/job.toml")).unwrap();
+    let spec = coordinator::jobspec::parse(&job, &dir.path().join("up"), "job.toml", "up").unwrap();
+    assert_eq!(spec.seed, 7, "{job}");
     let metrics = std::fs::read_to_string(dir.path().join("up/run/metrics.jsonl")).unwrap();
     let progress: Vec<f64> = metrics
         .lines()

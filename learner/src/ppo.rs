@@ -132,6 +132,8 @@ impl Workspace {
     pub fn recycle(&mut self, lg: LossGrad) {
         self.grad_pi = lg.grad_pi;
         self.grad_v = lg.grad_v;
+        self.tape_pi.take_back(lg.factors_pi);
+        self.tape_v.take_back(lg.factors_v);
     }
 }
 

@@ -199,3 +199,45 @@ fn issue_8_adam_on_factored_weight_gradients_matches_the_multiplied_out_step() {
     let bad = vec![(&bad_x[..], &f.d[..])];
     assert!(!step(&bad, Par::Seq, None).1);
 }
+
+/// Issue 8: Adam's loop runs on the widest vectors the CPU has (runtime dispatch); it must
+/// still be the plain IEEE formula, element by element, so that every CPU and every thread
+/// count gives the same bits (a fused multiply-add, or any reordering, would fail this).
+#[test]
+fn issue_8_adam_on_wide_vectors_gives_the_plain_formulas_bits() {
+    let mut rng = ChaCha8Rng::seed_from_u64(8);
+    // Not a multiple of any vector width, and long enough for the threaded path's chunks.
+    let n = 4 * (1 << 15) + 1003;
+    let mut params: Vec<f32> = (0..n).map(|_| rng.random_range(-1.0..1.0)).collect();
+    let mut expected = params.clone();
+    let (mut m, mut v) = (vec![0.0f32; n], vec![0.0f32; n]);
+    let mut adam = Adam::new(n, 3e-4);
+    let mut threaded = (Adam::new(n, 3e-4), params.clone());
+    for t in 1..=3 {
+        // Magnitudes from 1e-30 to 1e10, zeros among them.
+        let grad: Vec<f32> =
+            (0..n)
+                .map(|i| {
+                    if i % 97 == 0 {
+                        0.0
+                    } else {
+                        rng.random_range(-1.0f32..1.0) * 10f32.powi(rng.random_range(-30..10))
+                    }
+                })
+                .collect();
+        adam.step(&mut params, &grad);
+        threaded.0.step_with(&mut threaded.1, &grad, Par::rayon(2));
+        let (b1, b2, eps, lr) = (adam.beta1, adam.beta2, adam.eps, adam.lr);
+        let step = lr / (1.0 - b1.powi(t));
+        let inv_c2 = 1.0 / (1.0 - b2.powi(t));
+        for i in 0..n {
+            let g = grad[i];
+            m[i] = b1 * m[i] + (1.0 - b1) * g;
+            v[i] = b2 * v[i] + (1.0 - b2) * g * g;
+            expected[i] -= step * m[i] / ((v[i] * inv_c2).sqrt() + eps);
+        }
+        let differ = (0..n).filter(|&i| params[i].to_bits() != expected[i].to_bits()).count();
+        assert_eq!(differ, 0, "step {t}: {differ} of {n} parameters differ from the plain formula's bits");
+        assert!(threaded.1.iter().zip(&params).all(|(a, b)| a.to_bits() == b.to_bits()), "step {t}: 2 threads differ");
+    }
+}
