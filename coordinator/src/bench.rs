@@ -431,10 +431,18 @@ pub fn pixels(
         if n % 2 == 1 { v[n / 2] } else { (v[n / 2 - 1] + v[n / 2]) / 2.0 }
     };
     let (mt, mu) = (median(runs.iter().map(|r| r.train_s).collect()), median(runs.iter().map(|r| r.up_s).collect()));
+    let (st, su) = (runs.iter().map(|r| r.train_s).sum::<f64>(), runs.iter().map(|r| r.up_s).sum::<f64>());
+    let mut ratios: Vec<f64> = runs.iter().map(|r| r.up_s / r.train_s).collect();
     println!(
-        "Time to the stop, medians over {} seed(s): `train` {mt:.0} s, `up` {mu:.0} s: `up` took {:.2}× one process.",
+        "Time to the stop over {} seed(s): summed, `train` {st:.0} s, `up` {su:.0} s ({:.2}×); medians {mt:.0} s and {mu:.0} s ({:.2}×); `up` was faster in {} of them; per seed `up` / `train` {}.",
         runs.len(),
-        mu / mt
+        su / st,
+        mu / mt,
+        runs.iter().filter(|r| r.up_s < r.train_s).count(),
+        {
+            ratios.sort_by(f64::total_cmp);
+            ratios.iter().map(|r| format!("{r:.2}")).collect::<Vec<_>>().join(", ")
+        }
     );
     println!();
     // The pace of learning, apart from when the stop rule fires: the wall-clock at which each
@@ -443,7 +451,7 @@ pub fn pixels(
     println!();
     println!("| seed | iteration | `train` s | `up` s | `up` / `train` |");
     println!("|---|---|---|---|---|");
-    let mut ratios = Vec::new();
+    let mut paces = Vec::new();
     for r in &runs {
         let common = r.train_times.len().min(r.up_times.len());
         let marks: Vec<usize> = [common / 4, common / 2, common].into_iter().filter(|&k| k > 0).collect();
@@ -456,13 +464,13 @@ pub fn pixels(
             let (t, u) = (r.train_times[k - 1], r.up_times[k - 1]);
             println!("| {} | {k} | {t:.0} | {u:.0} | {:.2} |", r.seed, u / t);
             if k == common {
-                ratios.push(u / t);
+                paces.push(u / t);
             }
         }
     }
-    if !ratios.is_empty() {
+    if !paces.is_empty() {
         println!();
-        println!("Pace at the last iteration both reached, median over seeds: `up` / `train` = {:.2}.", median(ratios));
+        println!("Pace at the last iteration both reached, median over seeds: `up` / `train` = {:.2}.", median(paces));
     }
     println!();
     // Both models on the training worlds and on tracks they never saw.
