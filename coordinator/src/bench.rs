@@ -333,7 +333,9 @@ pub fn pixels(
     let me = std::env::current_exe()?;
     std::fs::create_dir_all(out)?;
     let dir = out.canonicalize()?;
-    let common = |v: &mut Vec<String>, seed: u64| {
+    // One setup's command line: its own arguments, then what both setups share.
+    let command = |head: &[&str], seed: u64| -> Vec<String> {
+        let mut v: Vec<String> = head.iter().map(|s| s.to_string()).collect();
         for w in worlds {
             v.extend(["--world".into(), w.clone()]);
         }
@@ -352,38 +354,23 @@ pub fn pixels(
         );
         v.extend(["--minutes".into(), minutes.to_string(), "--target-evals".into(), evals.to_string()]);
         v.extend(["--seed".into(), seed.to_string()]);
+        v
     };
+    let timed = |here: &std::path::Path, args: &[String]| -> Result<(f64, String)> {
+        let t0 = Instant::now();
+        let text = child(&me, here, args)?;
+        Ok((t0.elapsed().as_secs_f64(), text))
+    };
+    let (envs_s, agent_envs) = (envs.to_string(), (envs / 2).max(1).to_string());
     let mut runs = Vec::new();
     for &seed in seeds {
         let here = dir.join(format!("seed-{seed}"));
         std::fs::create_dir_all(&here)?;
-        let mut train = vec![
-            "train".to_string(),
-            "--envs".into(),
-            envs.to_string(),
-            "--out".into(),
-            "train".into(),
-            "--force".into(),
-        ];
-        common(&mut train, seed);
-        let t0 = Instant::now();
-        let text = child(&me, &here, &train)?;
-        let train_s = t0.elapsed().as_secs_f64();
+        let train = command(&["train", "--envs", &envs_s, "--out", "train", "--force"], seed);
+        let (train_s, text) = timed(&here, &train)?;
         let train_reason = text.lines().find(|l| l.starts_with("stopped after")).unwrap_or("").to_string();
-        let mut up = vec![
-            "up".to_string(),
-            "--agents".into(),
-            "2".into(),
-            "--envs".into(),
-            (envs / 2).max(1).to_string(),
-            "--out".into(),
-            "up".into(),
-            "--force".into(),
-        ];
-        common(&mut up, seed);
-        let t0 = Instant::now();
-        let text = child(&me, &here, &up)?;
-        let up_s = t0.elapsed().as_secs_f64();
+        let up = command(&["up", "--agents", "2", "--envs", &agent_envs, "--out", "up", "--force"], seed);
+        let (up_s, text) = timed(&here, &up)?;
         let up_reason =
             text.lines().find(|l| l.contains(": Finished") || l.contains(": Failed")).unwrap_or("").trim().to_string();
         let (ts, tu) = used_samples(&here.join("train"))?;
@@ -415,13 +402,8 @@ pub fn pixels(
             r.seed, r.train_s, r.train.0, r.train.1, r.train_reason
         );
         println!(
-            "| {} | `up`, 2 agents × {} envs (+ coordinator + learner) | {:.0} | {} | {:.0} | {} |",
-            r.seed,
-            (envs / 2).max(1),
-            r.up_s,
-            r.up.0,
-            r.up.1,
-            r.up_reason
+            "| {} | `up`, 2 agents × {agent_envs} envs (+ coordinator + learner) | {:.0} | {} | {:.0} | {} |",
+            r.seed, r.up_s, r.up.0, r.up.1, r.up_reason
         );
     }
     println!();
@@ -433,16 +415,15 @@ pub fn pixels(
     let (mt, mu) = (median(runs.iter().map(|r| r.train_s).collect()), median(runs.iter().map(|r| r.up_s).collect()));
     let (st, su) = (runs.iter().map(|r| r.train_s).sum::<f64>(), runs.iter().map(|r| r.up_s).sum::<f64>());
     let mut ratios: Vec<f64> = runs.iter().map(|r| r.up_s / r.train_s).collect();
+    ratios.sort_by(f64::total_cmp);
+    let ratios: Vec<String> = ratios.iter().map(|r| format!("{r:.2}")).collect();
     println!(
         "Time to the stop over {} seed(s): summed, `train` {st:.0} s, `up` {su:.0} s ({:.2}×); medians {mt:.0} s and {mu:.0} s ({:.2}×); `up` was faster in {} of them; per seed `up` / `train` {}.",
         runs.len(),
         su / st,
         mu / mt,
         runs.iter().filter(|r| r.up_s < r.train_s).count(),
-        {
-            ratios.sort_by(f64::total_cmp);
-            ratios.iter().map(|r| format!("{r:.2}")).collect::<Vec<_>>().join(", ")
-        }
+        ratios.join(", ")
     );
     println!();
     // The pace of learning, apart from when the stop rule fires: the wall-clock at which each
@@ -454,13 +435,10 @@ pub fn pixels(
     let mut paces = Vec::new();
     for r in &runs {
         let common = r.train_times.len().min(r.up_times.len());
-        let marks: Vec<usize> = [common / 4, common / 2, common].into_iter().filter(|&k| k > 0).collect();
-        let mut seen = Vec::new();
+        let mut marks = vec![common / 4, common / 2, common];
+        marks.retain(|&k| k > 0);
+        marks.dedup();
         for k in marks {
-            if seen.contains(&k) {
-                continue;
-            }
-            seen.push(k);
             let (t, u) = (r.train_times[k - 1], r.up_times[k - 1]);
             println!("| {} | {k} | {t:.0} | {u:.0} | {:.2} |", r.seed, u / t);
             if k == common {
