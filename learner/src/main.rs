@@ -190,19 +190,49 @@ fn bench(network: &str, seconds: f64, threads: usize) -> anyhow::Result<()> {
         (k * n) as f64 / t.elapsed().as_secs_f64()
     };
     // Reference in the same run: the GEMMs alone (the layers' matrix products, forward and
-    // backward, both towers, no im2col, no activations, no optimiser): the ceiling.
-    let gemm_only = |par: Par| {
-        let shapes = gemm_shapes(&model.pi, n);
-        let mut bufs: Vec<(Vec<f32>, Vec<f32>, Vec<f32>)> = shapes
+    // backward, both towers, no im2col, no activations, no optimiser). `as_step`: in the
+    // shapes the step runs them (conv layers a chunk of samples at a time, each thread on
+    // its share, operands in cache): the ceiling. Otherwise one whole-batch product each.
+    let gemm_only = |par: Par, as_step: bool| {
+        let threads = par.degree().max(1);
+        let shapes = gemm_shapes(&model.pi, n, threads, as_step);
+        // One (a, b, c) per thread for the per-chunk products; the operand that holds
+        // activations or their gradients (`streams`) spans the thread's whole share, a
+        // chunk's slice at a time, as in the step.
+        let mut bufs: Vec<Vec<Operands>> = shapes
             .iter()
-            .map(|&(m, nn, k, _, _)| (vec![0.5f32; m * k], vec![0.25f32; k * nn], vec![0.0f32; m * nn]))
+            .map(|s| {
+                let reps = s.chunks.max(1);
+                let (ra, rc) = match s.streams {
+                    Operand::A => (reps, 1),
+                    Operand::C => (1, reps),
+                };
+                (0..if s.chunks == 0 { 1 } else { threads })
+                    .map(|_| (vec![0.5f32; s.m * s.k * ra], vec![0.25f32; s.k * s.n], vec![0.0f32; s.m * s.n * rc]))
+                    .collect()
+            })
             .collect();
         let t = Instant::now();
         let mut k = 0;
         while t.elapsed().as_secs_f64() < seconds.min(3.0) || k < 2 {
             for _tower in 0..2 {
-                for (&(m, nn, kk, at, bt), (a, b, c)) in shapes.iter().zip(bufs.iter_mut()) {
-                    policy::nn::gemm(c, m, nn, kk, a, at, b, bt, true, par);
+                for (s, copies) in shapes.iter().zip(bufs.iter_mut()) {
+                    let (mk, mn) = (s.m * s.k, s.m * s.n);
+                    let run = |(a, b, c): &mut Operands, par: Par| {
+                        for i in 0..s.chunks.max(1) {
+                            let (a, c) = match s.streams {
+                                Operand::A => (&a[i * mk..(i + 1) * mk], &mut c[..]),
+                                Operand::C => (&a[..], &mut c[i * mn..(i + 1) * mn]),
+                            };
+                            policy::nn::gemm(c, s.m, s.n, s.k, a, s.a_t, b, s.b_t, true, par)
+                        }
+                    };
+                    if s.chunks == 0 {
+                        run(&mut copies[0], par);
+                    } else {
+                        use rayon::prelude::*;
+                        copies.par_iter_mut().for_each(|c| run(c, Par::Seq));
+                    }
                 }
             }
             k += 1;
@@ -218,15 +248,20 @@ fn bench(network: &str, seconds: f64, threads: usize) -> anyhow::Result<()> {
     for (t, par) in pars {
         let fb = time(par, seconds, false);
         let full = time(par, seconds, true);
-        let ceiling = gemm_only(par);
+        let ceiling = gemm_only(par, true);
+        let whole = gemm_only(par, false);
         println!("| {t} thread(s): forward + backward (the big dense layers' weight gradients as factors) | {fb:.0} |");
         println!(
             "| {t} thread(s): forward + backward + optimiser (one training step) | {full:.0} (the optimiser step {:.0} % of it) |",
             100.0 * (1.0 - full / fb)
         );
         println!(
-            "| {t} thread(s): reference, the same GEMMs alone (the ceiling) | {ceiling:.0} (the training step reaches {:.0} %) |",
+            "| {t} thread(s): reference, the same GEMMs alone, in the step's shapes (the ceiling) | {ceiling:.0} (the training step reaches {:.0} %) |",
             100.0 * full / ceiling
+        );
+        println!(
+            "| {t} thread(s): the same GEMMs alone, each conv product over the whole batch | {whole:.0} (the training step {:.0} % of it) |",
+            100.0 * full / whole
         );
         // Adam alone over every parameter (a memory-bound pass: weights, both moments read
         // and written, the gradient read): what a step costs beyond its GEMMs at the least.
@@ -287,28 +322,66 @@ fn adam_alone(model: &ActorCritic, par: Par, seconds: f64) -> f64 {
     t.elapsed().as_secs_f64() * 1e3 / k as f64
 }
 
-/// (m, n, k, a_t, b_t) of every GEMM one tower's forward and backward make for a batch.
-fn gemm_shapes(net: &policy::nn::Net, batch: usize) -> Vec<(usize, usize, usize, bool, bool)> {
+/// One GEMM a tower's forward and backward pass make.
+struct GemmShape {
+    m: usize,
+    n: usize,
+    k: usize,
+    a_t: bool,
+    b_t: bool,
+    /// 0: one product over the whole batch (threads inside it); otherwise a conv layer's
+    /// per-chunk products, each of `threads` threads making `chunks` of them.
+    chunks: usize,
+    /// The operand that holds a layer's outputs or their gradient: it goes through memory,
+    /// where the unfolded input and the weights stay in cache.
+    streams: Operand,
+}
+
+/// `a`, `b` and `c` of `c = a · b`, row-major.
+type Operands = (Vec<f32>, Vec<f32>, Vec<f32>);
+
+/// `a` or `c` of `c = a · b`.
+#[derive(Clone, Copy)]
+enum Operand {
+    A,
+    C,
+}
+
+/// Every GEMM one tower's forward and backward pass make for a batch: conv layers as
+/// `policy::nn` runs them (`as_step`: a chunk of samples at a time, each thread on its share)
+/// or as whole-batch products.
+fn gemm_shapes(net: &policy::nn::Net, batch: usize, threads: usize, as_step: bool) -> Vec<GemmShape> {
     use policy::nn::Layer;
     let mut out = Vec::new();
+    let mut push = |m, n, k, a_t, b_t, chunks, streams| out.push(GemmShape { m, n, k, a_t, b_t, chunks, streams });
     for (i, layer) in net.layers.iter().enumerate() {
         let first = !net.layers[..i].iter().any(|l| l.param_count() > 0);
         match *layer {
             Layer::Dense { inp, out: o, .. } => {
-                out.push((batch, o, inp, false, true));
-                out.push((o, inp, batch, true, false));
+                push(batch, o, inp, false, true, 0, Operand::C);
+                push(o, inp, batch, true, false, 0, Operand::A);
                 if !first {
-                    out.push((batch, inp, o, false, false));
+                    push(batch, inp, o, false, false, 0, Operand::C);
                 }
             }
             Layer::Conv2d { filters, .. } => {
                 let [oh, ow] = layer.conv_out();
-                let rows = batch * oh * ow;
                 let kkc = layer.param_count() / filters - 1;
-                out.push((rows, filters, kkc, false, true));
-                out.push((filters, kkc, rows, true, false));
+                let (samples, chunks) = if as_step {
+                    let threads = threads.clamp(1, batch);
+                    let chunk = layer.conv_chunk().min(batch);
+                    (chunk, batch.div_ceil(threads).div_ceil(chunk))
+                } else {
+                    (batch, 0)
+                };
+                let rows = samples * oh * ow;
+                // Forward: outputs (rows × filters) out; weight gradient: dᵀ (filters × rows)
+                // in; input gradient: d (rows × filters) in, the unfolded gradient (in
+                // cache) out.
+                push(rows, filters, kkc, false, true, chunks, Operand::C);
+                push(filters, kkc, rows, true, false, chunks, Operand::A);
                 if !first {
-                    out.push((rows, kkc, filters, false, false));
+                    push(rows, kkc, filters, false, false, chunks, Operand::A);
                 }
             }
             _ => {}

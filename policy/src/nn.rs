@@ -112,6 +112,19 @@ impl Layer {
         }
     }
 
+    /// Samples a conv layer unfolds and multiplies at a time, in the forward and the
+    /// backward pass (see [`CONV_CHUNK_BYTES`]); 1 for other layers.
+    pub fn conv_chunk(&self) -> usize {
+        match *self {
+            Layer::Conv2d { filters, .. } => {
+                let [oh, ow] = self.conv_out();
+                let kkc = self.param_count() / filters - 1;
+                (CONV_CHUNK_BYTES / (oh * ow * kkc * std::mem::size_of::<f32>())).max(1)
+            }
+            _ => 1,
+        }
+    }
+
     /// Parameters this layer owns.
     pub fn param_count(&self) -> usize {
         match *self {
@@ -138,12 +151,11 @@ pub struct Net {
 pub struct Tape {
     /// Input of every layer, then the final output.
     acts: Vec<Vec<f32>>,
-    /// im2col matrices of the conv layers (empty for others).
-    cols: Vec<Vec<f32>>,
+    /// The conv layers' scratch, one per thread's share of the samples.
+    conv: Vec<ConvScratch>,
     batch: usize,
     d: Vec<f32>,
     d_prev: Vec<f32>,
-    d_cols: Vec<f32>,
     /// Buffers handed back by [`Tape::take_back`], swapped in for the inputs a backward pass
     /// hands out as [`Factors`] (no copy, and no 3 MB allocation per minibatch).
     spare: Vec<Vec<f32>>,
@@ -252,7 +264,6 @@ impl Net {
     pub fn forward(&self, x: &[f32], batch: usize, tape: &mut Tape, par: Par) {
         assert_eq!(x.len(), batch * self.in_size(), "input size");
         tape.acts.resize_with(self.layers.len() + 1, Vec::new);
-        tape.cols.resize_with(self.layers.len(), Vec::new);
         tape.batch = batch;
         tape.acts[0].clear();
         tape.acts[0].extend_from_slice(x);
@@ -282,16 +293,12 @@ impl Net {
                 }
                 Layer::Conv2d { filters, offset, .. } => {
                     let kkc = layer.param_count() / filters - 1;
-                    let [oh, ow] = layer.conv_out();
-                    let rows = batch * oh * ow;
-                    let cols = &mut tape.cols[i];
-                    im2col(layer, inp, batch, cols, par);
                     let w = &self.params[offset..offset + filters * kkc];
                     let b = &self.params[offset + filters * kkc..offset + filters * kkc + filters];
                     for row in out.chunks_mut(filters) {
                         row.copy_from_slice(b);
                     }
-                    gemm(out, rows, filters, kkc, cols, false, w, true, true, par);
+                    conv_forward(layer, inp, out, w, &mut tape.conv, par);
                 }
             }
         }
@@ -332,7 +339,6 @@ impl Net {
         assert_eq!(grad.len(), self.params.len());
         let mut d = std::mem::take(&mut tape.d);
         let mut d_prev = std::mem::take(&mut tape.d_prev);
-        let mut d_cols = std::mem::take(&mut tape.d_cols);
         d.clear();
         d.extend_from_slice(d_out);
         for (i, layer) in self.layers.iter().enumerate().rev() {
@@ -378,24 +384,21 @@ impl Net {
                 }
                 Layer::Conv2d { filters, offset, .. } => {
                     let kkc = layer.param_count() / filters - 1;
-                    let [oh, ow] = layer.conv_out();
-                    let rows = batch * oh * ow;
-                    let cols = &tape.cols[i];
+                    let w = &self.params[offset..offset + filters * kkc];
                     let (gw, gb) = grad[offset..offset + filters * kkc + filters].split_at_mut(filters * kkc);
-                    gemm(gw, filters, kkc, rows, &d, true, cols, false, true, par);
                     for row in d.chunks(filters) {
                         for (g, v) in gb.iter_mut().zip(row) {
                             *g += v;
                         }
                     }
-                    if need_dx {
-                        let w = &self.params[offset..offset + filters * kkc];
-                        d_cols.resize(rows * kkc, 0.0);
-                        gemm(&mut d_cols, rows, kkc, filters, &d, false, w, false, false, par);
+                    let dx = if need_dx {
                         d_prev.clear();
                         d_prev.resize(batch * layer.in_size(), 0.0);
-                        col2im(layer, &d_cols, batch, &mut d_prev, par);
-                    }
+                        Some(&mut d_prev[..])
+                    } else {
+                        None
+                    };
+                    conv_backward(layer, inp, &d, dx, w, gw, &mut tape.conv, par);
                 }
             }
             if !need_dx {
@@ -405,7 +408,6 @@ impl Net {
         }
         tape.d = d;
         tape.d_prev = d_prev;
-        tape.d_cols = d_cols;
     }
 }
 
@@ -427,65 +429,207 @@ pub struct Factors {
     pub d: Vec<f32>,
 }
 
-/// Unfold NHWC input patches into rows: `(batch·oh·ow) × (k·k·c)`; samples in parallel
-/// when `par` allows.
-fn im2col(layer: &Layer, x: &[f32], batch: usize, cols: &mut Vec<f32>, par: Par) {
+/// Bytes of a conv layer's unfolded input (im2col) worked on at a time. A conv layer
+/// unfolds and multiplies its samples a few at a time, so that the unfolded matrix stays in
+/// the core's L2 cache between the copy that makes it and the GEMM that reads it, rather
+/// than going out to memory and back (SHALLOW's unfolded inputs are 75 MB a tower for 64
+/// samples; one sample's are 0.3-0.5 MB).
+const CONV_CHUNK_BYTES: usize = 512 * 1024;
+
+/// One thread's scratch for the conv layers: an unfolded chunk, its gradient, and this
+/// thread's share of the weight gradient.
+#[derive(Clone, Debug, Default)]
+struct ConvScratch {
+    cols: Vec<f32>,
+    d_cols: Vec<f32>,
+    gw: Vec<f32>,
+}
+
+/// How a conv layer splits `batch` samples: (samples per thread, samples per chunk).
+/// Each thread takes a contiguous share of the samples and works through it in chunks on
+/// its own; with one thread there is one share.
+fn conv_split(layer: &Layer, batch: usize, par: Par) -> (usize, usize) {
+    let threads = par.degree().clamp(1, batch.max(1));
+    (batch.div_ceil(threads).max(1), layer.conv_chunk())
+}
+
+/// A conv layer's forward pass: `out (batch·oh·ow × filters) += im2col(x) · wᵀ`, chunk by
+/// chunk (see [`CONV_CHUNK_BYTES`]); samples split between threads when `par` allows.
+fn conv_forward(layer: &Layer, x: &[f32], out: &mut [f32], w: &[f32], scratch: &mut Vec<ConvScratch>, par: Par) {
+    let Layer::Conv2d { filters, .. } = *layer else { unreachable!() };
+    let kkc = layer.param_count() / filters - 1;
+    let [oh, ow] = layer.conv_out();
+    let (per_in, per_out) = (layer.in_size(), layer.out_size());
+    let batch = x.len() / per_in;
+    let (share, chunk) = conv_split(layer, batch, par);
+    let shares = batch.div_ceil(share);
+    if scratch.len() < shares {
+        scratch.resize_with(shares, Default::default);
+    }
+    let run = |((x, out), s): ((&[f32], &mut [f32]), &mut ConvScratch)| {
+        for (xc, oc) in x.chunks(chunk * per_in).zip(out.chunks_mut(chunk * per_out)) {
+            let n = xc.len() / per_in;
+            im2col(layer, xc, n, &mut s.cols);
+            gemm(oc, n * oh * ow, filters, kkc, &s.cols, false, w, true, true, Par::Seq);
+        }
+    };
+    if shares == 1 {
+        run(((x, out), &mut scratch[0]));
+    } else {
+        use rayon::prelude::*;
+        x.par_chunks(share * per_in).zip(out.par_chunks_mut(share * per_out)).zip(scratch.par_iter_mut()).for_each(run);
+    }
+}
+
+/// A conv layer's backward pass, chunk by chunk as [`conv_forward`] (the input unfolded
+/// again, from cache, rather than kept): `gw += dᵀ · im2col(x)` and, when `dx` is given,
+/// `dx += col2im(d · w)` (`dx` zeroed by the caller). With several threads each adds its
+/// samples' weight gradient into its own buffer, and those are summed in thread order, so
+/// the result depends on the thread count but not on scheduling.
+#[allow(clippy::too_many_arguments)]
+fn conv_backward(
+    layer: &Layer,
+    x: &[f32],
+    d: &[f32],
+    dx: Option<&mut [f32]>,
+    w: &[f32],
+    gw: &mut [f32],
+    scratch: &mut Vec<ConvScratch>,
+    par: Par,
+) {
+    let Layer::Conv2d { filters, .. } = *layer else { unreachable!() };
+    let kkc = layer.param_count() / filters - 1;
+    let [oh, ow] = layer.conv_out();
+    let (per_in, per_out) = (layer.in_size(), layer.out_size());
+    let batch = x.len() / per_in;
+    let (share, chunk) = conv_split(layer, batch, par);
+    let shares = batch.div_ceil(share);
+    if scratch.len() < shares {
+        scratch.resize_with(shares, Default::default);
+    }
+    let run = |x: &[f32], d: &[f32], mut dx: Option<&mut [f32]>, s: &mut ConvScratch, gw: Option<&mut [f32]>| {
+        let ConvScratch { cols, d_cols, gw: own } = s;
+        let gw = match gw {
+            Some(gw) => gw,
+            None => {
+                own.clear();
+                own.resize(filters * kkc, 0.0);
+                &mut own[..]
+            }
+        };
+        let n_all = x.len() / per_in;
+        for first in (0..n_all).step_by(chunk) {
+            let n = chunk.min(n_all - first);
+            let rows = n * oh * ow;
+            let dc = &d[first * per_out..(first + n) * per_out];
+            im2col(layer, &x[first * per_in..(first + n) * per_in], n, cols);
+            gemm(gw, filters, kkc, rows, dc, true, cols, false, true, Par::Seq);
+            if let Some(dx) = dx.as_deref_mut() {
+                d_cols.resize(rows * kkc, 0.0);
+                gemm(&mut d_cols[..rows * kkc], rows, kkc, filters, dc, false, w, false, false, Par::Seq);
+                col2im(layer, &d_cols[..rows * kkc], n, &mut dx[first * per_in..(first + n) * per_in]);
+            }
+        }
+    };
+    if shares == 1 {
+        run(x, d, dx, &mut scratch[0], Some(gw));
+        return;
+    }
+    use rayon::prelude::*;
+    let parts = x.par_chunks(share * per_in).zip(d.par_chunks(share * per_out));
+    match dx {
+        Some(dx) => parts
+            .zip(dx.par_chunks_mut(share * per_in))
+            .zip(scratch.par_iter_mut())
+            .for_each(|(((x, d), dx), s)| run(x, d, Some(dx), s, None)),
+        None => parts.zip(scratch.par_iter_mut()).for_each(|((x, d), s)| run(x, d, None, s, None)),
+    }
+    for s in &scratch[..shares] {
+        for (g, v) in gw.iter_mut().zip(&s.gw) {
+            *g += v;
+        }
+    }
+}
+
+/// Copy `src` to `dst` (the same length) in blocks of 8 when it divides: im2col's patch
+/// rows are 8-192 floats, too short for a `memcpy` call to pay (a call per 32 bytes took
+/// most of SHALLOW's first-layer unfolding).
+#[inline(always)]
+fn copy_patch_row(dst: &mut [f32], src: &[f32]) {
+    if dst.len().is_multiple_of(8) {
+        for (d, s) in dst.chunks_exact_mut(8).zip(src.chunks_exact(8)) {
+            let s: &[f32; 8] = s.try_into().expect("8");
+            let d: &mut [f32; 8] = d.try_into().expect("8");
+            *d = *s;
+        }
+    } else {
+        dst.copy_from_slice(src);
+    }
+}
+
+/// Unfold NHWC input patches of `batch` samples into rows: `(batch·oh·ow) × (k·k·c)`.
+/// Compiled for the CPU's widest vectors (`pulp`'s runtime dispatch), as the copies are
+/// short and run from cache.
+fn im2col(layer: &Layer, x: &[f32], batch: usize, cols: &mut Vec<f32>) {
     let Layer::Conv2d { input: [h, w, c], kernel: k, stride: s, .. } = *layer else { unreachable!() };
     let [oh, ow] = layer.conv_out();
     let kkc = k * k * c;
     cols.resize(batch * oh * ow * kkc, 0.0);
-    let one = |(img, out): (&[f32], &mut [f32])| {
-        let mut r = 0;
-        for oy in 0..oh {
-            for ox in 0..ow {
-                let row = &mut out[r * kkc..(r + 1) * kkc];
-                for ky in 0..k {
-                    let src = ((oy * s + ky) * w + ox * s) * c;
-                    row[ky * k * c..(ky + 1) * k * c].copy_from_slice(&img[src..src + k * c]);
+    struct Op<'a> {
+        geometry: [usize; 7],
+        x: &'a [f32],
+        cols: &'a mut [f32],
+    }
+    impl pulp::WithSimd for Op<'_> {
+        type Output = ();
+        #[inline(always)]
+        fn with_simd<S: pulp::Simd>(self, _simd: S) {
+            let [h, w, c, k, s, oh, ow] = self.geometry;
+            let kkc = k * k * c;
+            for (img, out) in self.x.chunks(h * w * c).zip(self.cols.chunks_mut(oh * ow * kkc)) {
+                for (r, row) in out.chunks_exact_mut(kkc).enumerate() {
+                    let (oy, ox) = (r / ow, r % ow);
+                    for (ky, part) in row.chunks_exact_mut(k * c).enumerate() {
+                        let src = ((oy * s + ky) * w + ox * s) * c;
+                        copy_patch_row(part, &img[src..src + k * c]);
+                    }
                 }
-                r += 1;
             }
         }
-    };
-    let per_in = h * w * c;
-    let per_out = oh * ow * kkc;
-    if matches!(par, Par::Seq) {
-        x.chunks(per_in).zip(cols.chunks_mut(per_out)).for_each(one);
-    } else {
-        use rayon::prelude::*;
-        x.par_chunks(per_in).zip(cols.par_chunks_mut(per_out)).for_each(one);
     }
+    pulp::Arch::new().dispatch(Op { geometry: [h, w, c, k, s, oh, ow], x, cols })
 }
 
 /// The adjoint of [`im2col`]: scatter-add patch gradients back into the input gradient.
-fn col2im(layer: &Layer, d_cols: &[f32], batch: usize, dx: &mut [f32], par: Par) {
+fn col2im(layer: &Layer, d_cols: &[f32], batch: usize, dx: &mut [f32]) {
     let Layer::Conv2d { input: [h, w, c], kernel: k, stride: s, .. } = *layer else { unreachable!() };
     let [oh, ow] = layer.conv_out();
-    let kkc = k * k * c;
-    let one = |(img, rows): (&mut [f32], &[f32])| {
-        let mut r = 0;
-        for oy in 0..oh {
-            for ox in 0..ow {
-                let row = &rows[r * kkc..(r + 1) * kkc];
-                for ky in 0..k {
-                    let dst = ((oy * s + ky) * w + ox * s) * c;
-                    for (d, v) in img[dst..dst + k * c].iter_mut().zip(&row[ky * k * c..(ky + 1) * k * c]) {
-                        *d += v;
+    debug_assert_eq!(dx.len(), batch * h * w * c);
+    struct Op<'a> {
+        geometry: [usize; 7],
+        d_cols: &'a [f32],
+        dx: &'a mut [f32],
+    }
+    impl pulp::WithSimd for Op<'_> {
+        type Output = ();
+        #[inline(always)]
+        fn with_simd<S: pulp::Simd>(self, _simd: S) {
+            let [h, w, c, k, s, oh, ow] = self.geometry;
+            let kkc = k * k * c;
+            for (img, rows) in self.dx.chunks_mut(h * w * c).zip(self.d_cols.chunks(oh * ow * kkc)) {
+                for (r, row) in rows.chunks_exact(kkc).enumerate() {
+                    let (oy, ox) = (r / ow, r % ow);
+                    for (ky, part) in row.chunks_exact(k * c).enumerate() {
+                        let dst = ((oy * s + ky) * w + ox * s) * c;
+                        for (d, v) in img[dst..dst + k * c].iter_mut().zip(part) {
+                            *d += v;
+                        }
                     }
                 }
-                r += 1;
             }
         }
-    };
-    let per_in = h * w * c;
-    let per_out = oh * ow * kkc;
-    debug_assert_eq!(dx.len(), batch * per_in);
-    if matches!(par, Par::Seq) {
-        dx.chunks_mut(per_in).zip(d_cols.chunks(per_out)).for_each(one);
-    } else {
-        use rayon::prelude::*;
-        dx.par_chunks_mut(per_in).zip(d_cols.par_chunks(per_out)).for_each(one);
     }
+    pulp::Arch::new().dispatch(Op { geometry: [h, w, c, k, s, oh, ow], d_cols, dx })
 }
 
 /// Optimiser moments that do not fit the optimiser's parameters.
