@@ -585,13 +585,17 @@ fn im2col(layer: &Layer, x: &[f32], batch: usize, cols: &mut Vec<f32>) {
         #[inline(always)]
         fn with_simd<S: pulp::Simd>(self, _simd: S) {
             let [h, w, c, k, s, oh, ow] = self.geometry;
-            let kkc = k * k * c;
+            let (kc, kkc) = (k * c, k * k * c);
+            // Row by row of patches and of kernel, so the innermost loop walks one image row
+            // with constant strides (no index arithmetic per copy: SHALLOW's first layer
+            // copies 8 floats at a time).
             for (img, out) in self.x.chunks(h * w * c).zip(self.cols.chunks_mut(oh * ow * kkc)) {
-                for (r, row) in out.chunks_exact_mut(kkc).enumerate() {
-                    let (oy, ox) = (r / ow, r % ow);
-                    for (ky, part) in row.chunks_exact_mut(k * c).enumerate() {
-                        let src = ((oy * s + ky) * w + ox * s) * c;
-                        copy_patch_row(part, &img[src..src + k * c]);
+                for (oy, rows) in out.chunks_exact_mut(ow * kkc).enumerate() {
+                    for ky in 0..k {
+                        let line = &img[(oy * s + ky) * w * c..(oy * s + ky + 1) * w * c];
+                        for (row, src) in rows.chunks_exact_mut(kkc).zip(line.windows(kc).step_by(s * c)) {
+                            copy_patch_row(&mut row[ky * kc..(ky + 1) * kc], src);
+                        }
                     }
                 }
             }
@@ -615,14 +619,16 @@ fn col2im(layer: &Layer, d_cols: &[f32], batch: usize, dx: &mut [f32]) {
         #[inline(always)]
         fn with_simd<S: pulp::Simd>(self, _simd: S) {
             let [h, w, c, k, s, oh, ow] = self.geometry;
-            let kkc = k * k * c;
+            let (kc, kkc) = (k * c, k * k * c);
             for (img, rows) in self.dx.chunks_mut(h * w * c).zip(self.d_cols.chunks(oh * ow * kkc)) {
-                for (r, row) in rows.chunks_exact(kkc).enumerate() {
-                    let (oy, ox) = (r / ow, r % ow);
-                    for (ky, part) in row.chunks_exact(k * c).enumerate() {
-                        let dst = ((oy * s + ky) * w + ox * s) * c;
-                        for (d, v) in img[dst..dst + k * c].iter_mut().zip(part) {
-                            *d += v;
+                for (oy, rows) in rows.chunks_exact(ow * kkc).enumerate() {
+                    for ky in 0..k {
+                        let line = &mut img[(oy * s + ky) * w * c..(oy * s + ky + 1) * w * c];
+                        for (ox, row) in rows.chunks_exact(kkc).enumerate() {
+                            let dst = &mut line[ox * s * c..ox * s * c + kc];
+                            for (d, v) in dst.iter_mut().zip(&row[ky * kc..(ky + 1) * kc]) {
+                                *d += v;
+                            }
                         }
                     }
                 }
