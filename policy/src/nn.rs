@@ -267,10 +267,15 @@ impl Net {
         tape.batch = batch;
         tape.acts[0].clear();
         tape.acts[0].extend_from_slice(x);
+        let mut done = false;
         for (i, layer) in self.layers.iter().enumerate() {
+            if std::mem::take(&mut done) {
+                // A ReLU its conv layer applied.
+                continue;
+            }
             let (before, after) = tape.acts.split_at_mut(i + 1);
             let inp = &before[i];
-            let out = &mut after[0];
+            let (out, rest) = after.split_first_mut().expect("an output per layer");
             out.resize(batch * layer.out_size(), 0.0);
             match *layer {
                 Layer::Scale { factor, .. } => {
@@ -295,10 +300,16 @@ impl Net {
                     let kkc = layer.param_count() / filters - 1;
                     let w = &self.params[offset..offset + filters * kkc];
                     let b = &self.params[offset + filters * kkc..offset + filters * kkc + filters];
-                    for row in out.chunks_mut(filters) {
-                        row.copy_from_slice(b);
-                    }
-                    conv_forward(layer, inp, out, w, &mut tape.conv, par);
+                    // A ReLU after it is applied chunk by chunk, while the output is in cache.
+                    let relu = match self.layers.get(i + 1) {
+                        Some(Layer::Relu { .. }) => {
+                            rest[0].resize(out.len(), 0.0);
+                            done = true;
+                            Some(&mut rest[0][..])
+                        }
+                        _ => None,
+                    };
+                    conv_forward(layer, inp, out, relu, w, b, &mut tape.conv, par);
                 }
             }
         }
@@ -353,6 +364,10 @@ impl Net {
                     continue;
                 }
                 Layer::Relu { .. } => {
+                    if i > 0 && matches!(self.layers[i - 1], Layer::Conv2d { .. }) {
+                        // The conv layer before masks the gradient chunk by chunk.
+                        continue;
+                    }
                     // A select with an unconditional store, so the loop vectorises (a
                     // conditional store kept it scalar: 11 % of a SHALLOW training step).
                     for (g, x) in d.iter_mut().zip(inp) {
@@ -385,12 +400,11 @@ impl Net {
                 Layer::Conv2d { filters, offset, .. } => {
                     let kkc = layer.param_count() / filters - 1;
                     let w = &self.params[offset..offset + filters * kkc];
-                    let (gw, gb) = grad[offset..offset + filters * kkc + filters].split_at_mut(filters * kkc);
-                    for row in d.chunks(filters) {
-                        for (g, v) in gb.iter_mut().zip(row) {
-                            *g += v;
-                        }
-                    }
+                    let sums = grad[offset..offset + filters * kkc + filters].split_at_mut(filters * kkc);
+                    let relu_in = match self.layers.get(i + 1) {
+                        Some(Layer::Relu { .. }) => Some(&tape.acts[i + 1][..]),
+                        _ => None,
+                    };
                     let dx = if need_dx {
                         d_prev.clear();
                         d_prev.resize(batch * layer.in_size(), 0.0);
@@ -398,7 +412,7 @@ impl Net {
                     } else {
                         None
                     };
-                    conv_backward(layer, inp, &d, dx, w, gw, &mut tape.conv, par);
+                    conv_backward(layer, inp, &mut d, relu_in, dx, w, sums, &mut tape.conv, par);
                 }
             }
             if !need_dx {
@@ -437,12 +451,13 @@ pub struct Factors {
 const CONV_CHUNK_BYTES: usize = 512 * 1024;
 
 /// One thread's scratch for the conv layers: an unfolded chunk, its gradient, and this
-/// thread's share of the weight gradient.
+/// thread's share of the weight and bias gradients.
 #[derive(Clone, Debug, Default)]
 struct ConvScratch {
     cols: Vec<f32>,
     d_cols: Vec<f32>,
     gw: Vec<f32>,
+    gb: Vec<f32>,
 }
 
 /// How a conv layer splits `batch` samples: (samples per thread, samples per chunk).
@@ -453,47 +468,24 @@ fn conv_split(layer: &Layer, batch: usize, par: Par) -> (usize, usize) {
     (batch.div_ceil(threads).max(1), layer.conv_chunk())
 }
 
-/// A conv layer's forward pass: `out (batch·oh·ow × filters) += im2col(x) · wᵀ`, chunk by
-/// chunk (see [`CONV_CHUNK_BYTES`]); samples split between threads when `par` allows.
-fn conv_forward(layer: &Layer, x: &[f32], out: &mut [f32], w: &[f32], scratch: &mut Vec<ConvScratch>, par: Par) {
-    let Layer::Conv2d { filters, .. } = *layer else { unreachable!() };
-    let kkc = layer.param_count() / filters - 1;
-    let [oh, ow] = layer.conv_out();
-    let (per_in, per_out) = (layer.in_size(), layer.out_size());
-    let batch = x.len() / per_in;
-    let (share, chunk) = conv_split(layer, batch, par);
-    let shares = batch.div_ceil(share);
-    if scratch.len() < shares {
-        scratch.resize_with(shares, Default::default);
-    }
-    let run = |((x, out), s): ((&[f32], &mut [f32]), &mut ConvScratch)| {
-        for (xc, oc) in x.chunks(chunk * per_in).zip(out.chunks_mut(chunk * per_out)) {
-            let n = xc.len() / per_in;
-            im2col(layer, xc, n, &mut s.cols);
-            gemm(oc, n * oh * ow, filters, kkc, &s.cols, false, w, true, true, Par::Seq);
-        }
-    };
-    if shares == 1 {
-        run(((x, out), &mut scratch[0]));
-    } else {
-        use rayon::prelude::*;
-        x.par_chunks(share * per_in).zip(out.par_chunks_mut(share * per_out)).zip(scratch.par_iter_mut()).for_each(run);
-    }
+/// Split `v` into consecutive pieces of `len` (the last may be shorter), or none.
+fn pieces<T>(v: Option<&mut [T]>, len: usize) -> impl Iterator<Item = Option<&mut [T]>> {
+    let mut it = v.map(|v| v.chunks_mut(len));
+    std::iter::from_fn(move || Some(it.as_mut().and_then(|it| it.next())))
 }
 
-/// A conv layer's backward pass, chunk by chunk as [`conv_forward`] (the input unfolded
-/// again, from cache, rather than kept): `gw += dᵀ · im2col(x)` and, when `dx` is given,
-/// `dx += col2im(d · w)` (`dx` zeroed by the caller). With several threads each adds its
-/// samples' weight gradient into its own buffer, and those are summed in thread order, so
-/// the result depends on the thread count but not on scheduling.
+/// A conv layer's forward pass, chunk by chunk (see [`CONV_CHUNK_BYTES`]), samples split
+/// between threads when `par` allows: `out (batch·oh·ow × filters) = b + im2col(x) · wᵀ`,
+/// and, when the next layer is a ReLU (`relu`, its output), `relu = max(0, out)` while the
+/// chunk is in cache.
 #[allow(clippy::too_many_arguments)]
-fn conv_backward(
+fn conv_forward(
     layer: &Layer,
     x: &[f32],
-    d: &[f32],
-    dx: Option<&mut [f32]>,
+    out: &mut [f32],
+    relu: Option<&mut [f32]>,
     w: &[f32],
-    gw: &mut [f32],
+    b: &[f32],
     scratch: &mut Vec<ConvScratch>,
     par: Par,
 ) {
@@ -507,21 +499,95 @@ fn conv_backward(
     if scratch.len() < shares {
         scratch.resize_with(shares, Default::default);
     }
-    let run = |x: &[f32], d: &[f32], mut dx: Option<&mut [f32]>, s: &mut ConvScratch, gw: Option<&mut [f32]>| {
-        let ConvScratch { cols, d_cols, gw: own } = s;
-        let gw = match gw {
-            Some(gw) => gw,
+    let run = |x: &[f32], out: &mut [f32], mut relu: Option<&mut [f32]>, s: &mut ConvScratch| {
+        for (c, (xc, oc)) in x.chunks(chunk * per_in).zip(out.chunks_mut(chunk * per_out)).enumerate() {
+            let n = xc.len() / per_in;
+            im2col(layer, xc, n, &mut s.cols);
+            for row in oc.chunks_mut(filters) {
+                row.copy_from_slice(b);
+            }
+            gemm(oc, n * oh * ow, filters, kkc, &s.cols, false, w, true, true, Par::Seq);
+            if let Some(relu) = relu.as_deref_mut() {
+                for (r, v) in relu[c * chunk * per_out..][..oc.len()].iter_mut().zip(oc.iter()) {
+                    *r = v.max(0.0);
+                }
+            }
+        }
+    };
+    if shares == 1 {
+        return run(x, out, relu, &mut scratch[0]);
+    }
+    let parts: Vec<_> = (x.chunks(share * per_in).zip(out.chunks_mut(share * per_out)))
+        .zip(pieces(relu, share * per_out))
+        .zip(scratch.iter_mut())
+        .collect();
+    use rayon::prelude::*;
+    parts.into_par_iter().for_each(|(((x, out), relu), s)| run(x, out, relu, s));
+}
+
+/// A conv layer's backward pass, chunk by chunk as [`conv_forward`] (the input unfolded
+/// again, from cache, rather than kept). `d` is the gradient wrt the layer's outputs; when
+/// the next layer is a ReLU, `relu_in` is that ReLU's input (this layer's output) and `d`
+/// the gradient wrt the ReLU's output, masked here chunk by chunk. Then `gb += Σ d`,
+/// `gw += dᵀ · im2col(x)` and, when `dx` is given, `dx += col2im(d · w)` (`dx` zeroed by
+/// the caller). With several threads each adds its samples' gradients into its own
+/// buffers, and those are summed in thread order, so the result depends on the thread
+/// count but not on scheduling.
+#[allow(clippy::too_many_arguments)]
+fn conv_backward(
+    layer: &Layer,
+    x: &[f32],
+    d: &mut [f32],
+    relu_in: Option<&[f32]>,
+    dx: Option<&mut [f32]>,
+    w: &[f32],
+    (gw, gb): (&mut [f32], &mut [f32]),
+    scratch: &mut Vec<ConvScratch>,
+    par: Par,
+) {
+    let Layer::Conv2d { filters, .. } = *layer else { unreachable!() };
+    let kkc = layer.param_count() / filters - 1;
+    let [oh, ow] = layer.conv_out();
+    let (per_in, per_out) = (layer.in_size(), layer.out_size());
+    let batch = x.len() / per_in;
+    let (share, chunk) = conv_split(layer, batch, par);
+    let shares = batch.div_ceil(share);
+    if scratch.len() < shares {
+        scratch.resize_with(shares, Default::default);
+    }
+    let run = |x: &[f32],
+               d: &mut [f32],
+               relu_in: Option<&[f32]>,
+               mut dx: Option<&mut [f32]>,
+               s: &mut ConvScratch,
+               sums: Option<(&mut [f32], &mut [f32])>| {
+        let ConvScratch { cols, d_cols, gw: own_gw, gb: own_gb } = s;
+        let (gw, gb) = match sums {
+            Some(sums) => sums,
             None => {
-                own.clear();
-                own.resize(filters * kkc, 0.0);
-                &mut own[..]
+                own_gw.clear();
+                own_gw.resize(filters * kkc, 0.0);
+                own_gb.clear();
+                own_gb.resize(filters, 0.0);
+                (&mut own_gw[..], &mut own_gb[..])
             }
         };
         let n_all = x.len() / per_in;
         for first in (0..n_all).step_by(chunk) {
             let n = chunk.min(n_all - first);
             let rows = n * oh * ow;
-            let dc = &d[first * per_out..(first + n) * per_out];
+            let dc = &mut d[first * per_out..(first + n) * per_out];
+            if let Some(pre) = relu_in {
+                // A select with an unconditional store, so the loop vectorises.
+                for (g, v) in dc.iter_mut().zip(&pre[first * per_out..(first + n) * per_out]) {
+                    *g = if *v <= 0.0 { 0.0 } else { *g };
+                }
+            }
+            for row in dc.chunks(filters) {
+                for (g, v) in gb.iter_mut().zip(row) {
+                    *g += v;
+                }
+            }
             im2col(layer, &x[first * per_in..(first + n) * per_in], n, cols);
             gemm(gw, filters, kkc, rows, dc, true, cols, false, true, Par::Seq);
             if let Some(dx) = dx.as_deref_mut() {
@@ -532,20 +598,20 @@ fn conv_backward(
         }
     };
     if shares == 1 {
-        run(x, d, dx, &mut scratch[0], Some(gw));
-        return;
+        return run(x, d, relu_in, dx, &mut scratch[0], Some((gw, gb)));
     }
+    let parts: Vec<_> = (x.chunks(share * per_in).zip(d.chunks_mut(share * per_out)))
+        .zip(relu_in.map(|r| r.chunks(share * per_out)).into_iter().flatten().map(Some).chain(std::iter::repeat(None)))
+        .zip(pieces(dx, share * per_in))
+        .zip(scratch.iter_mut())
+        .collect();
     use rayon::prelude::*;
-    let parts = x.par_chunks(share * per_in).zip(d.par_chunks(share * per_out));
-    match dx {
-        Some(dx) => parts
-            .zip(dx.par_chunks_mut(share * per_in))
-            .zip(scratch.par_iter_mut())
-            .for_each(|(((x, d), dx), s)| run(x, d, Some(dx), s, None)),
-        None => parts.zip(scratch.par_iter_mut()).for_each(|((x, d), s)| run(x, d, None, s, None)),
-    }
+    parts.into_par_iter().for_each(|((((x, d), relu_in), dx), s)| run(x, d, relu_in, dx, s, None));
     for s in &scratch[..shares] {
         for (g, v) in gw.iter_mut().zip(&s.gw) {
+            *g += v;
+        }
+        for (g, v) in gb.iter_mut().zip(&s.gb) {
             *g += v;
         }
     }
