@@ -70,8 +70,8 @@ pub fn cars(args: CarsArgs) -> Result<i32> {
         return Ok(0);
     }
     println!(
-        "{:<12} {:<12} {:>8} {:<10} {:>7} {:>14} {:>16} {:>8}  {}",
-        "car", "job", "model", "from", "fps", "infer p50/p99", "frame→cmd p50/p99", "refused", "state"
+        "{:<12} {:<12} {:>8} {:<10} {:>7} {:>14} {:>16} {:>8}  state",
+        "car", "job", "model", "from", "fps", "infer p50/p99", "frame→cmd p50/p99", "refused"
     );
     for s in seen.values() {
         let model = if s.has_model { format!("v{}", s.policy_version) } else { "-".into() };

@@ -416,14 +416,15 @@ fn track_box(t: &TrackLines) -> ((f64, f64), (f64, f64)) {
     ((cx - side / 2.0, cx + side / 2.0), (cy - side / 2.0, cy + side / 2.0))
 }
 
+/// A chart in metres over a track's bounding box.
+type TrackChart<'a, DB> =
+    ChartContext<'a, DB, Cartesian2d<plotters::coord::types::RangedCoordf64, plotters::coord::types::RangedCoordf64>>;
+
 fn track_chart<'a, DB: DrawingBackend>(
     root: &'a DrawingArea<DB, Shift>,
     t: &TrackLines,
     title: &str,
-) -> std::result::Result<
-    ChartContext<'a, DB, Cartesian2d<plotters::coord::types::RangedCoordf64, plotters::coord::types::RangedCoordf64>>,
-    DrawingAreaErrorKind<DB::ErrorType>,
-> {
+) -> std::result::Result<TrackChart<'a, DB>, DrawingAreaErrorKind<DB::ErrorType>> {
     root.fill(&WHITE)?;
     let ((x0, x1), (y0, y1)) = track_box(t);
     let mut chart = ChartBuilder::on(root)
@@ -578,21 +579,15 @@ pub fn write(run: &Path, out: Option<&Path>, title: &str) -> Result<PathBuf> {
     let recent = data.recent_rows(run)?;
     for t in &data.tracks {
         let slug = t.world.replace(|c: char| !c.is_ascii_alphanumeric() && c != '_', "-");
-        if let Some(best) = data.best() {
-            if let Some(folder) = best.simtrace.get(&t.world) {
-                let rows = read_simtrace(&run.join(folder).join("evaluation-simtrace").join("0-iteration.csv"))?;
-                if !rows.is_empty() {
-                    let n = both!(dir, format!("racing-line-{slug}"), (820, 820), |r| racing_line(
-                        r,
-                        t,
-                        &rows,
-                        best.iteration
-                    ));
-                    charts.push((
-                        n,
-                        format!("{}: the best model's evaluation laps, coloured by commanded speed.", t.world),
-                    ));
-                }
+        if let Some(best) = data.best()
+            && let Some(folder) = best.simtrace.get(&t.world)
+        {
+            let rows = read_simtrace(&run.join(folder).join("evaluation-simtrace").join("0-iteration.csv"))?;
+            if !rows.is_empty() {
+                let n =
+                    both!(dir, format!("racing-line-{slug}"), (820, 820), |r| racing_line(r, t, &rows, best.iteration));
+                charts
+                    .push((n, format!("{}: the best model's evaluation laps, coloured by commanded speed.", t.world)));
             }
         }
         if let Some(rows) = recent.get(&t.world).filter(|r| !r.is_empty()) {
@@ -681,6 +676,6 @@ fn html(title: &str, data: &RunData, charts: &[(String, String)]) -> String {
             let _ = write!(h, "<tr><th>{}</th><td>{}</td></tr>", esc(k), esc(&v.to_string()));
         }
     }
-    let _ = write!(h, "</table></body></html>\n");
+    let _ = writeln!(h, "</table></body></html>");
     h
 }

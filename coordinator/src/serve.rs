@@ -155,14 +155,14 @@ pub fn serve(args: ServeArgs) -> Result<()> {
             }
         }
         while let Ok(Some(s)) = report_sub.try_recv() {
-            if let Some(r) = decode_sample::<AgentReport>(&s, &drops) {
-                if let Some(j) = st.jobs.get_mut(&r.job_id).filter(|j| j.state == JobState::Running) {
-                    j.event(format!("agent {} failed: {}", r.agent_id, r.error));
-                    j.state = JobState::Failed;
-                    j.stop_reason = Some(format!("agent {} failed: {}", r.agent_id, r.error));
-                    j.ended = Some(now_unix());
-                    db.save_or_log(j);
-                }
+            if let Some(r) = decode_sample::<AgentReport>(&s, &drops)
+                && let Some(j) = st.jobs.get_mut(&r.job_id).filter(|j| j.state == JobState::Running)
+            {
+                j.event(format!("agent {} failed: {}", r.agent_id, r.error));
+                j.state = JobState::Failed;
+                j.stop_reason = Some(format!("agent {} failed: {}", r.agent_id, r.error));
+                j.ended = Some(now_unix());
+                db.save_or_log(j);
             }
         }
         schedule(&mut st, &db, &session);

@@ -34,7 +34,7 @@ pub fn run(command: TracksCommand) -> Result<i32> {
                     .collect();
                 println!("{}", serde_json::to_string_pretty(&rows)?);
             } else {
-                println!("{:<26} {:>10} {:>9} {:>9}  {}", "NAME", "LENGTH m", "WIDTH m", "DIRECTION", "SURFACE");
+                println!("{:<26} {:>10} {:>9} {:>9}  SURFACE", "NAME", "LENGTH m", "WIDTH m", "DIRECTION");
                 for w in &worlds {
                     let s = TrackSummary::of(&w.name, &w.rows);
                     println!(

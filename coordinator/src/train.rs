@@ -243,9 +243,11 @@ pub fn train(args: TrainArgs) -> Result<i32> {
 
 pub fn evaluate_cmd(args: EvaluateArgs) -> Result<i32> {
     let f = folder::load(&args.model_dir)?;
-    let mut cfg = SimConfig::default();
-    cfg.observation = serde_json::from_value(f.manifest.observation.clone())
-        .with_context(|| format!("{}: manifest.json's observation settings", args.model_dir.display()))?;
+    let cfg = SimConfig {
+        observation: serde_json::from_value(f.manifest.observation.clone())
+            .with_context(|| format!("{}: manifest.json's observation settings", args.model_dir.display()))?,
+        ..SimConfig::default()
+    };
     if obs_dim(&cfg.observation) != f.manifest.obs_size {
         bail!(
             "{}: the observation settings give {} inputs, the model takes {}",
@@ -349,8 +351,8 @@ pub fn clone_cmd(args: CloneArgs) -> Result<i32> {
     folder::save(&run.model_dir(), &meta, &f.model, &manifest)?;
     run.write_file("model_metadata.json", meta.to_json().as_bytes())?;
     run.write_file("hyperparameters.json", hyper.to_json().as_bytes())?;
-    let mut cfg = SimConfig::default();
-    cfg.observation = serde_json::from_value(f.manifest.observation.clone())?;
+    let cfg =
+        SimConfig { observation: serde_json::from_value(f.manifest.observation.clone())?, ..SimConfig::default() };
     run.write_file("sim.toml", toml::to_string_pretty(&cfg)?.as_bytes())?;
     println!(
         "cloned {} (policy v{}) into {}: lr {}; continue with: coordinator train --world WORLD --out {} --resume",

@@ -204,10 +204,10 @@ fn a_real_batch(session: &protocol::net::zenoh::Session, job: &str, agent: &str)
     let drops = net::DropCounters::default();
     let until = Instant::now() + Duration::from_secs(30);
     loop {
-        if let Some((_, b)) = net::try_next::<protocol::ExperienceBatch>(&real, &drops) {
-            if !b.trajectories.is_empty() {
-                return b;
-            }
+        if let Some((_, b)) = net::try_next::<protocol::ExperienceBatch>(&real, &drops)
+            && !b.trajectories.is_empty()
+        {
+            return b;
         }
         assert!(Instant::now() < until, "no experience from {agent} seen");
         std::thread::sleep(Duration::from_millis(20));
@@ -427,7 +427,8 @@ fn issue_4_bad_input_is_counted_and_dropped_and_bad_jobs_are_refused() {
     // Issue 10: batches that decode but do not fit the job, sent as agent-1 (a copy of one of
     // its real batches with one number changed): an action index of 99 killed the learner.
     let batch = a_real_batch(&session, &id, "agent-1");
-    let hostile: [(&str, fn(&mut protocol::Trajectory)); 4] = [
+    type Lie = (&'static str, fn(&mut protocol::Trajectory));
+    let hostile: [Lie; 4] = [
         ("action", |t| t.discrete_actions[0] = 99),
         ("reward", |t| t.rewards[0] = 1e9),
         ("progress", |t| t.progress = 500.0),

@@ -348,7 +348,7 @@ impl Driver {
     /// longer than `watchdog_ms` (and again every `watchdog_ms` while they stay away).
     pub fn tick(&mut self, now: Instant) -> Option<Command> {
         let limit = Duration::from_millis(self.car.watchdog_ms);
-        let Some(last) = self.last_frame else { return None };
+        let last = self.last_frame?;
         if now.duration_since(last) < limit {
             if self.state == CarState::FramesStopped {
                 self.set_state(if self.slot.current().is_some() { CarState::Driving } else { CarState::NoModel });

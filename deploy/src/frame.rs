@@ -229,7 +229,7 @@ mod tests {
             }),
         ];
         for f in cases {
-            assert!(preprocess(&[f.clone()], 120, 160, 1, &mut out).is_err(), "{f:?}");
+            assert!(preprocess(std::slice::from_ref(&f), 120, 160, 1, &mut out).is_err(), "{f:?}");
         }
         assert_eq!(preprocess(&[], 120, 160, 1, &mut out), Err(FrameError::Missing { got: 0, need: 1 }));
     }

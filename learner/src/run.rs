@@ -953,11 +953,11 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
             tracing::debug!(run = %spec.name, version = ppo.version, shortfall, workers = ?workers, granted = round.is_some(), "grant round");
             last_grant = Instant::now() - Duration::from_secs(60);
         }
-        if let Some(r) = &round {
-            if last_grant.elapsed() >= Duration::from_secs(1) {
-                link.grant(&r.credit)?;
-                last_grant = Instant::now();
-            }
+        if let Some(r) = &round
+            && last_grant.elapsed() >= Duration::from_secs(1)
+        {
+            link.grant(&r.credit)?;
+            last_grant = Instant::now();
         }
 
         // 4. Checkpoints when due (every `eval_seconds`, and the last version when stopping);

@@ -368,9 +368,12 @@ fn promote(
     reply(false, format!("job {job} has no checkpoint of v{v} in {}; it has {have:?}", run.display()))
 }
 
+/// Bytes a queryable answers with, replaced as they change.
+type Cell = Arc<Mutex<Vec<u8>>>;
+
 /// A queryable on `key` that answers with the last bytes stored in the returned cell.
-fn answer_last(session: &zenoh::Session, key: &str) -> Result<(Arc<Mutex<Vec<u8>>>, zenoh::query::Queryable<()>)> {
-    let cell: Arc<Mutex<Vec<u8>>> = Arc::new(Mutex::new(Vec::new()));
+fn answer_last(session: &zenoh::Session, key: &str) -> Result<(Cell, zenoh::query::Queryable<()>)> {
+    let cell: Cell = Arc::new(Mutex::new(Vec::new()));
     let c = cell.clone();
     let queryable = session
         .declare_queryable(key)

@@ -71,11 +71,14 @@ impl Roster {
     }
 }
 
+/// One member's shares by (plan, step): the summed values and the factors.
+type Queue = BTreeMap<(u64, u64), (Vec<f32>, Vec<f32>)>;
+
 /// Gradient shares received and not yet added.
 pub struct Shares {
     sub: Sub,
     job: String,
-    waiting: HashMap<String, BTreeMap<(u64, u64), (Vec<f32>, Vec<f32>)>>,
+    waiting: HashMap<String, Queue>,
     drops: Arc<DropCounters>,
 }
 
@@ -442,15 +445,15 @@ pub fn follow(
         if !plan.members.iter().any(|m| m == me) {
             continue;
         }
-        if last != plan.base {
-            if let Some(state) = plan.state.clone() {
-                match ppo.restore(PpoState { version: state.policy_version, tensors: state.tensors }) {
-                    Ok(()) => {
-                        last = plan.base;
-                        tracing::info!(job = %view.job_id, version = ppo.version, "took over the leader's weights and optimiser state");
-                    }
-                    Err(e) => tracing::warn!(job = %view.job_id, "the leader's state does not fit this learner: {e}"),
+        if last != plan.base
+            && let Some(state) = plan.state.clone()
+        {
+            match ppo.restore(PpoState { version: state.policy_version, tensors: state.tensors }) {
+                Ok(()) => {
+                    last = plan.base;
+                    tracing::info!(job = %view.job_id, version = ppo.version, "took over the leader's weights and optimiser state");
                 }
+                Err(e) => tracing::warn!(job = %view.job_id, "the leader's state does not fit this learner: {e}"),
             }
         }
         if last != plan.base || ppo.version != plan.policy_version {

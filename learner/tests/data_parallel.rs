@@ -10,11 +10,14 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::sync::{Arc, Barrier, Mutex};
 
+/// Each rank's (values, factors), put there before the barrier.
+type Slots = Arc<Mutex<Vec<(Vec<f32>, Vec<f32>)>>>;
+
 /// Threads of one process as a learner group.
 struct Threads {
     rank: usize,
     size: usize,
-    slots: Arc<Mutex<Vec<(Vec<f32>, Vec<f32>)>>>,
+    slots: Slots,
     barrier: Arc<Barrier>,
 }
 

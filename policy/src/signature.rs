@@ -278,10 +278,10 @@ mod tests {
         assert!(s.write_pair(&dir.path().join("learner")).is_err());
         let back = Signer::load(&secret).unwrap();
         assert_eq!(back.public_hex(), s.public_hex());
-        let trust = TrustedKeys::load(&[public.clone()]).unwrap();
+        let trust = TrustedKeys::load(std::slice::from_ref(&public)).unwrap();
         let sig = back.sign(b"w", "m", "f");
         trust.verify(&sig, b"w", "m", "f").unwrap();
-        let e = TrustedKeys::load(&[secret.clone()]).unwrap_err().to_string();
+        let e = TrustedKeys::load(std::slice::from_ref(&secret)).unwrap_err().to_string();
         assert!(e.contains("learner.key") && e.contains("public key"), "{e}");
         let e = Signer::load(&public).unwrap_err().to_string();
         assert!(e.contains("learner.pub") && e.contains("secret key"), "{e}");

@@ -678,7 +678,8 @@ mod tests {
         lie.trials[0].progress = 1e9;
         assert!(eval_report_from_wire(lie, &view, "a1").is_err(), "progress over 100 % is refused");
         // Issue 11: the trial's sim-trace rows are checked like experience.
-        let lies: [(&str, fn(&mut crate::EvalTrial)); 6] = [
+        type Lie = (&'static str, fn(&mut crate::EvalTrial));
+        let lies: [Lie; 6] = [
             ("a frame whose pixels are not its size", |t| t.frames[0].gray.push(9)),
             ("a column short", |t| {
                 t.trace.as_mut().unwrap().x.pop();

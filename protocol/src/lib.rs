@@ -388,6 +388,8 @@ pub fn choices_from_wire(
         if continuous.len() != 2 * n {
             return bad(format!("{} continuous action values for {n} steps", continuous.len()));
         }
+        // Negated so that NaN is refused too.
+        #[allow(clippy::neg_cmp_op_on_partial_ord)]
         if let Some(a) = continuous.iter().find(|a| !(a.abs() <= limits::CONTINUOUS_ACTION)) {
             return bad(format!("continuous action {a} outside ±{}", limits::CONTINUOUS_ACTION));
         }
@@ -605,7 +607,7 @@ mod tests {
         ];
         for (why, w, actions) in rows {
             match trajectory_from_wire(w.clone(), 1, *actions) {
-                Err(DecodeError::Invalid(m)) => assert!(m.contains(why.split(' ').last().unwrap()), "{why}: {m}"),
+                Err(DecodeError::Invalid(m)) => assert!(m.contains(why.split(' ').next_back().unwrap()), "{why}: {m}"),
                 other => panic!("{why}: {other:?}"),
             }
         }

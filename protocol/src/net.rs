@@ -382,10 +382,10 @@ pub fn query<M: Versioned>(
     let replies = get.wait().map_err(|e| NetError(e.to_string()))?;
     let mut out = Vec::new();
     while let Ok(reply) = replies.recv() {
-        if let Ok(sample) = reply.result() {
-            if let Some(m) = decode_sample::<M>(sample, drops) {
-                out.push(m);
-            }
+        if let Ok(sample) = reply.result()
+            && let Some(m) = decode_sample::<M>(sample, drops)
+        {
+            out.push(m);
         }
     }
     Ok(out)

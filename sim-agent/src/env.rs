@@ -170,6 +170,8 @@ impl Env {
     /// An environment seeded with `seed`; its first training start is at `first_start`
     /// (a fraction of the track) and moves round-robin from there.
     pub fn new(spec: EnvSpec, cfg: Arc<SimConfig>, mode: Mode, seed: u64, first_start: f64) -> Result<Env, EnvError> {
+        // Negated so that NaN is refused too.
+        #[allow(clippy::neg_cmp_op_on_partial_ord)]
         if !(cfg.control_hz > 0.0) || cfg.physics_substeps == 0 {
             return Err(EnvError::Config("control_hz must be positive and physics_substeps at least 1".into()));
         }
@@ -297,7 +299,7 @@ impl Env {
                 EpisodeStatus::InProgress
             }
         };
-        let lap_time = (status == EpisodeStatus::LapComplete).then(|| self.clock.sim_time - self.lap_start_time);
+        let lap_time = (status == EpisodeStatus::LapComplete).then_some(self.clock.sim_time - self.lap_start_time);
         let mut ends = match status {
             EpisodeStatus::Prepare | EpisodeStatus::InProgress | EpisodeStatus::Pause => false,
             EpisodeStatus::LapComplete => !matches!(&self.mode, Mode::Evaluation(r) if r.time_limit_s.is_some()),
@@ -307,11 +309,12 @@ impl Env {
             },
             EpisodeStatus::TimeUp => true,
         };
-        if let Mode::Evaluation(EvalRules { time_limit_s: Some(limit), .. }) = self.mode {
-            if !ends && self.clock.sim_time - self.episode_start >= limit {
-                status = EpisodeStatus::TimeUp;
-                ends = true;
-            }
+        if let Mode::Evaluation(EvalRules { time_limit_s: Some(limit), .. }) = self.mode
+            && !ends
+            && self.clock.sim_time - self.episode_start >= limit
+        {
+            status = EpisodeStatus::TimeUp;
+            ends = true;
         }
         let truncated = !ends && self.clock.steps >= ep.max_steps;
         self.pending = Some(Pending {

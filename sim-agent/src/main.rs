@@ -119,7 +119,8 @@ fn bench(args: BenchArgs) -> Result<()> {
     println!();
     println!("| reward | threads | env steps/s | vs 1 thread | episodes | mean progress at episode end |");
     println!("|---|---|---|---|---|---|");
-    let rewards: Vec<(String, Box<dyn Fn() -> Result<RewardFn>>)> = vec![
+    type MakeReward = Box<dyn Fn() -> Result<RewardFn>>;
+    let rewards: Vec<(String, MakeReward)> = vec![
         ("built-in center_line".into(), Box::new(|| Ok(RewardFn::Builtin(sim_agent::BuiltinReward::CenterLine)))),
         (format!("python {}", args.python_reward.display()), {
             let p = args.python_reward.clone();

@@ -196,7 +196,7 @@ pub fn evaluate(
     let camera =
         cfg.record_trace && vec.renderer().is_some() && dim == (crate::camera::WIDTH * crate::camera::HEIGHT) as usize;
     while results.iter().any(|r| r.is_none()) && steps < cap {
-        if camera && results[0].is_none() && steps % 2 == 0 {
+        if camera && results[0].is_none() && steps.is_multiple_of(2) {
             logs[0].frames.push(policy::exchange::Frame {
                 world: spec.name.clone(),
                 width: crate::camera::WIDTH,

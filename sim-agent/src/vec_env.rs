@@ -92,7 +92,7 @@ impl VecEnv {
                     (
                         0,
                         CameraDraw::default(),
-                        <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(env_seed(seed, i) ^ 0xCA3E_7A),
+                        <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(env_seed(seed, i) ^ 0x00CA_3E7A),
                     )
                 })
                 .collect(),

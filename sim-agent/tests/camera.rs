@@ -34,8 +34,8 @@ fn frames_are_deterministic_and_the_road_is_where_the_geometry_says() {
     let world = tracks::world("reinvent_base").unwrap();
     let track = world.track(Direction::Forward);
     let centred = start_view(&world, &track, 0.0);
-    let a = r.render(&[centred.clone()], false);
-    let b = r.render(&[centred.clone()], false);
+    let a = r.render(std::slice::from_ref(&centred), false);
+    let b = r.render(std::slice::from_ref(&centred), false);
     assert_eq!(a.len(), (WIDTH * HEIGHT) as usize);
     assert_eq!(a, b, "same state, same bytes");
     // On the centre line of the start straight, facing along it: the two border lines are

@@ -121,7 +121,7 @@ fn waypoints_are_built_once_per_episode() {
 #[test]
 fn helper_modules_beside_the_reward_file_import() {
     let rewards = lap(&data("uses_helper.py")).unwrap();
-    assert!(rewards[1..].iter().any(|&r| r == 1.0));
+    assert!(rewards[1..].contains(&1.0));
 }
 
 #[test]

@@ -55,7 +55,7 @@ fn episodes_end_and_restart_inside_the_vector() {
     let mut done = 0;
     for _ in 0..200 {
         // Full left lock: every car leaves the road soon.
-        let out = v.step(&vec![Action { steering_angle: 30.0, speed: 2.0 }; 4]).unwrap();
+        let out = v.step(&[Action { steering_angle: 30.0, speed: 2.0 }; 4]).unwrap();
         done += out.iter().filter(|o| o.done).count();
     }
     assert!(done >= 8, "cars went off and restarted: {done}");

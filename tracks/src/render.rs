@@ -93,10 +93,10 @@ pub fn render_png(track: &Track, path: &[P2]) -> Result<Vec<u8>, String> {
     if let Some(p) = line(&arrow, false) {
         pix.stroke_path(&p, &paint(30, 30, 230), &Stroke { width: 0.05 * SCALE, ..Stroke::default() }, id, None);
     }
-    if path.len() > 1 {
-        if let Some(p) = line(path, false) {
-            pix.stroke_path(&p, &paint(0, 200, 255), &Stroke { width: 0.02 * SCALE, ..Stroke::default() }, id, None);
-        }
+    if path.len() > 1
+        && let Some(p) = line(path, false)
+    {
+        pix.stroke_path(&p, &paint(0, 200, 255), &Stroke { width: 0.02 * SCALE, ..Stroke::default() }, id, None);
     }
     pix.encode_png().map_err(|e| format!("PNG encoding failed: {e}"))
 }

@@ -13,6 +13,7 @@ fn rectangle(direction: Direction) -> Track {
 
 /// (direction, x, y) -> (ndist, distance_from_center, closest_waypoints, left, width, on road)
 #[test]
+#[allow(clippy::type_complexity)] // one row per case, as a table
 fn rectangle_table_derived_by_hand() {
     use Direction::*;
     let table: &[(Direction, f64, f64, f64, f64, [usize; 2], bool, f64, bool)] = &[
