@@ -309,10 +309,7 @@ impl Recorder {
     }
 }
 
-/// Seconds since the Unix epoch.
-pub fn unix_now() -> f64 {
-    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs_f64()).unwrap_or(0.0)
-}
+pub use policy::simtrace::unix_now;
 
 fn mcap_err(e: mcap::McapError) -> std::io::Error {
     std::io::Error::other(e)

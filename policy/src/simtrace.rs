@@ -8,6 +8,12 @@ use crate::metadata::ActionSpace;
 use crate::model::Choice;
 use std::io::Write;
 
+/// Seconds since the Unix epoch: the `wall_clock` column (Python's `time.time()`), and the
+/// learner's log timestamps.
+pub fn unix_now() -> f64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs_f64()).unwrap_or(0.0)
+}
+
 /// The header line of simapp 6's `training-simtrace/<N>-iteration.csv`.
 pub const HEADER: &str = "episode,steps,X,Y,yaw,steer,throttle,action,reward,done,all_wheels_on_track,progress,closest_waypoint,track_len,tstamp,episode_status,pause_duration,obstacle_crash_counter,wall_clock";
 

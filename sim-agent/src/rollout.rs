@@ -134,10 +134,7 @@ impl Collector {
     }
 }
 
-/// Seconds since the Unix epoch (DeepRacer's `wall_clock`, Python's `time.time()`).
-pub fn unix_now() -> f64 {
-    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs_f64()).unwrap_or(0.0)
-}
+pub use policy::simtrace::unix_now;
 
 /// One evaluation trial's result.
 #[derive(Clone, Debug, PartialEq)]
