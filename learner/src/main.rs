@@ -42,6 +42,9 @@ struct MemberCli {
     /// The bench's network.
     #[arg(long)]
     network: String,
+    /// The bench's epochs per update.
+    #[arg(long)]
+    epochs: usize,
 }
 
 #[derive(clap::Args)]
@@ -79,12 +82,17 @@ struct BenchCli {
     #[arg(long, default_value_t = 1)]
     learners: usize,
     /// With --learners: check that the team's weights are one learner's (to float rounding)
-    /// and every member's are the leader's (bit for bit); fail otherwise.
+    /// and every member's are the leader's (bit for bit); fail otherwise. Needs --epochs 3 or
+    /// fewer (rounding differences grow with every step).
     #[arg(long)]
     check: bool,
     /// Only the team rows (with --learners).
     #[arg(long)]
     team_only: bool,
+    /// With --learners: epochs of each whole update (PPO's passes over the iteration's
+    /// experience, which the leader sends the team once per update); default: training's.
+    #[arg(long, default_value_t = learner::Hyperparameters::default().num_epochs)]
+    epochs: usize,
 }
 
 fn cores() -> usize {
@@ -99,12 +107,12 @@ fn main() {
                 bench(&b.network, b.seconds, b.threads.unwrap_or_else(cores))?;
             }
             if b.learners > 1 {
-                team_bench::run(&b.network, b.seconds, b.learners, b.check)?;
+                team_bench::run(&b.network, b.seconds, b.learners, b.epochs, b.check)?;
             }
             Ok(())
         })(),
         Command::BenchMember(m) => {
-            team_bench::member(&m.network, m.net.args(true).as_role(protocol::secure::Role::Learner), &m.id)
+            team_bench::member(&m.network, m.epochs, m.net.args(true).as_role(protocol::secure::Role::Learner), &m.id)
         }
         Command::Serve(a) => serve::serve(serve::ServeArgs {
             net: protocol::net::NetArgs::from(a.net).as_role(protocol::secure::Role::Learner),

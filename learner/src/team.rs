@@ -174,6 +174,7 @@ impl Reducer for Group<'_> {
             *v = acc;
         }
         tracing::trace!(
+            member = self.me,
             encode_ms = (t1 - t0).as_secs_f64() * 1e3,
             put_ms = (t2 - t1).as_secs_f64() * 1e3,
             wait_ms = (t3 - t2).as_secs_f64() * 1e3,

@@ -26,14 +26,17 @@ use std::time::{Duration, Instant};
 /// The bench's job name and world.
 const JOB: &str = "bench";
 const WORLD: &str = "bench";
-/// Episodes × steps of one update: 8 minibatches of 64, one epoch.
+/// Episodes × steps of one update: 8 minibatches of 64 an epoch.
 const EPISODES: usize = 8;
 const STEPS: usize = 64;
 
-fn model_of(network: &str) -> Result<(ActorCritic, Hyperparameters)> {
+fn model_of(network: &str, epochs: usize) -> Result<(ActorCritic, Hyperparameters)> {
     let (_, _, meta) = bench_metadata(network)?;
     let model = ActorCritic::new(&meta, 27, &mut ChaCha8Rng::seed_from_u64(1));
-    let hyper = Hyperparameters { num_epochs: 1, batch_size: 64, ..Hyperparameters::default() };
+    if epochs == 0 {
+        bail!("--epochs: expected at least 1");
+    }
+    let hyper = Hyperparameters { num_epochs: epochs, batch_size: 64, ..Hyperparameters::default() };
     Ok((model, hyper))
 }
 
@@ -73,27 +76,33 @@ fn free_port() -> Result<u16> {
     Ok(std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?.port())
 }
 
-/// Updates for at least `seconds` (and at least two); samples per second.
-fn rate(seconds: f64, mut update: impl FnMut() -> Result<()>) -> Result<(f64, usize)> {
+/// Updates for at least `seconds` (and at least two); sample-gradients per second (every
+/// sample of an update once per epoch).
+fn rate(seconds: f64, epochs: usize, mut update: impl FnMut() -> Result<()>) -> Result<(f64, usize)> {
     let t = Instant::now();
     let mut k = 0;
     while t.elapsed().as_secs_f64() < seconds || k < 2 {
         update()?;
         k += 1;
     }
-    Ok(((k * EPISODES * STEPS) as f64 / t.elapsed().as_secs_f64(), k))
+    Ok(((k * EPISODES * STEPS * epochs) as f64 / t.elapsed().as_secs_f64(), k))
 }
 
 /// The bench's leader: rows for 1 learner and for a team of `learners`.
-pub fn run(network: &str, seconds: f64, learners: usize, check: bool) -> Result<()> {
-    let (model, hyper) = model_of(network)?;
+pub fn run(network: &str, seconds: f64, learners: usize, epochs: usize, check: bool) -> Result<()> {
+    if check && epochs > 3 {
+        bail!(
+            "--check compares the team with one learner after about 24 minibatch steps, where rounding has not yet grown: give --epochs 3 or fewer (this run: {epochs})"
+        );
+    }
+    let (model, hyper) = model_of(network, epochs)?;
     let camera = !network.eq_ignore_ascii_case("MLP");
     let trajs = episodes(&model, camera, 2);
     let os = model.obs_size();
 
     let mut alone = Ppo::new(model.clone(), hyper.clone(), 0, 7, Par::Seq);
     alone.update(&trajs);
-    let (one, _) = rate(seconds, || {
+    let (one, _) = rate(seconds, epochs, || {
         alone.update(&trajs);
         Ok(())
     })?;
@@ -117,6 +126,8 @@ pub fn run(network: &str, seconds: f64, learners: usize, check: bool) -> Result<
                     &endpoint,
                     "--id",
                     &format!("bench-learner-{i}"),
+                    "--epochs",
+                    &epochs.to_string(),
                 ])
                 .env("RUST_LOG", std::env::var("RUST_LOG").unwrap_or_else(|_| "warn".into()))
                 .stdout(Stdio::piped())
@@ -141,14 +152,14 @@ pub fn run(network: &str, seconds: f64, learners: usize, check: bool) -> Result<
     lead.update(&mut ppo, &trajs);
     let first_s = t0.elapsed().as_secs_f64();
     // Rounding differences grow with every step of a chaotic optimisation: the comparison
-    // with one learner is made after a few updates.
-    const CHECKED: usize = 3;
+    // with one learner is made after about 24 minibatch steps (at least one update).
+    let checked = (3 / epochs).max(1);
     let mut against_one = None;
     if check {
-        for _ in 1..CHECKED {
+        for _ in 1..checked {
             lead.update(&mut ppo, &trajs);
         }
-        for _ in 0..CHECKED {
+        for _ in 0..checked {
             replay.update(&trajs);
         }
         // How far the team is from one learner, against how far the updates moved the
@@ -163,14 +174,14 @@ pub fn run(network: &str, seconds: f64, learners: usize, check: bool) -> Result<
         let ok = moved > 0.0 && apart <= 5e-2 * moved && replay.version == ppo.version;
         against_one = Some((apart, moved, ok));
     }
-    let (team, timed) = rate(seconds, || {
+    let (team, timed) = rate(seconds, epochs, || {
         let s = lead.update(&mut ppo, &trajs);
         if s.group_failed || lead.failures > 0 {
             bail!("the team failed during the bench: {:?}", s.refused);
         }
         Ok(())
     })?;
-    let made = timed + if check { CHECKED } else { 1 };
+    let made = timed + if check { checked } else { 1 };
     if lead.team_updates != made as u64 {
         bail!("{} of {made} updates were made by the team", lead.team_updates);
     }
@@ -190,7 +201,9 @@ pub fn run(network: &str, seconds: f64, learners: usize, check: bool) -> Result<
     }
 
     println!();
-    println!("# learner bench: whole updates ({EPISODES} × {STEPS} samples, minibatch 64, one epoch), {network}");
+    println!(
+        "# learner bench: whole updates ({EPISODES} × {STEPS} samples, minibatch 64, {epochs} epoch(s) an update), {network}"
+    );
     println!();
     println!("| measurement | sample-gradients/s | ratio to 1 × 1 |");
     println!("|---|---|---|");
@@ -203,7 +216,7 @@ pub fn run(network: &str, seconds: f64, learners: usize, check: bool) -> Result<
 
     if let Some((apart, moved, ok_one)) = against_one {
         println!(
-            "check: after {CHECKED} updates the team's weights are {apart:.3e} from one learner's, which moved {moved:.3e} from the start ({:.2e} of it)",
+            "check: after {checked} updates the team's weights are {apart:.3e} from one learner's, which moved {moved:.3e} from the start ({:.2e} of it)",
             apart / moved.max(f64::MIN_POSITIVE)
         );
         let want = format!("digest {:016x} version {}", digest(&ppo), ppo.version);
@@ -222,11 +235,11 @@ pub fn run(network: &str, seconds: f64, learners: usize, check: bool) -> Result<
 }
 
 /// A bench team member: follows the bench's leader, then prints its weights' digest.
-pub fn member(network: &str, net_args: NetArgs, id: &str) -> Result<()> {
+pub fn member(network: &str, epochs: usize, net_args: NetArgs, id: &str) -> Result<()> {
     let session = net::open_retrying(&net_args)?;
     let _token =
         session.liveliness().declare_token(keys::learner_alive(id)).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
-    let (model, hyper) = model_of(network)?;
+    let (model, hyper) = model_of(network, epochs)?;
     let os = model.obs_size();
     let mut ppo = Ppo::new(model, hyper, 0, 0, Par::Seq);
     let worlds = [WORLD.to_string()];

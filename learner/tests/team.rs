@@ -8,7 +8,19 @@ use std::process::Command;
 #[test]
 fn issue_8_three_learner_processes_make_one_learners_update() {
     let o = Command::new(env!("CARGO_BIN_EXE_learner"))
-        .args(["bench", "--network", "MLP", "--learners", "3", "--check", "--team-only", "--seconds", "0.5"])
+        .args([
+            "bench",
+            "--network",
+            "MLP",
+            "--learners",
+            "3",
+            "--check",
+            "--team-only",
+            "--seconds",
+            "0.5",
+            "--epochs",
+            "1",
+        ])
         .env("RUST_LOG", "warn")
         .output()
         .unwrap();
