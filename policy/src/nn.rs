@@ -113,7 +113,8 @@ impl Layer {
     }
 
     /// Samples a conv layer unfolds and multiplies at a time, in the forward and the
-    /// backward pass (see [`CONV_CHUNK_BYTES`]); 1 for other layers.
+    /// backward pass: as many as fit 512 KiB of unfolded input, at least one, so the
+    /// unfolded chunk stays in L2; 1 for other layers.
     pub fn conv_chunk(&self) -> usize {
         match *self {
             Layer::Conv2d { filters, .. } => {

@@ -274,7 +274,7 @@ const ACL_TARGET: &str = "zenoh::net::routing::interceptor::access_control";
 const TLS_TARGET: &str = "zenoh_link_tls";
 
 /// The refusal a Zenoh log line reports, if it reports one: an access-control denial (its
-/// trace line "… on <subject> is unauthorized to Put (ingress) on <key>") or a connection
+/// trace line "… on `<subject>` is unauthorized to Put (ingress) on `<key>`") or a connection
 /// that failed the TLS handshake (zenoh-link-tls's accept warning).
 pub fn refusal_reason(target: &str, message: &str) -> Option<String> {
     if target.starts_with(ACL_TARGET) {

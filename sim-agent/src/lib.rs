@@ -3,7 +3,7 @@
 //! - [`car`]: the rapier car.
 //! - [`handling`]: its measured handling per surface against the simple models.
 //! - [`camera`]: the front camera, rendered with wgpu (GPU or lavapipe), batched.
-//! - [`env`]: one environment, DeepRacer's step loop and episode rules.
+//! - [`env`](mod@env): one environment, DeepRacer's step loop and episode rules.
 //! - [`params`]: reward `params` from a pose.
 //! - [`reward`] and [`python`]: built-in and Python reward functions.
 //! - [`obs`]: the state vector and lidar.
