@@ -172,6 +172,23 @@ pub fn loss_and_grad_factored(
     par: Par,
     defer: (&[usize], &[usize]),
 ) -> LossGrad {
+    loss_and_grad_hooked(ws, model, batch, idx, h, par, defer, &mut |_| {})
+}
+
+/// [`loss_and_grad_factored`], calling `after_policy` as soon as the policy tower's gradient
+/// (and factors) are final, before the value tower runs: a team member sends that tower's
+/// share from there, so its transfer overlaps the value tower's work.
+#[allow(clippy::too_many_arguments)]
+fn loss_and_grad_hooked(
+    ws: &mut Workspace,
+    model: &ActorCritic,
+    batch: &Batch,
+    idx: &[usize],
+    h: &Hyperparameters,
+    par: Par,
+    defer: (&[usize], &[usize]),
+    after_policy: &mut dyn FnMut(&LossGrad),
+) -> LossGrad {
     let n = idx.len();
     let os = batch.obs_size;
     let Workspace { tape_pi, tape_v, obs, grad_pi, grad_v } = ws;
@@ -264,6 +281,7 @@ pub fn loss_and_grad_factored(
         }
     }
     model.pi.backward_factored(tape_pi, &d_out, &mut out_stats.grad_pi, par, defer.0, &mut out_stats.factors_pi);
+    after_policy(&out_stats);
 
     model.v.forward(obs, n, tape_v, par);
     let values = tape_v.output().to_vec();
@@ -305,14 +323,12 @@ fn deferred_ranges(net: &policy::nn::Net, defer: &[usize]) -> Vec<(usize, usize)
     r
 }
 
-/// The factored layers' weight gradients of both towers as the optimiser takes them: this
-/// learner's own factors, or every team member's shares in rank order (`every`, as
-/// [`reduce`] received them: per member, layer by layer, `x` then `d`).
-fn factored_grads<'a>(
-    lg: &'a LossGrad,
-    every: Option<(&'a [Vec<f32>], &[usize])>,
-) -> (Vec<FactoredGrad<'a>>, Vec<FactoredGrad<'a>>) {
-    let mut all: Vec<FactoredGrad<'a>> = (lg.factors_pi.iter().chain(&lg.factors_v))
+/// A tower's factored layers' weight gradients as the optimiser takes them: this learner's
+/// own `factors`, or every team member's shares of the tower in rank order (`every`, as
+/// [`Reducer::all_reduce`] returned them: per member, layer by layer, `x` then `d`).
+fn factored_grads<'a>(factors: &'a [Factors], every: Option<(&'a [Vec<f32>], &[usize])>) -> Vec<FactoredGrad<'a>> {
+    let mut all: Vec<FactoredGrad<'a>> = factors
+        .iter()
         .map(|f| FactoredGrad {
             offset: f.offset,
             n_in: f.n_in,
@@ -329,8 +345,7 @@ fn factored_grads<'a>(
             }
         }
     }
-    let v = all.split_off(lg.factors_pi.len());
-    (all, v)
+    all
 }
 
 /// What one training iteration did.
@@ -389,12 +404,24 @@ pub struct StateMismatch(pub String);
 /// float rounding). The big dense layers' weight gradients travel as their factors (inputs
 /// and output gradients of the share, a fraction of the size) and every member multiplies
 /// them out, in rank order too.
+///
+/// A gradient step makes two exchanges, numbered `2k` and `2k + 1` for the update's `k`-th
+/// step: the policy tower's share, sent as soon as its backward pass ends, and the value
+/// tower's with the log-std gradient and the loss figures. Each is announced with
+/// [`Reducer::send`] before the learner goes on, so a transport can move the first while
+/// the value tower runs and the second while the policy tower's optimiser step runs.
 pub trait Reducer {
     /// This learner's rank and the group's size.
     fn shard(&self) -> (usize, usize);
+    /// Start sending this member's share of exchange `step` without waiting for the others;
+    /// [`Reducer::all_reduce`] follows with the same numbers. A group that cannot send
+    /// ahead does nothing here.
+    fn send(&mut self, _step: u64, _values: &[f32], _factors: &[f32]) -> Result<(), GroupError> {
+        Ok(())
+    }
     /// Replace `values` by their sum over the group, added in rank order, and return every
-    /// member's `factors` in rank order (this one's included). `step` numbers the calls of one
-    /// update, from 0.
+    /// member's `factors` in rank order (this one's included). `step` numbers the exchanges
+    /// of one update, from 0.
     fn all_reduce(&mut self, step: u64, values: &mut [f32], factors: Vec<f32>) -> Result<Vec<Vec<f32>>, GroupError>;
 }
 
@@ -492,7 +519,12 @@ impl Ppo {
             for mb in order.chunks_exact(bs) {
                 let (rank, size) = group.shard();
                 let mine = &mb[mb.len() * rank / size..mb.len() * (rank + 1) / size];
-                let mut lg = loss_and_grad_factored(
+                let shares: Vec<usize> = (0..size).map(|r| mb.len() * (r + 1) / size - mb.len() * r / size).collect();
+                let step = stats.gradient_steps as u64;
+                // In a team the policy tower's share leaves as soon as it is final.
+                let mut policy_share = None;
+                let t0 = std::time::Instant::now();
+                let mut lg = loss_and_grad_hooked(
                     &mut ws,
                     &self.model,
                     &batch,
@@ -500,27 +532,37 @@ impl Ppo {
                     &self.hyper,
                     self.par,
                     (&defer.0, &defer.1),
-                );
-                let mut team = None;
-                if size > 1 {
-                    let shares: Vec<usize> =
-                        (0..size).map(|r| mb.len() * (r + 1) / size - mb.len() * r / size).collect();
-                    match reduce(group, stats.gradient_steps as u64, &mut lg, &shares, rank) {
-                        Ok(every) => team = Some((every, shares)),
-                        Err(why) => {
-                            (self.model, self.opt_pi, self.opt_v, self.opt_log_std) = saved;
-                            self.ws = ws;
-                            stats.refused = Some(format!(
-                                "the learner group failed: {why}; weights kept at version {}",
-                                self.version
-                            ));
-                            stats.policy_version = self.version;
-                            stats.group_failed = true;
-                            return stats;
+                    &mut |lg| {
+                        if size > 1 {
+                            let (values, factors) = share_of(lg, Part::Policy, &shares, rank);
+                            let sent = group.send(2 * step, &values, &factors);
+                            policy_share = Some(sent.map(|()| (values, factors)));
                         }
+                    },
+                );
+                let t1 = std::time::Instant::now();
+                let applied = match policy_share {
+                    None => Ok(self.apply(&lg)),
+                    Some(first) => first.and_then(|p| self.apply_in_team(group, step, p, &mut lg, &shares, rank)),
+                };
+                tracing::trace!(
+                    gradient_ms = (t1 - t0).as_secs_f64() * 1e3,
+                    optimiser_ms = t1.elapsed().as_secs_f64() * 1e3,
+                    "gradient step {step} (rank {rank} of {size}; in a team the optimiser's time includes the exchanges)"
+                );
+                let finite = match applied {
+                    Ok(finite) => finite,
+                    Err(why) => {
+                        (self.model, self.opt_pi, self.opt_v, self.opt_log_std) = saved;
+                        self.ws = ws;
+                        stats.refused =
+                            Some(format!("the learner group failed: {why}; weights kept at version {}", self.version));
+                        stats.policy_version = self.version;
+                        stats.group_failed = true;
+                        return stats;
                     }
-                }
-                if !self.apply(&lg, team.as_ref().map(|(e, s)| (&e[..], &s[..]))) {
+                };
+                if !finite {
                     (self.model, self.opt_pi, self.opt_v, self.opt_log_std) = saved;
                     self.ws = ws;
                     stats.refused = Some(format!(
@@ -551,19 +593,63 @@ impl Ppo {
         stats
     }
 
-    /// The optimiser step of one minibatch: Adam on both towers (the factored layers'
-    /// gradients multiplied out from this learner's factors, or from every team member's
-    /// shares in `team`) and on the log-std. Returns whether the loss and every gradient value
-    /// were finite; when not, the caller restores the state it saved.
-    fn apply(&mut self, lg: &LossGrad, team: Option<(&[Vec<f32>], &[usize])>) -> bool {
-        let (f_pi, f_v) = factored_grads(lg, team);
+    /// The optimiser step of one minibatch of a learner alone: Adam on both towers (the
+    /// factored layers' gradients multiplied out from this learner's factors) and on the
+    /// log-std. Returns whether the loss and every gradient value were finite; when not, the
+    /// caller restores the state it saved.
+    fn apply(&mut self, lg: &LossGrad) -> bool {
         let mut finite = lg.total.is_finite() && lg.grad_log_std.iter().all(|g| g.is_finite());
-        finite &= self.opt_pi.step_factored(&mut self.model.pi.params, &lg.grad_pi, &f_pi, self.par);
-        finite &= self.opt_v.step_factored(&mut self.model.v.params, &lg.grad_v, &f_v, self.par);
+        finite &= self.opt_pi.step_factored(
+            &mut self.model.pi.params,
+            &lg.grad_pi,
+            &factored_grads(&lg.factors_pi, None),
+            self.par,
+        );
+        finite &= self.opt_v.step_factored(
+            &mut self.model.v.params,
+            &lg.grad_v,
+            &factored_grads(&lg.factors_v, None),
+            self.par,
+        );
+        self.step_log_std(lg);
+        finite
+    }
+
+    fn step_log_std(&mut self, lg: &LossGrad) {
         if let Head::Gaussian { log_std } = &mut self.model.head {
             self.opt_log_std.step(log_std, &lg.grad_log_std);
         }
-        finite
+    }
+
+    /// The optimiser step of one minibatch in a team, the same Adam steps as [`Ppo::apply`]
+    /// in the same order, on the group's sums: the value tower's share goes out, the policy
+    /// tower's shares (`policy`: this member's, already sent) are added and its step taken
+    /// while the value tower's travel, then the value tower's and the log-std's.
+    fn apply_in_team(
+        &mut self,
+        group: &mut dyn Reducer,
+        step: u64,
+        policy: (Vec<f32>, Vec<f32>),
+        lg: &mut LossGrad,
+        shares: &[usize],
+        rank: usize,
+    ) -> Result<bool, GroupError> {
+        let (mut v_values, v_factors) = share_of(lg, Part::Value, shares, rank);
+        group.send(2 * step + 1, &v_values, &v_factors)?;
+        let (mut p_values, p_factors) = policy;
+        let every = group.all_reduce(2 * step, &mut p_values, p_factors)?;
+        check_factors(&every, &lg.factors_pi, shares)?;
+        take_sum(lg, Part::Policy, &p_values);
+        let f_pi = factored_grads(&lg.factors_pi, Some((&every, shares)));
+        let mut finite = self.opt_pi.step_factored(&mut self.model.pi.params, &lg.grad_pi, &f_pi, self.par);
+        let every = group.all_reduce(2 * step + 1, &mut v_values, v_factors)?;
+        check_factors(&every, &lg.factors_v, shares)?;
+        take_sum(lg, Part::Value, &v_values);
+        finite &= lg.total.is_finite() && lg.grad_log_std.iter().all(|g| g.is_finite());
+        let f_v = factored_grads(&lg.factors_v, Some((&every, shares)));
+        finite &= self.opt_v.step_factored(&mut self.model.v.params, &lg.grad_v, &f_v, self.par);
+        self.step_log_std(lg);
+        Ok(finite)
     }
 
     /// One gradient step of a learner alone on the samples `idx` of `batch`, as an update
@@ -573,7 +659,7 @@ impl Ppo {
         let defer = (self.model.pi.factorable(idx.len()), self.model.v.factorable(idx.len()));
         let mut ws = std::mem::take(&mut self.ws);
         let lg = loss_and_grad_factored(&mut ws, &self.model, batch, idx, &self.hyper, self.par, (&defer.0, &defer.1));
-        let ok = self.apply(&lg, None);
+        let ok = self.apply(&lg);
         ws.recycle(lg);
         self.ws = ws;
         ok
@@ -659,52 +745,68 @@ fn kept<'a>(grad: &'a [f32], skip: &'a [(usize, usize)]) -> impl Iterator<Item =
     out.into_iter()
 }
 
-/// Weight this learner's share of a minibatch (`shares[rank]` of all its samples) and sum it
-/// over the group: gradients of both towers (but the factored layers' weights), the log-std
-/// gradient and the loss figures in one vector; the factored layers' weight gradients as
-/// every member's factors, returned in rank order for the optimiser to multiply out.
-fn reduce(
-    group: &mut dyn Reducer,
-    step: u64,
-    lg: &mut LossGrad,
-    shares: &[usize],
-    rank: usize,
-) -> Result<Vec<Vec<f32>>, GroupError> {
+/// The two exchanges of a team's gradient step (see [`Reducer`]).
+#[derive(Clone, Copy, PartialEq)]
+enum Part {
+    /// The policy tower's gradient (but its factored layers' weights) and factors.
+    Policy,
+    /// The value tower's, then the log-std gradient and the loss figures.
+    Value,
+}
+
+/// This learner's share of `part` of a minibatch (`shares[rank]` of its samples), weighted
+/// by its size: the values to sum over the group, and the factored layers' factors.
+fn share_of(lg: &LossGrad, part: Part, shares: &[usize], rank: usize) -> (Vec<f32>, Vec<f32>) {
     let (mine, all) = (shares[rank], shares.iter().sum::<usize>());
     let w = mine as f32 / all as f32;
-    let (skip_pi, skip_v) = (skipped(&lg.factors_pi), skipped(&lg.factors_v));
-    let figures = [lg.policy_loss, lg.value_loss, lg.entropy, lg.total, lg.approx_kl, lg.clip_fraction];
-    let mut values = Vec::with_capacity(lg.grad_pi.len() + lg.grad_v.len() + 2 + FIGURES);
     // An empty share contributes nothing (its means are not numbers).
     let weigh = |x: f32| if mine == 0 { 0.0 } else { x * w };
-    for part in kept(&lg.grad_pi, &skip_pi).chain(kept(&lg.grad_v, &skip_v)) {
-        values.extend(part.iter().map(|g| weigh(*g)));
+    let (grad, factors) = match part {
+        Part::Policy => (&lg.grad_pi, &lg.factors_pi),
+        Part::Value => (&lg.grad_v, &lg.factors_v),
+    };
+    let skip = skipped(factors);
+    let mut values = Vec::with_capacity(grad.len() + 2 + FIGURES);
+    for run in kept(grad, &skip) {
+        values.extend(run.iter().map(|g| weigh(*g)));
     }
-    values.extend(lg.grad_log_std.iter().map(|g| weigh(*g)));
-    values.extend(figures.iter().map(|f| weigh(*f as f32)));
-    let layers: Vec<&Factors> = lg.factors_pi.iter().chain(&lg.factors_v).collect();
-    let mut mine_f = Vec::with_capacity(layers.iter().map(|f| f.x.len() + f.d.len()).sum());
-    for f in &layers {
+    if part == Part::Value {
+        let figures = [lg.policy_loss, lg.value_loss, lg.entropy, lg.total, lg.approx_kl, lg.clip_fraction];
+        values.extend(lg.grad_log_std.iter().map(|g| weigh(*g)));
+        values.extend(figures.iter().map(|f| weigh(*f as f32)));
+    }
+    let mut mine_f = Vec::with_capacity(factors.iter().map(|f| f.x.len() + f.d.len()).sum());
+    for f in factors {
         mine_f.extend_from_slice(&f.x);
         mine_f.extend(f.d.iter().map(|d| d * w));
     }
-    let every = group.all_reduce(step, &mut values, mine_f)?;
-    // Back into the gradients.
-    let mut at = 0;
-    for (grad, skip) in [(&mut lg.grad_pi, &skip_pi), (&mut lg.grad_v, &skip_v)] {
-        let mut from = 0;
-        for &(a, b) in skip.iter().chain(std::iter::once(&(grad.len(), grad.len()))) {
-            let n = a - from;
-            grad[from..a].copy_from_slice(&values[at..at + n]);
-            at += n;
-            from = b;
-        }
+    (values, mine_f)
+}
+
+/// Put the group's sum of `part` (laid out as [`share_of`] made it) back into `lg`.
+fn take_sum(lg: &mut LossGrad, part: Part, values: &[f32]) {
+    let (grad, factors) = match part {
+        Part::Policy => (&mut lg.grad_pi, &lg.factors_pi),
+        Part::Value => (&mut lg.grad_v, &lg.factors_v),
+    };
+    let skip = skipped(factors);
+    let (mut at, mut from) = (0, 0);
+    for &(a, b) in skip.iter().chain(std::iter::once(&(grad.len(), grad.len()))) {
+        let n = a - from;
+        grad[from..a].copy_from_slice(&values[at..at + n]);
+        at += n;
+        from = b;
     }
-    lg.grad_log_std.copy_from_slice(&values[at..at + 2]);
-    let f = &values[at + 2..];
-    (lg.policy_loss, lg.value_loss, lg.entropy, lg.total, lg.approx_kl, lg.clip_fraction) =
-        (f[0] as f64, f[1] as f64, f[2] as f64, f[3] as f64, f[4] as f64, f[5] as f64);
-    // The factored layers' shares: multiplied out by the optimiser, rank by rank.
+    if part == Part::Value {
+        lg.grad_log_std.copy_from_slice(&values[at..at + 2]);
+        let f = &values[at + 2..];
+        (lg.policy_loss, lg.value_loss, lg.entropy, lg.total, lg.approx_kl, lg.clip_fraction) =
+            (f[0] as f64, f[1] as f64, f[2] as f64, f[3] as f64, f[4] as f64, f[5] as f64);
+    }
+}
+
+/// Every member's factors for a tower's factored `layers` must hold its share's samples.
+fn check_factors(every: &[Vec<f32>], layers: &[Factors], shares: &[usize]) -> Result<(), GroupError> {
     let per_sample: usize = layers.iter().map(|f| f.n_in + f.n_out).sum();
     if every.len() != shares.len() {
         return Err(GroupError(format!("{} members' factors for a group of {}", every.len(), shares.len())));
@@ -718,7 +820,7 @@ fn reduce(
             )));
         }
     }
-    Ok(every)
+    Ok(())
 }
 
 fn explained_variance(b: &Batch) -> f64 {

@@ -17,7 +17,7 @@ use learner::{GroupError, Ppo, Reducer, UpdateStats};
 use policy::Trajectory;
 use protocol::exchange::{self as wire, JobView, TeamPlan, TeamState};
 use protocol::net::{self, DropCounters, Sub, try_next, zenoh};
-use protocol::{GradShare, PROTOCOL_VERSION, TeamJoin, keys};
+use protocol::{DecodeError, GradShare, PROTOCOL_VERSION, TeamJoin, keys};
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
@@ -93,11 +93,12 @@ impl Shares {
         })
     }
 
-    /// Take what arrived; shares of plans before `plan` are thrown away.
-    fn pump(&mut self, plan: u64, len: usize) {
+    /// Take what arrived; shares of plans before `plan` are thrown away. (A share's size is
+    /// checked when it is taken: the two exchanges of a step differ.)
+    fn pump(&mut self, plan: u64) {
         while let Some((key, w)) = try_next::<GradShare>(&self.sub, &self.drops) {
             let from = keys::last(&key).to_string();
-            match wire::share_from_wire(w, &self.job, &from, len) {
+            match wire::share_from_wire(w, &self.job, &from) {
                 Ok((p, step, values, factors)) if p >= plan => {
                     self.waiting.entry(from).or_default().insert((p, step), (values, factors));
                 }
@@ -113,9 +114,60 @@ impl Shares {
     }
 }
 
+/// Puts on a thread of their own, so that a share's transfer overlaps the learner's work.
+struct Outbox {
+    tx: Option<std::sync::mpsc::Sender<(String, GradShare)>>,
+    thread: Option<std::thread::JoinHandle<()>>,
+    /// The first put that failed.
+    failed: Arc<Mutex<Option<String>>>,
+}
+
+impl Outbox {
+    fn new(session: &zenoh::Session) -> Outbox {
+        let (tx, rx) = std::sync::mpsc::channel::<(String, GradShare)>();
+        let failed: Arc<Mutex<Option<String>>> = Arc::default();
+        let (session, f) = (session.clone(), failed.clone());
+        let thread = std::thread::Builder::new()
+            .name("team-outbox".into())
+            .spawn(move || {
+                for (key, share) in rx {
+                    if let Err(e) = net::put(&session, &key, &share)
+                        && let Ok(mut f) = f.lock()
+                    {
+                        f.get_or_insert_with(|| e.to_string());
+                    }
+                }
+            })
+            .ok();
+        Outbox { tx: Some(tx), thread, failed }
+    }
+
+    fn put(&self, key: String, share: GradShare) -> Result<(), GroupError> {
+        if let Some(e) = self.failed.lock().ok().and_then(|f| f.clone()) {
+            return Err(GroupError(e));
+        }
+        let sent = self.tx.as_ref().map(|tx| tx.send((key, share)).is_ok()).unwrap_or(false);
+        if sent && self.thread.is_some() { Ok(()) } else { Err(GroupError("the share sender is gone".into())) }
+    }
+}
+
+impl Drop for Outbox {
+    /// Every share handed over is put before the update returns.
+    fn drop(&mut self) {
+        self.tx = None;
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
 /// One update's view of the team: this member's rank, and the Zenoh all-reduce.
 struct Group<'a> {
     session: &'a zenoh::Session,
+    /// Started at the first share sent ahead.
+    outbox: Option<Outbox>,
+    /// The exchanges of this plan whose share was sent ahead.
+    sent: BTreeSet<u64>,
     job: &'a str,
     me: &'a str,
     members: &'a [String],
@@ -131,24 +183,43 @@ impl Reducer for Group<'_> {
         (self.members.iter().position(|m| m == self.me).unwrap_or(0), self.members.len())
     }
 
+    fn send(&mut self, step: u64, values: &[f32], factors: &[f32]) -> Result<(), GroupError> {
+        let share = wire::share_to_wire(self.job, self.me, self.plan, step, values, factors);
+        let outbox = self.outbox.get_or_insert_with(|| Outbox::new(self.session));
+        outbox.put(keys::team_share(self.job, self.me), share)?;
+        self.sent.insert(step);
+        Ok(())
+    }
+
     fn all_reduce(&mut self, step: u64, values: &mut [f32], factors: Vec<f32>) -> Result<Vec<Vec<f32>>, GroupError> {
         let t0 = Instant::now();
-        let share = wire::share_to_wire(self.job, self.me, self.plan, step, values, &factors);
-        let t1 = Instant::now();
-        net::put(self.session, &keys::team_share(self.job, self.me), &share).map_err(|e| GroupError(e.to_string()))?;
+        if !self.sent.remove(&step) {
+            let share = wire::share_to_wire(self.job, self.me, self.plan, step, values, &factors);
+            net::put(self.session, &keys::team_share(self.job, self.me), &share)
+                .map_err(|e| GroupError(e.to_string()))?;
+        }
         let t2 = Instant::now();
         let timeout = if step == 0 { FIRST_SHARE_TIMEOUT } else { SHARE_TIMEOUT };
         let since = Instant::now();
         let mut theirs: Vec<Option<(Vec<f32>, Vec<f32>)>> = vec![None; self.members.len()];
         loop {
-            self.shares.pump(self.plan, values.len());
+            self.shares.pump(self.plan);
             let mut missing = None;
             for (r, m) in self.members.iter().enumerate() {
                 if m == self.me || theirs[r].is_some() {
                     continue;
                 }
                 match self.shares.waiting.get_mut(m).and_then(|q| q.remove(&(self.plan, step))) {
-                    Some(v) => theirs[r] = Some(v),
+                    Some(v) if v.0.len() == values.len() => theirs[r] = Some(v),
+                    Some(v) => {
+                        let e = DecodeError::Invalid(format!(
+                            "gradient share of {} values where {} were expected",
+                            v.0.len(),
+                            values.len()
+                        ));
+                        self.shares.drops.refuse(&format!("a gradient share from {m}"), &e);
+                        missing = missing.or(Some(m.clone()));
+                    }
                     None => missing = missing.or(Some(m.clone())),
                 }
             }
@@ -175,8 +246,8 @@ impl Reducer for Group<'_> {
         }
         tracing::trace!(
             member = self.me,
-            encode_ms = (t1 - t0).as_secs_f64() * 1e3,
-            put_ms = (t2 - t1).as_secs_f64() * 1e3,
+            sent_ahead = t2 - t0 < Duration::from_micros(1),
+            put_ms = (t2 - t0).as_secs_f64() * 1e3,
             wait_ms = (t3 - t2).as_secs_f64() * 1e3,
             sum_ms = t3.elapsed().as_secs_f64() * 1e3,
             "all-reduce step {step}"
@@ -326,6 +397,8 @@ impl Team for TeamLead<'_> {
             Ok(()) => {
                 let mut group = Group {
                     session: self.session,
+                    outbox: None,
+                    sent: BTreeSet::new(),
                     job: &self.job,
                     me: &self.me,
                     members: &members,
@@ -464,6 +537,8 @@ pub fn follow(
         set(last, false);
         let mut group = Group {
             session,
+            outbox: None,
+            sent: BTreeSet::new(),
             job: view.job_id,
             me,
             members: &plan.members,

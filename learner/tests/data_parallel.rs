@@ -112,10 +112,11 @@ fn issue_8_two_learners_make_one_learners_update() {
     }
 }
 
-/// Rank 0 of two, recording what the group summed at its first step.
+/// Rank 0 of two, recording what the group summed at its first gradient step: exchange 0
+/// (the policy tower) and exchange 1 (the value tower, the log-std gradient, the figures).
 struct Recording {
     inner: Threads,
-    first: Option<Vec<f32>>,
+    first: Vec<Vec<f32>>,
 }
 
 impl Reducer for Recording {
@@ -124,8 +125,9 @@ impl Reducer for Recording {
     }
     fn all_reduce(&mut self, step: u64, values: &mut [f32], factors: Vec<f32>) -> Result<Vec<Vec<f32>>, GroupError> {
         let every = self.inner.all_reduce(step, values, factors)?;
-        if step == 0 {
-            self.first = Some(values.to_vec());
+        if step < 2 {
+            assert_eq!(self.first.len() as u64, step, "exchanges in order");
+            self.first.push(values.to_vec());
         }
         Ok(every)
     }
@@ -153,22 +155,27 @@ fn issue_8_the_summed_shares_are_the_whole_minibatch_gradient() {
         let (p0, p1) = (it.next().unwrap(), it.next().unwrap());
         let (t, sl, b) = (&trajs, slots.clone(), barrier.clone());
         let first = s.spawn(move || {
-            let mut r = Recording { inner: Threads { rank: 0, size: 2, slots: sl, barrier: b }, first: None };
+            let mut r = Recording { inner: Threads { rank: 0, size: 2, slots: sl, barrier: b }, first: Vec::new() };
             p0.update_in(t, &mut r);
-            r.first.unwrap()
+            r.first
         });
         let (t, sl, b) = (&trajs, slots.clone(), barrier.clone());
         s.spawn(move || p1.update_in(t, &mut Threads { rank: 1, size: 2, slots: sl, barrier: b }));
         first.join().unwrap()
     });
-    let np = whole.grad_pi.len();
-    let worst = whole.grad_pi.iter().zip(&summed[..np]).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
-    let scale = whole.grad_pi.iter().map(|a| a.abs()).fold(0.0f32, f32::max);
-    assert!(
-        scale > 0.0 && worst <= 1e-4 * scale,
-        "summed shares differ from the whole gradient by {worst} (scale {scale})"
-    );
-    let total = summed[np + whole.grad_v.len() + 2 + 3];
+    let (policy, value) = (&summed[0], &summed[1]);
+    assert_eq!((policy.len(), value.len()), (whole.grad_pi.len(), whole.grad_v.len() + 2 + 6));
+    for (name, grad, sum) in
+        [("policy", &whole.grad_pi, &policy[..]), ("value", &whole.grad_v, &value[..whole.grad_v.len()])]
+    {
+        let worst = grad.iter().zip(sum).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+        let scale = grad.iter().map(|a| a.abs()).fold(0.0f32, f32::max);
+        assert!(
+            scale > 0.0 && worst <= 1e-4 * scale,
+            "the {name} tower's summed shares differ from the whole gradient by {worst} (scale {scale})"
+        );
+    }
+    let total = value[whole.grad_v.len() + 2 + 3];
     assert!((total as f64 - whole.total).abs() < 1e-4 * whole.total.abs().max(1.0), "{total} vs {}", whole.total);
 }
 
@@ -302,4 +309,64 @@ fn issue_8_camera_network_team_sends_factors_and_makes_one_learners_update() {
     let dist = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| ((x - y) as f64).powi(2)).sum::<f64>().sqrt();
     let (apart, moved) = (dist(&team_w, &one_w), dist(&one_w, &start));
     assert!(moved > 0.0 && apart <= 1e-2 * moved, "the team is {apart} from one learner, which moved {moved}");
+}
+
+/// Rank 0 of two, logging the calls: what it sent ahead must be what it then reduces.
+struct Ordered {
+    inner: Threads,
+    log: Vec<(&'static str, u64)>,
+    ahead: std::collections::BTreeMap<u64, (Vec<f32>, Vec<f32>)>,
+}
+
+impl Reducer for Ordered {
+    fn shard(&self) -> (usize, usize) {
+        self.inner.shard()
+    }
+    fn send(&mut self, step: u64, values: &[f32], factors: &[f32]) -> Result<(), GroupError> {
+        self.log.push(("send", step));
+        self.ahead.insert(step, (values.to_vec(), factors.to_vec()));
+        Ok(())
+    }
+    fn all_reduce(&mut self, step: u64, values: &mut [f32], factors: Vec<f32>) -> Result<Vec<Vec<f32>>, GroupError> {
+        self.log.push(("reduce", step));
+        assert_eq!(self.ahead.remove(&step), Some((values.to_vec(), factors.clone())), "exchange {step}");
+        self.inner.all_reduce(step, values, factors)
+    }
+}
+
+#[test]
+fn issue_8_a_team_step_sends_the_policy_towers_share_before_the_value_tower_runs() {
+    // A gradient step makes two exchanges: the policy tower's share is sent as soon as its
+    // backward pass ends, the value tower's (which exists only once that tower has run)
+    // after it, and only then does the member wait for the others: first for the policy
+    // tower (whose optimiser step then runs while the value tower's shares travel).
+    let meta = ModelMetadata::default_state_vector();
+    let mut rng = ChaCha8Rng::seed_from_u64(14);
+    let model = ActorCritic::new(&meta, 27, &mut rng);
+    let trajs = episodes(&model, 10, &mut rng);
+    let h = Hyperparameters { num_epochs: 1, ..Hyperparameters::default() };
+    let slots = Arc::new(Mutex::new(vec![(Vec::new(), Vec::new()); 2]));
+    let barrier = Arc::new(Barrier::new(2));
+    let mut group: Vec<Ppo> = (0..2).map(|_| Ppo::new(model.clone(), h.clone(), 0, 5, Par::Seq)).collect();
+    let (log, steps) = std::thread::scope(|s| {
+        let mut it = group.iter_mut();
+        let (p0, p1) = (it.next().unwrap(), it.next().unwrap());
+        let (t, sl, b) = (&trajs, slots.clone(), barrier.clone());
+        let first = s.spawn(move || {
+            let inner = Threads { rank: 0, size: 2, slots: sl, barrier: b };
+            let mut r = Ordered { inner, log: Vec::new(), ahead: Default::default() };
+            let st = p0.update_in(t, &mut r);
+            assert!(r.ahead.is_empty(), "every exchange sent ahead was reduced");
+            (r.log, st.gradient_steps)
+        });
+        let (t, sl, b) = (&trajs, slots.clone(), barrier.clone());
+        s.spawn(move || p1.update_in(t, &mut Threads { rank: 1, size: 2, slots: sl, barrier: b }));
+        first.join().unwrap()
+    });
+    assert!(steps >= 2, "{steps} gradient steps");
+    let expected: Vec<(&str, u64)> = (0..steps as u64)
+        .flat_map(|k| [("send", 2 * k), ("send", 2 * k + 1), ("reduce", 2 * k), ("reduce", 2 * k + 1)])
+        .collect();
+    assert_eq!(log, expected);
+    assert_eq!(group[0].model, group[1].model, "the members hold the same weights");
 }

@@ -184,7 +184,7 @@ fn every_message(bytes: &[u8]) {
         let _ = ex::team_plan_from_wire(m, &view);
     }
     if let Ok(m) = decode::<protocol::GradShare>(bytes) {
-        let _ = ex::share_from_wire(m, "job1", "l1", 2);
+        let _ = ex::share_from_wire(m, "job1", "l1");
     }
     if let Ok(m) = decode::<protocol::Job>(bytes) {
         let _ = protocol::job::from_wire(m, "job1");
