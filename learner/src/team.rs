@@ -4,7 +4,8 @@
 //! the job follows. Per update the leader publishes a plan (the trajectories, the shuffle
 //! seed, the members in rank order, and, for a member that does not hold the leader's state,
 //! the weights and optimiser moments); every member trains on its share of each minibatch,
-//! publishes the share's weighted gradient and adds all the shares in rank order
+//! publishes the share's weighted gradient (in two parts, the policy tower's sent by an
+//! [`Outbox`] thread while the value tower runs) and adds all the shares in rank order
 //! ([`learner::Reducer`]), so every member applies the same Adam step to the same weights,
 //! bit for bit. A member that dies (its liveliness token goes) or stops answering makes the
 //! attempt fail: the leader makes that update again with whoever is left, and the lost member
