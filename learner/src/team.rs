@@ -186,6 +186,13 @@ impl Reducer for Group<'_> {
 
     fn send(&mut self, step: u64, values: &[f32], factors: &[f32]) -> Result<(), GroupError> {
         let share = wire::share_to_wire(self.job, self.me, self.plan, step, values, factors);
+        tracing::trace!(
+            member = self.me,
+            values = values.len(),
+            factors = factors.len(),
+            factor_bytes = share.factors.len() + share.factors_mask.len(),
+            "sending share {step} ahead"
+        );
         let outbox = self.outbox.get_or_insert_with(|| Outbox::new(self.session));
         outbox.put(keys::team_share(self.job, self.me), share)?;
         self.sent.insert(step);

@@ -418,6 +418,80 @@ pub fn f32_values(bytes: &[u8]) -> Result<Vec<f32>, DecodeError> {
     Ok(bytes.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect())
 }
 
+/// `values` without their `+0.0`s: a bit per value (least significant bit first, set where the
+/// value is kept) and the kept values' little-endian bytes. Every other value, `-0.0` and NaNs
+/// included, keeps its bits. A ReLU layer's inputs and output gradients are zero in about half
+/// their places: a team's shares are the big dense layers' factors.
+pub fn f32_sparse(values: &[f32]) -> (Vec<u8>, Vec<u8>) {
+    let mut mask = vec![0u8; values.len().div_ceil(8)];
+    // Every value is written and the end moves on past the kept ones only: no branch per
+    // value (about two thirds of a share's factors are zero, in no pattern).
+    let mut kept = vec![0u8; values.len() * 4 + 4];
+    let mut end = 0;
+    for (chunk, m) in values.chunks(8).zip(mask.iter_mut()) {
+        for (j, v) in chunk.iter().enumerate() {
+            let keep = v.to_bits() != 0;
+            kept[end..end + 4].copy_from_slice(&v.to_le_bytes());
+            end += 4 * keep as usize;
+            *m |= (keep as u8) << j;
+        }
+    }
+    kept.truncate(end);
+    (mask, kept)
+}
+
+/// [`f32_sparse`]'s `len` values back from the mask and the kept values' bytes.
+pub fn f32_from_sparse(len: u64, mask: &[u8], kept: &[u8]) -> Result<Vec<f32>, DecodeError> {
+    // The mask holds a bit per value, so `len` is bounded by the message's own size.
+    let n = usize::try_from(len).ok().filter(|n| n.div_ceil(8) == mask.len());
+    let Some(n) = n else {
+        return invalid(format!("a sparse f32 mask of {} bytes for {len} values", mask.len()));
+    };
+    if !n.is_multiple_of(8) && mask.last().is_some_and(|b| b >> (n % 8) != 0) {
+        return invalid(format!("a sparse f32 mask with bits past its {len} values"));
+    }
+    let ones: usize = mask.iter().map(|b| b.count_ones() as usize).sum();
+    if kept.len() != ones * 4 {
+        return invalid(format!("{} bytes of kept f32 values where the mask keeps {ones}", kept.len()));
+    }
+    // Eight values a mask byte: its kept values into a small array (with a zero at the end),
+    // then each place reads its value, or the zero, through a table: no branch per value.
+    // (Eight are copied whatever the byte keeps: a fixed-size copy; the table never reads
+    // past the byte's own. The eight zeros at the end keep the last copy in bounds.)
+    let mut kept = f32_values(kept)?;
+    kept.extend_from_slice(&[0.0; 8]);
+    let mut out = vec![0.0f32; n];
+    let mut at = 0;
+    for (o8, &m) in out.chunks_mut(8).zip(mask) {
+        let mut local = [0.0f32; 9];
+        local[..8].copy_from_slice(&kept[at..at + 8]);
+        at += m.count_ones() as usize;
+        for (o, &k) in o8.iter_mut().zip(&EXPAND[m as usize]) {
+            *o = local[k as usize];
+        }
+    }
+    Ok(out)
+}
+
+/// For each mask byte, where each of its eight places finds its value among the byte's kept
+/// ones (8: the zero).
+static EXPAND: [[u8; 8]; 256] = {
+    let mut t = [[8u8; 8]; 256];
+    let mut m = 0;
+    while m < 256 {
+        let (mut j, mut k) = (0, 0);
+        while j < 8 {
+            if m >> j & 1 == 1 {
+                t[m][j] = k;
+                k += 1;
+            }
+            j += 1;
+        }
+        m += 1;
+    }
+    t
+};
+
 /// A plan on the wire.
 pub fn team_plan_to_wire(job: &str, p: &TeamPlan, obs_size: usize) -> crate::TeamPlan {
     crate::TeamPlan {
@@ -500,6 +574,13 @@ pub fn share_to_wire(
     values: &[f32],
     factors: &[f32],
 ) -> crate::GradShare {
+    // Sparse when that saves a tenth or more (the mask costs 1/32 of the dense size).
+    let (mask, kept) = f32_sparse(factors);
+    let (factors, factors_mask, factors_len) = if kept.len() + mask.len() <= factors.len() * 4 * 9 / 10 {
+        (kept, mask, factors.len() as u64)
+    } else {
+        (f32_bytes(factors), Vec::new(), 0)
+    };
     crate::GradShare {
         protocol_version: crate::PROTOCOL_VERSION,
         job_id: job.into(),
@@ -507,7 +588,9 @@ pub fn share_to_wire(
         plan,
         step,
         values: f32_bytes(values),
-        factors: f32_bytes(factors),
+        factors,
+        factors_mask,
+        factors_len,
     }
 }
 
@@ -522,7 +605,12 @@ pub fn share_from_wire(w: crate::GradShare, job: &str, learner: &str) -> Result<
     if w.learner != learner {
         return invalid(format!("gradient share from {:?} on {learner:?}'s key", w.learner));
     }
-    Ok((w.plan, w.step, f32_values(&w.values)?, f32_values(&w.factors)?))
+    let factors = if w.factors_mask.is_empty() && w.factors_len == 0 {
+        f32_values(&w.factors)?
+    } else {
+        f32_from_sparse(w.factors_len, &w.factors_mask, &w.factors)?
+    };
+    Ok((w.plan, w.step, f32_values(&w.values)?, factors))
 }
 
 #[cfg(test)]
@@ -586,6 +674,36 @@ mod tests {
         let mut torn = share;
         torn.values.pop();
         assert!(share_from_wire(torn, &id, "l1").is_err(), "values that are not whole f32s");
+        // Factors that are mostly +0.0 travel sparse, and come back bit for bit (-0.0, NaN,
+        // the smallest subnormal and the largest finite value included).
+        let mut factors = vec![0.0f32; 1003];
+        for (i, v) in [(0, -0.0), (7, f32::NAN), (8, f32::from_bits(1)), (500, f32::MAX), (1002, -1.5)] {
+            factors[i] = v;
+        }
+        let sparse = share_to_wire(&id, "l1", 9, 5, &[1.0], &factors);
+        assert!(!sparse.factors_mask.is_empty() && sparse.factors.len() == 5 * 4, "{:?}", sparse.factors.len());
+        let (_, _, _, back) = share_from_wire(sparse.clone(), &id, "l1").unwrap();
+        assert_eq!(
+            back.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+            factors.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
+        );
+        // Dense factors stay dense.
+        let dense = share_to_wire(&id, "l1", 9, 5, &[1.0], &[2.0; 100]);
+        assert!(dense.factors_mask.is_empty() && dense.factors.len() == 400);
+        // A mask that does not fit its count or its values is refused.
+        for (what, bad) in [
+            ("a count the mask does not cover", crate::GradShare { factors_len: 1100, ..sparse.clone() }),
+            ("a count of u64::MAX", crate::GradShare { factors_len: u64::MAX, ..sparse.clone() }),
+            ("bits past the count", crate::GradShare { factors_len: 1001, ..sparse.clone() }),
+            ("a value missing", crate::GradShare { factors: sparse.factors[4..].to_vec(), ..sparse.clone() }),
+            (
+                "a value too many",
+                crate::GradShare { factors: [&sparse.factors[..], &[0; 4]].concat(), ..sparse.clone() },
+            ),
+            ("a count without a mask", crate::GradShare { factors_mask: Vec::new(), ..sparse.clone() }),
+        ] {
+            assert!(share_from_wire(bad, &id, "l1").is_err(), "{what}");
+        }
     }
 
     #[test]

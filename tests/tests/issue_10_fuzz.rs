@@ -135,6 +135,15 @@ fn message_seeds() -> Vec<Vec<u8>> {
         )),
         encode(&ex::parts_to_wire("job1", 3, &parts)),
         encode(&ex::share_to_wire("job1", "l1", 9, 4, &[1.0, 2.0], &[3.0])),
+        // Mostly +0.0: its factors travel sparse (a mask and the kept values).
+        encode(&ex::share_to_wire(
+            "job1",
+            "l1",
+            9,
+            5,
+            &[1.0],
+            &[0.0, 0.0, 0.0, 4.0, 0.0, 0.0, 0.0, 0.0, 0.0, -0.0, 0.0],
+        )),
         encode(&protocol::JobRequest { protocol_version: protocol::PROTOCOL_VERSION, ..Default::default() }),
         encode(&protocol::CarStatus {
             protocol_version: protocol::PROTOCOL_VERSION,
