@@ -400,12 +400,20 @@ pub fn choices_from_wire(
 /// A `policy::Trajectory` on the wire.
 pub fn trajectory_to_wire(t: &policy::Trajectory, obs_size: usize) -> Trajectory {
     let (discrete, continuous) = choices_to_wire(&t.choices);
+    // Camera frames are grey levels: a byte each instead of four, exactly the same numbers.
+    let bytes = t.obs.iter().map(|&v| u8::try_from(v as u32).ok().filter(|b| f32::from(*b).to_bits() == v.to_bits()));
+    let obs_u8: Option<Vec<u8>> = bytes.collect();
+    let (obs, obs_u8) = match obs_u8 {
+        Some(b) if !b.is_empty() => (Vec::new(), b),
+        _ => (t.obs.clone(), Vec::new()),
+    };
     Trajectory {
         env: t.env,
         episode: t.episode,
         policy_version: t.policy_version,
         obs_size: obs_size as u32,
-        obs: t.obs.clone(),
+        obs,
+        obs_u8,
         discrete_actions: discrete,
         continuous_actions: continuous,
         logp: t.logp.clone(),
@@ -456,8 +464,15 @@ pub fn trajectory_from_wire(
     obs_size: usize,
     actions: Actions,
 ) -> Result<policy::Trajectory, DecodeError> {
+    let mut w = w;
     let n = w.rewards.len();
     let bad = |m: String| Err(DecodeError::Invalid(m));
+    if !w.obs_u8.is_empty() {
+        if !w.obs.is_empty() {
+            return bad("observations both as floats and as bytes".into());
+        }
+        w.obs = w.obs_u8.iter().map(|&b| f32::from(b)).collect();
+    }
     if w.obs_size as usize != obs_size {
         return bad(format!("observation size {}, the job's model takes {obs_size}", w.obs_size));
     }
@@ -516,6 +531,46 @@ pub fn trajectory_from_wire(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn issue_8_camera_observations_travel_as_bytes_and_come_back_exactly() {
+        let t = |obs: Vec<f32>| policy::Trajectory {
+            world: "reinvent_wood".into(),
+            obs,
+            choices: vec![policy::Choice::Discrete(1); 2],
+            logp: vec![-1.0; 2],
+            values: vec![0.5; 2],
+            rewards: vec![1.0; 2],
+            done: true,
+            ..Default::default()
+        };
+        let grey = t(vec![0.0, 17.0, 255.0, 128.0, 3.0, 254.0]);
+        let w = trajectory_to_wire(&grey, 3);
+        assert!(w.obs.is_empty() && w.obs_u8 == [0, 17, 255, 128, 3, 254], "{w:?}");
+        assert_eq!(trajectory_from_wire(w.clone(), 3, Actions::Discrete(5)).unwrap().obs, grey.obs);
+        // Anything else stays four bytes a value, bits and all.
+        for other in [
+            vec![0.0, 17.5, 255.0, 128.0, 3.0, 254.0],
+            vec![0.0, 17.0, 256.0, 128.0, 3.0, 254.0],
+            vec![0.0, 17.0, -1.0, 128.0, 3.0, 254.0],
+            vec![-0.0, 17.0, 255.0, 128.0, 3.0, 254.0],
+        ] {
+            let w = trajectory_to_wire(&t(other.clone()), 3);
+            assert!(w.obs_u8.is_empty(), "{other:?}");
+            let back = trajectory_from_wire(w, 3, Actions::Discrete(5)).unwrap().obs;
+            assert_eq!(
+                back.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                other.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
+            );
+        }
+        // Bytes that do not fit the steps, or both encodings at once, are refused.
+        let mut short = w.clone();
+        short.obs_u8.pop();
+        assert!(trajectory_from_wire(short, 3, Actions::Discrete(5)).is_err());
+        let mut both = w;
+        both.obs = vec![1.0; 6];
+        assert!(trajectory_from_wire(both, 3, Actions::Discrete(5)).is_err());
+    }
 
     #[test]
     fn round_trip_and_refusals() {

@@ -107,11 +107,13 @@ fn trajectory(world: &str, steps: usize) -> policy::Trajectory {
 /// Valid encodings of every message the roles receive, to mutate.
 fn message_seeds() -> Vec<Vec<u8>> {
     let t = trajectory("reinvent_wood", 4);
+    // Grey levels: their observations travel as bytes.
+    let grey = policy::Trajectory { obs: (0..12).map(|i| (i * 20) as f32).collect(), ..t.clone() };
     let e = policy::exchange::Experience {
         worker: "a1".into(),
         seq: 1,
         credit: (3, 1),
-        trajectories: vec![t.clone(), t.clone()],
+        trajectories: vec![t.clone(), grey],
         env_steps: 8,
         seconds: 0.5,
         frame: None,
