@@ -17,6 +17,11 @@ pub fn request(session: &zenoh::Session, kind: Kind, timeout: Duration) -> Resul
     let req = JobRequest { protocol_version: PROTOCOL_VERSION, kind: Some(kind) };
     let drops = DropCounters::default();
     let replies = net::query::<JobReply>(session, keys::CONTROL, Some(protocol::encode(&req)), timeout, &drops)?;
+    if replies.is_empty() && drops.total() > 0 {
+        // Not the same as silence: something answered, and what it said was refused.
+        let why: Vec<String> = drops.reasons().into_iter().map(|(r, n)| format!("{n} × {r}")).collect();
+        bail!("a reply came but could not be read ({}); is the coordinator the same version?", why.join("; "));
+    }
     replies.into_iter().next().context("no coordinator answered (is `coordinator serve` running and reachable?)")
 }
 

@@ -327,6 +327,13 @@ fn handle(st: &Arc<Mutex<State>>, db: &Db, _session: &zenoh::Session, req: JobRe
                 Ok(d) => d,
                 Err(e) => return reply(false, format!("bad job document: {e}"), serde_json::Value::Null),
             };
+            // The very same document again is the same job: a `job start` retried after its
+            // reply was lost (the job started) gets the job's answer, not "taken".
+            if let Some(j) = st.jobs.get(&doc.id).filter(|j| j.doc == doc) {
+                let ok = j.state != JobState::Failed;
+                let text = format!("job {} was already started with this very spec: {:?}", doc.id, j.state);
+                return reply(ok, text, serde_json::json!({"id": doc.id, "state": j.state}));
+            }
             if !keys::is_valid_name(&doc.id) || st.jobs.contains_key(&doc.id) {
                 return reply(
                     false,

@@ -232,6 +232,25 @@ fn worlds_of(s: &serde_json::Value, agent: &str) -> Vec<String> {
         .collect()
 }
 
+#[test]
+fn issue_8_a_retried_job_start_is_the_same_job_and_another_spec_cannot_take_its_id() {
+    // A `job start` whose reply is lost has started the job; the CLI's retry sends the very
+    // same document and must get the job back, not "taken". Another spec under that id is
+    // refused.
+    let mut c = Cluster::new();
+    c.coordinator();
+    let id = c.start(SPEC);
+    let again = c.cli(&["job", "start", "job.toml", "--id", &id]);
+    let text = String::from_utf8_lossy(&again.stdout).to_string() + &String::from_utf8_lossy(&again.stderr);
+    assert!(again.status.success() && text.contains("already started with this very spec"), "{text}");
+    std::fs::write(c.path("job.toml"), SPEC.replace("minutes = 5", "minutes = 6")).unwrap();
+    let other = c.cli(&["job", "start", "job.toml", "--id", &id]);
+    let text = String::from_utf8_lossy(&other.stdout).to_string() + &String::from_utf8_lossy(&other.stderr);
+    assert!(!other.status.success() && text.contains("is taken"), "{text}");
+    let stop = c.status(&id)["doc"]["stop"].clone();
+    assert_eq!(stop["minutes"], 5.0, "the first spec's job is untouched: {stop}");
+}
+
 const SPEC: &str =
     "worlds = [\"reinvent_carpet\", \"reinvent_concrete\"]\nout = \"run\"\nenvs_per_agent = 8\n[stop]\nminutes = 5\n";
 
@@ -1135,5 +1154,38 @@ fn issue_10_chaos_up_restarts_whatever_is_killed_and_the_job_completes_with_whol
     assert!(folders.len() >= 2);
     for f in folders {
         policy::folder::load(&f).unwrap_or_else(|e| panic!("{}: {e}", f.display()));
+    }
+}
+
+#[test]
+fn issue_8_a_reply_that_cannot_be_read_is_not_reported_as_silence() {
+    // Something answers the job-control query with bytes that are not a reply: the CLI says
+    // so (and why), instead of "no coordinator answered".
+    use protocol::net::{self, NetArgs, zenoh::Wait};
+    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    let session = net::open(&NetArgs { listen: vec![endpoint.clone()], ..NetArgs::default() }).unwrap();
+    let _q = session
+        .declare_queryable(protocol::keys::CONTROL)
+        .callback(|q| {
+            let _ = q.reply(q.key_expr().clone(), vec![0xffu8; 12]).wait();
+        })
+        .wait()
+        .unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let o = Command::new(bin("coordinator"))
+            .args(["job", "status", "job1", "--connect", &endpoint])
+            .current_dir(dir.path())
+            .output()
+            .unwrap();
+        let text = String::from_utf8_lossy(&o.stdout).to_string() + &String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success(), "{text}");
+        // The first query may go out before the session's routes are up: that one is silence.
+        if text.contains("no coordinator answered") && Instant::now() < deadline {
+            continue;
+        }
+        assert!(text.contains("a reply came but could not be read") && text.contains("1 ×"), "{text}");
+        break;
     }
 }
