@@ -461,12 +461,37 @@ struct ConvScratch {
     gb: Vec<f32>,
 }
 
-/// How a conv layer splits `batch` samples: (samples per thread, samples per chunk).
-/// Each thread takes a contiguous share of the samples and works through it in chunks on
-/// its own; with one thread there is one share.
-fn conv_split(layer: &Layer, batch: usize, par: Par) -> (usize, usize) {
-    let threads = par.degree().clamp(1, batch.max(1));
-    (batch.div_ceil(threads).max(1), layer.conv_chunk())
+/// A conv layer's geometry for one pass over `x`, and how the pass splits its samples:
+/// each thread takes a contiguous `share` and works through it `chunk` samples at a time on
+/// its own (one share with one thread).
+struct ConvPlan {
+    filters: usize,
+    kkc: usize,
+    oh: usize,
+    ow: usize,
+    per_in: usize,
+    per_out: usize,
+    share: usize,
+    chunk: usize,
+    shares: usize,
+}
+
+impl ConvPlan {
+    /// The plan for the samples of `x`, with a scratch buffer set for every share.
+    fn new(layer: &Layer, x: &[f32], par: Par, scratch: &mut Vec<ConvScratch>) -> ConvPlan {
+        let Layer::Conv2d { filters, .. } = *layer else { unreachable!() };
+        let [oh, ow] = layer.conv_out();
+        let (per_in, per_out) = (layer.in_size(), layer.out_size());
+        let batch = x.len() / per_in;
+        let threads = par.degree().clamp(1, batch.max(1));
+        let share = batch.div_ceil(threads).max(1);
+        let shares = batch.div_ceil(share);
+        if scratch.len() < shares {
+            scratch.resize_with(shares, Default::default);
+        }
+        let kkc = layer.param_count() / filters - 1;
+        ConvPlan { filters, kkc, oh, ow, per_in, per_out, share, chunk: layer.conv_chunk(), shares }
+    }
 }
 
 /// Split `v` into consecutive pieces of `len` (the last may be shorter), or none.
@@ -490,16 +515,8 @@ fn conv_forward(
     scratch: &mut Vec<ConvScratch>,
     par: Par,
 ) {
-    let Layer::Conv2d { filters, .. } = *layer else { unreachable!() };
-    let kkc = layer.param_count() / filters - 1;
-    let [oh, ow] = layer.conv_out();
-    let (per_in, per_out) = (layer.in_size(), layer.out_size());
-    let batch = x.len() / per_in;
-    let (share, chunk) = conv_split(layer, batch, par);
-    let shares = batch.div_ceil(share);
-    if scratch.len() < shares {
-        scratch.resize_with(shares, Default::default);
-    }
+    let ConvPlan { filters, kkc, oh, ow, per_in, per_out, share, chunk, shares } =
+        ConvPlan::new(layer, x, par, scratch);
     let run = |x: &[f32], out: &mut [f32], mut relu: Option<&mut [f32]>, s: &mut ConvScratch| {
         for (c, (xc, oc)) in x.chunks(chunk * per_in).zip(out.chunks_mut(chunk * per_out)).enumerate() {
             let n = xc.len() / per_in;
@@ -546,16 +563,8 @@ fn conv_backward(
     scratch: &mut Vec<ConvScratch>,
     par: Par,
 ) {
-    let Layer::Conv2d { filters, .. } = *layer else { unreachable!() };
-    let kkc = layer.param_count() / filters - 1;
-    let [oh, ow] = layer.conv_out();
-    let (per_in, per_out) = (layer.in_size(), layer.out_size());
-    let batch = x.len() / per_in;
-    let (share, chunk) = conv_split(layer, batch, par);
-    let shares = batch.div_ceil(share);
-    if scratch.len() < shares {
-        scratch.resize_with(shares, Default::default);
-    }
+    let ConvPlan { filters, kkc, oh, ow, per_in, per_out, share, chunk, shares } =
+        ConvPlan::new(layer, x, par, scratch);
     let run = |x: &[f32],
                d: &mut [f32],
                relu_in: Option<&[f32]>,
