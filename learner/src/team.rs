@@ -201,7 +201,8 @@ impl Reducer for Group<'_> {
 
     fn all_reduce(&mut self, step: u64, values: &mut [f32], factors: Vec<f32>) -> Result<Vec<Vec<f32>>, GroupError> {
         let t0 = Instant::now();
-        if !self.sent.remove(&step) {
+        let sent_ahead = self.sent.remove(&step);
+        if !sent_ahead {
             let share = wire::share_to_wire(self.job, self.me, self.plan, step, values, &factors);
             net::put(self.session, &keys::team_share(self.job, self.me), &share)
                 .map_err(|e| GroupError(e.to_string()))?;
@@ -254,7 +255,7 @@ impl Reducer for Group<'_> {
         }
         tracing::trace!(
             member = self.me,
-            sent_ahead = t2 - t0 < Duration::from_micros(1),
+            sent_ahead,
             put_ms = (t2 - t0).as_secs_f64() * 1e3,
             wait_ms = (t3 - t2).as_secs_f64() * 1e3,
             sum_ms = t3.elapsed().as_secs_f64() * 1e3,
