@@ -550,25 +550,26 @@ impl Ppo {
                     optimiser_ms = t1.elapsed().as_secs_f64() * 1e3,
                     "gradient step {step} (rank {rank} of {size}; in a team the optimiser's time includes the exchanges)"
                 );
-                let finite = match applied {
-                    Ok(finite) => finite,
-                    Err(why) => {
-                        (self.model, self.opt_pi, self.opt_v, self.opt_log_std) = saved;
-                        self.ws = ws;
-                        stats.refused =
-                            Some(format!("the learner group failed: {why}; weights kept at version {}", self.version));
-                        stats.policy_version = self.version;
-                        stats.group_failed = true;
-                        return stats;
-                    }
+                // Either failure restores the state saved before the update and refuses it.
+                let refused = match applied {
+                    Ok(true) => None,
+                    Ok(false) => Some((
+                        format!(
+                            "non-finite loss or gradient at gradient step {} (loss {}): update refused, weights kept at version {}",
+                            stats.gradient_steps, lg.total, self.version
+                        ),
+                        false,
+                    )),
+                    Err(why) => Some((
+                        format!("the learner group failed: {why}; weights kept at version {}", self.version),
+                        true,
+                    )),
                 };
-                if !finite {
+                if let Some((why, group_failed)) = refused {
                     (self.model, self.opt_pi, self.opt_v, self.opt_log_std) = saved;
                     self.ws = ws;
-                    stats.refused = Some(format!(
-                        "non-finite loss or gradient at gradient step {} (loss {}): update refused, weights kept at version {}",
-                        stats.gradient_steps, lg.total, self.version
-                    ));
+                    stats.refused = Some(why);
+                    stats.group_failed = group_failed;
                     stats.policy_version = self.version;
                     return stats;
                 }
@@ -754,6 +755,16 @@ enum Part {
     Value,
 }
 
+impl Part {
+    /// The tower's gradient and its factored layers.
+    fn of(self, lg: &LossGrad) -> (&Vec<f32>, &Vec<Factors>) {
+        match self {
+            Part::Policy => (&lg.grad_pi, &lg.factors_pi),
+            Part::Value => (&lg.grad_v, &lg.factors_v),
+        }
+    }
+}
+
 /// This learner's share of `part` of a minibatch (`shares[rank]` of its samples), weighted
 /// by its size: the values to sum over the group, and the factored layers' factors.
 fn share_of(lg: &LossGrad, part: Part, shares: &[usize], rank: usize) -> (Vec<f32>, Vec<f32>) {
@@ -761,10 +772,7 @@ fn share_of(lg: &LossGrad, part: Part, shares: &[usize], rank: usize) -> (Vec<f3
     let w = mine as f32 / all as f32;
     // An empty share contributes nothing (its means are not numbers).
     let weigh = |x: f32| if mine == 0 { 0.0 } else { x * w };
-    let (grad, factors) = match part {
-        Part::Policy => (&lg.grad_pi, &lg.factors_pi),
-        Part::Value => (&lg.grad_v, &lg.factors_v),
-    };
+    let (grad, factors) = part.of(lg);
     let skip = skipped(factors);
     let mut values = Vec::with_capacity(grad.len() + 2 + FIGURES);
     for run in kept(grad, &skip) {
@@ -785,11 +793,8 @@ fn share_of(lg: &LossGrad, part: Part, shares: &[usize], rank: usize) -> (Vec<f3
 
 /// Put the group's sum of `part` (laid out as [`share_of`] made it) back into `lg`.
 fn take_sum(lg: &mut LossGrad, part: Part, values: &[f32]) {
-    let (grad, factors) = match part {
-        Part::Policy => (&mut lg.grad_pi, &lg.factors_pi),
-        Part::Value => (&mut lg.grad_v, &lg.factors_v),
-    };
-    let skip = skipped(factors);
+    let skip = skipped(part.of(lg).1);
+    let grad = if part == Part::Policy { &mut lg.grad_pi } else { &mut lg.grad_v };
     let (mut at, mut from) = (0, 0);
     for &(a, b) in skip.iter().chain(std::iter::once(&(grad.len(), grad.len()))) {
         let n = a - from;
