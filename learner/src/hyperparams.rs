@@ -17,6 +17,12 @@ pub enum LossType {
     MeanSquaredError,
 }
 
+/// Paddock's default `target_kl`. Without it the default job's policy kept lapping in
+/// training but an update now and then moved it by a KL of 0.5–2.5 (against a median of 0.014)
+/// and knocked mean progress down to 20–50 % for a few iterations: a 3-minute `up` job's final
+/// model sometimes missed laps (issue 8).
+pub const DEFAULT_TARGET_KL: f64 = 0.05;
+
 /// The hyperparameters, documented.
 #[derive(Clone, Debug, PartialEq, serde::Serialize)]
 pub struct Hyperparameters {
@@ -38,6 +44,11 @@ pub struct Hyperparameters {
     pub term_cond_max_episodes: u64,
     /// Stop when the mean reward per episode over an iteration reaches this (`term_cond_avg_score`).
     pub term_cond_avg_score: f64,
+    /// Paddock's addition (DeepRacer has no such key, and a file without it gets this
+    /// default): an update stops taking gradient steps after the first minibatch whose
+    /// approximate KL divergence from the policy the update began with exceeds 1.5 × this
+    /// (Stable-Baselines3's `target_kl`). `null`: every epoch runs, as in DeepRacer.
+    pub target_kl: Option<f64>,
 }
 
 impl Default for Hyperparameters {
@@ -52,6 +63,7 @@ impl Default for Hyperparameters {
             num_epochs: 10,
             term_cond_max_episodes: 100_000,
             term_cond_avg_score: 100_000.0,
+            target_kl: Some(DEFAULT_TARGET_KL),
         }
     }
 }
@@ -147,6 +159,12 @@ impl Hyperparameters {
                 "num_epochs" => h.num_epochs = positive(k, int(k, v)?)?,
                 "term_cond_max_episodes" => h.term_cond_max_episodes = int(k, v)?,
                 "term_cond_avg_score" => h.term_cond_avg_score = float(k, v)?,
+                "target_kl" => {
+                    h.target_kl = if v.is_null() { None } else { Some(float(k, v)?) };
+                    if h.target_kl.is_some_and(|t| !(t > 0.0 && t.is_finite())) {
+                        return Err(err(format!("key 'target_kl' is {v}, expected a positive number or null")));
+                    }
+                }
                 "stack_size" => {
                     int(k, v)?;
                     ignored.push("stack_size (DeepRacer reads it but always stacks 1 frame)".into());
@@ -188,6 +206,7 @@ impl Hyperparameters {
             "num_episodes_between_training": self.num_episodes_between_training,
             "num_epochs": self.num_epochs,
             "stack_size": 1,
+            "target_kl": self.target_kl,
             "term_cond_avg_score": self.term_cond_avg_score,
             "term_cond_max_episodes": self.term_cond_max_episodes,
         }))
@@ -212,6 +231,20 @@ mod tests {
         assert_eq!(p.ignored.len(), 4, "{:?}", p.ignored);
         let back = Hyperparameters::parse(&p.hyperparameters.to_json(), "back.json").unwrap();
         assert_eq!(back.hyperparameters, p.hyperparameters);
+        // DeepRacer's file has no `target_kl`: Paddock's default applies.
+        assert_eq!(p.hyperparameters.target_kl, Some(DEFAULT_TARGET_KL));
+    }
+
+    #[test]
+    fn issue_8_target_kl_is_a_number_or_null_and_survives_the_round_trip() {
+        for (text, want) in
+            [(r#"{"target_kl": 0.02}"#, Some(0.02)), (r#"{"target_kl": null}"#, None), ("{}", Some(DEFAULT_TARGET_KL))]
+        {
+            let h = Hyperparameters::parse(text, "h.json").unwrap().hyperparameters;
+            assert_eq!(h.target_kl, want, "{text}");
+            let back = Hyperparameters::parse(&h.to_json(), "back.json").unwrap().hyperparameters;
+            assert_eq!(back, h, "{text}");
+        }
     }
 
     #[test]
@@ -228,6 +261,8 @@ mod tests {
             (r#"{"discount_factor": 1.5}"#, "[0, 1]"),
             (r#"{"num_epochs": 2.5}"#, "whole number"),
             (r#"{"exploration_type": "e-greedy"}"#, "categorical"),
+            (r#"{"target_kl": 0}"#, "key 'target_kl' is 0, expected a positive number or null"),
+            (r#"{"target_kl": "far"}"#, "key 'target_kl'"),
             ("[]", "expected a JSON object"),
         ] {
             let e = Hyperparameters::parse(text, "h.json").unwrap_err().to_string();

@@ -2,7 +2,10 @@
 //! bootstrap at every episode end, advantages standardised over the batch, clip ε 0.2,
 //! entropy bonus `beta_entropy`, Huber or MSE value loss on a separate value tower, Adam
 //! (ε 1e-5, β2 0.999) without gradient clipping, `num_epochs` epochs of shuffled
-//! minibatches of `batch_size` (the remainder dropped).
+//! minibatches of `batch_size` (the remainder dropped). As in DeepRacer, the old policy's
+//! log-probabilities and the values behind GAE are the network's as the update begins
+//! ([`make_batch_for`]), not those the experience was acted with. Paddock's one addition:
+//! the epochs stop early once a minibatch's approximate KL passes 1.5 × `target_kl`.
 //!
 //! A non-finite loss or gradient refuses the whole update: the weights and the optimiser
 //! state go back to where the iteration began, and the refusal is reported.
@@ -52,41 +55,98 @@ impl Batch {
     }
 }
 
-/// GAE advantages and value targets for one trajectory (bootstrap 0 at its end).
+/// GAE advantages and value targets for one trajectory (bootstrap 0 at its end), from the
+/// values it was acted with.
 pub fn gae(t: &Trajectory, gamma: f64, lambda: f64) -> (Vec<f64>, Vec<f64>) {
-    let n = t.len();
+    gae_of(&t.rewards, &t.values, gamma, lambda)
+}
+
+/// GAE advantages and value targets for one episode's `rewards` and `values`.
+fn gae_of(rewards: &[f32], values: &[f32], gamma: f64, lambda: f64) -> (Vec<f64>, Vec<f64>) {
+    let n = rewards.len();
     let mut adv = vec![0.0; n];
     let mut next_adv = 0.0;
     let mut next_value = 0.0;
     for i in (0..n).rev() {
-        let v = t.values[i] as f64;
-        let delta = t.rewards[i] as f64 + gamma * next_value - v;
+        let v = values[i] as f64;
+        let delta = rewards[i] as f64 + gamma * next_value - v;
         next_adv = delta + gamma * lambda * next_adv;
         adv[i] = next_adv;
         next_value = v;
     }
-    let returns = adv.iter().zip(&t.values).map(|(a, v)| a + *v as f64).collect();
+    let returns = adv.iter().zip(values).map(|(a, v)| a + *v as f64).collect();
     (adv, returns)
 }
 
-/// Flatten trajectories into a batch with standardised advantages.
+/// Flatten trajectories into a batch with standardised advantages, against the log-probabilities
+/// and values they were acted with.
 pub fn make_batch(trajs: &[Trajectory], obs_size: usize, gamma: f64) -> Batch {
+    batch_against(trajs, obs_size, gamma, None)
+}
+
+/// Flatten trajectories into a batch as DeepRacer's PPO sees it (§3.3 of the reference: COACH
+/// syncs its old-policy network before computing advantages): the old log-probabilities and
+/// the values behind GAE come from `model`, the network as the update begins, not from acting
+/// time. Experience acted a version or two back (the lag flow control allows) is then clipped
+/// around the policy being trained, and its advantages rest on that policy's value estimates.
+pub fn make_batch_for(trajs: &[Trajectory], model: &ActorCritic, gamma: f64, par: Par) -> Batch {
+    batch_against(trajs, model.obs_size(), gamma, Some((model, par)))
+}
+
+/// Rows per forward pass when a batch's figures are recomputed (bounds the tape's memory for
+/// camera networks).
+const RELABEL_ROWS: usize = 256;
+
+fn batch_against(trajs: &[Trajectory], obs_size: usize, gamma: f64, model: Option<(&ActorCritic, Par)>) -> Batch {
     let mut b = Batch { obs_size, ..Batch::default() };
-    let mut adv = Vec::new();
     for t in trajs {
-        let (a, r) = gae(t, gamma, GAE_LAMBDA);
-        adv.extend(a);
-        b.returns.extend(r.iter().map(|x| *x as f32));
         b.obs.extend_from_slice(&t.obs);
         b.choices.extend_from_slice(&t.choices);
-        b.logp_old.extend_from_slice(&t.logp);
-        b.values_old.extend_from_slice(&t.values);
+    }
+    match model {
+        None => {
+            for t in trajs {
+                b.logp_old.extend_from_slice(&t.logp);
+                b.values_old.extend_from_slice(&t.values);
+            }
+        }
+        Some((model, par)) => (b.logp_old, b.values_old) = logp_and_values(model, &b.obs, &b.choices, par),
+    }
+    let mut adv = Vec::with_capacity(b.choices.len());
+    let mut at = 0;
+    for t in trajs {
+        let (a, r) = gae_of(&t.rewards, &b.values_old[at..at + t.len()], gamma, GAE_LAMBDA);
+        at += t.len();
+        adv.extend(a);
+        b.returns.extend(r.iter().map(|x| *x as f32));
     }
     let n = adv.len().max(1) as f64;
     let mean = adv.iter().sum::<f64>() / n;
     let std = (adv.iter().map(|a| (a - mean).powi(2)).sum::<f64>() / n).sqrt();
     b.adv = adv.iter().map(|a| ((a - mean) / (std + 1e-8)) as f32).collect();
     b
+}
+
+/// log π(choice | obs) and V(obs) by `model` for every row of `obs`.
+pub fn logp_and_values(model: &ActorCritic, obs: &[f32], choices: &[Choice], par: Par) -> (Vec<f32>, Vec<f32>) {
+    let os = model.obs_size();
+    let dim = model.pi.out_size();
+    let (mut logp, mut values) = (Vec::with_capacity(choices.len()), Vec::with_capacity(choices.len()));
+    let mut tape = Tape::default();
+    for (rows, picked) in obs.chunks(RELABEL_ROWS * os).zip(choices.chunks(RELABEL_ROWS)) {
+        let n = picked.len();
+        model.pi.forward(rows, n, &mut tape, par);
+        for (row, choice) in tape.output().chunks_exact(dim).zip(picked) {
+            logp.push(match (&model.head, *choice) {
+                (Head::Categorical(_), Choice::Discrete(c)) => log_softmax(row)[c],
+                (Head::Gaussian { log_std }, Choice::Continuous(x)) => gaussian_logp(row, log_std, &x),
+                _ => panic!("the batch's actions do not fit the model's head"),
+            });
+        }
+        model.v.forward(rows, n, &mut tape, par);
+        values.extend_from_slice(&tape.output()[..n]);
+    }
+    (logp, values)
 }
 
 /// Losses of one minibatch and their gradients.
@@ -373,6 +433,9 @@ pub struct UpdateStats {
     pub policy_version: u64,
     /// The refusal came from the learner group (a member did not answer), not from the numbers.
     pub group_failed: bool,
+    /// The update stopped before its last epoch: this gradient step's approximate KL passed
+    /// 1.5 × `target_kl` (the step itself was taken).
+    pub kl_stop: Option<usize>,
 }
 
 /// Everything that makes a learner's next update what it will be: the version, the weights
@@ -497,7 +560,7 @@ impl Ppo {
     /// from the leader's plan.
     pub fn update_planned(&mut self, trajs: &[Trajectory], seed: u64, group: &mut dyn Reducer) -> UpdateStats {
         let mut shuffle = ChaCha8Rng::seed_from_u64(seed);
-        let batch = make_batch(trajs, self.model.obs_size(), self.hyper.discount_factor);
+        let batch = make_batch_for(trajs, &self.model, self.hyper.discount_factor, self.par);
         let n = batch.len();
         let mut stats =
             UpdateStats { samples: n, explained_variance: explained_variance(&batch), ..Default::default() };
@@ -514,7 +577,7 @@ impl Ppo {
         // The big dense layers' weight gradients stay factors until the optimiser multiplies
         // them out block by block (alone or in a team: one path).
         let defer = (self.model.pi.factorable(bs), self.model.v.factorable(bs));
-        for _ in 0..self.hyper.num_epochs {
+        'epochs: for _ in 0..self.hyper.num_epochs {
             order.shuffle(&mut shuffle);
             for mb in order.chunks_exact(bs) {
                 let (rank, size) = group.shard();
@@ -579,7 +642,13 @@ impl Ppo {
                 stats.approx_kl += lg.approx_kl;
                 stats.clip_fraction += lg.clip_fraction;
                 stats.gradient_steps += 1;
+                // Every member of a team holds the group's figures here: all stop together.
+                let too_far = self.hyper.target_kl.is_some_and(|t| lg.approx_kl > 1.5 * t);
                 ws.recycle(lg);
+                if too_far {
+                    stats.kl_stop = Some(stats.gradient_steps);
+                    break 'epochs;
+                }
             }
         }
         self.ws = ws;

@@ -360,6 +360,10 @@ pub struct IterationRecord {
     pub dropped_bad: u64,
     /// Why the update was refused (non-finite loss), if it was.
     pub refused: Option<String>,
+    /// Gradient steps the update took.
+    pub gradient_steps: usize,
+    /// The update stopped at this gradient step, its KL past 1.5 × `target_kl`.
+    pub kl_stop: Option<usize>,
 }
 
 /// One evaluation over every world.
@@ -915,6 +919,8 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
                 dropped_duplicate: dup,
                 dropped_bad: bad,
                 refused: stats.refused.clone(),
+                gradient_steps: stats.gradient_steps,
+                kl_stop: stats.kl_stop,
             };
             noted(
                 &run,

@@ -36,7 +36,8 @@ fn model_of(network: &str, epochs: usize) -> Result<(ActorCritic, Hyperparameter
     if epochs == 0 {
         bail!("--epochs: expected at least 1");
     }
-    let hyper = Hyperparameters { num_epochs: epochs, batch_size: 64, ..Hyperparameters::default() };
+    // Every epoch of every update runs (no `target_kl` stop): the rate counts them all.
+    let hyper = Hyperparameters { num_epochs: epochs, batch_size: 64, target_kl: None, ..Hyperparameters::default() };
     Ok((model, hyper))
 }
 

@@ -67,14 +67,26 @@ fn episodes(model: &ActorCritic, n: usize, rng: &mut ChaCha8Rng) -> Vec<Trajecto
 
 #[test]
 fn issue_8_two_learners_make_one_learners_update() {
+    // Every epoch, and an update that stops early on `target_kl`: the members stop together,
+    // at the single learner's step.
+    for target_kl in [None, Some(0.001)] {
+        let stops = two_learners_against_one(target_kl);
+        assert_eq!(stops > 0, target_kl.is_some(), "{target_kl:?}: {stops} updates stopped early");
+    }
+}
+
+/// Three updates by one learner and by a team of two from the same start; returns how many
+/// of them stopped early.
+fn two_learners_against_one(target_kl: Option<f64>) -> usize {
     let meta = ModelMetadata::default_state_vector();
     let mut rng = ChaCha8Rng::seed_from_u64(11);
     let model = ActorCritic::new(&meta, 27, &mut rng);
-    let h = Hyperparameters { num_epochs: 3, ..Hyperparameters::default() };
+    let h = Hyperparameters { num_epochs: 3, target_kl, ..Hyperparameters::default() };
     let mut alone = Ppo::new(model.clone(), h.clone(), 0, 5, Par::Seq);
     let mut group: Vec<Ppo> = (0..2).map(|_| Ppo::new(model.clone(), h.clone(), 0, 5, Par::Seq)).collect();
     let slots = Arc::new(Mutex::new(vec![(Vec::new(), Vec::new()); 2]));
     let barrier = Arc::new(Barrier::new(2));
+    let mut stopped = 0;
     for iteration in 0..3 {
         let trajs = episodes(&alone.model, 20, &mut rng);
         let one = alone.update_in(&trajs, &mut Alone);
@@ -93,6 +105,8 @@ fn issue_8_two_learners_make_one_learners_update() {
         // The group's members hold the very same weights...
         assert_eq!(group[0].model, group[1].model, "iteration {iteration}");
         assert_eq!(stats[0].gradient_steps, one.gradient_steps);
+        assert_eq!((stats[0].kl_stop, stats[1].kl_stop), (one.kl_stop, one.kl_stop), "iteration {iteration}");
+        stopped += usize::from(one.kl_stop.is_some());
         // ...and they are one learner's, to float rounding.
         for (a, b) in
             [(&alone.model.pi.params, &group[0].model.pi.params), (&alone.model.v.params, &group[0].model.v.params)]
@@ -110,6 +124,7 @@ fn issue_8_two_learners_make_one_learners_update() {
         // And a real update happened.
         assert_ne!(alone.model, model);
     }
+    stopped
 }
 
 /// Rank 0 of two, recording what the group summed at its first gradient step: exchange 0

@@ -2,7 +2,7 @@
 //! is known (it fails if the gradient's sign or the advantage is wrong).
 
 use faer::Par;
-use learner::ppo::{Batch, gae, loss_and_grad, make_batch};
+use learner::ppo::{Batch, gae, loss_and_grad, make_batch, make_batch_for};
 use learner::{Hyperparameters, LossType, Ppo};
 use policy::{ActorCritic, Choice, ModelMetadata, Trajectory};
 use rand::{Rng, SeedableRng};
@@ -200,4 +200,54 @@ fn a_nan_never_reaches_the_weights() {
     let stats = ppo.update(&good);
     assert!(stats.refused.is_none() && ppo.version == 4);
     assert_ne!(ppo.model, before);
+}
+
+#[test]
+fn issue_8_the_old_policy_is_the_network_as_the_update_begins() {
+    // DeepRacer's PPO clips around the network as the update begins and computes GAE from its
+    // values, whichever version acted (flow control lets experience lag two versions): the
+    // acting-time log-probabilities and values do not enter the update at all.
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let model = ActorCritic::new(&meta(false), 6, &mut rng);
+    let (trajs, _) = bandit_episodes(&model, 0, 128, &mut rng);
+    let mut acted_elsewhere = trajs.clone();
+    for t in &mut acted_elsewhere {
+        t.logp[0] -= 1.5;
+        t.values[0] += 4.0;
+    }
+    let h = Hyperparameters { lr: 3e-3, num_epochs: 4, batch_size: 32, target_kl: None, ..Hyperparameters::default() };
+    let mut a = Ppo::new(model.clone(), h.clone(), 0, 1, Par::Seq);
+    let mut b = Ppo::new(model.clone(), h.clone(), 0, 1, Par::Seq);
+    let (sa, sb) = (a.update(&trajs), b.update(&acted_elsewhere));
+    assert_eq!(a.model, b.model, "the same update");
+    assert_eq!((sa.approx_kl, sa.policy_loss), (sb.approx_kl, sb.policy_loss));
+    // The batch's figures are the model's own: the first minibatch's ratios are 1.
+    let batch = make_batch_for(&acted_elsewhere, &model, h.discount_factor, Par::Seq);
+    let lg = loss_and_grad(&model, &batch, &(0..32).collect::<Vec<_>>(), &h, Par::Seq);
+    assert!(lg.approx_kl.abs() < 1e-6 && lg.clip_fraction == 0.0, "{} {}", lg.approx_kl, lg.clip_fraction);
+    // Against the acting-time figures they would not be.
+    let stale = make_batch(&acted_elsewhere, 6, h.discount_factor);
+    assert!(loss_and_grad(&model, &stale, &(0..32).collect::<Vec<_>>(), &h, Par::Seq).clip_fraction > 0.5);
+}
+
+#[test]
+fn issue_8_an_update_stops_its_epochs_once_the_policy_moved_past_target_kl() {
+    let mut rng = ChaCha8Rng::seed_from_u64(6);
+    let model = ActorCritic::new(&meta(false), 6, &mut rng);
+    let (trajs, _) = bandit_episodes(&model, 0, 128, &mut rng);
+    // 128 samples in minibatches of 32, 4 epochs: 16 gradient steps unless stopped.
+    for (target_kl, stops) in [(None, false), (Some(10.0), false), (Some(1e-7), true)] {
+        let h = Hyperparameters { lr: 3e-3, num_epochs: 4, batch_size: 32, target_kl, ..Hyperparameters::default() };
+        let mut ppo = Ppo::new(model.clone(), h, 0, 1, Par::Seq);
+        let s = ppo.update(&trajs);
+        assert!(s.refused.is_none() && ppo.version == 1, "{target_kl:?}: {s:?}");
+        if stops {
+            // The first step starts from ratios of 1; the one after it sees the policy moved.
+            let k = s.kl_stop.expect("stopped");
+            assert!(k <= 2 && s.gradient_steps == k, "{target_kl:?}: {s:?}");
+            assert_ne!(ppo.model, model, "the steps before the stop were taken");
+        } else {
+            assert_eq!((s.kl_stop, s.gradient_steps), (None, 16), "{target_kl:?}");
+        }
+    }
 }
