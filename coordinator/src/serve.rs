@@ -379,6 +379,17 @@ fn handle(st: &Arc<Mutex<State>>, db: &Db, _session: &zenoh::Session, req: JobRe
                     serde_json::json!({"id": id}),
                 )
             }
+            // A retried stop (its first reply lost) finds the job stopping or stopped: that is
+            // what was asked, so it succeeds and says why the job stops.
+            Some(j) if matches!(j.state, JobState::Stopping | JobState::Finished) => reply(
+                true,
+                format!(
+                    "job {id} is already {}: {}",
+                    if j.state == JobState::Stopping { "stopping" } else { "finished" },
+                    j.stop_reason.as_deref().unwrap_or("its stop condition")
+                ),
+                serde_json::json!({"id": id}),
+            ),
             Some(j) => reply(false, format!("job {id} is {:?}, not running", j.state), serde_json::Value::Null),
             None => reply(false, format!("no job '{id}'"), serde_json::Value::Null),
         },

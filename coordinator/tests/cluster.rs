@@ -233,7 +233,7 @@ fn worlds_of(s: &serde_json::Value, agent: &str) -> Vec<String> {
 }
 
 #[test]
-fn issue_8_a_retried_job_start_is_the_same_job_and_another_spec_cannot_take_its_id() {
+fn issue_8_a_retried_job_start_or_stop_is_the_same_job_and_another_spec_cannot_take_its_id() {
     // A `job start` whose reply is lost has started the job; the CLI's retry sends the very
     // same document and must get the job back, not "taken". Another spec under that id is
     // refused.
@@ -249,6 +249,13 @@ fn issue_8_a_retried_job_start_is_the_same_job_and_another_spec_cannot_take_its_
     assert!(!other.status.success() && text.contains("is taken"), "{text}");
     let stop = c.status(&id)["doc"]["stop"].clone();
     assert_eq!(stop["minutes"], 5.0, "the first spec's job is untouched: {stop}");
+    // Likewise a retried `job stop`: the job is stopping, which is what was asked.
+    for attempt in ["stopping: the learner writes", "already stopping: stopped by the user"] {
+        let o = c.cli(&["job", "stop", &id]);
+        let text = String::from_utf8_lossy(&o.stdout).to_string() + &String::from_utf8_lossy(&o.stderr);
+        assert!(o.status.success() && text.contains(attempt), "{attempt}: {text}");
+    }
+    assert_eq!(c.status(&id)["state"], "stopping");
 }
 
 const SPEC: &str =

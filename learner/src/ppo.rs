@@ -81,7 +81,12 @@ fn gae_of(rewards: &[f32], values: &[f32], gamma: f64, lambda: f64) -> (Vec<f64>
 /// Flatten trajectories into a batch with standardised advantages, against the log-probabilities
 /// and values they were acted with.
 pub fn make_batch(trajs: &[Trajectory], obs_size: usize, gamma: f64) -> Batch {
-    batch_against(trajs, obs_size, gamma, None)
+    let acted = |_: &[f32], _: &[Choice]| {
+        let logp = trajs.iter().flat_map(|t| t.logp.iter().copied()).collect();
+        Ok::<_, std::convert::Infallible>((logp, trajs.iter().flat_map(|t| t.values.iter().copied()).collect()))
+    };
+    let Ok(b) = batch_with(trajs, obs_size, gamma, acted);
+    b
 }
 
 /// Flatten trajectories into a batch as DeepRacer's PPO sees it (§3.3 of the reference: COACH
@@ -90,28 +95,30 @@ pub fn make_batch(trajs: &[Trajectory], obs_size: usize, gamma: f64) -> Batch {
 /// time. Experience acted a version or two back (the lag flow control allows) is then clipped
 /// around the policy being trained, and its advantages rest on that policy's value estimates.
 pub fn make_batch_for(trajs: &[Trajectory], model: &ActorCritic, gamma: f64, par: Par) -> Batch {
-    batch_against(trajs, model.obs_size(), gamma, Some((model, par)))
+    let mine =
+        |obs: &[f32], choices: &[Choice]| Ok::<_, std::convert::Infallible>(logp_and_values(model, obs, choices, par));
+    let Ok(b) = batch_with(trajs, model.obs_size(), gamma, mine);
+    b
 }
 
 /// Rows per forward pass when a batch's figures are recomputed (bounds the tape's memory for
 /// camera networks).
 const RELABEL_ROWS: usize = 256;
 
-fn batch_against(trajs: &[Trajectory], obs_size: usize, gamma: f64, model: Option<(&ActorCritic, Par)>) -> Batch {
+/// The batch of `trajs`, its old log-probabilities and values from `figures` (given the
+/// flattened observations and choices).
+fn batch_with<E>(
+    trajs: &[Trajectory],
+    obs_size: usize,
+    gamma: f64,
+    figures: impl FnOnce(&[f32], &[Choice]) -> Result<(Vec<f32>, Vec<f32>), E>,
+) -> Result<Batch, E> {
     let mut b = Batch { obs_size, ..Batch::default() };
     for t in trajs {
         b.obs.extend_from_slice(&t.obs);
         b.choices.extend_from_slice(&t.choices);
     }
-    match model {
-        None => {
-            for t in trajs {
-                b.logp_old.extend_from_slice(&t.logp);
-                b.values_old.extend_from_slice(&t.values);
-            }
-        }
-        Some((model, par)) => (b.logp_old, b.values_old) = logp_and_values(model, &b.obs, &b.choices, par),
-    }
+    (b.logp_old, b.values_old) = figures(&b.obs, &b.choices)?;
     let mut adv = Vec::with_capacity(b.choices.len());
     let mut at = 0;
     for t in trajs {
@@ -124,7 +131,7 @@ fn batch_against(trajs: &[Trajectory], obs_size: usize, gamma: f64, model: Optio
     let mean = adv.iter().sum::<f64>() / n;
     let std = (adv.iter().map(|a| (a - mean).powi(2)).sum::<f64>() / n).sqrt();
     b.adv = adv.iter().map(|a| ((a - mean) / (std + 1e-8)) as f32).collect();
-    b
+    Ok(b)
 }
 
 /// log π(choice | obs) and V(obs) by `model` for every row of `obs`.
@@ -468,8 +475,9 @@ pub struct StateMismatch(pub String);
 /// and output gradients of the share, a fraction of the size) and every member multiplies
 /// them out, in rank order too.
 ///
-/// A gradient step makes two exchanges, numbered `2k` and `2k + 1` for the update's `k`-th
-/// step: the policy tower's share, sent as soon as its backward pass ends, and the value
+/// An update opens with exchange 0: each member's rows of the old policy's log-probabilities
+/// and values. Then a gradient step makes two exchanges, numbered `2k + 1` and `2k + 2` for
+/// the update's `k`-th step: the policy tower's share, sent as soon as its backward pass ends, and the value
 /// tower's with the log-std gradient and the loss figures. Each is announced with
 /// [`Reducer::send`] before the learner goes on, so a transport can move the first while
 /// the value tower runs and the second while the policy tower's optimiser step runs.
@@ -484,7 +492,8 @@ pub trait Reducer {
     }
     /// Replace `values` by their sum over the group, added in rank order, and return every
     /// member's `factors` in rank order (this one's included). `step` numbers the exchanges
-    /// of one update, from 0.
+    /// of one update: 0 the old policy's figures, then 2k + 1 and 2k + 2 gradient step k's two
+    /// parts (the policy tower's, the value tower's).
     fn all_reduce(&mut self, step: u64, values: &mut [f32], factors: Vec<f32>) -> Result<Vec<Vec<f32>>, GroupError>;
 }
 
@@ -560,7 +569,17 @@ impl Ppo {
     /// from the leader's plan.
     pub fn update_planned(&mut self, trajs: &[Trajectory], seed: u64, group: &mut dyn Reducer) -> UpdateStats {
         let mut shuffle = ChaCha8Rng::seed_from_u64(seed);
-        let batch = make_batch_for(trajs, &self.model, self.hyper.discount_factor, self.par);
+        let batch = match self.batch_in(trajs, group) {
+            Ok(b) => b,
+            Err(why) => {
+                return UpdateStats {
+                    refused: Some(format!("the learner group failed: {why}; weights kept at version {}", self.version)),
+                    group_failed: true,
+                    policy_version: self.version,
+                    ..Default::default()
+                };
+            }
+        };
         let n = batch.len();
         let mut stats =
             UpdateStats { samples: n, explained_variance: explained_variance(&batch), ..Default::default() };
@@ -598,7 +617,7 @@ impl Ppo {
                     &mut |lg| {
                         if size > 1 {
                             let (values, factors) = share_of(lg, Part::Policy, &shares, rank);
-                            let sent = group.send(2 * step, &values, &factors);
+                            let sent = group.send(2 * step + 1, &values, &factors);
                             policy_share = Some(sent.map(|()| (values, factors)));
                         }
                     },
@@ -663,6 +682,30 @@ impl Ppo {
         stats
     }
 
+    /// The update's batch ([`make_batch_for`]). In a team each member works out the old
+    /// policy's figures for its rank's share of the rows, and the group adds them up (exchange
+    /// 0 of the update; a row's figures come from one member, the others add zeros), so that
+    /// pass is split like the gradients.
+    fn batch_in(&self, trajs: &[Trajectory], group: &mut dyn Reducer) -> Result<Batch, GroupError> {
+        let (rank, size) = group.shard();
+        let (model, par, gamma) = (&self.model, self.par, self.hyper.discount_factor);
+        if size == 1 {
+            return Ok(make_batch_for(trajs, model, gamma, par));
+        }
+        let os = model.obs_size();
+        batch_with(trajs, os, gamma, |obs, choices| {
+            let n = choices.len();
+            let (a, b) = (n * rank / size, n * (rank + 1) / size);
+            let (logp, values) = logp_and_values(model, &obs[a * os..b * os], &choices[a..b], par);
+            let mut both = vec![0.0f32; 2 * n];
+            both[a..b].copy_from_slice(&logp);
+            both[n + a..n + b].copy_from_slice(&values);
+            group.all_reduce(0, &mut both, Vec::new())?;
+            let values = both.split_off(n);
+            Ok((both, values))
+        })
+    }
+
     /// The optimiser step of one minibatch of a learner alone: Adam on both towers (the
     /// factored layers' gradients multiplied out from this learner's factors) and on the
     /// log-std. Returns whether the loss and every gradient value were finite; when not, the
@@ -705,14 +748,14 @@ impl Ppo {
         rank: usize,
     ) -> Result<bool, GroupError> {
         let (mut v_values, v_factors) = share_of(lg, Part::Value, shares, rank);
-        group.send(2 * step + 1, &v_values, &v_factors)?;
+        group.send(2 * step + 2, &v_values, &v_factors)?;
         let (mut p_values, p_factors) = policy;
-        let every = group.all_reduce(2 * step, &mut p_values, p_factors)?;
+        let every = group.all_reduce(2 * step + 1, &mut p_values, p_factors)?;
         check_factors(&every, &lg.factors_pi, shares)?;
         take_sum(lg, Part::Policy, &p_values);
         let f_pi = factored_grads(&lg.factors_pi, Some((&every, shares)));
         let mut finite = self.opt_pi.step_factored(&mut self.model.pi.params, &lg.grad_pi, &f_pi, self.par);
-        let every = group.all_reduce(2 * step + 1, &mut v_values, v_factors)?;
+        let every = group.all_reduce(2 * step + 2, &mut v_values, v_factors)?;
         check_factors(&every, &lg.factors_v, shares)?;
         take_sum(lg, Part::Value, &v_values);
         finite &= lg.total.is_finite() && lg.grad_log_std.iter().all(|g| g.is_finite());

@@ -140,8 +140,9 @@ impl Reducer for Recording {
     }
     fn all_reduce(&mut self, step: u64, values: &mut [f32], factors: Vec<f32>) -> Result<Vec<Vec<f32>>, GroupError> {
         let every = self.inner.all_reduce(step, values, factors)?;
-        if step < 2 {
-            assert_eq!(self.first.len() as u64, step, "exchanges in order");
+        // Exchange 0 is the old policy's figures; 1 and 2 the first gradient step's parts.
+        if (1..3).contains(&step) {
+            assert_eq!(self.first.len() as u64, step - 1, "exchanges in order");
             self.first.push(values.to_vec());
         }
         Ok(every)
@@ -159,7 +160,7 @@ fn issue_8_the_summed_shares_are_the_whole_minibatch_gradient() {
     let trajs = episodes(&model, 7, &mut rng);
     let n = trajs.iter().map(|t| t.len()).sum::<usize>();
     let h = Hyperparameters { num_epochs: 1, batch_size: n, ..Hyperparameters::default() };
-    let batch = learner::ppo::make_batch(&trajs, 27, h.discount_factor);
+    let batch = learner::ppo::make_batch_for(&trajs, &model, h.discount_factor, Par::Seq);
     let all: Vec<usize> = (0..n).collect();
     let whole = learner::ppo::loss_and_grad(&model, &batch, &all, &h, Par::Seq);
     let slots = Arc::new(Mutex::new(vec![(Vec::new(), Vec::new()); 2]));
@@ -344,7 +345,10 @@ impl Reducer for Ordered {
     }
     fn all_reduce(&mut self, step: u64, values: &mut [f32], factors: Vec<f32>) -> Result<Vec<Vec<f32>>, GroupError> {
         self.log.push(("reduce", step));
-        assert_eq!(self.ahead.remove(&step), Some((values.to_vec(), factors.clone())), "exchange {step}");
+        // Exchange 0 (the old policy's figures) is not sent ahead; every other one is.
+        if step > 0 {
+            assert_eq!(self.ahead.remove(&step), Some((values.to_vec(), factors.clone())), "exchange {step}");
+        }
         self.inner.all_reduce(step, values, factors)
     }
 }
@@ -379,8 +383,13 @@ fn issue_8_a_team_step_sends_the_policy_towers_share_before_the_value_tower_runs
         first.join().unwrap()
     });
     assert!(steps >= 2, "{steps} gradient steps");
-    let expected: Vec<(&str, u64)> = (0..steps as u64)
-        .flat_map(|k| [("send", 2 * k), ("send", 2 * k + 1), ("reduce", 2 * k), ("reduce", 2 * k + 1)])
+    // Exchange 0: the old policy's figures, each member's rows (issue 8: split like the
+    // gradients, not worked out whole by every member).
+    let expected: Vec<(&str, u64)> = std::iter::once(("reduce", 0))
+        .chain(
+            (0..steps as u64)
+                .flat_map(|k| [("send", 2 * k + 1), ("send", 2 * k + 2), ("reduce", 2 * k + 1), ("reduce", 2 * k + 2)]),
+        )
         .collect();
     assert_eq!(log, expected);
     assert_eq!(group[0].model, group[1].model, "the members hold the same weights");
