@@ -477,10 +477,11 @@ pub struct StateMismatch(pub String);
 ///
 /// An update opens with exchange 0: each member's rows of the old policy's log-probabilities
 /// and values. Then a gradient step makes two exchanges, numbered `2k + 1` and `2k + 2` for
-/// the update's `k`-th step: the policy tower's share, sent as soon as its backward pass ends, and the value
-/// tower's with the log-std gradient and the loss figures. Each is announced with
-/// [`Reducer::send`] before the learner goes on, so a transport can move the first while
-/// the value tower runs and the second while the policy tower's optimiser step runs.
+/// the update's `k`-th step: the policy tower's share, sent as soon as its backward pass
+/// ends, and the value tower's with the log-std gradient and the loss figures. Each is
+/// announced with [`Reducer::send`] before the learner goes on, so a transport can move the
+/// first while the value tower runs and the second while the policy tower's optimiser step
+/// runs.
 pub trait Reducer {
     /// This learner's rank and the group's size.
     fn shard(&self) -> (usize, usize);
@@ -573,7 +574,7 @@ impl Ppo {
             Ok(b) => b,
             Err(why) => {
                 return UpdateStats {
-                    refused: Some(format!("the learner group failed: {why}; weights kept at version {}", self.version)),
+                    refused: Some(self.group_refusal(&why)),
                     group_failed: true,
                     policy_version: self.version,
                     ..Default::default()
@@ -642,10 +643,7 @@ impl Ppo {
                         ),
                         false,
                     )),
-                    Err(why) => Some((
-                        format!("the learner group failed: {why}; weights kept at version {}", self.version),
-                        true,
-                    )),
+                    Err(why) => Some((self.group_refusal(&why), true)),
                 };
                 if let Some((why, group_failed)) = refused {
                     (self.model, self.opt_pi, self.opt_v, self.opt_log_std) = saved;
@@ -680,6 +678,11 @@ impl Ppo {
         self.version += 1;
         stats.policy_version = self.version;
         stats
+    }
+
+    /// Why an update was refused when the group failed.
+    fn group_refusal(&self, why: &GroupError) -> String {
+        format!("the learner group failed: {why}; weights kept at version {}", self.version)
     }
 
     /// The update's batch ([`make_batch_for`]). In a team each member works out the old
