@@ -239,14 +239,13 @@ pub fn loss_and_grad_factored(
     par: Par,
     defer: (&[usize], &[usize]),
 ) -> LossGrad {
-    loss_and_grad_hooked(ws, model, batch, idx, h, par, defer, &mut |_| {})
+    loss_and_grad_of(ws, model, batch, idx, h, par, defer, None)
 }
 
-/// [`loss_and_grad_factored`], calling `after_policy` as soon as the policy tower's gradient
-/// (and factors) are final, before the value tower runs: a team member sends that tower's
-/// share from there, so its transfer overlaps the value tower's work.
+/// [`loss_and_grad_factored`] of both towers (`only` none) or of one: a team member trains
+/// one tower, and the other's loss figures and gradient stay zero.
 #[allow(clippy::too_many_arguments)]
-fn loss_and_grad_hooked(
+fn loss_and_grad_of(
     ws: &mut Workspace,
     model: &ActorCritic,
     batch: &Batch,
@@ -254,7 +253,7 @@ fn loss_and_grad_hooked(
     h: &Hyperparameters,
     par: Par,
     defer: (&[usize], &[usize]),
-    after_policy: &mut dyn FnMut(&LossGrad),
+    only: Option<Part>,
 ) -> LossGrad {
     let n = idx.len();
     let os = batch.obs_size;
@@ -283,12 +282,57 @@ fn loss_and_grad_hooked(
     }
     let beta = h.beta_entropy as f32;
     let inv_n = 1.0 / n as f32;
+    let mut out_stats = LossGrad { grad_pi, grad_v, ..Default::default() };
+    if only != Some(Part::Value) {
+        policy_loss_and_grad(model, batch, idx, beta, par, defer.0, (&obs[..], tape_pi), &mut out_stats);
+    }
+    if only != Some(Part::Policy) {
+        model.v.forward(obs, n, tape_v, par);
+        let values = tape_v.output().to_vec();
+        let mut d_v = vec![0.0f32; n];
+        for (k, &i) in idx.iter().enumerate() {
+            let err = values[k] - batch.returns[i];
+            let (loss, grad) = match h.loss_type {
+                LossType::Huber if err.abs() <= 1.0 => (0.5 * err * err, err),
+                LossType::Huber => (err.abs() - 0.5, err.signum()),
+                LossType::MeanSquaredError => (err * err, 2.0 * err),
+            };
+            out_stats.value_loss += loss as f64;
+            d_v[k] = grad * inv_n;
+        }
+        model.v.backward_factored(tape_v, &d_v, &mut out_stats.grad_v, par, defer.1, &mut out_stats.factors_v);
+    }
+
+    let nf = n as f64;
+    out_stats.policy_loss /= nf;
+    out_stats.value_loss /= nf;
+    out_stats.entropy /= nf;
+    out_stats.approx_kl /= nf;
+    out_stats.clip_fraction /= nf;
+    out_stats.total = out_stats.policy_loss - h.beta_entropy * out_stats.entropy + out_stats.value_loss;
+    out_stats
+}
+
+/// The policy tower's part of [`loss_and_grad_of`]: the clipped surrogate and entropy
+/// (summed over `idx`, not yet divided), the tower's gradient and the log-std's.
+#[allow(clippy::too_many_arguments)]
+fn policy_loss_and_grad(
+    model: &ActorCritic,
+    batch: &Batch,
+    idx: &[usize],
+    beta: f32,
+    par: Par,
+    defer: &[usize],
+    (obs, tape_pi): (&[f32], &mut Tape),
+    out_stats: &mut LossGrad,
+) {
+    let n = idx.len();
+    let inv_n = 1.0 / n as f32;
     model.pi.forward(obs, n, tape_pi, par);
     let out = tape_pi.output().to_vec();
     let out = &out[..];
     let dim = model.pi.out_size();
     let mut d_out = vec![0.0f32; n * dim];
-    let mut out_stats = LossGrad { grad_pi, grad_v, ..Default::default() };
     let mut g_log_std = [0.0f32; 2];
     for (k, &i) in idx.iter().enumerate() {
         let row = &out[k * dim..(k + 1) * dim];
@@ -347,33 +391,8 @@ fn loss_and_grad_hooked(
             }
         }
     }
-    model.pi.backward_factored(tape_pi, &d_out, &mut out_stats.grad_pi, par, defer.0, &mut out_stats.factors_pi);
-    after_policy(&out_stats);
-
-    model.v.forward(obs, n, tape_v, par);
-    let values = tape_v.output().to_vec();
-    let mut d_v = vec![0.0f32; n];
-    for (k, &i) in idx.iter().enumerate() {
-        let err = values[k] - batch.returns[i];
-        let (loss, grad) = match h.loss_type {
-            LossType::Huber if err.abs() <= 1.0 => (0.5 * err * err, err),
-            LossType::Huber => (err.abs() - 0.5, err.signum()),
-            LossType::MeanSquaredError => (err * err, 2.0 * err),
-        };
-        out_stats.value_loss += loss as f64;
-        d_v[k] = grad * inv_n;
-    }
-    model.v.backward_factored(tape_v, &d_v, &mut out_stats.grad_v, par, defer.1, &mut out_stats.factors_v);
-
-    let nf = n as f64;
-    out_stats.policy_loss /= nf;
-    out_stats.value_loss /= nf;
-    out_stats.entropy /= nf;
-    out_stats.approx_kl /= nf;
-    out_stats.clip_fraction /= nf;
-    out_stats.total = out_stats.policy_loss - h.beta_entropy * out_stats.entropy + out_stats.value_loss;
+    model.pi.backward_factored(tape_pi, &d_out, &mut out_stats.grad_pi, par, defer, &mut out_stats.factors_pi);
     out_stats.grad_log_std = g_log_std;
-    out_stats
 }
 
 /// The weights of the dense layers `defer` (layer indices of `net`), as sorted parameter
@@ -467,35 +486,43 @@ pub struct GroupError(pub String);
 #[error("{0}")]
 pub struct StateMismatch(pub String);
 
-/// The learners of a data-parallel group (DD-PPO), as one learner's update sees them: each
-/// computes the gradient of its share of every minibatch, weighted by the share's size, and
-/// `all_reduce` sums the shares in rank order, so every learner applies the same Adam step to
-/// the same weights and the group's update equals one learner's on the whole minibatch (to
-/// float rounding). The big dense layers' weight gradients travel as their factors (inputs
-/// and output gradients of the share, a fraction of the size) and every member multiplies
-/// them out, in rank order too.
+/// The learners of a group that trains as one learner, as one learner's update sees them.
+/// A group of one trains both towers alone. In a team the two towers are trained apart
+/// (they share nothing but the minibatch): the even ranks train the policy tower and the odd
+/// ranks the value tower, so that no member repeats the other tower's optimiser step. The
+/// members of a tower split each minibatch's samples between them (data parallelism, as
+/// DD-PPO does): each computes the gradient of its share weighted by the share's size, and
+/// `all_reduce` sums the shares in rank order, so they all apply the same Adam step to the
+/// same weights and the tower's update equals one learner's on the whole minibatch (to float
+/// rounding; bit for bit with one member a tower). The big dense layers' weight gradients
+/// travel as their factors (inputs and output gradients of the share, a fraction of the
+/// size) and every member of the tower multiplies them out, in rank order too.
 ///
-/// An update opens with exchange 0: each member's rows of the old policy's log-probabilities
-/// and values. Then a gradient step makes two exchanges, numbered `2k + 1` and `2k + 2` for
-/// the update's `k`-th step: the policy tower's share, sent as soon as its backward pass
-/// ends, and the value tower's with the log-std gradient and the loss figures. Each is
-/// announced with [`Reducer::send`] before the learner goes on, so a transport can move the
-/// first while the value tower runs and the second while the policy tower's optimiser step
-/// runs.
+/// The exchanges of an update, numbered by `step`:
+/// - `0`, every member: its rows of the old policy's log-probabilities and values;
+/// - `2k + 1`, the members of a tower, for the update's `k`-th gradient step: the tower's
+///   shares (made only when two or more members train the tower);
+/// - `2k + 2`, every member: the step's loss figures, each tower's from its first member,
+///   and whether each member's step was finite, so that all refuse or stop together;
+/// - after the last of `K` steps, `2K + 1` and `2K + 2`: rank 0 sends the policy tower's
+///   weights and optimiser state to the members that train the value tower, and rank 1 the
+///   value tower's to those that train the policy tower, so every member ends the update
+///   with the same state, bit for bit, and any of them can lead or go on alone.
 pub trait Reducer {
     /// This learner's rank and the group's size.
     fn shard(&self) -> (usize, usize);
-    /// Start sending this member's share of exchange `step` without waiting for the others;
-    /// [`Reducer::all_reduce`] follows with the same numbers. A group that cannot send
-    /// ahead does nothing here.
-    fn send(&mut self, _step: u64, _values: &[f32], _factors: &[f32]) -> Result<(), GroupError> {
-        Ok(())
-    }
-    /// Replace `values` by their sum over the group, added in rank order, and return every
-    /// member's `factors` in rank order (this one's included). `step` numbers the exchanges
-    /// of one update: 0 the old policy's figures, then 2k + 1 and 2k + 2 gradient step k's two
-    /// parts (the policy tower's, the value tower's).
-    fn all_reduce(&mut self, step: u64, values: &mut [f32], factors: Vec<f32>) -> Result<Vec<Vec<f32>>, GroupError>;
+    /// Replace `values` by the sum of the shares of the members `ranks` (ascending), added
+    /// in rank order, and return their `factors` in rank order. A member in `ranks` gives its
+    /// own `values` and `factors`; one not in `ranks` gives nothing and receives the sum
+    /// (its `values` only set the length: with one member in `ranks`, that member's values,
+    /// bit for bit). `step` numbers the exchanges of one update (see [`Reducer`]).
+    fn all_reduce(
+        &mut self,
+        step: u64,
+        ranks: &[usize],
+        values: &mut [f32],
+        factors: Vec<f32>,
+    ) -> Result<Vec<Vec<f32>>, GroupError>;
 }
 
 /// A group of one: nothing to add.
@@ -505,12 +532,45 @@ impl Reducer for Alone {
     fn shard(&self) -> (usize, usize) {
         (0, 1)
     }
-    fn all_reduce(&mut self, _step: u64, _values: &mut [f32], factors: Vec<f32>) -> Result<Vec<Vec<f32>>, GroupError> {
+    fn all_reduce(
+        &mut self,
+        _step: u64,
+        _ranks: &[usize],
+        _values: &mut [f32],
+        factors: Vec<f32>,
+    ) -> Result<Vec<Vec<f32>>, GroupError> {
         Ok(vec![factors])
     }
 }
 
-/// The loss figures that travel with the gradient (and are summed like it).
+/// A team member's part in every gradient step: the tower it trains, the members that train
+/// it (ascending ranks) and its place among them.
+struct Role {
+    part: Part,
+    ranks: Vec<usize>,
+    index: usize,
+}
+
+impl Role {
+    /// The role of `rank` in a team of `size` (two or more): even ranks the policy tower,
+    /// odd ranks the value tower.
+    fn of(rank: usize, size: usize) -> Role {
+        let part = if rank.is_multiple_of(2) { Part::Policy } else { Part::Value };
+        let ranks: Vec<usize> = (rank % 2..size).step_by(2).collect();
+        Role { part, index: rank / 2, ranks }
+    }
+
+    /// This member's samples of the minibatch `mb`, and every member's share sizes.
+    fn share<'a>(&self, mb: &'a [usize]) -> (&'a [usize], Vec<usize>) {
+        let (n, k) = (mb.len(), self.ranks.len());
+        let shares = (0..k).map(|r| n * (r + 1) / k - n * r / k).collect();
+        (&mb[n * self.index / k..n * (self.index + 1) / k], shares)
+    }
+}
+
+/// The loss figures a team sums at every gradient step: the policy loss, the entropy, the
+/// approximate KL, the clip fraction (the policy tower's), the value loss, and how many
+/// members' steps were not finite.
 const FIGURES: usize = 6;
 
 /// The learner's state: the model, its optimisers, its version.
@@ -597,17 +657,15 @@ impl Ppo {
         // The big dense layers' weight gradients stay factors until the optimiser multiplies
         // them out block by block (alone or in a team: one path).
         let defer = (self.model.pi.factorable(bs), self.model.v.factorable(bs));
+        let (rank, size) = group.shard();
+        let role = (size > 1).then(|| Role::of(rank, size));
         'epochs: for _ in 0..self.hyper.num_epochs {
             order.shuffle(&mut shuffle);
             for mb in order.chunks_exact(bs) {
-                let (rank, size) = group.shard();
-                let mine = &mb[mb.len() * rank / size..mb.len() * (rank + 1) / size];
-                let shares: Vec<usize> = (0..size).map(|r| mb.len() * (r + 1) / size - mb.len() * r / size).collect();
                 let step = stats.gradient_steps as u64;
-                // In a team the policy tower's share leaves as soon as it is final.
-                let mut policy_share = None;
+                let (mine, shares) = role.as_ref().map_or((mb, vec![mb.len()]), |r| r.share(mb));
                 let t0 = std::time::Instant::now();
-                let mut lg = loss_and_grad_hooked(
+                let mut lg = loss_and_grad_of(
                     &mut ws,
                     &self.model,
                     &batch,
@@ -615,18 +673,12 @@ impl Ppo {
                     &self.hyper,
                     self.par,
                     (&defer.0, &defer.1),
-                    &mut |lg| {
-                        if size > 1 {
-                            let (values, factors) = share_of(lg, Part::Policy, &shares, rank);
-                            let sent = group.send(2 * step + 1, &values, &factors);
-                            policy_share = Some(sent.map(|()| (values, factors)));
-                        }
-                    },
+                    role.as_ref().map(|r| r.part),
                 );
                 let t1 = std::time::Instant::now();
-                let applied = match policy_share {
+                let applied = match &role {
                     None => Ok(self.apply(&lg)),
-                    Some(first) => first.and_then(|p| self.apply_in_team(group, step, p, &mut lg, &shares, rank)),
+                    Some(role) => self.apply_in_team(group, step, role, &mut lg, &shares, size),
                 };
                 tracing::trace!(
                     gradient_ms = (t1 - t0).as_secs_f64() * 1e3,
@@ -669,6 +721,16 @@ impl Ppo {
             }
         }
         self.ws = ws;
+        // A team's members trained one tower each: they swap the towers' states.
+        if size > 1
+            && let Err(why) = self.swap_towers(group, 2 * stats.gradient_steps as u64 + 1, rank)
+        {
+            (self.model, self.opt_pi, self.opt_v, self.opt_log_std) = saved;
+            stats.refused = Some(self.group_refusal(&why));
+            stats.group_failed = true;
+            stats.policy_version = self.version;
+            return stats;
+        }
         let k = stats.gradient_steps as f64;
         stats.policy_loss /= k;
         stats.value_loss /= k;
@@ -703,7 +765,8 @@ impl Ppo {
             let mut both = vec![0.0f32; 2 * n];
             both[a..b].copy_from_slice(&logp);
             both[n + a..n + b].copy_from_slice(&values);
-            group.all_reduce(0, &mut both, Vec::new())?;
+            let every: Vec<usize> = (0..size).collect();
+            group.all_reduce(0, &every, &mut both, Vec::new())?;
             let values = both.split_off(n);
             Ok((both, values))
         })
@@ -737,35 +800,142 @@ impl Ppo {
         }
     }
 
-    /// The optimiser step of one minibatch in a team, the same Adam steps as [`Ppo::apply`]
-    /// in the same order, on the group's sums: the value tower's share goes out, the policy
-    /// tower's shares (`policy`: this member's, already sent) are added and its step taken
-    /// while the value tower's travel, then the value tower's and the log-std's.
+    /// The optimiser step of one minibatch in a team: the Adam step of the tower this member
+    /// trains, as [`Ppo::apply`] takes it, on the sum of the shares of the members that train
+    /// it (exchange `2k + 1`, made when there are two or more), then the step's loss figures
+    /// summed over the team (exchange `2k + 2`). Returns whether every member's step was
+    /// finite; `lg` then holds the team's figures.
     fn apply_in_team(
         &mut self,
         group: &mut dyn Reducer,
         step: u64,
-        policy: (Vec<f32>, Vec<f32>),
+        role: &Role,
         lg: &mut LossGrad,
         shares: &[usize],
-        rank: usize,
+        size: usize,
     ) -> Result<bool, GroupError> {
-        let (mut v_values, v_factors) = share_of(lg, Part::Value, shares, rank);
-        group.send(2 * step + 2, &v_values, &v_factors)?;
-        let (mut p_values, p_factors) = policy;
-        let every = group.all_reduce(2 * step + 1, &mut p_values, p_factors)?;
-        check_factors(&every, &lg.factors_pi, shares)?;
-        take_sum(lg, Part::Policy, &p_values);
-        let f_pi = factored_grads(&lg.factors_pi, Some((&every, shares)));
-        let mut finite = self.opt_pi.step_factored(&mut self.model.pi.params, &lg.grad_pi, &f_pi, self.par);
-        let every = group.all_reduce(2 * step + 2, &mut v_values, v_factors)?;
-        check_factors(&every, &lg.factors_v, shares)?;
-        take_sum(lg, Part::Value, &v_values);
-        finite &= lg.total.is_finite() && lg.grad_log_std.iter().all(|g| g.is_finite());
-        let f_v = factored_grads(&lg.factors_v, Some((&every, shares)));
-        finite &= self.opt_v.step_factored(&mut self.model.v.params, &lg.grad_v, &f_v, self.par);
-        self.step_log_std(lg);
-        Ok(finite)
+        let part = role.part;
+        let every = if role.ranks.len() > 1 {
+            let (mut values, factors) = share_of(lg, part, shares, role.index);
+            let every = group.all_reduce(2 * step + 1, &role.ranks, &mut values, factors)?;
+            check_factors(&every, part.of(lg).1, shares)?;
+            take_sum(lg, part, &values);
+            Some(every)
+        } else {
+            None
+        };
+        let factored = factored_grads(part.of(lg).1, every.as_deref().map(|e| (e, shares)));
+        let finite = match part {
+            Part::Policy => {
+                let ok = self.opt_pi.step_factored(&mut self.model.pi.params, &lg.grad_pi, &factored, self.par);
+                self.step_log_std(lg);
+                ok && lg.grad_log_std.iter().all(|g| g.is_finite())
+            }
+            Part::Value => self.opt_v.step_factored(&mut self.model.v.params, &lg.grad_v, &factored, self.par),
+        };
+        // Each tower's figures come from its first member (the others hold the same sums).
+        let mut figures = [0.0f32; FIGURES];
+        if role.index == 0 {
+            match part {
+                Part::Policy => figures[..4]
+                    .copy_from_slice(&[lg.policy_loss, lg.entropy, lg.approx_kl, lg.clip_fraction].map(|f| f as f32)),
+                Part::Value => figures[4] = lg.value_loss as f32,
+            }
+        }
+        figures[5] = if finite { 0.0 } else { 1.0 };
+        let everyone: Vec<usize> = (0..size).collect();
+        group.all_reduce(2 * step + 2, &everyone, &mut figures, Vec::new())?;
+        let [pl, ent, kl, clip, vl, bad] = figures.map(|f| f as f64);
+        (lg.policy_loss, lg.entropy, lg.approx_kl, lg.clip_fraction, lg.value_loss) = (pl, ent, kl, clip, vl);
+        lg.total = pl - self.hyper.beta_entropy * ent + vl;
+        Ok(bad == 0.0 && lg.total.is_finite())
+    }
+
+    /// The end of a team's update (exchanges `first` and `first + 1`): rank 0 sends the
+    /// policy tower's state (weights, log-std, optimiser moments) to the members that trained
+    /// the value tower, and rank 1 the value tower's to those that trained the policy tower.
+    /// Each member sends before it waits, so the two travel at once.
+    fn swap_towers(&mut self, group: &mut dyn Reducer, first: u64, rank: usize) -> Result<(), GroupError> {
+        let mine = if rank.is_multiple_of(2) { Part::Policy } else { Part::Value };
+        let other = if mine == Part::Policy { Part::Value } else { Part::Policy };
+        let step = |p: Part| if p == Part::Policy { first } else { first + 1 };
+        let owner = |p: Part| if p == Part::Policy { 0 } else { 1 };
+        if rank == owner(mine) {
+            let mut state = self.tower_state(mine);
+            group.all_reduce(step(mine), &[rank], &mut state, Vec::new())?;
+        }
+        let mut state = vec![0.0; self.tower_state(other).len()];
+        group.all_reduce(step(other), &[owner(other)], &mut state, Vec::new())?;
+        self.set_tower_state(other, &state)
+    }
+
+    /// A tower's weights and optimiser state, flat: the weights, then Adam's first and
+    /// second moments and its step count; the policy tower's followed by the log-std and its
+    /// optimiser's the same way.
+    fn tower_state(&self, part: Part) -> Vec<f32> {
+        let mut out = Vec::new();
+        let mut push = |params: &[f32], opt: &Adam| {
+            let (m, v, t) = opt.moments();
+            out.extend_from_slice(params);
+            out.extend_from_slice(m);
+            out.extend_from_slice(v);
+            out.push(t as f32);
+        };
+        match part {
+            Part::Policy => {
+                push(&self.model.pi.params, &self.opt_pi);
+                let log_std = match &self.model.head {
+                    Head::Gaussian { log_std } => log_std.to_vec(),
+                    Head::Categorical(_) => Vec::new(),
+                };
+                push(&log_std, &self.opt_log_std);
+            }
+            Part::Value => push(&self.model.v.params, &self.opt_v),
+        }
+        out
+    }
+
+    /// Take a tower's state as [`Ppo::tower_state`] lays it out. Refused, with nothing
+    /// changed, when it does not fit.
+    fn set_tower_state(&mut self, part: Part, state: &[f32]) -> Result<(), GroupError> {
+        let Ppo { model, opt_pi, opt_v, opt_log_std, .. } = self;
+        let mut none = [0.0f32; 0];
+        let mut pieces: Vec<(&mut [f32], &mut Adam)> = match part {
+            Part::Policy => {
+                let log_std: &mut [f32] = match &mut model.head {
+                    Head::Gaussian { log_std } => log_std,
+                    Head::Categorical(_) => &mut none,
+                };
+                vec![(&mut model.pi.params[..], opt_pi), (log_std, opt_log_std)]
+            }
+            Part::Value => vec![(&mut model.v.params[..], opt_v)],
+        };
+        // Every size and step count first, so that a state that does not fit changes nothing.
+        let sizes: Vec<(usize, usize)> = pieces.iter().map(|(p, o)| (p.len(), o.moments().0.len())).collect();
+        let expected: usize = sizes.iter().map(|(p, n)| p + 2 * n + 1).sum();
+        if state.len() != expected {
+            return Err(GroupError(format!(
+                "a tower's state of {} numbers where {expected} were expected",
+                state.len()
+            )));
+        }
+        let mut at = 0;
+        for &(p, n) in &sizes {
+            let t = state[at + p + 2 * n];
+            if !(t >= 0.0 && t.fract() == 0.0 && t < u32::MAX as f32) {
+                return Err(GroupError(format!("optimiser step count {t} is not a count")));
+            }
+            at += p + 2 * n + 1;
+        }
+        let mut at = 0;
+        for ((params, opt), (p, n)) in pieces.iter_mut().zip(sizes) {
+            let piece = &state[at..at + p + 2 * n + 1];
+            params.copy_from_slice(&piece[..p]);
+            let (m, v, t) = (piece[p..p + n].to_vec(), piece[p + n..p + 2 * n].to_vec(), piece[p + 2 * n] as u32);
+            opt.set_moments(m, v, t).map_err(|e| GroupError(e.to_string()))?;
+            at += p + 2 * n + 1;
+        }
+        Ok(())
     }
 
     /// One gradient step of a learner alone on the samples `idx` of `batch`, as an update
@@ -861,12 +1031,12 @@ fn kept<'a>(grad: &'a [f32], skip: &'a [(usize, usize)]) -> impl Iterator<Item =
     out.into_iter()
 }
 
-/// The two exchanges of a team's gradient step (see [`Reducer`]).
-#[derive(Clone, Copy, PartialEq)]
+/// A model's two towers, as a team splits its work (see [`Reducer`]).
+#[derive(Clone, Copy, PartialEq, Debug)]
 enum Part {
-    /// The policy tower's gradient (but its factored layers' weights) and factors.
+    /// The policy tower (and the log-std of a Gaussian head).
     Policy,
-    /// The value tower's, then the log-std gradient and the loss figures.
+    /// The value tower.
     Value,
 }
 
@@ -881,7 +1051,10 @@ impl Part {
 }
 
 /// This learner's share of `part` of a minibatch (`shares[rank]` of its samples), weighted
-/// by its size: the values to sum over the group, and the factored layers' factors.
+/// by its size: the values to sum over the tower's members (the gradient but its factored
+/// layers' weights; then for the policy tower the log-std gradient, the policy loss, the
+/// entropy, the approximate KL and the clip fraction; for the value tower the value loss),
+/// and the factored layers' factors.
 fn share_of(lg: &LossGrad, part: Part, shares: &[usize], rank: usize) -> (Vec<f32>, Vec<f32>) {
     let (mine, all) = (shares[rank], shares.iter().sum::<usize>());
     let w = mine as f32 / all as f32;
@@ -889,15 +1062,18 @@ fn share_of(lg: &LossGrad, part: Part, shares: &[usize], rank: usize) -> (Vec<f3
     let weigh = |x: f32| if mine == 0 { 0.0 } else { x * w };
     let (grad, factors) = part.of(lg);
     let skip = skipped(factors);
-    let mut values = Vec::with_capacity(grad.len() + 2 + FIGURES);
+    let mut values = Vec::with_capacity(grad.len() + 6);
     for run in kept(grad, &skip) {
         values.extend(run.iter().map(|g| weigh(*g)));
     }
-    if part == Part::Value {
-        let figures = [lg.policy_loss, lg.value_loss, lg.entropy, lg.total, lg.approx_kl, lg.clip_fraction];
-        values.extend(lg.grad_log_std.iter().map(|g| weigh(*g)));
-        values.extend(figures.iter().map(|f| weigh(*f as f32)));
-    }
+    let figures = match part {
+        Part::Policy => {
+            values.extend(lg.grad_log_std.iter().map(|g| weigh(*g)));
+            vec![lg.policy_loss, lg.entropy, lg.approx_kl, lg.clip_fraction]
+        }
+        Part::Value => vec![lg.value_loss],
+    };
+    values.extend(figures.iter().map(|f| weigh(*f as f32)));
     let mut mine_f = Vec::with_capacity(factors.iter().map(|f| f.x.len() + f.d.len()).sum());
     for f in factors {
         mine_f.extend_from_slice(&f.x);
@@ -906,7 +1082,7 @@ fn share_of(lg: &LossGrad, part: Part, shares: &[usize], rank: usize) -> (Vec<f3
     (values, mine_f)
 }
 
-/// Put the group's sum of `part` (laid out as [`share_of`] made it) back into `lg`.
+/// Put the tower members' sum of `part` (laid out as [`share_of`] made it) back into `lg`.
 fn take_sum(lg: &mut LossGrad, part: Part, values: &[f32]) {
     let skip = skipped(part.of(lg).1);
     let grad = if part == Part::Policy { &mut lg.grad_pi } else { &mut lg.grad_v };
@@ -917,11 +1093,14 @@ fn take_sum(lg: &mut LossGrad, part: Part, values: &[f32]) {
         at += n;
         from = b;
     }
-    if part == Part::Value {
-        lg.grad_log_std.copy_from_slice(&values[at..at + 2]);
-        let f = &values[at + 2..];
-        (lg.policy_loss, lg.value_loss, lg.entropy, lg.total, lg.approx_kl, lg.clip_fraction) =
-            (f[0] as f64, f[1] as f64, f[2] as f64, f[3] as f64, f[4] as f64, f[5] as f64);
+    let f = &values[at..];
+    match part {
+        Part::Policy => {
+            lg.grad_log_std.copy_from_slice(&f[..2]);
+            (lg.policy_loss, lg.entropy, lg.approx_kl, lg.clip_fraction) =
+                (f[2] as f64, f[3] as f64, f[4] as f64, f[5] as f64);
+        }
+        Part::Value => lg.value_loss = f[0] as f64,
     }
 }
 

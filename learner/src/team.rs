@@ -1,13 +1,15 @@
-//! Learners on several machines: synchronous data-parallel PPO over Zenoh, as DD-PPO does it.
+//! Learners on several machines: synchronous PPO over Zenoh, each tower trained by its own
+//! members, and each tower's members splitting every minibatch as DD-PPO does.
 //!
 //! The learner that runs the job (the lowest live id) leads; every other learner that serves
 //! the job follows. Per update the leader publishes a plan (the trajectories, the shuffle
 //! seed, the members in rank order, and, for a member that does not hold the leader's state,
-//! the weights and optimiser moments); every member trains on its share of each minibatch,
-//! publishes the share's weighted gradient (in two parts, the policy tower's sent by an
-//! [`Outbox`] thread while the value tower runs) and adds all the shares in rank order
-//! ([`learner::Reducer`]), so every member applies the same Adam step to the same weights,
-//! bit for bit. A member that dies (its liveliness token goes) or stops answering makes the
+//! the weights and optimiser moments). Even ranks train the policy tower and odd ranks the
+//! value tower; the members of a tower train on their shares of each minibatch, publish the
+//! shares' weighted gradients and add them in rank order ([`learner::Reducer`]), so they
+//! apply the same Adam step to the same weights, bit for bit. Every step ends with the loss
+//! figures summed over the team, and the update with the two towers' states swapped, so
+//! every member ends it with the same state. A member that dies (its liveliness token goes) or stops answering makes the
 //! attempt fail: the leader makes that update again with whoever is left, and the lost member
 //! gets the state again when it comes back. A follower whose leader goes becomes the leader
 //! (the serve loop's lowest-id rule).
@@ -115,60 +117,9 @@ impl Shares {
     }
 }
 
-/// Puts on a thread of their own, so that a share's transfer overlaps the learner's work.
-struct Outbox {
-    tx: Option<std::sync::mpsc::Sender<(String, GradShare)>>,
-    thread: Option<std::thread::JoinHandle<()>>,
-    /// The first put that failed.
-    failed: Arc<Mutex<Option<String>>>,
-}
-
-impl Outbox {
-    fn new(session: &zenoh::Session) -> Outbox {
-        let (tx, rx) = std::sync::mpsc::channel::<(String, GradShare)>();
-        let failed: Arc<Mutex<Option<String>>> = Arc::default();
-        let (session, f) = (session.clone(), failed.clone());
-        let thread = std::thread::Builder::new()
-            .name("team-outbox".into())
-            .spawn(move || {
-                for (key, share) in rx {
-                    if let Err(e) = net::put(&session, &key, &share)
-                        && let Ok(mut f) = f.lock()
-                    {
-                        f.get_or_insert_with(|| e.to_string());
-                    }
-                }
-            })
-            .ok();
-        Outbox { tx: Some(tx), thread, failed }
-    }
-
-    fn put(&self, key: String, share: GradShare) -> Result<(), GroupError> {
-        if let Some(e) = self.failed.lock().ok().and_then(|f| f.clone()) {
-            return Err(GroupError(e));
-        }
-        let sent = self.tx.as_ref().map(|tx| tx.send((key, share)).is_ok()).unwrap_or(false);
-        if sent && self.thread.is_some() { Ok(()) } else { Err(GroupError("the share sender is gone".into())) }
-    }
-}
-
-impl Drop for Outbox {
-    /// Every share handed over is put before the update returns.
-    fn drop(&mut self) {
-        self.tx = None;
-        if let Some(t) = self.thread.take() {
-            let _ = t.join();
-        }
-    }
-}
-
 /// One update's view of the team: this member's rank, and the Zenoh all-reduce.
 struct Group<'a> {
     session: &'a zenoh::Session,
-    /// Started at the first share sent ahead.
-    outbox: Option<Outbox>,
-    /// The exchanges of this plan whose share was sent ahead.
-    sent: BTreeSet<u64>,
     job: &'a str,
     me: &'a str,
     members: &'a [String],
@@ -184,26 +135,25 @@ impl Reducer for Group<'_> {
         (self.members.iter().position(|m| m == self.me).unwrap_or(0), self.members.len())
     }
 
-    fn send(&mut self, step: u64, values: &[f32], factors: &[f32]) -> Result<(), GroupError> {
-        let share = wire::share_to_wire(self.job, self.me, self.plan, step, values, factors);
-        tracing::trace!(
-            member = self.me,
-            values = values.len(),
-            factors = factors.len(),
-            factor_bytes = share.factors.len() + share.factors_mask.len(),
-            "sending share {step} ahead"
-        );
-        let outbox = self.outbox.get_or_insert_with(|| Outbox::new(self.session));
-        outbox.put(keys::team_share(self.job, self.me), share)?;
-        self.sent.insert(step);
-        Ok(())
-    }
-
-    fn all_reduce(&mut self, step: u64, values: &mut [f32], factors: Vec<f32>) -> Result<Vec<Vec<f32>>, GroupError> {
+    fn all_reduce(
+        &mut self,
+        step: u64,
+        ranks: &[usize],
+        values: &mut [f32],
+        factors: Vec<f32>,
+    ) -> Result<Vec<Vec<f32>>, GroupError> {
         let t0 = Instant::now();
-        let sent_ahead = self.sent.remove(&step);
-        if !sent_ahead {
+        let rank = self.shard().0;
+        let giving = ranks.contains(&rank);
+        if giving {
             let share = wire::share_to_wire(self.job, self.me, self.plan, step, values, &factors);
+            tracing::trace!(
+                member = self.me,
+                values = values.len(),
+                factors = factors.len(),
+                factor_bytes = share.factors.len() + share.factors_mask.len(),
+                "sending share {step}"
+            );
             net::put(self.session, &keys::team_share(self.job, self.me), &share)
                 .map_err(|e| GroupError(e.to_string()))?;
         }
@@ -214,8 +164,14 @@ impl Reducer for Group<'_> {
         loop {
             self.shares.pump(self.plan);
             let mut missing = None;
-            for (r, m) in self.members.iter().enumerate() {
-                if m == self.me || theirs[r].is_some() {
+            for &r in ranks {
+                let Some(m) = self.members.get(r) else {
+                    return Err(GroupError(format!(
+                        "exchange {step} names member {r} of a team of {}",
+                        self.members.len()
+                    )));
+                };
+                if r == rank || theirs[r].is_some() {
                     continue;
                 }
                 match self.shares.waiting.get_mut(m).and_then(|q| q.remove(&(self.plan, step))) {
@@ -242,27 +198,35 @@ impl Reducer for Group<'_> {
         }
         let t3 = Instant::now();
         // Every member adds the same numbers in the same (rank) order, in one pass: element
-        // by element, ((s0 + s1) + s2) + …, with this member's own share read in place.
-        let rank = self.shard().0;
+        // by element, ((s0 + s1) + s2) + …, with this member's own share read in place. One
+        // share is copied as it is, bit for bit.
         let shares: Vec<&[f32]> = theirs.iter().map(|s| s.as_ref().map_or(&[][..], |(v, _)| &v[..])).collect();
-        for (i, v) in values.iter_mut().enumerate() {
-            let at = |r: usize| if r == rank { *v } else { shares[r][i] };
-            let mut acc = at(0);
-            for r in 1..shares.len() {
-                acc += at(r);
+        if let Some((&first, rest)) = ranks.split_first() {
+            for (i, v) in values.iter_mut().enumerate() {
+                let at = |r: usize| if r == rank { *v } else { shares[r][i] };
+                let mut acc = at(first);
+                for &r in rest {
+                    acc += at(r);
+                }
+                *v = acc;
             }
-            *v = acc;
         }
         tracing::trace!(
             member = self.me,
-            sent_ahead,
+            giving,
             put_ms = (t2 - t0).as_secs_f64() * 1e3,
             wait_ms = (t3 - t2).as_secs_f64() * 1e3,
             sum_ms = t3.elapsed().as_secs_f64() * 1e3,
             "all-reduce step {step}"
         );
         let mut mine = Some(factors);
-        Ok(theirs.into_iter().map(|t| t.map_or_else(|| mine.take().unwrap_or_default(), |(_, f)| f)).collect())
+        Ok(ranks
+            .iter()
+            .map(|&r| match theirs[r].take() {
+                Some((_, f)) => f,
+                None => mine.take().unwrap_or_default(),
+            })
+            .collect())
     }
 }
 
@@ -406,8 +370,6 @@ impl Team for TeamLead<'_> {
             Ok(()) => {
                 let mut group = Group {
                     session: self.session,
-                    outbox: None,
-                    sent: BTreeSet::new(),
                     job: &self.job,
                     me: &self.me,
                     members: &members,
@@ -546,8 +508,6 @@ pub fn follow(
         set(last, false);
         let mut group = Group {
             session,
-            outbox: None,
-            sent: BTreeSet::new(),
             job: view.job_id,
             me,
             members: &plan.members,

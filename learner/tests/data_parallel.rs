@@ -1,24 +1,41 @@
-//! Issue 8: data-parallel PPO. Learners that each take a share of every minibatch and sum
-//! their gradients in rank order make the same update as one learner on the whole batch.
-//! The group here is threads joined by a barrier: the same `Reducer` seam a networked group
-//! plugs into.
+//! Issue 8: learners that train as one. In a team each tower is trained by its own members
+//! (even ranks the policy tower, odd ranks the value tower), the members of a tower take a
+//! share of every minibatch and sum their gradients in rank order, and the towers' states
+//! are swapped once an update: the same update as one learner on the whole batch. The group
+//! here is threads of one process: the same `Reducer` seam a networked team plugs into.
 
 use faer::Par;
 use learner::{Alone, GroupError, Hyperparameters, Ppo, Reducer};
 use policy::{ActorCritic, ModelMetadata, Trajectory};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use std::sync::{Arc, Barrier, Mutex};
+use std::collections::HashMap;
+use std::sync::{Arc, Condvar, Mutex};
 
-/// Each rank's (values, factors), put there before the barrier.
-type Slots = Arc<Mutex<Vec<(Vec<f32>, Vec<f32>)>>>;
+/// What the members posted, by (update, exchange, rank).
+type Posts = HashMap<(u64, u64, usize), (Vec<f32>, Vec<f32>)>;
 
-/// Threads of one process as a learner group.
+/// The threads' shared board: shares posted, and a wake-up when one is.
+#[derive(Default)]
+struct Board {
+    posts: Mutex<Posts>,
+    posted: Condvar,
+}
+
+/// A thread of one process as a team member. Exchange 0 opens every update (every member
+/// makes it), so counting them tells the updates apart.
 struct Threads {
     rank: usize,
     size: usize,
-    slots: Slots,
-    barrier: Arc<Barrier>,
+    board: Arc<Board>,
+    update: u64,
+}
+
+impl Threads {
+    fn team(size: usize) -> Vec<Threads> {
+        let board = Arc::new(Board::default());
+        (0..size).map(|rank| Threads { rank, size, board: board.clone(), update: 0 }).collect()
+    }
 }
 
 impl Reducer for Threads {
@@ -26,22 +43,51 @@ impl Reducer for Threads {
         (self.rank, self.size)
     }
 
-    fn all_reduce(&mut self, _step: u64, values: &mut [f32], factors: Vec<f32>) -> Result<Vec<Vec<f32>>, GroupError> {
-        self.slots.lock().unwrap()[self.rank] = (values.to_vec(), factors);
-        self.barrier.wait();
-        let every = {
-            let slots = self.slots.lock().unwrap();
-            values.fill(0.0);
-            for (s, _) in slots.iter() {
-                for (v, x) in values.iter_mut().zip(s) {
-                    *v += x;
-                }
+    fn all_reduce(
+        &mut self,
+        step: u64,
+        ranks: &[usize],
+        values: &mut [f32],
+        factors: Vec<f32>,
+    ) -> Result<Vec<Vec<f32>>, GroupError> {
+        if step == 0 {
+            self.update += 1;
+        }
+        let u = self.update;
+        let mut posts = self.board.posts.lock().unwrap();
+        if ranks.contains(&self.rank) {
+            posts.insert((u, step, self.rank), (values.to_vec(), factors));
+            self.board.posted.notify_all();
+        }
+        while !ranks.iter().all(|&r| posts.contains_key(&(u, step, r))) {
+            posts = self.board.posted.wait(posts).unwrap();
+        }
+        let shares: Vec<&(Vec<f32>, Vec<f32>)> = ranks.iter().map(|&r| &posts[&(u, step, r)]).collect();
+        for (i, v) in values.iter_mut().enumerate() {
+            let mut acc = shares[0].0[i];
+            for s in &shares[1..] {
+                acc += s.0[i];
             }
-            slots.iter().map(|(_, f)| f.clone()).collect()
-        };
-        self.barrier.wait();
-        Ok(every)
+            *v = acc;
+        }
+        Ok(shares.iter().map(|s| s.1.clone()).collect())
     }
+}
+
+/// Each member's `update_in` on its own thread, each with its reducer; their stats in rank order.
+fn run_team<R: Reducer + Send>(
+    members: &mut [Ppo],
+    reducers: Vec<R>,
+    trajs: &[Trajectory],
+) -> Vec<learner::UpdateStats> {
+    std::thread::scope(|s| {
+        let handles: Vec<_> = members
+            .iter_mut()
+            .zip(reducers)
+            .map(|(ppo, mut r)| s.spawn(move || ppo.update_in(trajs, &mut r)))
+            .collect();
+        handles.into_iter().map(|h| h.join().unwrap()).collect()
+    })
 }
 
 fn episodes(model: &ActorCritic, n: usize, rng: &mut ChaCha8Rng) -> Vec<Trajectory> {
@@ -67,83 +113,85 @@ fn episodes(model: &ActorCritic, n: usize, rng: &mut ChaCha8Rng) -> Vec<Trajecto
 
 #[test]
 fn issue_8_two_learners_make_one_learners_update() {
-    // Every epoch, and an update that stops early on `target_kl`: the members stop together,
-    // at the single learner's step.
-    for target_kl in [None, Some(0.001)] {
-        let stops = two_learners_against_one(target_kl);
-        assert_eq!(stops > 0, target_kl.is_some(), "{target_kl:?}: {stops} updates stopped early");
+    // Teams of two (a member a tower) and four (two a tower, each with half of every
+    // minibatch); every epoch, and an update that stops early on `target_kl`: the members
+    // stop together, at the single learner's step.
+    for size in [2, 4] {
+        for target_kl in [None, Some(0.001)] {
+            let stops = team_against_one(size, target_kl);
+            assert_eq!(stops > 0, target_kl.is_some(), "{size}, {target_kl:?}: {stops} updates stopped early");
+        }
     }
 }
 
-/// Three updates by one learner and by a team of two from the same start; returns how many
-/// of them stopped early.
-fn two_learners_against_one(target_kl: Option<f64>) -> usize {
+/// Three updates by one learner and by a team of `size` from the same start; returns how
+/// many of them stopped early.
+fn team_against_one(size: usize, target_kl: Option<f64>) -> usize {
     let meta = ModelMetadata::default_state_vector();
     let mut rng = ChaCha8Rng::seed_from_u64(11);
     let model = ActorCritic::new(&meta, 27, &mut rng);
     let h = Hyperparameters { num_epochs: 3, target_kl, ..Hyperparameters::default() };
     let mut alone = Ppo::new(model.clone(), h.clone(), 0, 5, Par::Seq);
-    let mut group: Vec<Ppo> = (0..2).map(|_| Ppo::new(model.clone(), h.clone(), 0, 5, Par::Seq)).collect();
-    let slots = Arc::new(Mutex::new(vec![(Vec::new(), Vec::new()); 2]));
-    let barrier = Arc::new(Barrier::new(2));
+    let mut group: Vec<Ppo> = (0..size).map(|_| Ppo::new(model.clone(), h.clone(), 0, 5, Par::Seq)).collect();
     let mut stopped = 0;
     for iteration in 0..3 {
         let trajs = episodes(&alone.model, 20, &mut rng);
         let one = alone.update_in(&trajs, &mut Alone);
         assert!(one.refused.is_none() && one.gradient_steps > 10, "{one:?}");
-        let stats: Vec<_> = std::thread::scope(|s| {
-            let handles: Vec<_> = group
-                .iter_mut()
-                .enumerate()
-                .map(|(rank, ppo)| {
-                    let (trajs, slots, barrier) = (&trajs, slots.clone(), barrier.clone());
-                    s.spawn(move || ppo.update_in(trajs, &mut Threads { rank, size: 2, slots, barrier }))
-                })
-                .collect();
-            handles.into_iter().map(|h| h.join().unwrap()).collect()
-        });
-        // The group's members hold the very same weights...
-        assert_eq!(group[0].model, group[1].model, "iteration {iteration}");
-        assert_eq!(stats[0].gradient_steps, one.gradient_steps);
-        assert_eq!((stats[0].kl_stop, stats[1].kl_stop), (one.kl_stop, one.kl_stop), "iteration {iteration}");
+        let stats = run_team(&mut group, Threads::team(size), &trajs);
+        // The team's members hold the very same state, weights and optimiser...
+        for (r, m) in group.iter().enumerate().skip(1) {
+            assert!(m.state() == group[0].state(), "{size}: member {r}, iteration {iteration}");
+        }
+        for st in &stats {
+            assert!(st.refused.is_none(), "{st:?}");
+            assert_eq!(st.gradient_steps, one.gradient_steps);
+            assert_eq!(st.kl_stop, one.kl_stop, "iteration {iteration}");
+            assert_eq!(st.policy_version, one.policy_version);
+        }
         stopped += usize::from(one.kl_stop.is_some());
-        // ...and they are one learner's, to float rounding.
+        // ...and it is one learner's, to float rounding.
         for (a, b) in
             [(&alone.model.pi.params, &group[0].model.pi.params), (&alone.model.v.params, &group[0].model.v.params)]
         {
             let worst = a.iter().zip(b.iter()).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
             let scale = a.iter().map(|x| x.abs()).fold(0.0f32, f32::max);
-            assert!(worst <= 1e-4 * scale.max(1.0), "iteration {iteration}: weights differ by {worst}");
+            assert!(worst <= 1e-4 * scale.max(1.0), "{size}, iteration {iteration}: weights differ by {worst}");
         }
-        assert!(
-            (stats[0].policy_loss - one.policy_loss).abs() < 1e-3,
-            "{} vs {}",
-            stats[0].policy_loss,
-            one.policy_loss
-        );
+        for (team, one) in [
+            (stats[0].policy_loss, one.policy_loss),
+            (stats[0].value_loss, one.value_loss),
+            (stats[0].approx_kl, one.approx_kl),
+            (stats[0].entropy, one.entropy),
+        ] {
+            assert!((team - one).abs() < 1e-3 * one.abs().max(1.0), "{size}: {team} vs {one}");
+        }
         // And a real update happened.
         assert_ne!(alone.model, model);
     }
     stopped
 }
 
-/// Rank 0 of two, recording what the group summed at its first gradient step: exchange 0
-/// (the policy tower) and exchange 1 (the value tower, the log-std gradient, the figures).
+/// A member recording what its team summed at its first gradient step (exchanges 1 and 2).
 struct Recording {
     inner: Threads,
-    first: Vec<Vec<f32>>,
+    first: Vec<(u64, Vec<f32>)>,
 }
 
 impl Reducer for Recording {
     fn shard(&self) -> (usize, usize) {
         self.inner.shard()
     }
-    fn all_reduce(&mut self, step: u64, values: &mut [f32], factors: Vec<f32>) -> Result<Vec<Vec<f32>>, GroupError> {
-        let every = self.inner.all_reduce(step, values, factors)?;
-        // Exchange 0 is the old policy's figures; 1 and 2 the first gradient step's parts.
-        if (1..3).contains(&step) {
-            assert_eq!(self.first.len() as u64, step - 1, "exchanges in order");
-            self.first.push(values.to_vec());
+    fn all_reduce(
+        &mut self,
+        step: u64,
+        ranks: &[usize],
+        values: &mut [f32],
+        factors: Vec<f32>,
+    ) -> Result<Vec<Vec<f32>>, GroupError> {
+        let every = self.inner.all_reduce(step, ranks, values, factors)?;
+        if self.inner.update == 1 && (1..3).contains(&step) {
+            self.first.push((step, values.to_vec()));
         }
         Ok(every)
     }
@@ -151,9 +199,10 @@ impl Reducer for Recording {
 
 #[test]
 fn issue_8_the_summed_shares_are_the_whole_minibatch_gradient() {
-    // One minibatch of the whole batch: what the group sums at its first step must be the
-    // gradient of the mean loss over every sample (each share weighted by its size; Adam is
-    // blind to a constant factor, so this is checked on the gradient itself).
+    // A team of four, one minibatch of the whole batch: what the two members of each tower
+    // sum at the first step must be that tower's gradient of the mean loss over every sample
+    // (each share weighted by its size; Adam is blind to a constant factor, so this is
+    // checked on the gradient itself), and the figures the whole team sums the loss's.
     let meta = ModelMetadata::default_state_vector();
     let mut rng = ChaCha8Rng::seed_from_u64(13);
     let model = ActorCritic::new(&meta, 27, &mut rng);
@@ -163,27 +212,33 @@ fn issue_8_the_summed_shares_are_the_whole_minibatch_gradient() {
     let batch = learner::ppo::make_batch_for(&trajs, &model, h.discount_factor, Par::Seq);
     let all: Vec<usize> = (0..n).collect();
     let whole = learner::ppo::loss_and_grad(&model, &batch, &all, &h, Par::Seq);
-    let slots = Arc::new(Mutex::new(vec![(Vec::new(), Vec::new()); 2]));
-    let barrier = Arc::new(Barrier::new(2));
-    let mut group: Vec<Ppo> = (0..2).map(|_| Ppo::new(model.clone(), h.clone(), 0, 5, Par::Seq)).collect();
-    let summed = std::thread::scope(|s| {
-        let mut it = group.iter_mut();
-        let (p0, p1) = (it.next().unwrap(), it.next().unwrap());
-        let (t, sl, b) = (&trajs, slots.clone(), barrier.clone());
-        let first = s.spawn(move || {
-            let mut r = Recording { inner: Threads { rank: 0, size: 2, slots: sl, barrier: b }, first: Vec::new() };
-            p0.update_in(t, &mut r);
-            r.first
-        });
-        let (t, sl, b) = (&trajs, slots.clone(), barrier.clone());
-        s.spawn(move || p1.update_in(t, &mut Threads { rank: 1, size: 2, slots: sl, barrier: b }));
-        first.join().unwrap()
+    let mut group: Vec<Ppo> = (0..4).map(|_| Ppo::new(model.clone(), h.clone(), 0, 5, Par::Seq)).collect();
+    let reducers: Vec<Recording> =
+        Threads::team(4).into_iter().map(|inner| Recording { inner, first: Vec::new() }).collect();
+    let summed: Vec<Vec<(u64, Vec<f32>)>> = std::thread::scope(|s| {
+        let handles: Vec<_> = group
+            .iter_mut()
+            .zip(reducers)
+            .map(|(ppo, mut r)| {
+                let t = &trajs;
+                s.spawn(move || {
+                    assert!(ppo.update_in(t, &mut r).refused.is_none());
+                    r.first
+                })
+            })
+            .collect();
+        handles.into_iter().map(|h| h.join().unwrap()).collect()
     });
-    let (policy, value) = (&summed[0], &summed[1]);
-    assert_eq!((policy.len(), value.len()), (whole.grad_pi.len(), whole.grad_v.len() + 2 + 6));
-    for (name, grad, sum) in
-        [("policy", &whole.grad_pi, &policy[..]), ("value", &whole.grad_v, &value[..whole.grad_v.len()])]
-    {
+    // Ranks 0 and 2 train the policy tower, 1 and 3 the value tower: both make exchange 1.
+    let (policy, value) = (&summed[0][0], &summed[1][0]);
+    assert_eq!((policy.0, value.0), (1, 1));
+    assert_eq!(summed[2][0], summed[0][0], "the policy tower's members hold the same sum");
+    let (policy, value) = (&policy.1, &value.1);
+    assert_eq!((policy.len(), value.len()), (whole.grad_pi.len() + 2 + 4, whole.grad_v.len() + 1));
+    for (name, grad, sum) in [
+        ("policy", &whole.grad_pi, &policy[..whole.grad_pi.len()]),
+        ("value", &whole.grad_v, &value[..whole.grad_v.len()]),
+    ] {
         let worst = grad.iter().zip(sum).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
         let scale = grad.iter().map(|a| a.abs()).fold(0.0f32, f32::max);
         assert!(
@@ -191,8 +246,16 @@ fn issue_8_the_summed_shares_are_the_whole_minibatch_gradient() {
             "the {name} tower's summed shares differ from the whole gradient by {worst} (scale {scale})"
         );
     }
-    let total = value[whole.grad_v.len() + 2 + 3];
-    assert!((total as f64 - whole.total).abs() < 1e-4 * whole.total.abs().max(1.0), "{total} vs {}", whole.total);
+    // Exchange 2, the whole team's: policy loss, entropy, KL, clip fraction, value loss, and
+    // no member's step failed.
+    let figures = &summed[0][1];
+    assert_eq!(figures.0, 2);
+    let f = &figures.1;
+    let close = |a: f32, b: f64| (a as f64 - b).abs() < 1e-4 * b.abs().max(1.0);
+    assert!(close(f[0], whole.policy_loss) && close(f[1], whole.entropy) && close(f[4], whole.value_loss), "{f:?}");
+    assert_eq!(f[5], 0.0, "every member's step was finite");
+    let total = f[0] as f64 - h.beta_entropy * f[1] as f64 + f[4] as f64;
+    assert!((total - whole.total).abs() < 1e-4 * whole.total.abs().max(1.0), "{total} vs {}", whole.total);
 }
 
 /// A member that cannot reach the others refuses the update and keeps its weights.
@@ -202,7 +265,13 @@ impl Reducer for Broken {
     fn shard(&self) -> (usize, usize) {
         (1, 2)
     }
-    fn all_reduce(&mut self, step: u64, _values: &mut [f32], _factors: Vec<f32>) -> Result<Vec<Vec<f32>>, GroupError> {
+    fn all_reduce(
+        &mut self,
+        step: u64,
+        _ranks: &[usize],
+        _values: &mut [f32],
+        _factors: Vec<f32>,
+    ) -> Result<Vec<Vec<f32>>, GroupError> {
         Err(GroupError(format!("peer gone at step {step}")))
     }
 }
@@ -275,8 +344,9 @@ fn issue_8_a_state_that_does_not_fit_is_refused_and_changes_nothing() {
 
 #[test]
 fn issue_8_camera_network_team_sends_factors_and_makes_one_learners_update() {
-    // DeepRacer's SHALLOW network: its first dense layer (11.5 M weights) travels as its
-    // factors (each share's inputs and output gradients), multiplied out by every member.
+    // DeepRacer's SHALLOW network in a team of four (two members a tower): its first dense
+    // layer (5.8 M weights a tower) travels as its factors (each share's inputs and output
+    // gradients), multiplied out by both members of the tower.
     let meta = ModelMetadata::parse(
         r#"{"action_space":[{"steering_angle":-30,"speed":1},{"steering_angle":0,"speed":1},{"steering_angle":30,"speed":1}],"sensor":["FRONT_FACING_CAMERA"],"neural_network":"DEEP_CONVOLUTIONAL_NETWORK_SHALLOW","version":"5"}"#,
         "test",
@@ -307,19 +377,12 @@ fn issue_8_camera_network_team_sends_factors_and_makes_one_learners_update() {
     let mut alone = Ppo::new(model.clone(), h.clone(), 0, 5, Par::Seq);
     let one = alone.update_in(&trajs, &mut Alone);
     assert!(one.refused.is_none() && one.gradient_steps == 2, "{one:?}");
-    let mut group: Vec<Ppo> = (0..2).map(|_| Ppo::new(model.clone(), h.clone(), 0, 5, Par::Seq)).collect();
-    let slots = Arc::new(Mutex::new(vec![(Vec::new(), Vec::new()); 2]));
-    let barrier = Arc::new(Barrier::new(2));
-    std::thread::scope(|s| {
-        for (rank, ppo) in group.iter_mut().enumerate() {
-            let (trajs, slots, barrier) = (&trajs, slots.clone(), barrier.clone());
-            s.spawn(move || {
-                let st = ppo.update_in(trajs, &mut Threads { rank, size: 2, slots, barrier });
-                assert!(st.refused.is_none(), "{st:?}");
-            });
-        }
-    });
-    assert_eq!(group[0].model, group[1].model, "the members hold the same weights");
+    let mut group: Vec<Ppo> = (0..4).map(|_| Ppo::new(model.clone(), h.clone(), 0, 5, Par::Seq)).collect();
+    let stats = run_team(&mut group, Threads::team(4), &trajs);
+    assert!(stats.iter().all(|st| st.refused.is_none()), "{stats:?}");
+    for m in &group[1..] {
+        assert!(m.model == group[0].model, "the members hold the same weights");
+    }
     let flat = |m: &ActorCritic| m.pi.params.iter().chain(&m.v.params).copied().collect::<Vec<f32>>();
     let (start, one_w, team_w) = (flat(&model), flat(&alone.model), flat(&group[0].model));
     let dist = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| ((x - y) as f64).powi(2)).sum::<f64>().sqrt();
@@ -327,70 +390,126 @@ fn issue_8_camera_network_team_sends_factors_and_makes_one_learners_update() {
     assert!(moved > 0.0 && apart <= 1e-2 * moved, "the team is {apart} from one learner, which moved {moved}");
 }
 
-/// Rank 0 of two, logging the calls: what it sent ahead must be what it then reduces.
+/// Exchanges as a member made them: the exchange, and the members that gave to it.
+type Log = Vec<(u64, Vec<usize>)>;
+
+/// A member logging its exchanges.
 struct Ordered {
     inner: Threads,
-    log: Vec<(&'static str, u64)>,
-    ahead: std::collections::BTreeMap<u64, (Vec<f32>, Vec<f32>)>,
+    log: Log,
 }
 
 impl Reducer for Ordered {
     fn shard(&self) -> (usize, usize) {
         self.inner.shard()
     }
-    fn send(&mut self, step: u64, values: &[f32], factors: &[f32]) -> Result<(), GroupError> {
-        self.log.push(("send", step));
-        self.ahead.insert(step, (values.to_vec(), factors.to_vec()));
-        Ok(())
-    }
-    fn all_reduce(&mut self, step: u64, values: &mut [f32], factors: Vec<f32>) -> Result<Vec<Vec<f32>>, GroupError> {
-        self.log.push(("reduce", step));
-        // Exchange 0 (the old policy's figures) is not sent ahead; every other one is.
-        if step > 0 {
-            assert_eq!(self.ahead.remove(&step), Some((values.to_vec(), factors.clone())), "exchange {step}");
-        }
-        self.inner.all_reduce(step, values, factors)
+    fn all_reduce(
+        &mut self,
+        step: u64,
+        ranks: &[usize],
+        values: &mut [f32],
+        factors: Vec<f32>,
+    ) -> Result<Vec<Vec<f32>>, GroupError> {
+        self.log.push((step, ranks.to_vec()));
+        self.inner.all_reduce(step, ranks, values, factors)
     }
 }
 
 #[test]
-fn issue_8_a_team_step_sends_the_policy_towers_share_before_the_value_tower_runs() {
-    // A gradient step makes two exchanges: the policy tower's share is sent as soon as its
-    // backward pass ends, the value tower's (which exists only once that tower has run)
-    // after it, and only then does the member wait for the others: first for the policy
-    // tower (whose optimiser step then runs while the value tower's shares travel).
+fn issue_8_a_team_trains_each_tower_on_its_own_members_and_swaps_them_once_an_update() {
+    // No member repeats the other tower's optimiser step: in a team of four, ranks 0 and 2
+    // train the policy tower and sum only their shares of it (exchange 2k + 1), ranks 1 and 3
+    // the value tower; every step ends with the whole team's figures (2k + 2). After the
+    // last step rank 0 gives the policy tower's state to ranks 1 and 3 (2K + 1), rank 1 the
+    // value tower's to ranks 0 and 2 (2K + 2), each sending its own before it waits.
     let meta = ModelMetadata::default_state_vector();
     let mut rng = ChaCha8Rng::seed_from_u64(14);
     let model = ActorCritic::new(&meta, 27, &mut rng);
     let trajs = episodes(&model, 10, &mut rng);
     let h = Hyperparameters { num_epochs: 1, ..Hyperparameters::default() };
-    let slots = Arc::new(Mutex::new(vec![(Vec::new(), Vec::new()); 2]));
-    let barrier = Arc::new(Barrier::new(2));
-    let mut group: Vec<Ppo> = (0..2).map(|_| Ppo::new(model.clone(), h.clone(), 0, 5, Par::Seq)).collect();
-    let (log, steps) = std::thread::scope(|s| {
-        let mut it = group.iter_mut();
-        let (p0, p1) = (it.next().unwrap(), it.next().unwrap());
-        let (t, sl, b) = (&trajs, slots.clone(), barrier.clone());
-        let first = s.spawn(move || {
-            let inner = Threads { rank: 0, size: 2, slots: sl, barrier: b };
-            let mut r = Ordered { inner, log: Vec::new(), ahead: Default::default() };
-            let st = p0.update_in(t, &mut r);
-            assert!(r.ahead.is_empty(), "every exchange sent ahead was reduced");
-            (r.log, st.gradient_steps)
-        });
-        let (t, sl, b) = (&trajs, slots.clone(), barrier.clone());
-        s.spawn(move || p1.update_in(t, &mut Threads { rank: 1, size: 2, slots: sl, barrier: b }));
-        first.join().unwrap()
+    let mut group: Vec<Ppo> = (0..4).map(|_| Ppo::new(model.clone(), h.clone(), 0, 5, Par::Seq)).collect();
+    let reducers: Vec<Ordered> = Threads::team(4).into_iter().map(|inner| Ordered { inner, log: Vec::new() }).collect();
+    let logs: Vec<(Log, usize)> = std::thread::scope(|s| {
+        let handles: Vec<_> = group
+            .iter_mut()
+            .zip(reducers)
+            .map(|(ppo, mut r)| {
+                let t = &trajs;
+                s.spawn(move || {
+                    let st = ppo.update_in(t, &mut r);
+                    assert!(st.refused.is_none(), "{st:?}");
+                    (r.log, st.gradient_steps)
+                })
+            })
+            .collect();
+        handles.into_iter().map(|h| h.join().unwrap()).collect()
     });
+    let steps = logs[0].1 as u64;
     assert!(steps >= 2, "{steps} gradient steps");
-    // Exchange 0: the old policy's figures, each member's rows (issue 8: split like the
-    // gradients, not worked out whole by every member).
-    let expected: Vec<(&str, u64)> = std::iter::once(("reduce", 0))
-        .chain(
-            (0..steps as u64)
-                .flat_map(|k| [("send", 2 * k + 1), ("send", 2 * k + 2), ("reduce", 2 * k + 1), ("reduce", 2 * k + 2)]),
-        )
-        .collect();
-    assert_eq!(log, expected);
-    assert_eq!(group[0].model, group[1].model, "the members hold the same weights");
+    let everyone = vec![0, 1, 2, 3];
+    for (rank, (log, _)) in logs.iter().enumerate() {
+        let tower = if rank % 2 == 0 { vec![0, 2] } else { vec![1, 3] };
+        // Exchange 0: the old policy's figures, each member's rows.
+        let mut expected = vec![(0, everyone.clone())];
+        for k in 0..steps {
+            expected.push((2 * k + 1, tower.clone()));
+            expected.push((2 * k + 2, everyone.clone()));
+        }
+        let (give, take) = ((2 * steps + 1, vec![0]), (2 * steps + 2, vec![1]));
+        match rank {
+            0 => expected.extend([give, take]),
+            1 => expected.extend([take, give]),
+            2 => expected.push(take),
+            _ => expected.push(give),
+        }
+        assert_eq!(log, &expected, "rank {rank}");
+    }
+    for m in &group[1..] {
+        assert!(m.state() == group[0].state(), "the members hold the same state");
+    }
+}
+
+/// Rank 0 of a team of two, receiving a value tower state whose step count was tampered with.
+struct Tampered(Threads);
+
+impl Reducer for Tampered {
+    fn shard(&self) -> (usize, usize) {
+        self.0.shard()
+    }
+    fn all_reduce(
+        &mut self,
+        step: u64,
+        ranks: &[usize],
+        values: &mut [f32],
+        factors: Vec<f32>,
+    ) -> Result<Vec<Vec<f32>>, GroupError> {
+        let every = self.0.all_reduce(step, ranks, values, factors)?;
+        if ranks == [1] {
+            *values.last_mut().unwrap() = 0.5;
+        }
+        Ok(every)
+    }
+}
+
+#[test]
+fn issue_8_a_tower_state_that_does_not_fit_refuses_the_update_and_changes_nothing() {
+    let meta = ModelMetadata::default_state_vector();
+    let mut rng = ChaCha8Rng::seed_from_u64(15);
+    let model = ActorCritic::new(&meta, 27, &mut rng);
+    let trajs = episodes(&model, 10, &mut rng);
+    let h = Hyperparameters { num_epochs: 1, ..Hyperparameters::default() };
+    let mut p0 = Ppo::new(model.clone(), h.clone(), 4, 5, Par::Seq);
+    let mut p1 = Ppo::new(model.clone(), h, 4, 5, Par::Seq);
+    let before = p0.state();
+    let mut team = Threads::team(2).into_iter();
+    let (t0, t1) = (team.next().unwrap(), team.next().unwrap());
+    let (s0, s1) = std::thread::scope(|s| {
+        let a = s.spawn(|| p0.update_in(&trajs, &mut Tampered(t0)));
+        let b = s.spawn(|| p1.update_in(&trajs, &mut { t1 }));
+        (a.join().unwrap(), b.join().unwrap())
+    });
+    assert!(s1.refused.is_none(), "{s1:?}");
+    let why = s0.refused.unwrap_or_default();
+    assert!(s0.group_failed && why.contains("not a count") && why.contains("version 4"), "{why}");
+    assert!(p0.state() == before, "the update was taken back whole");
 }
