@@ -494,9 +494,10 @@ pub struct StateMismatch(pub String);
 /// DD-PPO does): each computes the gradient of its share weighted by the share's size, and
 /// `all_reduce` sums the shares in rank order, so they all apply the same Adam step to the
 /// same weights and the tower's update equals one learner's on the whole minibatch (to float
-/// rounding; bit for bit with one member a tower). The big dense layers' weight gradients
-/// travel as their factors (inputs and output gradients of the share, a fraction of the
-/// size) and every member of the tower multiplies them out, in rank order too.
+/// rounding; with one member a tower, bit for bit the step one learner takes on the same
+/// batch). The big dense layers' weight gradients travel as their factors (inputs and output
+/// gradients of the share, a fraction of the size) and every member of the tower multiplies
+/// them out, in rank order too.
 ///
 /// The exchanges of an update, numbered by `step`:
 /// - `0`, every member: its rows of the old policy's log-probabilities and values;
@@ -919,11 +920,17 @@ impl Ppo {
                 state.len()
             )));
         }
+        if let Some(i) = state.iter().position(|x| !x.is_finite()) {
+            return Err(GroupError(format!("a tower's state holds {} at position {i}", state[i])));
+        }
         let mut at = 0;
         for &(p, n) in &sizes {
             let t = state[at + p + 2 * n];
             if !(t >= 0.0 && t.fract() == 0.0 && t < u32::MAX as f32) {
                 return Err(GroupError(format!("optimiser step count {t} is not a count")));
+            }
+            if let Some(i) = state[at + p + n..at + p + 2 * n].iter().position(|v| *v < 0.0) {
+                return Err(GroupError(format!("a tower's second moment is negative at position {}", at + p + n + i)));
             }
             at += p + 2 * n + 1;
         }

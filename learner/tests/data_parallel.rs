@@ -469,8 +469,8 @@ fn issue_8_a_team_trains_each_tower_on_its_own_members_and_swaps_them_once_an_up
     }
 }
 
-/// Rank 0 of a team of two, receiving a value tower state whose step count was tampered with.
-struct Tampered(Threads);
+/// Rank 0 of a team of two, receiving a value tower state that was tampered with.
+struct Tampered(Threads, fn(&mut [f32]));
 
 impl Reducer for Tampered {
     fn shard(&self) -> (usize, usize) {
@@ -485,7 +485,7 @@ impl Reducer for Tampered {
     ) -> Result<Vec<Vec<f32>>, GroupError> {
         let every = self.0.all_reduce(step, ranks, values, factors)?;
         if ranks == [1] {
-            *values.last_mut().unwrap() = 0.5;
+            (self.1)(values);
         }
         Ok(every)
     }
@@ -498,18 +498,26 @@ fn issue_8_a_tower_state_that_does_not_fit_refuses_the_update_and_changes_nothin
     let model = ActorCritic::new(&meta, 27, &mut rng);
     let trajs = episodes(&model, 10, &mut rng);
     let h = Hyperparameters { num_epochs: 1, ..Hyperparameters::default() };
-    let mut p0 = Ppo::new(model.clone(), h.clone(), 4, 5, Par::Seq);
-    let mut p1 = Ppo::new(model.clone(), h, 4, 5, Par::Seq);
-    let before = p0.state();
-    let mut team = Threads::team(2).into_iter();
-    let (t0, t1) = (team.next().unwrap(), team.next().unwrap());
-    let (s0, s1) = std::thread::scope(|s| {
-        let a = s.spawn(|| p0.update_in(&trajs, &mut Tampered(t0)));
-        let b = s.spawn(|| p1.update_in(&trajs, &mut { t1 }));
-        (a.join().unwrap(), b.join().unwrap())
-    });
-    assert!(s1.refused.is_none(), "{s1:?}");
-    let why = s0.refused.unwrap_or_default();
-    assert!(s0.group_failed && why.contains("not a count") && why.contains("version 4"), "{why}");
-    assert!(p0.state() == before, "the update was taken back whole");
+    let cases: [(fn(&mut [f32]), &str); 4] = [
+        (|v| *v.last_mut().unwrap() = 0.5, "step count 0.5 is not a count"),
+        (|v| v[3] = f32::NAN, "NaN at position 3"),
+        (|v| v[7] = f32::INFINITY, "inf at position 7"),
+        (|v| v[v.len() - 2] = -1.0, "second moment is negative"),
+    ];
+    for (tamper, why) in cases {
+        let mut p0 = Ppo::new(model.clone(), h.clone(), 4, 5, Par::Seq);
+        let mut p1 = Ppo::new(model.clone(), h.clone(), 4, 5, Par::Seq);
+        let before = p0.state();
+        let mut team = Threads::team(2).into_iter();
+        let (t0, t1) = (team.next().unwrap(), team.next().unwrap());
+        let (s0, s1) = std::thread::scope(|s| {
+            let a = s.spawn(|| p0.update_in(&trajs, &mut Tampered(t0, tamper)));
+            let b = s.spawn(|| p1.update_in(&trajs, &mut { t1 }));
+            (a.join().unwrap(), b.join().unwrap())
+        });
+        assert!(s1.refused.is_none(), "{s1:?}");
+        let e = s0.refused.unwrap_or_default();
+        assert!(s0.group_failed && e.contains(why) && e.contains("version 4"), "{why}: {e}");
+        assert!(p0.state() == before, "{why}: the update was taken back whole");
+    }
 }
