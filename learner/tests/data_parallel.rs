@@ -469,8 +469,11 @@ fn issue_8_a_team_trains_each_tower_on_its_own_members_and_swaps_them_once_an_up
     }
 }
 
+/// A change made to a state on its way.
+type Tamper = fn(&mut [f32]);
+
 /// Rank 0 of a team of two, receiving a value tower state that was tampered with.
-struct Tampered(Threads, fn(&mut [f32]));
+struct Tampered(Threads, Tamper);
 
 impl Reducer for Tampered {
     fn shard(&self) -> (usize, usize) {
@@ -498,7 +501,7 @@ fn issue_8_a_tower_state_that_does_not_fit_refuses_the_update_and_changes_nothin
     let model = ActorCritic::new(&meta, 27, &mut rng);
     let trajs = episodes(&model, 10, &mut rng);
     let h = Hyperparameters { num_epochs: 1, ..Hyperparameters::default() };
-    let cases: [(fn(&mut [f32]), &str); 4] = [
+    let cases: [(Tamper, &str); 4] = [
         (|v| *v.last_mut().unwrap() = 0.5, "step count 0.5 is not a count"),
         (|v| v[3] = f32::NAN, "NaN at position 3"),
         (|v| v[7] = f32::INFINITY, "inf at position 7"),
