@@ -9,10 +9,10 @@
 //! shares' weighted gradients and add them in rank order ([`learner::Reducer`]), so they
 //! apply the same Adam step to the same weights, bit for bit. Every step ends with the loss
 //! figures summed over the team, and the update with the two towers' states swapped, so
-//! every member ends it with the same state. A member that dies (its liveliness token goes) or stops answering makes the
-//! attempt fail: the leader makes that update again with whoever is left, and the lost member
-//! gets the state again when it comes back. A follower whose leader goes becomes the leader
-//! (the serve loop's lowest-id rule).
+//! every member ends it with the same state. A member that dies (its liveliness token goes)
+//! or stops answering makes the attempt fail: the leader makes that update again with
+//! whoever is left, and the lost member gets the state again when it comes back. A follower
+//! whose leader goes becomes the leader (the serve loop's lowest-id rule).
 
 use learner::ppo::PpoState;
 use learner::run::Team;
