@@ -556,7 +556,7 @@ impl Role {
     /// The role of `rank` in a team of `size` (two or more): even ranks the policy tower,
     /// odd ranks the value tower.
     fn of(rank: usize, size: usize) -> Role {
-        let part = if rank.is_multiple_of(2) { Part::Policy } else { Part::Value };
+        let part = Part::of_rank(rank);
         let ranks: Vec<usize> = (rank % 2..size).step_by(2).collect();
         Role { part, index: rank / 2, ranks }
     }
@@ -723,8 +723,8 @@ impl Ppo {
         }
         self.ws = ws;
         // A team's members trained one tower each: they swap the towers' states.
-        if size > 1
-            && let Err(why) = self.swap_towers(group, 2 * stats.gradient_steps as u64 + 1, rank)
+        if let Some(role) = &role
+            && let Err(why) = self.swap_towers(group, 2 * stats.gradient_steps as u64 + 1, role.part, rank)
         {
             (self.model, self.opt_pi, self.opt_v, self.opt_log_std) = saved;
             stats.refused = Some(self.group_refusal(&why));
@@ -854,46 +854,53 @@ impl Ppo {
 
     /// The end of a team's update (exchanges `first` and `first + 1`): rank 0 sends the
     /// policy tower's state (weights, log-std, optimiser moments) to the members that trained
-    /// the value tower, and rank 1 the value tower's to those that trained the policy tower.
-    /// Each member sends before it waits, so the two travel at once.
-    fn swap_towers(&mut self, group: &mut dyn Reducer, first: u64, rank: usize) -> Result<(), GroupError> {
-        let mine = if rank.is_multiple_of(2) { Part::Policy } else { Part::Value };
-        let other = if mine == Part::Policy { Part::Value } else { Part::Policy };
+    /// the value tower, and rank 1 the value tower's to those that trained the policy tower
+    /// (`mine`: the tower this member trained). Each member sends before it waits, so the two
+    /// travel at once.
+    fn swap_towers(&mut self, group: &mut dyn Reducer, first: u64, mine: Part, rank: usize) -> Result<(), GroupError> {
         let step = |p: Part| if p == Part::Policy { first } else { first + 1 };
-        let owner = |p: Part| if p == Part::Policy { 0 } else { 1 };
-        if rank == owner(mine) {
+        if rank == mine.owner() {
             let mut state = self.tower_state(mine);
             group.all_reduce(step(mine), &[rank], &mut state, Vec::new())?;
         }
-        let mut state = vec![0.0; self.tower_state(other).len()];
-        group.all_reduce(step(other), &[owner(other)], &mut state, Vec::new())?;
+        let other = mine.other();
+        let mut state = vec![0.0; self.tower_state_len(other)];
+        group.all_reduce(step(other), &[other.owner()], &mut state, Vec::new())?;
         self.set_tower_state(other, &state)
     }
 
-    /// A tower's weights and optimiser state, flat: the weights, then Adam's first and
-    /// second moments and its step count; the policy tower's followed by the log-std and its
-    /// optimiser's the same way.
+    /// A tower's parameters and their optimisers: the policy tower's weights, then the
+    /// log-std (none with a categorical head); the value tower's weights.
+    fn tower_pieces(&self, part: Part) -> Vec<(&[f32], &Adam)> {
+        match part {
+            Part::Policy => {
+                let log_std: &[f32] = match &self.model.head {
+                    Head::Gaussian { log_std } => log_std,
+                    Head::Categorical(_) => &[],
+                };
+                vec![(&self.model.pi.params, &self.opt_pi), (log_std, &self.opt_log_std)]
+            }
+            Part::Value => vec![(&self.model.v.params, &self.opt_v)],
+        }
+    }
+
+    /// A tower's weights and optimiser state, flat: for each of its pieces the parameters,
+    /// then Adam's first and second moments and its step count.
     fn tower_state(&self, part: Part) -> Vec<f32> {
-        let mut out = Vec::new();
-        let mut push = |params: &[f32], opt: &Adam| {
+        let mut out = Vec::with_capacity(self.tower_state_len(part));
+        for (params, opt) in self.tower_pieces(part) {
             let (m, v, t) = opt.moments();
             out.extend_from_slice(params);
             out.extend_from_slice(m);
             out.extend_from_slice(v);
             out.push(t as f32);
-        };
-        match part {
-            Part::Policy => {
-                push(&self.model.pi.params, &self.opt_pi);
-                let log_std = match &self.model.head {
-                    Head::Gaussian { log_std } => log_std.to_vec(),
-                    Head::Categorical(_) => Vec::new(),
-                };
-                push(&log_std, &self.opt_log_std);
-            }
-            Part::Value => push(&self.model.v.params, &self.opt_v),
         }
         out
+    }
+
+    /// The length of [`Ppo::tower_state`], without making it.
+    fn tower_state_len(&self, part: Part) -> usize {
+        self.tower_pieces(part).iter().map(|(p, o)| p.len() + 2 * o.moments().0.len() + 1).sum()
     }
 
     /// Take a tower's state as [`Ppo::tower_state`] lays it out. Refused, with nothing
@@ -1048,6 +1055,27 @@ enum Part {
 }
 
 impl Part {
+    /// The tower a team member of `rank` trains: even ranks the policy tower.
+    fn of_rank(rank: usize) -> Part {
+        if rank.is_multiple_of(2) { Part::Policy } else { Part::Value }
+    }
+
+    /// The other tower.
+    fn other(self) -> Part {
+        match self {
+            Part::Policy => Part::Value,
+            Part::Value => Part::Policy,
+        }
+    }
+
+    /// The rank that sends the tower's state at an update's end: the first that trains it.
+    fn owner(self) -> usize {
+        match self {
+            Part::Policy => 0,
+            Part::Value => 1,
+        }
+    }
+
     /// The tower's gradient and its factored layers.
     fn of(self, lg: &LossGrad) -> (&Vec<f32>, &Vec<Factors>) {
         match self {

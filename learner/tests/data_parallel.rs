@@ -172,13 +172,24 @@ fn team_against_one(size: usize, target_kl: Option<f64>) -> usize {
     stopped
 }
 
-/// A member recording what its team summed at its first gradient step (exchanges 1 and 2).
-struct Recording {
+/// What a watcher sees of each exchange, after the team's sum: the update's number, the
+/// exchange, the members that gave to it and the sum (which it may change).
+type Watch<T> = fn(&mut T, u64, u64, &[usize], &mut [f32]);
+
+/// A member whose exchanges are watched; the watcher keeps its notes in `seen`.
+struct Watched<T> {
     inner: Threads,
-    first: Vec<(u64, Vec<f32>)>,
+    seen: T,
+    watch: Watch<T>,
 }
 
-impl Reducer for Recording {
+impl<T: Clone> Watched<T> {
+    fn team(size: usize, seen: T, watch: Watch<T>) -> Vec<Watched<T>> {
+        Threads::team(size).into_iter().map(|inner| Watched { inner, seen: seen.clone(), watch }).collect()
+    }
+}
+
+impl<T> Reducer for Watched<T> {
     fn shard(&self) -> (usize, usize) {
         self.inner.shard()
     }
@@ -190,9 +201,7 @@ impl Reducer for Recording {
         factors: Vec<f32>,
     ) -> Result<Vec<Vec<f32>>, GroupError> {
         let every = self.inner.all_reduce(step, ranks, values, factors)?;
-        if self.inner.update == 1 && (1..3).contains(&step) {
-            self.first.push((step, values.to_vec()));
-        }
+        (self.watch)(&mut self.seen, self.inner.update, step, ranks, values);
         Ok(every)
     }
 }
@@ -213,8 +222,12 @@ fn issue_8_the_summed_shares_are_the_whole_minibatch_gradient() {
     let all: Vec<usize> = (0..n).collect();
     let whole = learner::ppo::loss_and_grad(&model, &batch, &all, &h, Par::Seq);
     let mut group: Vec<Ppo> = (0..4).map(|_| Ppo::new(model.clone(), h.clone(), 0, 5, Par::Seq)).collect();
-    let reducers: Vec<Recording> =
-        Threads::team(4).into_iter().map(|inner| Recording { inner, first: Vec::new() }).collect();
+    // Each member records what its team summed at its first gradient step (exchanges 1 and 2).
+    let reducers = Watched::team(4, Vec::new(), |first, update, step, _, values| {
+        if update == 1 && (1..3).contains(&step) {
+            first.push((step, values.to_vec()));
+        }
+    });
     let summed: Vec<Vec<(u64, Vec<f32>)>> = std::thread::scope(|s| {
         let handles: Vec<_> = group
             .iter_mut()
@@ -223,7 +236,7 @@ fn issue_8_the_summed_shares_are_the_whole_minibatch_gradient() {
                 let t = &trajs;
                 s.spawn(move || {
                     assert!(ppo.update_in(t, &mut r).refused.is_none());
-                    r.first
+                    r.seen
                 })
             })
             .collect();
@@ -393,28 +406,6 @@ fn issue_8_camera_network_team_sends_factors_and_makes_one_learners_update() {
 /// Exchanges as a member made them: the exchange, and the members that gave to it.
 type Log = Vec<(u64, Vec<usize>)>;
 
-/// A member logging its exchanges.
-struct Ordered {
-    inner: Threads,
-    log: Log,
-}
-
-impl Reducer for Ordered {
-    fn shard(&self) -> (usize, usize) {
-        self.inner.shard()
-    }
-    fn all_reduce(
-        &mut self,
-        step: u64,
-        ranks: &[usize],
-        values: &mut [f32],
-        factors: Vec<f32>,
-    ) -> Result<Vec<Vec<f32>>, GroupError> {
-        self.log.push((step, ranks.to_vec()));
-        self.inner.all_reduce(step, ranks, values, factors)
-    }
-}
-
 #[test]
 fn issue_8_a_team_trains_each_tower_on_its_own_members_and_swaps_them_once_an_update() {
     // No member repeats the other tower's optimiser step: in a team of four, ranks 0 and 2
@@ -428,7 +419,8 @@ fn issue_8_a_team_trains_each_tower_on_its_own_members_and_swaps_them_once_an_up
     let trajs = episodes(&model, 10, &mut rng);
     let h = Hyperparameters { num_epochs: 1, ..Hyperparameters::default() };
     let mut group: Vec<Ppo> = (0..4).map(|_| Ppo::new(model.clone(), h.clone(), 0, 5, Par::Seq)).collect();
-    let reducers: Vec<Ordered> = Threads::team(4).into_iter().map(|inner| Ordered { inner, log: Vec::new() }).collect();
+    // Each member logs its exchanges.
+    let reducers = Watched::team(4, Log::new(), |log, _, step, ranks, _| log.push((step, ranks.to_vec())));
     let logs: Vec<(Log, usize)> = std::thread::scope(|s| {
         let handles: Vec<_> = group
             .iter_mut()
@@ -438,7 +430,7 @@ fn issue_8_a_team_trains_each_tower_on_its_own_members_and_swaps_them_once_an_up
                 s.spawn(move || {
                     let st = ppo.update_in(t, &mut r);
                     assert!(st.refused.is_none(), "{st:?}");
-                    (r.log, st.gradient_steps)
+                    (r.seen, st.gradient_steps)
                 })
             })
             .collect();
@@ -472,28 +464,6 @@ fn issue_8_a_team_trains_each_tower_on_its_own_members_and_swaps_them_once_an_up
 /// A change made to a state on its way.
 type Tamper = fn(&mut [f32]);
 
-/// Rank 0 of a team of two, receiving a value tower state that was tampered with.
-struct Tampered(Threads, Tamper);
-
-impl Reducer for Tampered {
-    fn shard(&self) -> (usize, usize) {
-        self.0.shard()
-    }
-    fn all_reduce(
-        &mut self,
-        step: u64,
-        ranks: &[usize],
-        values: &mut [f32],
-        factors: Vec<f32>,
-    ) -> Result<Vec<Vec<f32>>, GroupError> {
-        let every = self.0.all_reduce(step, ranks, values, factors)?;
-        if ranks == [1] {
-            (self.1)(values);
-        }
-        Ok(every)
-    }
-}
-
 #[test]
 fn issue_8_a_tower_state_that_does_not_fit_refuses_the_update_and_changes_nothing() {
     let meta = ModelMetadata::default_state_vector();
@@ -513,8 +483,15 @@ fn issue_8_a_tower_state_that_does_not_fit_refuses_the_update_and_changes_nothin
         let before = p0.state();
         let mut team = Threads::team(2).into_iter();
         let (t0, t1) = (team.next().unwrap(), team.next().unwrap());
+        // Rank 0 receives a value tower state that was tampered with.
+        let watch: Watch<Tamper> = |tamper, _, _, ranks, values| {
+            if ranks == [1] {
+                tamper(values)
+            }
+        };
+        let mut r0 = Watched { inner: t0, seen: tamper, watch };
         let (s0, s1) = std::thread::scope(|s| {
-            let a = s.spawn(|| p0.update_in(&trajs, &mut Tampered(t0, tamper)));
+            let a = s.spawn(|| p0.update_in(&trajs, &mut r0));
             let b = s.spawn(|| p1.update_in(&trajs, &mut { t1 }));
             (a.join().unwrap(), b.join().unwrap())
         });
