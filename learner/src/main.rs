@@ -174,8 +174,8 @@ fn bench(network: &str, seconds: f64, threads: usize) -> anyhow::Result<()> {
     let h = Hyperparameters::default();
     // What one minibatch costs in training: forward + backward of both towers (the big dense
     // layers' weight gradients left as factors), and (`adam`) the whole gradient step as
-    // `Ppo::update` takes it: those gradients multiplied out block by block and Adam applied
-    // to each block while it is in cache, over every parameter.
+    // `Ppo::update` takes it: those gradients multiplied out and Adam applied over every
+    // parameter.
     let time = |par: Par, secs: f64, adam: bool| {
         let mut ws = Workspace::default();
         let mut ppo = learner::ppo::Ppo::new(model.clone(), h.clone(), 0, 1, par);

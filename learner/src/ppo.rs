@@ -656,7 +656,7 @@ impl Ppo {
         let mut order: Vec<usize> = (0..n).collect();
         let mut ws = std::mem::take(&mut self.ws);
         // The big dense layers' weight gradients stay factors until the optimiser multiplies
-        // them out block by block (alone or in a team: one path).
+        // them out (alone or in a team: one path).
         let defer = (self.model.pi.factorable(bs), self.model.v.factorable(bs));
         let (rank, size) = group.shard();
         let role = (size > 1).then(|| Role::of(rank, size));

@@ -662,9 +662,14 @@ fn im2col(layer: &Layer, x: &[f32], batch: usize, cols: &mut Vec<f32>) {
         fn with_simd<S: pulp::Simd>(self, _simd: S) {
             let [h, w, c, k, s, oh, ow] = self.geometry;
             let (kc, kkc) = (k * c, k * k * c);
+            if kc == 8 {
+                // SHALLOW's first layer (8×8 kernel, 1 channel): a patch row is k pieces of
+                // 8 floats, copied as fixed-size arrays and each row written whole (twice
+                // as fast as the loop below, whose short copies have run-time lengths).
+                return patch_rows::<8>([h, w, c, k, s, oh, ow], self.x, self.cols);
+            }
             // Row by row of patches and of kernel, so the innermost loop walks one image row
-            // with constant strides (no index arithmetic per copy: SHALLOW's first layer
-            // copies 8 floats at a time).
+            // with constant strides.
             for (img, out) in self.x.chunks(h * w * c).zip(self.cols.chunks_mut(oh * ow * kkc)) {
                 for (oy, rows) in out.chunks_exact_mut(ow * kkc).enumerate() {
                     for ky in 0..k {
@@ -678,6 +683,26 @@ fn im2col(layer: &Layer, x: &[f32], batch: usize, cols: &mut Vec<f32>) {
         }
     }
     pulp::Arch::new().dispatch(Op { geometry: [h, w, c, k, s, oh, ow], x, cols })
+}
+
+/// [`im2col`] for layers whose kernel rows are `KC` floats (`k·c`): every patch row written
+/// whole, a kernel row at a time, with copies of a length known when compiling.
+#[inline(always)]
+fn patch_rows<const KC: usize>([h, w, c, k, s, oh, ow]: [usize; 7], x: &[f32], cols: &mut [f32]) {
+    let kkc = k * KC;
+    for (img, out) in x.chunks_exact(h * w * c).zip(cols.chunks_exact_mut(oh * ow * kkc)) {
+        for (oy, rows) in out.chunks_exact_mut(ow * kkc).enumerate() {
+            let lines = &img[oy * s * w * c..(oy * s + k) * w * c];
+            for (ox, row) in rows.chunks_exact_mut(kkc).enumerate() {
+                for (ky, dst) in row.chunks_exact_mut(KC).enumerate() {
+                    let at = ky * w * c + ox * s * c;
+                    let src: &[f32; KC] = lines[at..at + KC].try_into().expect("a kernel row");
+                    let dst: &mut [f32; KC] = dst.try_into().expect("a kernel row");
+                    *dst = *src;
+                }
+            }
+        }
+    }
 }
 
 /// The adjoint of [`im2col`]: scatter-add patch gradients back into the input gradient.
@@ -726,10 +751,6 @@ pub struct MomentsMismatch {
     pub expected: usize,
 }
 
-/// Rows of a factored layer's weight gradient multiplied out at a time by
-/// [`Adam::step_factored`].
-pub const FACTORED_ROWS: usize = 8;
-
 /// A dense layer's weight gradient left as its factors, `dW = Σ_r d_rᵀ · x_r`: one share per
 /// learner of a team, in rank order, or one for a learner alone.
 #[derive(Clone, Debug)]
@@ -743,9 +764,6 @@ pub struct FactoredGrad<'a> {
     /// Each share's layer inputs (`b × n_in`) and output gradients (`b × n_out`).
     pub shares: Vec<(&'a [f32], &'a [f32])>,
 }
-
-/// A block of rows of a factored layer: its index, and its weights' and moments' slices.
-type Block<'a> = (usize, ((&'a mut [f32], &'a mut [f32]), &'a mut [f32]));
 
 /// One Adam step's constants.
 #[derive(Clone, Copy)]
@@ -803,14 +821,24 @@ impl Step {
             .reduce(|| 0, |a, b| a | b)
     }
 
-    /// A factored layer's update (`p`, `m`, `v`: its weights' slices), block of rows by block.
-    fn apply_factored(&self, f: &FactoredGrad, p: &mut [f32], m: &mut [f32], v: &mut [f32], par: Par) -> u32 {
+    /// A factored layer's update (`p`, `m`, `v`: its weights' slices): the layer's gradient
+    /// multiplied out into `g` (bands of rows split between threads when `par` allows, each
+    /// band's product on one thread), then Adam over it.
+    fn apply_factored(
+        &self,
+        f: &FactoredGrad,
+        p: &mut [f32],
+        m: &mut [f32],
+        v: &mut [f32],
+        g: &mut Vec<f32>,
+        par: Par,
+    ) -> u32 {
         let (n_in, n_out) = (f.n_in, f.n_out);
-        let len = FACTORED_ROWS * n_in;
-        let block = |scratch: &mut Vec<f32>, (i, ((p, m), v)): Block| {
-            let rows = p.len() / n_in;
-            scratch.resize(rows * n_in, 0.0);
-            let g = &mut scratch[..rows * n_in];
+        g.resize(n_in * n_out, 0.0);
+        let g = &mut g[..n_in * n_out];
+        let rows_per_band = n_out.div_ceil(par.degree().max(1));
+        let band = |(i, g): (usize, &mut [f32])| {
+            let rows = g.len() / n_in;
             let mut first = true;
             for (x, d) in &f.shares {
                 let b = x.len() / n_in;
@@ -818,7 +846,7 @@ impl Step {
                     continue;
                 }
                 // rows of dᵀ (n_out × b) times x (b × n_in)
-                let lhs = MatRef::from_row_major_slice(d, b, n_out).transpose().subrows(i * FACTORED_ROWS, rows);
+                let lhs = MatRef::from_row_major_slice(d, b, n_out).transpose().subrows(i * rows_per_band, rows);
                 let rhs = MatRef::from_row_major_slice(x, b, n_in);
                 let out = MatMut::from_row_major_slice_mut(g, rows, n_in);
                 let beta = if first { Accum::Replace } else { Accum::Add };
@@ -828,17 +856,14 @@ impl Step {
             if first {
                 g.fill(0.0);
             }
-            self.apply(p, g, m, v)
         };
         if matches!(par, Par::Seq) {
-            let mut scratch = Vec::with_capacity(len);
-            let blocks = p.chunks_mut(len).zip(m.chunks_mut(len)).zip(v.chunks_mut(len)).enumerate();
-            return blocks.map(|b| block(&mut scratch, b)).fold(0, |a, b| a | b);
+            band((0, &mut g[..]));
+        } else {
+            use rayon::prelude::*;
+            g.par_chunks_mut(rows_per_band * n_in).enumerate().for_each(band);
         }
-        use rayon::prelude::*;
-        (p.par_chunks_mut(len).zip(m.par_chunks_mut(len)).zip(v.par_chunks_mut(len)).enumerate())
-            .map_init(|| Vec::with_capacity(len), block)
-            .reduce(|| 0, |a, b| a | b)
+        self.apply_par(p, g, m, v, par)
     }
 }
 
@@ -856,12 +881,37 @@ pub struct Adam {
     m: Vec<f32>,
     v: Vec<f32>,
     t: u32,
+    /// The factored layers' multiplied-out gradient, kept for the next step.
+    g: Scratch,
+}
+
+/// A buffer kept between calls so that a step allocates nothing; not part of its owner's
+/// value (equal to any other, cloned empty).
+#[derive(Default)]
+struct Scratch(Vec<f32>);
+
+impl Clone for Scratch {
+    fn clone(&self) -> Scratch {
+        Scratch::default()
+    }
+}
+
+impl PartialEq for Scratch {
+    fn eq(&self, _: &Scratch) -> bool {
+        true
+    }
+}
+
+impl std::fmt::Debug for Scratch {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "Scratch({} floats)", self.0.len())
+    }
 }
 
 impl Adam {
     /// An optimiser for `n` parameters.
     pub fn new(n: usize, lr: f32) -> Adam {
-        Adam { lr, beta1: 0.9, beta2: 0.999, eps: 1e-5, m: vec![0.0; n], v: vec![0.0; n], t: 0 }
+        Adam { lr, beta1: 0.9, beta2: 0.999, eps: 1e-5, m: vec![0.0; n], v: vec![0.0; n], t: 0, g: Scratch::default() }
     }
 
     /// One step: `params -= lr · m̂ / (√v̂ + ε)`.
@@ -877,13 +927,14 @@ impl Adam {
 
     /// One step where the weight gradients of some dense layers are still their factors
     /// (`factored`; their part of `grad` is not read): the rest of `grad` as in
-    /// [`Adam::step_with`]; each factored layer's gradient is multiplied out a block of
-    /// [`FACTORED_ROWS`] rows at a time (≈ 0.35 MB for the camera networks' first dense
-    /// layer, kept in cache) and the block's update applied at once, so the layer's gradient
-    /// (46 MB for SHALLOW's two towers) is never written to memory, zeroed or read back.
-    /// Every block's product is taken on one thread, shares in rank order: the same numbers
-    /// whatever `par` and on every learner of a team. Returns whether every gradient value
-    /// was finite; when it was not, the caller restores the state it saved.
+    /// [`Adam::step_with`]; each factored layer's gradient is multiplied out (into a buffer
+    /// the optimiser keeps: 23 MB for a SHALLOW tower's first dense layer) and Adam applied
+    /// over it. (Multiplying out a block of rows at a time and updating the block while it
+    /// was in cache was slower: on this machine Adam's memory traffic does not overlap the
+    /// product's arithmetic either way, and small blocks make slower products.) Each band
+    /// of rows is multiplied on one thread, shares in rank order: the same numbers whatever
+    /// `par` and on every learner of a team. Returns whether every gradient value was
+    /// finite; when it was not, the caller restores the state it saved.
     pub fn step_factored(&mut self, params: &mut [f32], grad: &[f32], factored: &[FactoredGrad], par: Par) -> bool {
         assert_eq!((params.len(), grad.len()), (self.m.len(), self.m.len()));
         self.t += 1;
@@ -904,7 +955,8 @@ impl Adam {
         }
         for f in factored {
             let w = f.offset..f.offset + f.n_in * f.n_out;
-            bad |= k.apply_factored(f, &mut params[w.clone()], &mut self.m[w.clone()], &mut self.v[w], par);
+            bad |=
+                k.apply_factored(f, &mut params[w.clone()], &mut self.m[w.clone()], &mut self.v[w], &mut self.g.0, par);
         }
         bad == 0
     }
