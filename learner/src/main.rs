@@ -201,7 +201,7 @@ fn bench(network: &str, seconds: f64, threads: usize) -> anyhow::Result<()> {
     // backward, both towers, no im2col, no activations, no optimiser). `as_step`: in the
     // shapes the step runs them (conv layers a chunk of samples at a time, each thread on
     // its share, operands in cache): the ceiling. Otherwise one whole-batch product each.
-    let gemm_only = |par: Par, as_step: bool| {
+    let gemm_only = |par: Par, as_step: bool, secs: f64| {
         let threads = par.degree().max(1);
         let shapes = gemm_shapes(&model.pi, n, threads, as_step);
         // One (a, b, c) per thread for the per-chunk products; the operand that holds
@@ -220,9 +220,7 @@ fn bench(network: &str, seconds: f64, threads: usize) -> anyhow::Result<()> {
                     .collect()
             })
             .collect();
-        let t = Instant::now();
-        let mut k = 0;
-        while t.elapsed().as_secs_f64() < seconds.min(3.0) || k < 2 {
+        let mut pass = || {
             for _tower in 0..2 {
                 for (s, copies) in shapes.iter().zip(bufs.iter_mut()) {
                     let (mk, mn) = (s.m * s.k, s.m * s.n);
@@ -243,29 +241,47 @@ fn bench(network: &str, seconds: f64, threads: usize) -> anyhow::Result<()> {
                     }
                 }
             }
+        };
+        // Once untimed, as the step is: the outputs' pages are first touched here.
+        pass();
+        let t = Instant::now();
+        let mut k = 0;
+        while t.elapsed().as_secs_f64() < secs || k < 2 {
+            pass();
             k += 1;
         }
         (k * n) as f64 / t.elapsed().as_secs_f64()
     };
-    println!("| measurement (minibatch 64, both towers) | sample-gradients/s |");
+    println!(
+        "| measurement (minibatch 64, both towers; medians of {ROUNDS} rounds taken in turn) | sample-gradients/s |"
+    );
     println!("|---|---|");
     let mut pars = vec![(1, Par::Seq)];
     if threads > 1 {
         pars.push((threads, Par::rayon(threads)));
     }
     for (t, par) in pars {
-        let fb = time(par, seconds, false);
-        let full = time(par, seconds, true);
-        let ceiling = gemm_only(par, true);
-        let whole = gemm_only(par, false);
+        // The four measurements in turn, a round at a time, so that a ratio compares figures
+        // taken side by side on a machine whose speed drifts (a shared VM's does, by 3-5 %
+        // from one measurement to the next).
+        let secs = seconds / ROUNDS as f64;
+        let rounds: Vec<[f64; 4]> = (0..ROUNDS)
+            .map(|_| {
+                [time(par, secs, false), time(par, secs, true), gemm_only(par, true, secs), gemm_only(par, false, secs)]
+            })
+            .collect();
+        let med = |f: &dyn Fn(&[f64; 4]) -> f64| median(rounds.iter().map(f).collect());
+        let [fb, full, ceiling, whole] = [0, 1, 2, 3].map(|i| med(&|r| r[i]));
+        let reach: Vec<f64> = rounds.iter().map(|r| 100.0 * r[1] / r[2]).collect();
+        let (lo, hi) = (reach.iter().copied().fold(f64::MAX, f64::min), reach.iter().copied().fold(0.0, f64::max));
+        let reach = median(reach);
         println!("| {t} thread(s): forward + backward (the big dense layers' weight gradients as factors) | {fb:.0} |");
         println!(
             "| {t} thread(s): forward + backward + optimiser (one training step) | {full:.0} (the optimiser step {:.0} % of it) |",
             100.0 * (1.0 - full / fb)
         );
         println!(
-            "| {t} thread(s): reference, the same GEMMs alone, in the step's shapes (the ceiling) | {ceiling:.0} (the training step reaches {:.0} %) |",
-            100.0 * full / ceiling
+            "| {t} thread(s): reference, the same GEMMs alone, in the step's shapes (the ceiling) | {ceiling:.0} (the training step reaches {reach:.0} %: the median of the rounds' ratios, {lo:.0}-{hi:.0} %) |"
         );
         println!(
             "| {t} thread(s): the same GEMMs alone, each conv product over the whole batch | {whole:.0} (the training step {:.0} % of it) |",
@@ -303,6 +319,19 @@ fn bench(network: &str, seconds: f64, threads: usize) -> anyhow::Result<()> {
     let ms_pi = t.elapsed().as_secs_f64() * 1e3 / k as f64;
     println!("| inference at batch 1 (policy tower only, as on the car), 1 thread | {ms_pi:.3} ms |");
     Ok(())
+}
+
+/// Rounds `learner bench` splits each measurement of a thread count into (see [`bench`]).
+const ROUNDS: usize = 5;
+
+/// The median of some figures (the mean of the middle two for an even count).
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    if n == 0 {
+        return f64::NAN;
+    }
+    if n % 2 == 1 { v[n / 2] } else { (v[n / 2 - 1] + v[n / 2]) / 2.0 }
 }
 
 /// Milliseconds per Adam step over both towers' parameters, on a gradient already in memory.
@@ -396,4 +425,17 @@ fn gemm_shapes(net: &policy::nn::Net, batch: usize, threads: usize, as_step: boo
         }
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::median;
+
+    #[test]
+    fn median_of_odd_and_even_counts_whatever_the_order() {
+        assert_eq!(median(vec![3.0, 1.0, 2.0]), 2.0);
+        assert_eq!(median(vec![4.0, 1.0, 3.0, 2.0]), 2.5);
+        assert_eq!(median(vec![7.0]), 7.0);
+        assert!(median(Vec::new()).is_nan());
+    }
 }
