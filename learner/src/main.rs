@@ -71,7 +71,7 @@ struct BenchCli {
     /// SHALLOW, DEEP, DEEPER or MLP.
     #[arg(long, default_value = "SHALLOW")]
     network: String,
-    /// Seconds per measurement.
+    /// Seconds per measurement (taken in 5 rounds, in turn with the others).
     #[arg(long, default_value_t = 5.0)]
     seconds: f64,
     /// Threads for the threaded row (default: all cores).
