@@ -175,33 +175,30 @@ fn bench(network: &str, seconds: f64, threads: usize) -> anyhow::Result<()> {
     // What one minibatch costs in training: forward + backward of both towers (the big dense
     // layers' weight gradients left as factors), and (`adam`) the whole gradient step as
     // `Ppo::update` takes it: those gradients multiplied out and Adam applied over every
-    // parameter.
-    let time = |par: Par, secs: f64, adam: bool| {
+    // parameter. Returns the work, set up once and run once untimed.
+    let step = |par: Par, adam: bool| {
         let mut ws = Workspace::default();
         let mut ppo = learner::ppo::Ppo::new(model.clone(), h.clone(), 0, 1, par);
         let defer = (model.pi.factorable(n), model.v.factorable(n));
-        let mut once = || {
+        let (batch, idx, model, h) = (&batch, &idx, &model, &h);
+        let mut once = move || {
             if adam {
-                std::hint::black_box(ppo.gradient_step(&batch, &idx));
+                std::hint::black_box(ppo.gradient_step(batch, idx));
             } else {
-                let lg = loss_and_grad_factored(&mut ws, &model, &batch, &idx, &h, par, (&defer.0, &defer.1));
+                let lg = loss_and_grad_factored(&mut ws, model, batch, idx, h, par, (&defer.0, &defer.1));
                 ws.recycle(std::hint::black_box(lg));
             }
         };
         once();
-        let t = Instant::now();
-        let mut k = 0;
-        while t.elapsed().as_secs_f64() < secs || k < 2 {
-            once();
-            k += 1;
-        }
-        (k * n) as f64 / t.elapsed().as_secs_f64()
+        once
     };
     // Reference in the same run: the GEMMs alone (the layers' matrix products, forward and
     // backward, both towers, no im2col, no activations, no optimiser). `as_step`: in the
     // shapes the step runs them (conv layers a chunk of samples at a time, each thread on
     // its share, operands in cache): the ceiling. Otherwise one whole-batch product each.
-    let gemm_only = |par: Par, as_step: bool, secs: f64| {
+    // Returns the work, set up once and run once untimed, as the step is (the outputs'
+    // pages are first touched there).
+    let gemm_only = |par: Par, as_step: bool| {
         let threads = par.degree().max(1);
         let shapes = gemm_shapes(&model.pi, n, threads, as_step);
         // One (a, b, c) per thread for the per-chunk products; the operand that holds
@@ -220,7 +217,7 @@ fn bench(network: &str, seconds: f64, threads: usize) -> anyhow::Result<()> {
                     .collect()
             })
             .collect();
-        let mut pass = || {
+        let mut pass = move || {
             for _tower in 0..2 {
                 for (s, copies) in shapes.iter().zip(bufs.iter_mut()) {
                     let (mk, mn) = (s.m * s.k, s.m * s.n);
@@ -242,15 +239,8 @@ fn bench(network: &str, seconds: f64, threads: usize) -> anyhow::Result<()> {
                 }
             }
         };
-        // Once untimed, as the step is: the outputs' pages are first touched here.
         pass();
-        let t = Instant::now();
-        let mut k = 0;
-        while t.elapsed().as_secs_f64() < secs || k < 2 {
-            pass();
-            k += 1;
-        }
-        (k * n) as f64 / t.elapsed().as_secs_f64()
+        pass
     };
     println!(
         "| measurement (minibatch 64, both towers; medians of {ROUNDS} rounds taken in turn) | sample-gradients/s |"
@@ -265,11 +255,22 @@ fn bench(network: &str, seconds: f64, threads: usize) -> anyhow::Result<()> {
         // taken side by side on a machine whose speed drifts (a shared VM's does, by 3-5 %
         // from one measurement to the next).
         let secs = seconds / ROUNDS as f64;
+        let mut work: [Box<dyn FnMut()>; 4] = [
+            Box::new(step(par, false)),
+            Box::new(step(par, true)),
+            Box::new(gemm_only(par, true)),
+            Box::new(gemm_only(par, false)),
+        ];
         let rounds: Vec<[f64; 4]> = (0..ROUNDS)
             .map(|_| {
-                [time(par, secs, false), time(par, secs, true), gemm_only(par, true, secs), gemm_only(par, false, secs)]
+                let mut r = [0.0; 4];
+                for (r, w) in r.iter_mut().zip(work.iter_mut()) {
+                    *r = samples_per_second(n, secs, w);
+                }
+                r
             })
             .collect();
+        drop(work);
         let med = |f: &dyn Fn(&[f64; 4]) -> f64| median(rounds.iter().map(f).collect());
         let [fb, full, ceiling, whole] = [0, 1, 2, 3].map(|i| med(&|r| r[i]));
         let reach: Vec<f64> = rounds.iter().map(|r| 100.0 * r[1] / r[2]).collect();
@@ -323,6 +324,17 @@ fn bench(network: &str, seconds: f64, threads: usize) -> anyhow::Result<()> {
 
 /// Rounds `learner bench` splits each measurement of a thread count into (see [`bench`]).
 const ROUNDS: usize = 5;
+
+/// Sample-gradients/s of `work` on `n` samples, run for `secs` (at least twice).
+fn samples_per_second(n: usize, secs: f64, work: &mut dyn FnMut()) -> f64 {
+    let t = Instant::now();
+    let mut k = 0;
+    while t.elapsed().as_secs_f64() < secs || k < 2 {
+        work();
+        k += 1;
+    }
+    (k * n) as f64 / t.elapsed().as_secs_f64()
+}
 
 /// The median of some figures (the mean of the middle two for an even count).
 fn median(mut v: Vec<f64>) -> f64 {
