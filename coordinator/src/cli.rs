@@ -429,7 +429,7 @@ pub struct TrainArgs {
     /// Parallel environments.
     #[arg(long, default_value_t = 32)]
     pub envs: usize,
-    /// Threads for the environments (default: all cores).
+    /// Threads for the environments and for the update (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,
     /// Random seed.

@@ -103,8 +103,10 @@ fn main() {
     protocol::secure::init_logging("info");
     let result = match Cli::parse().command {
         Command::Bench(b) => (|| {
+            let threads = b.threads.unwrap_or_else(cores);
+            learner::use_threads(threads);
             if !b.team_only {
-                bench(&b.network, b.seconds, b.threads.unwrap_or_else(cores))?;
+                bench(&b.network, b.seconds, threads)?;
             }
             if b.learners > 1 {
                 team_bench::run(&b.network, b.seconds, b.learners, b.epochs, b.check)?;
@@ -112,12 +114,17 @@ fn main() {
             Ok(())
         })(),
         Command::BenchMember(m) => {
+            learner::use_threads(1);
             team_bench::member(&m.network, m.epochs, m.net.args(true).as_role(protocol::secure::Role::Learner), &m.id)
         }
         Command::Serve(a) => serve::serve(serve::ServeArgs {
             net: protocol::net::NetArgs::from(a.net).as_role(protocol::secure::Role::Learner),
             id: a.id,
-            threads: a.threads.unwrap_or_else(cores),
+            threads: {
+                let threads = a.threads.unwrap_or_else(cores);
+                learner::use_threads(threads);
+                threads
+            },
             checkpoint_seconds: a.checkpoint_seconds,
             signing_key: a.signing_key,
         }),
@@ -227,7 +234,7 @@ fn bench(network: &str, seconds: f64, threads: usize) -> anyhow::Result<()> {
                                 Operand::A => (&a[i * mk..(i + 1) * mk], &mut c[..]),
                                 Operand::C => (&a[..], &mut c[i * mn..(i + 1) * mn]),
                             };
-                            policy::nn::gemm(c, s.m, s.n, s.k, a, s.a_t, b, s.b_t, true, par)
+                            policy::nn::gemm(c, s.m, s.n, s.k, a, s.a_t, b, s.b_t, s.add, par)
                         }
                     };
                     if s.chunks == 0 {
@@ -384,6 +391,9 @@ struct GemmShape {
     /// The operand that holds a layer's outputs or their gradient: it goes through memory,
     /// where the unfolded input and the weights stay in cache.
     streams: Operand,
+    /// Whether the product is added to `c` (read, then written) or replaces it, as the step
+    /// makes it.
+    add: bool,
 }
 
 /// `a`, `b` and `c` of `c = a · b`, row-major.
@@ -402,15 +412,20 @@ enum Operand {
 fn gemm_shapes(net: &policy::nn::Net, batch: usize, threads: usize, as_step: bool) -> Vec<GemmShape> {
     use policy::nn::Layer;
     let mut out = Vec::new();
-    let mut push = |m, n, k, a_t, b_t, chunks, streams| out.push(GemmShape { m, n, k, a_t, b_t, chunks, streams });
+    let mut push =
+        |m, n, k, a_t, b_t, chunks, streams, add| out.push(GemmShape { m, n, k, a_t, b_t, chunks, streams, add });
+    let factored = net.factorable(batch);
     for (i, layer) in net.layers.iter().enumerate() {
         let first = !net.layers[..i].iter().any(|l| l.param_count() > 0);
         match *layer {
             Layer::Dense { inp, out: o, .. } => {
-                push(batch, o, inp, false, true, 0, Operand::C);
-                push(o, inp, batch, true, false, 0, Operand::A);
+                // Forward: onto the bias; the weight gradient: added into the gradient, or
+                // for a factored layer multiplied out by the optimiser into its buffer; the
+                // input gradient: into a buffer of its own.
+                push(batch, o, inp, false, true, 0, Operand::C, true);
+                push(o, inp, batch, true, false, 0, Operand::A, !factored.contains(&i));
                 if !first {
-                    push(batch, inp, o, false, false, 0, Operand::C);
+                    push(batch, inp, o, false, false, 0, Operand::C, false);
                 }
             }
             Layer::Conv2d { filters, .. } => {
@@ -427,10 +442,11 @@ fn gemm_shapes(net: &policy::nn::Net, batch: usize, threads: usize, as_step: boo
                 // Forward: outputs (rows × filters) out; weight gradient: dᵀ (filters × rows)
                 // in; input gradient: d (rows × filters) in, the unfolded gradient (in
                 // cache) out.
-                push(rows, filters, kkc, false, true, chunks, Operand::C);
-                push(filters, kkc, rows, true, false, chunks, Operand::A);
+                // (Onto the bias, added into the weight gradient, into the unfolded gradient.)
+                push(rows, filters, kkc, false, true, chunks, Operand::C, true);
+                push(filters, kkc, rows, true, false, chunks, Operand::A, true);
                 if !first {
-                    push(rows, kkc, filters, false, false, chunks, Operand::A);
+                    push(rows, kkc, filters, false, false, chunks, Operand::A, false);
                 }
             }
             _ => {}
@@ -441,7 +457,31 @@ fn gemm_shapes(net: &policy::nn::Net, batch: usize, threads: usize, as_step: boo
 
 #[cfg(test)]
 mod tests {
-    use super::median;
+    use super::{bench_metadata, gemm_shapes, median};
+    use rand::SeedableRng;
+
+    /// The ceiling makes the step's GEMMs as the step makes them: a product read-modify-writes
+    /// its output only where the step's does (it had added into every output, a read of
+    /// 23 MB a tower more than the step makes for the big dense layer's weight gradient).
+    #[test]
+    fn issue_8_the_ceilings_gemms_add_into_their_output_only_where_the_steps_do() {
+        let (_, _, meta) = bench_metadata("SHALLOW").unwrap();
+        let model = policy::ActorCritic::new(&meta, 27, &mut rand_chacha::ChaCha8Rng::seed_from_u64(1));
+        let got: Vec<_> = gemm_shapes(&model.pi, 64, 1, true).iter().map(|s| (s.m, s.n, s.k, s.add)).collect();
+        #[rustfmt::skip]
+        let want = [
+            // conv 8×8/4: forward onto the bias, weight gradient added (no input gradient)
+            (1131, 32, 64, true), (32, 64, 1131, true),
+            // conv 4×4/2 and 3×3/1: and the unfolded input gradient written afresh
+            (234, 64, 512, true), (64, 512, 234, true), (234, 512, 64, false),
+            (176, 64, 576, true), (64, 576, 176, true), (176, 576, 64, false),
+            // dense 11,264 → 512: its weight gradient multiplied out into the optimiser's buffer
+            (64, 512, 11264, true), (512, 11264, 64, false), (64, 11264, 512, false),
+            // dense 512 → 5: its weight gradient added into the gradient
+            (64, 5, 512, true), (5, 512, 64, true), (64, 512, 5, false),
+        ];
+        assert_eq!(got, want);
+    }
 
     #[test]
     fn median_of_odd_and_even_counts_whatever_the_order() {
