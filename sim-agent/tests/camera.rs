@@ -1,6 +1,7 @@
 //! The camera: deterministic frames, road where the geometry says, surfaces that look
 //! different, and a stored reference frame. Runs on lavapipe (no GPU needed; CI installs
-//! mesa-vulkan-drivers).
+//! mesa-vulkan-drivers); on a GPU as well (an H100 through Vulkan passed all three,
+//! docs/benchmarks.md, "The camera").
 
 use sim_agent::camera::{HEIGHT, Renderer, View, WIDTH};
 use std::path::PathBuf;
