@@ -1169,6 +1169,9 @@ fn issue_8_a_reply_that_cannot_be_read_is_not_reported_as_silence() {
     // Something answers the job-control query with bytes that are not a reply: the CLI says
     // so (and why), instead of "no coordinator answered".
     use protocol::net::{self, NetArgs, zenoh::Wait};
+    // In turn with the clusters: a port one of them has picked but not bound yet is "free"
+    // here too (CI once failed here with "Address already in use").
+    let _turn = exclusive();
     let endpoint = format!("tcp/127.0.0.1:{}", free_port());
     let session = net::open(&NetArgs { listen: vec![endpoint.clone()], ..NetArgs::default() }).unwrap();
     let _q = session
