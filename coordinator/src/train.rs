@@ -153,8 +153,7 @@ pub fn train(args: TrainArgs) -> Result<i32> {
             .with_context(|| format!("the reward function {} failed validation on {}", args.reward, w.name))?;
     }
     let obs_size = obs_dim(&cfg.observation);
-    let threads = args.threads.unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1));
-    learner::use_threads(threads);
+    let threads = learner::use_threads(args.threads);
     let camera = cfg.observation.kind == ObservationKind::Camera;
     let spec = RunSpec {
         name: worlds.iter().map(|w| w.name.clone()).collect::<Vec<_>>().join("+"),

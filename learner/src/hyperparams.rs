@@ -23,6 +23,31 @@ pub enum LossType {
 /// model sometimes missed laps (issue 8).
 pub const DEFAULT_TARGET_KL: f64 = 0.05;
 
+/// How the learning rate moves over a job (Paddock's addition, key `lr_schedule`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LrSchedule {
+    /// `lr` throughout, as in DeepRacer.
+    Constant,
+    /// `lr` until half of the job's budget is spent (its time, episodes or env steps,
+    /// whichever is nearest its limit), then linearly down to zero at the budget's end.
+    /// Without it a solved task's policy kept drifting at full step size to the end of the
+    /// job, and now and then the last model sat in a dip (issue 8).
+    #[default]
+    Cooldown,
+}
+
+impl LrSchedule {
+    /// The factor on `lr` once `spent` (0–1) of the job's budget is used.
+    pub fn factor(self, spent: f64) -> f64 {
+        match self {
+            LrSchedule::Constant => 1.0,
+            LrSchedule::Cooldown if spent.is_nan() => 1.0,
+            LrSchedule::Cooldown => (2.0 * (1.0 - spent.clamp(0.0, 1.0))).min(1.0),
+        }
+    }
+}
+
 /// The hyperparameters, documented.
 #[derive(Clone, Debug, PartialEq, serde::Serialize)]
 pub struct Hyperparameters {
@@ -49,6 +74,10 @@ pub struct Hyperparameters {
     /// approximate KL divergence from the policy the update began with exceeds 1.5 × this
     /// (Stable-Baselines3's `target_kl`). `null`: every epoch runs, as in DeepRacer.
     pub target_kl: Option<f64>,
+    /// Paddock's addition (DeepRacer has no such key, and a file without it gets this
+    /// default): `"cooldown"` keeps `lr` for the first half of the job's budget and brings
+    /// it down linearly to zero at the end; `"constant"` keeps `lr` throughout, as in DeepRacer.
+    pub lr_schedule: LrSchedule,
 }
 
 impl Default for Hyperparameters {
@@ -64,6 +93,7 @@ impl Default for Hyperparameters {
             term_cond_max_episodes: 100_000,
             term_cond_avg_score: 100_000.0,
             target_kl: Some(DEFAULT_TARGET_KL),
+            lr_schedule: LrSchedule::Cooldown,
         }
     }
 }
@@ -165,6 +195,17 @@ impl Hyperparameters {
                         return Err(err(format!("key 'target_kl' is {v}, expected a positive number or null")));
                     }
                 }
+                "lr_schedule" => {
+                    h.lr_schedule = match v.as_str() {
+                        Some("cooldown") => LrSchedule::Cooldown,
+                        Some("constant") => LrSchedule::Constant,
+                        _ => {
+                            return Err(err(format!(
+                                "key 'lr_schedule' is {v}, expected \"cooldown\" or \"constant\""
+                            )));
+                        }
+                    }
+                }
                 "stack_size" => {
                     int(k, v)?;
                     ignored.push("stack_size (DeepRacer reads it but always stacks 1 frame)".into());
@@ -203,6 +244,7 @@ impl Hyperparameters {
             "exploration_type": "categorical",
             "loss_type": match self.loss_type { LossType::Huber => "huber", LossType::MeanSquaredError => "mean squared error" },
             "lr": self.lr,
+            "lr_schedule": self.lr_schedule,
             "num_episodes_between_training": self.num_episodes_between_training,
             "num_epochs": self.num_epochs,
             "stack_size": 1,
@@ -248,6 +290,33 @@ mod tests {
     }
 
     #[test]
+    fn issue_8_lr_schedule_is_cooldown_unless_the_file_says_constant() {
+        for (text, want) in [
+            ("{}", LrSchedule::Cooldown),
+            (r#"{"lr_schedule": "constant"}"#, LrSchedule::Constant),
+            (r#"{"lr_schedule": "cooldown"}"#, LrSchedule::Cooldown),
+        ] {
+            let h = Hyperparameters::parse(text, "h.json").unwrap().hyperparameters;
+            assert_eq!(h.lr_schedule, want, "{text}");
+            let back = Hyperparameters::parse(&h.to_json(), "back.json").unwrap().hyperparameters;
+            assert_eq!(back, h, "{text}");
+        }
+        // Full rate for the first half of the budget, then down in a straight line to zero.
+        for (spent, constant, cooldown) in [
+            (0.0, 1.0, 1.0),
+            (0.3, 1.0, 1.0),
+            (0.5, 1.0, 1.0),
+            (0.6, 1.0, 0.8),
+            (0.9, 1.0, 0.2),
+            (1.0, 1.0, 0.0),
+            (1.7, 1.0, 0.0),
+        ] {
+            assert_eq!(LrSchedule::Constant.factor(spent), constant, "{spent}");
+            assert!((LrSchedule::Cooldown.factor(spent) - cooldown).abs() < 1e-12, "{spent}");
+        }
+    }
+
+    #[test]
     fn unknown_keys_are_reported_and_wrong_types_refused() {
         let p = Hyperparameters::parse(r#"{"lr": 0.001, "learning_rate": 1}"#, "h.json").unwrap();
         assert_eq!(p.unknown, vec!["learning_rate".to_string()]);
@@ -263,6 +332,7 @@ mod tests {
             (r#"{"exploration_type": "e-greedy"}"#, "categorical"),
             (r#"{"target_kl": 0}"#, "key 'target_kl' is 0, expected a positive number or null"),
             (r#"{"target_kl": "far"}"#, "key 'target_kl'"),
+            (r#"{"lr_schedule": "cosine"}"#, "key 'lr_schedule' is \"cosine\", expected \"cooldown\" or \"constant\""),
             ("[]", "expected a JSON object"),
         ] {
             let e = Hyperparameters::parse(text, "h.json").unwrap_err().to_string();

@@ -95,16 +95,11 @@ struct BenchCli {
     epochs: usize,
 }
 
-fn cores() -> usize {
-    std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)
-}
-
 fn main() {
     protocol::secure::init_logging("info");
     let result = match Cli::parse().command {
         Command::Bench(b) => (|| {
-            let threads = b.threads.unwrap_or_else(cores);
-            learner::use_threads(threads);
+            let threads = learner::use_threads(b.threads);
             if !b.team_only {
                 bench(&b.network, b.seconds, threads)?;
             }
@@ -114,17 +109,13 @@ fn main() {
             Ok(())
         })(),
         Command::BenchMember(m) => {
-            learner::use_threads(1);
+            learner::use_threads(Some(1));
             team_bench::member(&m.network, m.epochs, m.net.args(true).as_role(protocol::secure::Role::Learner), &m.id)
         }
         Command::Serve(a) => serve::serve(serve::ServeArgs {
             net: protocol::net::NetArgs::from(a.net).as_role(protocol::secure::Role::Learner),
             id: a.id,
-            threads: {
-                let threads = a.threads.unwrap_or_else(cores);
-                learner::use_threads(threads);
-                threads
-            },
+            threads: learner::use_threads(a.threads),
             checkpoint_seconds: a.checkpoint_seconds,
             signing_key: a.signing_key,
         }),
@@ -278,8 +269,7 @@ fn bench(network: &str, seconds: f64, threads: usize) -> anyhow::Result<()> {
             })
             .collect();
         drop(work);
-        let med = |f: &dyn Fn(&[f64; 4]) -> f64| median(rounds.iter().map(f).collect());
-        let [fb, full, ceiling, whole] = [0, 1, 2, 3].map(|i| med(&|r| r[i]));
+        let [fb, full, ceiling, whole] = [0, 1, 2, 3].map(|i| median(rounds.iter().map(|r| r[i]).collect()));
         let reach: Vec<f64> = rounds.iter().map(|r| 100.0 * r[1] / r[2]).collect();
         let (lo, hi) = (reach.iter().copied().fold(f64::MAX, f64::min), reach.iter().copied().fold(0.0, f64::max));
         let reach = median(reach);

@@ -1017,7 +1017,12 @@ impl Ppo {
         Ok(())
     }
 
-    /// Change the learning rate (e.g. after cloning).
+    /// The learning rate the next update uses.
+    pub fn lr(&self) -> f64 {
+        self.hyper.lr
+    }
+
+    /// Change the learning rate (the job's schedule sets it before every update).
     pub fn set_lr(&mut self, lr: f64) {
         self.hyper.lr = lr;
         for opt in [&mut self.opt_pi, &mut self.opt_v, &mut self.opt_log_std] {

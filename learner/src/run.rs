@@ -195,6 +195,22 @@ pub struct Standing {
 }
 
 impl StopRules {
+    /// How much of the job's budget is spent (0–1): the nearest to its limit of the time,
+    /// the episodes (`max_episodes`, `term_cond_max_episodes`) and the env-step budget.
+    /// Target stops (progress, reward, laps) end a job early and are no budget.
+    pub fn spent(&self, h: &Hyperparameters, seconds: f64, episodes: u64, env_steps: u64) -> f64 {
+        let of = |used: f64, limit: f64| if limit > 0.0 { used / limit } else { 1.0 };
+        [
+            of(seconds, self.minutes * 60.0),
+            self.max_episodes.map_or(0.0, |m| of(episodes as f64, m as f64)),
+            of(episodes as f64, h.term_cond_max_episodes as f64),
+            self.env_steps_budget.map_or(0.0, |b| of(env_steps as f64, b as f64)),
+        ]
+        .into_iter()
+        .fold(0.0, f64::max)
+        .min(1.0)
+    }
+
     /// Why to stop now, if at all.
     pub fn check(&self, h: &Hyperparameters, s: &Standing) -> Option<String> {
         if s.seconds >= self.minutes * 60.0 {
@@ -364,6 +380,8 @@ pub struct IterationRecord {
     pub gradient_steps: usize,
     /// The update stopped at this gradient step, its KL past 1.5 × `target_kl`.
     pub kl_stop: Option<usize>,
+    /// The learning rate the update used (`lr` on the job's `lr_schedule`).
+    pub lr: f64,
 }
 
 /// One evaluation over every world.
@@ -860,6 +878,10 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
             let lag = trajs.iter().map(|t| ppo.version - t.policy_version).max().unwrap_or(0);
             max_lag = max_lag.max(lag);
             let wait_s = wait_since.elapsed().as_secs_f64();
+            // The job's learning-rate schedule, from the budget spent as the update begins.
+            let lr = hyper.lr
+                * hyper.lr_schedule.factor(spec.stop.spent(hyper, start.elapsed().as_secs_f64(), episodes, env_steps));
+            ppo.set_lr(lr);
             let t1 = Instant::now();
             let stats: UpdateStats = match link.team() {
                 Some(team) => team.update(&mut ppo, &trajs),
@@ -921,6 +943,7 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
                 refused: stats.refused.clone(),
                 gradient_steps: stats.gradient_steps,
                 kl_stop: stats.kl_stop,
+                lr,
             };
             noted(
                 &run,

@@ -358,6 +358,7 @@ impl Team for TeamLead<'_> {
             policy_version: ppo.version,
             members: members.clone(),
             seed,
+            lr: ppo.lr(),
             trajectories: trajs.to_vec(),
             state,
         };
@@ -506,6 +507,8 @@ pub fn follow(
             continue;
         }
         set(last, false);
+        // The leader's learning rate (the job's schedule), so every member steps alike.
+        ppo.set_lr(plan.lr);
         let mut group = Group {
             session,
             job: view.job_id,

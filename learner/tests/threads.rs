@@ -8,10 +8,11 @@ use std::sync::Mutex;
 #[test]
 fn issue_8_the_maths_runs_on_the_threads_it_was_given() {
     // Three: not the core count of the machines this runs on (1, 2, 16).
-    assert!(learner::use_threads(3));
+    assert_eq!(learner::use_threads(Some(3)), 3);
     assert_eq!(rayon::current_num_threads(), 3);
-    // A second call leaves the pool as it is, and says so.
-    assert!(!learner::use_threads(5));
+    // A second call leaves the pool as it is, and says what the maths runs on.
+    assert_eq!(learner::use_threads(Some(5)), 3);
+    assert_eq!(learner::use_threads(None), 3);
     assert_eq!(rayon::current_num_threads(), 3);
     // Work spread as finely as it goes lands on the pool's three named threads.
     let seen = Mutex::new(HashSet::new());

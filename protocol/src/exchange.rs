@@ -383,6 +383,8 @@ pub struct TeamPlan {
     pub members: Vec<String>,
     /// The minibatch shuffle seed.
     pub seed: u64,
+    /// The update's learning rate (the job's schedule, worked out by the leader).
+    pub lr: f64,
     /// What to train on.
     pub trajectories: Vec<policy::Trajectory>,
     /// The state after `base`, for members that do not hold it.
@@ -503,6 +505,7 @@ pub fn team_plan_to_wire(job: &str, p: &TeamPlan, obs_size: usize) -> crate::Tea
         policy_version: p.policy_version,
         members: p.members.clone(),
         seed: p.seed,
+        lr: p.lr,
         trajectories: p.trajectories.iter().map(|t| trajectory_to_wire(t, obs_size)).collect(),
         state: p.state.as_ref().map(|s| crate::TeamState {
             policy_version: s.policy_version,
@@ -527,6 +530,9 @@ pub fn team_plan_from_wire(w: crate::TeamPlan, job: &JobView<'_>) -> Result<Team
         if !keys::is_valid_name(m) || !seen.insert(m.as_str()) {
             return invalid(format!("team member {m:?} is not a name or comes twice"));
         }
+    }
+    if !(w.lr.is_finite() && w.lr >= 0.0) {
+        return invalid(format!("a learning rate of {}: expected a finite number, 0 or more", w.lr));
     }
     if w.trajectories.len() as u64 > SANITY_LIMIT || w.plan <= w.base {
         return invalid(format!("plan {} on base {} with {} episodes", w.plan, w.base, w.trajectories.len()));
@@ -560,6 +566,7 @@ pub fn team_plan_from_wire(w: crate::TeamPlan, job: &JobView<'_>) -> Result<Team
         policy_version: w.policy_version,
         members: w.members,
         seed: w.seed,
+        lr: w.lr,
         trajectories,
         state,
     })
@@ -642,6 +649,7 @@ mod tests {
             policy_version: 3,
             members: vec!["l0".into(), "l1".into()],
             seed: 42,
+            lr: 1.5e-4,
             trajectories: vec![t.clone()],
             state: Some(TeamState {
                 policy_version: 3,
@@ -663,9 +671,15 @@ mod tests {
         let mut w = wire.clone();
         w.trajectories[0].world = "Vegas_track".into();
         assert!(team_plan_from_wire(w, &view).is_err());
-        let mut w = wire;
+        let mut w = wire.clone();
         w.state.as_mut().unwrap().tensors[0].data.pop();
         assert!(team_plan_from_wire(w, &view).is_err());
+        // A learning rate every member could not apply alike (issue 8's schedule travels in
+        // the plan): refused, naming it.
+        for lr in [f64::NAN, f64::INFINITY, -1e-4] {
+            let e = team_plan_from_wire(crate::TeamPlan { lr, ..wire.clone() }, &view).unwrap_err().to_string();
+            assert!(e.contains("learning rate"), "{lr}: {e}");
+        }
 
         let share = share_to_wire(&id, "l1", 9, 4, &[1.0, 2.0], &[3.0]);
         assert_eq!(share_from_wire(share.clone(), &id, "l1").unwrap(), (9, 4, vec![1.0, 2.0], vec![3.0]));
