@@ -267,21 +267,26 @@ fn issue_10_a_full_disk_is_reported_and_the_last_checkpoint_stays_whole() {
 }
 
 #[test]
-fn issue_8_the_learning_rate_cools_down_over_the_second_half_of_the_budget() {
+fn issue_8_the_learning_rate_cools_down_over_the_second_half_of_the_budget_unless_a_target_ends_the_job() {
     // A budget of 200 episodes is 10 updates of 20. The first half trains at `lr`; from
     // there the rate falls in a straight line towards zero at the budget's end, so the
-    // job's last model is not caught mid-stride. "constant" keeps DeepRacer's fixed rate.
+    // job's last model is not caught mid-stride. "constant" keeps DeepRacer's fixed rate, and
+    // so does a job that stops at a target (here one it never reaches): its budget is a cap.
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     std::fs::write(d.join("constant.json"), r#"{"lr": 0.0002, "lr_schedule": "constant"}"#).unwrap();
-    for (out, hyper, want) in [
-        ("cooldown", None, [1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 0.8, 0.6, 0.4, 0.2].map(|f| 3e-4 * f)),
-        ("constant", Some("constant.json"), [2e-4; 10]),
+    for (out, hyper, target, want) in [
+        ("cooldown", None, None, [1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 0.8, 0.6, 0.4, 0.2].map(|f| 3e-4 * f)),
+        ("constant", Some("constant.json"), None, [2e-4; 10]),
+        ("target", None, Some("1000000"), [3e-4; 10]),
     ] {
         let mut args = vec!["train", "--world", "reinvent_base", "--target-laps", "0", "--max-episodes", "200"];
         args.extend(["--minutes", "30", "--set", "record_trace=false", "--out", out]);
         if let Some(h) = hyper {
             args.extend(["--hyperparameters", h]);
+        }
+        if let Some(t) = target {
+            args.extend(["--target-reward", t]);
         }
         let o = coordinator(d, &args);
         assert!(o.status.success(), "{}", text(&o));

@@ -30,9 +30,10 @@ pub enum LrSchedule {
     /// `lr` throughout, as in DeepRacer.
     Constant,
     /// `lr` until half of the job's budget is spent (its time, episodes or env steps,
-    /// whichever is nearest its limit), then linearly down to zero at the budget's end.
-    /// Without it a solved task's policy kept drifting at full step size to the end of the
-    /// job, and now and then the last model sat in a dip (issue 8).
+    /// whichever is nearest its limit), then linearly down to zero at the budget's end; a
+    /// job that stops at a target (progress, reward, laps) keeps `lr`. Without it a solved
+    /// task's policy kept drifting at full step size to the end of the job, and now and then
+    /// the last model sat in a dip (issue 8).
     #[default]
     Cooldown,
 }
@@ -76,7 +77,8 @@ pub struct Hyperparameters {
     pub target_kl: Option<f64>,
     /// Paddock's addition (DeepRacer has no such key, and a file without it gets this
     /// default): `"cooldown"` keeps `lr` for the first half of the job's budget and brings
-    /// it down linearly to zero at the end; `"constant"` keeps `lr` throughout, as in DeepRacer.
+    /// it down linearly to zero at the end (not in a job that stops at a target);
+    /// `"constant"` keeps `lr` throughout, as in DeepRacer.
     pub lr_schedule: LrSchedule,
 }
 

@@ -211,6 +211,12 @@ impl StopRules {
         .min(1.0)
     }
 
+    /// Whether the job stops at a target (progress, reward or laps). Its budget is then a
+    /// cap, not the length of the job, and the learning rate is not cooled down towards it.
+    pub fn aims_at_target(&self) -> bool {
+        self.target_progress.is_some() || self.target_reward.is_some() || self.target_laps.is_some_and(|t| t.laps > 0)
+    }
+
     /// Why to stop now, if at all.
     pub fn check(&self, h: &Hyperparameters, s: &Standing) -> Option<String> {
         if s.seconds >= self.minutes * 60.0 {
@@ -878,9 +884,14 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
             let lag = trajs.iter().map(|t| ppo.version - t.policy_version).max().unwrap_or(0);
             max_lag = max_lag.max(lag);
             let wait_s = wait_since.elapsed().as_secs_f64();
-            // The job's learning-rate schedule, from the budget spent as the update begins.
-            let lr = hyper.lr
-                * hyper.lr_schedule.factor(spec.stop.spent(hyper, start.elapsed().as_secs_f64(), episodes, env_steps));
+            // The job's learning-rate schedule, from the budget spent as the update begins
+            // (a job that stops at a target keeps the whole rate).
+            let spent = if spec.stop.aims_at_target() {
+                0.0
+            } else {
+                spec.stop.spent(hyper, start.elapsed().as_secs_f64(), episodes, env_steps)
+            };
+            let lr = hyper.lr * hyper.lr_schedule.factor(spent);
             ppo.set_lr(lr);
             let t1 = Instant::now();
             let stats: UpdateStats = match link.team() {

@@ -468,6 +468,8 @@ pub fn follow(
     let set = |plan: u64, needs: bool| *wish.lock().expect("wish") = (plan, needs);
     let mut last = 0u64;
     tracing::info!(job = %view.job_id, learner = %me, "following the job's leader: asking to join its team");
+    // The job's rate: its schedule never goes above it.
+    let job_lr = ppo.lr();
     let started = Instant::now();
     let end = loop {
         if !keep_going() {
@@ -488,6 +490,10 @@ pub fn follow(
                 continue;
             }
         };
+        if let Err(e) = rate_fits(plan.lr, job_lr) {
+            drops.refuse("a team plan", &e);
+            continue;
+        }
         if !plan.members.iter().any(|m| m == me) {
             continue;
         }
@@ -534,4 +540,29 @@ pub fn follow(
     stop.store(true, Ordering::Relaxed);
     let _ = beat.join();
     Ok(end)
+}
+
+/// A plan's learning rate must be one the job can give: its schedule never goes above the
+/// hyperparameters' `lr`.
+fn rate_fits(plan_lr: f64, job_lr: f64) -> Result<(), DecodeError> {
+    if plan_lr > job_lr {
+        return Err(DecodeError::Invalid(format!("a learning rate of {plan_lr}, above the job's lr {job_lr}")));
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn issue_8_a_plan_cannot_raise_the_rate_above_the_jobs() {
+        for (plan, ok) in [(3e-4, true), (1.5e-4, true), (0.0, true), (3.0001e-4, false), (1.0, false)] {
+            let r = rate_fits(plan, 3e-4);
+            assert_eq!(r.is_ok(), ok, "{plan}");
+            if let Err(e) = r {
+                assert!(e.to_string().contains("above the job's lr 0.0003"), "{e}");
+            }
+        }
+    }
 }
