@@ -43,7 +43,7 @@ impl LrSchedule {
     pub fn factor(self, spent: f64) -> f64 {
         match self {
             LrSchedule::Constant => 1.0,
-            LrSchedule::Cooldown if spent.is_nan() => 1.0,
+            // `min` returns 1 for a NaN.
             LrSchedule::Cooldown => (2.0 * (1.0 - spent.clamp(0.0, 1.0))).min(1.0),
         }
     }

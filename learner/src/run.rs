@@ -211,10 +211,15 @@ impl StopRules {
         .min(1.0)
     }
 
-    /// Whether the job stops at a target (progress, reward or laps). Its budget is then a
-    /// cap, not the length of the job, and the learning rate is not cooled down towards it.
-    pub fn aims_at_target(&self) -> bool {
-        self.target_progress.is_some() || self.target_reward.is_some() || self.target_laps.is_some_and(|t| t.laps > 0)
+    /// The learning rate of an update that begins now: `lr` on the job's `lr_schedule`. A job
+    /// that stops at a target (progress, reward or laps) keeps the whole rate: its budget is
+    /// then a cap, not the length of the job.
+    pub fn lr(&self, h: &Hyperparameters, seconds: f64, episodes: u64, env_steps: u64) -> f64 {
+        let aims_at_target = self.target_progress.is_some()
+            || self.target_reward.is_some()
+            || self.target_laps.is_some_and(|t| t.laps > 0);
+        let spent = if aims_at_target { 0.0 } else { self.spent(h, seconds, episodes, env_steps) };
+        h.lr * h.lr_schedule.factor(spent)
     }
 
     /// Why to stop now, if at all.
@@ -884,14 +889,7 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
             let lag = trajs.iter().map(|t| ppo.version - t.policy_version).max().unwrap_or(0);
             max_lag = max_lag.max(lag);
             let wait_s = wait_since.elapsed().as_secs_f64();
-            // The job's learning-rate schedule, from the budget spent as the update begins
-            // (a job that stops at a target keeps the whole rate).
-            let spent = if spec.stop.aims_at_target() {
-                0.0
-            } else {
-                spec.stop.spent(hyper, start.elapsed().as_secs_f64(), episodes, env_steps)
-            };
-            let lr = hyper.lr * hyper.lr_schedule.factor(spent);
+            let lr = spec.stop.lr(hyper, start.elapsed().as_secs_f64(), episodes, env_steps);
             ppo.set_lr(lr);
             let t1 = Instant::now();
             let stats: UpdateStats = match link.team() {
