@@ -409,10 +409,15 @@ fn gemm_shapes(net: &policy::nn::Net, batch: usize, threads: usize, as_step: boo
         let first = !net.layers[..i].iter().any(|l| l.param_count() > 0);
         match *layer {
             Layer::Dense { inp, out: o, .. } => {
-                // Forward: onto the bias; the weight gradient: added into the gradient, or
-                // for a factored layer multiplied out by the optimiser into its buffer; the
-                // input gradient: into a buffer of its own.
-                push(batch, o, inp, false, true, 0, Operand::C, true);
+                // Forward: onto the bias, as `outᵀ = W · xᵀ` over a batch (as `Net::forward`
+                // makes it); the weight gradient: added into the gradient, or for a factored
+                // layer multiplied out by the optimiser into its buffer; the input gradient:
+                // into a buffer of its own.
+                if batch == 1 {
+                    push(1, o, inp, false, true, 0, Operand::C, true);
+                } else {
+                    push(o, batch, inp, false, true, 0, Operand::C, true);
+                }
                 push(o, inp, batch, true, false, 0, Operand::A, !factored.contains(&i));
                 if !first {
                     push(batch, inp, o, false, false, 0, Operand::C, false);
@@ -465,10 +470,11 @@ mod tests {
             // conv 4×4/2 and 3×3/1: and the unfolded input gradient written afresh
             (234, 64, 512, true), (64, 512, 234, true), (234, 512, 64, false),
             (176, 64, 576, true), (64, 576, 176, true), (176, 576, 64, false),
-            // dense 11,264 → 512: its weight gradient multiplied out into the optimiser's buffer
-            (64, 512, 11264, true), (512, 11264, 64, false), (64, 11264, 512, false),
+            // dense 11,264 → 512: forward as outᵀ = W · xᵀ, onto the bias; its weight gradient
+            // multiplied out into the optimiser's buffer
+            (512, 64, 11264, true), (512, 11264, 64, false), (64, 11264, 512, false),
             // dense 512 → 5: its weight gradient added into the gradient
-            (64, 5, 512, true), (5, 512, 64, true), (64, 512, 5, false),
+            (5, 64, 512, true), (5, 512, 64, true), (64, 512, 5, false),
         ];
         assert_eq!(got, want);
     }

@@ -160,6 +160,8 @@ pub struct Tape {
     /// Buffers handed back by [`Tape::take_back`], swapped in for the inputs a backward pass
     /// hands out as [`Factors`] (no copy, and no 3 MB allocation per minibatch).
     spare: Vec<Vec<f32>>,
+    /// A dense layer's output as `out × batch`, before it is turned into `batch × out`.
+    out_t: Vec<f32>,
 }
 
 impl Tape {
@@ -292,10 +294,26 @@ impl Net {
                 Layer::Dense { inp: n_in, out: n_out, offset } => {
                     let w = &self.params[offset..offset + n_in * n_out];
                     let b = &self.params[offset + n_in * n_out..offset + n_in * n_out + n_out];
-                    for row in out.chunks_mut(n_out) {
-                        row.copy_from_slice(b);
+                    if batch == 1 {
+                        out.copy_from_slice(b);
+                        gemm(out, 1, n_out, n_in, inp, false, w, true, true, par);
+                    } else {
+                        // `outᵀ (out × batch) = b + W · xᵀ`, then turned into `out`: faer makes
+                        // the product in this orientation faster than `x · Wᵀ` for the camera
+                        // networks' big layer (11,264 → 512): 1.4-1.8× at a minibatch of 64,
+                        // about 2× at the 2-16 samples of a sim agent's environments, the
+                        // same at 1 (which keeps the plain product). The turn is over the
+                        // small output only.
+                        let out_t = &mut tape.out_t;
+                        out_t.clear();
+                        out_t.extend(b.iter().flat_map(|&v| std::iter::repeat_n(v, batch)));
+                        gemm(out_t, n_out, batch, n_in, w, false, inp, true, true, par);
+                        for (o, col) in out_t.chunks_exact(batch).enumerate() {
+                            for (row, v) in out.chunks_exact_mut(n_out).zip(col) {
+                                row[o] = *v;
+                            }
+                        }
                     }
-                    gemm(out, batch, n_out, n_in, inp, false, w, true, true, par);
                 }
                 Layer::Conv2d { filters, offset, .. } => {
                     let kkc = layer.param_count() / filters - 1;

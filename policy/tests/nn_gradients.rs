@@ -317,3 +317,36 @@ fn issue_8_adam_on_wide_vectors_gives_the_plain_formulas_bits() {
         assert!(threaded.1.iter().zip(&params).all(|(a, b)| a.to_bits() == b.to_bits()), "step {t}: 2 threads differ");
     }
 }
+
+/// A dense layer's forward pass over a batch is made as `outᵀ = b + W · xᵀ` and turned
+/// (faster for the camera networks' big layer), over one sample as `x · Wᵀ`: both give every
+/// sample the plain product, `y = x Wᵀ + b`, computed here in f64, whatever the batch.
+#[test]
+fn issue_8_a_dense_layer_gives_every_batch_size_the_plain_product() {
+    let mut rng = ChaCha8Rng::seed_from_u64(18);
+    let (n_in, n_out) = (300, 17);
+    let mut net = Net::new(InputShape::Flat(n_in), &[LayerSpec::Dense(n_out)], None, &mut rng);
+    for p in net.params.iter_mut() {
+        *p += rng.random_range(-0.05..0.05);
+    }
+    let (w, b) = net.params.split_at(n_in * n_out);
+    for batch in [1, 2, 3, 8, 64] {
+        let x: Vec<f32> = (0..batch * n_in).map(|_| rng.random_range(-1.0..1.0)).collect();
+        let mut tape = Tape::default();
+        net.forward(&x, batch, &mut tape, Par::Seq);
+        let y = tape.output();
+        assert_eq!(y.len(), batch * n_out);
+        for s in 0..batch {
+            for o in 0..n_out {
+                let want =
+                    b[o] as f64 + (0..n_in).map(|i| x[s * n_in + i] as f64 * w[o * n_in + i] as f64).sum::<f64>();
+                let got = y[s * n_out + o] as f64;
+                assert!((got - want).abs() < 1e-4, "batch {batch}, sample {s}, output {o}: {got} against {want}");
+            }
+        }
+        // Two threads: the same numbers.
+        let mut tape2 = Tape::default();
+        net.forward(&x, batch, &mut tape2, Par::rayon(2));
+        assert_eq!(tape2.output(), y, "batch {batch} on two threads");
+    }
+}
