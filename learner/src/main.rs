@@ -303,6 +303,19 @@ fn bench(network: &str, seconds: f64, threads: usize) -> anyhow::Result<()> {
     }
     let ms = t.elapsed().as_secs_f64() * 1e3 / k as f64;
     println!("| inference at batch 1 (policy + value towers), 1 thread | {ms:.3} ms |");
+    // A sim agent acts for all its environments at once (8: `up`'s default 16 over two agents).
+    let envs = 8;
+    let t = Instant::now();
+    let mut k = 0u64;
+    while t.elapsed().as_secs_f64() < seconds.min(3.0) || k < 10 {
+        std::hint::black_box(model.act(&batch.obs[..envs * os], envs, false, &mut rng, Par::Seq));
+        k += 1;
+    }
+    let ms_envs = t.elapsed().as_secs_f64() * 1e3 / k as f64;
+    println!(
+        "| inference over {envs} environments at once (policy + value towers, as a sim agent acts), 1 thread | {ms_envs:.3} ms ({:.3} ms an environment) |",
+        ms_envs / envs as f64
+    );
     let t = Instant::now();
     let mut k = 0u64;
     let pi_only = || {
