@@ -295,39 +295,34 @@ fn bench(network: &str, seconds: f64, threads: usize) -> anyhow::Result<()> {
         );
     }
     let single: Vec<f32> = batch.obs[..os].to_vec();
-    let t = Instant::now();
-    let mut k = 0u64;
-    while t.elapsed().as_secs_f64() < seconds.min(3.0) || k < 10 {
+    // Milliseconds a call of `work` takes, over up to 3 s (at least 10 calls).
+    let ms_per_call = |work: &mut dyn FnMut()| {
+        let t = Instant::now();
+        let mut k = 0u64;
+        while t.elapsed().as_secs_f64() < seconds.min(3.0) || k < 10 {
+            work();
+            k += 1;
+        }
+        t.elapsed().as_secs_f64() * 1e3 / k as f64
+    };
+    let ms = ms_per_call(&mut || {
         std::hint::black_box(model.act(&single, 1, true, &mut rng, Par::Seq));
-        k += 1;
-    }
-    let ms = t.elapsed().as_secs_f64() * 1e3 / k as f64;
+    });
     println!("| inference at batch 1 (policy + value towers), 1 thread | {ms:.3} ms |");
     // A sim agent acts for all its environments at once (8: `up`'s default 16 over two agents).
     let envs = 8;
-    let t = Instant::now();
-    let mut k = 0u64;
-    while t.elapsed().as_secs_f64() < seconds.min(3.0) || k < 10 {
+    let ms_envs = ms_per_call(&mut || {
         std::hint::black_box(model.act(&batch.obs[..envs * os], envs, false, &mut rng, Par::Seq));
-        k += 1;
-    }
-    let ms_envs = t.elapsed().as_secs_f64() * 1e3 / k as f64;
+    });
     println!(
         "| inference over {envs} environments at once (policy + value towers, as a sim agent acts), 1 thread | {ms_envs:.3} ms ({:.3} ms an environment) |",
         ms_envs / envs as f64
     );
-    let t = Instant::now();
-    let mut k = 0u64;
-    let pi_only = || {
+    let ms_pi = ms_per_call(&mut || {
         let mut tape = policy::nn::Tape::default();
         model.pi.forward(&single, 1, &mut tape, Par::Seq);
         std::hint::black_box(tape.output()[0]);
-    };
-    while t.elapsed().as_secs_f64() < seconds.min(3.0) || k < 10 {
-        pi_only();
-        k += 1;
-    }
-    let ms_pi = t.elapsed().as_secs_f64() * 1e3 / k as f64;
+    });
     println!("| inference at batch 1 (policy tower only, as on the car), 1 thread | {ms_pi:.3} ms |");
     Ok(())
 }
@@ -422,14 +417,13 @@ fn gemm_shapes(net: &policy::nn::Net, batch: usize, threads: usize, as_step: boo
         let first = !net.layers[..i].iter().any(|l| l.param_count() > 0);
         match *layer {
             Layer::Dense { inp, out: o, .. } => {
-                // Forward: onto the bias, as `outᵀ = W · xᵀ` over a batch (as `Net::forward`
-                // makes it); the weight gradient: added into the gradient, or for a factored
-                // layer multiplied out by the optimiser into its buffer; the input gradient:
-                // into a buffer of its own.
-                if batch == 1 {
-                    push(1, o, inp, false, true, 0, Operand::C, true);
-                } else {
+                // Forward: onto the bias, turned as `Net::forward` makes it; the weight
+                // gradient: added into the gradient, or for a factored layer multiplied out by
+                // the optimiser into its buffer; the input gradient: into a buffer of its own.
+                if policy::nn::turns_dense_forward(batch) {
                     push(o, batch, inp, false, true, 0, Operand::C, true);
+                } else {
+                    push(batch, o, inp, false, true, 0, Operand::C, true);
                 }
                 push(o, inp, batch, true, false, 0, Operand::A, !factored.contains(&i));
                 if !first {
