@@ -315,7 +315,9 @@ impl Net {
                             }
                         }
                     } else {
-                        out.copy_from_slice(b);
+                        for row in out.chunks_mut(n_out) {
+                            row.copy_from_slice(b);
+                        }
                         gemm(out, batch, n_out, n_in, inp, false, w, true, true, par);
                     }
                 }

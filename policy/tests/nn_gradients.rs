@@ -350,3 +350,16 @@ fn issue_8_a_dense_layer_gives_every_batch_size_the_plain_product() {
         assert_eq!(tape2.output(), y, "batch {batch} on two threads");
     }
 }
+
+/// A forward pass over no samples gives no output: the one-sample orientation of the dense
+/// layer once set its bias with one slice copy of the whole output, which panicked on an
+/// empty batch.
+#[test]
+fn issue_8_a_forward_pass_over_no_samples_gives_no_output() {
+    let mut rng = ChaCha8Rng::seed_from_u64(19);
+    let net =
+        Net::new(InputShape::Flat(10), &[LayerSpec::Dense(4), LayerSpec::Relu, LayerSpec::Dense(2)], None, &mut rng);
+    let mut tape = Tape::default();
+    net.forward(&[], 0, &mut tape, Par::Seq);
+    assert!(tape.output().is_empty());
+}
