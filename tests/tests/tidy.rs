@@ -2,10 +2,12 @@
 //!
 //! - Every Rust file starts with a `//!` doc.
 //! - No unfinished code (`todo!`, `unimplemented!`, "TODO") outside tests.
-//! - The learner and the simulator are peers (issue 8): the `learner` package depends on
+//! - The learner and the simulator are peers: the `learner` package depends on
 //!   neither `sim-agent` nor `tracks`, and `sim-agent` does not depend on `learner`.
 //! - Only `protocol` and the role shells name the wire: the simulator and learner libraries
 //!   (`src/lib.rs` and the modules it declares) do not mention `zenoh` or `protocol`.
+//! - The vendored zenoh patch is the one built: zenoh pinned to its release, and Cargo.lock
+//!   taking the crate from `vendor/`.
 
 use std::path::{Path, PathBuf};
 
@@ -115,4 +117,27 @@ fn the_simulator_and_learner_libraries_do_not_touch_the_wire() {
             }
         }
     }
+}
+
+#[test]
+fn issue_29_the_vendored_zenoh_patch_is_the_one_built() {
+    // `[patch.crates-io]` is silently unused (a warning) once zenoh moves past the patched
+    // release; then the TLS crash vendor/README.md describes is back. So zenoh is pinned to
+    // that release, and the lock file takes zenoh-link-tls from vendor/ (no `source` line).
+    let manifest = std::fs::read_to_string(root().join("Cargo.toml")).unwrap();
+    let vendored = std::fs::read_to_string(root().join("vendor/zenoh-link-tls/Cargo.toml")).unwrap();
+    let version = vendored
+        .lines()
+        .find_map(|l| l.trim().strip_prefix("version = \""))
+        .and_then(|v| v.strip_suffix('"'))
+        .expect("vendor/zenoh-link-tls/Cargo.toml has a version");
+    let pin = format!("zenoh = {{ version = \"={version}\"");
+    assert!(manifest.contains(&pin), "the root Cargo.toml pins zenoh to the patched release: want `{pin}`");
+    let lock = std::fs::read_to_string(root().join("Cargo.lock")).unwrap();
+    let entry = lock
+        .split("[[package]]")
+        .find(|p| p.contains("name = \"zenoh-link-tls\""))
+        .expect("zenoh-link-tls in Cargo.lock");
+    assert!(entry.contains(&format!("version = \"{version}\"")), "Cargo.lock: {entry}");
+    assert!(!entry.contains("source ="), "Cargo.lock takes zenoh-link-tls from crates.io, not vendor/: {entry}");
 }
