@@ -18,7 +18,7 @@ use policy::exchange::{Credit, EvalRequest, PolicyVersion};
 use policy::folder::Manifest;
 use policy::signature::Signer;
 use protocol::exchange::{self as wire, JobView};
-use protocol::job::JobDoc;
+use protocol::job::{JobDoc, StopSpec};
 use protocol::net::{self, DropCounters, NetArgs, Sub, try_next, zenoh};
 use protocol::{AgentStats, AssignmentTable, ExperienceBatch, LearnerStatus, PROTOCOL_VERSION, WorldStats, keys};
 use std::collections::BTreeSet;
@@ -182,11 +182,27 @@ fn follow_job(
 }
 
 /// The run a job describes.
+/// The stop rules a job's `[stop]` table asks for.
+fn stop_rules(s: &StopSpec) -> StopRules {
+    StopRules {
+        minutes: s.minutes,
+        max_episodes: Some(s.max_episodes),
+        target_progress: s.target_progress,
+        target_reward: s.target_reward,
+        window: s.window,
+        env_steps_budget: s.env_steps_budget,
+        target_laps: s
+            .target_laps
+            .map(|l| TargetLaps { laps: l as usize, evaluations: s.target_evals.max(1) as usize }),
+        plateau_evals: (s.plateau_evals > 0).then_some(s.plateau_evals as usize),
+        stop_on_collapse: s.stop_on_collapse,
+    }
+}
+
 fn spec_of(doc: &JobDoc, args: &ServeArgs) -> Result<RunSpec> {
     let metadata = ModelMetadata::parse(&doc.model_metadata_json, "job model_metadata.json")?;
     let hyper = Hyperparameters::parse(&doc.hyperparameters_json, "job hyperparameters.json")?.hyperparameters;
     let camera = !metadata.sensor.contains(&policy::Sensor::StateVector);
-    let s = &doc.stop;
     Ok(RunSpec {
         name: doc.id.clone(),
         metadata,
@@ -201,19 +217,7 @@ fn spec_of(doc: &JobDoc, args: &ServeArgs) -> Result<RunSpec> {
         max_policy_lag: doc.max_policy_lag,
         eval_trials: doc.eval_trials.max(1),
         eval_seconds: args.checkpoint_seconds,
-        stop: StopRules {
-            minutes: s.minutes,
-            max_episodes: Some(s.max_episodes),
-            target_progress: s.target_progress,
-            target_reward: s.target_reward,
-            window: s.window,
-            env_steps_budget: s.env_steps_budget,
-            target_laps: s
-                .target_laps
-                .map(|l| TargetLaps { laps: l as usize, evaluations: s.target_evals.max(1) as usize }),
-            plateau_evals: (s.plateau_evals > 0).then_some(s.plateau_evals as usize),
-            stop_on_collapse: s.stop_on_collapse,
-        },
+        stop: stop_rules(&doc.stop),
         par: if camera { Par::rayon(args.threads) } else { Par::Seq },
         adopt: None,
         signing_key: args.signing_key.clone(),
@@ -554,5 +558,84 @@ impl Link for ZenohLink<'_> {
 
     fn team(&mut self) -> Option<&mut dyn Team> {
         Some(&mut self.team)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn issue_29_each_field_of_a_jobs_stop_table_reaches_its_rule_across_the_wire() {
+        // The rules themselves are tested through a whole run (learner/tests/run_scripted.rs);
+        // here, that a job's `[stop]` table, sent as the `Job` message, asks for the same.
+        let base = StopSpec::default();
+        let table: Vec<(StopSpec, StopRules)> = vec![
+            (base.clone(), StopRules { minutes: 10.0, max_episodes: Some(1_000_000), ..StopRules::default() }),
+            (
+                StopSpec { max_episodes: 60, ..base.clone() },
+                StopRules { max_episodes: Some(60), ..StopRules::default() },
+            ),
+            (
+                StopSpec { minutes: 0.1, ..base.clone() },
+                StopRules { minutes: 0.1, max_episodes: Some(1_000_000), ..StopRules::default() },
+            ),
+            (
+                StopSpec { target_progress: Some(25.0), window: 7, ..base.clone() },
+                StopRules {
+                    target_progress: Some(25.0),
+                    window: 7,
+                    max_episodes: Some(1_000_000),
+                    ..StopRules::default()
+                },
+            ),
+            (
+                StopSpec { target_reward: Some(15.0), ..base.clone() },
+                StopRules { target_reward: Some(15.0), max_episodes: Some(1_000_000), ..StopRules::default() },
+            ),
+            (
+                StopSpec { env_steps_budget: Some(15000), ..base.clone() },
+                StopRules { env_steps_budget: Some(15000), max_episodes: Some(1_000_000), ..StopRules::default() },
+            ),
+            (
+                StopSpec { target_laps: Some(3), target_evals: 2, ..base.clone() },
+                StopRules {
+                    target_laps: Some(TargetLaps { laps: 3, evaluations: 2 }),
+                    max_episodes: Some(1_000_000),
+                    ..StopRules::default()
+                },
+            ),
+            (
+                StopSpec { plateau_evals: 2, ..base.clone() },
+                StopRules { plateau_evals: Some(2), max_episodes: Some(1_000_000), ..StopRules::default() },
+            ),
+            (
+                StopSpec { stop_on_collapse: true, ..base.clone() },
+                StopRules { stop_on_collapse: true, max_episodes: Some(1_000_000), ..StopRules::default() },
+            ),
+        ];
+        for (stop, want) in table {
+            let doc = JobDoc {
+                id: "j".into(),
+                worlds: vec!["reinvent_base".into()],
+                reward_name: "builtin:center_line".into(),
+                reward_source: "builtin:center_line".into(),
+                model_metadata_json: String::new(),
+                hyperparameters_json: String::new(),
+                sim_config_toml: String::new(),
+                out: "run".into(),
+                clone_from: None,
+                seed: 1,
+                envs_per_agent: 8,
+                max_policy_lag: 4,
+                stop: stop.clone(),
+                eval_trials: 3,
+                obs_size: 12,
+                observation_json: "{}".into(),
+                tracks: vec![],
+            };
+            let back = protocol::job::from_wire(protocol::job::to_wire(&doc), "j").unwrap();
+            assert_eq!(stop_rules(&back.stop), want, "{stop:?}");
+        }
     }
 }

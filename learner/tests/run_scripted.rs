@@ -1,0 +1,330 @@
+//! The training run ([`learner::run::run`]) against a scripted worker: a [`Link`] that answers
+//! every grant at once with made-up episodes (acted by the published policy, so PPO's ratios
+//! are real) and every evaluation request with trials of a chosen progress. No simulator and
+//! no network: each run takes well under a second, so the stop rules and the learning-rate
+//! schedule are checked as tables here, through the whole run (standing, stop, final
+//! evaluation, model folder, metrics), and the CLI and cluster tests keep one case each.
+
+use faer::Par;
+use learner::Hyperparameters;
+use learner::hyperparams::LrSchedule;
+use learner::run::{Inbound, Link, LinkError, Quiet, RunSpec, RunStatus, Start, StopRules, Summary, TargetLaps};
+use policy::exchange::{Credit, EvalReport, EvalRequest, Experience, PolicyVersion, Trial};
+use policy::folder::Manifest;
+use policy::signature::Signer;
+use policy::{ModelMetadata, Trajectory};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use std::collections::{BTreeMap, VecDeque};
+use std::path::Path;
+use std::time::Duration;
+
+const WORLD: &str = "reinvent_base";
+const WORKER: &str = "scripted";
+const OBS: usize = 6;
+
+/// What the scripted worker's episodes and evaluations look like.
+#[derive(Clone, Copy, Debug)]
+struct Script {
+    /// Steps per episode (each with reward 1).
+    steps: usize,
+    /// Progress (%) every episode ends at.
+    progress: f64,
+    /// Progress of evaluation `n` (from 0): trials of 100 % lap.
+    eval: fn(u64) -> f64,
+}
+
+/// A worker that does at once whatever it is granted or asked.
+struct Scripted {
+    script: Script,
+    rng: ChaCha8Rng,
+    policy: Option<PolicyVersion>,
+    /// Episodes already delivered per (version, round): a grant is announced again and again.
+    delivered: BTreeMap<(u64, u64), u64>,
+    inbox: VecDeque<Inbound>,
+    seq: u64,
+    evals: u64,
+}
+
+impl Scripted {
+    fn new(script: Script) -> Scripted {
+        Scripted {
+            script,
+            rng: ChaCha8Rng::seed_from_u64(5),
+            policy: None,
+            delivered: BTreeMap::new(),
+            inbox: VecDeque::new(),
+            seq: 0,
+            evals: 0,
+        }
+    }
+
+    fn episode(&mut self, version: u64, n: u64) -> Trajectory {
+        let p = self.policy.as_ref().expect("a policy is published before any grant");
+        let steps = self.script.steps;
+        let obs: Vec<f32> = (0..steps * OBS).map(|_| self.rng.random_range(-1.0..1.0)).collect();
+        let acts = p.model.act(&obs, steps, false, &mut self.rng, Par::Seq);
+        Trajectory {
+            world: WORLD.into(),
+            env: 0,
+            episode: n,
+            policy_version: version,
+            obs,
+            choices: acts.iter().map(|a| a.choice).collect(),
+            logp: acts.iter().map(|a| a.logp).collect(),
+            values: acts.iter().map(|a| a.value).collect(),
+            rewards: vec![1.0; steps],
+            done: true,
+            progress: self.script.progress,
+            lap_complete: self.script.progress >= 100.0,
+            track_len: 17.7,
+            trace: vec![],
+        }
+    }
+}
+
+impl Link for Scripted {
+    fn publish(&mut self, policy: &PolicyVersion, _: &Manifest, _: &Signer) -> Result<(), LinkError> {
+        self.policy = Some(policy.clone());
+        Ok(())
+    }
+
+    fn grant(&mut self, credit: &Credit) -> Result<(), LinkError> {
+        let want = credit.episodes.get(WORKER).copied().unwrap_or(0);
+        let done = self.delivered.entry((credit.version, credit.round)).or_default();
+        let more = want.saturating_sub(*done);
+        *done = want;
+        if more == 0 {
+            return Ok(());
+        }
+        let trajectories: Vec<Trajectory> = (0..more).map(|i| self.episode(credit.version, i)).collect();
+        self.seq += 1;
+        let env_steps = trajectories.iter().map(|t| t.rewards.len() as u64).sum();
+        self.inbox.push_back(Inbound::Experience(Experience {
+            worker: WORKER.into(),
+            seq: self.seq,
+            credit: (credit.version, credit.round),
+            trajectories,
+            env_steps,
+            seconds: 0.01,
+            frame: None,
+        }));
+        Ok(())
+    }
+
+    fn request_eval(&mut self, req: &EvalRequest) -> Result<(), LinkError> {
+        let progress = (self.script.eval)(self.evals);
+        self.evals += 1;
+        let trial = |_| Trial {
+            progress,
+            lap_time: (progress >= 100.0).then_some(12.0),
+            steps: 100,
+            status: if progress >= 100.0 { "lap_complete" } else { "off_track" }.into(),
+            track_len: 17.7,
+            ..Default::default()
+        };
+        self.inbox.push_back(Inbound::Eval(EvalReport {
+            id: req.id,
+            worker: req.worker.clone(),
+            version: req.version,
+            world: req.world.clone(),
+            trials: Ok((0..req.trials).map(trial).collect()),
+        }));
+        Ok(())
+    }
+
+    fn next(&mut self, timeout: Duration) -> Result<Option<Inbound>, LinkError> {
+        match self.inbox.pop_front() {
+            Some(m) => Ok(Some(m)),
+            None => {
+                std::thread::sleep(timeout.min(Duration::from_millis(5)));
+                Ok(None)
+            }
+        }
+    }
+
+    fn status(&mut self, _: &RunStatus) -> Result<(), LinkError> {
+        Ok(())
+    }
+
+    fn workers(&mut self) -> Vec<String> {
+        vec![WORKER.into()]
+    }
+}
+
+fn spec(out: &Path, stop: StopRules, hyper: Hyperparameters) -> RunSpec {
+    RunSpec {
+        name: "scripted".into(),
+        metadata: ModelMetadata::default_state_vector(),
+        hyper,
+        obs_size: OBS,
+        observation: serde_json::json!({}),
+        sim_toml: String::new(),
+        worlds: vec![WORLD.into()],
+        out: out.to_path_buf(),
+        start: Start::New { clone_from: None },
+        seed: 1,
+        max_policy_lag: 4,
+        eval_trials: 3,
+        eval_seconds: 0.0,
+        stop,
+        par: Par::Seq,
+        adopt: None,
+        signing_key: None,
+        tracks: vec![],
+    }
+}
+
+/// Small updates: 10 episodes each, one epoch.
+fn quick() -> Hyperparameters {
+    Hyperparameters { num_episodes_between_training: 10, num_epochs: 1, batch_size: 32, ..Default::default() }
+}
+
+/// Stop rules that never fire on their own within a test (a long time limit, nothing else).
+fn never() -> StopRules {
+    StopRules { minutes: 30.0, ..StopRules::default() }
+}
+
+fn run_with(dir: &Path, name: &str, stop: StopRules, hyper: Hyperparameters, script: Script) -> Summary {
+    let out = dir.join(name);
+    let mut link = Scripted::new(script);
+    learner::run::run(&spec(&out, stop, hyper), &mut link, &mut Quiet).unwrap_or_else(|e| panic!("{name}: {e:#}"))
+}
+
+fn lines(path: &Path) -> Vec<serde_json::Value> {
+    std::fs::read_to_string(path)
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect()
+}
+
+const HALFWAY: Script = Script { steps: 20, progress: 30.0, eval: |_| 50.0 };
+
+#[test]
+fn issue_29_every_stop_condition_ends_the_run_with_its_reason_an_evaluation_and_a_model() {
+    let dir = tempfile::tempdir().unwrap();
+    let h = quick();
+    // (row, rules, hyperparameters, script, the reason's words)
+    let table: Vec<(&str, StopRules, Hyperparameters, Script, &str)> = vec![
+        ("episodes", StopRules { max_episodes: Some(60), ..never() }, h.clone(), HALFWAY, "60 episodes reached"),
+        (
+            "env_steps",
+            StopRules { env_steps_budget: Some(1500), ..never() },
+            h.clone(),
+            HALFWAY,
+            "compute budget of 1500 env steps",
+        ),
+        (
+            "progress",
+            StopRules { target_progress: Some(25.0), ..never() },
+            h.clone(),
+            HALFWAY,
+            "mean progress 30.0 % over the last 20 episodes reached the target 25",
+        ),
+        (
+            "reward",
+            StopRules { target_reward: Some(15.0), ..never() },
+            h.clone(),
+            HALFWAY,
+            "mean reward 20.0 over the last 20 episodes reached the target 15",
+        ),
+        ("minutes", StopRules { minutes: 0.02, ..StopRules::default() }, h.clone(), HALFWAY, "time limit of 0.02 min"),
+        (
+            "term_cond_max_episodes",
+            never(),
+            Hyperparameters { term_cond_max_episodes: 40, ..h.clone() },
+            HALFWAY,
+            "term_cond_max_episodes (40)",
+        ),
+        (
+            "term_cond_avg_score",
+            never(),
+            Hyperparameters { term_cond_avg_score: 12.0, ..h.clone() },
+            HALFWAY,
+            "term_cond_avg_score (12)",
+        ),
+        (
+            "laps",
+            StopRules { target_laps: Some(TargetLaps { laps: 3, evaluations: 2 }), ..never() },
+            h.clone(),
+            Script { eval: |n| if n >= 2 { 100.0 } else { 40.0 }, ..HALFWAY },
+            "target laps reached: 3 laps in 2 consecutive evaluations",
+        ),
+        (
+            "plateau",
+            StopRules { plateau_evals: Some(2), ..never() },
+            h.clone(),
+            HALFWAY,
+            "plateau: evaluation progress has not improved",
+        ),
+        (
+            "collapse",
+            StopRules { stop_on_collapse: true, ..never() },
+            h.clone(),
+            Script { eval: |n| if n < 3 { 100.0 } else { 10.0 }, ..HALFWAY },
+            "collapse: evaluation progress fell to 10.0 %",
+        ),
+    ];
+    for (row, stop, hyper, script, want) in table {
+        let s = run_with(dir.path(), row, stop, hyper, script);
+        assert!(s.stop_reason.contains(want), "{row}: stopped because {:?}, want {want:?}", s.stop_reason);
+        let out = dir.path().join(row);
+        // Whatever stopped it: the final model was evaluated and saved, the records are whole.
+        assert!(out.join("model/model.safetensors").exists(), "{row}: no model");
+        let evals = lines(&out.join("evaluations.jsonl"));
+        assert!(!evals.is_empty(), "{row}: no evaluation");
+        let metrics = lines(&out.join("metrics.jsonl"));
+        assert_eq!(metrics.len() as u64, s.iterations, "{row}: one metrics line per update");
+        let episodes: u64 = metrics.iter().map(|m| m["episodes"].as_u64().unwrap()).sum();
+        assert_eq!(episodes, s.episodes, "{row}: the episodes trained on, counted once");
+        assert_eq!(s.env_steps, 20 * s.episodes_received, "{row}: every step delivered counted");
+        assert_eq!(s.dropped_stale, 0, "{row}");
+    }
+}
+
+#[test]
+fn issue_29_a_run_with_nothing_to_stop_it_goes_on() {
+    // The scripted worker never meets a target: 25 updates and still running when the
+    // episodes run out (a budget far above them), so no rule fires early by mistake.
+    let dir = tempfile::tempdir().unwrap();
+    let stop = StopRules {
+        max_episodes: Some(250),
+        target_progress: Some(99.0),
+        target_reward: Some(1000.0),
+        target_laps: Some(TargetLaps { laps: 3, evaluations: 2 }),
+        ..never()
+    };
+    let s = run_with(dir.path(), "long", stop, quick(), HALFWAY);
+    assert!(s.stop_reason.contains("250 episodes reached"), "{}", s.stop_reason);
+    assert_eq!(s.iterations, 25);
+}
+
+#[test]
+fn issue_29_the_learning_rate_cools_down_over_the_second_half_of_the_budget_unless_a_target_ends_the_job() {
+    // A budget of 100 episodes is 10 updates of 10. The first half trains at `lr`; from
+    // there the rate falls in a straight line towards zero at the budget's end, so the
+    // job's last model is not caught mid-stride. "constant" keeps DeepRacer's fixed rate, and
+    // so does a job that stops at a target (here one it never reaches): its budget is a cap.
+    let dir = tempfile::tempdir().unwrap();
+    let budget = StopRules { max_episodes: Some(100), ..never() };
+    let cooldown = [1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 0.8, 0.6, 0.4, 0.2].map(|f| 3e-4 * f);
+    for (row, hyper, stop, want) in [
+        ("cooldown", quick(), budget.clone(), cooldown),
+        (
+            "constant",
+            Hyperparameters { lr: 2e-4, lr_schedule: LrSchedule::Constant, ..quick() },
+            budget.clone(),
+            [2e-4; 10],
+        ),
+        ("target", quick(), StopRules { target_reward: Some(1e6), ..budget.clone() }, [3e-4; 10]),
+    ] {
+        run_with(dir.path(), row, stop, hyper, HALFWAY);
+        let lrs: Vec<f64> =
+            lines(&dir.path().join(row).join("metrics.jsonl")).iter().map(|m| m["lr"].as_f64().unwrap()).collect();
+        assert_eq!(lrs.len(), want.len(), "{row}: {lrs:?}");
+        for (got, want) in lrs.iter().zip(want) {
+            assert!((got - want).abs() < 1e-9, "{row}: {lrs:?}");
+        }
+    }
+}
