@@ -1,4 +1,5 @@
-//! `coordinator bench cluster|pixels|wire|publish`: what distribution costs.
+//! `coordinator bench cluster|pixels|wire|publish|record|long-job`: what distribution costs, and
+//! the checks of quality that take minutes of training.
 //!
 //! - `cluster`: useful work end to end: samples trained on per second (the steps of the episodes
 //!   the learner used, every update's optimiser step included), of the single-process trainer
@@ -9,6 +10,8 @@
 //!   evaluated on the training worlds and on tracks they never saw.
 //! - `wire`: experience throughput agent -> learner, plain TCP against mutual TLS with the
 //!   access rules (the cost of a secured cluster), interleaved rounds in one run.
+//! - `long-job`: the quality of a long `up` job's last model (it must still lap every world),
+//!   with a verdict; minutes of training, so it is a benchmark and not a test.
 //! - `publish`: time from publishing a SHALLOW camera model until 4 agent sessions on loopback
 //!   hold it, and the bytes per env step of experience on the wire.
 
@@ -719,4 +722,63 @@ fn folder_bytes(dir: &std::path::Path) -> u64 {
                 .sum()
         })
         .unwrap_or(0)
+}
+
+/// `bench long-job`: an `up` job on two worlds with two agents for `minutes`, then the model of
+/// its last update evaluated; the verdict's exit code is 0 (pass) or 1 (fail).
+pub fn long_job(minutes: f64, trials: u32, out: &std::path::Path) -> Result<i32> {
+    let me = std::env::current_exe()?;
+    if out.exists() {
+        bail!("{} exists: pass another --out, or delete it", out.display());
+    }
+    std::fs::create_dir_all(out).with_context(|| format!("{}", out.display()))?;
+    let worlds = ["reinvent_carpet", "reinvent_concrete"];
+    let mut args: Vec<String> = vec!["up".into()];
+    for w in worlds {
+        args.extend(["--world".into(), w.into()]);
+    }
+    // Stability is under test, not the logs: no gigabytes of sim-trace.
+    args.extend(["--agents", "2", "--set", "record_trace=false", "--out", "up"].map(String::from));
+    args.extend(["--minutes".into(), minutes.to_string()]);
+    child(&me, out, &args)?;
+    let run = out.join("up/run");
+    let index: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("checkpoints/deepracer_checkpoints.json"))?)?;
+    let last = &index["last_checkpoint"];
+    let iterations = last["iteration"].as_u64().unwrap_or(0);
+    let name = last["name"].as_str().context("deepracer_checkpoints.json names no last checkpoint")?;
+    let mut eval: Vec<String> = vec!["evaluate".into(), format!("up/run/checkpoints/{name}")];
+    for w in worlds {
+        eval.extend(["--world".into(), w.into()]);
+    }
+    eval.extend(["--trials".into(), trials.to_string()]);
+    let table = child(&me, out, &eval)?;
+    let all = trials as usize * worlds.len();
+    // `evaluate` ends with "N of M laps completed, …".
+    let laps = table
+        .lines()
+        .filter(|l| l.contains("laps completed"))
+        .find_map(|l| l.split(" of ").next()?.split_whitespace().last()?.parse::<usize>().ok())
+        .unwrap_or(0);
+    let summary: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("up/summary.json"))?)?;
+    let l = &summary["learner"];
+    let received = l["episodes_received"].as_f64().unwrap_or(0.0);
+    let stale = l["dropped_stale"].as_f64().unwrap_or(0.0);
+    let checks = [
+        (format!("the last model ({name}) laps every trial"), format!("{laps} of {all}"), laps == all),
+        ("updates went on past 120 iterations".to_string(), iterations.to_string(), iterations >= 120),
+        (
+            "episodes dropped as stale at most 5 %".to_string(),
+            format!("{stale:.0} of {received:.0}"),
+            received > 0.0 && stale <= 0.05 * received,
+        ),
+    ];
+    println!("{table}");
+    println!("| check | figure | verdict |\n|---|---|---|");
+    for (what, figure, ok) in &checks {
+        println!("| {what} | {figure} | {} |", if *ok { "pass" } else { "FAIL" });
+    }
+    let pass = checks.iter().all(|c| c.2);
+    println!("verdict: {} ({} min job, run folder {})", if pass { "PASS" } else { "FAIL" }, minutes, run.display());
+    Ok(if pass { 0 } else { 1 })
 }

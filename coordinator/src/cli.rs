@@ -175,6 +175,21 @@ pub enum BenchCommand {
         #[arg(long, default_value_t = 3)]
         rounds: usize,
     },
+    /// A quality check of minutes: the README's kind of job (`up`, two worlds, two agents) run
+    /// long, then the model of its last update evaluated on both worlds. Prints a verdict
+    /// (exit 1 when it fails): the last model still laps every trial, updates went on past
+    /// 120 iterations, and at most 5 % of the episodes were dropped as stale.
+    LongJob {
+        /// Minutes of the job.
+        #[arg(long, default_value_t = 3.0)]
+        minutes: f64,
+        /// Evaluation trials per world.
+        #[arg(long, default_value_t = 3)]
+        trials: u32,
+        /// Where the run goes (kept).
+        #[arg(long, default_value = "runs/bench-long-job")]
+        out: PathBuf,
+    },
     /// Publish-to-4-agents latency of a SHALLOW camera model; bytes per env step.
     Publish {
         /// Publications to time.
@@ -294,9 +309,38 @@ pub enum JobCommand {
 
 #[derive(Args)]
 pub struct UpArgs {
+    /// Run this job spec as it is (what `job start` takes) instead of one made from the flags
+    /// below that describe a job (worlds, reward, files, stop conditions, --set, --seed).
+    #[arg(long, value_name = "JOB.toml", conflicts_with_all = [
+        "world", "reward", "sensor", "hyperparameters", "model_metadata", "clone_from", "minutes",
+        "max_episodes", "env_steps", "target_progress", "target_reward", "window", "target_laps",
+        "target_evals", "stop_on_plateau", "stop_on_collapse", "sets", "seed",
+    ])]
+    pub job: Option<PathBuf>,
     /// World (repeatable; default: reinvent_carpet and reinvent_concrete).
     #[arg(long)]
     pub world: Vec<String>,
+    /// DeepRacer's hyperparameters.json.
+    #[arg(long)]
+    pub hyperparameters: Option<PathBuf>,
+    /// DeepRacer's model_metadata.json (action space, sensor, network); instead of --sensor.
+    #[arg(long, conflicts_with = "sensor")]
+    pub model_metadata: Option<PathBuf>,
+    /// Start from this model folder's weights (transfer learning).
+    #[arg(long, value_name = "MODEL_DIR")]
+    pub clone_from: Option<PathBuf>,
+    /// Stop after this many episodes trained on.
+    #[arg(long)]
+    pub max_episodes: Option<u64>,
+    /// Stop once this many environment steps have been simulated (a compute budget).
+    #[arg(long)]
+    pub env_steps: Option<u64>,
+    /// Stop when the mean episode reward over the last --window episodes reaches this.
+    #[arg(long)]
+    pub target_reward: Option<f64>,
+    /// Episodes in the window of --target-progress and --target-reward.
+    #[arg(long, default_value_t = 20)]
+    pub window: u64,
     /// Sim agent processes.
     #[arg(long, default_value_t = 2)]
     pub agents: usize,
@@ -306,7 +350,7 @@ pub struct UpArgs {
     /// Time limit (minutes).
     #[arg(long, default_value_t = 2.0)]
     pub minutes: f64,
-    /// Stop early when the mean progress over the last 20 episodes reaches this (%).
+    /// Stop early when the mean progress over the last --window episodes reaches this (%).
     #[arg(long)]
     pub target_progress: Option<f64>,
     /// Stop early once an evaluation completes this many laps on every world...

@@ -184,4 +184,26 @@ mod tests {
         assert_eq!(ok.reward_source, "builtin:center_line");
         assert_eq!(ok.out, "runs/j");
     }
+
+    #[test]
+    fn issue_29_every_stop_key_is_read_into_the_job() {
+        let dir = std::env::temp_dir();
+        let text = "worlds = [\"reinvent_base\"]\n[stop]\nminutes = 0.1\nmax_episodes = 60\nenv_steps_budget = 15000\n\
+                    target_progress = 25\ntarget_reward = 15\nwindow = 7\ntarget_laps = 3\ntarget_evals = 2\n\
+                    plateau_evals = 4\nstop_on_collapse = true\n";
+        let doc = parse(text, &dir, "job.toml", "j").unwrap();
+        let want = StopSpec {
+            minutes: 0.1,
+            max_episodes: 60,
+            target_progress: Some(25.0),
+            target_reward: Some(15.0),
+            window: 7,
+            env_steps_budget: Some(15000),
+            target_laps: Some(3),
+            target_evals: 2,
+            plateau_evals: 4,
+            stop_on_collapse: true,
+        };
+        assert_eq!(doc.stop, want);
+    }
 }

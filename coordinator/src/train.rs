@@ -113,6 +113,22 @@ impl Observer for Terminal {
     }
 }
 
+/// The stop rules `train`'s flags ask for.
+fn stop_rules(args: &TrainArgs) -> StopRules {
+    StopRules {
+        minutes: args.minutes,
+        max_episodes: args.max_episodes,
+        target_progress: args.target_progress,
+        target_reward: args.target_reward,
+        window: args.window.max(1),
+        env_steps_budget: args.env_steps,
+        target_laps: (args.target_laps > 0)
+            .then(|| TargetLaps { laps: args.target_laps, evaluations: args.target_evals.max(1) }),
+        plateau_evals: args.stop_on_plateau,
+        stop_on_collapse: args.stop_on_collapse,
+    }
+}
+
 pub fn train(args: TrainArgs) -> Result<i32> {
     let worlds_arg = if args.world.is_empty() { vec!["reinvent_base".to_string()] } else { args.world.clone() };
     let out = args.out.clone().unwrap_or_else(|| default_run_dir(&worlds_arg.join("+")));
@@ -169,18 +185,7 @@ pub fn train(args: TrainArgs) -> Result<i32> {
         max_policy_lag: 4,
         eval_trials: args.trials.max(1) as u32,
         eval_seconds: args.checkpoint_seconds,
-        stop: StopRules {
-            minutes: args.minutes,
-            max_episodes: args.max_episodes,
-            target_progress: args.target_progress,
-            target_reward: args.target_reward,
-            window: args.window.max(1),
-            env_steps_budget: args.env_steps,
-            target_laps: (args.target_laps > 0)
-                .then(|| TargetLaps { laps: args.target_laps, evaluations: args.target_evals.max(1) }),
-            plateau_evals: args.stop_on_plateau,
-            stop_on_collapse: args.stop_on_collapse,
-        },
+        stop: stop_rules(&args),
         // The camera networks are big enough to split over the cores; the MLP is not.
         par: if camera { Par::rayon(threads) } else { Par::Seq },
         adopt: None,
@@ -363,4 +368,43 @@ pub fn clone_cmd(args: CloneArgs) -> Result<i32> {
         args.out.display()
     );
     Ok(0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cli::{Cli, Command};
+    use clap::Parser;
+
+    fn rules(flags: &[&str]) -> StopRules {
+        let cli = Cli::try_parse_from(["coordinator", "train"].iter().chain(flags)).unwrap();
+        let Command::Train(args) = cli.command else { panic!("not train") };
+        stop_rules(&args)
+    }
+
+    #[test]
+    fn issue_29_each_stop_flag_sets_its_rule_and_only_that() {
+        // The run's stop rules are tested through a whole run in learner/tests/run_scripted.rs;
+        // here, that each flag of `train` reaches its rule.
+        let base = rules(&[]);
+        assert_eq!(base.target_laps, Some(TargetLaps { laps: 3, evaluations: 2 }), "{base:?}");
+        let table: Vec<(&[&str], StopRules)> = vec![
+            (&["--max-episodes", "60"], StopRules { max_episodes: Some(60), ..base.clone() }),
+            (&["--env-steps", "15000"], StopRules { env_steps_budget: Some(15000), ..base.clone() }),
+            (&["--target-progress", "25"], StopRules { target_progress: Some(25.0), ..base.clone() }),
+            (&["--target-reward", "15"], StopRules { target_reward: Some(15.0), ..base.clone() }),
+            (&["--minutes", "0.1"], StopRules { minutes: 0.1, ..base.clone() }),
+            (&["--window", "7"], StopRules { window: 7, ..base.clone() }),
+            (&["--target-laps", "0"], StopRules { target_laps: None, ..base.clone() }),
+            (
+                &["--target-laps", "2", "--target-evals", "4"],
+                StopRules { target_laps: Some(TargetLaps { laps: 2, evaluations: 4 }), ..base.clone() },
+            ),
+            (&["--stop-on-plateau", "2"], StopRules { plateau_evals: Some(2), ..base.clone() }),
+            (&["--stop-on-collapse"], StopRules { stop_on_collapse: true, ..base.clone() }),
+        ];
+        for (flags, want) in table {
+            assert_eq!(rules(flags), want, "{flags:?}");
+        }
+    }
 }

@@ -210,58 +210,21 @@ pub fn up(args: UpArgs) -> Result<i32> {
             &logs.join(format!("agent-{i}.log")),
         )?;
     }
-    // The job spec, written where the user can read and re-use it.
-    let worlds = if args.world.is_empty() {
-        vec!["reinvent_carpet".to_string(), "reinvent_concrete".to_string()]
-    } else {
-        args.world.clone()
-    };
-    let reward_line = match &args.reward {
-        Some(r) if !r.starts_with("builtin:") => format!(
-            "reward = {:?}\n",
-            Path::new(r).canonicalize().with_context(|| format!("reward file {r}"))?.display().to_string()
-        ),
-        Some(r) => format!("reward = {r:?}\n"),
-        None => String::new(),
-    };
-    let mut target = args.target_progress.map(|t| format!("target_progress = {t}\n")).unwrap_or_default();
-    if let Some(l) = args.target_laps {
-        target += &format!("target_laps = {l}\ntarget_evals = {}\n", args.target_evals.max(1));
-    }
-    if let Some(p) = args.stop_on_plateau {
-        target += &format!("plateau_evals = {p}\n");
-    }
-    if args.stop_on_collapse {
-        target += "stop_on_collapse = true\n";
-    }
-    // `--set` overrides, checked against the simulator configuration now, kept in the spec.
-    let sim: sim_agent::SimConfig = sim_agent::config::load_config(None, &args.sets)?;
-    let sim_table = if args.sets.is_empty() {
-        String::new()
-    } else {
-        let mut t = toml::Table::new();
-        t.insert("sim".into(), toml::Value::try_from(&sim)?);
-        toml::to_string(&t)?
-    };
-    let meta_line = match args.sensor.as_str() {
-        "state" => String::new(),
-        "camera" => {
-            std::fs::write(out.join("model_metadata.json"), policy::ModelMetadata::default_camera().to_json())?;
-            "model_metadata = \"model_metadata.json\"\n".to_string()
+    // The job: the user's spec as it is, or one made from the flags and written where the
+    // user can read and re-use it.
+    let spec_path = match &args.job {
+        Some(p) => p.clone(),
+        None => {
+            let spec_path = out.join("job.toml");
+            std::fs::write(&spec_path, job_spec(&args, &out)?)?;
+            spec_path
         }
-        other => bail!("--sensor is {other:?}, expected \"state\" or \"camera\""),
     };
-    let spec = format!(
-        "# Written by `coordinator up`; `coordinator job start` takes this file as it is.\nworlds = {worlds:?}\n{reward_line}{meta_line}out = {:?}\nenvs_per_agent = {}\nseed = {}\n[stop]\nminutes = {}\n{target}{sim_table}",
-        out.join("run").display().to_string(),
-        args.envs,
-        args.seed,
-        args.minutes
-    );
-    let spec_path = out.join("job.toml");
-    std::fs::write(&spec_path, &spec)?;
     let id = crate::client::new_job_id(&spec_path, Some("up"));
     let doc = coordinator::jobspec::load(&spec_path, &id)?;
+    // The learner runs here: a spec's relative run folder is relative to here.
+    let run_dir = PathBuf::from(&doc.out);
+    let minutes = doc.stop.minutes;
     let session = net::open(&NetArgs { connect: vec![endpoint.clone()], certs: certs.clone(), ..Default::default() })?;
     let t0 = Instant::now();
     let started = loop {
@@ -283,12 +246,12 @@ pub fn up(args: UpArgs) -> Result<i32> {
     println!(
         "job {id}: {} agent(s) x {} envs on {} for up to {} min; coordinator on {endpoint}; logs in {}",
         args.agents,
-        args.envs,
-        worlds.join(", "),
-        args.minutes,
+        doc.envs_per_agent,
+        doc.worlds.join(", "),
+        minutes,
         logs.display()
     );
-    let bar = ProgressBar::new((args.minutes * 60.0) as u64)
+    let bar = ProgressBar::new((minutes * 60.0) as u64)
         .with_style(ProgressStyle::with_template("{elapsed_precise} [{bar:25}] {msg}").expect("template"));
     write_pids(&logs, &children)?;
     let mut pending: Vec<String> = Vec::new();
@@ -324,7 +287,7 @@ pub fn up(args: UpArgs) -> Result<i32> {
             Some("finished") | Some("failed") => break (r.text, v),
             _ => {}
         }
-        if t0.elapsed().as_secs_f64() > args.minutes * 60.0 + 120.0 {
+        if t0.elapsed().as_secs_f64() > minutes * 60.0 + 120.0 {
             bail!("the job did not finish within its time limit plus 2 minutes; see {}", logs.display());
         }
     };
@@ -332,11 +295,171 @@ pub fn up(args: UpArgs) -> Result<i32> {
     println!("{}", final_json.0.trim_end());
     let state = final_json.1.get("state").and_then(|s| s.as_str()).unwrap_or("").to_string();
     std::fs::write(out.join("summary.json"), serde_json::to_string_pretty(&final_json.1)?)?;
-    println!(
-        "model folder: {}; summary: {}",
-        out.join("run").join("model").display(),
-        out.join("summary.json").display()
-    );
+    println!("model folder: {}; summary: {}", run_dir.join("model").display(), out.join("summary.json").display());
     drop(children);
     Ok(if state == "finished" { 0 } else { 1 })
+}
+
+/// A path in the job spec: absolute, so that the spec reads the same from anywhere.
+fn absolute(flag: &str, p: &Path) -> Result<String> {
+    Ok(p.canonicalize().with_context(|| format!("{flag} {}", p.display()))?.display().to_string())
+}
+
+/// The job spec `up`'s flags describe (TOML, as `job start` takes it), with its run folder in
+/// `out/run`. Files (reward, metadata, hyperparameters, a model to clone) are named by absolute
+/// paths; `--sensor camera` writes DeepRacer's default camera metadata into `out`.
+fn job_spec(args: &UpArgs, out: &Path) -> Result<String> {
+    use toml::Value;
+    let mut t = toml::Table::new();
+    let worlds = if args.world.is_empty() {
+        vec!["reinvent_carpet".to_string(), "reinvent_concrete".to_string()]
+    } else {
+        args.world.clone()
+    };
+    t.insert("worlds".into(), Value::Array(worlds.into_iter().map(Value::String).collect()));
+    match &args.reward {
+        Some(r) if r.starts_with("builtin:") => {
+            t.insert("reward".into(), Value::String(r.clone()));
+        }
+        Some(r) => {
+            t.insert("reward".into(), Value::String(absolute("reward file", Path::new(r))?));
+        }
+        None => {}
+    }
+    let meta = match (&args.model_metadata, args.sensor.as_str()) {
+        (Some(p), _) => Some(absolute("--model-metadata", p)?),
+        (None, "state") => None,
+        (None, "camera") => {
+            let p = out.join("model_metadata.json");
+            std::fs::write(&p, policy::ModelMetadata::default_camera().to_json())?;
+            Some(p.display().to_string())
+        }
+        (None, other) => bail!("--sensor is {other:?}, expected \"state\" or \"camera\""),
+    };
+    if let Some(m) = meta {
+        t.insert("model_metadata".into(), Value::String(m));
+    }
+    if let Some(h) = &args.hyperparameters {
+        t.insert("hyperparameters".into(), Value::String(absolute("--hyperparameters", h)?));
+    }
+    if let Some(c) = &args.clone_from {
+        t.insert("clone_from".into(), Value::String(absolute("--clone-from", c)?));
+    }
+    t.insert("out".into(), Value::String(out.join("run").display().to_string()));
+    t.insert("envs_per_agent".into(), Value::Integer(args.envs as i64));
+    t.insert("seed".into(), Value::Integer(args.seed as i64));
+    let mut stop = toml::Table::new();
+    stop.insert("minutes".into(), Value::Float(args.minutes));
+    let int = |v: u64| Value::Integer(v as i64);
+    for (key, v) in [
+        ("max_episodes", args.max_episodes.map(int)),
+        ("env_steps_budget", args.env_steps.map(int)),
+        ("target_progress", args.target_progress.map(Value::Float)),
+        ("target_reward", args.target_reward.map(Value::Float)),
+        ("window", Some(int(args.window))),
+        ("target_laps", args.target_laps.map(|l| int(l.into()))),
+        ("target_evals", args.target_laps.map(|_| int(args.target_evals.max(1).into()))),
+        ("plateau_evals", args.stop_on_plateau.map(|p| int(p.into()))),
+        ("stop_on_collapse", args.stop_on_collapse.then_some(Value::Boolean(true))),
+    ] {
+        if let Some(v) = v {
+            stop.insert(key.into(), v);
+        }
+    }
+    t.insert("stop".into(), Value::Table(stop));
+    // `--set` overrides, checked against the simulator configuration now, kept in the spec.
+    if !args.sets.is_empty() {
+        let sim: sim_agent::SimConfig = sim_agent::config::load_config(None, &args.sets)?;
+        t.insert("sim".into(), Value::try_from(&sim)?);
+    }
+    Ok(format!(
+        "# Written by `coordinator up`; `coordinator job start` takes this file as it is.\n{}",
+        toml::to_string(&t)?
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cli::{Cli, Command};
+    use clap::Parser;
+
+    fn spec(flags: &[&str], out: &Path) -> protocol::job::JobDoc {
+        let cli = Cli::try_parse_from(["coordinator", "up"].iter().chain(flags)).unwrap();
+        let Command::Up(args) = cli.command else { panic!("not up") };
+        let text = job_spec(&args, out).unwrap();
+        coordinator::jobspec::parse(&text, out, "job.toml", "up").unwrap_or_else(|e| panic!("{e:#}\n{text}"))
+    }
+
+    #[test]
+    fn issue_29_up_takes_every_input_train_takes_into_its_job() {
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        std::fs::write(d.join("h.json"), r#"{"batch_size": 32, "term_cond_max_episodes": 40}"#).unwrap();
+        std::fs::write(d.join("m.json"), policy::ModelMetadata::default_state_vector().to_json()).unwrap();
+        let h = d.join("h.json").display().to_string();
+        let m = d.join("m.json").display().to_string();
+        let job = spec(
+            &[
+                "--world",
+                "reinvent_wood",
+                "--hyperparameters",
+                &h,
+                "--model-metadata",
+                &m,
+                "--max-episodes",
+                "60",
+                "--env-steps",
+                "15000",
+                "--target-progress",
+                "25",
+                "--target-reward",
+                "15",
+                "--window",
+                "7",
+                "--target-laps",
+                "3",
+                "--target-evals",
+                "2",
+                "--stop-on-plateau",
+                "4",
+                "--stop-on-collapse",
+                "--minutes",
+                "0.5",
+                "--seed",
+                "9",
+                "--envs",
+                "3",
+                "--set",
+                "record_trace=false",
+            ],
+            d,
+        );
+        assert_eq!(job.worlds, ["reinvent_wood"]);
+        assert!(job.hyperparameters_json.contains("term_cond_max_episodes"), "{}", job.hyperparameters_json);
+        assert!(job.model_metadata_json.contains("STATE_VECTOR"), "{}", job.model_metadata_json);
+        let want = protocol::job::StopSpec {
+            minutes: 0.5,
+            max_episodes: 60,
+            target_progress: Some(25.0),
+            target_reward: Some(15.0),
+            window: 7,
+            env_steps_budget: Some(15000),
+            target_laps: Some(3),
+            target_evals: 2,
+            plateau_evals: 4,
+            stop_on_collapse: true,
+        };
+        assert_eq!(job.stop, want);
+        assert_eq!((job.seed, job.envs_per_agent), (9, 3));
+        assert!(job.sim_config_toml.contains("record_trace = false"), "{}", job.sim_config_toml);
+        assert_eq!(job.out, d.join("run").display().to_string());
+        // The defaults: two worlds, the state vector, DeepRacer's hyperparameters, 2 minutes.
+        let plain = spec(&[], d);
+        assert_eq!(plain.worlds, ["reinvent_carpet", "reinvent_concrete"]);
+        assert_eq!(plain.stop.minutes, 2.0);
+        // A spec file instead: the flags that describe a job are refused beside it.
+        let both = Cli::try_parse_from(["coordinator", "up", "--job", "job.toml", "--minutes", "3"]);
+        assert!(both.is_err_and(|e| e.to_string().contains("cannot be used with")));
+    }
 }

@@ -1,4 +1,4 @@
-//! Issue 9: the car in the loop, with no car. A camera model trained by `coordinator train`
+//! The car in the loop, with no car. A camera model trained by `coordinator train`
 //! drives the simulated car (`sim-agent car`) through `deploy`, each a separate process over
 //! real Zenoh on loopback; this test stands in for the learner's publications (the run's own
 //! signed checkpoints, as `learner serve` publishes them) and for an attacker.
@@ -73,27 +73,16 @@ fn wait_status(sub: &net::Sub, car: &str, secs: f64, what: &str, ok: impl Fn(&Ca
     panic!("{what}: not within {secs} s; last status {last:?}");
 }
 
+mod support;
+
 #[test]
 fn issue_9_deploy_drives_the_simulated_car_takes_new_models_refuses_forged_ones_and_stops_without_frames() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     // 1. A camera model, trained in one process until it laps reinvent_base (3/3 in two
-    //    evaluations in a row); its run folder signs every checkpoint with signing.key.
-    //    (PADDOCK_HIL_RUN=DIR reuses such a run folder while working on this test.)
-    let (run, log) = match std::env::var_os("PADDOCK_HIL_RUN") {
-        Some(dir) => (PathBuf::from(dir), String::new()),
-        None => {
-            let run = d.join("run");
-            let out = Command::new(bin("coordinator"))
-                .args(["train", "--sensor", "camera", "--world", "reinvent_base", "--minutes", "8", "--out"])
-                .arg(&run)
-                .output()
-                .unwrap();
-            let log = String::from_utf8_lossy(&out.stderr).to_string() + &String::from_utf8_lossy(&out.stdout);
-            assert!(out.status.success(), "{log}");
-            (run, log)
-        }
-    };
+    //    evaluations in a row); its run folder signs every checkpoint with signing.key. The
+    //    run is shared with the test that it learns to lap (support::camera_run).
+    let (run, log) = support::camera_run();
     // The evaluated checkpoints that lapped 3/3; the run stopped after two in a row, and the
     // older of the last two drives first.
     let lapped: Vec<u64> = std::fs::read_to_string(run.join("evaluations.jsonl"))

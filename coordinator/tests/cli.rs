@@ -69,7 +69,7 @@ fn tracks_show_prints_figures_and_draws_a_png() {
     let out = stdout(&o);
     assert!(out.contains("length       23.118 m"), "{out}");
     assert!(out.contains("repeated     rows [39]"), "{out}");
-    assert!(out.contains("waypoints    154"), "issue 12: the repeated row is dropped as DeepRacer drops it: {out}");
+    assert!(out.contains("waypoints    154"), "the repeated row is dropped as DeepRacer drops it: {out}");
     let png = std::fs::read(dir.path().join("t.png")).unwrap();
     assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n");
     assert!(png.len() > 10_000);
@@ -126,7 +126,7 @@ fn reward_validate_passes_deepracers_samples_and_fails_broken_files() {
         assert_eq!(o.status.code(), Some(1), "{f}");
         assert!(stdout(&o).contains("FAILED") && stdout(&o).contains(want), "{f}: {}", stdout(&o));
     }
-    // Issue 10: a reward that never returns is stopped at its time limit, naming the file,
+    // A reward that never returns is stopped at its time limit, naming the file,
     // the step and the line where it was stuck.
     let o = coordinator(
         dir.path(),

@@ -1,4 +1,4 @@
-//! Issue 11: `coordinator dashboard JOB` shows a job live: a camera job runs under `up`, the
+//! `coordinator dashboard JOB` shows a job live: a camera job runs under `up`, the
 //! dashboard serves its page, and headless Chromium (Debian's package, which `./paddock test`
 //! installs) renders it; the screenshot must show the training graph's line and the camera
 //! frame of an agent, and `/status.json` what the coordinator says. Once the job is stopped,

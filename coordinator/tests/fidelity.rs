@@ -1,4 +1,4 @@
-//! Issue 12: the fidelity check. A DeepRacer reward function records the `params` it is
+//! The fidelity check. A DeepRacer reward function records the `params` it is
 //! given while `coordinator drive` laps every shipped track, both ways round; an independent
 //! implementation in Python with shapely (`scripts/fidelity_check.py`, the way DeepRacer's
 //! simapp computes them) recomputes every geometric param from the recorded positions and

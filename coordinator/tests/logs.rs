@@ -1,4 +1,4 @@
-//! Issue 11: a run folder's logs read by tools nobody here wrote: the DeepRacer community's
+//! A run folder's logs read by tools nobody here wrote: the DeepRacer community's
 //! `deepracer-utils` (sim-trace and metrics JSON, in deepracer-for-cloud's layout) and
 //! Foxglove's `mcap` reader (the run's `trace.mcap`), both from PyPI (`PADDOCK_PYTHON`).
 //! Counts and values are checked against what the run itself recorded (`metrics.jsonl`,

@@ -1,4 +1,4 @@
-//! Issue 9: `coordinator export MODEL --onnx FILE`, loaded by a runtime nobody here wrote
+//! `coordinator export MODEL --onnx FILE`, loaded by a runtime nobody here wrote
 //! (onnxruntime from PyPI, after `onnx.checker`), gives Paddock's own forward pass.
 
 use policy::{ActorCritic, Manifest, ModelMetadata, ModelParts};

@@ -1,5 +1,5 @@
 //! The car's loop without a network: which models it takes and refuses, what it sends for each
-//! frame, the watchdog and the e-stop (issue 9).
+//! frame, the watchdog and the e-stop.
 
 use deploy::{CarState, Driver, Follow, ModelSlot, Offer};
 use policy::car::CarConfig;

@@ -1,4 +1,4 @@
-//! Issue 9: `deploy` against a car written with clients nobody in Paddock wrote. A Python peer
+//! `deploy` against a car written with clients nobody in Paddock wrote. A Python peer
 //! (`tests/python/car_peer.py`: rosbags' CDR from the .msg definitions, eclipse-zenoh) encodes
 //! the camera messages in both interfaces layouts and decodes the commands the real `deploy`
 //! binary sends back; this test checks each command against Paddock's own decoding of the same

@@ -1,4 +1,4 @@
-//! Issue 8: `learner bench` (the real binary) measures the training step and its GEMM
+//! `learner bench` (the real binary) measures the training step and its GEMM
 //! ceiling in rounds taken in turn, and reports the step's reach as the median of the rounds'
 //! ratios with their range. Nothing here asserts a speed: only that the figures are there
 //! and hang together.

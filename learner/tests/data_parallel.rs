@@ -1,4 +1,4 @@
-//! Issue 8: learners that train as one. In a team each tower is trained by its own members
+//! Learners that train as one. In a team each tower is trained by its own members
 //! (even ranks the policy tower, odd ranks the value tower), the members of a tower take a
 //! share of every minibatch and sum their gradients in rank order, and the towers' states
 //! are swapped once an update: the same update as one learner on the whole batch. The group

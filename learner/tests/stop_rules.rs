@@ -1,4 +1,4 @@
-//! Issue 8: every stop condition means one thing, decided in one place (`StopRules::check`),
+//! Every stop condition means one thing, decided in one place (`StopRules::check`),
 //! whichever transport the run uses. A table of standings and the reason each gives.
 
 use learner::Hyperparameters;
@@ -41,7 +41,7 @@ fn issue_8_each_stop_rule_fires_on_its_own_figure_and_not_before() {
         (Standing { env_steps: 1_000_000, ..quiet.clone() }, Some("compute budget of 1000000 env steps")),
         (Standing { lap_streak: 1, ..quiet.clone() }, None),
         (Standing { lap_streak: 2, ..quiet.clone() }, Some("target laps reached")),
-        // Issue 11: plateaus and collapses stop a run that asks for it.
+        // Plateaus and collapses stop a run that asks for it.
         (Standing { verdict: plateau.clone(), ..quiet.clone() }, Some("plateau: evaluation progress has not improved")),
         (Standing { verdict: collapse.clone(), ..quiet.clone() }, Some("collapse: evaluation progress fell to 30.0 %")),
     ];

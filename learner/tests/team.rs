@@ -1,4 +1,4 @@
-//! Issue 8: learners on several machines. Three `learner` processes share PPO updates over
+//! Learners on several machines. Three `learner` processes share PPO updates over
 //! Zenoh on loopback (the real binary, the real team code): the team's update is one
 //! learner's on the whole batch (to float rounding), and every member ends with the leader's
 //! weights bit for bit.

@@ -1,4 +1,4 @@
-//! Issue 8: a learner told to use N threads runs its network maths on N threads, not on every
+//! A learner told to use N threads runs its network maths on N threads, not on every
 //! core (`Par::rayon(n)` splits work n ways but runs it on rayon's global pool). Its own test
 //! binary: the pool is one per process.
 

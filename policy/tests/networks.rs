@@ -1,4 +1,4 @@
-//! DeepRacer's networks by name: the per-tower parameter counts of the reference (§3.2),
+//! DeepRacer's networks by name: the per-tower parameter counts of DeepRacer's TensorFlow graphs,
 //! and the layer shapes for a 120×160×1 frame.
 
 use policy::model::{input_shape, tower_specs};

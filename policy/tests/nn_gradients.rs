@@ -151,7 +151,7 @@ fn issue_8_conv_layers_in_chunks_and_thread_shares_give_the_whole_batchs_gradien
     }
 }
 
-/// Issue 8: kernel rows of 8 floats (SHALLOW's and DEEPER's first layer: an 8×8 kernel on
+/// Kernel rows of 8 floats (SHALLOW's and DEEPER's first layer: an 8×8 kernel on
 /// one channel, or 4 wide on two) are unfolded by their own copy loop; its backward pass too.
 #[test]
 fn issue_8_conv_layers_with_kernel_rows_of_eight_floats_match_finite_differences() {
@@ -214,7 +214,7 @@ fn adam_minimises_a_quadratic() {
     assert_eq!(opt.beta2, 0.999);
 }
 
-/// Issue 8: a dense layer's weight gradient left as factors and multiplied out inside the Adam
+/// A dense layer's weight gradient left as factors and multiplied out inside the Adam
 /// step (in bands of rows, one a thread) gives the step Adam takes on the multiplied-out
 /// gradient; the same bits on one thread or two; and a non-finite value anywhere is reported.
 #[test]
@@ -276,7 +276,7 @@ fn issue_8_adam_on_factored_weight_gradients_matches_the_multiplied_out_step() {
     assert!(!step(&bad, Par::Seq, None).1);
 }
 
-/// Issue 8: Adam's loop runs on the widest vectors the CPU has (runtime dispatch); it must
+/// Adam's loop runs on the widest vectors the CPU has (runtime dispatch); it must
 /// still be the plain IEEE formula, element by element, so that every CPU and every thread
 /// count gives the same bits (a fused multiply-add, or any reordering, would fail this).
 #[test]

@@ -1,4 +1,4 @@
-//! The car against a kinematic bicycle model, on every surface (issue 2).
+//! The car against a kinematic bicycle model, on every surface.
 
 use sim_agent::car::{Car, CarParams};
 use tracks::Surface;
@@ -76,7 +76,7 @@ fn grip_differs_between_surfaces_when_cornering_hard() {
     assert!(by_grip.iter().all(|&(_, r)| r > bicycle_radius(20.0) * 1.1), "{by_grip:?}");
 }
 
-/// Issue 12: at full throttle the car flipped (the drive force reached ≈5 g at the contact
+/// At full throttle the car flipped (the drive force reached ≈5 g at the contact
 /// patches and pitched the chassis past vertical). On every surface, from rest at 4 m/s,
 /// braking from 4 m/s, and at full lock at 4 m/s, the chassis stays on its wheels: roll and
 /// pitch stay small, the heading never jumps, and the car reaches and sheds its speed as a
@@ -107,7 +107,7 @@ fn issue_12_full_throttle_braking_and_full_lock_at_4_m_s_keep_the_car_on_its_whe
     }
 }
 
-/// Issue 12: the wheel centres `all_wheels_on_track` and `is_offtrack` test are DeepRacer's
+/// The wheel centres `all_wheels_on_track` and `is_offtrack` test are DeepRacer's
 /// URDF links, front and rear axles each with its own half-track (left rear, left front,
 /// right rear, right front, as `LINK_NAMES`), not an averaged one.
 #[test]

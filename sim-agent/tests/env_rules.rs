@@ -1,4 +1,4 @@
-//! DeepRacer's step loop and episode rules, each exercised until it fires (issue 2).
+//! DeepRacer's step loop and episode rules, each exercised until it fires.
 
 use policy::Action;
 use sim_agent::config::SimConfig;
@@ -137,7 +137,7 @@ fn training_starts_move_round_robin_and_evaluation_starts_at_the_line() {
     assert!(q.distance_from_center < 1e-6 && q.ndist < 1e-9);
 }
 
-/// Issue 12: an evaluation reset as DeepRacer's evaluation worker does it (§6.2), checked row
+/// An evaluation reset as DeepRacer's evaluation worker does it, checked row
 /// by row: the `off_track` row carries the whole penalty in `pause_duration`; the car is put
 /// back at the previous row's progress in the lane nearer to where it stood; it waits there
 /// for `penalty × 15` `pause` rows (reward 0, steps and clock running at 15 Hz, the remaining
@@ -199,7 +199,7 @@ fn issue_12_an_evaluation_reset_waits_out_its_penalty_in_pause_rows_in_the_neare
     }
 }
 
-/// Issue 12: DeepRacer holds the car in the `prepare` step (it sends zero speed and pins the
+/// DeepRacer holds the car in the `prepare` step (it sends zero speed and pins the
 /// model), so the first row is where the car starts; Gazebo's clock runs on from one trial
 /// to the next, so `tstamp` does too.
 #[test]

@@ -162,7 +162,7 @@ fn issue_8_a_reward_from_a_job_compiles_in_memory_and_keeps_its_name() {
     assert!(e.contains("broken.py"), "{e}");
 }
 
-/// Issue 10: a reward call has a time limit. The endless one fails with the file, the step and
+/// A reward call has a time limit. The endless one fails with the file, the step and
 /// where it was stuck; the thread then runs other rewards as before (nothing left pending).
 #[test]
 fn issue_10_a_reward_that_never_returns_is_stopped_at_its_time_limit() {

@@ -1,4 +1,4 @@
-//! Issue 8: the sim worker simulates only what the learner granted, runs evaluations when
+//! The sim worker simulates only what the learner granted, runs evaluations when
 //! asked, and follows a restarted learner back to an older version.
 
 use policy::exchange::{Credit, EvalRequest, PolicyVersion};

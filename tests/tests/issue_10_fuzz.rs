@@ -1,4 +1,4 @@
-//! Issue 10: every decoder and file parser, fuzzed for a bounded number of cases.
+//! Every decoder and file parser, fuzzed for a bounded number of cases.
 //!
 //! cargo-fuzz needs a nightly toolchain; this is the stable counterpart, with `proptest`:
 //! each target gets random bytes and mutations of valid inputs (bytes flipped, inserted,
@@ -88,7 +88,7 @@ fn trajectory(world: &str, steps: usize) -> policy::Trajectory {
         progress: 40.0,
         lap_complete: false,
         track_len: 17.6,
-        // Issue 11: the steps' sim-trace columns are decoded (and fuzzed) too.
+        // The steps' sim-trace columns are decoded (and fuzzed) too.
         trace: (0..steps)
             .map(|i| policy::StepTrace {
                 x: i as f64 * 0.1,

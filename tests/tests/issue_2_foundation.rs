@@ -1,4 +1,4 @@
-//! Issue 2: a car can be run around any DeepRacer track (every built-in world, both
+//! A car can be run around any DeepRacer track (every built-in world, both
 //! directions) under a reward function, with DeepRacer's rules deciding the episode.
 
 use sim_agent::config::SimConfig;

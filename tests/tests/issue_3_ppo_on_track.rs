@@ -1,4 +1,4 @@
-//! Issue 3: PPO on the simulator learns to drive: sampled-action progress climbs from a
+//! PPO on the simulator learns to drive: sampled-action progress climbs from a
 //! random policy's to most of a lap within a few seconds of training.
 
 use faer::Par;

@@ -65,7 +65,7 @@ fn reversing_keeps_length_and_flips_orientation() {
     assert_eq!(f.waypoints().first(), r.waypoints().last());
 }
 
-/// Issue 12: DeepRacer's simapp drops a row that repeats the one before when it loads a
+/// DeepRacer's simapp drops a row that repeats the one before when it loads a
 /// track, so reward functions see fewer `waypoints` than the file has rows, and
 /// `closest_waypoints` counts in that shorter list. (file, rows, the repeated row, waypoints).
 #[test]

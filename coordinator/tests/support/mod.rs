@@ -1,0 +1,48 @@
+//! What the coordinator's integration tests share: one camera model trained from pixels.
+//!
+//! Training SHALLOW from pixels until it laps takes a minute or more; the tests that need such
+//! a model (it learns to lap; `deploy` drives the simulated car with it) share one run
+//! folder, trained on first use and kept under `target/tmp`. It is keyed by the coordinator
+//! binary (its size and modification time), so a rebuilt coordinator trains afresh, and made
+//! under a lock file and renamed into place whole, so a test that died half-way leaves nothing
+//! another would take for a model.
+
+use std::path::PathBuf;
+use std::process::Command;
+
+/// The shared camera run: `coordinator train --sensor camera` on reinvent_base until two
+/// evaluations in a row lap 3/3 (at most 15 minutes). Returns the run folder and what
+/// `train` printed. Panics, with that output, when the training fails.
+pub fn camera_run() -> (PathBuf, String) {
+    let coordinator = PathBuf::from(env!("CARGO_BIN_EXE_coordinator"));
+    let meta = std::fs::metadata(&coordinator).expect("the coordinator binary");
+    let stamp = meta.modified().ok().and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok()).unwrap_or_default();
+    let key = format!("{:x}-{:x}", meta.len(), stamp.as_nanos());
+    let root = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("camera-run");
+    std::fs::create_dir_all(&root).unwrap();
+    let lock = std::fs::File::create(root.join("lock")).unwrap();
+    lock.lock().expect("lock the camera run's folder");
+    let done = root.join(&key);
+    let log = done.join("train.log");
+    if !log.exists() {
+        // Runs for older binaries are not wanted any more.
+        for e in std::fs::read_dir(&root).unwrap().flatten() {
+            if e.path().is_dir() {
+                let _ = std::fs::remove_dir_all(e.path());
+            }
+        }
+        let work = root.join(format!("{key}.tmp"));
+        std::fs::create_dir_all(&work).unwrap();
+        let o = Command::new(&coordinator)
+            .args(["train", "--sensor", "camera", "--world", "reinvent_base", "--envs", "16"])
+            .args(["--minutes", "15", "--checkpoint-seconds", "20", "--out", "run"])
+            .current_dir(&work)
+            .output()
+            .unwrap();
+        let text = String::from_utf8_lossy(&o.stdout).to_string() + &String::from_utf8_lossy(&o.stderr);
+        assert!(o.status.success(), "the camera run failed:\n{text}");
+        std::fs::write(work.join("train.log"), &text).unwrap();
+        std::fs::rename(&work, &done).unwrap();
+    }
+    (done.join("run"), std::fs::read_to_string(log).unwrap())
+}
