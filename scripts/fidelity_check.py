@@ -1,9 +1,9 @@
 #!/usr/bin/env python3
 """Recompute DeepRacer's reward `params` with shapely, as DeepRacer's simapp does, and compare.
 
-An independent implementation (issue 12): nothing here comes from Paddock's Rust code. It
-reads a DeepRacer track file (.npy) and the `params` a reward function received while a car
-drove on it (one JSON object per line, written by the reward function in
+An independent implementation: nothing here comes from Paddock's Rust code. It reads a
+DeepRacer track file (.npy) and the `params` a reward function received while a car drove on
+it (one JSON object per line, written by the reward function in
 coordinator/tests/fidelity.rs), rebuilds the track the way the simapp's `TrackData` does
 (shapely LinearRing/LineString, road polygon, consecutive duplicate rows dropped), and
 recomputes from each step's `x`, `y` and `heading`:

@@ -1,4 +1,4 @@
-"""PyTorch on the same work as `learner bench`'s training step (issue 8's reference).
+"""PyTorch on the same work as `learner bench`'s training step (compared in docs/benchmarks.md).
 
 DeepRacer's SHALLOW network (160x120 grey frames; conv 32x8/4, 64x4/2, 64x3/1, dense 512),
 separate policy (10 actions) and value towers, minibatch 64: forward, PPO's clipped loss plus

@@ -1,4 +1,6 @@
-//! DeepRacer's `hyperparameters.json`, read unchanged (§2.2 of the reference).
+//! DeepRacer's `hyperparameters.json`, read unchanged (the keys of simapp's
+//! `HyperParameterKeys`, as `sagemaker_graph_manager.py::get_updated_hyper_parameters`
+//! reads them).
 //!
 //! Every key simapp knows is accepted with its type; a key Paddock does not use is accepted
 //! and reported (`ignored`), an unknown key is reported as a warning, and a key of the wrong
@@ -17,10 +19,10 @@ pub enum LossType {
     MeanSquaredError,
 }
 
-/// Paddock's default `target_kl`. Without it the default job's policy kept lapping in
-/// training but an update now and then moved it by a KL of 0.5–2.5 (against a median of 0.014)
-/// and knocked mean progress down to 20–50 % for a few iterations: a 3-minute `up` job's final
-/// model sometimes missed laps (issue 8).
+/// Paddock's default `target_kl`. Without it the default job's policy, though it laps in
+/// training, is now and then moved by one update by a KL of 0.5–2.5 (against a median of
+/// 0.014), which knocks mean progress down to 20–50 % for a few iterations: a 3-minute `up`
+/// job's final model can miss laps.
 pub const DEFAULT_TARGET_KL: f64 = 0.05;
 
 /// How the learning rate moves over a job (Paddock's addition, key `lr_schedule`).
@@ -32,8 +34,8 @@ pub enum LrSchedule {
     /// `lr` until half of the job's budget is spent (its time, episodes or env steps,
     /// whichever is nearest its limit), then linearly down to zero at the budget's end; a
     /// job that stops at a target (progress, reward, laps) keeps `lr`. Without it a solved
-    /// task's policy kept drifting at full step size to the end of the job, and now and then
-    /// the last model sat in a dip (issue 8).
+    /// task's policy keeps drifting at full step size to the end of the job, and now and then
+    /// the last model sits in a dip.
     #[default]
     Cooldown,
 }

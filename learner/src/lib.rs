@@ -25,10 +25,9 @@ pub use ppo::{Alone, GroupError, Ppo, Reducer, StateMismatch, UpdateStats};
 /// Run this process's parallel network maths on `threads` threads (default: one per core):
 /// sizes rayon's global pool, which `faer` and the conv, Adam and gradient loops run on.
 /// `Par::rayon(n)` splits work `n` ways but runs it on the pool it is called from, so without
-/// this a learner told to use 2 threads ran its optimiser on every core of the machine (seen
-/// on a 16-core machine: "2 threads" of Adam took 0.8 ms a step, one thread 11.5 ms). Call it
-/// before any parallel work. Returns the threads the maths runs on: the pool's size, which a
-/// later call leaves as it is (with a warning).
+/// this a learner told to use 2 threads would run its optimiser on every core of the machine.
+/// Call it before any parallel work. Returns the threads the maths runs on: the pool's size,
+/// which a later call leaves as it is (with a warning).
 pub fn use_threads(threads: Option<usize>) -> usize {
     let threads = threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get())).max(1);
     let built =

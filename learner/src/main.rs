@@ -463,8 +463,8 @@ mod tests {
     use rand::SeedableRng;
 
     /// The ceiling makes the step's GEMMs as the step makes them: a product read-modify-writes
-    /// its output only where the step's does (it had added into every output, a read of
-    /// 23 MB a tower more than the step makes for the big dense layer's weight gradient).
+    /// its output only where the step's does (adding into every output would read 23 MB a
+    /// tower more than the step does for the big dense layer's weight gradient).
     #[test]
     fn issue_8_the_ceilings_gemms_add_into_their_output_only_where_the_steps_do() {
         let (_, _, meta) = bench_metadata("SHALLOW").unwrap();

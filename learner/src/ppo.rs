@@ -1,4 +1,4 @@
-//! Clipped PPO as DeepRacer runs it (§3.3 of the reference): GAE (λ 0.95) with a zero
+//! Clipped PPO as DeepRacer runs it (COACH's `ClippedPPOAgent` with the simapp's settings): GAE (λ 0.95) with a zero
 //! bootstrap at every episode end, advantages standardised over the batch, clip ε 0.2,
 //! entropy bonus `beta_entropy`, Huber or MSE value loss on a separate value tower, Adam
 //! (ε 1e-5, β2 0.999) without gradient clipping, `num_epochs` epochs of shuffled
@@ -89,7 +89,7 @@ pub fn make_batch(trajs: &[Trajectory], obs_size: usize, gamma: f64) -> Batch {
     b
 }
 
-/// Flatten trajectories into a batch as DeepRacer's PPO sees it (§3.3 of the reference: COACH
+/// Flatten trajectories into a batch as DeepRacer's PPO sees it (COACH
 /// syncs its old-policy network before computing advantages): the old log-probabilities and
 /// the values behind GAE come from `model`, the network as the update begins, not from acting
 /// time. Experience acted a version or two back (the lag flow control allows) is then clipped

@@ -1,14 +1,15 @@
 //! The run's logs in the formats the DeepRacer community and the robotics world read, written
 //! by the learner from the experience it trains on (agents write nothing on their machines):
 //!
-//! - DeepRacer's sim-trace (§4.1 of the reference) in deepracer-for-cloud's folder layout
-//!   (§7.5): `<worker>/training-simtrace/<N>-iteration.csv` per worker (numbered by first
+//! - DeepRacer's sim-trace (simapp's `StepMetrics` columns) in deepracer-for-cloud's folder
+//!   layout: `<worker>/training-simtrace/<N>-iteration.csv` per worker (numbered by first
 //!   delivery, `metrics/workers.json`) and `evaluation-<YYYYMMDDHHMMSS>/evaluation-simtrace/
 //!   0-iteration.csv` per world evaluated, so `deepracer-utils` loads a run folder as it
 //!   loads a DRfC model folder;
-//! - DeepRacer's metrics JSON (§4.3): `metrics/TrainingMetrics[_<i>].json` (training and
-//!   evaluation episodes; Paddock adds each episode's `world` and `paddock_iteration`) and
-//!   `metrics/evaluation/evaluation-<ts>.json` per evaluation; `tracks.json`, the worlds' lines;
+//! - DeepRacer's metrics JSON (simapp's `metrics/s3_metrics.py`):
+//!   `metrics/TrainingMetrics[_<i>].json` (training and evaluation episodes; Paddock adds each
+//!   episode's `world` and `paddock_iteration`) and `metrics/evaluation/evaluation-<ts>.json`
+//!   per evaluation; `tracks.json`, the worlds' lines;
 //! - `trace.mcap` for Foxglove: the tracks (`foxglove.SceneUpdate`), each step's pose
 //!   (`foxglove.PoseInFrame`) and figures, each update's figures, each evaluation trial (and,
 //!   in camera jobs, what the car saw in the first trial, `foxglove.RawImage` mono8), as
@@ -64,7 +65,7 @@ fn ns(seconds: f64) -> u64 {
     (seconds.max(0.0) * 1e9) as u64
 }
 
-/// A metrics JSON entry for one episode (§4.3).
+/// A metrics JSON entry for one episode (as simapp's `metrics/s3_metrics.py` writes it).
 fn episode_metrics(trace: &[StepTrace], rewards: &[f32], progress: f64) -> Value {
     let start = trace.first().map(|t| t.tstamp).unwrap_or(0.0);
     let end = trace.last().map(|t| t.tstamp).unwrap_or(0.0);

@@ -146,7 +146,7 @@ pub fn run(network: &str, seconds: f64, learners: usize, epochs: usize, check: b
         std::thread::sleep(Duration::from_millis(100));
     }
     let mut ppo = Ppo::new(model.clone(), hyper.clone(), 0, 7, Par::Seq);
-    // As a job's schedule does (issue 8): the leader's rate is not the hyperparameters'. The
+    // As a job's `lr_schedule` does: the leader's rate is not the hyperparameters'. The
     // members start from the hyperparameters' and must step with the rate each plan carries.
     ppo.set_lr(hyper.lr * 0.5);
     let mut replay = ppo.clone();

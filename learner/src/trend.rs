@@ -2,8 +2,8 @@
 //! reads the evaluations' mean progress as they come and says whether training still
 //! improves, has reached a plateau (no evaluation beat the best by `min_gain` points for
 //! `plateau_evals` evaluations), or has collapsed after a peak (the latest evaluation fell
-//! `collapse_drop` points or more below a best of at least `collapse_floor` %), as long
-//! runs of the default job used to. A pure function of the evaluations, tested on tables.
+//! `collapse_drop` points or more below a best of at least `collapse_floor` %), as a long
+//! run of the default job can. A pure function of the evaluations, tested on tables.
 
 use serde::Serialize;
 

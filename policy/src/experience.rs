@@ -39,7 +39,7 @@ pub struct Trajectory {
     pub trace: Vec<StepTrace>,
 }
 
-/// DeepRacer's `episode_status` values (the sim-trace labels, §4.1 of the reference).
+/// DeepRacer's `episode_status` values (the sim-trace labels).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum EpisodeStatus {
@@ -114,8 +114,8 @@ impl EpisodeStatus {
     }
 }
 
-/// One step's sim-trace fields (DeepRacer's `StepMetrics`, §4.1), apart from the episode
-/// counter, the action and the reward, which the trajectory holds.
+/// One step's sim-trace fields (simapp's `markov/metrics/constants.py::StepMetrics`), apart
+/// from the episode counter, the action and the reward, which the trajectory holds.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct StepTrace {
     /// The car's reference point, x (m) (`X`).

@@ -1,5 +1,5 @@
 //! `model_metadata.json`, parsed as DeepRacer's simapp parses it
-//! (`markov/boto/s3/files/model_metadata.py::parse_model_metadata`, §2.1 of the reference).
+//! (`markov/boto/s3/files/model_metadata.py::parse_model_metadata`).
 
 use serde_json::{Map, Value};
 use std::path::Path;

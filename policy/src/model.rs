@@ -1,5 +1,6 @@
-//! The actor-critic: separate policy and value towers as DeepRacer builds them (§3.2–3.3),
-//! the action heads, and the maths of their log-probabilities and entropies.
+//! The actor-critic: separate policy and value towers as DeepRacer builds them (simapp's
+//! `agents/utils.py::get_network_settings`, COACH's clipped PPO), the action heads, and the
+//! maths of their log-probabilities and entropies.
 //!
 //! Heads: a categorical over a discrete action list (softmax); for continuous ranges a
 //! Gaussian with a state-independent log-std (DeepRacer's PPO head). Paddock's continuous

@@ -1,7 +1,8 @@
-//! DeepRacer's sim-trace CSV (§4.1 of the reference): the 19 columns of simapp 6, in order,
-//! values written as Python's `str()` writes them, so `deepracer-utils` and existing
-//! notebooks read Paddock's traces unchanged. The simulator (`coordinator drive`) and the
-//! learner (training and evaluation logs) both write through this module.
+//! DeepRacer's sim-trace CSV (simapp's `markov/metrics/constants.py::StepMetrics`): the 19
+//! columns of simapp 6, in order, values written as Python's `str()` writes them, so
+//! `deepracer-utils` and existing notebooks read Paddock's traces unchanged. The simulator
+//! (`coordinator drive`) and the learner (training and evaluation logs) both write through
+//! this module.
 
 use crate::experience::{StepTrace, Trajectory};
 use crate::metadata::ActionSpace;

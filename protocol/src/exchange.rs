@@ -674,8 +674,8 @@ mod tests {
         let mut w = wire.clone();
         w.state.as_mut().unwrap().tensors[0].data.pop();
         assert!(team_plan_from_wire(w, &view).is_err());
-        // A learning rate every member could not apply alike (issue 8's schedule travels in
-        // the plan): refused, naming it.
+        // A learning rate every member could not apply alike (the job's lr schedule travels
+        // in the plan): refused, naming it.
         for lr in [f64::NAN, f64::INFINITY, -1e-4] {
             let e = team_plan_from_wire(crate::TeamPlan { lr, ..wire.clone() }, &view).unwrap_err().to_string();
             assert!(e.contains("learning rate"), "{lr}: {e}");
@@ -810,7 +810,7 @@ mod tests {
         let mut lie = eval_report_to_wire(&id, &rep);
         lie.trials[0].progress = 1e9;
         assert!(eval_report_from_wire(lie, &view, "a1").is_err(), "progress over 100 % is refused");
-        // Issue 11: the trial's sim-trace rows are checked like experience.
+        // The trial's sim-trace rows are checked like experience.
         type Lie = (&'static str, fn(&mut crate::EvalTrial));
         let lies: [Lie; 6] = [
             ("a frame whose pixels are not its size", |t| t.frames[0].gray.push(9)),

@@ -7,29 +7,45 @@
 //!
 //! # Key expressions
 //!
+//! Every key starts with [`keys::ROOT`] (`paddock/v1`). The first column names the function
+//! or constant in [`keys`] that makes the key; a second name there is its wildcard twin (`*`,
+//! or `**` for experience), which subscribers use. The coordinator's tick is 500 ms.
+//!
+//! | [`keys`] | key under `paddock/v1` | payload | who publishes |
+//! |---|---|---|---|
+//! | `agent_alive`, `AGENTS_ALIVE` | `alive/agent/{agent}` | liveliness token | sim agent |
+//! | `learner_alive`, `LEARNERS_ALIVE` | `alive/learner/{learner}` | liveliness token | learner |
+//! | `COORDINATOR_ALIVE` | `alive/coordinator` | liveliness token | coordinator |
+//! | `car_alive`, `ALL_CARS_ALIVE` | `alive/car/{car}` | liveliness token | on-car agent (`deploy`) |
+//! | `agent_info` | `agent/{agent}/info` | [`AgentInfo`] (queryable) | sim agent |
+//! | `assignment` | `assign/{agent}` | [`Assignment`] (re-sent every tick) | coordinator |
+//! | `JOBS` | `jobs` | [`AssignmentTable`] per running job (every tick) | coordinator |
+//! | `CONTROL` | `control` | [`JobRequest`] → [`JobReply`] (queryable) | coordinator |
+//! | `job_spec`, `JOB_SPECS` | `job/{job}/spec` | [`Job`] (queryable; fetched once per job) | coordinator |
+//! | `experience`, `experience_all` | `job/{job}/experience/{agent}` | [`ExperienceBatch`] | sim agent |
+//! | `camera`, `cameras` | `job/{job}/camera/{agent}` | [`CameraFrame`] (camera jobs, ≤ 1 a second; for watchers) | sim agent |
+//! | `eval_report`, `eval_reports` | `job/{job}/eval/report/{agent}` | [`EvalReport`] | sim agent |
+//! | `agent_report`, `ALL_REPORTS` | `job/{job}/report/{agent}` | [`AgentReport`] (a failure) | sim agent |
+//! | `credit` | `job/{job}/credit` | [`Credit`] (re-sent every second during a grant round) | learner |
+//! | `eval_request` | `job/{job}/eval/request/{agent}` | [`EvalRequest`] | learner |
+//! | `policy` | `job/{job}/policy` | [`PolicyUpdate`] (publication and "latest" queryable) | learner |
+//! | `best` | `job/{job}/best` | [`PolicyUpdate`] of the best model (publication and queryable) | learner |
+//! | `promote` | `job/{job}/promote` | [`JobPromote`] → [`JobReply`] (queryable) | learner |
+//! | `learner_status`, `ALL_LEARNER_STATUS` | `job/{job}/learner` | [`LearnerStatus`] (every update and second) | learner |
+//! | `team_plan` | `job/{job}/team/plan` | [`TeamPlan`] (one per update) | a learner team's leader |
+//! | `team_share`, `team_shares` | `job/{job}/team/share/{learner}` | [`GradShare`] | every team member |
+//! | `team_join`, `team_joins` | `job/{job}/team/join/{learner}` | [`TeamJoin`] (every 500 ms) | a learner that follows |
+//! | `car_status`, `ALL_CAR_STATUS` | `car/{car}/status` | [`CarStatus`] (once a second) | on-car agent |
+//! | `car_control` | `car/{car}/control` | [`CarControl`] (the e-stop) | a person (`coordinator cars`) |
+//!
+//! [`keys`] also has helpers: `job_of` (the job id in a key), `last` (a key's last chunk) and
+//! `is_valid_name` (what a name in a key may hold). The car's own ROS 2 topics are outside
+//! `paddock/v1`, under the bridge's namespace ([`ros::CarKeys`]):
+//!
 //! | key | payload | who publishes |
 //! |---|---|---|
-//! | `paddock/v1/alive/agent/{agent}` | liveliness token | sim agent |
-//! | `paddock/v1/alive/learner/{learner}` | liveliness token | learner |
-//! | `paddock/v1/alive/coordinator` | liveliness token | coordinator |
-//! | `paddock/v1/agent/{agent}/info` | [`AgentInfo`] (queryable) | sim agent |
-//! | `paddock/v1/assign/{agent}` | [`Assignment`] (re-sent every second) | coordinator |
-//! | `paddock/v1/jobs` | [`AssignmentTable`] per running job (re-sent every second) | coordinator |
-//! | `paddock/v1/job/{job}/experience/{agent}` | [`ExperienceBatch`] | sim agent |
-//! | `paddock/v1/job/{job}/credit` | [`Credit`] (re-sent every second) | learner |
-//! | `paddock/v1/job/{job}/eval/request/{agent}` | [`EvalRequest`] | learner |
-//! | `paddock/v1/job/{job}/eval/report/{agent}` | [`EvalReport`] | sim agent |
-//! | `paddock/v1/job/{job}/policy` | [`PolicyUpdate`] (publication and "latest" queryable) | learner |
-//! | `paddock/v1/job/{job}/best` | [`PolicyUpdate`] of the best model (publication and queryable) | learner |
-//! | `paddock/v1/job/{job}/promote` | [`JobPromote`] → [`JobReply`] (queryable) | learner |
-//! | `paddock/v1/alive/car/{car}` | liveliness token | on-car agent (`deploy`) |
-//! | `paddock/v1/car/{car}/status` | [`CarStatus`] (once a second) | on-car agent |
-//! | `paddock/v1/car/{car}/control` | [`CarControl`] (the e-stop) | a person (`coordinator cars`) |
 //! | `{ns}/sensor_fusion_pkg/sensor_msg` | the car's `EvoSensorMsg`, CDR ([`ros`]) | the car (zenoh-bridge-ros2dds) |
 //! | `{ns}/deepracer_navigation_pkg/auto_drive` | `ServoCtrlMsg`, CDR ([`ros`]) | on-car agent |
-//! | `paddock/v1/job/{job}/learner` | [`LearnerStatus`] | learner |
-//! | `paddock/v1/job/{job}/report/{agent}` | [`AgentReport`] | sim agent |
-//! | `paddock/v1/control` | [`JobRequest`] → [`JobReply`] (queryable) | coordinator |
 
 use prost::Message;
 
@@ -620,8 +636,8 @@ mod tests {
 
     const D: Actions = Actions::Discrete(4);
 
-    /// Issue 10: a batch that decodes but does not fit the job (an action index of 99 in a
-    /// space of 10 killed the learner) is refused, one reason per row.
+    /// A batch that decodes but does not fit the job (an action index of 99 in a space of 10
+    /// would kill the learner) is refused, one reason per row.
     #[test]
     fn issue_10_trajectories_that_do_not_fit_the_job_are_refused() {
         let t = Trajectory {

@@ -3,9 +3,9 @@
 //!
 //! The scene is built from a track's waypoints: the floor with the world's surface look
 //! (procedural: asphalt, carpet, concrete, wood), the road between the borders, white border
-//! lines and a dashed centre line. The camera sits where DeepRacer mounts it (§3.1, §6.3 of the
-//! reference): 0.137 m ahead of the car origin, 0.143 m up, pitched 15° down, horizontal field
-//! of view 1.13 rad, 160×120. Frames are grayscale with DeepRacer's luma
+//! lines and a dashed centre line. The camera sits where DeepRacer mounts it (simapp's car
+//! URDF and `racecar.gazebo`): 0.137 m ahead of the car origin, 0.143 m up, pitched 15° down,
+//! horizontal field of view 1.13 rad, 160×120. Frames are grayscale with DeepRacer's luma
 //! (0.2989 R + 0.5870 G + 0.1140 B) unless RGB is asked for.
 //!
 //! Batching: every view of a call is drawn into its own viewport of one atlas texture in one

@@ -8,25 +8,26 @@
 //! centre; speed is tracked by a proportional drive force on all four wheels (DeepRacer
 //! commands each wheel's velocity).
 //!
-//! Traction (issue 12): the drive force is limited by the tyres' grip, `μ·m·g` over the four
-//! wheels. The controller's own limit lets a wheel push twice its grip forwards (its
-//! friction ellipse is 2:1), so a full-throttle command from rest pushed ≈5 g at the contact
-//! patches, pitched the chassis past vertical, and the car drove on upside down. Limited,
+//! Traction: the drive force is limited by the tyres' grip, `μ·m·g` over the four wheels.
+//! The controller's own limit lets a wheel push twice its grip forwards (its friction
+//! ellipse is 2:1), so without this a full-throttle command from rest would push ≈5 g at the
+//! contact patches, pitch the chassis past vertical and turn the car upside down. Limited,
 //! the car pitches a few degrees, reaches 4 m/s and stops in the distance of a
 //! friction-limited point mass, and slides wide at full lock as the grip limit says
 //! ([`crate::handling`] measures all of it).
 //!
-//! The rapier trap (../shared/reference/stack-notes.md): the controller's side-friction
-//! effective mass uses `|I⁻¹(r×n)|²` where the impulse maths needs `(r×n)·I⁻¹(r×n)`. For a
-//! light chassis with a small inertia that makes lateral grip far too weak. [`Car::new`]
-//! computes, per wheel, the ratio between the two and sets `side_friction_stiffness` to it
-//! (times [`CarParams::side_grip`]), which restores the impulse the solver meant to apply.
-//! A test checks turning against a kinematic bicycle model on every surface.
+//! The rapier trap: `DynamicRayCastVehicleController`'s side-friction effective mass uses
+//! `|I⁻¹(r×n)|²` where the impulse maths needs `(r×n)·I⁻¹(r×n)`. For a light chassis with a
+//! small inertia that makes lateral grip far too weak. [`Car::new`] computes, per wheel,
+//! the ratio between the two and sets `side_friction_stiffness` to it (times
+//! [`CarParams::side_grip`]), which restores the impulse the solver meant to apply. A test
+//! checks turning against a kinematic bicycle model on every surface.
 
 use rapier3d::control::{DynamicRayCastVehicleController, WheelTuning};
 use rapier3d::prelude::*;
 
-/// Physical parameters of the car. Defaults are DeepRacer's (§6.3 of the reference).
+/// Physical parameters of the car. Defaults are DeepRacer's (simapp's
+/// `bundle/urdf/deepracer/deepracer_single_cam.urdf` and `agent_ctrl/constants.py`).
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct CarParams {

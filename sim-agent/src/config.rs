@@ -113,7 +113,8 @@ impl Default for NoiseConfig {
     }
 }
 
-/// Episode rules (§6.1–6.2 of the reference); defaults are DeepRacer's training values.
+/// Episode rules (simapp's step loop and `markov/reset/rules`); defaults are DeepRacer's
+/// training values.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct EpisodeConfig {

@@ -1,5 +1,6 @@
 //! A scripted driver: pure pursuit along the centre line, with speed from the curvature
-//! ahead. It stands in for a policy until the learner exists, and is the benchmark's load.
+//! ahead: laps without a trained policy (`coordinator drive`, the fidelity checks) and is the
+//! benchmark's load.
 
 use crate::env::Env;
 use policy::Action;

@@ -5,16 +5,17 @@
 //! the reset rules; [`Env::finish`] takes the reward and closes the step. [`Env::step`]
 //! does both with a built-in reward.
 //!
-//! Rules (§6.1–6.2 of the reference): the first step of an episode is DeepRacer's `prepare`
-//! step (the car is held where it starts, the action is logged but not driven, reward 0,
-//! reward function not called); then `lap_complete` at progress 100, `off_track` when all
-//! four wheels are off, `reversed` after 15 steps of falling progress, `immobilized` after 15
-//! steps of moving under 0.3 mm. Training ends an episode on any of them and moves the next
-//! start 5 % along the track. Evaluation starts each trial at the start line and may reset
-//! an off-track car instead of ending: the car is put back in the lane nearer to where it
-//! was, at the previous step's progress, and waits out the penalty in `pause` steps at the
-//! control rate (held, reward 0, the remaining seconds in `pause_duration`), as DeepRacer's
-//! evaluation worker does. The clock (`tstamp`, `sim_time`) runs on across episodes.
+//! Rules (simapp's `deepracer_racetrack_env.py` and `markov/reset/rules`): the first step
+//! of an episode is DeepRacer's `prepare` step (the car is held where it starts, the action
+//! is logged but not driven, reward 0, reward function not called); then `lap_complete` at
+//! progress 100, `off_track` when all four wheels are off, `reversed` after 15 steps of
+//! falling progress, `immobilized` after 15 steps of moving under 0.3 mm. Training ends an
+//! episode on any of them and moves the next start 5 % along the track. Evaluation starts
+//! each trial at the start line and may reset an off-track car instead of ending: the car
+//! is put back in the lane nearer to where it was, at the previous step's progress, and
+//! waits out the penalty in `pause` steps at the control rate (held, reward 0, the
+//! remaining seconds in `pause_duration`), as DeepRacer's evaluation worker does. The clock
+//! (`tstamp`, `sim_time`) runs on across episodes.
 
 use crate::car::Car;
 use crate::config::{NoiseConfig, SimConfig};

@@ -15,8 +15,8 @@
 //! - [`validate`]: DeepRacer's "Validate" for reward files, and more.
 //! - [`config`]: the configuration struct and its loader.
 //!
-//! Architecture invariant: nothing here opens a socket. The `sim-agent` binary's network
-//! role is a thin shell added by the cluster issue.
+//! Architecture invariant: nothing here opens a socket or names the wire. The `sim-agent`
+//! binary's network role (`serve.rs`) is a thin shell over this library and `protocol`.
 
 pub mod camera;
 pub mod car;

@@ -1,4 +1,5 @@
-//! DeepRacer's reward `params` (§1.3 of the reference), computed from a car pose.
+//! DeepRacer's reward `params` (simapp's `agent_ctrl/constants.py::RewardParam`, filled in
+//! `agent_ctrl/utils.py::set_reward_and_metrics`), computed from a car pose.
 //!
 //! Every key DeepRacer's `RewardParam` defines is here with its meaning: `x`/`y` are the
 //! point 0.14 m ahead of the car origin, `speed`/`steering_angle` are the *commanded* action,

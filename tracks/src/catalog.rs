@@ -9,7 +9,7 @@ use crate::geometry::{Direction, Track};
 use crate::npy::{TrackRows, parse_track_npy};
 use serde::{Deserialize, Serialize};
 
-/// What the car drives on: sets the tyres' grip now and the look in the camera later.
+/// What the car drives on: sets the tyres' grip and the floor's look in the camera.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Surface {
