@@ -5,7 +5,7 @@ use std::path::PathBuf;
 
 /// Paddock: train DeepRacer-style cars on your own machines.
 #[derive(Parser)]
-#[command(name = "coordinator", version, about)]
+#[command(name = "coordinator", version, about, after_help = protocol::exit::TABLE)]
 pub struct Cli {
     #[command(subcommand)]
     pub command: Command,

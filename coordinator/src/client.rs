@@ -83,7 +83,7 @@ pub fn run(cmd: JobCommand) -> Result<i32> {
             let name = coordinator::jobspec::name_of(&text);
             let id = id.unwrap_or_else(|| new_job_id(&spec, name.as_deref()));
             let doc = coordinator::jobspec::load(&spec, &id)?;
-            (net, Kind::StartJobJson(serde_json::to_string(&doc)?), false)
+            (net, Kind::StartJob(protocol::job::to_wire(&doc)), false)
         }
         JobCommand::List { net } => (net, Kind::List(true), false),
         JobCommand::Status { id, json, watch, net } => {
@@ -104,7 +104,7 @@ pub fn run(cmd: JobCommand) -> Result<i32> {
             let v: serde_json::Value = serde_json::from_str(&r.json)?;
             let run = v["learner"]["run_dir"]
                 .as_str()
-                .filter(|d| !d.is_empty() && !d.starts_with("error:"))
+                .filter(|d| !d.is_empty())
                 .map(std::path::PathBuf::from)
                 .ok_or_else(|| anyhow::anyhow!("job {id}: no learner has reported its run folder yet"))?;
             let page = crate::report::write(&run, out.as_deref(), &format!("Paddock job {id}"))?;

@@ -80,11 +80,5 @@ fn main() {
             }
         },
     };
-    match result {
-        Ok(code) => std::process::exit(code),
-        Err(e) => {
-            eprintln!("error: {e:#}");
-            std::process::exit(2);
-        }
-    }
+    protocol::exit::exit(result)
 }

@@ -185,6 +185,7 @@ fn on_status(st: &mut State, db: &Db, ls: LearnerStatus) {
         "write_failures": ls.write_failures,
         "write_error": ls.write_error,
         "trend": ls.trend,
+        "failure": ls.failure,
         "refused": ls.refused.iter().map(|d| serde_json::json!({"reason": d.reason, "count": d.count})).collect::<Vec<_>>(),
         "agents": ls.agents.iter().map(|a| serde_json::json!({"agent": a.agent_id, "world": a.world, "steps_per_s": a.steps_per_s})).collect::<Vec<_>>(),
         "worlds": ls.worlds.iter().map(|w| serde_json::json!({"world": w.world, "agents": w.agents, "episodes": w.episodes,
@@ -195,20 +196,21 @@ fn on_status(st: &mut State, db: &Db, ls: LearnerStatus) {
     if first {
         j.event(format!("learner {} is training (policy v{})", ls.learner_id, ls.policy_version));
     }
-    if !ls.stop_reason.is_empty() && j.state == JobState::Running && !ls.stop_reason.starts_with("error:") {
+    if !ls.stop_reason.is_empty() && j.state == JobState::Running {
         j.event(format!("stopping: {}", ls.stop_reason));
         j.state = JobState::Stopping;
         j.stop_reason = Some(ls.stop_reason.clone());
     }
     if ls.finished && matches!(j.state, JobState::Stopping | JobState::Running) {
-        if ls.run_dir.starts_with("error:") {
-            j.state = JobState::Failed;
-            j.stop_reason = Some(ls.run_dir.clone());
-        } else {
-            j.state = JobState::Finished;
-        }
         j.ended = Some(now_unix());
-        j.event(format!("learner finished: final checkpoint and best model in {}", ls.run_dir));
+        if ls.failure.is_empty() {
+            j.state = JobState::Finished;
+            j.event(format!("learner finished: final checkpoint and best model in {}", ls.run_dir));
+        } else {
+            j.state = JobState::Failed;
+            j.stop_reason = Some(ls.failure.clone());
+            j.event(format!("learner failed: {}", ls.failure));
+        }
     }
     db.save_or_log(j);
 }
@@ -322,10 +324,11 @@ fn validate(doc: &JobDoc) -> std::result::Result<(), String> {
 fn handle(st: &Arc<Mutex<State>>, db: &Db, _session: &zenoh::Session, req: JobRequest) -> JobReply {
     let mut st = st.lock().expect("state lock");
     match req.kind {
-        Some(Kind::StartJobJson(doc_json)) => {
-            let doc: JobDoc = match serde_json::from_str(&doc_json) {
+        Some(Kind::StartJob(job)) => {
+            let id = job.id.clone();
+            let doc: JobDoc = match protocol::job::from_wire(job, &id) {
                 Ok(d) => d,
-                Err(e) => return reply(false, format!("bad job document: {e}"), serde_json::Value::Null),
+                Err(e) => return reply(false, format!("bad job: {e}"), serde_json::Value::Null),
             };
             // The very same document again is the same job: a `job start` retried after its
             // reply was lost (the job started) gets the job's answer, not "taken".

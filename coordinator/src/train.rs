@@ -241,7 +241,7 @@ pub fn train(args: TrainArgs) -> Result<i32> {
             "warning: {} write(s) to the run folder failed; the last: {}",
             summary.write_failures.0, summary.write_failures.1
         );
-        return Ok(3);
+        return Ok(protocol::exit::WRITES_FAILED);
     }
     Ok(0)
 }

@@ -228,7 +228,7 @@ pub fn up(args: UpArgs) -> Result<i32> {
     let session = net::open(&NetArgs { connect: vec![endpoint.clone()], certs: certs.clone(), ..Default::default() })?;
     let t0 = Instant::now();
     let started = loop {
-        match request(&session, Kind::StartJobJson(serde_json::to_string(&doc)?), Duration::from_secs(2)) {
+        match request(&session, Kind::StartJob(protocol::job::to_wire(&doc)), Duration::from_secs(2)) {
             Ok(r) => break r,
             Err(_) if t0.elapsed() < Duration::from_secs(30) => std::thread::sleep(Duration::from_millis(300)),
             Err(e) => {

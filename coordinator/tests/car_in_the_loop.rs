@@ -7,19 +7,14 @@ use policy::ModelParts;
 use policy::signature::Signer;
 use protocol::net::{self, NetArgs, zenoh};
 use protocol::{CarStatus, PROTOCOL_VERSION, PolicyUpdate, keys};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use zenoh::Wait;
 
-fn bin(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_BIN_EXE_coordinator")).with_file_name(name)
-}
-
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
-}
+mod support;
+use support::{bin, free_port};
 
 /// Processes killed when dropped.
 struct Procs(Vec<Child>);
@@ -72,8 +67,6 @@ fn wait_status(sub: &net::Sub, car: &str, secs: f64, what: &str, ok: impl Fn(&Ca
     }
     panic!("{what}: not within {secs} s; last status {last:?}");
 }
-
-mod support;
 
 #[test]
 fn issue_9_deploy_drives_the_simulated_car_takes_new_models_refuses_forged_ones_and_stops_without_frames() {

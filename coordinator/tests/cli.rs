@@ -3,6 +3,8 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
+mod support;
+
 fn coordinator(dir: &Path, args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_coordinator")).args(args).current_dir(dir).output().expect("runs")
 }
@@ -217,4 +219,30 @@ fn drive_refuses_a_bad_override_naming_it() {
     let o = coordinator(dir.path(), &["drive", "--set", "noise.steerin_deg=0"]);
     assert!(!o.status.success());
     assert!(stderr(&o).contains("steerin_deg"), "{}", stderr(&o));
+}
+
+#[test]
+fn issue_29_every_binary_prints_the_one_exit_code_table_and_keeps_to_it() {
+    // (binary, a runtime failure's arguments): usage errors exit 2, runtime failures 1, and
+    // each `--help` ends with the same table.
+    let dir = tempfile::tempdir().unwrap();
+    let missing = dir.path().join("missing").display().to_string();
+    let table: [(&str, Vec<&str>); 4] = [
+        ("coordinator", vec!["evaluate", &missing]),
+        ("learner", vec!["bench", "--network", "NO_SUCH_NETWORK", "--seconds", "0.1"]),
+        ("sim-agent", vec!["handling", "--config", &missing]),
+        ("deploy", vec!["--model-dir", &missing, "--trust", &missing]),
+    ];
+    for (name, failing) in table {
+        let bin = support::bin(name);
+        let help = Command::new(&bin).arg("--help").output().unwrap();
+        assert!(help.status.success(), "{name} --help");
+        let text = stdout(&help);
+        assert!(text.contains("Exit codes") && text.contains("2  usage"), "{name} --help:\n{text}");
+        let usage = Command::new(&bin).arg("--no-such-flag").current_dir(dir.path()).output().unwrap();
+        assert_eq!(usage.status.code(), Some(2), "{name} --no-such-flag: {}", stderr(&usage));
+        let failed = Command::new(&bin).args(&failing).current_dir(dir.path()).output().unwrap();
+        assert_eq!(failed.status.code(), Some(1), "{name} {failing:?}: {}{}", stdout(&failed), stderr(&failed));
+        assert!(stderr(&failed).contains("error: "), "{name}: {}", stderr(&failed));
+    }
 }

@@ -4,20 +4,15 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
+mod support;
+use support::{bin, free_port};
+
 /// One cluster at a time: each test starts several processes that want both cores, and
 /// timings (flow control, updates to the end of a job) mean something only on a quiet machine.
 static ONE_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
 fn exclusive() -> std::sync::MutexGuard<'static, ()> {
     ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner())
-}
-
-fn bin(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_BIN_EXE_coordinator")).with_file_name(name)
-}
-
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
 }
 
 /// Processes killed when dropped.
@@ -565,6 +560,16 @@ fn issue_8_a_stop_condition_through_the_cluster() {
     let want = "term_cond_max_episodes (40)";
     assert!(reason.contains(want), "{spec}: stopped because {reason:?}, want {want:?}");
     assert!(c.path("run/model/model.safetensors").exists(), "{spec}");
+    // A run the learner cannot start (a model to clone that is not on its machine) fails,
+    // with the learner's reason in the status and the job's log, not as a finished job.
+    let spec = "worlds = [\"reinvent_base\"]\nout = \"run2\"\nclone_from = \"no/such/model\"\n[stop]\nminutes = 2\n";
+    let id = c.start_as(spec, "cannot");
+    let s = c.wait(&id, 60, "the job failed", |s| s["state"] == "failed" || s["state"] == "finished");
+    assert_eq!(s["state"], "failed", "{s}");
+    let failure = s["learner"]["failure"].as_str().unwrap_or("");
+    assert!(failure.contains("no/such/model") && s["stop_reason"] == failure, "{s}");
+    let log = String::from_utf8_lossy(&c.cli(&["job", "logs", &id]).stdout).to_string();
+    assert!(log.contains("learner failed: ") && log.contains("no/such/model"), "{log}");
 }
 
 /// Run `up` on three worlds with two agents; return (summary, metrics lines, job seconds).

@@ -9,6 +9,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
+mod support;
+
 fn chromium() -> PathBuf {
     ["/usr/bin/chromium-headless-shell", "/usr/bin/chromium"]
         .iter()
@@ -152,8 +154,7 @@ fn issue_11_the_dashboard_shows_the_graph_and_the_camera_live_in_chromium() {
     assert!(up.0.try_wait().unwrap().is_some(), "up ended after the job was stopped");
 
     // The run's MCAP holds what the car saw in its evaluation laps, read by Foxglove's reader.
-    let py =
-        std::env::var_os("PADDOCK_PYTHON").unwrap_or_else(|| panic!("PADDOCK_PYTHON is not set: run `./paddock test`"));
+    let py = support::python("mcap");
     let o = Command::new(py).arg("-c").arg(FRAMES).arg(dir.path().join("up/run/trace.mcap")).output().unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();

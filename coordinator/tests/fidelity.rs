@@ -8,11 +8,8 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-fn python() -> PathBuf {
-    std::env::var_os("PADDOCK_PYTHON").map(PathBuf::from).unwrap_or_else(|| {
-        panic!("PADDOCK_PYTHON is not set: run `./paddock test`, which makes target/pyenv with shapely")
-    })
-}
+mod support;
+use support::python;
 
 fn repo() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap().to_path_buf()
@@ -44,7 +41,7 @@ fn check(dir: &Path, track: &str, reversed: bool, extra: &[&str]) -> String {
         .output()
         .unwrap();
     assert!(o.status.success(), "{track}: {}", String::from_utf8_lossy(&o.stderr));
-    let mut cmd = Command::new(python());
+    let mut cmd = Command::new(python("shapely"));
     cmd.arg(repo().join("scripts/fidelity_check.py")).arg(repo().join(format!("tracks/data/{track}.npy"))).arg(&dump);
     if reversed {
         cmd.arg("--reversed");

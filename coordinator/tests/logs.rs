@@ -4,16 +4,11 @@
 //! Counts and values are checked against what the run itself recorded (`metrics.jsonl`,
 //! `evaluations.jsonl`).
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
 
-fn python() -> PathBuf {
-    std::env::var_os("PADDOCK_PYTHON").map(PathBuf::from).unwrap_or_else(|| {
-        panic!(
-            "PADDOCK_PYTHON is not set: run `./paddock test`, which makes target/pyenv with deepracer-utils and mcap"
-        )
-    })
-}
+mod support;
+use support::python;
 
 const READ: &str = r#"
 import json, sys, os, collections
@@ -93,7 +88,12 @@ fn issue_11_deepracer_utils_and_mcap_read_a_training_run() {
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let script = dir.path().join("read.py");
     std::fs::write(&script, READ).unwrap();
-    let py = Command::new(python()).arg(&script).arg(&run).env("AWS_DEFAULT_REGION", "us-east-1").output().unwrap();
+    let py = Command::new(python("deepracer-utils and mcap"))
+        .arg(&script)
+        .arg(&run)
+        .env("AWS_DEFAULT_REGION", "us-east-1")
+        .output()
+        .unwrap();
     assert!(py.status.success(), "{}", String::from_utf8_lossy(&py.stderr));
     let stdout = String::from_utf8_lossy(&py.stdout);
     let got: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();

@@ -8,9 +8,8 @@ use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-fn bin(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_BIN_EXE_coordinator")).with_file_name(name)
-}
+mod support;
+use support::{bin, need_root};
 
 fn ip(args: &[&str]) {
     let o = Command::new("ip").args(args).output().expect("the ip command (iproute2)");
@@ -52,16 +51,6 @@ impl Hosts {
     fn exec(&self, ns: &str, cmd: &[String]) -> std::process::Output {
         Command::new("ip").args(["netns", "exec", ns]).args(cmd).output().unwrap()
     }
-}
-
-/// Tests that need root end in `_as_root`: `./paddock test` leaves them out without root and
-/// says so; run any other way without root, they fail saying why (never a silent pass).
-fn need_root(what: &str) {
-    let root = std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| s.lines().find(|l| l.starts_with("Uid:")).map(|l| l.split_whitespace().nth(1) == Some("0")))
-        .unwrap_or(false);
-    assert!(root, "{what} needs root: run the tests as root, or `./paddock test`, which skips this test and says so");
 }
 
 #[test]

@@ -3,14 +3,10 @@
 
 use policy::{ActorCritic, Manifest, ModelMetadata, ModelParts};
 use rand::{Rng, SeedableRng};
-use std::path::PathBuf;
 use std::process::Command;
 
-fn python() -> PathBuf {
-    std::env::var_os("PADDOCK_PYTHON").map(PathBuf::from).unwrap_or_else(|| {
-        panic!("PADDOCK_PYTHON is not set: run `./paddock test`, which makes target/pyenv with onnx and onnxruntime")
-    })
-}
+mod support;
+use support::python;
 
 const RUN: &str = r#"
 import sys, numpy as np, onnx, onnxruntime as ort
@@ -60,8 +56,14 @@ fn check(meta: &ModelMetadata, obs_size: usize, shape: &[usize], seed: u64) {
     let shape_arg =
         std::iter::once(batch).chain(shape.iter().copied()).map(|s| s.to_string()).collect::<Vec<_>>().join(",");
     let got_path = d.join("y.bin");
-    let out =
-        Command::new(python()).arg(&script).arg(&onnx).arg(&inputs).arg(&shape_arg).arg(&got_path).output().unwrap();
+    let out = Command::new(python("onnx and onnxruntime"))
+        .arg(&script)
+        .arg(&onnx)
+        .arg(&inputs)
+        .arg(&shape_arg)
+        .arg(&got_path)
+        .output()
+        .unwrap();
     assert!(out.status.success(), "onnxruntime: {}", String::from_utf8_lossy(&out.stderr));
     let names = String::from_utf8_lossy(&out.stdout).trim().to_string();
     let got: Vec<f32> = std::fs::read(&got_path)

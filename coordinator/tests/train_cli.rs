@@ -3,6 +3,9 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
+mod support;
+use support::need_root;
+
 fn coordinator(dir: &Path, args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_coordinator")).args(args).current_dir(dir).output().expect("runs")
 }
@@ -161,8 +164,6 @@ fn train_reads_deepracer_files_and_rejects_bad_ones_by_key() {
     assert!(!c.status.success() && text(&c).contains("FRONT_FACING_CAMERA or STATE_VECTOR"), "{}", text(&c));
 }
 
-mod support;
-
 #[test]
 fn issue_5_a_camera_model_learns_to_lap_from_pixels() {
     // DeepRacer's SHALLOW network on 160x120 grayscale frames rendered on lavapipe, DeepRacer's
@@ -178,16 +179,6 @@ fn issue_5_a_camera_model_learns_to_lap_from_pixels() {
     assert!(e.status.success(), "{}", text(&e));
     let laps: usize = text(&e).lines().filter(|l| l.starts_with("trial ") && l.contains("lap_complete")).count();
     assert!(laps >= 2, "the camera model laps in an independent evaluation too:\n{}", text(&e));
-}
-
-/// Tests that need root end in `_as_root`: `./paddock test` leaves them out without root and
-/// says so; run any other way without root, they fail saying why (never a silent pass).
-fn need_root(what: &str) {
-    let root = std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| s.lines().find(|l| l.starts_with("Uid:")).map(|l| l.split_whitespace().nth(1) == Some("0")))
-        .unwrap_or(false);
-    assert!(root, "{what} needs root: run the tests as root, or `./paddock test`, which skips this test and says so");
 }
 
 /// A small tmpfs, unmounted when dropped.

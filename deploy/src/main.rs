@@ -27,7 +27,7 @@ use zenoh::Wait;
 
 /// The on-car agent: drives the car with a job's published models, each verified first.
 #[derive(Parser, Debug)]
-#[command(version, args_conflicts_with_subcommands = true)]
+#[command(version, args_conflicts_with_subcommands = true, after_help = protocol::exit::TABLE)]
 struct Cli {
     #[command(subcommand)]
     command: Option<Sub>,
@@ -69,10 +69,7 @@ fn main() {
         Some(Sub::Bench { seconds }) => bench::run(seconds),
         None => run(cli),
     };
-    if let Err(e) = result {
-        eprintln!("error: {e:#}");
-        std::process::exit(1);
-    }
+    protocol::exit::exit(result.map(|()| protocol::exit::SUCCESS))
 }
 
 /// The newest camera message not yet driven.

@@ -20,7 +20,7 @@ pub mod run;
 pub mod trend;
 
 pub use hyperparams::{Hyperparameters, LossType, LrSchedule};
-pub use ppo::{Alone, GroupError, Ppo, Reducer, StateMismatch, UpdateStats};
+pub use ppo::{Alone, GroupError, Ppo, Reducer, Refused, StateMismatch, UpdateStats};
 
 /// Run this process's parallel network maths on `threads` threads (default: one per core):
 /// sizes rayon's global pool, which `faer` and the conv, Adam and gradient loops run on.

@@ -15,7 +15,7 @@ use std::time::Instant;
 use clap::{Parser, Subcommand};
 
 #[derive(Parser)]
-#[command(name = "learner", version, about = "Paddock's learner: PPO on faer")]
+#[command(name = "learner", version, about = "Paddock's learner: PPO on faer", after_help = protocol::exit::TABLE)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -120,10 +120,7 @@ fn main() {
             signing_key: a.signing_key,
         }),
     };
-    if let Err(e) = result {
-        eprintln!("error: {e:#}");
-        std::process::exit(1);
-    }
+    protocol::exit::exit(result.map(|()| protocol::exit::SUCCESS))
 }
 
 /// The bench's model description for a network name: (network, sensor, metadata).

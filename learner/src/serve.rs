@@ -129,8 +129,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
                 job_id: doc.id.clone(),
                 learner_id: id.clone(),
                 finished: true,
-                run_dir: format!("error: {e:#}"),
-                stop_reason: format!("error: {e:#}"),
+                failure: format!("{e:#}"),
                 ..Default::default()
             };
             let _ = net::put(&session, &keys::learner_status(&doc.id), &status);
@@ -172,16 +171,20 @@ fn follow_job(
         running && seen.elapsed() < Duration::from_secs(15)
     };
     let mut updates = 0u64;
-    let mut on_update = |ppo: &learner::Ppo, stats: &learner::UpdateStats| {
+    let mut on_update = |ppo: &learner::Ppo, result: &Result<learner::UpdateStats, learner::Refused>| {
         updates += 1;
-        tracing::info!(job = %doc.id, version = ppo.version, samples = stats.samples, updates, "team update");
+        match result {
+            Ok(stats) => {
+                tracing::info!(job = %doc.id, version = ppo.version, samples = stats.samples, updates, "team update")
+            }
+            Err(why) => tracing::warn!(job = %doc.id, version = ppo.version, updates, "team update refused: {why}"),
+        }
     };
     let end = team::follow(session, id, &view, &mut ppo, drops, &mut keep_going, &mut on_update)?;
     // The team's state, if this learner took part at all.
     Ok((end, (updates > 0).then(|| ppo.state())))
 }
 
-/// The run a job describes.
 /// The stop rules a job's `[stop]` table asks for.
 fn stop_rules(s: &StopSpec) -> StopRules {
     StopRules {
@@ -199,6 +202,7 @@ fn stop_rules(s: &StopSpec) -> StopRules {
     }
 }
 
+/// The run a job describes.
 fn spec_of(doc: &JobDoc, args: &ServeArgs) -> Result<RunSpec> {
     let metadata = ModelMetadata::parse(&doc.model_metadata_json, "job model_metadata.json")?;
     let hyper = Hyperparameters::parse(&doc.hyperparameters_json, "job hyperparameters.json")?.hyperparameters;
@@ -514,6 +518,7 @@ impl Link for ZenohLink<'_> {
             write_failures: s.write_failures,
             write_error: s.write_error.clone(),
             trend: s.trend.clone(),
+            failure: String::new(),
             refused: protocol::secure::REFUSED
                 .reasons()
                 .into_iter()

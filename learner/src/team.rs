@@ -16,7 +16,7 @@
 
 use learner::ppo::PpoState;
 use learner::run::Team;
-use learner::{GroupError, Ppo, Reducer, UpdateStats};
+use learner::{GroupError, Ppo, Reducer, Refused, UpdateStats};
 use policy::Trajectory;
 use protocol::exchange::{self as wire, JobView, TeamPlan, TeamState};
 use protocol::net::{self, DropCounters, Sub, try_next, zenoh};
@@ -333,15 +333,15 @@ impl<'a> TeamLead<'a> {
 }
 
 impl Team for TeamLead<'_> {
-    fn update(&mut self, ppo: &mut Ppo, trajs: &[Trajectory]) -> UpdateStats {
+    fn update(&mut self, ppo: &mut Ppo, trajs: &[Trajectory]) -> Result<UpdateStats, Refused> {
         self.hear();
         self.plan += 1;
         if self.members.is_empty() {
-            let stats = ppo.update(trajs);
-            if stats.refused.is_none() {
+            let result = ppo.update(trajs);
+            if result.is_ok() {
                 self.good = self.plan;
             }
-            return stats;
+            return result;
         }
         let members: Vec<String> = std::iter::once(self.me.clone()).chain(self.members.keys().cloned()).collect();
         let state = self.members.values().any(|m| !m.in_sync).then(|| to_wire_state(ppo.state()));
@@ -367,7 +367,7 @@ impl Team for TeamLead<'_> {
             &keys::team_plan(&self.job),
             &wire::team_plan_to_wire(&self.job, &plan, self.obs_size),
         );
-        let (stats, lost) = match sent {
+        let (result, lost) = match sent {
             Ok(()) => {
                 let mut group = Group {
                     session: self.session,
@@ -379,30 +379,31 @@ impl Team for TeamLead<'_> {
                     roster: &self.roster,
                     lost: None,
                 };
-                let stats = ppo.update_planned(trajs, seed, &mut group);
-                (stats, group.lost)
+                let result = ppo.update_planned(trajs, seed, &mut group);
+                (result, group.lost)
             }
             Err(e) => {
                 tracing::warn!(job = %self.job, "could not send the team's plan: {e}");
-                let mut s = UpdateStats { group_failed: true, ..Default::default() };
-                s.refused = Some(e.to_string());
-                (s, None)
+                (Err(Refused::Group { error: GroupError(e.to_string()), version: ppo.version }), None)
             }
         };
-        if !stats.group_failed {
-            self.team_updates += 1;
-            if stats.refused.is_none() {
-                self.good = self.plan;
+        let failed = match &result {
+            Err(why) if why.is_group() => why.to_string(),
+            _ => {
+                self.team_updates += 1;
+                if result.is_ok() {
+                    self.good = self.plan;
+                }
+                for m in self.members.values_mut() {
+                    m.in_sync = true;
+                }
+                return result;
             }
-            for m in self.members.values_mut() {
-                m.in_sync = true;
-            }
-            return stats;
-        }
+        };
         // A member was lost mid-update: drop it, and make the update again without it (alone;
         // the others get the state with the next plan).
         self.failures += 1;
-        tracing::warn!(job = %self.job, "{}; making the update again", stats.refused.as_deref().unwrap_or("the team failed"));
+        tracing::warn!(job = %self.job, "{failed}; making the update again");
         if let Some(l) = lost {
             self.members.remove(&l);
         }
@@ -411,11 +412,11 @@ impl Team for TeamLead<'_> {
             m.state_base = 0;
         }
         self.plan += 1;
-        let stats = ppo.update(trajs);
-        if stats.refused.is_none() {
+        let result = ppo.update(trajs);
+        if result.is_ok() {
             self.good = self.plan;
         }
-        stats
+        result
     }
 }
 
@@ -438,7 +439,7 @@ pub fn follow(
     ppo: &mut Ppo,
     drops: Arc<DropCounters>,
     keep_going: &mut dyn FnMut() -> bool,
-    on_update: &mut dyn FnMut(&Ppo, &UpdateStats),
+    on_update: &mut dyn FnMut(&Ppo, &Result<UpdateStats, Refused>),
 ) -> anyhow::Result<FollowEnd> {
     let plans = net::subscribe(session, &keys::team_plan(view.job_id))?;
     let mut shares = Shares::new(session, view.job_id, drops.clone())?;
@@ -525,16 +526,19 @@ pub fn follow(
             roster: &roster,
             lost: None,
         };
-        let stats = ppo.update_planned(&plan.trajectories, plan.seed, &mut group);
-        if stats.group_failed {
-            tracing::warn!(job = %view.job_id, "{}", stats.refused.as_deref().unwrap_or("the team failed"));
-            set(last, true);
-        } else {
-            if stats.refused.is_none() {
-                last = plan.plan;
+        let result = ppo.update_planned(&plan.trajectories, plan.seed, &mut group);
+        match &result {
+            Err(why) if why.is_group() => {
+                tracing::warn!(job = %view.job_id, "{why}");
+                set(last, true);
             }
-            set(last, false);
-            on_update(ppo, &stats);
+            _ => {
+                if result.is_ok() {
+                    last = plan.plan;
+                }
+                set(last, false);
+                on_update(ppo, &result);
+            }
         }
     };
     stop.store(true, Ordering::Relaxed);

@@ -102,9 +102,9 @@ pub fn run(network: &str, seconds: f64, learners: usize, epochs: usize, check: b
     let os = model.obs_size();
 
     let mut alone = Ppo::new(model.clone(), hyper.clone(), 0, 7, Par::Seq);
-    alone.update(&trajs);
+    alone.update(&trajs)?;
     let (one, _) = rate(seconds, epochs, || {
-        alone.update(&trajs);
+        alone.update(&trajs)?;
         Ok(())
     })?;
 
@@ -153,7 +153,7 @@ pub fn run(network: &str, seconds: f64, learners: usize, epochs: usize, check: b
     let start = ppo.clone();
     // The first update carries the state to the members: not timed.
     let t0 = Instant::now();
-    lead.update(&mut ppo, &trajs);
+    lead.update(&mut ppo, &trajs)?;
     let first_s = t0.elapsed().as_secs_f64();
     // Rounding differences grow with every step of a chaotic optimisation: the comparison
     // with one learner is made after about 24 minibatch steps (at least one update).
@@ -161,10 +161,10 @@ pub fn run(network: &str, seconds: f64, learners: usize, epochs: usize, check: b
     let mut against_one = None;
     if check {
         for _ in 1..checked {
-            lead.update(&mut ppo, &trajs);
+            lead.update(&mut ppo, &trajs)?;
         }
         for _ in 0..checked {
-            replay.update(&trajs);
+            replay.update(&trajs)?;
         }
         // How far the team is from one learner, against how far the updates moved the
         // weights. Adam divides every gradient by its running scale, so for weights whose
@@ -179,9 +179,11 @@ pub fn run(network: &str, seconds: f64, learners: usize, epochs: usize, check: b
         against_one = Some((apart, moved, ok));
     }
     let (team, timed) = rate(seconds, epochs, || {
-        let s = lead.update(&mut ppo, &trajs);
-        if s.group_failed || lead.failures > 0 {
-            bail!("the team failed during the bench: {:?}", s.refused);
+        if let Err(why) = lead.update(&mut ppo, &trajs) {
+            bail!("the team's update was refused during the bench: {why}");
+        }
+        if lead.failures > 0 {
+            bail!("the team failed during the bench ({} failures)", lead.failures);
         }
         Ok(())
     })?;

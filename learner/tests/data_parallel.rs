@@ -79,7 +79,7 @@ fn run_team<R: Reducer + Send>(
     members: &mut [Ppo],
     reducers: Vec<R>,
     trajs: &[Trajectory],
-) -> Vec<learner::UpdateStats> {
+) -> Vec<Result<learner::UpdateStats, learner::Refused>> {
     std::thread::scope(|s| {
         let handles: Vec<_> = members
             .iter_mut()
@@ -136,15 +136,14 @@ fn team_against_one(size: usize, target_kl: Option<f64>) -> usize {
     let mut stopped = 0;
     for iteration in 0..3 {
         let trajs = episodes(&alone.model, 20, &mut rng);
-        let one = alone.update_in(&trajs, &mut Alone);
-        assert!(one.refused.is_none() && one.gradient_steps > 10, "{one:?}");
-        let stats = run_team(&mut group, Threads::team(size), &trajs);
+        let one = alone.update_in(&trajs, &mut Alone).unwrap();
+        assert!(one.gradient_steps > 10, "{one:?}");
+        let stats: Vec<_> = run_team(&mut group, Threads::team(size), &trajs).into_iter().map(Result::unwrap).collect();
         // The team's members hold the very same state, weights and optimiser...
         for (r, m) in group.iter().enumerate().skip(1) {
             assert!(m.state() == group[0].state(), "{size}: member {r}, iteration {iteration}");
         }
         for st in &stats {
-            assert!(st.refused.is_none(), "{st:?}");
             assert_eq!(st.gradient_steps, one.gradient_steps);
             assert_eq!(st.kl_stop, one.kl_stop, "iteration {iteration}");
             assert_eq!(st.policy_version, one.policy_version);
@@ -235,7 +234,7 @@ fn issue_8_the_summed_shares_are_the_whole_minibatch_gradient() {
             .map(|(ppo, mut r)| {
                 let t = &trajs;
                 s.spawn(move || {
-                    assert!(ppo.update_in(t, &mut r).refused.is_none());
+                    ppo.update_in(t, &mut r).unwrap();
                     r.seen
                 })
             })
@@ -296,8 +295,8 @@ fn issue_8_a_broken_group_refuses_the_update_and_keeps_the_weights() {
     let model = ActorCritic::new(&meta, 27, &mut rng);
     let mut ppo = Ppo::new(model.clone(), Hyperparameters::default(), 7, 5, Par::Seq);
     let trajs = episodes(&ppo.model, 20, &mut rng);
-    let stats = ppo.update_in(&trajs, &mut Broken);
-    assert!(stats.refused.as_deref().is_some_and(|r| r.contains("peer gone")), "{stats:?}");
+    let refused = ppo.update_in(&trajs, &mut Broken).unwrap_err();
+    assert!(refused.is_group() && refused.to_string().contains("peer gone"), "{refused:?}");
     assert_eq!(ppo.model, model);
     assert_eq!(ppo.version, 7);
 }
@@ -311,7 +310,7 @@ fn issue_8_a_joiner_that_takes_the_state_makes_the_same_updates_bit_for_bit() {
     let mut leader = Ppo::new(model.clone(), h.clone(), 0, 5, Par::Seq);
     for _ in 0..2 {
         let trajs = episodes(&leader.model, 12, &mut rng);
-        leader.update(&trajs);
+        leader.update(&trajs).unwrap();
     }
     // A fresh learner (other initial weights, no optimiser history) takes the leader's state.
     let other = ActorCritic::new(&meta, 27, &mut ChaCha8Rng::seed_from_u64(99));
@@ -324,9 +323,9 @@ fn issue_8_a_joiner_that_takes_the_state_makes_the_same_updates_bit_for_bit() {
     let trajs = episodes(&leader.model, 12, &mut rng);
     let seed = leader.draw_seed();
     let mut no_moments = Ppo::new(leader.model.clone(), h, leader.version, 5, Par::Seq);
-    leader.update_planned(&trajs, seed, &mut Alone);
-    joiner.update_planned(&trajs, seed, &mut Alone);
-    no_moments.update_planned(&trajs, seed, &mut Alone);
+    leader.update_planned(&trajs, seed, &mut Alone).unwrap();
+    joiner.update_planned(&trajs, seed, &mut Alone).unwrap();
+    no_moments.update_planned(&trajs, seed, &mut Alone).unwrap();
     assert_eq!(joiner.model, leader.model);
     assert_ne!(no_moments.model, leader.model);
 }
@@ -388,11 +387,11 @@ fn issue_8_camera_network_team_sends_factors_and_makes_one_learners_update() {
         .collect();
     let h = Hyperparameters { num_epochs: 1, batch_size: 64, ..Hyperparameters::default() };
     let mut alone = Ppo::new(model.clone(), h.clone(), 0, 5, Par::Seq);
-    let one = alone.update_in(&trajs, &mut Alone);
-    assert!(one.refused.is_none() && one.gradient_steps == 2, "{one:?}");
+    let one = alone.update_in(&trajs, &mut Alone).unwrap();
+    assert!(one.gradient_steps == 2, "{one:?}");
     let mut group: Vec<Ppo> = (0..4).map(|_| Ppo::new(model.clone(), h.clone(), 0, 5, Par::Seq)).collect();
     let stats = run_team(&mut group, Threads::team(4), &trajs);
-    assert!(stats.iter().all(|st| st.refused.is_none()), "{stats:?}");
+    assert!(stats.iter().all(|st| st.is_ok()), "{stats:?}");
     for m in &group[1..] {
         assert!(m.model == group[0].model, "the members hold the same weights");
     }
@@ -429,7 +428,7 @@ fn issue_8_a_team_trains_each_tower_on_its_own_members_and_swaps_them_once_an_up
                 let t = &trajs;
                 s.spawn(move || {
                     let st = ppo.update_in(t, &mut r);
-                    assert!(st.refused.is_none(), "{st:?}");
+                    let st = st.unwrap();
                     (r.seen, st.gradient_steps)
                 })
             })
@@ -495,9 +494,10 @@ fn issue_8_a_tower_state_that_does_not_fit_refuses_the_update_and_changes_nothin
             let b = s.spawn(|| p1.update_in(&trajs, &mut { t1 }));
             (a.join().unwrap(), b.join().unwrap())
         });
-        assert!(s1.refused.is_none(), "{s1:?}");
-        let e = s0.refused.unwrap_or_default();
-        assert!(s0.group_failed && e.contains(why) && e.contains("version 4"), "{why}: {e}");
+        assert!(s1.is_ok(), "{s1:?}");
+        let refused = s0.unwrap_err();
+        let e = refused.to_string();
+        assert!(refused.is_group() && e.contains(why) && e.contains("version 4"), "{why}: {e}");
         assert!(p0.state() == before, "{why}: the update was taken back whole");
     }
 }

@@ -174,8 +174,7 @@ fn ppo_learns_a_bandit_and_would_not_with_a_wrong_sign() {
     let (_, first) = bandit_episodes(&ppo.model, 0, 400, &mut rng);
     for _ in 0..25 {
         let (trajs, _) = bandit_episodes(&ppo.model, ppo.version, 128, &mut rng);
-        let stats = ppo.update(&trajs);
-        assert!(stats.refused.is_none());
+        ppo.update(&trajs).unwrap();
     }
     let (_, last) = bandit_episodes(&ppo.model, ppo.version, 400, &mut rng);
     assert!(first < 0.5, "a fresh policy guesses: {first}");
@@ -191,14 +190,14 @@ fn a_nan_never_reaches_the_weights() {
     let (mut trajs, _) = bandit_episodes(&ppo.model, 3, 64, &mut rng);
     let before = ppo.model.clone();
     trajs[5].rewards[0] = f32::NAN;
-    let stats = ppo.update(&trajs);
-    assert!(stats.refused.as_deref().unwrap_or("").contains("non-finite"), "{stats:?}");
+    let refused = ppo.update(&trajs).unwrap_err();
+    assert!(!refused.is_group() && refused.to_string().contains("non-finite"), "{refused:?}");
     assert_eq!(ppo.model, before, "weights untouched");
     assert_eq!(ppo.version, 3, "no new version");
     // And training goes on from the good weights.
     let (good, _) = bandit_episodes(&ppo.model, 3, 64, &mut rng);
-    let stats = ppo.update(&good);
-    assert!(stats.refused.is_none() && ppo.version == 4);
+    ppo.update(&good).unwrap();
+    assert_eq!(ppo.version, 4);
     assert_ne!(ppo.model, before);
 }
 
@@ -218,7 +217,7 @@ fn issue_8_the_old_policy_is_the_network_as_the_update_begins() {
     let h = Hyperparameters { lr: 3e-3, num_epochs: 4, batch_size: 32, target_kl: None, ..Hyperparameters::default() };
     let mut a = Ppo::new(model.clone(), h.clone(), 0, 1, Par::Seq);
     let mut b = Ppo::new(model.clone(), h.clone(), 0, 1, Par::Seq);
-    let (sa, sb) = (a.update(&trajs), b.update(&acted_elsewhere));
+    let (sa, sb) = (a.update(&trajs).unwrap(), b.update(&acted_elsewhere).unwrap());
     assert_eq!(a.model, b.model, "the same update");
     assert_eq!((sa.approx_kl, sa.policy_loss), (sb.approx_kl, sb.policy_loss));
     // The batch's figures are the model's own: the first minibatch's ratios are 1.
@@ -239,8 +238,8 @@ fn issue_8_an_update_stops_its_epochs_once_the_policy_moved_past_target_kl() {
     for (target_kl, stops) in [(None, false), (Some(10.0), false), (Some(1e-7), true)] {
         let h = Hyperparameters { lr: 3e-3, num_epochs: 4, batch_size: 32, target_kl, ..Hyperparameters::default() };
         let mut ppo = Ppo::new(model.clone(), h, 0, 1, Par::Seq);
-        let s = ppo.update(&trajs);
-        assert!(s.refused.is_none() && ppo.version == 1, "{target_kl:?}: {s:?}");
+        let s = ppo.update(&trajs).unwrap();
+        assert_eq!(ppo.version, 1, "{target_kl:?}: {s:?}");
         if stops {
             // The first step starts from ratios of 1; the one after it sees the policy moved.
             let k = s.kl_stop.expect("stopped");

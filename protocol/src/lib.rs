@@ -46,6 +46,13 @@
 //! |---|---|---|
 //! | `{ns}/sensor_fusion_pkg/sensor_msg` | the car's `EvoSensorMsg`, CDR ([`ros`]) | the car (zenoh-bridge-ros2dds) |
 //! | `{ns}/deepracer_navigation_pkg/auto_drive` | `ServoCtrlMsg`, CDR ([`ros`]) | on-car agent |
+//!
+//! # Modules
+//!
+//! [`exchange`] (the learner's and workers' values on the wire, each checked against its
+//! job), [`job`] (the job document and its message), [`net`] (sessions, `NetCli`, typed
+//! put/subscribe/query that count drops), [`secure`] (roles, certificates, access control,
+//! logging), [`ros`] (the car's ROS 2 messages), [`exit`] (the exit codes of every binary).
 
 use prost::Message;
 
@@ -57,6 +64,7 @@ mod generated {
 pub use generated::*;
 
 pub mod exchange;
+pub mod exit;
 pub mod job;
 pub mod net;
 pub mod ros;

@@ -18,7 +18,7 @@ use std::time::{Duration, Instant};
 use tracks::{Direction, P2};
 
 #[derive(Parser)]
-#[command(name = "sim-agent", version, about = "Paddock's simulator agent")]
+#[command(name = "sim-agent", version, about = "Paddock's simulator agent", after_help = protocol::exit::TABLE)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -102,10 +102,7 @@ fn main() {
             threads: a.threads.unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)),
         }),
     };
-    if let Err(e) = result {
-        eprintln!("error: {e:#}");
-        std::process::exit(1);
-    }
+    protocol::exit::exit(result.map(|()| protocol::exit::SUCCESS))
 }
 
 fn bench(args: BenchArgs) -> Result<()> {

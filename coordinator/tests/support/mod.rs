@@ -1,4 +1,5 @@
-//! What the coordinator's integration tests share: one camera model trained from pixels.
+//! What the coordinator's integration tests share: the role binaries, a free port, the tests'
+//! Python, the root check, and one camera model trained from pixels.
 //!
 //! Training SHALLOW from pixels until it laps takes a minute or more; the tests that need such
 //! a model (it learns to lap; `deploy` drives the simulated car with it) share one run
@@ -7,8 +8,38 @@
 //! under a lock file and renamed into place whole, so a test that died half-way leaves nothing
 //! another would take for a model.
 
+#![allow(dead_code)] // each test binary uses its own few of these
+
 use std::path::PathBuf;
 use std::process::Command;
+
+/// A role binary (`learner`, `sim-agent`, `deploy`, `coordinator`), built beside this test's
+/// `coordinator` (`cargo test --workspace` and `./paddock test` build every binary).
+pub fn bin(name: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_BIN_EXE_coordinator")).with_file_name(name)
+}
+
+/// A loopback port free now (for a role to listen on).
+pub fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
+}
+
+/// The tests' Python environment (`PADDOCK_PYTHON`, made by `./paddock test`), holding `what`.
+pub fn python(what: &str) -> PathBuf {
+    std::env::var_os("PADDOCK_PYTHON").map(PathBuf::from).unwrap_or_else(|| {
+        panic!("PADDOCK_PYTHON is not set: run `./paddock test`, which makes target/pyenv with {what}")
+    })
+}
+
+/// Tests that need root end in `_as_root`: `./paddock test` leaves them out without root and
+/// says so; run any other way without root, they fail saying why (never a silent pass).
+pub fn need_root(what: &str) {
+    let root = std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| s.lines().find(|l| l.starts_with("Uid:")).map(|l| l.split_whitespace().nth(1) == Some("0")))
+        .unwrap_or(false);
+    assert!(root, "{what} needs root: run the tests as root, or `./paddock test`, which skips this test and says so");
+}
 
 /// The shared camera run: `coordinator train --sensor camera` on reinvent_base until two
 /// evaluations in a row lap 3/3 (at most 15 minutes). Returns the run folder and what

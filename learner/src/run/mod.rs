@@ -34,7 +34,7 @@ pub use stop::{Standing, StopRules, TargetLaps};
 
 use crate::checkpoints::{CheckpointRecord, OpenMode, RunDir, RunError};
 use crate::hyperparams::Hyperparameters;
-use crate::ppo::{Ppo, PpoState, UpdateStats};
+use crate::ppo::{Ppo, PpoState, Refused, UpdateStats};
 use crate::record::Recorder;
 use crate::trend::{Trend, TrendRules, Verdict};
 use buffer::{Admitted, Buffer};
@@ -130,7 +130,7 @@ pub trait Link {
 /// the team's attempt fail, and the leader makes that update again with whoever is left.
 pub trait Team {
     /// This iteration's update, made with the members there are (alone when there are none).
-    fn update(&mut self, ppo: &mut Ppo, trajs: &[Trajectory]) -> UpdateStats;
+    fn update(&mut self, ppo: &mut Ppo, trajs: &[Trajectory]) -> Result<UpdateStats, Refused>;
 }
 
 /// Hears about iterations and evaluations (a terminal, a log). Default: nothing.
@@ -643,9 +643,16 @@ impl<'a> Run<'a> {
         let lr = spec.stop.lr(&spec.hyper, self.start.elapsed().as_secs_f64(), self.episodes, self.env_steps);
         self.ppo.set_lr(lr);
         let t1 = Instant::now();
-        let stats: UpdateStats = match self.link.team() {
+        let result = match self.link.team() {
             Some(team) => team.update(&mut self.ppo, &trajs),
             None => self.ppo.update(&trajs),
+        };
+        // A refused update changed nothing; it is recorded, and the next one goes on.
+        let (stats, refused) = match result {
+            Ok(stats) => (stats, None),
+            Err(why) => {
+                (UpdateStats { policy_version: self.ppo.version, ..UpdateStats::default() }, Some(why.to_string()))
+            }
         };
         let update_s = t1.elapsed().as_secs_f64();
         self.wait_since = Instant::now();
@@ -658,7 +665,7 @@ impl<'a> Run<'a> {
         while self.recent.len() as u64 > spec.stop.window.max(1) {
             self.recent.pop_front();
         }
-        if let Some(why) = &stats.refused {
+        if let Some(why) = &refused {
             tracing::warn!(run = %spec.name, iteration = self.iteration, "{why}");
         }
         self.publish()?;
@@ -689,7 +696,7 @@ impl<'a> Run<'a> {
             dropped_stale: self.buffer.stale,
             dropped_duplicate: self.buffer.dup,
             dropped_bad: self.buffer.bad,
-            refused: stats.refused.clone(),
+            refused,
             gradient_steps: stats.gradient_steps,
             kl_stop: stats.kl_stop,
             lr,

@@ -8,7 +8,16 @@
 //! the epochs stop early once a minibatch's approximate KL passes 1.5 × `target_kl`.
 //!
 //! A non-finite loss or gradient refuses the whole update: the weights and the optimiser
-//! state go back to where the iteration began, and the refusal is reported.
+//! state go back to where the iteration began, and the update returns why ([`Refused`]).
+//!
+//! The update is written once for a learner alone and for a team: a [`Reducer`] says which
+//! part of each minibatch this learner computes and sums the members' shares (`team.rs`);
+//! alone ([`Alone`]), it computes everything and sums nothing.
+
+mod team;
+
+pub use team::{Alone, GroupError, Reducer};
+use team::{Part, Role};
 
 use crate::hyperparams::{Hyperparameters, LossType};
 use faer::Par;
@@ -453,12 +462,8 @@ pub struct UpdateStats {
     pub explained_variance: f64,
     /// Gradient steps taken.
     pub gradient_steps: usize,
-    /// The update was refused (a non-finite loss or gradient); the weights did not change.
-    pub refused: Option<String>,
     /// Policy version after the update.
     pub policy_version: u64,
-    /// The refusal came from the learner group (a member did not answer), not from the numbers.
-    pub group_failed: bool,
     /// The update stopped before its last epoch: this gradient step's approximate KL passed
     /// 1.5 × `target_kl` (the step itself was taken).
     pub kl_stop: Option<usize>,
@@ -476,103 +481,50 @@ pub struct PpoState {
     pub tensors: Vec<(String, Vec<f32>)>,
 }
 
-/// Why a learner group's step failed (a member lost, a share that does not fit).
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-#[error("{0}")]
-pub struct GroupError(pub String);
-
 /// A state that does not fit this learner's model and optimisers (nothing was changed).
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[error("{0}")]
 pub struct StateMismatch(pub String);
 
-/// The learners of a group that trains as one learner, as one learner's update sees them.
-/// A group of one trains both towers alone. In a team the two towers are trained apart
-/// (they share nothing but the minibatch): the even ranks train the policy tower and the odd
-/// ranks the value tower, so that no member repeats the other tower's optimiser step. The
-/// members of a tower split each minibatch's samples between them (data parallelism, as
-/// DD-PPO does): each computes the gradient of its share weighted by the share's size, and
-/// `all_reduce` sums the shares in rank order, so they all apply the same Adam step to the
-/// same weights and the tower's update equals one learner's on the whole minibatch (to float
-/// rounding; with one member a tower, bit for bit the step one learner takes on the same
-/// batch). The big dense layers' weight gradients travel as their factors (inputs and output
-/// gradients of the share, a fraction of the size) and every member of the tower multiplies
-/// them out, in rank order too.
-///
-/// The exchanges of an update, numbered by `step`:
-/// - `0`, every member: its rows of the old policy's log-probabilities and values;
-/// - `2k + 1`, the members of a tower, for the update's `k`-th gradient step: the tower's
-///   shares (made only when two or more members train the tower);
-/// - `2k + 2`, every member: the step's loss figures, each tower's from its first member,
-///   and whether each member's step was finite, so that all refuse or stop together;
-/// - after the last of `K` steps, `2K + 1` and `2K + 2`: rank 0 sends the policy tower's
-///   weights and optimiser state to the members that train the value tower, and rank 1 the
-///   value tower's to those that train the policy tower, so every member ends the update
-///   with the same state, bit for bit, and any of them can lead or go on alone.
-pub trait Reducer {
-    /// This learner's rank and the group's size.
-    fn shard(&self) -> (usize, usize);
-    /// Replace `values` by the sum of the shares of the members `ranks` (ascending), added
-    /// in rank order, and return their `factors` in rank order. A member in `ranks` gives its
-    /// own `values` and `factors`; one not in `ranks` gives nothing and receives the sum
-    /// (its `values` only set the length: with one member in `ranks`, that member's values,
-    /// bit for bit). `step` numbers the exchanges of one update (see [`Reducer`]).
-    fn all_reduce(
-        &mut self,
-        step: u64,
-        ranks: &[usize],
-        values: &mut [f32],
-        factors: Vec<f32>,
-    ) -> Result<Vec<Vec<f32>>, GroupError>;
+/// Why an update was refused. The weights and the optimiser state are as they were before it.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum Refused {
+    /// Fewer samples than one minibatch.
+    #[error("{samples} samples: fewer than one minibatch of {batch}")]
+    TooFewSamples {
+        /// Samples in the batch.
+        samples: usize,
+        /// The minibatch size.
+        batch: usize,
+    },
+    /// A loss or gradient that is not a number.
+    #[error(
+        "non-finite loss or gradient at gradient step {step} (loss {loss}): update refused, weights kept at version {version}"
+    )]
+    NonFinite {
+        /// The gradient step (from 0).
+        step: usize,
+        /// Its loss.
+        loss: f64,
+        /// The version kept.
+        version: u64,
+    },
+    /// The learner group failed (a member lost, a share that does not fit).
+    #[error("the learner group failed: {error}; weights kept at version {version}")]
+    Group {
+        /// What failed.
+        error: GroupError,
+        /// The version kept.
+        version: u64,
+    },
 }
 
-/// A group of one: nothing to add.
-pub struct Alone;
-
-impl Reducer for Alone {
-    fn shard(&self) -> (usize, usize) {
-        (0, 1)
-    }
-    fn all_reduce(
-        &mut self,
-        _step: u64,
-        _ranks: &[usize],
-        _values: &mut [f32],
-        factors: Vec<f32>,
-    ) -> Result<Vec<Vec<f32>>, GroupError> {
-        Ok(vec![factors])
+impl Refused {
+    /// The group failed, not the numbers: the update can be made again without it.
+    pub fn is_group(&self) -> bool {
+        matches!(self, Refused::Group { .. })
     }
 }
-
-/// A team member's part in every gradient step: the tower it trains, the members that train
-/// it (ascending ranks) and its place among them.
-struct Role {
-    part: Part,
-    ranks: Vec<usize>,
-    index: usize,
-}
-
-impl Role {
-    /// The role of `rank` in a team of `size` (two or more): even ranks the policy tower,
-    /// odd ranks the value tower.
-    fn of(rank: usize, size: usize) -> Role {
-        let part = Part::of_rank(rank);
-        let ranks: Vec<usize> = (rank % 2..size).step_by(2).collect();
-        Role { part, index: rank / 2, ranks }
-    }
-
-    /// This member's samples of the minibatch `mb`, and every member's share sizes.
-    fn share<'a>(&self, mb: &'a [usize]) -> (&'a [usize], Vec<usize>) {
-        let (n, k) = (mb.len(), self.ranks.len());
-        let shares = (0..k).map(|r| n * (r + 1) / k - n * r / k).collect();
-        (&mb[n * self.index / k..n * (self.index + 1) / k], shares)
-    }
-}
-
-/// The loss figures a team sums at every gradient step: the policy loss, the entropy, the
-/// approximate KL, the clip fraction (the policy tower's), the value loss, and how many
-/// members' steps were not finite.
-const FIGURES: usize = 6;
 
 /// The learner's state: the model, its optimisers, its version.
 #[derive(Clone)]
@@ -609,13 +561,13 @@ impl Ppo {
     }
 
     /// Train on a set of trajectories (one iteration).
-    pub fn update(&mut self, trajs: &[Trajectory]) -> UpdateStats {
+    pub fn update(&mut self, trajs: &[Trajectory]) -> Result<UpdateStats, Refused> {
         self.update_in(trajs, &mut Alone)
     }
 
     /// Train on a set of trajectories as one learner of a data-parallel group: every learner
     /// of the group calls this with the same trajectories, from the same state.
-    pub fn update_in(&mut self, trajs: &[Trajectory], group: &mut dyn Reducer) -> UpdateStats {
+    pub fn update_in(&mut self, trajs: &[Trajectory], group: &mut dyn Reducer) -> Result<UpdateStats, Refused> {
         let seed = self.draw_seed();
         self.update_planned(trajs, seed, group)
     }
@@ -628,33 +580,39 @@ impl Ppo {
     }
 
     /// Train with minibatches shuffled from `seed`: the update every member of a group makes
-    /// from the leader's plan.
-    pub fn update_planned(&mut self, trajs: &[Trajectory], seed: u64, group: &mut dyn Reducer) -> UpdateStats {
-        let mut shuffle = ChaCha8Rng::seed_from_u64(seed);
-        let batch = match self.batch_in(trajs, group) {
-            Ok(b) => b,
-            Err(why) => {
-                return UpdateStats {
-                    refused: Some(self.group_refusal(&why)),
-                    group_failed: true,
-                    policy_version: self.version,
-                    ..Default::default()
-                };
-            }
-        };
+    /// from the leader's plan. A refused update leaves the weights and optimisers as they were.
+    pub fn update_planned(
+        &mut self,
+        trajs: &[Trajectory],
+        seed: u64,
+        group: &mut dyn Reducer,
+    ) -> Result<UpdateStats, Refused> {
+        let saved = (self.model.clone(), self.opt_pi.clone(), self.opt_v.clone(), self.opt_log_std.clone());
+        let result = self.train(trajs, seed, group);
+        if result.is_err() {
+            (self.model, self.opt_pi, self.opt_v, self.opt_log_std) = saved;
+        }
+        result
+    }
+
+    /// PPO's update: the batch (GAE on the old policy's values), then `num_epochs` epochs of
+    /// shuffled minibatches, each a gradient step, until the epochs end or the approximate KL
+    /// passes 1.5 × `target_kl`. In a team each member computes its part of every minibatch
+    /// and the group sums them ([`Ppo::step_in_team`]), and the members swap the towers they
+    /// trained at the end.
+    fn train(&mut self, trajs: &[Trajectory], seed: u64, group: &mut dyn Reducer) -> Result<UpdateStats, Refused> {
+        let version = self.version;
+        let group_failed = |error| Refused::Group { error, version };
+        let batch = self.batch_in(trajs, group).map_err(group_failed)?;
         let n = batch.len();
+        let bs = self.hyper.batch_size.min(n.max(1));
+        if n / bs == 0 {
+            return Err(Refused::TooFewSamples { samples: n, batch: bs });
+        }
         let mut stats =
             UpdateStats { samples: n, explained_variance: explained_variance(&batch), ..Default::default() };
-        let bs = self.hyper.batch_size.min(n.max(1));
-        let minibatches = n / bs;
-        if minibatches == 0 {
-            stats.refused = Some(format!("{n} samples: fewer than one minibatch of {bs}"));
-            stats.policy_version = self.version;
-            return stats;
-        }
-        let saved = (self.model.clone(), self.opt_pi.clone(), self.opt_v.clone(), self.opt_log_std.clone());
+        let mut shuffle = ChaCha8Rng::seed_from_u64(seed);
         let mut order: Vec<usize> = (0..n).collect();
-        let mut ws = std::mem::take(&mut self.ws);
         // The big dense layers' weight gradients stay factors until the optimiser multiplies
         // them out (alone or in a team: one path).
         let defer = (self.model.pi.factorable(bs), self.model.v.factorable(bs));
@@ -663,49 +621,8 @@ impl Ppo {
         'epochs: for _ in 0..self.hyper.num_epochs {
             order.shuffle(&mut shuffle);
             for mb in order.chunks_exact(bs) {
-                let step = stats.gradient_steps as u64;
-                let (mine, shares) = role.as_ref().map_or((mb, vec![mb.len()]), |r| r.share(mb));
-                let t0 = std::time::Instant::now();
-                let mut lg = loss_and_grad_of(
-                    &mut ws,
-                    &self.model,
-                    &batch,
-                    mine,
-                    &self.hyper,
-                    self.par,
-                    (&defer.0, &defer.1),
-                    role.as_ref().map(|r| r.part),
-                );
-                let t1 = std::time::Instant::now();
-                let applied = match &role {
-                    None => Ok(self.apply(&lg)),
-                    Some(role) => self.apply_in_team(group, step, role, &mut lg, &shares, size),
-                };
-                tracing::trace!(
-                    gradient_ms = (t1 - t0).as_secs_f64() * 1e3,
-                    optimiser_ms = t1.elapsed().as_secs_f64() * 1e3,
-                    "gradient step {step} (rank {rank} of {size}; in a team the optimiser's time includes the exchanges)"
-                );
-                // Either failure restores the state saved before the update and refuses it.
-                let refused = match applied {
-                    Ok(true) => None,
-                    Ok(false) => Some((
-                        format!(
-                            "non-finite loss or gradient at gradient step {} (loss {}): update refused, weights kept at version {}",
-                            stats.gradient_steps, lg.total, self.version
-                        ),
-                        false,
-                    )),
-                    Err(why) => Some((self.group_refusal(&why), true)),
-                };
-                if let Some((why, group_failed)) = refused {
-                    (self.model, self.opt_pi, self.opt_v, self.opt_log_std) = saved;
-                    self.ws = ws;
-                    stats.refused = Some(why);
-                    stats.group_failed = group_failed;
-                    stats.policy_version = self.version;
-                    return stats;
-                }
+                let lg =
+                    self.minibatch(&batch, mb, (&defer.0, &defer.1), group, role.as_ref(), stats.gradient_steps)?;
                 stats.policy_loss += lg.policy_loss;
                 stats.value_loss += lg.value_loss;
                 stats.entropy += lg.entropy;
@@ -714,23 +631,16 @@ impl Ppo {
                 stats.gradient_steps += 1;
                 // Every member of a team holds the group's figures here: all stop together.
                 let too_far = self.hyper.target_kl.is_some_and(|t| lg.approx_kl > 1.5 * t);
-                ws.recycle(lg);
+                self.ws.recycle(lg);
                 if too_far {
                     stats.kl_stop = Some(stats.gradient_steps);
                     break 'epochs;
                 }
             }
         }
-        self.ws = ws;
         // A team's members trained one tower each: they swap the towers' states.
-        if let Some(role) = &role
-            && let Err(why) = self.swap_towers(group, 2 * stats.gradient_steps as u64 + 1, role.part, rank)
-        {
-            (self.model, self.opt_pi, self.opt_v, self.opt_log_std) = saved;
-            stats.refused = Some(self.group_refusal(&why));
-            stats.group_failed = true;
-            stats.policy_version = self.version;
-            return stats;
+        if let Some(role) = &role {
+            self.swap_towers(group, 2 * stats.gradient_steps as u64 + 1, role.part, rank).map_err(group_failed)?;
         }
         let k = stats.gradient_steps as f64;
         stats.policy_loss /= k;
@@ -740,37 +650,43 @@ impl Ppo {
         stats.clip_fraction /= k;
         self.version += 1;
         stats.policy_version = self.version;
-        stats
+        Ok(stats)
     }
 
-    /// Why an update was refused when the group failed.
-    fn group_refusal(&self, why: &GroupError) -> String {
-        format!("the learner group failed: {why}; weights kept at version {}", self.version)
-    }
-
-    /// The update's batch ([`make_batch_for`]). In a team each member works out the old
-    /// policy's figures for its rank's share of the rows, and the group adds them up (exchange
-    /// 0 of the update; a row's figures come from one member, the others add zeros), so that
-    /// pass is split like the gradients.
-    fn batch_in(&self, trajs: &[Trajectory], group: &mut dyn Reducer) -> Result<Batch, GroupError> {
-        let (rank, size) = group.shard();
-        let (model, par, gamma) = (&self.model, self.par, self.hyper.discount_factor);
-        if size == 1 {
-            return Ok(make_batch_for(trajs, model, gamma, par));
+    /// Gradient step `step` on the minibatch `mb`: the loss and its gradient (in a team, of
+    /// this member's share and tower), then the optimiser step (in a team, on the members'
+    /// sum). Returns the loss figures (a team's sums), or why the update must be refused.
+    fn minibatch(
+        &mut self,
+        batch: &Batch,
+        mb: &[usize],
+        defer: (&[usize], &[usize]),
+        group: &mut dyn Reducer,
+        role: Option<&Role>,
+        step: usize,
+    ) -> Result<LossGrad, Refused> {
+        let (mine, shares) = role.map_or((mb, vec![mb.len()]), |r| r.share(mb));
+        let t0 = std::time::Instant::now();
+        let mut ws = std::mem::take(&mut self.ws);
+        let only = role.map(|r| r.part);
+        let mut lg = loss_and_grad_of(&mut ws, &self.model, batch, mine, &self.hyper, self.par, defer, only);
+        self.ws = ws;
+        let t1 = std::time::Instant::now();
+        let finite = match role {
+            None => self.apply(&lg),
+            Some(role) => self
+                .step_in_team(group, step as u64, role, &mut lg, &shares)
+                .map_err(|error| Refused::Group { error, version: self.version })?,
+        };
+        tracing::trace!(
+            gradient_ms = (t1 - t0).as_secs_f64() * 1e3,
+            optimiser_ms = t1.elapsed().as_secs_f64() * 1e3,
+            "gradient step {step} (in a team the optimiser's time includes the exchanges)"
+        );
+        if !finite {
+            return Err(Refused::NonFinite { step, loss: lg.total, version: self.version });
         }
-        let os = model.obs_size();
-        batch_with(trajs, os, gamma, |obs, choices| {
-            let n = choices.len();
-            let (a, b) = (n * rank / size, n * (rank + 1) / size);
-            let (logp, values) = logp_and_values(model, &obs[a * os..b * os], &choices[a..b], par);
-            let mut both = vec![0.0f32; 2 * n];
-            both[a..b].copy_from_slice(&logp);
-            both[n + a..n + b].copy_from_slice(&values);
-            let every: Vec<usize> = (0..size).collect();
-            group.all_reduce(0, &every, &mut both, Vec::new())?;
-            let values = both.split_off(n);
-            Ok((both, values))
-        })
+        Ok(lg)
     }
 
     /// The optimiser step of one minibatch of a learner alone: Adam on both towers (the
@@ -799,157 +715,6 @@ impl Ppo {
         if let Head::Gaussian { log_std } = &mut self.model.head {
             self.opt_log_std.step(log_std, &lg.grad_log_std);
         }
-    }
-
-    /// The optimiser step of one minibatch in a team: the Adam step of the tower this member
-    /// trains, as [`Ppo::apply`] takes it, on the sum of the shares of the members that train
-    /// it (exchange `2k + 1`, made when there are two or more), then the step's loss figures
-    /// summed over the team (exchange `2k + 2`). Returns whether every member's step was
-    /// finite; `lg` then holds the team's figures.
-    fn apply_in_team(
-        &mut self,
-        group: &mut dyn Reducer,
-        step: u64,
-        role: &Role,
-        lg: &mut LossGrad,
-        shares: &[usize],
-        size: usize,
-    ) -> Result<bool, GroupError> {
-        let part = role.part;
-        let every = if role.ranks.len() > 1 {
-            let (mut values, factors) = share_of(lg, part, shares, role.index);
-            let every = group.all_reduce(2 * step + 1, &role.ranks, &mut values, factors)?;
-            check_factors(&every, part.of(lg).1, shares)?;
-            take_sum(lg, part, &values);
-            Some(every)
-        } else {
-            None
-        };
-        let factored = factored_grads(part.of(lg).1, every.as_deref().map(|e| (e, shares)));
-        let finite = match part {
-            Part::Policy => {
-                let ok = self.opt_pi.step_factored(&mut self.model.pi.params, &lg.grad_pi, &factored, self.par);
-                self.step_log_std(lg);
-                ok && lg.grad_log_std.iter().all(|g| g.is_finite())
-            }
-            Part::Value => self.opt_v.step_factored(&mut self.model.v.params, &lg.grad_v, &factored, self.par),
-        };
-        // Each tower's figures come from its first member (the others hold the same sums).
-        let mut figures = [0.0f32; FIGURES];
-        if role.index == 0 {
-            match part {
-                Part::Policy => figures[..4]
-                    .copy_from_slice(&[lg.policy_loss, lg.entropy, lg.approx_kl, lg.clip_fraction].map(|f| f as f32)),
-                Part::Value => figures[4] = lg.value_loss as f32,
-            }
-        }
-        figures[5] = if finite { 0.0 } else { 1.0 };
-        let everyone: Vec<usize> = (0..size).collect();
-        group.all_reduce(2 * step + 2, &everyone, &mut figures, Vec::new())?;
-        let [pl, ent, kl, clip, vl, bad] = figures.map(|f| f as f64);
-        (lg.policy_loss, lg.entropy, lg.approx_kl, lg.clip_fraction, lg.value_loss) = (pl, ent, kl, clip, vl);
-        lg.total = pl - self.hyper.beta_entropy * ent + vl;
-        Ok(bad == 0.0 && lg.total.is_finite())
-    }
-
-    /// The end of a team's update (exchanges `first` and `first + 1`): rank 0 sends the
-    /// policy tower's state (weights, log-std, optimiser moments) to the members that trained
-    /// the value tower, and rank 1 the value tower's to those that trained the policy tower
-    /// (`mine`: the tower this member trained). Each member sends before it waits, so the two
-    /// travel at once.
-    fn swap_towers(&mut self, group: &mut dyn Reducer, first: u64, mine: Part, rank: usize) -> Result<(), GroupError> {
-        let step = |p: Part| if p == Part::Policy { first } else { first + 1 };
-        if rank == mine.owner() {
-            let mut state = self.tower_state(mine);
-            group.all_reduce(step(mine), &[rank], &mut state, Vec::new())?;
-        }
-        let other = mine.other();
-        let mut state = vec![0.0; self.tower_state_len(other)];
-        group.all_reduce(step(other), &[other.owner()], &mut state, Vec::new())?;
-        self.set_tower_state(other, &state)
-    }
-
-    /// A tower's parameters and their optimisers: the policy tower's weights, then the
-    /// log-std (none with a categorical head); the value tower's weights.
-    fn tower_pieces(&self, part: Part) -> Vec<(&[f32], &Adam)> {
-        match part {
-            Part::Policy => {
-                let log_std: &[f32] = match &self.model.head {
-                    Head::Gaussian { log_std } => log_std,
-                    Head::Categorical(_) => &[],
-                };
-                vec![(&self.model.pi.params, &self.opt_pi), (log_std, &self.opt_log_std)]
-            }
-            Part::Value => vec![(&self.model.v.params, &self.opt_v)],
-        }
-    }
-
-    /// A tower's weights and optimiser state, flat: for each of its pieces the parameters,
-    /// then Adam's first and second moments and its step count.
-    fn tower_state(&self, part: Part) -> Vec<f32> {
-        let mut out = Vec::with_capacity(self.tower_state_len(part));
-        for (params, opt) in self.tower_pieces(part) {
-            let (m, v, t) = opt.moments();
-            out.extend_from_slice(params);
-            out.extend_from_slice(m);
-            out.extend_from_slice(v);
-            out.push(t as f32);
-        }
-        out
-    }
-
-    /// The length of [`Ppo::tower_state`], without making it.
-    fn tower_state_len(&self, part: Part) -> usize {
-        self.tower_pieces(part).iter().map(|(p, o)| p.len() + 2 * o.moments().0.len() + 1).sum()
-    }
-
-    /// Take a tower's state as [`Ppo::tower_state`] lays it out. Refused, with nothing
-    /// changed, when it does not fit.
-    fn set_tower_state(&mut self, part: Part, state: &[f32]) -> Result<(), GroupError> {
-        let Ppo { model, opt_pi, opt_v, opt_log_std, .. } = self;
-        let mut none = [0.0f32; 0];
-        let mut pieces: Vec<(&mut [f32], &mut Adam)> = match part {
-            Part::Policy => {
-                let log_std: &mut [f32] = match &mut model.head {
-                    Head::Gaussian { log_std } => log_std,
-                    Head::Categorical(_) => &mut none,
-                };
-                vec![(&mut model.pi.params[..], opt_pi), (log_std, opt_log_std)]
-            }
-            Part::Value => vec![(&mut model.v.params[..], opt_v)],
-        };
-        // Every size and step count first, so that a state that does not fit changes nothing.
-        let sizes: Vec<(usize, usize)> = pieces.iter().map(|(p, o)| (p.len(), o.moments().0.len())).collect();
-        let expected: usize = sizes.iter().map(|(p, n)| p + 2 * n + 1).sum();
-        if state.len() != expected {
-            return Err(GroupError(format!(
-                "a tower's state of {} numbers where {expected} were expected",
-                state.len()
-            )));
-        }
-        if let Some(i) = state.iter().position(|x| !x.is_finite()) {
-            return Err(GroupError(format!("a tower's state holds {} at position {i}", state[i])));
-        }
-        let mut at = 0;
-        for &(p, n) in &sizes {
-            let t = state[at + p + 2 * n];
-            if !(t >= 0.0 && t.fract() == 0.0 && t < u32::MAX as f32) {
-                return Err(GroupError(format!("optimiser step count {t} is not a count")));
-            }
-            if let Some(i) = state[at + p + n..at + p + 2 * n].iter().position(|v| *v < 0.0) {
-                return Err(GroupError(format!("a tower's second moment is negative at position {}", at + p + n + i)));
-            }
-            at += p + 2 * n + 1;
-        }
-        let mut at = 0;
-        for ((params, opt), (p, n)) in pieces.iter_mut().zip(sizes) {
-            let piece = &state[at..at + p + 2 * n + 1];
-            params.copy_from_slice(&piece[..p]);
-            let (m, v, t) = (piece[p..p + n].to_vec(), piece[p + n..p + 2 * n].to_vec(), piece[p + 2 * n] as u32);
-            opt.set_moments(m, v, t).map_err(|e| GroupError(e.to_string()))?;
-            at += p + 2 * n + 1;
-        }
-        Ok(())
     }
 
     /// One gradient step of a learner alone on the samples `idx` of `batch`, as an update
@@ -1029,137 +794,6 @@ impl Ppo {
             opt.lr = lr as f32;
         }
     }
-}
-
-/// The parameter ranges a tower's factored layers leave out of its gradient vector.
-fn skipped(factors: &[Factors]) -> Vec<(usize, usize)> {
-    let mut r: Vec<(usize, usize)> = factors.iter().map(|f| (f.offset, f.offset + f.n_in * f.n_out)).collect();
-    r.sort_unstable();
-    r
-}
-
-/// The parts of `grad` outside `skip`, in order.
-fn kept<'a>(grad: &'a [f32], skip: &'a [(usize, usize)]) -> impl Iterator<Item = &'a [f32]> + 'a {
-    let mut at = 0;
-    let mut out = Vec::with_capacity(skip.len() + 1);
-    for &(a, b) in skip {
-        out.push(&grad[at..a]);
-        at = b;
-    }
-    out.push(&grad[at..]);
-    out.into_iter()
-}
-
-/// A model's two towers, as a team splits its work (see [`Reducer`]).
-#[derive(Clone, Copy, PartialEq, Debug)]
-enum Part {
-    /// The policy tower (and the log-std of a Gaussian head).
-    Policy,
-    /// The value tower.
-    Value,
-}
-
-impl Part {
-    /// The tower a team member of `rank` trains: even ranks the policy tower.
-    fn of_rank(rank: usize) -> Part {
-        if rank.is_multiple_of(2) { Part::Policy } else { Part::Value }
-    }
-
-    /// The other tower.
-    fn other(self) -> Part {
-        match self {
-            Part::Policy => Part::Value,
-            Part::Value => Part::Policy,
-        }
-    }
-
-    /// The rank that sends the tower's state at an update's end: the first that trains it.
-    fn owner(self) -> usize {
-        match self {
-            Part::Policy => 0,
-            Part::Value => 1,
-        }
-    }
-
-    /// The tower's gradient and its factored layers.
-    fn of(self, lg: &LossGrad) -> (&Vec<f32>, &Vec<Factors>) {
-        match self {
-            Part::Policy => (&lg.grad_pi, &lg.factors_pi),
-            Part::Value => (&lg.grad_v, &lg.factors_v),
-        }
-    }
-}
-
-/// This learner's share of `part` of a minibatch (`shares[rank]` of its samples), weighted
-/// by its size: the values to sum over the tower's members (the gradient but its factored
-/// layers' weights; then for the policy tower the log-std gradient, the policy loss, the
-/// entropy, the approximate KL and the clip fraction; for the value tower the value loss),
-/// and the factored layers' factors.
-fn share_of(lg: &LossGrad, part: Part, shares: &[usize], rank: usize) -> (Vec<f32>, Vec<f32>) {
-    let (mine, all) = (shares[rank], shares.iter().sum::<usize>());
-    let w = mine as f32 / all as f32;
-    // An empty share contributes nothing (its means are not numbers).
-    let weigh = |x: f32| if mine == 0 { 0.0 } else { x * w };
-    let (grad, factors) = part.of(lg);
-    let skip = skipped(factors);
-    let mut values = Vec::with_capacity(grad.len() + 6);
-    for run in kept(grad, &skip) {
-        values.extend(run.iter().map(|g| weigh(*g)));
-    }
-    let figures = match part {
-        Part::Policy => {
-            values.extend(lg.grad_log_std.iter().map(|g| weigh(*g)));
-            vec![lg.policy_loss, lg.entropy, lg.approx_kl, lg.clip_fraction]
-        }
-        Part::Value => vec![lg.value_loss],
-    };
-    values.extend(figures.iter().map(|f| weigh(*f as f32)));
-    let mut mine_f = Vec::with_capacity(factors.iter().map(|f| f.x.len() + f.d.len()).sum());
-    for f in factors {
-        mine_f.extend_from_slice(&f.x);
-        mine_f.extend(f.d.iter().map(|d| d * w));
-    }
-    (values, mine_f)
-}
-
-/// Put the tower members' sum of `part` (laid out as [`share_of`] made it) back into `lg`.
-fn take_sum(lg: &mut LossGrad, part: Part, values: &[f32]) {
-    let skip = skipped(part.of(lg).1);
-    let grad = if part == Part::Policy { &mut lg.grad_pi } else { &mut lg.grad_v };
-    let (mut at, mut from) = (0, 0);
-    for &(a, b) in skip.iter().chain(std::iter::once(&(grad.len(), grad.len()))) {
-        let n = a - from;
-        grad[from..a].copy_from_slice(&values[at..at + n]);
-        at += n;
-        from = b;
-    }
-    let f = &values[at..];
-    match part {
-        Part::Policy => {
-            lg.grad_log_std.copy_from_slice(&f[..2]);
-            (lg.policy_loss, lg.entropy, lg.approx_kl, lg.clip_fraction) =
-                (f[2] as f64, f[3] as f64, f[4] as f64, f[5] as f64);
-        }
-        Part::Value => lg.value_loss = f[0] as f64,
-    }
-}
-
-/// Every member's factors for a tower's factored `layers` must hold its share's samples.
-fn check_factors(every: &[Vec<f32>], layers: &[Factors], shares: &[usize]) -> Result<(), GroupError> {
-    let per_sample: usize = layers.iter().map(|f| f.n_in + f.n_out).sum();
-    if every.len() != shares.len() {
-        return Err(GroupError(format!("{} members' factors for a group of {}", every.len(), shares.len())));
-    }
-    for (r, fr) in every.iter().enumerate() {
-        if fr.len() != shares[r] * per_sample {
-            return Err(GroupError(format!(
-                "member {r}'s factors hold {} numbers where {} were expected",
-                fr.len(),
-                shares[r] * per_sample
-            )));
-        }
-    }
-    Ok(())
 }
 
 fn explained_variance(b: &Batch) -> f64 {
