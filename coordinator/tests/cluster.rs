@@ -9,6 +9,8 @@ use support::{bin, free_port};
 
 /// One cluster at a time: each test starts several processes that want both cores, and
 /// timings (flow control, updates to the end of a job) mean something only on a quiet machine.
+/// `./paddock test` runs every test in its own process and these alone (.config/nextest.toml);
+/// this lock keeps them apart under plain `cargo test` too, where they share a process.
 static ONE_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
 fn exclusive() -> std::sync::MutexGuard<'static, ()> {
@@ -574,6 +576,7 @@ fn issue_8_a_stop_condition_through_the_cluster() {
 
 /// Run `up` on three worlds with two agents; return (summary, metrics lines, job seconds).
 fn up_three_worlds(dir: &Path, extra: &[&str]) -> (serde_json::Value, Vec<serde_json::Value>, f64) {
+    let _turn = exclusive();
     let mut args = vec![
         "up",
         "--world",

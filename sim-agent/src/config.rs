@@ -183,8 +183,7 @@ pub enum ObservationKind {
     Lidar,
     /// Both, state first.
     StateLidar,
-    /// The front camera: the renderer arrives with the camera issue; choosing it today is an
-    /// error at start-up, never a silent fallback.
+    /// The front camera: frames rendered with wgpu (on a GPU, or on lavapipe without one).
     Camera,
 }
 

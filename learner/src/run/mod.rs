@@ -16,7 +16,9 @@
 //! ([`Run::should_stop`]) and the status ([`Run::report`]). The pure parts are modules of
 //! their own, tested on tables: the experience buffer and its stale rule (`buffer`), the
 //! grant rounds (`grants`), the stop rules (`stop`); the best-model choice is
-//! [`RunDir::record`].
+//! [`RunDir::record`]. The update is PPO's ([`Ppo`], alone or through a [`Team`]); a second
+//! algorithm (an off-policy one such as SAC, whose replay memory replaces the buffer's stale
+//! rule) belongs where [`Run::update_if_ready`] calls it, behind the same loop and links.
 //!
 //! Flow control: for each policy version the learner grants the live workers, between them,
 //! the episodes it still needs for the next update ([`Credit`]). A worker starts no more
