@@ -5,7 +5,7 @@
 //! between worlds and nothing it had running is thrown away. Pure functions, tested here.
 
 use crate::jobs::AgentWork;
-use protocol::job::JobDoc;
+use protocol::Job;
 use protocol::{Assignment, PROTOCOL_VERSION, WorldSpec};
 use std::collections::BTreeMap;
 
@@ -53,7 +53,7 @@ pub fn assign(
 }
 
 /// The assignment message for `agent`'s share of a job.
-pub fn assignment(doc: &JobDoc, agent: &str, work: &AgentWork) -> anyhow::Result<Assignment> {
+pub fn assignment(doc: &Job, agent: &str, work: &AgentWork) -> anyhow::Result<Assignment> {
     let sim: sim_agent::SimConfig = sim_agent::config::parse_toml(&doc.sim_config_toml, "the job's sim config")?;
     Ok(Assignment {
         protocol_version: PROTOCOL_VERSION,

@@ -3,8 +3,9 @@
 
 use crate::cli::{JobCommand, NetCli};
 use anyhow::{Context, Result, bail};
+use protocol::job_reply::Body;
 use protocol::net::{self, DropCounters, NetArgs};
-use protocol::{JobReply, JobRequest, PROTOCOL_VERSION, job_request::Kind, keys};
+use protocol::{JobReply, JobRequest, JobState, JobStatus, PROTOCOL_VERSION, job_request::Kind, keys};
 use std::time::Duration;
 
 /// Network arguments for a client: default to a coordinator on this machine.
@@ -27,6 +28,37 @@ pub fn request(session: &zenoh::Session, kind: Kind, timeout: Duration) -> Resul
 
 use protocol::net::zenoh;
 
+/// A status reply's answer.
+pub fn status_of(r: &JobReply) -> Option<&JobStatus> {
+    match &r.body {
+        Some(Body::Status(s)) => Some(s),
+        _ => None,
+    }
+}
+
+/// The job's state a reply reports (status, logs, start and stop).
+pub fn state_of(r: &JobReply) -> Option<JobState> {
+    match &r.body {
+        Some(Body::Status(s)) => s.record.as_ref().map(|j| j.state()),
+        Some(Body::Log(l)) => Some(l.state()),
+        Some(Body::Job(j)) => Some(j.state()),
+        _ => None,
+    }
+}
+
+/// The reply's answer as JSON (`--json`): the typed answer, field by field.
+pub fn json_of(r: &JobReply) -> String {
+    let v = match &r.body {
+        Some(Body::Job(j)) => serde_json::to_value(j),
+        Some(Body::Status(s)) => serde_json::to_value(s),
+        Some(Body::Jobs(l)) => serde_json::to_value(&l.jobs),
+        Some(Body::Agents(l)) => serde_json::to_value(&l.agents),
+        Some(Body::Log(l)) => serde_json::to_value(l),
+        None => Ok(serde_json::Value::Null),
+    };
+    v.unwrap_or(serde_json::Value::Null).to_string()
+}
+
 /// `job status --watch`: the status, redrawn every 2 s (the screen cleared first on a
 /// terminal), until the job has finished or failed; a coordinator that does not answer for a
 /// while (restarting) is waited for.
@@ -41,11 +73,10 @@ fn watch_status(session: &zenoh::Session, id: &str, json: bool) -> Result<i32> {
                 if tty {
                     print!("\x1b[2J\x1b[H");
                 }
-                println!("{}", if json { &r.json } else { &r.text });
-                let v: serde_json::Value = serde_json::from_str(&r.json).unwrap_or_default();
-                match v.get("state").and_then(|s| s.as_str()) {
-                    Some("finished") => return Ok(0),
-                    Some("failed") => return Ok(1),
+                println!("{}", if json { json_of(&r) } else { r.text.clone() });
+                match state_of(&r) {
+                    Some(JobState::Finished) => return Ok(0),
+                    Some(JobState::Failed) => return Ok(1),
                     _ => {}
                 }
             }
@@ -83,14 +114,14 @@ pub fn run(cmd: JobCommand) -> Result<i32> {
             let name = coordinator::jobspec::name_of(&text);
             let id = id.unwrap_or_else(|| new_job_id(&spec, name.as_deref()));
             let doc = coordinator::jobspec::load(&spec, &id)?;
-            (net, Kind::StartJob(protocol::job::to_wire(&doc)), false)
+            (net, Kind::StartJob(doc), false)
         }
         JobCommand::List { net } => (net, Kind::List(true), false),
         JobCommand::Status { id, json, watch, net } => {
             let session = net::open(&net_args(&net, true))?;
             if !watch {
                 let r = request(&session, Kind::StatusJobId(id), Duration::from_secs(5))?;
-                println!("{}", if json { r.json } else { r.text });
+                println!("{}", if json { json_of(&r) } else { r.text });
                 return Ok(if r.ok { 0 } else { 1 });
             }
             return watch_status(&session, &id, json);
@@ -101,9 +132,10 @@ pub fn run(cmd: JobCommand) -> Result<i32> {
             if !r.ok {
                 anyhow::bail!("{}", r.text);
             }
-            let v: serde_json::Value = serde_json::from_str(&r.json)?;
-            let run = v["learner"]["run_dir"]
-                .as_str()
+            let run = status_of(&r)
+                .and_then(|s| s.record.as_ref())
+                .and_then(|j| j.learner.as_ref())
+                .map(|l| l.run_dir.as_str())
                 .filter(|d| !d.is_empty())
                 .map(std::path::PathBuf::from)
                 .ok_or_else(|| anyhow::anyhow!("job {id}: no learner has reported its run folder yet"))?;
@@ -164,10 +196,7 @@ pub fn run(cmd: JobCommand) -> Result<i32> {
             println!("{l}");
         }
         shown = lines.len().max(shown);
-        let state = serde_json::from_str::<serde_json::Value>(&r.json)
-            .ok()
-            .and_then(|v| v.get("state").and_then(|s| s.as_str()).map(str::to_string));
-        if matches!(state.as_deref(), Some("finished") | Some("failed")) {
+        if matches!(state_of(&r), Some(JobState::Finished | JobState::Failed)) {
             return Ok(0);
         }
         std::thread::sleep(Duration::from_secs(1));

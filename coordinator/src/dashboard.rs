@@ -117,26 +117,21 @@ fn watch(session: &zenoh::Session, job: &str, shared: &Mutex<Shared>) {
             last_status = Instant::now();
             match request(session, Kind::StatusJobId(job.to_string()), Duration::from_secs(2)) {
                 Ok(r) => {
-                    let v: serde_json::Value = serde_json::from_str(&r.json).unwrap_or_default();
+                    let rec = crate::client::status_of(&r).and_then(|st| st.record.clone()).unwrap_or_default();
+                    let l = rec.learner.clone().unwrap_or_default();
                     let mut s = shared.lock().expect("dashboard state");
                     s.text = r.text;
-                    s.state = v["state"].as_str().unwrap_or("").to_string();
-                    let l = &v["learner"];
-                    s.trend = l["trend"].as_str().unwrap_or("").to_string();
-                    let it = l["iteration"].as_u64().unwrap_or(0);
+                    s.state = if rec.job.is_some() { rec.state().name().to_string() } else { String::new() };
+                    s.trend = l.trend.clone();
+                    let it = l.iteration;
                     if it > 0 && s.history.last().is_none_or(|p| p.iteration != it) {
-                        let f = |k: &str| l[k].as_f64().unwrap_or(0.0);
-                        let steps = l["worlds"]
-                            .as_array()
-                            .map(|ws| ws.iter().map(|w| w["steps_per_s"].as_f64().unwrap_or(0.0)).sum())
-                            .unwrap_or(0.0);
                         s.history.push(Point {
                             iteration: it,
                             seconds: start.elapsed().as_secs_f64(),
-                            progress: f("window_progress"),
-                            reward: f("window_reward"),
-                            eval_progress: f("eval_progress"),
-                            steps_per_s: steps,
+                            progress: l.window_progress,
+                            reward: l.window_reward,
+                            eval_progress: l.eval_progress,
+                            steps_per_s: l.worlds.iter().map(|w| w.steps_per_s).sum(),
                         });
                     }
                 }

@@ -1,97 +1,19 @@
-//! Jobs as the coordinator keeps them: their state, each agent's share, the event log, and
-//! the embedded database (redb) that holds them across restarts.
+//! Jobs as the coordinator keeps them ([`JobRecord`]: the job, its state, each agent's
+//! share, the event log, the learner's last status) and the embedded database (redb) that
+//! holds them across restarts, each record protobuf-encoded under its job's id.
 
 use anyhow::{Context, Result};
-use protocol::job::JobDoc;
-use redb::{Database, ReadableDatabase, ReadableTable, TableDefinition};
-use serde::{Deserialize, Serialize};
+use prost::Message;
+pub use protocol::job::{AgentWork, JobRecord, JobState, now_unix};
+use redb::{Database, ReadableDatabase, ReadableTable, TableDefinition, TableHandle};
 use std::collections::BTreeMap;
 use std::path::Path;
-use std::time::{SystemTime, UNIX_EPOCH};
 
-const JOBS: TableDefinition<&str, &str> = TableDefinition::new("jobs");
+const RECORDS: TableDefinition<&str, &[u8]> = TableDefinition::new("job_records");
+/// Where an earlier Paddock kept its jobs (as JSON): left as it is, and said so.
+const OLD_JSON: &str = "jobs";
 
-/// Seconds since the Unix epoch.
-pub fn now_unix() -> f64 {
-    SystemTime::now().duration_since(UNIX_EPOCH).map(|d| d.as_secs_f64()).unwrap_or(0.0)
-}
-
-/// A job's state.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum JobState {
-    /// Agents and the learner work on it.
-    Running,
-    /// A stop condition or the user asked it to stop; waiting for the learner's final checkpoint.
-    Stopping,
-    /// Done: final checkpoint and best model written.
-    Finished,
-    /// Could not run (a reward that raises, say).
-    Failed,
-}
-
-/// One agent's share of a job.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct AgentWork {
-    /// The worlds it drives (all at once).
-    pub worlds: Vec<String>,
-    /// Which of them its environment 0 drives.
-    pub offset: u32,
-    /// Increases with every change.
-    pub generation: u64,
-}
-
-/// What the database keeps per job.
-#[derive(Clone, Debug, Serialize, Deserialize)]
-pub struct JobRecord {
-    /// The job with its files.
-    pub doc: JobDoc,
-    /// Its state.
-    pub state: JobState,
-    /// Unix time it was started.
-    pub started: f64,
-    /// Unix time it ended.
-    pub ended: Option<f64>,
-    /// Why it stopped.
-    pub stop_reason: Option<String>,
-    /// Agent → what it drives.
-    pub assignments: BTreeMap<String, AgentWork>,
-    /// Next assignment generation.
-    pub generation: u64,
-    /// Event log.
-    pub log: Vec<String>,
-    /// The learner's last status, as JSON.
-    pub learner: Option<serde_json::Value>,
-}
-
-impl JobRecord {
-    /// A job starting now: running, nothing assigned yet.
-    pub fn new(doc: JobDoc) -> JobRecord {
-        JobRecord {
-            doc,
-            state: JobState::Running,
-            started: now_unix(),
-            ended: None,
-            stop_reason: None,
-            assignments: BTreeMap::new(),
-            generation: 0,
-            log: vec![],
-            learner: None,
-        }
-    }
-
-    /// Log an event (and trace it).
-    pub fn event(&mut self, line: String) {
-        tracing::info!(job = %self.doc.id, "{line}");
-        let t = now_unix() - self.started;
-        self.log.push(format!("[{t:>8.1}s] {line}"));
-        if self.log.len() > 2000 {
-            self.log.drain(..500);
-        }
-    }
-}
-
-/// The database: jobs by id, as JSON.
+/// The database: job records by id.
 pub struct Db {
     db: Database,
 }
@@ -104,19 +26,28 @@ impl Db {
         }
         let db = Database::create(path).with_context(|| format!("opening the job database {}", path.display()))?;
         let w = db.begin_write()?;
-        w.open_table(JOBS)?;
+        w.open_table(RECORDS)?;
         w.commit()?;
+        let r = db.begin_read()?;
+        if let Some(old) = r.list_tables()?.find(|t| t.name() == OLD_JSON) {
+            tracing::warn!(
+                "the job database {} also holds the table '{}' of an earlier Paddock (jobs as JSON): \
+                 those jobs are left in the file untouched and are not listed",
+                path.display(),
+                old.name()
+            );
+        }
         Ok(Db { db })
     }
 
     /// Every job stored; unreadable ones are skipped with a warning.
     pub fn load(&self) -> Result<BTreeMap<String, JobRecord>> {
         let r = self.db.begin_read()?;
-        let t = r.open_table(JOBS)?;
+        let t = r.open_table(RECORDS)?;
         let mut out = BTreeMap::new();
         for e in t.iter()? {
             let (k, v) = e?;
-            match serde_json::from_str::<JobRecord>(v.value()) {
+            match protocol::job::decode_record(v.value()) {
                 Ok(rec) => {
                     out.insert(k.value().to_string(), rec);
                 }
@@ -130,7 +61,7 @@ impl Db {
     /// right, and the next change tries again.
     pub fn save_or_log(&self, rec: &JobRecord) {
         if let Err(e) = self.save(rec) {
-            tracing::error!(job = %rec.doc.id, "could not store the job in the database: {e:#}");
+            tracing::error!(job = %rec.id(), "could not store the job in the database: {e:#}");
         }
     }
 
@@ -138,8 +69,8 @@ impl Db {
     pub fn save(&self, rec: &JobRecord) -> Result<()> {
         let w = self.db.begin_write()?;
         {
-            let mut t = w.open_table(JOBS)?;
-            t.insert(rec.doc.id.as_str(), serde_json::to_string(rec)?.as_str())?;
+            let mut t = w.open_table(RECORDS)?;
+            t.insert(rec.id(), rec.encode_to_vec().as_slice())?;
         }
         w.commit()?;
         Ok(())
@@ -154,14 +85,19 @@ mod tests {
     fn jobs_survive_reopening_the_database() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("sub/jobs.redb");
-        let doc: JobDoc = serde_json::from_value(serde_json::json!({
-            "id": "job1", "worlds": ["reinvent_wood"], "reward_name": "builtin:center_line",
-            "reward_source": "builtin:center_line", "model_metadata_json": "{}", "hyperparameters_json": "{}",
-            "sim_config_toml": "", "out": "run", "clone_from": null, "seed": 1, "envs_per_agent": 8,
-            "max_policy_lag": 2, "stop": {}, "eval_trials": 3, "obs_size": 27, "observation_json": "{}"
-        }))
-        .unwrap();
-        let mut rec = JobRecord::new(doc);
+        let job = protocol::Job {
+            protocol_version: protocol::PROTOCOL_VERSION,
+            id: "job1".into(),
+            worlds: vec!["reinvent_wood".into()],
+            reward_name: "builtin:center_line".into(),
+            reward_source: "builtin:center_line".into(),
+            seed: 1,
+            envs_per_agent: 8,
+            stop: Some(protocol::job::default_stop()),
+            obs_size: 27,
+            ..Default::default()
+        };
+        let mut rec = JobRecord::start(job);
         rec.assignments =
             [("a1".to_string(), AgentWork { worlds: vec!["reinvent_wood".into()], offset: 0, generation: 3 })].into();
         rec.generation = 4;
@@ -169,14 +105,32 @@ mod tests {
         {
             let db = Db::open(&path).unwrap();
             db.save(&rec).unwrap();
-            rec.state = JobState::Finished;
+            rec.set_state(JobState::Finished);
             db.save(&rec).unwrap();
         }
         let back = Db::open(&path).unwrap().load().unwrap();
         assert_eq!(back.len(), 1);
-        let got = &back["job1"];
-        assert_eq!(got.state, JobState::Finished, "the last save wins");
-        assert_eq!(got.assignments, rec.assignments);
-        assert_eq!(serde_json::to_value(got).unwrap(), serde_json::to_value(&rec).unwrap());
+        assert_eq!(back["job1"].state(), JobState::Finished, "the last save wins");
+        assert_eq!(back["job1"], rec);
+    }
+
+    #[test]
+    fn issue_29_an_earlier_json_table_is_left_alone_and_unreadable_records_are_skipped() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("jobs.redb");
+        {
+            let db = Database::create(&path).unwrap();
+            let w = db.begin_write().unwrap();
+            w.open_table(TableDefinition::<&str, &str>::new(OLD_JSON)).unwrap().insert("old", "{}").unwrap();
+            w.open_table(RECORDS).unwrap().insert("junk", &b"\xff\x01"[..]).unwrap();
+            w.commit().unwrap();
+        }
+        let db = Db::open(&path).unwrap();
+        assert!(db.load().unwrap().is_empty());
+        drop(db);
+        let db = Database::create(&path).unwrap();
+        let r = db.begin_read().unwrap();
+        let old = r.open_table(TableDefinition::<&str, &str>::new(OLD_JSON)).unwrap();
+        assert_eq!(old.get("old").unwrap().unwrap().value(), "{}", "the earlier table is untouched");
     }
 }

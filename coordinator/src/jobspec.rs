@@ -1,5 +1,5 @@
 //! Job spec files (`JOB.toml`): parsed with errors that name the field, every file they
-//! point at read in, and turned into the [`JobDoc`] the coordinator stores.
+//! point at read in, and turned into the [`Job`] the coordinator stores.
 //!
 //! ```toml
 //! worlds = ["reinvent_carpet", "reinvent_concrete"]   # required
@@ -16,7 +16,8 @@
 use anyhow::{Context, Result, bail};
 use learner::Hyperparameters;
 use policy::ModelMetadata;
-use protocol::job::{JobDoc, StopSpec};
+use protocol::Job;
+use protocol::job::{JobStop, default_stop};
 use serde::Deserialize;
 use sim_agent::SimConfig;
 use std::path::Path;
@@ -53,8 +54,8 @@ pub struct JobSpec {
     #[serde(default = "three")]
     pub eval_trials: u32,
     /// Stop conditions.
-    #[serde(default)]
-    pub stop: StopSpec,
+    #[serde(default = "default_stop")]
+    pub stop: JobStop,
     /// Simulator configuration (any key of config/default.toml).
     #[serde(default)]
     pub sim: Option<toml::Table>,
@@ -82,13 +83,13 @@ pub fn name_of(text: &str) -> Option<String> {
 }
 
 /// Read a spec file and everything it names; `id` is the job id to give it.
-pub fn load(path: &Path, id: &str) -> Result<JobDoc> {
+pub fn load(path: &Path, id: &str) -> Result<Job> {
     let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
     parse(&text, path.parent().unwrap_or(Path::new(".")), &path.display().to_string(), id)
 }
 
 /// Parse spec text; relative file names resolve against `base`.
-pub fn parse(text: &str, base: &Path, origin: &str, id: &str) -> Result<JobDoc> {
+pub fn parse(text: &str, base: &Path, origin: &str, id: &str) -> Result<Job> {
     let spec: JobSpec = toml::from_str(text).map_err(|e| anyhow::anyhow!("{origin}: {e}"))?;
     if spec.worlds.is_empty() {
         bail!("{origin}: field 'worlds' is empty; name at least one world");
@@ -122,21 +123,24 @@ pub fn parse(text: &str, base: &Path, origin: &str, id: &str) -> Result<JobDoc> 
         }
         None => Hyperparameters::default().to_json(),
     };
-    let sim: SimConfig = match &spec.sim {
+    let mut sim: SimConfig = match &spec.sim {
         Some(t) => SimConfig::deserialize(toml::Value::Table(t.clone()))
             .map_err(|e| anyhow::anyhow!("{origin}: field 'sim': {e}"))?,
         None => SimConfig::default(),
     };
-    let mut observation = sim.observation.clone();
     let meta = ModelMetadata::parse(&model_metadata_json, "model_metadata.json")?;
-    observation.kind =
+    sim.observation.kind =
         sim_agent::config::observation_kind_for(&meta).map_err(|e| anyhow::anyhow!("{origin}: model_metadata: {e}"))?;
     if spec.stop.minutes <= 0.0 || !spec.stop.minutes.is_finite() {
         bail!("{origin}: field 'stop.minutes' must be a positive number of minutes");
     }
-    let tracks =
-        spec.worlds.iter().map(|w| Ok(sim_agent::track_lines(&tracks::world(w)?))).collect::<Result<Vec<_>>>()?;
-    Ok(JobDoc {
+    let tracks = spec
+        .worlds
+        .iter()
+        .map(|w| Ok(protocol::job::track_lines_to_wire(&sim_agent::track_lines(&tracks::world(w)?))))
+        .collect::<Result<Vec<_>>>()?;
+    Ok(Job {
+        protocol_version: protocol::PROTOCOL_VERSION,
         id: id.to_string(),
         tracks,
         worlds: spec.worlds,
@@ -150,10 +154,9 @@ pub fn parse(text: &str, base: &Path, origin: &str, id: &str) -> Result<JobDoc> 
         seed: spec.seed,
         envs_per_agent: spec.envs_per_agent.max(1),
         max_policy_lag: spec.max_policy_lag,
-        stop: spec.stop,
+        stop: Some(spec.stop),
         eval_trials: spec.eval_trials.max(1),
-        obs_size: sim_agent::obs::obs_dim(&observation) as u64,
-        observation_json: serde_json::to_string(&observation)?,
+        obs_size: sim_agent::obs::obs_dim(&sim.observation) as u64,
     })
 }
 
@@ -192,7 +195,7 @@ mod tests {
                     target_progress = 25\ntarget_reward = 15\nwindow = 7\ntarget_laps = 3\ntarget_evals = 2\n\
                     plateau_evals = 4\nstop_on_collapse = true\n";
         let doc = parse(text, &dir, "job.toml", "j").unwrap();
-        let want = StopSpec {
+        let want = JobStop {
             minutes: 0.1,
             max_episodes: 60,
             target_progress: Some(25.0),
@@ -204,6 +207,6 @@ mod tests {
             plateau_evals: 4,
             stop_on_collapse: true,
         };
-        assert_eq!(doc.stop, want);
+        assert_eq!(doc.stop, Some(want));
     }
 }

@@ -11,11 +11,11 @@
 use anyhow::{Context, Result};
 use coordinator::assign::{assign, assignment};
 use coordinator::jobs::{AgentWork, Db, JobRecord, JobState, now_unix};
-use protocol::job::JobDoc;
+use protocol::job_reply::Body;
 use protocol::net::{self, DropCounters, NetArgs, decode_sample, zenoh};
 use protocol::{
-    AgentInfo, AgentReport, AssignmentTable, JobReply, JobRequest, LearnerStatus, PROTOCOL_VERSION, job_request::Kind,
-    keys,
+    AgentInfo, AgentList, AgentReport, AgentRow, AssignmentTable, DropCount, Job, JobList, JobLog, JobReply,
+    JobRequest, JobStatus, JobSummary, LearnerStatus, PROTOCOL_VERSION, job_request::Kind, keys,
 };
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex};
@@ -51,8 +51,8 @@ pub struct ServeArgs {
 pub fn serve(args: ServeArgs) -> Result<()> {
     let db = Arc::new(Db::open(&args.db)?);
     let jobs = db.load()?;
-    for j in jobs.values().filter(|j| matches!(j.state, JobState::Running | JobState::Stopping)) {
-        tracing::info!(job = %j.doc.id, state = ?j.state, "job carried over from the database");
+    for j in jobs.values().filter(|j| matches!(j.state(), JobState::Running | JobState::Stopping)) {
+        tracing::info!(job = %j.id(), state = j.state().name(), "job carried over from the database");
     }
     let session = net::open_retrying(&args.net)?;
     let _token =
@@ -70,9 +70,9 @@ pub fn serve(args: ServeArgs) -> Result<()> {
                 Some(Ok(req)) => handle(&st, &dbc, &sess, req),
                 Some(Err(e)) => {
                     drops_q.refuse("a job request", &e);
-                    reply(false, format!("bad request: {e}"), serde_json::Value::Null)
+                    reply(false, format!("bad request: {e}"), None)
                 }
-                None => reply(false, "empty request".into(), serde_json::Value::Null),
+                None => reply(false, "empty request".into(), None),
             };
             let _ = q.reply(q.key_expr().clone(), protocol::encode(&reply)).wait();
         })
@@ -84,7 +84,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         .declare_queryable(keys::JOB_SPECS)
         .callback(move |q| {
             let Some(id) = keys::job_of(q.key_expr().as_str()) else { return };
-            let doc = st.lock().ok().and_then(|s| s.jobs.get(id).map(|j| protocol::job::to_wire(&j.doc)));
+            let doc = st.lock().ok().and_then(|s| s.jobs.get(id).map(|j| j.job().clone()));
             if let Some(job) = doc {
                 let _ = q.reply(q.key_expr().clone(), protocol::encode(&job)).wait();
             }
@@ -122,7 +122,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
                     )
                     .ok()
                     .and_then(|v| v.into_iter().next());
-                    for j in st.jobs.values_mut().filter(|j| j.state == JobState::Running) {
+                    for j in st.jobs.values_mut().filter(|j| j.state() == JobState::Running) {
                         j.event(format!(
                             "agent {id} joined{}",
                             info.as_ref()
@@ -133,7 +133,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
                     st.agents.insert(id, Alive { since: Instant::now(), info });
                 }
             } else if st.agents.remove(&id).is_some() {
-                for j in st.jobs.values_mut().filter(|j| j.state == JobState::Running) {
+                for j in st.jobs.values_mut().filter(|j| j.state() == JobState::Running) {
                     j.event(format!("agent {id} lost (liveliness dropped)"));
                 }
             }
@@ -144,7 +144,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
                 st.learners.insert(id, Instant::now());
             } else {
                 st.learners.remove(&id);
-                for j in st.jobs.values_mut().filter(|j| j.state == JobState::Running) {
+                for j in st.jobs.values_mut().filter(|j| j.state() == JobState::Running) {
                     j.event(format!("learner {id} lost"));
                 }
             }
@@ -156,10 +156,10 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         }
         while let Ok(Some(s)) = report_sub.try_recv() {
             if let Some(r) = decode_sample::<AgentReport>(&s, &drops)
-                && let Some(j) = st.jobs.get_mut(&r.job_id).filter(|j| j.state == JobState::Running)
+                && let Some(j) = st.jobs.get_mut(&r.job_id).filter(|j| j.state() == JobState::Running)
             {
                 j.event(format!("agent {} failed: {}", r.agent_id, r.error));
-                j.state = JobState::Failed;
+                j.set_state(JobState::Failed);
                 j.stop_reason = Some(format!("agent {} failed: {}", r.agent_id, r.error));
                 j.ended = Some(now_unix());
                 db.save_or_log(j);
@@ -173,41 +173,23 @@ pub fn serve(args: ServeArgs) -> Result<()> {
 
 fn on_status(st: &mut State, db: &Db, ls: LearnerStatus) {
     let Some(j) = st.jobs.get_mut(&ls.job_id) else { return };
-    let summary = serde_json::json!({
-        "learner": ls.learner_id, "policy_version": ls.policy_version, "iteration": ls.iteration, "episodes": ls.episodes,
-        "env_steps": ls.env_steps, "mean_progress": ls.mean_progress, "mean_reward": ls.mean_reward,
-        "window_progress": ls.window_progress, "window_reward": ls.window_reward, "eval_progress": ls.eval_progress,
-        "max_lag": ls.max_lag, "dropped_stale": ls.dropped_stale, "dropped_duplicate": ls.dropped_duplicate,
-        "dropped_bad": ls.dropped_bad, "run_dir": ls.run_dir, "finished": ls.finished,
-        "episodes_received": ls.episodes_received, "eval_laps": ls.eval_laps, "stop_reason": ls.stop_reason,
-        "learners": ls.learners, "team_updates": ls.team_updates, "team_failures": ls.team_failures,
-        "drops": ls.drops.iter().map(|d| serde_json::json!({"reason": d.reason, "count": d.count})).collect::<Vec<_>>(),
-        "write_failures": ls.write_failures,
-        "write_error": ls.write_error,
-        "trend": ls.trend,
-        "failure": ls.failure,
-        "refused": ls.refused.iter().map(|d| serde_json::json!({"reason": d.reason, "count": d.count})).collect::<Vec<_>>(),
-        "agents": ls.agents.iter().map(|a| serde_json::json!({"agent": a.agent_id, "world": a.world, "steps_per_s": a.steps_per_s})).collect::<Vec<_>>(),
-        "worlds": ls.worlds.iter().map(|w| serde_json::json!({"world": w.world, "agents": w.agents, "episodes": w.episodes,
-            "mean_progress": w.mean_progress, "mean_reward": w.mean_reward, "steps_per_s": w.steps_per_s})).collect::<Vec<_>>(),
-    });
     let first = j.learner.is_none();
-    j.learner = Some(summary);
+    j.learner = Some(ls.clone());
     if first {
         j.event(format!("learner {} is training (policy v{})", ls.learner_id, ls.policy_version));
     }
-    if !ls.stop_reason.is_empty() && j.state == JobState::Running {
+    if !ls.stop_reason.is_empty() && j.state() == JobState::Running {
         j.event(format!("stopping: {}", ls.stop_reason));
-        j.state = JobState::Stopping;
+        j.set_state(JobState::Stopping);
         j.stop_reason = Some(ls.stop_reason.clone());
     }
-    if ls.finished && matches!(j.state, JobState::Stopping | JobState::Running) {
+    if ls.finished && matches!(j.state(), JobState::Stopping | JobState::Running) {
         j.ended = Some(now_unix());
         if ls.failure.is_empty() {
-            j.state = JobState::Finished;
+            j.set_state(JobState::Finished);
             j.event(format!("learner finished: final checkpoint and best model in {}", ls.run_dir));
         } else {
-            j.state = JobState::Failed;
+            j.set_state(JobState::Failed);
             j.stop_reason = Some(ls.failure.clone());
             j.event(format!("learner failed: {}", ls.failure));
         }
@@ -218,12 +200,12 @@ fn on_status(st: &mut State, db: &Db, ls: LearnerStatus) {
 fn schedule(st: &mut State, db: &Db, session: &zenoh::Session) {
     let agents: Vec<String> = st.agents.keys().cloned().collect();
     // The backstop: a job past its time limit (plus grace) stops even without the learner.
-    for j in st.jobs.values_mut().filter(|j| j.state == JobState::Running) {
+    for j in st.jobs.values_mut().filter(|j| j.state() == JobState::Running) {
         let elapsed_s = now_unix() - j.started;
-        if elapsed_s >= j.doc.stop.minutes * 60.0 + GRACE_S {
-            let r = format!("time limit of {} min reached (no word from the learner)", j.doc.stop.minutes);
+        if elapsed_s >= j.job().stop().minutes * 60.0 + GRACE_S {
+            let r = format!("time limit of {} min reached (no word from the learner)", j.job().stop().minutes);
             j.event(format!("stopping: {r}"));
-            j.state = JobState::Stopping;
+            j.set_state(JobState::Stopping);
             j.stop_reason = Some(r);
             db.save_or_log(j);
         }
@@ -233,12 +215,12 @@ fn schedule(st: &mut State, db: &Db, session: &zenoh::Session) {
     let active = st
         .jobs
         .values()
-        .filter(|j| matches!(j.state, JobState::Running | JobState::Stopping))
+        .filter(|j| matches!(j.state(), JobState::Running | JobState::Stopping))
         .min_by(|a, b| a.started.total_cmp(&b.started))
-        .map(|j| j.doc.id.clone());
+        .map(|j| j.id().to_string());
     if let Some(id) = &active {
         let j = st.jobs.get_mut(id).expect("active");
-        let plan = assign(&agents, &j.doc.worlds, &j.assignments);
+        let plan = assign(&agents, &j.job().worlds, &j.assignments);
         let mut changed = false;
         for (a, worlds) in &plan {
             if j.assignments.get(a).map(|w| &w.worlds) != Some(worlds) {
@@ -266,21 +248,21 @@ fn schedule(st: &mut State, db: &Db, session: &zenoh::Session) {
         }
     }
     // Publish assignments and the job tables.
-    for j in st.jobs.values().filter(|j| matches!(j.state, JobState::Running | JobState::Stopping)) {
+    for j in st.jobs.values().filter(|j| matches!(j.state(), JobState::Running | JobState::Stopping)) {
         let mut table = AssignmentTable {
             protocol_version: PROTOCOL_VERSION,
-            job_id: j.doc.id.clone(),
-            running: j.state == JobState::Running,
+            job_id: j.id().to_string(),
+            running: j.state() == JobState::Running,
             assignments: vec![],
         };
-        if Some(&j.doc.id) == active.as_ref() {
+        if Some(j.id()) == active.as_deref() {
             for (a, w) in &j.assignments {
                 // The job's sim config was checked when it started; should it not parse now,
                 // say so rather than send defaults.
-                let asg = match assignment(&j.doc, a, w) {
+                let asg = match assignment(j.job(), a, w) {
                     Ok(asg) => asg,
                     Err(e) => {
-                        tracing::error!(job = %j.doc.id, "cannot assign {a}: {e:#}");
+                        tracing::error!(job = %j.id(), "cannot assign {a}: {e:#}");
                         continue;
                     }
                 };
@@ -296,12 +278,25 @@ fn schedule(st: &mut State, db: &Db, session: &zenoh::Session) {
     }
 }
 
-fn reply(ok: bool, text: String, json: serde_json::Value) -> JobReply {
-    JobReply { protocol_version: PROTOCOL_VERSION, ok, text, json: json.to_string() }
+fn reply(ok: bool, text: String, body: Option<Body>) -> JobReply {
+    JobReply { protocol_version: PROTOCOL_VERSION, ok, text, body }
+}
+
+/// A job in a line: how long it has run, what it has trained on, how well.
+fn summary(j: &JobRecord) -> JobSummary {
+    let l = j.learner.as_ref();
+    JobSummary {
+        id: j.id().to_string(),
+        state: j.state,
+        minutes: (j.ended.unwrap_or_else(now_unix) - j.started) / 60.0,
+        episodes: l.map_or(0, |l| l.episodes),
+        progress: l.map_or(0.0, |l| l.window_progress),
+        worlds: j.job().worlds.clone(),
+    }
 }
 
 /// Check a job's reward function before anything trains on it.
-fn validate(doc: &JobDoc) -> std::result::Result<(), String> {
+fn validate(doc: &Job) -> std::result::Result<(), String> {
     let result = (|| -> Result<()> {
         let name = if doc.reward_name.ends_with(".py") { doc.reward_name.as_str() } else { "reward_function.py" };
         let cfg: sim_agent::config::SimConfig = if doc.sim_config_toml.trim().is_empty() {
@@ -325,33 +320,28 @@ fn handle(st: &Arc<Mutex<State>>, db: &Db, _session: &zenoh::Session, req: JobRe
     let mut st = st.lock().expect("state lock");
     match req.kind {
         Some(Kind::StartJob(job)) => {
-            let id = job.id.clone();
-            let doc: JobDoc = match protocol::job::from_wire(job, &id) {
-                Ok(d) => d,
-                Err(e) => return reply(false, format!("bad job: {e}"), serde_json::Value::Null),
-            };
+            if let Err(e) = protocol::job::check(&job, &job.id) {
+                return reply(false, format!("bad job: {e}"), None);
+            }
+            let doc = job;
             // The very same document again is the same job: a `job start` retried after its
             // reply was lost (the job started) gets the job's answer, not "taken".
-            if let Some(j) = st.jobs.get(&doc.id).filter(|j| j.doc == doc) {
-                let ok = j.state != JobState::Failed;
-                let text = format!("job {} was already started with this very spec: {:?}", doc.id, j.state);
-                return reply(ok, text, serde_json::json!({"id": doc.id, "state": j.state}));
+            if let Some(j) = st.jobs.get(&doc.id).filter(|j| j.job() == &doc) {
+                let ok = j.state() != JobState::Failed;
+                let text = format!("job {} was already started with this very spec: {:?}", doc.id, j.state());
+                return reply(ok, text, Some(Body::Job(summary(j))));
             }
             if !keys::is_valid_name(&doc.id) || st.jobs.contains_key(&doc.id) {
-                return reply(
-                    false,
-                    format!("job id '{}' is taken or not a valid name", doc.id),
-                    serde_json::Value::Null,
-                );
+                return reply(false, format!("job id '{}' is taken or not a valid name", doc.id), None);
             }
-            let mut rec = JobRecord::new(doc);
-            let ok = match validate(&rec.doc) {
+            let mut rec = JobRecord::start(doc);
+            let ok = match validate(rec.job()) {
                 Ok(()) => {
-                    rec.event(format!("started: worlds {:?}, reward {}", rec.doc.worlds, rec.doc.reward_name));
+                    rec.event(format!("started: worlds {:?}, reward {}", rec.job().worlds, rec.job().reward_name));
                     true
                 }
                 Err(e) => {
-                    rec.state = JobState::Failed;
+                    rec.set_state(JobState::Failed);
                     rec.ended = Some(now_unix());
                     rec.stop_reason = Some(format!("the reward function failed validation: {e}"));
                     rec.event(format!("failed before training: the reward function failed validation:\n{e}"));
@@ -359,96 +349,90 @@ fn handle(st: &Arc<Mutex<State>>, db: &Db, _session: &zenoh::Session, req: JobRe
                 }
             };
             if let Err(e) = db.save(&rec) {
-                return reply(false, format!("could not store the job: {e:#}"), serde_json::Value::Null);
+                return reply(false, format!("could not store the job: {e:#}"), None);
             }
             let text = if ok {
-                format!("job {} started", rec.doc.id)
+                format!("job {} started", rec.id())
             } else {
-                format!("job {} failed: {}", rec.doc.id, rec.stop_reason.clone().unwrap_or_default())
+                format!("job {} failed: {}", rec.id(), rec.stop_reason.clone().unwrap_or_default())
             };
-            let json = serde_json::json!({"id": rec.doc.id, "state": rec.state});
-            st.jobs.insert(rec.doc.id.clone(), rec);
-            reply(ok, text, json)
+            let body = Some(Body::Job(summary(&rec)));
+            st.jobs.insert(rec.id().to_string(), rec);
+            reply(ok, text, body)
         }
         Some(Kind::StopJobId(id)) => match st.jobs.get_mut(&id) {
-            Some(j) if j.state == JobState::Running => {
-                j.state = JobState::Stopping;
+            Some(j) if j.state() == JobState::Running => {
+                j.set_state(JobState::Stopping);
                 j.stop_reason = Some("stopped by the user".into());
                 j.event("stopping: asked by the user".into());
                 db.save_or_log(j);
                 reply(
                     true,
                     format!("job {id} stopping: the learner writes its final checkpoint and best model"),
-                    serde_json::json!({"id": id}),
+                    Some(Body::Job(summary(j))),
                 )
             }
             // A retried stop (its first reply lost) finds the job stopping or stopped: that is
             // what was asked, so it succeeds and says why the job stops.
-            Some(j) if matches!(j.state, JobState::Stopping | JobState::Finished) => reply(
+            Some(j) if matches!(j.state(), JobState::Stopping | JobState::Finished) => reply(
                 true,
                 format!(
                     "job {id} is already {}: {}",
-                    if j.state == JobState::Stopping { "stopping" } else { "finished" },
+                    if j.state() == JobState::Stopping { "stopping" } else { "finished" },
                     j.stop_reason.as_deref().unwrap_or("its stop condition")
                 ),
-                serde_json::json!({"id": id}),
+                Some(Body::Job(summary(j))),
             ),
-            Some(j) => reply(false, format!("job {id} is {:?}, not running", j.state), serde_json::Value::Null),
-            None => reply(false, format!("no job '{id}'"), serde_json::Value::Null),
+            Some(j) => reply(false, format!("job {id} is {:?}, not running", j.state()), None),
+            None => reply(false, format!("no job '{id}'"), None),
         },
         Some(Kind::Event(ev)) => match st.jobs.get_mut(&ev.job_id) {
             Some(j) if ev.text.len() <= 500 && !ev.text.chars().any(|c| c.is_control()) => {
                 j.event(ev.text);
                 db.save_or_log(j);
-                reply(true, "recorded".into(), serde_json::Value::Null)
+                reply(true, "recorded".into(), None)
             }
-            Some(_) => reply(false, "an event is one line of at most 500 bytes".into(), serde_json::Value::Null),
-            None => reply(false, format!("no job '{}'", ev.job_id), serde_json::Value::Null),
+            Some(_) => reply(false, "an event is one line of at most 500 bytes".into(), None),
+            None => reply(false, format!("no job '{}'", ev.job_id), None),
         },
         Some(Kind::StatusJobId(id)) => match st.jobs.get(&id) {
             Some(j) => {
-                let mut v = serde_json::to_value(j).unwrap_or_default();
-                if let Some(o) = v.as_object_mut() {
-                    let refused: Vec<serde_json::Value> = protocol::secure::REFUSED
-                        .reasons()
-                        .into_iter()
-                        .map(|(reason, count)| serde_json::json!({"reason": reason, "count": count}))
-                        .collect();
-                    o.insert("coordinator_refused".into(), serde_json::Value::Array(refused));
-                }
-                reply(true, status_text(j, &st), v)
+                let coordinator_refused = protocol::secure::REFUSED
+                    .reasons()
+                    .into_iter()
+                    .map(|(reason, count)| DropCount { reason, count })
+                    .collect();
+                let status = JobStatus { record: Some(j.clone()), coordinator_refused };
+                reply(true, status_text(j, &st), Some(Body::Status(status)))
             }
-            None => reply(false, format!("no job '{id}'"), serde_json::Value::Null),
+            None => reply(false, format!("no job '{id}'"), None),
         },
         Some(Kind::List(_)) => {
             let mut text = format!(
                 "{:<28} {:<9} {:>9} {:>9} {:>9}  {}\n",
                 "JOB", "STATE", "MINUTES", "EPISODES", "PROGRESS", "WORLDS"
             );
-            let mut rows = vec![];
+            let mut jobs = vec![];
             for j in st.jobs.values() {
-                let mins = (j.ended.unwrap_or_else(now_unix) - j.started) / 60.0;
-                let eps = j.learner.as_ref().and_then(|l| l.get("episodes")).and_then(|v| v.as_u64()).unwrap_or(0);
-                let prog =
-                    j.learner.as_ref().and_then(|l| l.get("window_progress")).and_then(|v| v.as_f64()).unwrap_or(0.0);
+                let row = summary(j);
                 text.push_str(&format!(
                     "{:<28} {:<9} {:>9.1} {:>9} {:>8.1}%  {}\n",
-                    j.doc.id,
-                    format!("{:?}", j.state).to_lowercase(),
-                    mins,
-                    eps,
-                    prog,
-                    j.doc.worlds.join(",")
+                    row.id,
+                    j.state().name(),
+                    row.minutes,
+                    row.episodes,
+                    row.progress,
+                    row.worlds.join(",")
                 ));
-                rows.push(serde_json::json!({"id": j.doc.id, "state": j.state, "minutes": mins, "episodes": eps, "progress": prog}));
+                jobs.push(row);
             }
-            reply(true, text, serde_json::Value::Array(rows))
+            reply(true, text, Some(Body::Jobs(JobList { jobs })))
         }
         Some(Kind::Agents(_)) => {
-            let active = st.jobs.values().find(|j| j.state == JobState::Running);
+            let active = st.jobs.values().find(|j| j.state() == JobState::Running);
             let mut text =
                 format!("{:<28} {:<16} {:>5} {:>5} {:>9}  {}\n", "AGENT", "HOST", "CORES", "ENVS", "STEPS/S", "WORLD");
-            let mut rows = vec![];
+            let mut agents = vec![];
             for (id, a) in &st.agents {
                 let world = active
                     .and_then(|j| j.assignments.get(id))
@@ -456,114 +440,88 @@ fn handle(st: &Arc<Mutex<State>>, db: &Db, _session: &zenoh::Session, req: JobRe
                     .unwrap_or_else(|| "-".into());
                 let (host, cores, envs) =
                     a.info.as_ref().map(|i| (i.host.clone(), i.cores, i.envs)).unwrap_or_default();
-                let sps = active
+                let steps_per_s = active
                     .and_then(|j| j.learner.as_ref())
-                    .and_then(|l| l.get("agents"))
-                    .and_then(|v| v.as_array())
-                    .and_then(|v| v.iter().find(|x| x.get("agent").and_then(|s| s.as_str()) == Some(id.as_str())))
-                    .and_then(|x| x.get("steps_per_s"))
-                    .and_then(|v| v.as_f64())
-                    .unwrap_or(0.0);
+                    .and_then(|l| l.agents.iter().find(|x| &x.agent_id == id))
+                    .map_or(0.0, |x| x.steps_per_s);
+                let up_s = a.since.elapsed().as_secs_f64();
                 text.push_str(&format!(
-                    "{id:<28} {host:<16} {cores:>5} {envs:>5} {sps:>9.0}  {world} (up {:.0} s)\n",
-                    a.since.elapsed().as_secs_f64()
+                    "{id:<28} {host:<16} {cores:>5} {envs:>5} {steps_per_s:>9.0}  {world} (up {up_s:.0} s)\n"
                 ));
-                rows.push(serde_json::json!({"id": id, "host": host, "cores": cores, "envs": envs, "world": world, "steps_per_s": sps}));
+                agents.push(AgentRow { id: id.clone(), host, cores, envs, world, steps_per_s, up_s });
             }
-            reply(true, text, serde_json::Value::Array(rows))
+            reply(true, text, Some(Body::Agents(AgentList { agents })))
         }
         Some(Kind::LogsJobId(id)) => match st.jobs.get(&id) {
-            Some(j) => reply(true, j.log.join("\n"), serde_json::json!({"lines": j.log.len(), "state": j.state})),
-            None => reply(false, format!("no job '{id}'"), serde_json::Value::Null),
+            Some(j) => reply(true, j.log.join("\n"), Some(Body::Log(JobLog { lines: j.log.clone(), state: j.state }))),
+            None => reply(false, format!("no job '{id}'"), None),
         },
-        None => reply(false, "empty request".into(), serde_json::Value::Null),
+        None => reply(false, "empty request".into(), None),
     }
 }
 
 fn status_text(j: &JobRecord, st: &State) -> String {
     let mut t = String::new();
     let mins = (j.ended.unwrap_or_else(now_unix) - j.started) / 60.0;
-    t.push_str(&format!("job {}: {:?}, {:.1} of {} min", j.doc.id, j.state, mins, j.doc.stop.minutes));
+    t.push_str(&format!("job {}: {:?}, {:.1} of {} min", j.id(), j.state(), mins, j.job().stop().minutes));
     if let Some(r) = &j.stop_reason {
         t.push_str(&format!(" ({r})"));
     }
     t.push('\n');
-    let l = j.learner.clone().unwrap_or(serde_json::Value::Null);
-    for w in &j.doc.worlds {
+    let l = j.learner.clone().unwrap_or_default();
+    for w in &j.job().worlds {
         let agents: Vec<&String> = j.assignments.iter().filter(|(_, x)| x.worlds.contains(w)).map(|(a, _)| a).collect();
-        let ws = l
-            .get("worlds")
-            .and_then(|v| v.as_array())
-            .and_then(|a| a.iter().find(|x| x.get("world").and_then(|s| s.as_str()) == Some(w)));
-        let g = |k: &str| ws.and_then(|x| x.get(k)).and_then(|v| v.as_f64()).unwrap_or(0.0);
+        let ws = l.worlds.iter().find(|x| &x.world == w).cloned().unwrap_or_default();
         t.push_str(&format!(
             "  world {w:<20} agents {:<2} episodes {:>6} mean progress {:>5.1} % mean reward {:>8.2} steps/s {:>7.0}  [{}]\n",
             agents.len(),
-            g("episodes"),
-            g("mean_progress"),
-            g("mean_reward"),
-            g("steps_per_s"),
+            ws.episodes,
+            ws.mean_progress,
+            ws.mean_reward,
+            ws.steps_per_s,
             agents.iter().map(|s| s.as_str()).collect::<Vec<_>>().join(", ")
         ));
     }
-    let n = |k: &str| l.get(k).and_then(|v| v.as_f64()).unwrap_or(0.0);
-    let received = n("episodes_received");
+    let received = l.episodes_received;
     t.push_str(&format!(
         "  experience: {} episodes simulated, {} trained on, {} dropped stale ({:.1} % of simulated)\n",
         received,
-        n("episodes"),
-        n("dropped_stale"),
-        if received > 0.0 { 100.0 * n("dropped_stale") / received } else { 0.0 }
+        l.episodes,
+        l.dropped_stale,
+        if received > 0 { 100.0 * l.dropped_stale as f64 / received as f64 } else { 0.0 }
     ));
     t.push_str(&format!(
         "  learner {}: policy v{} iteration {} episodes {} env steps {} lag ≤{} dropped: {} stale, {} duplicate, {} bad; eval progress {:.1} %\n",
-        l.get("learner").and_then(|v| v.as_str()).unwrap_or("-"),
-        n("policy_version"),
-        n("iteration"),
-        n("episodes"),
-        n("env_steps"),
-        n("max_lag"),
-        n("dropped_stale"),
-        n("dropped_duplicate"),
-        n("dropped_bad"),
-        n("eval_progress")
+        if l.learner_id.is_empty() { "-" } else { &l.learner_id },
+        l.policy_version,
+        l.iteration,
+        l.episodes,
+        l.env_steps,
+        l.max_lag,
+        l.dropped_stale,
+        l.dropped_duplicate,
+        l.dropped_bad,
+        l.eval_progress
     ));
-    for d in l.get("drops").and_then(|v| v.as_array()).into_iter().flatten().take(8) {
-        t.push_str(&format!(
-            "  refused {}× : {}\n",
-            d.get("count").and_then(|v| v.as_u64()).unwrap_or(0),
-            d.get("reason").and_then(|v| v.as_str()).unwrap_or("-")
-        ));
+    for d in l.drops.iter().take(8) {
+        t.push_str(&format!("  refused {}× : {}\n", d.count, d.reason));
     }
-    let team: Vec<&str> = l
-        .get("learners")
-        .and_then(|v| v.as_array())
-        .map(|a| a.iter().filter_map(|x| x.as_str()).collect())
-        .unwrap_or_default();
-    if team.len() > 1 {
+    if l.learners.len() > 1 {
         t.push_str(&format!(
             "  learner team: {} ({} updates made together, {} made again after a member was lost)\n",
-            team.join(", "),
-            n("team_updates"),
-            n("team_failures")
+            l.learners.join(", "),
+            l.team_updates,
+            l.team_failures
         ));
     }
-    if let Some(trend) = l.get("trend").and_then(|v| v.as_str()).filter(|t| !t.is_empty()) {
-        t.push_str(&format!("  WHEN TO STOP: {trend}\n"));
+    if !l.trend.is_empty() {
+        t.push_str(&format!("  WHEN TO STOP: {}\n", l.trend));
     }
-    if n("write_failures") > 0.0 {
-        t.push_str(&format!(
-            "  WRITES FAILED in the run folder: {} (last: {})\n",
-            n("write_failures"),
-            l.get("write_error").and_then(|v| v.as_str()).unwrap_or("-")
-        ));
+    if l.write_failures > 0 {
+        t.push_str(&format!("  WRITES FAILED in the run folder: {} (last: {})\n", l.write_failures, l.write_error));
     }
-    for d in l.get("refused").and_then(|v| v.as_array()).into_iter().flatten().take(8) {
-        t.push_str(&format!(
-            "  refused at the learner {}× : {}\n",
-            d.get("count").and_then(|v| v.as_u64()).unwrap_or(0),
-            d.get("reason").and_then(|v| v.as_str()).unwrap_or("-")
-        ));
+    for d in l.refused.iter().take(8) {
+        t.push_str(&format!("  refused at the learner {}× : {}\n", d.count, d.reason));
     }
     for (reason, count) in protocol::secure::REFUSED.reasons().into_iter().take(8) {
         t.push_str(&format!("  refused at the coordinator {count}× : {reason}\n"));

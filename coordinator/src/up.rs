@@ -8,6 +8,7 @@ use crate::cli::UpArgs;
 use crate::client::request;
 use anyhow::{Context, Result, bail};
 use indicatif::{ProgressBar, ProgressStyle};
+use protocol::JobState;
 use protocol::job_request::Kind;
 use protocol::net::{self, NetArgs};
 use std::path::{Path, PathBuf};
@@ -224,11 +225,11 @@ pub fn up(args: UpArgs) -> Result<i32> {
     let doc = coordinator::jobspec::load(&spec_path, &id)?;
     // The learner runs here: a spec's relative run folder is relative to here.
     let run_dir = PathBuf::from(&doc.out);
-    let minutes = doc.stop.minutes;
+    let minutes = doc.stop().minutes;
     let session = net::open(&NetArgs { connect: vec![endpoint.clone()], certs: certs.clone(), ..Default::default() })?;
     let t0 = Instant::now();
     let started = loop {
-        match request(&session, Kind::StartJob(protocol::job::to_wire(&doc)), Duration::from_secs(2)) {
+        match request(&session, Kind::StartJob(doc.clone()), Duration::from_secs(2)) {
             Ok(r) => break r,
             Err(_) if t0.elapsed() < Duration::from_secs(30) => std::thread::sleep(Duration::from_millis(300)),
             Err(e) => {
@@ -270,22 +271,21 @@ pub fn up(args: UpArgs) -> Result<i32> {
             !request(&session, Kind::Event(ev), Duration::from_secs(2)).is_ok_and(|r| r.ok)
         });
         let Ok(r) = request(&session, Kind::StatusJobId(id.clone()), Duration::from_secs(3)) else { continue };
-        let v: serde_json::Value = serde_json::from_str(&r.json).unwrap_or_default();
-        let l = v.get("learner").cloned().unwrap_or_default();
-        let f = |k: &str| l.get(k).and_then(|x| x.as_f64()).unwrap_or(0.0);
+        let Some(status) = crate::client::status_of(&r).cloned() else { continue };
+        let Some(rec) = status.record.as_ref() else { continue };
+        let l = rec.learner.clone().unwrap_or_default();
         bar.set_position(t0.elapsed().as_secs().min(bar.length().unwrap_or(0)));
         bar.set_message(format!(
             "v{} it {} episodes {} progress {:.1}% eval {:.1}% {}",
-            f("policy_version"),
-            f("iteration"),
-            f("episodes"),
-            f("window_progress"),
-            f("eval_progress"),
-            v.get("state").and_then(|s| s.as_str()).unwrap_or("")
+            l.policy_version,
+            l.iteration,
+            l.episodes,
+            l.window_progress,
+            l.eval_progress,
+            rec.state().name()
         ));
-        match v.get("state").and_then(|s| s.as_str()) {
-            Some("finished") | Some("failed") => break (r.text, v),
-            _ => {}
+        if matches!(rec.state(), JobState::Finished | JobState::Failed) {
+            break (r.text, status);
         }
         if t0.elapsed().as_secs_f64() > minutes * 60.0 + 120.0 {
             bail!("the job did not finish within its time limit plus 2 minutes; see {}", logs.display());
@@ -293,11 +293,11 @@ pub fn up(args: UpArgs) -> Result<i32> {
     };
     bar.finish_and_clear();
     println!("{}", final_json.0.trim_end());
-    let state = final_json.1.get("state").and_then(|s| s.as_str()).unwrap_or("").to_string();
+    let finished = final_json.1.record.as_ref().is_some_and(|j| j.state() == JobState::Finished);
     std::fs::write(out.join("summary.json"), serde_json::to_string_pretty(&final_json.1)?)?;
     println!("model folder: {}; summary: {}", run_dir.join("model").display(), out.join("summary.json").display());
     drop(children);
-    Ok(if state == "finished" { 0 } else { 1 })
+    Ok(if finished { 0 } else { 1 })
 }
 
 /// A path in the job spec: absolute, so that the spec reads the same from anywhere.
@@ -384,7 +384,7 @@ mod tests {
     use crate::cli::{Cli, Command};
     use clap::Parser;
 
-    fn spec(flags: &[&str], out: &Path) -> protocol::job::JobDoc {
+    fn spec(flags: &[&str], out: &Path) -> protocol::Job {
         let cli = Cli::try_parse_from(["coordinator", "up"].iter().chain(flags)).unwrap();
         let Command::Up(args) = cli.command else { panic!("not up") };
         let text = job_spec(&args, out).unwrap();
@@ -438,7 +438,7 @@ mod tests {
         assert_eq!(job.worlds, ["reinvent_wood"]);
         assert!(job.hyperparameters_json.contains("term_cond_max_episodes"), "{}", job.hyperparameters_json);
         assert!(job.model_metadata_json.contains("STATE_VECTOR"), "{}", job.model_metadata_json);
-        let want = protocol::job::StopSpec {
+        let want = protocol::job::JobStop {
             minutes: 0.5,
             max_episodes: 60,
             target_progress: Some(25.0),
@@ -450,14 +450,14 @@ mod tests {
             plateau_evals: 4,
             stop_on_collapse: true,
         };
-        assert_eq!(job.stop, want);
+        assert_eq!(job.stop, Some(want));
         assert_eq!((job.seed, job.envs_per_agent), (9, 3));
         assert!(job.sim_config_toml.contains("record_trace = false"), "{}", job.sim_config_toml);
         assert_eq!(job.out, d.join("run").display().to_string());
         // The defaults: two worlds, the state vector, DeepRacer's hyperparameters, 2 minutes.
         let plain = spec(&[], d);
         assert_eq!(plain.worlds, ["reinvent_carpet", "reinvent_concrete"]);
-        assert_eq!(plain.stop.minutes, 2.0);
+        assert_eq!(plain.stop().minutes, 2.0);
         // A spec file instead: the flags that describe a job are refused beside it.
         let both = Cli::try_parse_from(["coordinator", "up", "--job", "job.toml", "--minutes", "3"]);
         assert!(both.is_err_and(|e| e.to_string().contains("cannot be used with")));

@@ -244,7 +244,7 @@ fn issue_8_a_retried_job_start_or_stop_is_the_same_job_and_another_spec_cannot_t
     let other = c.cli(&["job", "start", "job.toml", "--id", &id]);
     let text = String::from_utf8_lossy(&other.stdout).to_string() + &String::from_utf8_lossy(&other.stderr);
     assert!(!other.status.success() && text.contains("is taken"), "{text}");
-    let stop = c.status(&id)["doc"]["stop"].clone();
+    let stop = c.status(&id)["job"]["stop"].clone();
     assert_eq!(stop["minutes"], 5.0, "the first spec's job is untouched: {stop}");
     // Likewise a retried `job stop`: the job is stopping, which is what was asked.
     for attempt in ["stopping: the learner writes", "already stopping: stopped by the user"] {
@@ -701,7 +701,7 @@ fn issue_8_learners_share_updates_drop_the_dead_take_joiners_and_take_over() {
     let id = c.start(SPEC);
     // The lowest id leads; the other joins its team and shares every update.
     let s = c.wait(&id, 90, "a team of two training", |s| learners(s).len() == 2 && team_updates(s) >= 3);
-    assert_eq!(s["learner"]["learner"], "learner-a", "the lowest id leads: {s}");
+    assert_eq!(s["learner"]["learner_id"], "learner-a", "the lowest id leads: {s}");
     assert_eq!(learners(&s), ["learner-a", "learner-b"]);
     let text = String::from_utf8_lossy(&c.cli(&["job", "status", &id]).stdout).to_string();
     assert!(text.contains("learner team: learner-a, learner-b"), "{text}");
@@ -725,7 +725,7 @@ fn issue_8_learners_share_updates_drop_the_dead_take_joiners_and_take_over() {
     let s = c.wait(&id, 60, "a few more team updates", |s| team_updates(s) >= before + 4);
     let before_kill = version(&s);
     c.procs.kill("learner-a");
-    let s = c.wait(&id, 60, "learner-b took over", |s| s["learner"]["learner"] == "learner-b");
+    let s = c.wait(&id, 60, "learner-b took over", |s| s["learner"]["learner_id"] == "learner-b");
     assert!(version(&s) + 1 >= before_kill, "learner-b went on from v{} (the team was at v{before_kill})", version(&s));
     let log = std::fs::read_to_string(c.path("learner-b2.log")).unwrap();
     assert!(log.contains("taking over from the team's state"), "{log}");

@@ -9,7 +9,7 @@
 //! its team and share every update ([`crate::team`]).
 
 use crate::team::{self, FollowEnd, TeamLead};
-use anyhow::Result;
+use anyhow::{Context, Result};
 use faer::Par;
 use learner::Hyperparameters;
 use learner::run::{Inbound, Link, LinkError, Quiet, RunSpec, Start, StopRules, TargetLaps, Team, run};
@@ -17,8 +17,9 @@ use policy::ModelMetadata;
 use policy::exchange::{Credit, EvalRequest, PolicyVersion};
 use policy::folder::Manifest;
 use policy::signature::Signer;
+use protocol::Job;
 use protocol::exchange::{self as wire, JobView};
-use protocol::job::{JobDoc, StopSpec};
+use protocol::job::JobStop;
 use protocol::net::{self, DropCounters, NetArgs, Sub, try_next, zenoh};
 use protocol::{AgentStats, AssignmentTable, ExperienceBatch, LearnerStatus, PROTOCOL_VERSION, WorldStats, keys};
 use std::collections::BTreeSet;
@@ -56,7 +57,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
     const HEAR_OTHERS: Duration = Duration::from_secs(3);
     tracing::info!(learner = %id, "learner up; waiting for a job");
     let mut finished: BTreeSet<String> = BTreeSet::new();
-    let mut docs: std::collections::HashMap<String, JobDoc> = Default::default();
+    let mut docs: std::collections::HashMap<String, Job> = Default::default();
     let mut adopt: Option<(String, learner::ppo::PpoState)> = None;
     let mut standby_note: Option<String> = None;
     loop {
@@ -71,7 +72,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
             continue;
         }
         // The job's document, fetched once from the coordinator.
-        let doc: JobDoc = match docs.get(&table.job_id) {
+        let doc: Job = match docs.get(&table.job_id) {
             Some(d) => d.clone(),
             None => match protocol::job::fetch(&session, &table.job_id, Duration::from_secs(2), &drops) {
                 Some(d) => {
@@ -142,7 +143,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
 fn follow_job(
     session: &zenoh::Session,
     id: &str,
-    doc: &JobDoc,
+    doc: &Job,
     args: &ServeArgs,
     jobs: &Sub,
     drops: Arc<DropCounters>,
@@ -186,7 +187,7 @@ fn follow_job(
 }
 
 /// The stop rules a job's `[stop]` table asks for.
-fn stop_rules(s: &StopSpec) -> StopRules {
+fn stop_rules(s: &JobStop) -> StopRules {
     StopRules {
         minutes: s.minutes,
         max_episodes: Some(s.max_episodes),
@@ -202,8 +203,19 @@ fn stop_rules(s: &StopSpec) -> StopRules {
     }
 }
 
+/// The simulator's observation settings in a job's sim config (its `[observation]` table,
+/// the sensors set from the model's), for the model's manifest; the simulator's defaults
+/// where the table is absent.
+fn observation_of(sim_config_toml: &str) -> Result<serde_json::Value> {
+    let sim: toml::Table = toml::from_str(sim_config_toml).context("the job's sim config")?;
+    Ok(match sim.get("observation") {
+        Some(o) => serde_json::to_value(o)?,
+        None => serde_json::Value::Null,
+    })
+}
+
 /// The run a job describes.
-fn spec_of(doc: &JobDoc, args: &ServeArgs) -> Result<RunSpec> {
+fn spec_of(doc: &Job, args: &ServeArgs) -> Result<RunSpec> {
     let metadata = ModelMetadata::parse(&doc.model_metadata_json, "job model_metadata.json")?;
     let hyper = Hyperparameters::parse(&doc.hyperparameters_json, "job hyperparameters.json")?.hyperparameters;
     let camera = !metadata.sensor.contains(&policy::Sensor::StateVector);
@@ -212,7 +224,7 @@ fn spec_of(doc: &JobDoc, args: &ServeArgs) -> Result<RunSpec> {
         metadata,
         hyper,
         obs_size: doc.obs_size as usize,
-        observation: serde_json::from_str(&doc.observation_json)?,
+        observation: observation_of(&doc.sim_config_toml)?,
         sim_toml: doc.sim_config_toml.clone(),
         worlds: doc.worlds.clone(),
         out: PathBuf::from(&doc.out),
@@ -221,11 +233,11 @@ fn spec_of(doc: &JobDoc, args: &ServeArgs) -> Result<RunSpec> {
         max_policy_lag: doc.max_policy_lag,
         eval_trials: doc.eval_trials.max(1),
         eval_seconds: args.checkpoint_seconds,
-        stop: stop_rules(&doc.stop),
+        stop: stop_rules(&doc.stop()),
         par: if camera { Par::rayon(args.threads) } else { Par::Seq },
         adopt: None,
         signing_key: args.signing_key.clone(),
-        tracks: doc.tracks.clone(),
+        tracks: doc.track_lines(),
     })
 }
 
@@ -258,7 +270,7 @@ impl<'a> ZenohLink<'a> {
     fn new(
         session: &'a zenoh::Session,
         learner: &str,
-        doc: &JobDoc,
+        doc: &Job,
         jobs: &'a Sub,
         drops: Arc<DropCounters>,
         table: AssignmentTable,
@@ -333,12 +345,8 @@ fn promote(
     best: &Mutex<Vec<u8>>,
     promotion: &Mutex<Promotion>,
 ) -> protocol::JobReply {
-    let reply = |ok: bool, text: String| protocol::JobReply {
-        protocol_version: PROTOCOL_VERSION,
-        ok,
-        text,
-        json: String::new(),
-    };
+    let reply =
+        |ok: bool, text: String| protocol::JobReply { protocol_version: PROTOCOL_VERSION, ok, text, body: None };
     let req = match protocol::decode::<protocol::JobPromote>(payload) {
         Ok(r) if r.job_id == job => r,
         Ok(r) => return reply(false, format!("this learner runs job '{job}', not '{}'", r.job_id)),
@@ -574,19 +582,16 @@ mod tests {
     fn issue_29_each_field_of_a_jobs_stop_table_reaches_its_rule_across_the_wire() {
         // The rules themselves are tested through a whole run (learner/tests/run_scripted.rs);
         // here, that a job's `[stop]` table, sent as the `Job` message, asks for the same.
-        let base = StopSpec::default();
-        let table: Vec<(StopSpec, StopRules)> = vec![
-            (base.clone(), StopRules { minutes: 10.0, max_episodes: Some(1_000_000), ..StopRules::default() }),
+        let base = protocol::job::default_stop();
+        let table: Vec<(JobStop, StopRules)> = vec![
+            (base, StopRules { minutes: 10.0, max_episodes: Some(1_000_000), ..StopRules::default() }),
+            (JobStop { max_episodes: 60, ..base }, StopRules { max_episodes: Some(60), ..StopRules::default() }),
             (
-                StopSpec { max_episodes: 60, ..base.clone() },
-                StopRules { max_episodes: Some(60), ..StopRules::default() },
-            ),
-            (
-                StopSpec { minutes: 0.1, ..base.clone() },
+                JobStop { minutes: 0.1, ..base },
                 StopRules { minutes: 0.1, max_episodes: Some(1_000_000), ..StopRules::default() },
             ),
             (
-                StopSpec { target_progress: Some(25.0), window: 7, ..base.clone() },
+                JobStop { target_progress: Some(25.0), window: 7, ..base },
                 StopRules {
                     target_progress: Some(25.0),
                     window: 7,
@@ -595,15 +600,15 @@ mod tests {
                 },
             ),
             (
-                StopSpec { target_reward: Some(15.0), ..base.clone() },
+                JobStop { target_reward: Some(15.0), ..base },
                 StopRules { target_reward: Some(15.0), max_episodes: Some(1_000_000), ..StopRules::default() },
             ),
             (
-                StopSpec { env_steps_budget: Some(15000), ..base.clone() },
+                JobStop { env_steps_budget: Some(15000), ..base },
                 StopRules { env_steps_budget: Some(15000), max_episodes: Some(1_000_000), ..StopRules::default() },
             ),
             (
-                StopSpec { target_laps: Some(3), target_evals: 2, ..base.clone() },
+                JobStop { target_laps: Some(3), target_evals: 2, ..base },
                 StopRules {
                     target_laps: Some(TargetLaps { laps: 3, evaluations: 2 }),
                     max_episodes: Some(1_000_000),
@@ -611,36 +616,36 @@ mod tests {
                 },
             ),
             (
-                StopSpec { plateau_evals: 2, ..base.clone() },
+                JobStop { plateau_evals: 2, ..base },
                 StopRules { plateau_evals: Some(2), max_episodes: Some(1_000_000), ..StopRules::default() },
             ),
             (
-                StopSpec { stop_on_collapse: true, ..base.clone() },
+                JobStop { stop_on_collapse: true, ..base },
                 StopRules { stop_on_collapse: true, max_episodes: Some(1_000_000), ..StopRules::default() },
             ),
         ];
         for (stop, want) in table {
-            let doc = JobDoc {
+            let doc = Job {
+                protocol_version: protocol::PROTOCOL_VERSION,
                 id: "j".into(),
                 worlds: vec!["reinvent_base".into()],
-                reward_name: "builtin:center_line".into(),
-                reward_source: "builtin:center_line".into(),
-                model_metadata_json: String::new(),
-                hyperparameters_json: String::new(),
-                sim_config_toml: String::new(),
-                out: "run".into(),
-                clone_from: None,
-                seed: 1,
-                envs_per_agent: 8,
-                max_policy_lag: 4,
-                stop: stop.clone(),
-                eval_trials: 3,
+                stop: Some(stop),
                 obs_size: 12,
-                observation_json: "{}".into(),
-                tracks: vec![],
+                ..Default::default()
             };
-            let back = protocol::job::from_wire(protocol::job::to_wire(&doc), "j").unwrap();
-            assert_eq!(stop_rules(&back.stop), want, "{stop:?}");
+            let back: Job = protocol::decode(&protocol::encode(&doc)).unwrap();
+            protocol::job::check(&back, "j").unwrap();
+            assert_eq!(stop_rules(&back.stop()), want, "{stop:?}");
         }
+    }
+
+    #[test]
+    fn issue_29_the_manifest_observation_comes_from_the_jobs_sim_config() {
+        let toml = "control_hz = 15\n[observation]\nkind = \"camera\"\nlookahead_points = 10\nlidar_range = 2.0\n";
+        let o = observation_of(toml).unwrap();
+        assert_eq!(o, serde_json::json!({"kind": "camera", "lookahead_points": 10, "lidar_range": 2.0}));
+        assert_eq!(observation_of("").unwrap(), serde_json::Value::Null);
+        let e = format!("{:#}", observation_of("observation = [").unwrap_err());
+        assert!(e.contains("the job's sim config"), "{e}");
     }
 }

@@ -50,7 +50,7 @@
 //! # Modules
 //!
 //! [`exchange`] (the learner's and workers' values on the wire, each checked against its
-//! job), [`job`] (the job document and its message), [`net`] (sessions, `NetCli`, typed
+//! job), [`job`] (the job, its stop conditions and the coordinator's record of it), [`net`] (sessions, `NetCli`, typed
 //! put/subscribe/query that count drops), [`secure`] (roles, certificates, access control,
 //! logging), [`ros`] (the car's ROS 2 messages), [`exit`] (the exit codes of every binary).
 
@@ -71,7 +71,7 @@ pub mod ros;
 pub mod secure;
 
 /// The version every message carries; others are dropped.
-pub const PROTOCOL_VERSION: u32 = 2;
+pub const PROTOCOL_VERSION: u32 = 3;
 /// The largest message accepted (a SHALLOW camera model is ≈47 MB for both towers).
 pub const MAX_MESSAGE_BYTES: usize = 256 << 20;
 

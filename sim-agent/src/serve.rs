@@ -9,8 +9,8 @@
 //! for a while is dropped.
 
 use anyhow::{Context, Result};
+use protocol::Job;
 use protocol::exchange::{self as wire, JobView};
-use protocol::job::JobDoc;
 use protocol::net::{self, DropCounters, NetArgs, Sub, try_next, zenoh};
 use protocol::{AgentInfo, AgentReport, Assignment, PROTOCOL_VERSION, PolicyUpdate, keys};
 use sim_agent::config::{SimConfig, parse_toml};
@@ -71,7 +71,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
     let drops = DropCounters::default();
     tracing::info!(agent = %id, envs = args.envs, "sim agent up; waiting for an assignment");
     let mut failed: Option<(String, u64)> = None;
-    let mut docs: Vec<JobDoc> = Vec::new();
+    let mut docs: Vec<Job> = Vec::new();
     let mut next: Option<Assignment> = None;
     let mut seq = 0u64;
     loop {
@@ -150,14 +150,14 @@ fn report(session: &zenoh::Session, job: &str, agent: &str, error: &str) {
 }
 
 /// The job's simulator configuration, its observation set from the model's sensors.
-fn job_config(doc: &JobDoc) -> Result<SimConfig> {
+fn job_config(doc: &Job) -> Result<SimConfig> {
     let mut cfg: SimConfig = parse_toml(&doc.sim_config_toml, "the job's sim config")?;
     let meta = policy::ModelMetadata::parse(&doc.model_metadata_json, "the job's model_metadata.json")?;
     cfg.observation.kind = sim_agent::config::observation_kind_for(&meta).map_err(|e| anyhow::anyhow!("{e}"))?;
     Ok(cfg)
 }
 
-fn start(args: &ServeArgs, id: &str, a: &Assignment, doc: &JobDoc, first_seq: u64) -> Result<Worker> {
+fn start(args: &ServeArgs, id: &str, a: &Assignment, doc: &Job, first_seq: u64) -> Result<Worker> {
     anyhow::ensure!(!a.worlds.is_empty(), "assignment without a world");
     let cfg = job_config(doc)?;
     let meta = policy::ModelMetadata::parse(&doc.model_metadata_json, "the job's model_metadata.json")?;
@@ -223,7 +223,7 @@ impl<'a> AgentLink<'a> {
         session: &'a zenoh::Session,
         id: &str,
         a: &Assignment,
-        doc: &JobDoc,
+        doc: &Job,
         assign_sub: &'a Sub,
         drops: &'a DropCounters,
     ) -> Result<AgentLink<'a>> {

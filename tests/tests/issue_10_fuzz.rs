@@ -198,7 +198,7 @@ fn every_message(bytes: &[u8]) {
         let _ = ex::share_from_wire(m, "job1", "l1");
     }
     if let Ok(m) = decode::<protocol::Job>(bytes) {
-        let _ = protocol::job::from_wire(m, "job1");
+        let _ = protocol::job::check(&m, "job1");
     }
 }
 
