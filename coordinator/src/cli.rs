@@ -67,15 +67,26 @@ pub enum Command {
     },
     /// Render the car's camera view (160x120) to a PNG; --grid for several worlds side by side.
     Render(RenderArgs),
-    /// Write a model's policy tower in another format: `export MODEL_DIR --onnx FILE`.
+    /// Write a model's policy tower for a car or another runtime: `export MODEL_DIR --car
+    /// NAME.tar.gz` (DeepRacer's archive, for a car's console or USB stick), `--onnx FILE`.
+    #[command(group(clap::ArgGroup::new("format").required(true).multiple(true).args(["car", "onnx"])))]
     Export {
         /// The model folder.
         model: PathBuf,
+        /// Write DeepRacer's model archive here: `agent/model.pb` (a frozen TensorFlow graph
+        /// with DeepRacer's node names) and `model_metadata.json`. A car names the model after
+        /// the file, up to its first dot.
+        #[arg(long)]
+        car: Option<PathBuf>,
         /// Write ONNX here (input `observation` [N,120,160,1] NHWC 0–255; outputs `logits`
         /// and, for discrete actions, `probabilities`).
         #[arg(long)]
-        onnx: PathBuf,
+        onnx: Option<PathBuf>,
     },
+    /// Bring a DeepRacer model into Paddock: its archive (`.tar.gz`, as a car or DeepRacer on
+    /// AWS takes it) or a bare `model.pb`, into a model folder that evaluate, drive, deploy,
+    /// export and clone take.
+    Import(ImportArgs),
     /// Signing keys: `keys new NAME` writes NAME.key (secret, for `--signing-key`) and NAME.pub
     /// (for a car's `--trust`).
     Keys {
@@ -524,6 +535,25 @@ pub struct CloneArgs {
     /// hyperparameters.json for the new run.
     #[arg(long)]
     pub hyperparameters: Option<PathBuf>,
+}
+
+/// `coordinator import`.
+#[derive(Args)]
+pub struct ImportArgs {
+    /// DeepRacer's model archive (`.tar.gz` or `.tar`) or a frozen graph (`.pb`).
+    pub source: PathBuf,
+    /// The model folder to write.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// The model's model_metadata.json, for a bare `.pb` (default: the one beside it).
+    #[arg(long)]
+    pub model_metadata: Option<PathBuf>,
+    /// Seed of the fresh value tower (the graph holds the policy tower only).
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Replace `--out` if it exists.
+    #[arg(long)]
+    pub force: bool,
 }
 
 #[derive(Subcommand)]

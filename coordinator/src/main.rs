@@ -6,6 +6,7 @@
 //! one-machine launcher (`up`), reports of a run (`report`, `job report`).
 
 mod bench;
+mod carmodel;
 mod cars;
 mod certs;
 mod cli;
@@ -57,18 +58,24 @@ fn main() {
             0
         }),
         cli::Command::Cars(args) => cars::cars(args),
-        cli::Command::Export { model, onnx } => (|| -> anyhow::Result<i32> {
-            let f = policy::folder::load(&model)?;
-            let bytes = coordinator::onnx::policy_to_onnx(&f.model, &model.display().to_string());
-            std::fs::write(&onnx, &bytes).map_err(|e| anyhow::anyhow!("{}: {e}", onnx.display()))?;
-            println!(
-                "{}: policy v{} as ONNX ({:.1} MB)",
-                onnx.display(),
-                f.manifest.policy_version,
-                bytes.len() as f64 / 1e6
-            );
+        cli::Command::Export { model, car, onnx } => (|| -> anyhow::Result<i32> {
+            if let Some(car) = &car {
+                carmodel::export_car(&model, car)?;
+            }
+            if let Some(onnx) = &onnx {
+                let f = policy::folder::load(&model)?;
+                let bytes = coordinator::onnx::policy_to_onnx(&f.model, &model.display().to_string());
+                std::fs::write(onnx, &bytes).map_err(|e| anyhow::anyhow!("{}: {e}", onnx.display()))?;
+                println!(
+                    "{}: policy v{} as ONNX ({:.1} MB)",
+                    onnx.display(),
+                    f.manifest.policy_version,
+                    bytes.len() as f64 / 1e6
+                );
+            }
             Ok(0)
         })(),
+        cli::Command::Import(args) => carmodel::import(args),
         cli::Command::Bench { command } => match command {
             cli::BenchCommand::Cluster { seconds, envs, world } => bench::cluster(seconds, envs, &world).map(|()| 0),
             cli::BenchCommand::LongJob { minutes, trials, out } => bench::long_job(minutes, trials, &out),

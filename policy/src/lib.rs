@@ -5,6 +5,8 @@
 //! - [`model`]: the actor-critic (separate policy and value towers, DeepRacer's networks by
 //!   name) and its heads.
 //! - [`folder`]: the model folder (safetensors + `model_metadata.json` + manifest).
+//! - [`tfgraph`]: DeepRacer's frozen TensorFlow graph (`model.pb`), written and read.
+//! - [`carpkg`]: DeepRacer's model archive (`agent/model.pb` + `model_metadata.json`).
 //! - [`car`]: `car.toml`, what a physical car can run and how actions become servo ratios.
 //! - [`signature`]: ed25519 signatures over a model's files, and the keys a car trusts.
 //! - [`experience`]: trajectories, tagged with the policy version that produced them.
@@ -15,6 +17,7 @@
 //! Architecture invariant: no physics, no transport, no Python here.
 
 pub mod car;
+pub mod carpkg;
 pub mod exchange;
 pub mod experience;
 pub mod folder;
@@ -23,6 +26,7 @@ pub mod model;
 pub mod nn;
 pub mod signature;
 pub mod simtrace;
+pub mod tfgraph;
 
 pub use experience::{EpisodeStatus, StepTrace, TrackLines, Trajectory};
 pub use folder::{Manifest, ModelError, ModelFolder, ModelParts};
