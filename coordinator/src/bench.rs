@@ -157,6 +157,78 @@ fn used_samples(run: &std::path::Path) -> Result<(f64, usize)> {
     Ok((used, updates))
 }
 
+/// `bench model-files`: for each DeepRacer network (one camera, 5 discrete actions), the
+/// median time to export the policy as DeepRacer's archive and to import it back, beside the
+/// time to save and load the same model as a Paddock folder (the reference, measured in the
+/// same run); the archive's size.
+pub fn model_files(repeats: usize) -> Result<()> {
+    let repeats = repeats.max(1);
+    let dir = std::env::temp_dir().join(format!("paddock-bench-model-files-{}", std::process::id()));
+    std::fs::create_dir_all(&dir)?;
+    println!(
+        "network                               archive MB  export ms  import ms  folder save ms  folder load ms  export/save  import/load"
+    );
+    for network in
+        ["DEEP_CONVOLUTIONAL_NETWORK_SHALLOW", "DEEP_CONVOLUTIONAL_NETWORK", "DEEP_CONVOLUTIONAL_NETWORK_DEEP"]
+    {
+        let text = format!(
+            r#"{{"action_space":[{{"steering_angle":-30,"speed":1}},{{"steering_angle":-15,"speed":1}},{{"steering_angle":0,"speed":1}},{{"steering_angle":15,"speed":1}},{{"steering_angle":30,"speed":1}}],"sensor":["FRONT_FACING_CAMERA"],"neural_network":"{network}","version":"5"}}"#
+        );
+        let meta = policy::ModelMetadata::parse(&text, "bench")?;
+        let model = policy::ActorCritic::new(&meta, 0, &mut rand_chacha::ChaCha8Rng::seed_from_u64(1));
+        let manifest = policy::Manifest {
+            format: "paddock-model-1".into(),
+            policy_version: 1,
+            parent: None,
+            weights_sha256: String::new(),
+            obs_size: 19200,
+            observation: serde_json::json!({"kind": "camera"}),
+            training: serde_json::Value::Null,
+        };
+        let archive = dir.join("m.tar.gz");
+        let folder = dir.join("m");
+        let median = |mut v: Vec<f64>| {
+            v.sort_by(f64::total_cmp);
+            v[v.len() / 2]
+        };
+        let time = |f: &mut dyn FnMut() -> Result<()>| -> Result<f64> {
+            let mut v = vec![];
+            for _ in 0..repeats {
+                let t = Instant::now();
+                f()?;
+                v.push(t.elapsed().as_secs_f64() * 1e3);
+            }
+            Ok(median(v))
+        };
+        let mut size = 0;
+        let export = time(&mut || {
+            size = policy::carpkg::write(&archive, &model, &meta)?;
+            Ok(())
+        })?;
+        let import = time(&mut || {
+            let f = policy::carpkg::read(&archive)?.to_folder("bench", 1)?;
+            anyhow::ensure!(f.model.pi == model.pi, "the imported policy differs");
+            Ok(())
+        })?;
+        let save = time(&mut || {
+            policy::folder::save(&folder, &meta, &model, &manifest)?;
+            Ok(())
+        })?;
+        let load = time(&mut || {
+            policy::folder::load(&folder)?;
+            Ok(())
+        })?;
+        println!(
+            "{network:<37} {:>10.1} {export:>10.0} {import:>10.0} {save:>15.0} {load:>15.0} {:>12.2} {:>12.2}",
+            size as f64 / 1e6,
+            export / save,
+            import / load
+        );
+    }
+    std::fs::remove_dir_all(&dir)?;
+    Ok(())
+}
+
 pub fn publish(repeats: usize) -> Result<()> {
     let port = crate::up::free_port()?;
     let endpoint = format!("tcp/127.0.0.1:{port}");

@@ -5,9 +5,8 @@
 use crate::cli::ImportArgs;
 use anyhow::{Context, Result, bail};
 use policy::carpkg::{self, Package};
-use policy::folder::{self, Manifest};
+use policy::folder;
 use policy::metadata::ModelMetadata;
-use sim_agent::config::{ObservationConfig, ObservationKind};
 use std::path::Path;
 use std::time::Instant;
 
@@ -59,46 +58,21 @@ pub fn import(args: ImportArgs) -> Result<i32> {
     let t = Instant::now();
     let pkg = package_of(&args)?;
     let origin = args.source.display().to_string();
-    let model = if args.source.extension().is_some_and(|e| e == "pb") {
-        policy::tfgraph::read(&pkg.graph, &pkg.metadata, args.seed).with_context(|| origin.clone())?
-    } else {
-        pkg.model(&origin, args.seed)?
-    };
+    let f = pkg.to_folder(&origin, args.seed)?;
     if args.out.exists() {
         if !args.force {
             bail!("{} exists (--force replaces it)", args.out.display());
         }
         std::fs::remove_dir_all(&args.out).with_context(|| format!("removing {}", args.out.display()))?;
     }
-    let observation = ObservationConfig { kind: ObservationKind::Camera, ..ObservationConfig::default() };
-    let manifest = Manifest {
-        format: "paddock-model-1".into(),
-        policy_version: 0,
-        parent: None,
-        weights_sha256: String::new(),
-        obs_size: model.obs_size(),
-        observation: serde_json::to_value(&observation)?,
-        training: serde_json::json!({
-            "imported": {
-                "from": origin,
-                "graph": pkg.graph_path,
-                "graph_sha256": folder::sha256_hex(&pkg.graph),
-                "format": "DeepRacer frozen TensorFlow graph",
-                "value_tower": format!("fresh (seed {}): the graph holds the policy tower only", args.seed),
-            }
-        }),
-    };
-    folder::save(&args.out, &pkg.metadata, &model, &manifest)?;
+    folder::save(&args.out, &f.metadata, &f.model, &f.manifest)?;
+    let discrete = matches!(f.metadata.action_space, policy::metadata::ActionSpace::Discrete(_));
     println!(
         "{}: {} with {} {} from {} ({:.2} s); its value tower is new: `clone` it to train on",
         args.out.display(),
-        pkg.metadata.neural_network.name(),
-        pkg.metadata.action_space.dim(),
-        if matches!(pkg.metadata.action_space, policy::metadata::ActionSpace::Discrete(_)) {
-            "actions"
-        } else {
-            "continuous outputs"
-        },
+        f.metadata.neural_network.name(),
+        f.metadata.action_space.dim(),
+        if discrete { "actions" } else { "continuous outputs" },
         origin,
         t.elapsed().as_secs_f64()
     );

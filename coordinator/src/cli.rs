@@ -151,6 +151,13 @@ pub struct CarsArgs {
 
 #[derive(Subcommand)]
 pub enum BenchCommand {
+    /// DeepRacer's model archive per network: export (graph and archive) and import (unpack,
+    /// read, check), against writing and reading the same model's folder (safetensors).
+    ModelFiles {
+        /// Measurements per figure (the median is printed).
+        #[arg(long, default_value_t = 5)]
+        repeats: usize,
+    },
     /// Samples trained on per second end to end: single process vs `up` with 1, 2, 4 agents.
     Cluster {
         /// Seconds per row.

@@ -79,6 +79,7 @@ fn main() {
         cli::Command::Bench { command } => match command {
             cli::BenchCommand::Cluster { seconds, envs, world } => bench::cluster(seconds, envs, &world).map(|()| 0),
             cli::BenchCommand::LongJob { minutes, trials, out } => bench::long_job(minutes, trials, &out),
+            cli::BenchCommand::ModelFiles { repeats } => bench::model_files(repeats).map(|()| 0),
             cli::BenchCommand::Publish { repeats } => bench::publish(repeats).map(|()| 0),
             cli::BenchCommand::Record { seconds, rounds } => bench::record(seconds, rounds).map(|()| 0),
             cli::BenchCommand::Wire { seconds, rounds, up_seconds } => bench::wire(seconds, rounds, up_seconds).map(|()| 0),

@@ -317,6 +317,10 @@ pub fn evaluate_cmd(args: EvaluateArgs) -> Result<i32> {
     Ok(0)
 }
 
+/// Updates an imported model's new value tower trains alone after `clone` (one per
+/// `num_episodes_between_training` episodes: 100 episodes with DeepRacer's defaults).
+const IMPORT_VALUE_WARMUP: u64 = 5;
+
 pub fn clone_cmd(args: CloneArgs) -> Result<i32> {
     let f = folder::load(&args.model_dir)?;
     let meta = match &args.model_metadata {
@@ -341,6 +345,17 @@ pub fn clone_cmd(args: CloneArgs) -> Result<i32> {
     };
     if let Some(lr) = args.lr {
         hyper.lr = lr;
+    }
+    // A model imported from DeepRacer's graph has a new value tower: it learns alone first,
+    // unless the user's hyperparameters.json says how long.
+    let imported = f.manifest.training.get("imported").is_some();
+    let said = args
+        .hyperparameters
+        .as_ref()
+        .and_then(|p| std::fs::read_to_string(p).ok())
+        .is_some_and(|t| t.contains("\"value_warmup_updates\""));
+    if imported && !said {
+        hyper.value_warmup_updates = f.manifest.policy_version + IMPORT_VALUE_WARMUP;
     }
     let run = RunDir::open(&args.out, OpenMode::New)?;
     let parent = Parent {
@@ -367,6 +382,13 @@ pub fn clone_cmd(args: CloneArgs) -> Result<i32> {
         hyper.lr,
         args.out.display()
     );
+    if hyper.value_warmup_updates > f.manifest.policy_version {
+        println!(
+            "the value tower is new: it learns alone until policy v{} (value_warmup_updates in {}), then the policy trains too",
+            hyper.value_warmup_updates,
+            args.out.join("hyperparameters.json").display()
+        );
+    }
     Ok(0)
 }
 

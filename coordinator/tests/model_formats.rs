@@ -355,6 +355,21 @@ fn issue_30_a_graph_tensorflow_froze_imports_with_the_same_outputs() {
     for (i, (a, b)) in got.iter().zip(&want).enumerate() {
         assert!((a - b).abs() <= 1e-4, "probability {i}: Paddock {a}, TensorFlow {b}");
     }
+    // What a model folder is for works on it: an evaluation drives it (a random policy: it
+    // leaves the road, and says so), and it goes back out as an archive.
+    let said = coordinator(
+        &["evaluate", "imported", "--world", "reinvent_base", "--trials", "1"].map(std::ffi::OsStr::new),
+        d,
+    );
+    assert!(said.contains("reinvent_base"), "{said}");
+    coordinator(&["export", "imported", "--car", "again.tar.gz"].map(std::ffi::OsStr::new), d);
+    // Cloned to train on: the new value tower learns alone first.
+    let said = coordinator(&["clone", "imported", "--out", "cloned"].map(std::ffi::OsStr::new), d);
+    assert!(said.contains("it learns alone until policy v5"), "{said}");
+    let h = std::fs::read_to_string(d.join("cloned/hyperparameters.json")).unwrap();
+    assert!(h.contains("\"value_warmup_updates\": 5"), "{h}");
+    let again = policy::carpkg::read(&d.join("again.tar.gz")).unwrap().model("again", 1).unwrap();
+    assert_eq!(again.pi, f.model.pi);
     // The same graph against another network's metadata: refused, saying what differs,
     // and nothing written.
     let deep = meta.replace("DEEP_CONVOLUTIONAL_NETWORK_SHALLOW", "DEEP_CONVOLUTIONAL_NETWORK_DEEP");
@@ -368,4 +383,18 @@ fn issue_30_a_graph_tensorflow_froze_imports_with_the_same_outputs() {
     assert_eq!(o.status.code(), Some(1), "{text}");
     assert!(text.contains("dr/model.pb") && text.contains("layer 3"), "{text}");
     assert!(!d.join("wrong").exists());
+}
+
+#[test]
+fn issue_30_bench_model_files_times_every_network_against_the_folder() {
+    let dir = tempfile::tempdir().unwrap();
+    let said = coordinator(&["bench", "model-files", "--repeats", "1"].map(std::ffi::OsStr::new), dir.path());
+    for network in
+        ["DEEP_CONVOLUTIONAL_NETWORK_SHALLOW ", "DEEP_CONVOLUTIONAL_NETWORK ", "DEEP_CONVOLUTIONAL_NETWORK_DEEP "]
+    {
+        let row = said.lines().find(|l| l.starts_with(network)).unwrap_or_else(|| panic!("{network}: {said}"));
+        let figures: Vec<f64> = row[network.len()..].split_whitespace().map(|v| v.parse().unwrap()).collect();
+        assert_eq!(figures.len(), 7, "{row}");
+        assert!(figures.iter().all(|v| *v > 0.0), "{row}");
+    }
 }

@@ -100,7 +100,17 @@ impl ModelSlot {
         source: &str,
         follow: &Follow,
     ) -> Offer {
-        let m = match verify(parts, trust, car, source) {
+        self.consider(verify(parts, trust, car, source), source, follow)
+    }
+
+    /// Offer a model imported from DeepRacer's archive named `name` (unsigned: taken only if
+    /// `car.toml` trusts the name), as [`ModelSlot::offer`] does.
+    pub fn offer_import(&self, parts: ModelParts, name: &str, car: &CarConfig, source: &str) -> Offer {
+        self.consider(crate::verify::verify_import(parts, name, car, source), source, &Follow::Latest)
+    }
+
+    fn consider(&self, verified: Result<crate::verify::VerifiedModel, String>, source: &str, follow: &Follow) -> Offer {
+        let m = match verified {
             Ok(m) => m,
             Err(why) => {
                 self.refused.fetch_add(1, Ordering::Relaxed);

@@ -43,7 +43,8 @@ struct Cli {
     #[arg(long)]
     car: Option<PathBuf>,
     /// A model folder: every model taken is saved here, and without --job the car drives the
-    /// model saved here (verified again), with no network.
+    /// model saved here (verified again), with no network. Or DeepRacer's model archive
+    /// (NAME.tar.gz), driven offline if car.toml's trust_unsigned lists NAME.
     #[arg(long)]
     model_dir: Option<PathBuf>,
     /// Which models to drive: latest, best, or one version number.
@@ -99,7 +100,8 @@ impl Mailbox {
 }
 
 fn run(cli: Cli) -> Result<()> {
-    if cli.trust.is_empty() {
+    let archive = cli.model_dir.as_deref().filter(|d| d.is_file());
+    if cli.trust.is_empty() && archive.is_none() {
         bail!("give --trust FILE (the learner's public key): the car drives only models signed by a key it trusts");
     }
     let car = match &cli.car {
@@ -108,7 +110,24 @@ fn run(cli: Cli) -> Result<()> {
     };
     let trust = TrustedKeys::load(&cli.trust)?;
     let slot = Arc::new(ModelSlot::default());
-    if let Some(dir) = &cli.model_dir
+    if let Some(a) = archive {
+        if cli.job.is_some() {
+            bail!(
+                "{}: an archive is driven offline; leave out --job (a job's models are kept in a folder)",
+                a.display()
+            );
+        }
+        // DeepRacer's archive, imported here as `coordinator import` would.
+        let origin = a.display().to_string();
+        let f = policy::carpkg::read(a)?.to_folder(&origin, 0)?;
+        let parts = ModelParts::new(&f.metadata, &f.model, &f.manifest, None);
+        let name = policy::carpkg::car_model_name(a);
+        match slot.offer_import(parts, &name, &car, &format!("archive {origin}")) {
+            Offer::Taken(_) => tracing::info!(archive = %origin, model = %name, "driving DeepRacer's model"),
+            Offer::Refused(why) => bail!("{origin}: {why}"),
+            Offer::Skipped(_) => {}
+        }
+    } else if let Some(dir) = &cli.model_dir
         && dir.join("manifest.json").exists()
     {
         let parts = ModelParts::read(dir).with_context(|| format!("reading the saved model in {}", dir.display()))?;

@@ -1,7 +1,8 @@
-//! Every check a model passes before a car drives it, in order: signed by a trusted key;
-//! the weights' sha256 equals the manifest's (and every tensor fits `model_metadata.json`);
-//! the model's sensors and action space fit the car (`car.toml`); its input is the camera
-//! frame the car produces.
+//! Every check a model passes before a car drives it, in order: signed by a trusted key (or,
+//! for a DeepRacer archive, which no one signs, named in `car.toml`'s `trust_unsigned`); the
+//! weights' sha256 equals the manifest's (and every tensor fits `model_metadata.json`); the
+//! model's sensors and action space fit the car (`car.toml`); its input is the camera frame
+//! the car produces.
 
 use crate::infer::CarPolicy;
 use policy::car::{CarConfig, ServoMap};
@@ -39,6 +40,22 @@ pub struct VerifiedModel {
 /// Check a model's files for this car (see the module documentation); the reason when not.
 pub fn verify(parts: ModelParts, trust: &TrustedKeys, car: &CarConfig, source: &str) -> Result<VerifiedModel, String> {
     let key = parts.verify(trust).map_err(|e| format!("signature: {e}"))?.to_string();
+    checked(parts, key, car, source)
+}
+
+/// [`verify`] for a model imported from DeepRacer's archive named `name` (see
+/// `policy::carpkg::car_model_name`): unsigned, so driven only when `car.toml` trusts that name.
+pub fn verify_import(parts: ModelParts, name: &str, car: &CarConfig, source: &str) -> Result<VerifiedModel, String> {
+    if !car.trust_unsigned.iter().any(|n| n == name) {
+        return Err(format!(
+            "'{name}' is an unsigned DeepRacer model: the car drives it only if car.toml's trust_unsigned lists \"{name}\""
+        ));
+    }
+    checked(parts, format!("unsigned, trusted by name ('{name}' in car.toml)"), car, source)
+}
+
+/// Every check after the signature's.
+fn checked(parts: ModelParts, key: String, car: &CarConfig, source: &str) -> Result<VerifiedModel, String> {
     let folder = parts.decode(Path::new(source)).map_err(|e| e.to_string())?;
     car.fits(&folder.metadata)?;
     let input = match input_shape(&folder.metadata, folder.manifest.obs_size) {

@@ -187,3 +187,46 @@ fn issue_9_the_model_loader_runs_at_background_priority() {
     // The thread that spawned it keeps its own priority.
     assert_ne!(nice(), 19);
 }
+
+#[test]
+fn issue_30_a_deepracer_archive_drives_only_when_the_car_trusts_its_name_and_then_as_paddock_computes() {
+    let meta = ModelMetadata::default_camera();
+    let model = ActorCritic::new(&meta, 120 * 160, &mut rand_chacha::ChaCha8Rng::seed_from_u64(4));
+    let dir = tempfile::tempdir().unwrap();
+    let archive = dir.path().join("my model.v3.tar.gz");
+    policy::carpkg::write(&archive, &model, &meta).unwrap();
+    let name = policy::carpkg::car_model_name(&archive);
+    assert_eq!(name, "my_model");
+    let origin = archive.display().to_string();
+    let f = policy::carpkg::read(&archive).unwrap().to_folder(&origin, 0).unwrap();
+    let parts = || ModelParts::new(&f.metadata, &f.model, &f.manifest, None);
+    // Not trusted: refused, saying which name to list; the car has no model.
+    let slot = ModelSlot::default();
+    match slot.offer_import(parts(), &name, &aws_car(), "archive") {
+        Offer::Refused(why) => assert!(why.contains("trust_unsigned") && why.contains("\"my_model\""), "{why}"),
+        other => panic!("{other:?}"),
+    }
+    assert!(slot.current().is_none());
+    // Another name trusted: still refused.
+    let other = CarConfig { trust_unsigned: vec!["my".into()], ..aws_car() };
+    assert!(matches!(slot.offer_import(parts(), &name, &other, "archive"), Offer::Refused(_)));
+    // Trusted by name: it drives, with the archive's policy tower.
+    let car = CarConfig { trust_unsigned: vec!["my_model".into()], ..aws_car() };
+    assert!(matches!(slot.offer_import(parts(), &name, &car, "archive"), Offer::Taken(0)));
+    let m = slot.current().unwrap();
+    assert_eq!(m.model.pi, model.pi);
+    assert!(m.key.contains("unsigned"), "{}", m.key);
+    // And the binary says the same before touching the network.
+    let car_toml = dir.path().join("car.toml");
+    std::fs::write(&car_toml, "trust_unsigned = [\"someone_else\"]\n").unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_deploy"))
+        .arg("--model-dir")
+        .arg(&archive)
+        .arg("--car")
+        .arg(&car_toml)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(err.contains("my model.v3.tar.gz") && err.contains("trust_unsigned lists \"my_model\""), "{err}");
+}

@@ -82,6 +82,12 @@ pub struct Hyperparameters {
     /// it down linearly to zero at the end (not in a job that stops at a target);
     /// `"constant"` keeps `lr` throughout, as in DeepRacer.
     pub lr_schedule: LrSchedule,
+    /// Paddock's addition (DeepRacer has no such key; default 0): the updates from policy
+    /// version 0 up to this one train the value tower alone, the policy held as it is. A
+    /// model imported from DeepRacer's graph starts at version 0 with a new value tower, and
+    /// `clone` sets this for it, so that the advantages are worth following before the
+    /// policy moves.
+    pub value_warmup_updates: u64,
 }
 
 impl Default for Hyperparameters {
@@ -98,6 +104,7 @@ impl Default for Hyperparameters {
             term_cond_avg_score: 100_000.0,
             target_kl: Some(DEFAULT_TARGET_KL),
             lr_schedule: LrSchedule::Cooldown,
+            value_warmup_updates: 0,
         }
     }
 }
@@ -210,6 +217,7 @@ impl Hyperparameters {
                         }
                     }
                 }
+                "value_warmup_updates" => h.value_warmup_updates = int(k, v)?,
                 "stack_size" => {
                     int(k, v)?;
                     ignored.push("stack_size (DeepRacer reads it but always stacks 1 frame)".into());
@@ -255,6 +263,7 @@ impl Hyperparameters {
             "target_kl": self.target_kl,
             "term_cond_avg_score": self.term_cond_avg_score,
             "term_cond_max_episodes": self.term_cond_max_episodes,
+            "value_warmup_updates": self.value_warmup_updates,
         }))
         .expect("JSON")
     }
@@ -291,6 +300,16 @@ mod tests {
             let back = Hyperparameters::parse(&h.to_json(), "back.json").unwrap().hyperparameters;
             assert_eq!(back, h, "{text}");
         }
+    }
+
+    #[test]
+    fn issue_30_value_warmup_updates_is_read_written_and_zero_without_it() {
+        assert_eq!(Hyperparameters::parse("{}", "h").unwrap().hyperparameters.value_warmup_updates, 0);
+        let h = Hyperparameters::parse(r#"{"value_warmup_updates": 5}"#, "h").unwrap().hyperparameters;
+        assert_eq!(h.value_warmup_updates, 5);
+        assert_eq!(Hyperparameters::parse(&h.to_json(), "h").unwrap().hyperparameters, h);
+        let e = Hyperparameters::parse(r#"{"value_warmup_updates": -1}"#, "h").unwrap_err().to_string();
+        assert!(e.contains("value_warmup_updates"), "{e}");
     }
 
     #[test]

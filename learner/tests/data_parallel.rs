@@ -501,3 +501,29 @@ fn issue_8_a_tower_state_that_does_not_fit_refuses_the_update_and_changes_nothin
         assert!(p0.state() == before, "{why}: the update was taken back whole");
     }
 }
+
+#[test]
+fn issue_30_the_value_towers_warm_up_holds_the_policy_alone_and_in_a_team() {
+    // An imported model's first updates (policy versions below `value_warmup_updates`) train
+    // the value tower only; then the policy moves, alone and in a team alike.
+    let meta = ModelMetadata::default_state_vector();
+    let mut rng = ChaCha8Rng::seed_from_u64(30);
+    let model = ActorCritic::new(&meta, 27, &mut rng);
+    let h = Hyperparameters { num_epochs: 2, target_kl: None, value_warmup_updates: 2, ..Hyperparameters::default() };
+    let mut alone = Ppo::new(model.clone(), h.clone(), 0, 5, Par::Seq);
+    let mut group: Vec<Ppo> = (0..2).map(|_| Ppo::new(model.clone(), h.clone(), 0, 5, Par::Seq)).collect();
+    for update in 0..3 {
+        let (pi, v) = (alone.model.pi.clone(), alone.model.v.clone());
+        let trajs = episodes(&alone.model, 20, &mut rng);
+        alone.update_in(&trajs, &mut Alone).unwrap();
+        for r in run_team(&mut group, Threads::team(2), &trajs) {
+            r.unwrap();
+        }
+        assert_ne!(alone.model.v, v, "update {update}: the value tower learns");
+        assert_eq!(alone.model.pi == pi, update < 2, "update {update}: the policy is held during the warm-up only");
+        for m in &group {
+            assert_eq!(m.model.pi == pi, update < 2, "team, update {update}");
+            assert_ne!(m.model.v, v, "team, update {update}");
+        }
+    }
+}

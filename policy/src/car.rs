@@ -40,6 +40,9 @@ pub struct CarConfig {
     /// How the big dense layer's weights are held: `f16` (as DeepRacer's car runs its models)
     /// or `int8` (a scale per output: half the memory again, logits within 2 %).
     pub precision: Precision,
+    /// DeepRacer archives (unsigned: DeepRacer signs nothing) the car drives all the same, by
+    /// the name a car gives them (the file name up to its first dot). Empty: none.
+    pub trust_unsigned: Vec<String>,
 }
 
 /// The precision of the car's big dense layer.
@@ -90,6 +93,7 @@ impl Default for CarConfig {
             max_model_steering_deg: crate::MAX_STEERING_DEG,
             max_model_speed: crate::MAX_SPEED,
             precision: Precision::F16,
+            trust_unsigned: vec![],
         }
     }
 }

@@ -8,6 +8,7 @@
 //! the root. Beyond the car: entries that are not plain files or folders, paths that leave the
 //! archive, and archives over [`MAX_ARCHIVE_BYTES`] unpacked are refused, naming the entry.
 
+use crate::folder::{Manifest, ModelFolder, sha256_hex};
 use crate::metadata::ModelMetadata;
 use crate::model::ActorCritic;
 use crate::tfgraph::{self, GraphError};
@@ -77,7 +78,7 @@ pub fn car_model_name(path: &Path) -> String {
 pub fn pack(model: &ActorCritic, meta: &ModelMetadata) -> Result<Vec<u8>, GraphError> {
     let graph = tfgraph::write(model, meta)?;
     let metadata = meta.to_json();
-    let gz = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::default());
+    let gz = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
     let mut tar = tar::Builder::new(gz);
     for (name, bytes) in [(GRAPH_PATH, graph.as_slice()), (METADATA_PATH, metadata.as_bytes())] {
         let mut h = tar::Header::new_gnu();
@@ -180,6 +181,30 @@ impl Package {
     pub fn model(&self, origin: &str, seed: u64) -> Result<ActorCritic, PackageError> {
         tfgraph::read(&self.graph, &self.metadata, seed)
             .map_err(|source| PackageError::Graph { path: format!("{origin}: {}", self.graph_path), source })
+    }
+
+    /// The model as a Paddock model folder (policy version 0; the manifest says where it came
+    /// from, and that its value tower is new).
+    pub fn to_folder(&self, origin: &str, seed: u64) -> Result<ModelFolder, PackageError> {
+        let model = self.model(origin, seed)?;
+        let manifest = Manifest {
+            format: "paddock-model-1".into(),
+            policy_version: 0,
+            parent: None,
+            weights_sha256: String::new(),
+            obs_size: model.obs_size(),
+            observation: serde_json::json!({"kind": "camera"}),
+            training: serde_json::json!({
+                "imported": {
+                    "from": origin,
+                    "graph": self.graph_path,
+                    "graph_sha256": sha256_hex(&self.graph),
+                    "format": "DeepRacer frozen TensorFlow graph",
+                    "value_tower": format!("new (seed {seed}): the graph holds the policy tower only"),
+                }
+            }),
+        };
+        Ok(ModelFolder { metadata: self.metadata.clone(), model, manifest })
     }
 }
 

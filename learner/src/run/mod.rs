@@ -1135,6 +1135,15 @@ fn open(spec: &RunSpec) -> Result<(RunDir, ActorCritic, u64, Option<Parent>, u64
                 spec.obs_size
             )));
         }
+        if f.manifest.training.get("imported").is_some() && spec.hyper.value_warmup_updates <= f.manifest.policy_version
+        {
+            tracing::warn!(
+                run = %spec.name,
+                from = %from.display(),
+                "the model was imported from DeepRacer's graph with a new value tower, and value_warmup_updates \
+                 does not hold the policy for it: the policy trains from the first update (`coordinator clone` sets a warm-up)"
+            );
+        }
         let parent = Parent {
             path: from.display().to_string(),
             policy_version: f.manifest.policy_version,
