@@ -4,7 +4,8 @@
 //! Every key DeepRacer's `RewardParam` defines is here with its meaning: `x`/`y` are the
 //! point 0.14 m ahead of the car origin, `speed`/`steering_angle` are the *commanded* action,
 //! `steps` counts the `prepare` step, `progress` is relative to the episode's start.
-//! The object keys keep DeepRacer's defaults: Paddock has no obstacles or bot cars yet.
+//! [`object_params`] computes the object keys as the simapp does; the environment places no
+//! objects yet, so its steps keep DeepRacer's defaults for them.
 
 use policy::Action;
 use tracks::{P2, Track, compute_progress, wrap_degrees};
@@ -57,6 +58,58 @@ pub struct RewardParams {
     /// Simulation time (s): the environment's clock, which runs on across its episodes as
     /// Gazebo's `/clock` does (DeepRacer's `sim_time` param and sim-trace `tstamp`).
     pub sim_time: f64,
+}
+
+/// An object on the track as the reward params see it: an obstacle or a bot car.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TrackObject {
+    /// Its model position (m).
+    pub position: P2,
+    /// Its yaw (radians).
+    pub heading: f64,
+}
+
+/// The params DeepRacer computes from the objects (`TrackData.get_object_reward_params`),
+/// in its object order: obstacles, then bots.
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
+pub struct ObjectParams {
+    /// `[x, y]` of each object.
+    pub objects_location: Vec<[f64; 2]>,
+    /// Each object's distance along the centre line from waypoint 0 of the driving direction
+    /// (m, in [0, L]): not from the episode's start.
+    pub objects_distance: Vec<f64>,
+    /// `[previous, next]` object around the car's reference point (see
+    /// `tracks::objects::closest_objects`).
+    pub closest_objects: [usize; 2],
+    /// Each object left of the centre line, in the driving direction.
+    pub objects_left_of_center: Vec<bool>,
+    /// Each object's distance from the centre line (m).
+    pub objects_distance_from_center: Vec<f64>,
+    /// Each object's yaw in **radians** (DeepRacer's documentation says degrees; its code
+    /// gives radians); 0 for every object when there are no bots.
+    pub objects_heading: Vec<f64>,
+    /// The bots' speed for every object, obstacles included, when there are bots; else 0.
+    pub objects_speed: Vec<f64>,
+}
+
+/// The object params for a car whose reference point is `front`, as the simapp computes
+/// them: `bot_speed` is `Some(BOT_CAR_SPEED)` when the race has bots.
+pub fn object_params(track: &Track, front: P2, objects: &[TrackObject], bot_speed: Option<f64>) -> ObjectParams {
+    if objects.is_empty() {
+        return ObjectParams::default();
+    }
+    let qs: Vec<tracks::TrackQuery> = objects.iter().map(|o| track.query(o.position)).collect();
+    let objects_distance: Vec<f64> = objects.iter().map(|o| track.center().project(o.position).along).collect();
+    let car = track.center().project(front).along;
+    ObjectParams {
+        objects_location: objects.iter().map(|o| [o.position.x, o.position.y]).collect(),
+        closest_objects: tracks::objects::closest_objects(&objects_distance, car),
+        objects_distance,
+        objects_left_of_center: qs.iter().map(|q| q.is_left_of_center).collect(),
+        objects_distance_from_center: qs.iter().map(|q| q.distance_from_center).collect(),
+        objects_heading: objects.iter().map(|o| if bot_speed.is_some() { o.heading } else { 0.0 }).collect(),
+        objects_speed: objects.iter().map(|_| bot_speed.unwrap_or(0.0)).collect(),
+    }
 }
 
 /// A car pose in the plane: the chassis origin and yaw (radians).
@@ -124,5 +177,55 @@ pub fn compute_params(
         object_in_camera: false,
         projection_distance: q.ndist * track.length(),
         sim_time: clock.sim_time,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A 10 m square lap, counter-clockwise from (0, 0), 1 m wide: every figure below is
+    /// worked out by hand.
+    fn square() -> Track {
+        let ring = |o: f64| -> Vec<P2> {
+            [(0.0 - o, 0.0 - o), (10.0 + o, 0.0 - o), (10.0 + o, 10.0 + o), (0.0 - o, 10.0 + o), (0.0 - o, 0.0 - o)]
+                .map(|(x, y)| P2::new(x, y))
+                .to_vec()
+        };
+        // The inner border is inside the square (offset −0.5), the outer outside (+0.5).
+        let rows = tracks::TrackRows { center: ring(0.0), inner: ring(-0.5), outer: ring(0.5) };
+        Track::new("square", &rows, tracks::Direction::Forward)
+    }
+
+    #[test]
+    fn issue_31_object_params_are_the_simapps_on_hand_computed_states() {
+        let t = square();
+        let objects = [
+            TrackObject { position: P2::new(5.0, 0.25), heading: 0.0 }, // edge 1, inside: left, 5 m along
+            TrackObject { position: P2::new(10.25, 5.0), heading: 1.5 }, // edge 2, outside: right, 15 m
+            TrackObject { position: P2::new(2.0, 9.8), heading: 3.1 },  // edge 3, inside: left, 28 m
+        ];
+        let p = object_params(&t, P2::new(10.0, 6.0), &objects, None);
+        assert_eq!(p.objects_location, [[5.0, 0.25], [10.25, 5.0], [2.0, 9.8]]);
+        for (got, want) in p.objects_distance.iter().zip([5.0, 15.0, 28.0]) {
+            assert!((got - want).abs() < 1e-9, "{:?}", p.objects_distance);
+        }
+        assert_eq!(p.objects_left_of_center, [true, false, true]);
+        for (got, want) in p.objects_distance_from_center.iter().zip([0.25, 0.25, 0.2]) {
+            assert!((got - want).abs() < 1e-9, "{:?}", p.objects_distance_from_center);
+        }
+        // No bots: headings and speeds are 0 for every object.
+        assert_eq!((p.objects_heading.clone(), p.objects_speed.clone()), (vec![0.0; 3], vec![0.0; 3]));
+        // The car at 16 m (front (10, 6)): behind it the object at 15 m, ahead the one at 28 m.
+        assert_eq!(p.closest_objects, [1, 2]);
+        // At 32 m, past every object: the next is the first of the lap.
+        assert_eq!(object_params(&t, P2::new(0.0, 8.0), &objects, None).closest_objects, [2, 0]);
+        // With bots: their yaw in radians, and the bots' speed for every object.
+        let b = object_params(&t, P2::new(1.0, 0.0), &objects, Some(0.5));
+        assert_eq!(b.objects_heading, [0.0, 1.5, 3.1]);
+        assert_eq!(b.objects_speed, [0.5; 3]);
+        assert_eq!(b.closest_objects, [2, 0]);
+        // No objects: DeepRacer's defaults.
+        assert_eq!(object_params(&t, P2::new(1.0, 0.0), &[], None), ObjectParams::default());
     }
 }

@@ -232,7 +232,7 @@ pub struct Track {
     outer: Polyline,
     /// The lanes: midlines between the centre line and each border, row by row (DeepRacer's
     /// `inner_lane` / `outer_lane`), where a reset puts the car.
-    lanes: [Polyline; 2],
+    pub(crate) lanes: [Polyline; 2],
     /// Normalised distance of each centre vertex, last = 1.0 (`TrackLine.ndists`).
     ndists: Vec<f64>,
     road_edges: Vec<(P2, P2)>,

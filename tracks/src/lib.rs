@@ -4,6 +4,8 @@
 //! - [`geometry`]: a [`Track`] for one driving direction and the queries behind DeepRacer's
 //!   reward `params` (projection, progress, closest waypoints, width, road containment).
 //! - [`catalog`]: the built-in worlds (track + surface + lighting), embedded in the binary.
+//! - [`objects`]: obstacles on the lanes, footprints and the crash rule, as DeepRacer
+//!   places and tests them.
 //! - [`render`]: top-down PNG drawings.
 //!
 //! Architecture invariant: this crate knows nothing of physics, rewards, Python or the
@@ -13,6 +15,7 @@ pub mod catalog;
 pub mod geometry;
 mod grid;
 pub mod npy;
+pub mod objects;
 pub mod render;
 
 pub use catalog::{Lighting, Surface, World, world, world_names, worlds};
