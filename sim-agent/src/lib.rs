@@ -14,6 +14,7 @@
 //! - [`simtrace`]: DeepRacer's sim-trace CSV, for the community's analysis notebooks.
 //! - [`validate`]: DeepRacer's "Validate" for reward files, and more.
 //! - [`config`]: the configuration struct and its loader.
+//! - [`race`]: the race type and DeepRacer's obstacle and bot keys (`[race]`, `run.env`).
 //!
 //! Architecture invariant: nothing here opens a socket or names the wire. The `sim-agent`
 //! binary's network role (`serve.rs`) is a thin shell over this library and `protocol`.
@@ -27,6 +28,7 @@ pub mod handling;
 pub mod obs;
 pub mod params;
 pub mod python;
+pub mod race;
 pub mod reward;
 pub mod rollout;
 pub mod simtrace;
