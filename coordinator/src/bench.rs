@@ -157,6 +157,26 @@ fn used_samples(run: &std::path::Path) -> Result<(f64, usize)> {
     Ok((used, updates))
 }
 
+/// A camera model of DeepRacer's `network` (5 discrete actions, seed 1, policy version 1),
+/// as the benches publish and write it.
+fn camera_model(network: &str) -> Result<policy::ModelFolder> {
+    let text = format!(
+        r#"{{"action_space":[{{"steering_angle":-30,"speed":1}},{{"steering_angle":-15,"speed":1}},{{"steering_angle":0,"speed":1}},{{"steering_angle":15,"speed":1}},{{"steering_angle":30,"speed":1}}],"sensor":["FRONT_FACING_CAMERA"],"neural_network":"{network}","version":"5"}}"#
+    );
+    let metadata = policy::ModelMetadata::parse(&text, "bench")?;
+    let model = policy::ActorCritic::new(&metadata, 0, &mut rand_chacha::ChaCha8Rng::seed_from_u64(1));
+    let manifest = policy::Manifest {
+        format: "paddock-model-1".into(),
+        policy_version: 1,
+        parent: None,
+        weights_sha256: String::new(),
+        obs_size: model.obs_size(),
+        observation: serde_json::json!({"kind": "camera"}),
+        training: serde_json::Value::Null,
+    };
+    Ok(policy::ModelFolder { metadata, model, manifest })
+}
+
 /// `bench model-files`: for each DeepRacer network (one camera, 5 discrete actions), the
 /// median time to export the policy as DeepRacer's archive and to import it back, beside the
 /// time to save and load the same model as a Paddock folder (the reference, measured in the
@@ -171,20 +191,7 @@ pub fn model_files(repeats: usize) -> Result<()> {
     for network in
         ["DEEP_CONVOLUTIONAL_NETWORK_SHALLOW", "DEEP_CONVOLUTIONAL_NETWORK", "DEEP_CONVOLUTIONAL_NETWORK_DEEP"]
     {
-        let text = format!(
-            r#"{{"action_space":[{{"steering_angle":-30,"speed":1}},{{"steering_angle":-15,"speed":1}},{{"steering_angle":0,"speed":1}},{{"steering_angle":15,"speed":1}},{{"steering_angle":30,"speed":1}}],"sensor":["FRONT_FACING_CAMERA"],"neural_network":"{network}","version":"5"}}"#
-        );
-        let meta = policy::ModelMetadata::parse(&text, "bench")?;
-        let model = policy::ActorCritic::new(&meta, 0, &mut rand_chacha::ChaCha8Rng::seed_from_u64(1));
-        let manifest = policy::Manifest {
-            format: "paddock-model-1".into(),
-            policy_version: 1,
-            parent: None,
-            weights_sha256: String::new(),
-            obs_size: 19200,
-            observation: serde_json::json!({"kind": "camera"}),
-            training: serde_json::Value::Null,
-        };
+        let policy::ModelFolder { metadata: meta, model, manifest } = camera_model(network)?;
         let archive = dir.join("m.tar.gz");
         let folder = dir.join("m");
         let median = |mut v: Vec<f64>| {
@@ -233,21 +240,7 @@ pub fn publish(repeats: usize) -> Result<()> {
     let port = crate::up::free_port()?;
     let endpoint = format!("tcp/127.0.0.1:{port}");
     let learner = net::open(&NetArgs { listen: vec![endpoint.clone()], ..Default::default() })?;
-    let meta = policy::ModelMetadata::parse(
-        r#"{"action_space":[{"steering_angle":-30,"speed":1},{"steering_angle":-15,"speed":1},{"steering_angle":0,"speed":1},{"steering_angle":15,"speed":1},{"steering_angle":30,"speed":1}],"sensor":["FRONT_FACING_CAMERA"],"neural_network":"DEEP_CONVOLUTIONAL_NETWORK_SHALLOW","version":"5"}"#,
-        "bench",
-    )?;
-    let model = policy::ActorCritic::new(&meta, 0, &mut rand_chacha::ChaCha8Rng::seed_from_u64(1));
-    let manifest = policy::Manifest {
-        format: "paddock-model-1".into(),
-        policy_version: 1,
-        parent: None,
-        weights_sha256: String::new(),
-        obs_size: 19200,
-        observation: serde_json::Value::Null,
-        training: serde_json::Value::Null,
-    };
-    let folder = policy::ModelFolder { metadata: meta, model, manifest };
+    let folder = camera_model("DEEP_CONVOLUTIONAL_NETWORK_SHALLOW")?;
     let (m, man, w) = policy::folder::to_parts(&folder);
     let job = "bench";
     let (tx, rx) = std::sync::mpsc::channel::<(usize, u64, Instant)>();

@@ -246,13 +246,14 @@ impl RaceConfig {
             .collect()
     }
 
-    /// How the obstacles are placed (`None`: a race without obstacles).
-    pub fn placement(&self) -> Option<Placement> {
+    /// How the obstacles are placed (`None`: a race without obstacles); `origin` names the
+    /// configuration in an error.
+    pub fn placement(&self, origin: &str) -> Result<Option<Placement>, RaceError> {
         if self.race_type != RaceType::ObjectAvoidance {
-            return None;
+            return Ok(None);
         }
-        let fixed = self.fixed_positions("").ok()?;
-        Some(if !fixed.is_empty() {
+        let fixed = self.fixed_positions(origin)?;
+        Ok(Some(if !fixed.is_empty() {
             Placement::Fixed(fixed)
         } else {
             Placement::Spaced {
@@ -260,7 +261,7 @@ impl RaceConfig {
                 min_gap_percent: self.min_distance_between_obstacles,
                 random: self.randomize_obstacle_locations,
             }
-        })
+        }))
     }
 
     /// Refuse, naming the key, a race the simulator does not drive yet: only the time trial
@@ -303,12 +304,18 @@ DR_H2B_IS_LANE_CHANGE=true
         assert_eq!(c.object_positions, ["0.23,-1", "0.46, 1"]);
         assert_eq!(c.bot_car_speed, 0.5);
         // Fixed positions win over the count, with DeepRacer's lane sign.
-        assert_eq!(c.placement(), Some(Placement::Fixed(vec![(0.23, Lane::Outer), (0.46, Lane::Inner)])));
+        assert_eq!(
+            c.placement("run.env").unwrap(),
+            Some(Placement::Fixed(vec![(0.23, Lane::Outer), (0.46, Lane::Inner)]))
+        );
         // Without them: the count, the gap, random or not.
         let spaced = RaceConfig { object_positions: vec![], ..c.clone() };
-        assert_eq!(spaced.placement(), Some(Placement::Spaced { count: 3, min_gap_percent: 4.5, random: false }));
+        assert_eq!(
+            spaced.placement("x").unwrap(),
+            Some(Placement::Spaced { count: 3, min_gap_percent: 4.5, random: false })
+        );
         // Not an object-avoidance race: no obstacles.
-        assert_eq!(RaceConfig::default().placement(), None);
+        assert_eq!(RaceConfig::default().placement("x").unwrap(), None);
         // The simulator refuses what it does not drive yet, by key.
         let e = c.check_supported("run.env").unwrap_err().0;
         assert!(e.contains("DR_RACE_TYPE") && e.contains("ObjectAvoidance"), "{e}");

@@ -541,8 +541,6 @@ pub struct Ppo {
     rng: ChaCha8Rng,
     par: Par,
     ws: Workspace,
-    /// This update holds the policy (the value tower's warm-up).
-    hold_policy: bool,
 }
 
 impl Ppo {
@@ -559,7 +557,6 @@ impl Ppo {
             rng: ChaCha8Rng::seed_from_u64(seed),
             par,
             ws: Default::default(),
-            hold_policy: false,
         }
     }
 
@@ -621,9 +618,6 @@ impl Ppo {
         let defer = (self.model.pi.factorable(bs), self.model.v.factorable(bs));
         let (rank, size) = group.shard();
         let role = (size > 1).then(|| Role::of(rank, size));
-        // The value tower's warm-up: the policy is held as it is (its gradient is computed,
-        // and not applied), alone or in a team.
-        self.hold_policy = self.version < self.hyper.value_warmup_updates;
         'epochs: for _ in 0..self.hyper.num_epochs {
             order.shuffle(&mut shuffle);
             for mb in order.chunks_exact(bs) {
@@ -701,7 +695,7 @@ impl Ppo {
     /// caller restores the state it saved.
     fn apply(&mut self, lg: &LossGrad) -> bool {
         let mut finite = lg.total.is_finite() && lg.grad_log_std.iter().all(|g| g.is_finite());
-        if !self.hold_policy {
+        if !self.holds_policy() {
             finite &= self.opt_pi.step_factored(
                 &mut self.model.pi.params,
                 &lg.grad_pi,
@@ -717,6 +711,12 @@ impl Ppo {
             self.par,
         );
         finite
+    }
+
+    /// The value tower's warm-up: an update that starts below `value_warmup_updates` holds
+    /// the policy as it is (its gradient is computed and not applied), alone or in a team.
+    pub(super) fn holds_policy(&self) -> bool {
+        self.version < self.hyper.value_warmup_updates
     }
 
     fn step_log_std(&mut self, lg: &LossGrad) {

@@ -195,7 +195,7 @@ impl Ppo {
         };
         let factored = factored_grads(part.of(lg).1, every.as_deref().map(|e| (e, shares)));
         let finite = match part {
-            Part::Policy if self.hold_policy => lg.grad_log_std.iter().all(|g| g.is_finite()),
+            Part::Policy if self.holds_policy() => lg.grad_log_std.iter().all(|g| g.is_finite()),
             Part::Policy => {
                 let ok = self.opt_pi.step_factored(&mut self.model.pi.params, &lg.grad_pi, &factored, self.par);
                 self.step_log_std(lg);
