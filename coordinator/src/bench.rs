@@ -847,3 +847,94 @@ pub fn long_job(minutes: f64, trials: u32, out: &std::path::Path) -> Result<i32>
     println!("verdict: {} ({} min job, run folder {})", if pass { "PASS" } else { "FAIL" }, minutes, run.display());
     Ok(if pass { 0 } else { 1 })
 }
+
+/// One race of `bench races`: its name, the flags that make it (sensor, race, reward).
+const RACES: [(&str, &[&str]); 4] = [
+    ("time_trial", &["--sensor", "camera"]),
+    ("object_avoidance", &["--sensor", "camera", "--obstacles", "3", "--reward", "builtin:object_avoidance"]),
+    (
+        "head_to_bot",
+        &["--sensor", "camera", "--bots", "2", "--bot-speed", "0.5", "--reward", "builtin:object_avoidance"],
+    ),
+    ("stereo", &["--sensor", "stereo"]),
+];
+
+/// `bench races`: every race trained from pixels and evaluated under its rules.
+pub fn races(world: &str, minutes: f64, which: &[String], up: bool, seed: u64, out: &std::path::Path) -> Result<i32> {
+    for w in which {
+        if !RACES.iter().any(|(n, _)| n == w) {
+            bail!("--race {w}: expected one of {:?}", RACES.map(|r| r.0));
+        }
+    }
+    let me = std::env::current_exe()?;
+    std::fs::create_dir_all(out)?;
+    let dir = out.canonicalize()?;
+    let mut rows = Vec::new();
+    let mut failed = Vec::new();
+    for (name, flags) in RACES.iter().filter(|(n, _)| which.is_empty() || which.iter().any(|w| w == n)) {
+        let flags: Vec<String> = flags.iter().map(|s| s.to_string()).collect();
+        // The race alone, for `evaluate` (no sensor or reward there).
+        let race: Vec<String> = flags
+            .chunks(2)
+            .filter(|kv| !matches!(kv[0].as_str(), "--sensor" | "--reward"))
+            .flat_map(|kv| kv.to_vec())
+            .collect();
+        let mut setups = vec![("train", "train".to_string(), format!("{name}-train"), format!("{name}-train/model"))];
+        if up {
+            setups.push(("up, 2 agents", "up".into(), format!("{name}-up"), format!("{name}-up/run/model")));
+        }
+        for (label, cmd, folder, model) in setups {
+            let mut args = vec![cmd.clone(), "--world".into(), world.into(), "--out".into(), folder, "--force".into()];
+            args.extend(flags.iter().cloned());
+            args.extend(
+                ["--target-laps", "3", "--minutes", &minutes.to_string(), "--seed", &seed.to_string()]
+                    .map(String::from),
+            );
+            if cmd == "up" {
+                args.extend(["--agents", "2", "--envs", "8"].map(String::from));
+            }
+            let t0 = Instant::now();
+            let text = child(&me, &dir, &args)?;
+            let secs = t0.elapsed().as_secs_f64();
+            let stop = text
+                .lines()
+                .find(|l| l.starts_with("stopped after") || l.contains(": Finished") || l.contains(": Failed"))
+                .unwrap_or("")
+                .trim()
+                .to_string();
+            let mut eval =
+                vec!["evaluate".to_string(), model, "--world".into(), world.into(), "--trials".into(), "3".into()];
+            eval.extend(race.iter().cloned());
+            let verdict = child(&me, &dir, &eval)?;
+            let line = verdict.lines().find(|l| l.contains("laps completed")).unwrap_or("").to_string();
+            let laps = line.split_whitespace().next().and_then(|n| n.parse::<u32>().ok()).unwrap_or(0);
+            let crashes = line
+                .split(", ")
+                .find_map(|p| p.strip_suffix(" crashes"))
+                .and_then(|n| n.trim().parse::<u32>().ok())
+                .unwrap_or(u32::MAX);
+            let ok = laps == 3 && crashes == 0;
+            if !ok {
+                failed.push(format!("{name} ({label})"));
+            }
+            rows.push((name.to_string(), label, secs, stop, line, ok));
+        }
+    }
+    println!("# coordinator bench races: {world}, from pixels, seed {seed}, {minutes} min budget each");
+    println!();
+    println!(
+        "| race | setup | wall-clock s (start to model) | how it stopped | evaluation (3 trials, the race's rules) | verdict |"
+    );
+    println!("|---|---|---|---|---|---|");
+    for (name, label, secs, stop, line, ok) in &rows {
+        println!("| {name} | {label} | {secs:.0} | {stop} | {line} | {} |", if *ok { "pass" } else { "FAIL" });
+    }
+    println!();
+    if failed.is_empty() {
+        println!("verdict: pass: every model lapped 3/3 with no crash");
+        Ok(0)
+    } else {
+        println!("verdict: FAIL: {}", failed.join(", "));
+        Ok(1)
+    }
+}

@@ -208,6 +208,30 @@ pub enum BenchCommand {
         #[arg(long, default_value = "runs/bench-long-job")]
         out: PathBuf,
     },
+    /// Every DeepRacer race from pixels (issue 31): the time trial, object avoidance (3 random
+    /// boxes), head-to-bot (2 bots at 0.5 m/s) and the stereo pair, each trained by `train`
+    /// and by `up` with 2 agents, then evaluated under the race's rules. Prints a table and a
+    /// verdict (exit 1 when a model fails: fewer laps than trials, or a crash).
+    Races {
+        /// The track.
+        #[arg(long, default_value = "reinvent_base")]
+        world: String,
+        /// Budget per training (minutes).
+        #[arg(long, default_value_t = 10.0)]
+        minutes: f64,
+        /// Which races (time_trial, object_avoidance, head_to_bot, stereo; default all).
+        #[arg(long = "race")]
+        races: Vec<String>,
+        /// Skip `up` (train in one process only).
+        #[arg(long)]
+        no_up: bool,
+        /// Random seed.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Where the runs go (kept).
+        #[arg(long, default_value = "runs/bench-races")]
+        out: PathBuf,
+    },
     /// Publish-to-4-agents latency of a SHALLOW camera model; bytes per env step.
     Publish {
         /// Publications to time.
@@ -325,6 +349,65 @@ pub enum JobCommand {
     Agents { net: NetCli },
 }
 
+/// The race a command drives, as DeepRacer configures it (`race` keys of the simulator
+/// configuration); these become `--set race.KEY=VALUE` overrides, before the command's own.
+#[derive(Args, Clone, Debug, Default)]
+pub struct RaceArgs {
+    /// Race type: time_trial, object_avoidance or head_to_bot (other keys through
+    /// `--set race.KEY=VALUE`, DeepRacer's names lower-cased; see config/default.toml).
+    #[arg(long, value_name = "TYPE")]
+    pub race: Option<String>,
+    /// Obstacles on the track (race.number_of_obstacles); implies object_avoidance.
+    #[arg(long, value_name = "N")]
+    pub obstacles: Option<usize>,
+    /// Bot cars (race.number_of_bot_cars); implies head_to_bot.
+    #[arg(long, value_name = "N")]
+    pub bots: Option<usize>,
+    /// The bots' speed along the centre line (m/s, race.bot_car_speed).
+    #[arg(long, value_name = "M_PER_S")]
+    pub bot_speed: Option<f64>,
+    /// A deepracer-for-cloud run.env: its DR_RACE_TYPE, DR_OA_* and DR_H2B_* keys configure
+    /// the race (the flags above and --set override them).
+    #[arg(long, value_name = "run.env")]
+    pub run_env: Option<PathBuf>,
+}
+
+impl RaceArgs {
+    /// `sets` with the race's overrides in front (so that `--set` has the last word).
+    pub fn with_sets(&self, sets: &[String]) -> anyhow::Result<Vec<String>> {
+        use anyhow::Context;
+        let mut out = vec![];
+        if let Some(path) = &self.run_env {
+            let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+            out = sim_agent::race::RaceConfig::from_run_env(&text, &path.display().to_string())?.to_sets();
+        }
+        let implied = match (&self.race, self.obstacles, self.bots) {
+            (Some(r), ..) => Some(r.as_str()),
+            (None, Some(_), None) => Some("object_avoidance"),
+            (None, None, Some(_)) => Some("head_to_bot"),
+            (None, Some(_), Some(_)) => anyhow::bail!("--obstacles and --bots: say which race with --race"),
+            (None, None, None) => None,
+        };
+        if let Some(r) = implied {
+            if sim_agent::race::RaceType::parse(r).is_none() {
+                anyhow::bail!("--race {r}: expected time_trial, object_avoidance or head_to_bot");
+            }
+            out.push(format!("race.race_type=\"{r}\""));
+        }
+        if let Some(n) = self.obstacles {
+            out.push(format!("race.number_of_obstacles={n}"));
+        }
+        if let Some(n) = self.bots {
+            out.push(format!("race.number_of_bot_cars={n}"));
+        }
+        if let Some(v) = self.bot_speed {
+            out.push(format!("race.bot_car_speed={v:?}"));
+        }
+        out.extend(sets.iter().cloned());
+        Ok(out)
+    }
+}
+
 #[derive(Args)]
 pub struct UpArgs {
     /// Run this job spec as it is (what `job start` takes) instead of one made from the flags
@@ -332,7 +415,8 @@ pub struct UpArgs {
     #[arg(long, value_name = "JOB.toml", conflicts_with_all = [
         "world", "reward", "sensor", "hyperparameters", "model_metadata", "clone_from", "minutes",
         "max_episodes", "env_steps", "target_progress", "target_reward", "window", "target_laps",
-        "target_evals", "stop_on_plateau", "stop_on_collapse", "sets", "seed",
+        "target_evals", "stop_on_plateau", "stop_on_collapse", "sets", "seed", "race", "obstacles", "bots",
+        "bot_speed", "run_env",
     ])]
     pub job: Option<PathBuf>,
     /// World (repeatable; default: reinvent_carpet and reinvent_concrete).
@@ -387,13 +471,16 @@ pub struct UpArgs {
     /// Reward: a DeepRacer Python file or builtin:NAME.
     #[arg(long)]
     pub reward: Option<String>,
-    /// "state" (the state vector) or "camera" (FRONT_FACING_CAMERA, SHALLOW network).
+    /// "state" (the state vector), "camera" (FRONT_FACING_CAMERA, SHALLOW network) or "stereo"
+    /// (STEREO_CAMERAS, SHALLOW network).
     #[arg(long, default_value = "state")]
     pub sensor: String,
     /// Override a simulator configuration key for the job (`key=value`, repeatable), e.g.
     /// `camera.randomize=true` for domain randomisation.
     #[arg(long = "set")]
     pub sets: Vec<String>,
+    #[command(flatten)]
+    pub race: RaceArgs,
     /// Seconds between the learner's evaluations (and checkpoints).
     #[arg(long, default_value_t = 2.0)]
     pub checkpoint_seconds: f64,
@@ -431,8 +518,9 @@ pub struct TrainArgs {
     /// DeepRacer model_metadata.json (default: see --sensor).
     #[arg(long)]
     pub model_metadata: Option<PathBuf>,
-    /// Without a model_metadata.json: "state" (the state vector, PADDOCK_MLP) or "camera"
-    /// (FRONT_FACING_CAMERA, DEEP_CONVOLUTIONAL_NETWORK_SHALLOW); 5 steering angles x 2 speeds.
+    /// Without a model_metadata.json: "state" (the state vector, PADDOCK_MLP), "camera"
+    /// (FRONT_FACING_CAMERA, DEEP_CONVOLUTIONAL_NETWORK_SHALLOW) or "stereo" (STEREO_CAMERAS,
+    /// the same network on two channels); 5 steering angles x 2 speeds.
     #[arg(long, default_value = "state")]
     pub sensor: String,
     /// Wall-clock budget in minutes.
@@ -503,6 +591,8 @@ pub struct TrainArgs {
     /// Override a simulator configuration key (`key=value`, repeatable).
     #[arg(long = "set")]
     pub sets: Vec<String>,
+    #[command(flatten)]
+    pub race: RaceArgs,
 }
 
 #[derive(Args)]
@@ -515,7 +605,8 @@ pub struct EvaluateArgs {
     /// Trials (laps from the start line).
     #[arg(long, default_value_t = 3)]
     pub trials: usize,
-    /// Put an off-track car back with a 2 s penalty (up to 100 times) instead of ending the trial.
+    /// Put an off-track car back with a 2 s penalty (a crashed one with 5 s), up to 100 times,
+    /// instead of ending the trial.
     #[arg(long)]
     pub reset_rules: bool,
     /// Drive the track in reverse.
@@ -524,6 +615,8 @@ pub struct EvaluateArgs {
     /// Random seed (actuator noise).
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    #[command(flatten)]
+    pub race: RaceArgs,
 }
 
 #[derive(Args)]
@@ -639,6 +732,9 @@ pub struct DriveArgs {
     /// Time penalty per reset (s).
     #[arg(long, default_value_t = 2.0)]
     pub penalty: f64,
+    /// Time penalty per crash (s; DeepRacer's COLLISION_PENALTY).
+    #[arg(long, default_value_t = 5.0)]
+    pub collision_penalty: f64,
     /// A timed race instead of separate laps: keep lapping until this many seconds of race
     /// time have passed (DeepRacer's 4-minute race is 240), printing every lap.
     #[arg(long)]
@@ -649,7 +745,8 @@ pub struct DriveArgs {
     /// Random seed (actuator noise).
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
-    /// Draw the track with the driven path into this PNG file.
+    /// Draw the track with the driven path (and the race's objects as the last lap left
+    /// them) into this PNG file.
     #[arg(long)]
     pub png: Option<PathBuf>,
     /// Write a DeepRacer sim-trace CSV of every step.
@@ -661,6 +758,8 @@ pub struct DriveArgs {
     /// Override a configuration key (`key=value`, repeatable), e.g. --set noise.steering_deg=0.
     #[arg(long = "set")]
     pub sets: Vec<String>,
+    #[command(flatten)]
+    pub race: RaceArgs,
 }
 
 #[derive(Args)]

@@ -19,11 +19,16 @@ fn direction(reversed: bool) -> Direction {
 }
 
 pub fn drive(args: DriveArgs) -> Result<i32> {
-    let cfg: SimConfig = load_config(args.config.as_deref(), &args.sets)?;
+    let cfg: SimConfig = load_config(args.config.as_deref(), &args.race.with_sets(&args.sets)?)?;
     let world = resolve_world(&args.track)?;
     let mut reward = RewardFn::from_spec(&args.reward)?;
     let spec = EnvSpec::from_world(&world, direction(args.reversed));
-    let rules = EvalRules { max_resets: args.resets, penalty_s: args.penalty, time_limit_s: args.time_limit };
+    let rules = EvalRules {
+        max_resets: args.resets,
+        penalty_s: args.penalty,
+        collision_penalty_s: args.collision_penalty,
+        time_limit_s: args.time_limit,
+    };
     // A timed race is one long trial.
     let trials = if args.time_limit.is_some() { 1 } else { args.laps };
     let mut env = Env::new(spec, Arc::new(cfg), Mode::Evaluation(rules), args.seed, 0.0)?;
@@ -46,6 +51,8 @@ pub fn drive(args: DriveArgs) -> Result<i32> {
     let bar = ProgressBar::new(trials as u64)
         .with_style(ProgressStyle::with_template("lap {pos}/{len} [{bar:30}] {msg}").expect("template"));
     let mut path: Vec<P2> = Vec::new();
+    // The race's objects where the last lap left them, for the drawing.
+    let mut shapes: Vec<([P2; 4], bool)> = Vec::new();
     let mut completed = 0;
     let mut race_laps = 0;
     for lap in 1..=trials {
@@ -71,14 +78,20 @@ pub fn drive(args: DriveArgs) -> Result<i32> {
                 });
             }
             if o.done {
+                shapes = env
+                    .objects()
+                    .iter()
+                    .map(|o| (tracks::objects::corners(o.pose.position, o.pose.heading, o.footprint), o.car))
+                    .collect();
                 let time = o.lap_time.map(|t| format!("{t:.2} s")).unwrap_or_else(|| "-".into());
                 bar.suspend(|| {
                     println!(
-                        "lap {lap}: {:<12} time {time:>8}  steps {:>5}  progress {:>6.1} %  off-track {:>2}  reward {:>8.1}",
+                        "lap {lap}: {:<12} time {time:>8}  steps {:>5}  progress {:>6.1} %  off-track {:>2}  crashes {:>2}  reward {:>8.1}",
                         o.status.label(),
                         o.steps,
                         o.progress,
-                        o.resets + u32::from(o.status == sim_agent::EpisodeStatus::OffTrack),
+                        o.off_track(),
+                        o.crashes,
                         o.episode_reward
                     )
                 });
@@ -101,7 +114,7 @@ pub fn drive(args: DriveArgs) -> Result<i32> {
         println!("sim-trace    {}", args.simtrace.as_ref().expect("set").display());
     }
     if let Some(png) = &args.png {
-        draw(&world, png, &path)?;
+        draw(&world, png, &path, &shapes)?;
     }
     Ok(0)
 }

@@ -81,6 +81,9 @@ fn main() {
             cli::BenchCommand::LongJob { minutes, trials, out } => bench::long_job(minutes, trials, &out),
             cli::BenchCommand::ModelFiles { repeats } => bench::model_files(repeats).map(|()| 0),
             cli::BenchCommand::Publish { repeats } => bench::publish(repeats).map(|()| 0),
+            cli::BenchCommand::Races { world, minutes, races, no_up, seed, out } => {
+                bench::races(&world, minutes, &races, !no_up, seed, &out)
+            }
             cli::BenchCommand::Record { seconds, rounds } => bench::record(seconds, rounds).map(|()| 0),
             cli::BenchCommand::Wire { seconds, rounds, up_seconds } => bench::wire(seconds, rounds, up_seconds).map(|()| 0),
             cli::BenchCommand::Pixels { worlds, unseen, minutes, envs, evals, seeds, out } => {

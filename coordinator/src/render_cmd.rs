@@ -74,6 +74,7 @@ pub fn render(args: RenderArgs) -> Result<i32> {
             pose: *p,
             jitter: [0.0, 0.0],
             texture_seed: 0,
+            objects: &[],
         })
         .collect();
     let rgb = renderer.render(&views, true);

@@ -40,6 +40,8 @@ struct Episode {
     iteration: u64,
     reward: f64,
     progress: f64,
+    /// It ended in a crash (obstacles, bots).
+    crashed: bool,
 }
 
 /// One row of an evaluation's `evaluations.jsonl`.
@@ -140,6 +142,7 @@ impl RunData {
                         iteration: m["paddock_iteration"].as_u64().unwrap_or(0),
                         reward: m["reward_score"].as_f64().unwrap_or(0.0),
                         progress: m["completion_percentage"].as_f64().unwrap_or(0.0),
+                        crashed: m["episode_status"] == "Crashed",
                     });
                 }
             }
@@ -649,6 +652,17 @@ fn html(title: &str, data: &RunData, charts: &[(String, String)]) -> String {
         ("final policy version", "policy_version"),
     ] {
         let _ = write!(h, "<tr><th>{name}</th><td>{}</td></tr>", esc(fig(key).trim_matches('"')));
+    }
+    if data.training.iter().any(|e| e.crashed) {
+        let per_world: Vec<String> = data
+            .worlds()
+            .iter()
+            .map(|w| {
+                let eps: Vec<&Episode> = data.training.iter().filter(|e| &e.world == w).collect();
+                format!("{w}: {} of {}", eps.iter().filter(|e| e.crashed).count(), eps.len())
+            })
+            .collect();
+        let _ = write!(h, "<tr><th>training episodes crashed</th><td>{}</td></tr>", esc(&per_world.join("; ")));
     }
     if let Some(b) = data.best() {
         let worlds: Vec<String> = b

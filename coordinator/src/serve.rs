@@ -473,9 +473,10 @@ fn status_text(j: &JobRecord, st: &State) -> String {
         let agents: Vec<&String> = j.assignments.iter().filter(|(_, x)| x.worlds.contains(w)).map(|(a, _)| a).collect();
         let ws = l.worlds.iter().find(|x| &x.world == w).cloned().unwrap_or_default();
         t.push_str(&format!(
-            "  world {w:<20} agents {:<2} episodes {:>6} mean progress {:>5.1} % mean reward {:>8.2} steps/s {:>7.0}  [{}]\n",
+            "  world {w:<20} agents {:<2} episodes {:>6} crashed {:>5} mean progress {:>5.1} % mean reward {:>8.2} steps/s {:>7.0}  [{}]\n",
             agents.len(),
             ws.episodes,
+            ws.crashes,
             ws.mean_progress,
             ws.mean_reward,
             ws.steps_per_s,

@@ -54,7 +54,7 @@ pub fn run(command: TracksCommand) -> Result<i32> {
             print_summary(&TrackSummary::of(&world.name, &world.rows));
             println!("surface      {} (friction {})", world.surface.name(), world.surface.friction());
             if let Some(png) = png {
-                draw(&world, &png, &[])?;
+                draw(&world, &png, &[], &[])?;
             }
             Ok(0)
         }
@@ -66,7 +66,7 @@ pub fn run(command: TracksCommand) -> Result<i32> {
             println!("valid: use it with --track {}", file.display());
             if let Some(png) = png {
                 let world = World { name, rows, surface: tracks::Surface::Asphalt, lighting: Default::default() };
-                draw(&world, &png, &[])?;
+                draw(&world, &png, &[], &[])?;
             }
             Ok(0)
         }
@@ -90,8 +90,9 @@ fn print_summary(s: &TrackSummary) {
 }
 
 /// Draw a world top-down with an optional driven path.
-pub fn draw(world: &World, png: &Path, path: &[tracks::P2]) -> Result<()> {
-    let bytes = tracks::render::render_png(&world.track(Direction::Forward), path).map_err(anyhow::Error::msg)?;
+pub fn draw(world: &World, png: &Path, path: &[tracks::P2], objects: &[([tracks::P2; 4], bool)]) -> Result<()> {
+    let bytes =
+        tracks::render::render_png(&world.track(Direction::Forward), path, objects).map_err(anyhow::Error::msg)?;
     std::fs::write(png, bytes).with_context(|| format!("writing {}", png.display()))?;
     println!("drawing      {}", png.display());
     Ok(())

@@ -17,7 +17,7 @@ use learner::run::{EvalRecord, IterationRecord, Observer, RunSpec, Start, StopRu
 use policy::ModelMetadata;
 use policy::exchange::{Trial, summarise};
 use policy::folder::{self, Manifest, Parent};
-use sim_agent::config::{ObservationKind, load_config};
+use sim_agent::config::load_config;
 use sim_agent::obs::obs_dim;
 use sim_agent::rollout::evaluate;
 use sim_agent::worker::{Worker, WorkerSetup};
@@ -101,9 +101,10 @@ impl Observer for Terminal {
             .collect();
         self.bar.suspend(|| {
             println!(
-                "     eval v{}: {} {}",
+                "     eval v{}: {}{} {}",
                 e.policy_version,
                 worlds.join(" | "),
+                if e.crashes > 0 { format!(" | {} crashes", e.crashes) } else { String::new() },
                 if e.best { "(best so far)" } else { "" }
             );
             if !e.trend.is_empty() {
@@ -129,7 +130,8 @@ fn stop_rules(args: &TrainArgs) -> StopRules {
     }
 }
 
-pub fn train(args: TrainArgs) -> Result<i32> {
+pub fn train(mut args: TrainArgs) -> Result<i32> {
+    args.sets = args.race.with_sets(&args.sets)?;
     let worlds_arg = if args.world.is_empty() { vec!["reinvent_base".to_string()] } else { args.world.clone() };
     let out = args.out.clone().unwrap_or_else(|| default_run_dir(&worlds_arg.join("+")));
     let start = match (args.resume, args.force) {
@@ -150,7 +152,8 @@ pub fn train(args: TrainArgs) -> Result<i32> {
         (Some(p), _) => ModelMetadata::load(p)?,
         (None, "state") => ModelMetadata::default_state_vector(),
         (None, "camera") => ModelMetadata::default_camera(),
-        (None, other) => bail!("--sensor is {other:?}, expected \"state\" or \"camera\""),
+        (None, "stereo") => ModelMetadata::default_stereo(),
+        (None, other) => bail!("--sensor is {other:?}, expected \"state\", \"camera\" or \"stereo\""),
     };
     let mut hyper = match &hyper_path {
         Some(p) => hyperparameters(p)?,
@@ -170,7 +173,7 @@ pub fn train(args: TrainArgs) -> Result<i32> {
     }
     let obs_size = obs_dim(&cfg.observation);
     let threads = learner::use_threads(args.threads);
-    let camera = cfg.observation.kind == ObservationKind::Camera;
+    let camera = cfg.observation.kind.is_camera();
     let spec = RunSpec {
         name: worlds.iter().map(|w| w.name.clone()).collect::<Vec<_>>().join("+"),
         metadata: meta.clone(),
@@ -248,7 +251,9 @@ pub fn train(args: TrainArgs) -> Result<i32> {
 
 pub fn evaluate_cmd(args: EvaluateArgs) -> Result<i32> {
     let f = folder::load(&args.model_dir)?;
+    let race: SimConfig = load_config(None, &args.race.with_sets(&[])?)?;
     let cfg = SimConfig {
+        race: race.race,
         observation: serde_json::from_value(f.manifest.observation.clone())
             .with_context(|| format!("{}: manifest.json's observation settings", args.model_dir.display()))?,
         ..SimConfig::default()
@@ -261,11 +266,8 @@ pub fn evaluate_cmd(args: EvaluateArgs) -> Result<i32> {
             f.manifest.obs_size
         );
     }
-    let rules = if args.reset_rules {
-        EvalRules { max_resets: 100, penalty_s: 2.0, time_limit_s: None }
-    } else {
-        EvalRules::default()
-    };
+    let rules =
+        if args.reset_rules { EvalRules { max_resets: 100, ..EvalRules::default() } } else { EvalRules::default() };
     let cfg = Arc::new(cfg);
     let names = if args.world.is_empty() { vec!["reinvent_base".to_string()] } else { args.world.clone() };
     let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
@@ -277,6 +279,7 @@ pub fn evaluate_cmd(args: EvaluateArgs) -> Result<i32> {
         args.trials
     );
     let mut table = Vec::new();
+    let mut crashes = 0;
     for name in &names {
         let world = resolve_world(name)?;
         let spec = EnvSpec::from_world(&world, if args.reversed { Direction::Reversed } else { Direction::Forward });
@@ -287,17 +290,19 @@ pub fn evaluate_cmd(args: EvaluateArgs) -> Result<i32> {
                 .collect();
         for (i, t) in trials.iter().enumerate() {
             println!(
-                "trial {}: {:<20} {:<12} progress {:>6.1} %  lap time {:>8}  off-track {:>2}  steps {:>5}",
+                "trial {}: {:<20} {:<12} progress {:>6.1} %  lap time {:>8}  off-track {:>2}  crashes {:>2}  steps {:>5}",
                 i + 1,
                 world.name,
                 t.status,
                 t.progress,
                 t.lap_time.map(|l| format!("{l:.2} s")).unwrap_or_else(|| "-".into()),
                 t.off_track,
+                t.crashes,
                 t.steps
             );
         }
         let (progress, lap, laps) = summarise(&trials);
+        crashes += trials.iter().map(|t| t.crashes).sum::<u32>();
         table.push((world.name.clone(), laps, trials.len(), progress, lap));
     }
     println!();
@@ -313,7 +318,7 @@ pub fn evaluate_cmd(args: EvaluateArgs) -> Result<i32> {
     let laps: usize = table.iter().map(|t| t.1).sum();
     let n: usize = table.iter().map(|t| t.2).sum();
     let progress = table.iter().map(|t| t.3).sum::<f64>() / table.len().max(1) as f64;
-    println!("{laps} of {n} laps completed, mean progress {progress:.1} %");
+    println!("{laps} of {n} laps completed, mean progress {progress:.1} %, {crashes} crashes");
     Ok(0)
 }
 

@@ -130,7 +130,8 @@ fn spawn(
     Ok(())
 }
 
-pub fn up(args: UpArgs) -> Result<i32> {
+pub fn up(mut args: UpArgs) -> Result<i32> {
+    args.sets = args.race.with_sets(&args.sets)?;
     let out = args.out.clone().unwrap_or_else(|| {
         let t = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs()).unwrap_or(0);
         PathBuf::from("runs").join(format!("up-{t}"))
@@ -329,12 +330,17 @@ fn job_spec(args: &UpArgs, out: &Path) -> Result<String> {
     let meta = match (&args.model_metadata, args.sensor.as_str()) {
         (Some(p), _) => Some(absolute("--model-metadata", p)?),
         (None, "state") => None,
-        (None, "camera") => {
+        (None, camera @ ("camera" | "stereo")) => {
             let p = out.join("model_metadata.json");
-            std::fs::write(&p, policy::ModelMetadata::default_camera().to_json())?;
+            let meta = if camera == "camera" {
+                policy::ModelMetadata::default_camera()
+            } else {
+                policy::ModelMetadata::default_stereo()
+            };
+            std::fs::write(&p, meta.to_json())?;
             Some(p.display().to_string())
         }
-        (None, other) => bail!("--sensor is {other:?}, expected \"state\" or \"camera\""),
+        (None, other) => bail!("--sensor is {other:?}, expected \"state\", \"camera\" or \"stereo\""),
     };
     if let Some(m) = meta {
         t.insert("model_metadata".into(), Value::String(m));

@@ -230,3 +230,62 @@ fn issue_30_a_deepracer_archive_drives_only_when_the_car_trusts_its_name_and_the
     assert_eq!(out.status.code(), Some(1), "{err}");
     assert!(err.contains("my model.v3.tar.gz") && err.contains("trust_unsigned lists \"my_model\""), "{err}");
 }
+
+#[test]
+fn issue_31_a_stereo_model_drives_from_both_images_in_both_layouts() {
+    let learner = Signer::from_seed([1; 32]);
+    let mut trust = TrustedKeys::default();
+    trust.add("learner.pub", &learner);
+    let meta = ModelMetadata::default_stereo();
+    let model = ActorCritic::new(&meta, 2 * 120 * 160, &mut rand_chacha::ChaCha8Rng::seed_from_u64(5));
+    let parts = || ModelParts::new(&meta, &model, &manifest(6, 2 * 120 * 160), Some(&learner));
+    // The left and right images differ: each must reach its own channel.
+    let image = |sec: i32, shift: usize| Image {
+        header: Header { stamp: Time { sec, nanosec: 0 }, frame_id: "camera".into() },
+        height: 120,
+        width: 160,
+        encoding: "rgb8".into(),
+        is_bigendian: 0,
+        step: 160 * 3,
+        data: ByteBuf::from((0..160 * 120 * 3).map(|i| ((i / 3 + shift) % 241) as u8).collect::<Vec<u8>>()),
+    };
+    let jpeg = |img: &Image| {
+        let rgb = image::RgbImage::from_raw(160, 120, img.data.to_vec()).unwrap();
+        let mut out = Vec::new();
+        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, 95).encode_image(&rgb).unwrap();
+        RawFrame::Compressed(ros::CompressedImage {
+            header: img.header.clone(),
+            format: "jpeg".into(),
+            data: ByteBuf::from(out),
+        })
+    };
+    let stereo = |c: CarConfig| CarConfig { sensors: vec!["STEREO_CAMERAS".into()], ..c };
+    for (layout, car) in [(Layout::Aws, stereo(aws_car())), (Layout::Community, stereo(CarConfig::default()))] {
+        let frames = |sec| {
+            let (l, r) = (image(sec, 0), image(sec, 37));
+            match layout {
+                Layout::Aws => vec![RawFrame::Raw(l), RawFrame::Raw(r)],
+                Layout::Community => vec![jpeg(&l), jpeg(&r)],
+            }
+        };
+        let slot = Arc::new(ModelSlot::default());
+        let mut d = Driver::new(car.clone(), slot.clone());
+        assert_eq!(slot.offer(parts(), &trust, &car, "latest", &Follow::Latest), Offer::Taken(6));
+        let msg = ros::encode_sensor(frames(3), layout);
+        let c = d.frame(&msg, Instant::now()).unwrap();
+        assert_eq!(c.version, Some(6), "{layout:?}");
+        // As Paddock computes it: channel 0 the first (left) image, channel 1 the second.
+        let mut obs = Vec::new();
+        deploy::frame::preprocess(&ros::decode_sensor(&msg, layout).unwrap(), 120, 160, 2, &mut obs).unwrap();
+        assert_ne!(obs.iter().step_by(2).collect::<Vec<_>>(), obs.iter().skip(1).step_by(2).collect::<Vec<_>>());
+        let m = slot.current().unwrap();
+        let action = match m.policy.mode(&obs, &mut deploy::infer::Scratch::default()) {
+            policy::Choice::Discrete(i) => m.metadata.action_space.discrete(i).unwrap(),
+            policy::Choice::Continuous(_) => unreachable!(),
+        };
+        assert_eq!((c.servo.angle, c.servo.throttle), m.servo.to_servo(action), "{layout:?}");
+        // One image is not enough for a stereo model: an error, not a command.
+        let one = ros::encode_sensor(frames(4).into_iter().take(1).collect(), layout);
+        assert!(d.frame(&one, Instant::now()).is_err(), "{layout:?}");
+    }
+}

@@ -4,7 +4,7 @@ use policy::nn::{InputShape, LayerSpec, Net, Tape};
 use rand::SeedableRng;
 use std::time::Instant;
 fn main() {
-    let mut specs = policy::model::tower_specs(policy::NeuralNetwork::DeepConvolutionalNetworkShallow);
+    let mut specs = policy::model::tower_specs(policy::NeuralNetwork::DeepConvolutionalNetworkShallow, false);
     specs.push(LayerSpec::Dense(5));
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
     for (n, par) in [(64, Par::rayon(2)), (1, Par::Seq)] {

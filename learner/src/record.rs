@@ -216,14 +216,15 @@ impl Recorder {
                     write_row(&mut out, k as u64, s as u64 + 1, tr, &action, *r as f64, s + 1 == n, t.track_len)?;
                 }
                 let mut m = episode_metrics(&t.trace, &t.rewards, t.progress);
-                let resets = t.off_track.saturating_sub(u32::from(t.status == "off_track"));
+                let resets = t.off_track.saturating_sub(u32::from(t.status == "off_track"))
+                    + t.crashes.saturating_sub(u32::from(t.status == "crashed"));
                 let eval_entry = json!({
                     "completion_percentage": m["completion_percentage"],
                     "metric_time": m["metric_time"],
                     "start_time": m["start_time"],
                     "elapsed_time_in_milliseconds": m["elapsed_time_in_milliseconds"],
                     "episode_status": m["episode_status"],
-                    "crash_count": 0,
+                    "crash_count": t.crashes,
                     "immobilized_count": u32::from(t.status == "immobilized"),
                     "off_track_count": t.off_track,
                     "reversed_count": u32::from(t.status == "reversed"),

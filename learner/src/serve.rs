@@ -545,6 +545,7 @@ impl Link for ZenohLink<'_> {
                     mean_progress: w.mean_progress,
                     mean_reward: w.mean_reward,
                     steps_per_s: w.steps_per_s,
+                    crashes: w.crashes,
                 })
                 .collect(),
             window_progress: s.window_progress,

@@ -103,6 +103,8 @@ pub struct Trial {
     pub lap_time: Option<f64>,
     /// Times the car left the track.
     pub off_track: u32,
+    /// Times the car crashed into an obstacle or a bot.
+    pub crashes: u32,
     /// Steps taken.
     pub steps: u64,
     /// How the trial ended (DeepRacer's status label).

@@ -60,11 +60,13 @@ pub enum EpisodeStatus {
     TimeUp,
     /// Evaluation: the car waits out a reset's time penalty, held where it was put back.
     Pause,
+    /// A car corner inside an obstacle, or inside a bot the car ran into from behind.
+    Crashed,
 }
 
 impl EpisodeStatus {
     /// Every status, in code order ([`EpisodeStatus::code`]).
-    pub const ALL: [EpisodeStatus; 8] = [
+    pub const ALL: [EpisodeStatus; 9] = [
         EpisodeStatus::Prepare,
         EpisodeStatus::InProgress,
         EpisodeStatus::OffTrack,
@@ -73,6 +75,7 @@ impl EpisodeStatus {
         EpisodeStatus::LapComplete,
         EpisodeStatus::TimeUp,
         EpisodeStatus::Pause,
+        EpisodeStatus::Crashed,
     ];
 
     /// The label DeepRacer's sim-trace writes.
@@ -86,6 +89,7 @@ impl EpisodeStatus {
             EpisodeStatus::LapComplete => "lap_complete",
             EpisodeStatus::TimeUp => "time_up",
             EpisodeStatus::Pause => "pause",
+            EpisodeStatus::Crashed => "crashed",
         }
     }
 
@@ -100,6 +104,7 @@ impl EpisodeStatus {
             EpisodeStatus::LapComplete => "Lap complete",
             EpisodeStatus::TimeUp => "Time Up",
             EpisodeStatus::Pause => "Pause",
+            EpisodeStatus::Crashed => "Crashed",
         }
     }
 

@@ -270,13 +270,17 @@ impl ModelMetadata {
                 .collect::<Result<Vec<_>, _>>()?,
             Some(other) => return Err(err(format!("field 'sensor' is {other}, expected a list of sensor names"))),
         };
+        // DeepRacer's own errors (`parse_model_metadata`), with the field named.
         let cameras = sensor.iter().filter(|s| s.is_primary()).count();
         let lidars = sensor.len() - cameras;
-        if cameras != 1 || lidars > 1 {
+        let names = sensor.iter().map(|s| s.name()).collect::<Vec<_>>();
+        if cameras != 1 {
             return Err(err(format!(
-                "field 'sensor' needs exactly one camera (or STATE_VECTOR) and at most one lidar, got {:?}",
-                sensor.iter().map(|s| s.name()).collect::<Vec<_>>()
+                "field 'sensor': model_metadata MUST contain only 1 camera sensor: {names:?} (exactly one camera, or STATE_VECTOR)"
             )));
+        }
+        if lidars > 1 {
+            return Err(err(format!("field 'sensor': model_metadata contains more than 1 lidar sensor: {names:?}")));
         }
         let state = sensor.contains(&Sensor::StateVector);
         if state != (neural_network == NeuralNetwork::PaddockMlp) {
@@ -316,6 +320,14 @@ impl ModelMetadata {
         m.neural_network = NeuralNetwork::DeepConvolutionalNetworkShallow;
         let text = m.to_json();
         ModelMetadata::parse(&text, "default").expect("the default camera metadata parses")
+    }
+
+    /// DeepRacer's stereo model: STEREO_CAMERAS, the SHALLOW network, 5 steering × 2 speeds.
+    pub fn default_stereo() -> ModelMetadata {
+        let mut m = ModelMetadata::default_camera();
+        m.sensor = vec![Sensor::StereoCameras];
+        let text = m.to_json();
+        ModelMetadata::parse(&text, "default").expect("the default stereo metadata parses")
     }
 
     /// The file as DeepRacer writes it (its keys, in its order; unknown keys kept).
@@ -476,7 +488,15 @@ mod tests {
             (r#"{"action_space":[{"steering_angle":0,"speed":1}],"version":"4"}"#, "'sensor' is required"),
             (
                 r#"{"action_space":[{"steering_angle":0,"speed":1}],"version":"4","sensor":["LIDAR"]}"#,
-                "exactly one camera",
+                "model_metadata MUST contain only 1 camera sensor: [\"LIDAR\"]",
+            ),
+            (
+                r#"{"action_space":[{"steering_angle":0,"speed":1}],"version":"4","sensor":["FRONT_FACING_CAMERA","STEREO_CAMERAS"]}"#,
+                "model_metadata MUST contain only 1 camera sensor",
+            ),
+            (
+                r#"{"action_space":[{"steering_angle":0,"speed":1}],"version":"4","sensor":["FRONT_FACING_CAMERA","LIDAR","SECTOR_LIDAR"]}"#,
+                "model_metadata contains more than 1 lidar sensor",
             ),
             (r#"{"action_space":[{"steering_angle":0,"speed":1}],"training_algorithm":"sac"}"#, "needs a continuous"),
         ];

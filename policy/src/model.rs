@@ -72,9 +72,33 @@ pub struct ActorCritic {
     pub head: Head,
 }
 
-/// The tower layers (without the final output layer) for a network name.
-pub fn tower_specs(network: NeuralNetwork) -> Vec<LayerSpec> {
+/// The tower layers (without the final output layer) for a network name, for one camera or
+/// the stereo pair (`stereo`): DeepRacer's stereo embedder differs from the front camera's for
+/// the two deeper networks (`sensors/utils.py`), and has no dense layer of its own.
+pub fn tower_specs(network: NeuralNetwork, stereo: bool) -> Vec<LayerSpec> {
     use LayerSpec::*;
+    if stereo && network != NeuralNetwork::DeepConvolutionalNetworkShallow && network != NeuralNetwork::PaddockMlp {
+        let mut specs = vec![
+            Scale(1.0 / 255.0),
+            Conv(32, 3, 1),
+            Relu,
+            Conv(64, 3, 2),
+            Relu,
+            Conv(64, 3, 1),
+            Relu,
+            Conv(128, 3, 2),
+            Relu,
+            Conv(128, 3, 1),
+            Relu,
+        ];
+        // The middleware: Dense 512, or the deepest network's 256, 128.
+        if network == NeuralNetwork::DeepConvolutionalNetworkDeep {
+            specs.extend([Dense(256), Relu, Dense(128), Relu]);
+        } else {
+            specs.extend([Dense(512), Relu]);
+        }
+        return specs;
+    }
     match network {
         NeuralNetwork::DeepConvolutionalNetworkShallow => {
             vec![Scale(1.0 / 255.0), Conv(32, 8, 4), Relu, Conv(64, 4, 2), Relu, Conv(64, 3, 1), Relu, Dense(512), Relu]
@@ -133,7 +157,7 @@ impl ActorCritic {
     /// A freshly initialised model for `meta` (state-vector models take `obs_size` inputs).
     pub fn new(meta: &ModelMetadata, obs_size: usize, rng: &mut impl Rng) -> ActorCritic {
         let input = input_shape(meta, obs_size);
-        let mut pi_specs = tower_specs(meta.neural_network);
+        let mut pi_specs = tower_specs(meta.neural_network, meta.sensor.contains(&Sensor::StereoCameras));
         let mut v_specs = pi_specs.clone();
         let head = match meta.action_space {
             ActionSpace::Discrete(ref a) => Head::Categorical(a.len()),

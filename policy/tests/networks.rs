@@ -12,7 +12,47 @@ fn tower(network: NeuralNetwork) -> Net {
         "m.json",
     )
     .unwrap();
-    Net::new(input_shape(&meta, 0), &tower_specs(network), None, &mut rand_chacha::ChaCha8Rng::seed_from_u64(1))
+    Net::new(input_shape(&meta, 0), &tower_specs(network, false), None, &mut rand_chacha::ChaCha8Rng::seed_from_u64(1))
+}
+
+fn stereo_tower(network: NeuralNetwork) -> Net {
+    let meta = ModelMetadata::parse(
+        &format!(r#"{{"action_space":[{{"steering_angle":0,"speed":1}}],"sensor":["STEREO_CAMERAS"],"neural_network":"{}","version":"5"}}"#, network.name()),
+        "m.json",
+    )
+    .unwrap();
+    policy::ActorCritic::new(&meta, 0, &mut rand_chacha::ChaCha8Rng::seed_from_u64(1)).pi
+}
+
+#[test]
+fn issue_31_stereo_towers_are_deepracers() {
+    // 120×160×2. SHALLOW: the front camera's embedder with two input channels (11×16×64).
+    // DEEP and DEEPER: DeepRacer's stereo embedder (32,3,1)(64,3,2)(64,3,1)(128,3,2)(128,3,1),
+    // 25×35×128, then Dense 512, or 256 and 128.
+    let conv = |k: usize, c: usize, f: usize| k * k * c * f + f;
+    let stereo_convs = conv(3, 2, 32) + conv(3, 32, 64) + conv(3, 64, 64) + conv(3, 64, 128) + conv(3, 128, 128);
+    let flat = 25 * 35 * 128;
+    for (network, flatten, params) in [
+        (NeuralNetwork::DeepConvolutionalNetworkShallow, 11_264, 5_839_520 + 8 * 8 * 32),
+        (NeuralNetwork::DeepConvolutionalNetwork, flat, stereo_convs + flat * 512 + 512),
+        (NeuralNetwork::DeepConvolutionalNetworkDeep, flat, stereo_convs + flat * 256 + 256 + 256 * 128 + 128),
+    ] {
+        let net = stereo_tower(network);
+        assert_eq!(net.in_size(), 120 * 160 * 2);
+        let first_dense =
+            net.layers.iter().find_map(|l| if let Layer::Dense { inp, .. } = l { Some(*inp) } else { None }).unwrap();
+        assert_eq!(first_dense, flatten, "{network:?} flatten size");
+        // Without the head (Dense to the 1 action).
+        let head = net.out_size()
+            * net
+                .layers
+                .iter()
+                .rev()
+                .find_map(|l| if let Layer::Dense { inp, .. } = l { Some(*inp) } else { None })
+                .unwrap()
+            + net.out_size();
+        assert_eq!(net.params.len() - head, params, "{network:?}");
+    }
 }
 
 #[test]

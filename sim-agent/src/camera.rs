@@ -3,14 +3,17 @@
 //!
 //! The scene is built from a track's waypoints: the floor with the world's surface look
 //! (procedural: asphalt, carpet, concrete, wood), the road between the borders, white border
-//! lines and a dashed centre line. The camera sits where DeepRacer mounts it (simapp's car
+//! lines and a dashed centre line; a race's obstacles and bot cars stand on it as solid
+//! boxes (a box 0.40 × 0.30 × 0.25 m in the simapp's brown; a car of DeepRacer's footprint,
+//! a dark body under a light shell). The camera sits where DeepRacer mounts it (simapp's car
 //! URDF and `racecar.gazebo`): 0.137 m ahead of the car origin, 0.143 m up, pitched 15° down,
 //! horizontal field of view 1.13 rad, 160×120. Frames are grayscale with DeepRacer's luma
 //! (0.2989 R + 0.5870 G + 0.1140 B) unless RGB is asked for.
 //!
 //! Batching: every view of a call is drawn into its own viewport of one atlas texture in one
 //! render pass, one submission, one readback. Each view draws only the quads in its field of
-//! view, nearest layer first, and a stencil test shades every pixel once.
+//! view, nearest layer first (the objects, nearest first and only their faces that look at
+//! the camera, then the track's layers), and a stencil test shades every pixel once.
 
 use bytemuck::{Pod, Zeroable};
 use std::collections::HashMap;
@@ -28,6 +31,15 @@ pub const CAMERA_AHEAD: f64 = 0.0917 + 0.044755;
 pub const CAMERA_HEIGHT: f64 = 0.023249 + 0.08 + 0.04;
 /// Camera pitch, down (rad).
 pub const CAMERA_PITCH: f64 = 0.2618;
+/// Each stereo camera's offset to the side of the car's axis (m): DeepRacer's stereo URDF
+/// mounts them at y = ±0.03, a 0.06 m baseline.
+pub const STEREO_OFFSET: f64 = 0.03;
+
+/// The pose whose camera is the stereo camera `lateral` metres to the left (negative: right)
+/// of the one at `pose`.
+pub fn beside(pose: [f64; 3], lateral: f64) -> [f64; 3] {
+    [pose[0] - lateral * pose[2].sin(), pose[1] + lateral * pose[2].cos(), pose[2]]
+}
 const ATLAS_COLUMNS: u32 = 8;
 
 /// Why rendering is not possible.
@@ -58,6 +70,8 @@ pub struct View<'a> {
     pub jitter: [f64; 2],
     /// Seed of the surface texture variation (0 = the world's own look).
     pub texture_seed: u32,
+    /// The race's obstacles and bots (empty in a time trial).
+    pub objects: &'a [crate::objects::Object],
 }
 
 #[repr(C)]
@@ -95,6 +109,7 @@ pub struct Renderer {
     layout: wgpu::BindGroupLayout,
     meshes: HashMap<String, (wgpu::Buffer, Vec<Item>)>,
     indices: Option<(wgpu::Buffer, u64)>,
+    object_vertices: Option<(wgpu::Buffer, u64)>,
     capacity: u32,
     target: Option<(wgpu::Texture, wgpu::Buffer, wgpu::Buffer, wgpu::BindGroup, wgpu::Texture)>,
     adapter: String,
@@ -162,8 +177,19 @@ fn fs(i: VOut) -> @location(0) vec4<f32> {
         c = vec3<f32>(0.18, 0.18, 0.19) + 0.03 * (hash(floor(i.world * 150.0)) - 0.5);
     } else if (i.kind < 2.5) {
         c = vec3<f32>(0.95, 0.95, 0.95);
-    } else {
+    } else if (i.kind < 3.5) {
         c = vec3<f32>(0.95, 0.80, 0.15);
+    } else {
+        // Objects: the material is the whole part of `kind`, the face's shade its fraction.
+        let m = floor(i.kind);
+        let shade = 0.45 + fract(i.kind);
+        if (m < 4.5) {
+            c = vec3<f32>(0.482, 0.380, 0.310) * shade;
+        } else if (m < 5.5) {
+            c = vec3<f32>(0.08, 0.08, 0.09) * shade;
+        } else {
+            c = vec3<f32>(0.80, 0.80, 0.82) * shade;
+        }
     }
     // A flat world under a directional light: brightness follows the light's elevation.
     let light = u.params.y * (0.45 + 0.55 * sin(u.params.w));
@@ -235,6 +261,66 @@ fn mesh(track: &Track) -> Vec<Vertex> {
         s += 0.3;
     }
     v
+}
+
+/// Objects' materials (the `kind` the shader reads).
+const BOX: f32 = 4.0;
+const CAR_BODY: f32 = 5.0;
+const CAR_SHELL: f32 = 6.0;
+/// The box obstacle's size, along × across × height (m): the simapp's `box_obstacle` model.
+pub const BOX_SIZE: [f64; 3] = [0.40, 0.30, 0.25];
+
+/// The triangles of the objects a camera at `pose` sees, nearest first: each object's solid
+/// boxes (a car's shell before its body, which it stands on), only the faces turned to the
+/// camera, so that no face of one box hides another of it.
+fn object_triangles(objects: &[crate::objects::Object], pose: [f64; 3], jitter: [f64; 2], out: &mut Vec<Vertex>) {
+    let (c, s) = (pose[2].cos(), pose[2].sin());
+    let eye = [pose[0] + CAMERA_AHEAD * c, pose[1] + CAMERA_AHEAD * s, CAMERA_HEIGHT + jitter[0]];
+    let mut near: Vec<(f64, &crate::objects::Object)> = objects
+        .iter()
+        .filter_map(|o| {
+            let (dx, dy) = (o.pose.position.x - eye[0], o.pose.position.y - eye[1]);
+            // Behind the camera or far off: not drawn.
+            (dx * c + dy * s > -0.4 && dx * dx + dy * dy < 400.0).then_some((dx * dx + dy * dy, o))
+        })
+        .collect();
+    near.sort_by(|a, b| a.0.total_cmp(&b.0));
+    for (_, o) in near {
+        let (along, across) = (o.footprint.1, o.footprint.0);
+        if o.car {
+            solid(out, eye, o, [along * 0.8, across * 0.85], [0.09, 0.15], CAR_SHELL);
+            solid(out, eye, o, [along, across], [0.02, 0.09], CAR_BODY);
+        } else {
+            solid(out, eye, o, [BOX_SIZE[0], BOX_SIZE[1]], [0.0, BOX_SIZE[2]], BOX);
+        }
+    }
+}
+
+/// A box of `size` (along × across) from height `z[0]` to `z[1]`, centred on the object:
+/// its top and sides that face `eye`.
+fn solid(out: &mut Vec<Vertex>, eye: [f64; 3], o: &crate::objects::Object, size: [f64; 2], z: [f64; 2], kind: f32) {
+    let (s, c) = o.pose.heading.sin_cos();
+    let at = o.pose.position;
+    let corner = |x: f64, y: f64| [at.x + x * c - y * s, at.y + x * s + y * c];
+    let (hl, hw) = (size[0] / 2.0, size[1] / 2.0);
+    let b = [corner(hl, hw), corner(-hl, hw), corner(-hl, -hw), corner(hl, -hw)];
+    let mut quad = |q: [[f64; 3]; 4], shade: f32| {
+        for k in [0, 1, 2, 0, 2, 3] {
+            out.push(Vertex { pos: [q[k][0] as f32, q[k][1] as f32, q[k][2] as f32], kind: kind + shade });
+        }
+    };
+    if eye[2] > z[1] {
+        quad(b.map(|p| [p[0], p[1], z[1]]), 0.5);
+    }
+    for i in 0..4 {
+        let (p, q) = (b[i], b[(i + 1) % 4]);
+        // The outward normal of the side from p to q (corners run counter-clockwise).
+        let n = [q[1] - p[1], -(q[0] - p[0])];
+        if (eye[0] - p[0]) * n[0] + (eye[1] - p[1]) * n[1] > 0.0 {
+            let shade = if i % 2 == 0 { 0.3 } else { 0.2 };
+            quad([[p[0], p[1], z[0]], [q[0], q[1], z[0]], [q[0], q[1], z[1]], [p[0], p[1], z[1]]], shade);
+        }
+    }
 }
 
 /// A quad's bounding circle in the plane, for culling.
@@ -398,6 +484,7 @@ impl Renderer {
             layout,
             meshes: HashMap::new(),
             indices: None,
+            object_vertices: None,
             capacity: 0,
             target: None,
             adapter: adapter_name,
@@ -494,6 +581,28 @@ impl Renderer {
             visible(&self.meshes[key].1, v.pose, &mut indices);
             ranges.push(start..indices.len() as u32);
         }
+        let mut object_vertices: Vec<Vertex> = Vec::new();
+        let mut object_ranges = Vec::with_capacity(views.len());
+        for v in views {
+            let start = object_vertices.len() as u32;
+            object_triangles(v.objects, v.pose, v.jitter, &mut object_vertices);
+            object_ranges.push(start..object_vertices.len() as u32);
+        }
+        if !object_vertices.is_empty() {
+            let bytes = std::mem::size_of_val(object_vertices.as_slice()) as u64;
+            if self.object_vertices.as_ref().is_none_or(|(_, cap)| *cap < bytes) {
+                let cap = bytes.next_power_of_two().max(4096);
+                let buf = self.device.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some("objects"),
+                    size: cap,
+                    usage: wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::COPY_DST,
+                    mapped_at_creation: false,
+                });
+                self.object_vertices = Some((buf, cap));
+            }
+            let (obuf, _) = self.object_vertices.as_ref().expect("made above");
+            self.queue.write_buffer(obuf, 0, bytemuck::cast_slice(&object_vertices));
+        }
         let bytes = (indices.len() * 4) as u64;
         if self.indices.as_ref().is_none_or(|(_, cap)| *cap < bytes) {
             let cap = bytes.next_power_of_two().max(4096);
@@ -557,6 +666,11 @@ impl Renderer {
                 let (col, row) = (i as u32 % ATLAS_COLUMNS, i as u32 / ATLAS_COLUMNS);
                 pass.set_viewport((col * WIDTH) as f32, (row * HEIGHT) as f32, WIDTH as f32, HEIGHT as f32, 0.0, 1.0);
                 pass.set_bind_group(0, bind, &[(i as u64 * UNIFORM_STRIDE) as u32]);
+                // Objects first: they stand in front of the floor they hide.
+                if let Some((obuf, _)) = self.object_vertices.as_ref().filter(|_| !object_ranges[i].is_empty()) {
+                    pass.set_vertex_buffer(0, obuf.slice(..));
+                    pass.draw(object_ranges[i].clone(), 0..1);
+                }
                 pass.set_vertex_buffer(0, buf.slice(..));
                 pass.draw_indexed(ranges[i].clone(), 0, 0..1);
             }

@@ -33,6 +33,8 @@ pub struct SimConfig {
     /// Record every step's sim-trace fields and send them with the experience: the learner
     /// writes DeepRacer's sim-trace CSVs, metrics JSON and an MCAP log into the run folder.
     pub record_trace: bool,
+    /// The race: time trial, object avoidance or head-to-bot, with DeepRacer's keys.
+    pub race: crate::race::RaceConfig,
 }
 
 impl Default for SimConfig {
@@ -47,6 +49,7 @@ impl Default for SimConfig {
             camera: CameraConfig::default(),
             reward_time_limit: 1.0,
             record_trace: true,
+            race: crate::race::RaceConfig::default(),
         }
     }
 }
@@ -185,6 +188,16 @@ pub enum ObservationKind {
     StateLidar,
     /// The front camera: frames rendered with wgpu (on a GPU, or on lavapipe without one).
     Camera,
+    /// DeepRacer's stereo pair (`STEREO_CAMERAS`): two front cameras 0.06 m apart, their
+    /// grey frames as the two channels of one image (left first).
+    Stereo,
+}
+
+impl ObservationKind {
+    /// Rendered by the camera (one or two frames per step).
+    pub fn is_camera(self) -> bool {
+        matches!(self, ObservationKind::Camera | ObservationKind::Stereo)
+    }
 }
 
 /// Why a configuration could not be loaded.
@@ -253,16 +266,23 @@ where
 }
 
 /// The observation a model's `sensor` list calls for: the state vector (with or without the
-/// lidar) or the front camera.
+/// lidar), the front camera or the stereo pair.
 pub fn observation_kind_for(meta: &policy::ModelMetadata) -> Result<ObservationKind, String> {
     use policy::Sensor;
+    let camera = [Sensor::FrontFacingCamera, Sensor::LeftCamera, Sensor::Observation, Sensor::StereoCameras]
+        .into_iter()
+        .find(|s| meta.sensor.contains(s));
     if meta.sensor.contains(&Sensor::StateVector) {
         Ok(if meta.sensor.contains(&Sensor::Lidar) { ObservationKind::StateLidar } else { ObservationKind::State })
-    } else if meta.sensor.contains(&Sensor::FrontFacingCamera) || meta.sensor.contains(&Sensor::Observation) {
+    } else if let Some(camera) = camera {
         if meta.sensor.len() > 1 {
-            return Err("a camera with a lidar is not supported yet; use FRONT_FACING_CAMERA alone".into());
+            return Err(format!(
+                "sensor {:?}: a camera with a LiDAR is not trained yet; use {} alone",
+                meta.sensor.iter().map(|s| s.name()).collect::<Vec<_>>(),
+                camera.name()
+            ));
         }
-        Ok(ObservationKind::Camera)
+        Ok(if camera == Sensor::StereoCameras { ObservationKind::Stereo } else { ObservationKind::Camera })
     } else {
         Err(format!(
             "sensor {:?} is not supported: Paddock trains from FRONT_FACING_CAMERA or STATE_VECTOR",

@@ -1,6 +1,7 @@
 //! A scripted driver: pure pursuit along the centre line, with speed from the curvature
 //! ahead: laps without a trained policy (`coordinator drive`, the fidelity checks) and is the
-//! benchmark's load.
+//! benchmark's load. With a race's objects near (within 2 m ahead, or beside the car), it
+//! follows the lane away from the nearest one instead.
 
 use crate::env::Env;
 use policy::Action;
@@ -35,7 +36,18 @@ impl PurePursuit {
         let rear = tracks::P2::new(car.x - rear_offset * c, car.y - rear_offset * s);
         let along = track.center().project(rear).along;
         let ld = self.lookahead + 0.2 * car.forward_speed.max(0.0);
-        let (target, _) = track.pose_at(along + ld);
+        let len = track.length();
+        // The nearest object from half a metre behind to 2 m ahead: pass it in the other lane.
+        let near = env
+            .objects()
+            .iter()
+            .map(|o| ((o.pose.along - along + len / 2.0).rem_euclid(len) - len / 2.0, o))
+            .filter(|(d, _)| (-0.5..2.0).contains(d))
+            .min_by(|a, b| a.0.abs().total_cmp(&b.0.abs()));
+        let target = match near {
+            Some((_, o)) => track.lane_pose(o.pose.lane.other(), (along + ld).rem_euclid(len)).position,
+            None => track.pose_at(along + ld).0,
+        };
         let (dx, dy) = (target.x - rear.x, target.y - rear.y);
         let alpha = (-s * dx + c * dy).atan2(c * dx + s * dy);
         let dist = dx.hypot(dy).max(1e-6);

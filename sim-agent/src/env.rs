@@ -16,10 +16,18 @@
 //! waits out the penalty in `pause` steps at the control rate (held, reward 0, the
 //! remaining seconds in `pause_duration`), as DeepRacer's evaluation worker does. The clock
 //! (`tstamp`, `sim_time`) runs on across episodes.
+//!
+//! Races with objects ([`crate::objects`]): obstacles are placed and bots started at every
+//! reset, and a training start within a metre of one moves to the other lane. `crashed`
+//! (a car corner inside an obstacle, or inside a bot the car runs into from behind) comes
+//! after `lap_complete` and before `off_track`, as DeepRacer's status order has it; training
+//! ends there, evaluation pays `collision_penalty_s` and, after an obstacle, puts the car a
+//! metre behind it in the other lane (an off-track reset that near an obstacle too).
 
 use crate::car::Car;
 use crate::config::{NoiseConfig, SimConfig};
-use crate::params::{EpisodeClock, Pose, RewardParams, compute_params};
+use crate::objects::{Contact, Traffic};
+use crate::params::{EpisodeClock, Pose, RewardParams, compute_params, object_params};
 use crate::reward::{BuiltinReward, RewardError, check_reward};
 use policy::{Action, MAX_SPEED, MAX_STEERING_DEG, MIN_SPEED};
 use rand::SeedableRng;
@@ -47,6 +55,8 @@ pub struct EvalRules {
     pub max_resets: u32,
     /// Time penalty per reset (s) (`OFF_TRACK_PENALTY`), waited out in `pause` steps.
     pub penalty_s: f64,
+    /// Time penalty per crash reset (s) (`COLLISION_PENALTY`).
+    pub collision_penalty_s: f64,
     /// A race: keep lapping until this much time has passed (the 4-minute race is 240 s),
     /// counting laps; `None` ends each trial at its first lap.
     pub time_limit_s: Option<f64>,
@@ -54,7 +64,7 @@ pub struct EvalRules {
 
 impl Default for EvalRules {
     fn default() -> Self {
-        EvalRules { max_resets: 0, penalty_s: 2.0, time_limit_s: None }
+        EvalRules { max_resets: 0, penalty_s: 2.0, collision_penalty_s: 5.0, time_limit_s: None }
     }
 }
 
@@ -79,12 +89,23 @@ pub struct StepOutcome {
     pub lap_time: Option<f64>,
     /// Sum of rewards in the episode so far.
     pub episode_reward: f64,
-    /// Off-track (and reversed/immobilised) resets in the episode so far.
+    /// Off-track (and reversed/immobilised) and crash resets in the episode so far.
     pub resets: u32,
+    /// Crashes in the episode so far (the step that ended it included).
+    pub crashes: u32,
     /// Laps completed in the episode so far.
     pub laps: u32,
     /// The step's sim-trace fields (`wall_clock` is left 0: the caller stamps it).
     pub trace: policy::StepTrace,
+}
+
+impl StepOutcome {
+    /// Times the car left the track in the episode so far: its off-track (and reversed or
+    /// immobilised) resets, and this step if it ended off the track.
+    pub fn off_track(&self) -> u32 {
+        let crash_resets = self.crashes - u32::from(self.status == EpisodeStatus::Crashed);
+        self.resets - crash_resets + u32::from(self.status == EpisodeStatus::OffTrack)
+    }
 }
 
 /// The parts of a world an environment needs.
@@ -124,6 +145,7 @@ pub struct Env {
     cfg: Arc<SimConfig>,
     mode: Mode,
     car: Car,
+    traffic: Option<Traffic>,
     rng: ChaCha8Rng,
     dt: f64,
     /// `clock.sim_time` (which runs on across episodes) when this episode started.
@@ -140,6 +162,7 @@ pub struct Env {
     reverse_count: u32,
     immobile_count: u32,
     resets: u32,
+    crashes: u32,
     laps: u32,
     episode_reward: f64,
     pending: Option<Pending>,
@@ -157,6 +180,8 @@ struct Pending {
     pause_duration: f64,
     /// Where the car stood before this step (for the reset's lane).
     before: Pose,
+    /// What the car touched.
+    contact: Option<Contact>,
 }
 
 /// Why an environment could not be built.
@@ -178,11 +203,13 @@ impl Env {
         }
         let dt = 1.0 / cfg.control_hz;
         let car = Car::new(&cfg.car, spec.friction, dt / cfg.physics_substeps as f64);
+        let traffic = Traffic::new(&spec.track, &cfg.race, "the simulator configuration").map_err(EnvError::Config)?;
         let mut env = Env {
             spec,
             cfg,
             mode,
             car,
+            traffic,
             rng: ChaCha8Rng::seed_from_u64(seed),
             dt,
             episode_start: 0.0,
@@ -197,6 +224,7 @@ impl Env {
             reverse_count: 0,
             immobile_count: 0,
             resets: 0,
+            crashes: 0,
             laps: 0,
             episode_reward: 0.0,
             pending: None,
@@ -219,6 +247,18 @@ impl Env {
         self.episode += 1;
         self.start_ndist = start;
         self.place_on_centre_line(start);
+        if let Some(traffic) = self.traffic.as_mut() {
+            let track = &self.spec.track;
+            traffic.reset(track, &mut self.rng);
+            // DeepRacer's training start beside an object: the other lane.
+            let poses: Vec<_> = traffic.objects().iter().map(|o| o.pose).collect();
+            if self.mode == Mode::Training
+                && let Some(lane) = tracks::objects::start_lane(track, start * track.length(), &poses)
+            {
+                let at = track.lane_pose(lane, start * track.length());
+                self.place(at.position, at.heading);
+            }
+        }
         let now = self.clock.sim_time;
         self.episode_start = now;
         self.clock = EpisodeClock { start_ndist: start, prev_progress: 0.0, steps: 0, sim_time: now };
@@ -227,6 +267,7 @@ impl Env {
         self.reverse_count = 0;
         self.immobile_count = 0;
         self.resets = 0;
+        self.crashes = 0;
         self.laps = 0;
         self.episode_reward = 0.0;
         self.pending = None;
@@ -236,6 +277,10 @@ impl Env {
     fn place_on_centre_line(&mut self, ndist: f64) {
         let track = &self.spec.track;
         let (p, heading) = track.pose_at(ndist * track.length());
+        self.place(p, heading);
+    }
+
+    fn place(&mut self, p: tracks::P2, heading: f64) {
         self.car.reset(p.x, p.y, heading);
         self.pose = Pose { x: p.x, y: p.y, yaw: heading };
         self.executed_steer_deg = 0.0;
@@ -272,7 +317,29 @@ impl Env {
         self.clock.steps += 1;
         self.clock.sim_time += self.dt;
         let wheels = self.car.wheel_points(&state);
-        let params = compute_params(&self.spec.track, &self.pose, &wheels, action, &self.clock);
+        let mut params = compute_params(&self.spec.track, &self.pose, &wheels, action, &self.clock);
+        let mut contact = None;
+        if let Some(traffic) = self.traffic.as_mut() {
+            let track = &self.spec.track;
+            let t = self.clock.sim_time - self.episode_start;
+            traffic.update(track, t, &mut self.rng);
+            let car = tracks::P2::new(self.pose.x, self.pose.y);
+            if !held {
+                let lap_progress = (params.progress + self.start_ndist * 100.0).rem_euclid(100.0);
+                contact = traffic.contact(track, car, self.pose.yaw, lap_progress);
+                if let Some(Contact::HitByBot(_)) = contact {
+                    traffic.bots_hit(t);
+                }
+            }
+            params.is_crashed = contact.is_some_and(Contact::is_crash);
+            params.objects = object_params(track, self.pose.front(), &traffic.track_objects(), traffic.bot_speed());
+            params.object_in_camera = crate::objects::object_in_camera(
+                car,
+                self.pose.yaw,
+                traffic.objects(),
+                params.objects.closest_objects[1],
+            );
+        }
 
         let ep = &self.cfg.episode;
         let mut pause_duration = 0.0;
@@ -290,6 +357,8 @@ impl Env {
             self.reverse_count = if params.progress < self.clock.prev_progress { self.reverse_count + 1 } else { 0 };
             if params.progress >= 100.0 {
                 EpisodeStatus::LapComplete
+            } else if params.is_crashed {
+                EpisodeStatus::Crashed
             } else if params.is_offtrack {
                 EpisodeStatus::OffTrack
             } else if self.immobile_count >= ep.immobilized_steps {
@@ -304,10 +373,12 @@ impl Env {
         let mut ends = match status {
             EpisodeStatus::Prepare | EpisodeStatus::InProgress | EpisodeStatus::Pause => false,
             EpisodeStatus::LapComplete => !matches!(&self.mode, Mode::Evaluation(r) if r.time_limit_s.is_some()),
-            EpisodeStatus::OffTrack | EpisodeStatus::Reversed | EpisodeStatus::Immobilized => match &self.mode {
-                Mode::Training => true,
-                Mode::Evaluation(r) => self.resets >= r.max_resets,
-            },
+            EpisodeStatus::OffTrack | EpisodeStatus::Reversed | EpisodeStatus::Immobilized | EpisodeStatus::Crashed => {
+                match &self.mode {
+                    Mode::Training => true,
+                    Mode::Evaluation(r) => self.resets >= r.max_resets,
+                }
+            }
             EpisodeStatus::TimeUp => true,
         };
         if let Mode::Evaluation(EvalRules { time_limit_s: Some(limit), .. }) = self.mode
@@ -327,6 +398,7 @@ impl Env {
             prepare,
             pause_duration,
             before: last,
+            contact,
         });
     }
 
@@ -355,23 +427,38 @@ impl Env {
             self.laps += 1;
             self.lap_start_time = self.clock.sim_time;
         }
-        let failed = matches!(p.status, EpisodeStatus::OffTrack | EpisodeStatus::Reversed | EpisodeStatus::Immobilized);
+        let crashed = p.status == EpisodeStatus::Crashed;
+        self.crashes += u32::from(crashed);
+        let failed = crashed
+            || matches!(p.status, EpisodeStatus::OffTrack | EpisodeStatus::Reversed | EpisodeStatus::Immobilized);
         let mut pause_duration = p.pause_duration;
         if failed && !p.ends {
             // Evaluation reset (DeepRacer's `_judge_action_at_run_phase`): back at the previous
-            // step's progress in the lane nearer to where the car stood, then the penalty
-            // waited out in `pause` steps at the control rate.
+            // step's progress in the lane nearer to where the car stood, or behind the obstacle
+            // hit (or near) in the other lane, then the penalty waited out in `pause` steps at
+            // the control rate.
             let penalty = match &self.mode {
+                Mode::Evaluation(r) if crashed => r.collision_penalty_s,
                 Mode::Evaluation(r) => r.penalty_s,
                 Mode::Training => 0.0,
             };
             self.resets += 1;
-            let track = &self.spec.track;
+            let track = self.spec.track.clone();
             let along = (self.start_ndist + before_progress.max(0.0) / 100.0) * track.length();
-            let (at, heading) = track.reset_pose(along, tracks::P2::new(p.before.x, p.before.y));
-            self.car.reset(at.x, at.y, heading);
-            self.pose = Pose { x: at.x, y: at.y, yaw: heading };
-            self.executed_steer_deg = 0.0;
+            let obstacle = self.traffic.as_ref().and_then(|t| match p.contact {
+                Some(Contact::Obstacle(i)) => t.objects().get(i).copied(),
+                _ => t.obstacle_near(&track, along).copied(),
+            });
+            match obstacle {
+                Some(o) => {
+                    let at = crate::objects::behind(&track, &o);
+                    self.place(at.position, at.heading);
+                }
+                None => {
+                    let (at, heading) = track.reset_pose(along, tracks::P2::new(p.before.x, p.before.y));
+                    self.place(at, heading);
+                }
+            }
             let rows = (penalty / self.dt - 1e-9).ceil().max(0.0) as u32;
             self.pause = (rows > 0).then_some((rows, penalty));
             pause_duration = penalty;
@@ -408,6 +495,7 @@ impl Env {
             lap_time: p.lap_time,
             episode_reward: self.episode_reward,
             resets: self.resets,
+            crashes: self.crashes,
             laps: self.laps,
             trace,
         }
@@ -438,6 +526,11 @@ impl Env {
     /// Episode counter (1 for the first episode); the key reward hosts cache per-episode data by.
     pub fn episode(&self) -> u64 {
         self.episode
+    }
+
+    /// The race's obstacles and bots now (none in a time trial).
+    pub fn objects(&self) -> &[crate::objects::Object] {
+        self.traffic.as_ref().map(|t| t.objects()).unwrap_or_default()
     }
 
     /// The car origin's pose.

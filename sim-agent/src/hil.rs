@@ -143,6 +143,7 @@ pub fn run(args: CarArgs) -> Result<()> {
                 pose: [p.x, p.y, p.yaw],
                 jitter: [0.0, 0.0],
                 texture_seed: 0,
+                objects: env.objects(),
             }],
             true,
         );

@@ -7,6 +7,7 @@
 //! - [`params`]: reward `params` from a pose.
 //! - [`reward`] and [`python`]: built-in and Python reward functions.
 //! - [`obs`]: the state vector and lidar.
+//! - [`objects`]: a race's obstacles and bot cars in one environment, and the crash rule.
 //! - [`vec_env`]: many environments on all cores.
 //! - [`rollout`]: a policy acting in them (trajectories), and evaluation trials.
 //! - [`worker`]: the learner's peer: granted episodes and evaluation trials, over any link.
@@ -25,6 +26,7 @@ pub mod config;
 pub mod driver;
 pub mod env;
 pub mod handling;
+pub mod objects;
 pub mod obs;
 pub mod params;
 pub mod python;

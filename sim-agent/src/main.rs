@@ -229,6 +229,7 @@ fn camera_bench(world: &tracks::World, spec: &EnvSpec, cfg: &Arc<SimConfig>, n: 
                 pose: [p.x, p.y, h],
                 jitter: [0.0, 0.0],
                 texture_seed: 0,
+                objects: &[],
             }
         })
         .collect();

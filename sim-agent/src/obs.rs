@@ -18,7 +18,9 @@
 //!
 //! `state_lidar` concatenates both. The camera (`kind = camera`): 160×120 grayscale pixels,
 //! 0–255 as floats (the model divides by 255), top row first, rendered by
-//! [`crate::camera`] for a whole `VecEnv` in one batch.
+//! [`crate::camera`] for a whole `VecEnv` in one batch. The stereo pair (`kind = stereo`):
+//! the left and right cameras' pixels interleaved (120 × 160 × 2, channel 0 left), as
+//! DeepRacer stacks them.
 
 use crate::config::{ObservationConfig, ObservationKind};
 use crate::env::Env;
@@ -32,6 +34,7 @@ pub fn obs_dim(cfg: &ObservationConfig) -> usize {
         ObservationKind::Lidar => cfg.lidar_rays,
         ObservationKind::StateLidar => state + cfg.lidar_rays,
         ObservationKind::Camera => (crate::camera::WIDTH * crate::camera::HEIGHT) as usize,
+        ObservationKind::Stereo => 2 * (crate::camera::WIDTH * crate::camera::HEIGHT) as usize,
     }
 }
 
@@ -49,7 +52,7 @@ pub fn observe(env: &Env, out: &mut [f32]) {
         }
         // Camera frames are rendered for a whole vector of environments at once
         // (`VecEnv`); a lone `Env` has no renderer.
-        ObservationKind::Camera => {}
+        ObservationKind::Camera | ObservationKind::Stereo => {}
     }
 }
 

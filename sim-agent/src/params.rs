@@ -4,8 +4,8 @@
 //! Every key DeepRacer's `RewardParam` defines is here with its meaning: `x`/`y` are the
 //! point 0.14 m ahead of the car origin, `speed`/`steering_angle` are the *commanded* action,
 //! `steps` counts the `prepare` step, `progress` is relative to the episode's start.
-//! [`object_params`] computes the object keys as the simapp does; the environment places no
-//! objects yet, so its steps keep DeepRacer's defaults for them.
+//! [`object_params`] computes the object keys as the simapp does; [`compute_params`] leaves
+//! DeepRacer's defaults in them, for the environment to fill when its race has objects.
 
 use policy::Action;
 use tracks::{P2, Track, compute_progress, wrap_degrees};
@@ -31,7 +31,7 @@ pub struct RewardParams {
     pub is_left_of_center: bool,
     /// All four wheels off the road (the off-track rule fired).
     pub is_offtrack: bool,
-    /// Crashed into an object (always false: no objects yet).
+    /// Crashed into an object: an obstacle, or a bot from behind.
     pub is_crashed: bool,
     /// Driving the track in reverse direction (`REVERSE_DIR`), not "going backwards".
     pub is_reversed: bool,
@@ -49,9 +49,11 @@ pub struct RewardParams {
     pub track_length: f64,
     /// `[prev, next]` waypoint indices.
     pub closest_waypoints: [usize; 2],
-    /// `[prev, next]` object indices (default `[0, 0]`).
-    pub closest_objects: [usize; 2],
-    /// Whether the next object is in the camera's view (default false).
+    /// The `objects_*` keys and `closest_objects` (DeepRacer's defaults without objects).
+    #[serde(flatten)]
+    pub objects: ObjectParams,
+    /// Whether the next object is in the camera's view (default false; see
+    /// `objects::object_in_camera` for the simapp's off-by-one, kept).
     pub object_in_camera: bool,
     /// Distance along the centre line from the start line (m) (`ndist * track_length`).
     pub projection_distance: f64,
@@ -173,7 +175,7 @@ pub fn compute_params(
         track_width: q.track_width,
         track_length: track.length(),
         closest_waypoints: q.closest_waypoints,
-        closest_objects: [0, 0],
+        objects: ObjectParams::default(),
         object_in_camera: false,
         projection_distance: q.ndist * track.length(),
         sim_time: clock.sim_time,

@@ -2,9 +2,8 @@
 //! (the simapp's YAML keys, lower-cased, as the `[race]` table; deepracer-for-cloud's
 //! `run.env` read as it is). Defaults are deepracer-for-cloud's, where its users come from.
 //!
-//! This module reads and checks the configuration, and turns it into obstacle placements
-//! ([`RaceConfig::placement`]); the environment does not drive obstacles or bots yet, so
-//! [`RaceConfig::check_supported`] refuses any race but the time trial, naming the key.
+//! This module reads and checks the configuration and turns it into obstacle placements
+//! ([`RaceConfig::placement`]); [`crate::objects`] drives them in an environment.
 
 use serde::{Deserialize, Serialize};
 use tracks::objects::{Lane, Placement};
@@ -23,6 +22,11 @@ pub enum RaceType {
 }
 
 impl RaceType {
+    /// The name in the `[race]` table (`time_trial`, …).
+    pub fn parse(s: &str) -> Option<RaceType> {
+        RaceType::parse_deepracer(&s.to_ascii_uppercase())
+    }
+
     /// The name in `run.env` (`TIME_TRIAL`, …).
     pub fn parse_deepracer(s: &str) -> Option<RaceType> {
         Some(match s {
@@ -264,17 +268,11 @@ impl RaceConfig {
         }))
     }
 
-    /// Refuse, naming the key, a race the simulator does not drive yet: only the time trial
-    /// runs today (obstacles and bots are placed, tested and measured, but not yet in the
-    /// environment).
-    pub fn check_supported(&self, origin: &str) -> Result<(), RaceError> {
-        match self.race_type {
-            RaceType::TimeTrial => Ok(()),
-            other => Err(RaceError(format!(
-                "{origin}: race.race_type (DR_RACE_TYPE) {other:?}: Paddock trains time trials only so far; \
-                 obstacles and bots are not in its simulator yet"
-            ))),
-        }
+    /// The configuration as `--set race.KEY=VALUE` overrides (every key), so that a
+    /// `run.env` travels the way `--set` does: into a job's simulator configuration.
+    pub fn to_sets(&self) -> Vec<String> {
+        let table = toml::Table::try_from(self).expect("a race serialises");
+        table.iter().map(|(k, v)| format!("race.{k}={v}")).collect()
     }
 }
 
@@ -316,10 +314,9 @@ DR_H2B_IS_LANE_CHANGE=true
         );
         // Not an object-avoidance race: no obstacles.
         assert_eq!(RaceConfig::default().placement("x").unwrap(), None);
-        // The simulator refuses what it does not drive yet, by key.
-        let e = c.check_supported("run.env").unwrap_err().0;
-        assert!(e.contains("DR_RACE_TYPE") && e.contains("ObjectAvoidance"), "{e}");
-        assert!(RaceConfig::default().check_supported("x").is_ok());
+        // As --set overrides, it reads back the same.
+        let back: crate::SimConfig = crate::config::load_config(None, &c.to_sets()).unwrap();
+        assert_eq!(back.race, c);
     }
 
     #[test]

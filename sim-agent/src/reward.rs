@@ -20,12 +20,21 @@ pub enum BuiltinReward {
     CenterLine,
     /// DeepRacer's sample "stay inside the two borders".
     StayInside,
+    /// DeepRacer's object-avoidance sample (the developer guide's Example 4: inside the
+    /// borders, and penalised 0.8 m or nearer behind the next object in its lane) with the
+    /// distance it means: along the track from the car to the next object, where the sample
+    /// reads `objects_distance[next]`, the object's distance from waypoint 0. Without
+    /// objects, nothing is penalised.
+    ObjectAvoidance,
 }
 
 impl BuiltinReward {
     /// All built-ins with their names.
-    pub const ALL: [(BuiltinReward, &'static str); 2] =
-        [(BuiltinReward::CenterLine, "center_line"), (BuiltinReward::StayInside, "stay_inside")];
+    pub const ALL: [(BuiltinReward, &'static str); 3] = [
+        (BuiltinReward::CenterLine, "center_line"),
+        (BuiltinReward::StayInside, "stay_inside"),
+        (BuiltinReward::ObjectAvoidance, "object_avoidance"),
+    ];
 
     /// Evaluate for one step's params.
     #[inline]
@@ -46,6 +55,25 @@ impl BuiltinReward {
             }
             BuiltinReward::StayInside => {
                 if p.all_wheels_on_track && (0.5 * p.track_width - p.distance_from_center) >= 0.05 { 1.0 } else { 1e-3 }
+            }
+            BuiltinReward::ObjectAvoidance => {
+                let lane = BuiltinReward::StayInside.reward(p);
+                let o = &p.objects;
+                let next = o.closest_objects[1];
+                let mut avoid = 1.0;
+                if let (Some(&d), Some(&left)) = (o.objects_distance.get(next), o.objects_left_of_center.get(next))
+                    && left == p.is_left_of_center
+                {
+                    let gap = (d - p.projection_distance).rem_euclid(p.track_length);
+                    if (0.5..0.8).contains(&gap) {
+                        avoid *= 0.5;
+                    } else if (0.3..0.5).contains(&gap) {
+                        avoid *= 0.2;
+                    } else if gap < 0.3 {
+                        avoid = 1e-3;
+                    }
+                }
+                1e-3 + lane + 4.0 * avoid
             }
         }
     }

@@ -145,6 +145,8 @@ pub struct TrialResult {
     pub lap_time: Option<f64>,
     /// Times the car left the track (resets, plus a final off-track).
     pub off_track: u32,
+    /// Times the car crashed (resets, plus a final crash).
+    pub crashes: u32,
     /// Steps taken.
     pub steps: u64,
     /// How the trial ended.
@@ -190,15 +192,17 @@ pub fn evaluate(
     let cap = cfg.episode.max_steps;
     let mut steps = 0u64;
     let dim = vec.obs_dim();
-    let camera =
-        cfg.record_trace && vec.renderer().is_some() && dim == (crate::camera::WIDTH * crate::camera::HEIGHT) as usize;
+    // What the car saw, for the log: the frame, or the stereo pair's left one.
+    let pixels = (crate::camera::WIDTH * crate::camera::HEIGHT) as usize;
+    let channels = dim / pixels;
+    let camera = cfg.record_trace && vec.renderer().is_some() && dim.is_multiple_of(pixels) && channels >= 1;
     while results.iter().any(|r| r.is_none()) && steps < cap {
         if camera && results[0].is_none() && steps.is_multiple_of(2) {
             logs[0].frames.push(policy::exchange::Frame {
                 world: spec.name.clone(),
                 width: crate::camera::WIDTH,
                 height: crate::camera::HEIGHT,
-                gray: vec.observations()[..dim].iter().map(|&p| p.clamp(0.0, 255.0) as u8).collect(),
+                gray: vec.observations()[..dim].iter().step_by(channels).map(|&p| p.clamp(0.0, 255.0) as u8).collect(),
                 policy_version: 0,
                 step: steps + 1,
             });
@@ -217,7 +221,8 @@ pub fn evaluate(
                 *r = Some(TrialResult {
                     progress: o.progress,
                     lap_time: o.lap_time,
-                    off_track: o.resets + u32::from(o.status == EpisodeStatus::OffTrack),
+                    off_track: o.off_track(),
+                    crashes: o.crashes,
                     steps: o.steps,
                     status: o.status,
                     log: std::mem::take(log),

@@ -5,7 +5,7 @@
 //! acquisition. Finished episodes reset automatically; the step's outcome still reports
 //! the episode that ended. Same seed, same actions ⇒ same bits, whatever the thread count.
 
-use crate::config::SimConfig;
+use crate::config::{ObservationKind, SimConfig};
 use crate::env::{Env, EnvError, EnvSpec, Mode, StepOutcome};
 use crate::obs::{obs_dim, observe};
 use crate::reward::{RewardError, RewardFn, check_reward};
@@ -73,7 +73,7 @@ impl VecEnv {
             .num_threads(threads.max(1))
             .build()
             .map_err(|e| EnvError::Config(format!("thread pool: {e}")))?;
-        let renderer = if cfg.observation.kind == crate::config::ObservationKind::Camera {
+        let renderer = if cfg.observation.kind.is_camera() {
             Some(crate::camera::Renderer::new().map_err(|e| EnvError::Config(e.to_string()))?)
         } else {
             None
@@ -217,42 +217,45 @@ impl VecEnv {
                 };
             }
         }
+        // One camera, or the stereo pair: left then right per environment.
+        let stereo = self.envs.first().is_some_and(|e| e.config().observation.kind == ObservationKind::Stereo);
+        let lateral: &[f64] =
+            if stereo { &[crate::camera::STEREO_OFFSET, -crate::camera::STEREO_OFFSET] } else { &[0.0] };
         let views: Vec<crate::camera::View<'_>> = self
             .envs
             .iter()
             .zip(&self.camera_draws)
-            .map(|(e, (_, d, _))| {
+            .flat_map(|(e, (_, d, _))| {
                 let p = e.pose();
                 let mut lighting = e.spec().lighting;
                 lighting.intensity = d.intensity;
                 lighting.elevation_deg = d.elevation_deg;
-                crate::camera::View {
+                lateral.iter().map(move |&side| crate::camera::View {
                     track: e.track(),
                     surface: e.spec().surface,
                     lighting,
-                    pose: [p.x, p.y, p.yaw],
+                    pose: crate::camera::beside([p.x, p.y, p.yaw], side),
                     jitter: d.jitter,
                     texture_seed: d.texture_seed,
-                }
+                    objects: e.objects(),
+                })
             })
             .collect();
         let frames = r.render(&views, false);
         let frame = frames.len() / self.envs.len().max(1);
+        let channels = lateral.len();
         let noise = if cfg.randomize && cfg.image_noise > 0.0 { Normal::new(0.0, cfg.image_noise).ok() } else { None };
         for ((o, px), (_, _, rng)) in
             self.obs.chunks_mut(frame).zip(frames.chunks(frame)).zip(self.camera_draws.iter_mut())
         {
-            match &noise {
-                Some(n) => {
-                    for (o, p) in o.iter_mut().zip(px) {
-                        *o = (*p as f64 + n.sample(rng)).round().clamp(0.0, 255.0) as f32;
-                    }
-                }
-                None => {
-                    for (o, p) in o.iter_mut().zip(px) {
-                        *o = *p as f32;
-                    }
-                }
+            // The frames of one environment, one after the other, to its channels (HWC).
+            let plane = frame / channels;
+            for (k, o) in o.iter_mut().enumerate() {
+                let p = px[(k % channels) * plane + k / channels] as f64;
+                *o = match &noise {
+                    Some(n) => (p + n.sample(rng)).round().clamp(0.0, 255.0) as f32,
+                    None => p as f32,
+                };
             }
         }
     }
@@ -284,6 +287,7 @@ fn placeholder() -> StepOutcome {
         lap_time: None,
         episode_reward: 0.0,
         resets: 0,
+        crashes: 0,
         laps: 0,
         trace: policy::StepTrace::default(),
     }

@@ -260,14 +260,16 @@ impl Worker {
         self.last_frame = Some(Instant::now());
         let dim = v.obs_dim();
         let (width, height) = (crate::camera::WIDTH, crate::camera::HEIGHT);
-        if dim != (width * height) as usize {
+        // One camera, or the stereo pair (its left camera shown).
+        let pixels = (width * height) as usize;
+        if dim < pixels || !dim.is_multiple_of(pixels) {
             return None;
         }
         Some(policy::exchange::Frame {
             world: v.envs()[0].spec().name.clone(),
             width,
             height,
-            gray: v.observations()[..dim].iter().map(|&p| p.clamp(0.0, 255.0) as u8).collect(),
+            gray: v.observations()[..dim].iter().step_by(dim / pixels).map(|&p| p.clamp(0.0, 255.0) as u8).collect(),
             policy_version: version,
             step: 0,
         })
@@ -335,6 +337,7 @@ impl From<TrialResult> for Trial {
             progress: t.progress,
             lap_time: t.lap_time,
             off_track: t.off_track,
+            crashes: t.crashes,
             steps: t.steps,
             status: t.status.label().to_string(),
             choices: t.log.choices,

@@ -17,6 +17,7 @@ fn start_view<'a>(world: &World, track: &'a tracks::Track, lateral: f64) -> View
         pose: [p.x + lateral * nx, p.y + lateral * ny, h],
         jitter: [0.0, 0.0],
         texture_seed: 0,
+        objects: &[],
     }
 }
 
@@ -115,4 +116,53 @@ fn the_start_frame_matches_the_stored_reference() {
         far * 100.0,
         r.adapter()
     );
+}
+
+#[test]
+fn issue_31_obstacles_and_bots_are_drawn_where_they_stand() {
+    use sim_agent::objects::{Kind, Object};
+    use tracks::objects::{BOX_FOOTPRINT, CAR_FOOTPRINT, Lane, ObjectPose};
+    let mut r = Renderer::new().expect("an adapter (lavapipe or a GPU)");
+    let world = tracks::world("reinvent_base").unwrap();
+    let track = world.track(Direction::Forward);
+    let object = |along: f64, car: bool| {
+        let (p, h) = track.pose_at(along);
+        Object {
+            kind: if car { Kind::Bot } else { Kind::Obstacle },
+            pose: ObjectPose { position: p, heading: h, along, lane: Lane::Inner },
+            footprint: if car { CAR_FOOTPRINT } else { BOX_FOOTPRINT },
+            car,
+        }
+    };
+    let plain = start_view(&world, &track, 0.0);
+    let boxed = [object(1.2, false)];
+    let car = [object(1.2, true)];
+    let behind = [object(track.length() - 1.0, false)];
+    let views = [
+        plain.clone(),
+        View { objects: &boxed, ..plain.clone() },
+        View { objects: &car, ..plain.clone() },
+        View { objects: &behind, ..plain.clone() },
+    ];
+    let frames = r.render(&views, false);
+    let n = (WIDTH * HEIGHT) as usize;
+    let frame = |i: usize| &frames[i * n..(i + 1) * n];
+    let changed = |i: usize| -> Vec<usize> { (0..n).filter(|&k| frame(i)[k] != frame(0)[k]).collect() };
+    // A box 1.2 m ahead on the centre line: a solid patch in the middle of the frame.
+    for (i, what) in [(1, "box"), (2, "car")] {
+        let px = changed(i);
+        assert!(px.len() > 150, "{what}: {} pixels changed", px.len());
+        let mean_col = px.iter().map(|k| k % WIDTH as usize).sum::<usize>() as f64 / px.len() as f64;
+        assert!((mean_col - WIDTH as f64 / 2.0).abs() < 12.0, "{what}: centred, column {mean_col}");
+        if let Ok(dir) = std::env::var("PADDOCK_DUMP_FRAMES") {
+            std::fs::write(format!("{dir}/{what}.gray"), frame(i)).unwrap();
+        }
+        // A solid: its patch is many rows tall.
+        let rows: std::collections::BTreeSet<usize> = px.iter().map(|k| k / WIDTH as usize).collect();
+        assert!(rows.len() > 12, "{what}: {} rows", rows.len());
+    }
+    // The box (brown) and the car (dark body, light shell) do not look alike.
+    assert_ne!(changed(1), changed(2));
+    // Behind the camera: nothing drawn.
+    assert!(changed(3).is_empty());
 }

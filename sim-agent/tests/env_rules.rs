@@ -145,7 +145,7 @@ fn training_starts_move_round_robin_and_evaluation_starts_at_the_line() {
 /// the `off_track` row ends the trial.
 #[test]
 fn issue_12_an_evaluation_reset_waits_out_its_penalty_in_pause_rows_in_the_nearer_lane() {
-    let rules = EvalRules { max_resets: 2, penalty_s: 2.0, time_limit_s: None };
+    let rules = EvalRules { max_resets: 2, penalty_s: 2.0, time_limit_s: None, ..EvalRules::default() };
     let mut env = Env::new(base(), Arc::new(quiet()), Mode::Evaluation(rules), 1, 0.0).unwrap();
     let dt = 1.0 / 15.0;
     let (mut rows, mut poses) = (Vec::new(), vec![env.pose()]);
@@ -236,7 +236,7 @@ fn issue_12_the_prepare_step_holds_the_car_and_the_clock_runs_on_across_trials()
 
 #[test]
 fn the_timed_race_keeps_lapping_until_time_is_up() {
-    let rules = EvalRules { max_resets: 100, penalty_s: 2.0, time_limit_s: Some(25.0) };
+    let rules = EvalRules { max_resets: 100, penalty_s: 2.0, time_limit_s: Some(25.0), ..EvalRules::default() };
     let mut env = Env::new(base(), Arc::new(SimConfig::default()), Mode::Evaluation(rules), 1, 0.0).unwrap();
     let driver = PurePursuit::default();
     let steps = run_until_done(&mut env, |e| driver.act(e));
@@ -349,4 +349,55 @@ fn camera_domain_randomisation_changes_the_view_between_episodes_and_only_when_a
     let diff: f32 = random[..19200].iter().zip(&random[19200..]).map(|(a, b)| (a - b).abs()).sum::<f32>() / 19200.0;
     assert!(diff > 2.0, "randomised environments differ: {diff}");
     assert_eq!(random, frames(true, 1), "same seed, same randomisation");
+}
+
+#[test]
+fn issue_31_the_stereo_observation_is_the_two_cameras_interleaved_left_first() {
+    use sim_agent::camera::{Renderer, STEREO_OFFSET, View, beside};
+    let mut cfg = SimConfig::default();
+    cfg.observation.kind = sim_agent::config::ObservationKind::Stereo;
+    let reward = sim_agent::RewardFn::Builtin(REWARD);
+    let v = sim_agent::VecEnv::with_mode(
+        vec![base(); 2],
+        Arc::new(cfg),
+        1,
+        reward,
+        1,
+        Mode::Evaluation(EvalRules::default()),
+    )
+    .expect("lavapipe or a GPU");
+    assert_eq!(v.obs_dim(), 2 * 160 * 120);
+    let world = tracks::world("reinvent_base").unwrap();
+    fn view<'a>(world: &tracks::World, e: &'a sim_agent::Env, side: f64) -> View<'a> {
+        let p = e.pose();
+        View {
+            track: e.track(),
+            surface: world.surface,
+            lighting: world.lighting,
+            pose: beside([p.x, p.y, p.yaw], side),
+            jitter: [0.0, 0.0],
+            texture_seed: 0,
+            objects: &[],
+        }
+    }
+    // The same batch as the vector's (each view's place in the atlas as there).
+    let e = v.envs();
+    let mut r = Renderer::new().unwrap();
+    let all = r.render(
+        &[
+            view(&world, &e[0], STEREO_OFFSET),
+            view(&world, &e[0], -STEREO_OFFSET),
+            view(&world, &e[1], STEREO_OFFSET),
+            view(&world, &e[1], -STEREO_OFFSET),
+        ],
+        false,
+    );
+    let frames = &all[2 * 19200..];
+    let obs = &v.observations()[2 * 19200..];
+    let left: Vec<u8> = obs.iter().step_by(2).map(|&x| x as u8).collect();
+    let right: Vec<u8> = obs.iter().skip(1).step_by(2).map(|&x| x as u8).collect();
+    let differ = |a: &[u8], b: &[u8]| a.iter().zip(b).filter(|(x, y)| x != y).count();
+    assert_eq!(differ(&left, &frames[..19200]), 0, "channel 0: the left camera, 0.03 m left of the axis");
+    assert_eq!(differ(&right, &frames[19200..]), 0, "channel 1: the right camera");
+    assert!(differ(&left, &right) > 100, "6 cm apart, the two views differ");
 }

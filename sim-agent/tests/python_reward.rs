@@ -194,3 +194,71 @@ fn issue_10_a_reward_that_never_returns_is_stopped_at_its_time_limit() {
     let rewards = lap_with(slow).unwrap();
     assert!(rewards.len() > 100 && rewards[1..].iter().all(|r| *r == 1.0), "{rewards:?}");
 }
+
+/// The same fold as `tests/data/rewards/objects_echo.py`, in Rust.
+fn objects_fold(p: &sim_agent::params::RewardParams) -> f64 {
+    let o = &p.objects;
+    let [prev, next] = o.closest_objects;
+    let mut total = 1.0
+        + prev as f64
+        + 10.0 * next as f64
+        + 100.0 * f64::from(u8::from(p.is_crashed))
+        + 1000.0 * f64::from(u8::from(p.object_in_camera));
+    for i in 0..o.objects_location.len() {
+        total += (i + 1) as f64
+            * (o.objects_location[i][0]
+                + 2.0 * o.objects_location[i][1]
+                + 3.0 * o.objects_distance[i]
+                + 4.0 * f64::from(u8::from(o.objects_left_of_center[i]))
+                + 5.0 * o.objects_distance_from_center[i]
+                + 6.0 * o.objects_heading[i]
+                + 7.0 * o.objects_speed[i]);
+    }
+    total
+}
+
+#[test]
+fn issue_31_python_rewards_get_every_object_key_as_deepracer_passes_them() {
+    use sim_agent::race::{RaceConfig, RaceType};
+    for race in [
+        RaceConfig { race_type: RaceType::ObjectAvoidance, number_of_obstacles: 3, ..RaceConfig::default() },
+        RaceConfig {
+            race_type: RaceType::HeadToBot,
+            number_of_bot_cars: 2,
+            bot_car_speed: 0.5,
+            ..RaceConfig::default()
+        },
+    ] {
+        let cfg = Arc::new(SimConfig { race, ..SimConfig::default() });
+        let rules = EvalRules { max_resets: 20, ..EvalRules::default() };
+        let mut env = Env::new(base(), cfg, Mode::Evaluation(rules), 5, 0.0).unwrap();
+        let mut py = RewardFn::from_spec(&data("objects_echo.py")).unwrap();
+        let driver = PurePursuit::default();
+        let (mut steps, mut objects) = (0, 0);
+        while steps < 600 {
+            env.advance(driver.act(&env));
+            if env.needs_reward() {
+                let want = objects_fold(env.params());
+                assert_eq!(env.reward_with(&mut py).unwrap(), want, "step {steps}");
+                objects = env.params().objects.objects_location.len();
+            }
+            let o = env.finish(0.0);
+            steps += 1;
+            if o.done {
+                break;
+            }
+        }
+        assert!(steps > 100 && objects > 0, "{steps} steps with {objects} objects");
+    }
+    // DeepRacer's own object-avoidance sample runs unchanged on an object-avoidance lap.
+    let cfg = SimConfig {
+        race: RaceConfig { race_type: RaceType::ObjectAvoidance, number_of_obstacles: 3, ..RaceConfig::default() },
+        ..SimConfig::default()
+    };
+    let mut env = Env::new(base(), Arc::new(cfg), Mode::Evaluation(EvalRules::default()), 5, 0.0).unwrap();
+    let mut sample = RewardFn::from_spec(&example("object_avoidance.py")).unwrap();
+    let o = env.step_with(PurePursuit::default().act(&env), &mut sample).unwrap();
+    assert_eq!(o.reward, 0.0, "prepare");
+    let o = env.step_with(PurePursuit::default().act(&env), &mut sample).unwrap();
+    assert!(o.reward > 1.0, "{}", o.reward);
+}

@@ -1,5 +1,5 @@
 //! Top-down drawings of a track (PNG): road, borders, centre line, start line and the
-//! direction of travel, optionally with a driven path on top.
+//! direction of travel, optionally with a driven path and a race's objects on top.
 
 use crate::geometry::{P2, Track};
 use tiny_skia::{Color, FillRule, Paint, PathBuilder, Pixmap, Stroke, StrokeDash, Transform};
@@ -9,8 +9,10 @@ const SCALE: f32 = 80.0;
 /// Border around the track (m).
 const PAD: f64 = 0.5;
 
-/// Draw `track` top-down; `path` (if not empty) is drawn over it in red. Returns PNG bytes.
-pub fn render_png(track: &Track, path: &[P2]) -> Result<Vec<u8>, String> {
+/// Draw `track` top-down; `path` (if not empty) is drawn over it in light blue, and each of
+/// `objects` (footprint corners, and whether it is a car) filled: boxes brown, cars black.
+/// Returns PNG bytes.
+pub fn render_png(track: &Track, path: &[P2], objects: &[([P2; 4], bool)]) -> Result<Vec<u8>, String> {
     let pts = track.inner().points().iter().chain(track.outer().points());
     let (mut lo, mut hi) = (P2::new(f64::MAX, f64::MAX), P2::new(f64::MIN, f64::MIN));
     for p in pts {
@@ -92,6 +94,12 @@ pub fn render_png(track: &Track, path: &[P2]) -> Result<Vec<u8>, String> {
     let arrow = [ahead(0.1, 0.0), ahead(0.6, 0.0), ahead(0.45, 0.12), ahead(0.6, 0.0), ahead(0.45, -0.12)];
     if let Some(p) = line(&arrow, false) {
         pix.stroke_path(&p, &paint(30, 30, 230), &Stroke { width: 0.05 * SCALE, ..Stroke::default() }, id, None);
+    }
+    for (corners, car) in objects {
+        if let Some(p) = line(corners, true) {
+            let fill = if *car { paint(15, 15, 18) } else { paint(123, 97, 79) };
+            pix.fill_path(&p, &fill, FillRule::Winding, id, None);
+        }
     }
     if path.len() > 1
         && let Some(p) = line(path, false)

@@ -293,6 +293,8 @@ pub struct EvalRecord {
     pub simtrace: Vec<(String, String)>,
     /// How the evaluations are going (plateau, collapse), empty while improving.
     pub trend: String,
+    /// Crashes in all its trials (obstacles, bots).
+    pub crashes: u32,
 }
 
 /// Per-world figures over the last 10 s.
@@ -310,6 +312,8 @@ pub struct WorldFigures {
     pub mean_reward: f64,
     /// Environment steps per second lately.
     pub steps_per_s: f64,
+    /// Episodes trained on that ended crashed, in all.
+    pub crashes: u64,
 }
 
 /// A run's figures, as the link reports them.
@@ -393,6 +397,7 @@ struct WorldWindow {
     /// (when, env steps) delivered.
     steps: VecDeque<(Instant, u64)>,
     episodes: u64,
+    crashes: u64,
 }
 
 /// Train until a stop rule, a stop message or a failure. Returns how it ended; the final
@@ -605,9 +610,11 @@ impl<'a> Run<'a> {
             let w = self.windows.entry(t.world.clone()).or_default();
             w.steps.push_back((now, share));
             let (progress, reward) = (t.progress, episode_reward(&t));
+            let crashed = t.done && t.trace.last().is_some_and(|s| s.status == policy::EpisodeStatus::Crashed);
             if self.buffer.admit(&e.worker, t, version, lag, obs) == Admitted::Kept {
                 w.recent.push_back((now, e.worker.clone(), progress, reward));
                 w.episodes += 1;
+                w.crashes += u64::from(crashed);
             }
         }
     }
@@ -905,6 +912,7 @@ impl<'a> Run<'a> {
             best: is_best,
             simtrace: Vec::new(),
             trend: self.verdict.describe(),
+            crashes: all.iter().map(|t| t.crashes).sum(),
         };
         if let Some(r) = self.recorder.as_mut() {
             e.simtrace = noted(
@@ -990,6 +998,7 @@ impl<'a> Run<'a> {
                     mean_progress: mean(w.recent.iter().map(|r| r.2)),
                     mean_reward: mean(w.recent.iter().map(|r| r.3)),
                     steps_per_s: w.steps.iter().map(|r| r.1).sum::<u64>() as f64 / span,
+                    crashes: w.crashes,
                 }
             })
             .collect();

@@ -1,0 +1,320 @@
+//! Object avoidance and head-to-bot in the environment (issue 31): the crash rule and its
+//! consequences, the start beside an object, the object params on a track worked out by
+//! hand, and the bots' drive.
+
+use policy::Action;
+use sim_agent::config::SimConfig;
+use sim_agent::objects::{Contact, Traffic};
+use sim_agent::race::{RaceConfig, RaceType};
+use sim_agent::{BuiltinReward, Env, EnvSpec, EpisodeStatus, EvalRules, Mode, StepOutcome};
+use std::sync::Arc;
+use tracks::{Direction, P2, Track, TrackRows};
+
+/// An 80 m square lap, counter-clockwise from (0, 0) along +x, 0.6 m wide: the lanes are
+/// 0.15 m either side of the centre line (inner on the left), so a car on the centre line
+/// (corners ±0.098 m) touches a box in either lane (0.4 m across: from 0.05 m past the centre).
+fn square() -> Track {
+    square_of_width(0.6)
+}
+
+fn square_of_width(w: f64) -> Track {
+    let ring = |o: f64| -> Vec<P2> {
+        [(0.0 - o, 0.0 - o), (20.0 + o, 0.0 - o), (20.0 + o, 20.0 + o), (0.0 - o, 20.0 + o), (0.0 - o, 0.0 - o)]
+            .map(|(x, y)| P2::new(x, y))
+            .to_vec()
+    };
+    Track::new(
+        "square",
+        &TrackRows { center: ring(0.0), inner: ring(-w / 2.0), outer: ring(w / 2.0) },
+        Direction::Forward,
+    )
+}
+
+fn spec() -> EnvSpec {
+    EnvSpec {
+        name: "square".into(),
+        track: Arc::new(square()),
+        friction: 1.0,
+        noise: None,
+        surface: tracks::Surface::Asphalt,
+        lighting: Default::default(),
+    }
+}
+
+fn boxes(at: &[&str]) -> Arc<SimConfig> {
+    let mut cfg = SimConfig::default();
+    cfg.noise.steering_deg = 0.0;
+    cfg.noise.speed_fraction = 0.0;
+    cfg.race = RaceConfig {
+        race_type: RaceType::ObjectAvoidance,
+        object_positions: at.iter().map(|s| s.to_string()).collect(),
+        ..RaceConfig::default()
+    };
+    Arc::new(cfg)
+}
+
+const STRAIGHT: Action = Action { steering_angle: 0.0, speed: 1.0 };
+
+fn drive(env: &mut Env, act: Action, max: usize) -> Vec<StepOutcome> {
+    let mut out = vec![];
+    for _ in 0..max {
+        let o = env.step(act, BuiltinReward::CenterLine).unwrap();
+        out.push(o);
+        if o.done {
+            break;
+        }
+    }
+    out
+}
+
+#[test]
+fn issue_31_a_box_in_the_way_ends_a_training_episode_crashed() {
+    // A box at 4 m in the inner lane: its back edge at 3.75 m, the car's front corners
+    // 0.1618 m ahead of its origin.
+    let mut env = Env::new(spec(), boxes(&["0.05,1"]), Mode::Training, 1, 0.0).unwrap();
+    let steps = drive(&mut env, STRAIGHT, 500);
+    let last = steps.last().unwrap();
+    assert_eq!(last.status, EpisodeStatus::Crashed);
+    assert!(last.done && !last.truncated);
+    assert_eq!(last.crashes, 1);
+    assert_eq!(last.trace.status.label(), "crashed");
+    let x = env.pose().x;
+    assert!(x + 0.1618 > 3.75 && x + 0.1618 < 3.75 + 0.1, "crashed at x = {x}");
+    assert!(steps[..steps.len() - 1].iter().all(|s| s.status != EpisodeStatus::Crashed && s.crashes == 0));
+}
+
+#[test]
+fn issue_31_a_start_beside_a_box_moves_to_the_other_lane_and_passes_it() {
+    // A box 0.8 m from the start, inner lane: the car starts in the outer lane (0.15 m right
+    // of the centre line), and driving straight its corners (0.248 to 0.052 m right) clear
+    // the box (from 0.05 m right of the centre) until the first corner.
+    let mut env = Env::new(spec(), boxes(&["0.01,1"]), Mode::Training, 1, 0.0).unwrap();
+    let p = env.pose();
+    assert!((p.x - 0.0).abs() < 1e-9 && (p.y + 0.15).abs() < 1e-9 && p.yaw.abs() < 1e-9, "{p:?}");
+    let steps = drive(&mut env, STRAIGHT, 2000);
+    assert_eq!(steps.last().unwrap().status, EpisodeStatus::OffTrack);
+    assert!(env.pose().x > 20.0);
+    // Evaluation starts on the centre line whatever is near (DeepRacer's evaluation start).
+    let eval = Env::new(spec(), boxes(&["0.01,1"]), Mode::Evaluation(EvalRules::default()), 1, 0.0).unwrap();
+    assert!(eval.pose().y.abs() < 1e-9);
+}
+
+#[test]
+fn issue_31_evaluation_pays_the_collision_penalty_and_restarts_behind_the_box_in_the_other_lane() {
+    let rules = EvalRules { max_resets: 3, ..EvalRules::default() };
+    assert_eq!(rules.collision_penalty_s, 5.0, "DeepRacer's COLLISION_PENALTY");
+    let mut env = Env::new(spec(), boxes(&["0.05,1"]), Mode::Evaluation(rules), 1, 0.0).unwrap();
+    let mut rows = vec![];
+    for _ in 0..800 {
+        let o = env.step(STRAIGHT, BuiltinReward::CenterLine).unwrap();
+        rows.push((o, env.pose()));
+        if o.done {
+            break;
+        }
+    }
+    let hit = rows.iter().position(|(o, _)| o.status == EpisodeStatus::Crashed).expect("a crash");
+    let (o, p) = rows[hit];
+    assert!(!o.done, "a reset is left");
+    assert_eq!((o.crashes, o.resets), (1, 1));
+    assert_eq!(o.trace.pause_duration, 5.0);
+    // Put back a metre behind the box (at 4 m) in the outer lane, facing along it.
+    assert!((p.x - 3.0).abs() < 1e-9 && (p.y + 0.15).abs() < 1e-9 && p.yaw.abs() < 1e-9, "{p:?}");
+    // Then 5 s of `pause` rows at 15 Hz, held there.
+    let pauses: Vec<_> = rows[hit + 1..].iter().take_while(|(o, _)| o.status == EpisodeStatus::Pause).collect();
+    assert_eq!(pauses.len(), 75);
+    assert!(pauses.iter().all(|(o, q)| o.reward == 0.0 && (q.x - 3.0).abs() < 1e-9));
+    // Driving on in the other lane, it passes the box and crashes no more.
+    let rest = &rows[hit + 1 + pauses.len()..];
+    assert!(rest.iter().any(|(_, q)| q.x > 5.0));
+    assert!(rest.iter().all(|(o, _)| o.status != EpisodeStatus::Crashed && o.crashes == 1));
+}
+
+#[test]
+fn issue_31_a_crash_comes_before_off_track_on_the_same_step() {
+    // On a road 0.4 m wide a box in the outer lane (0.1 m right of the centre line, 0.4 m
+    // across) reaches 0.1 m past the right border, so a car can be off the road and touching
+    // it at once. Cars turn off the road to the right, the box a few centimetres further each
+    // run: the steps on which the rules see both must be `crashed`.
+    let spec = EnvSpec { track: Arc::new(square_of_width(0.4)), ..spec() };
+    let mut both = 0;
+    for steer in [-3.0, -6.0] {
+        for cm in (101..260).step_by(2) {
+            let at = format!("{},-1", cm as f64 / 100.0 / 80.0);
+            let mut env = Env::new(spec.clone(), boxes(&[&at]), Mode::Training, 1, 0.0).unwrap();
+            for _ in 0..100 {
+                env.advance(Action { steering_angle: steer, speed: 1.0 });
+                let p = env.params().clone();
+                let o = env.finish(0.0);
+                if p.is_offtrack && p.is_crashed {
+                    both += 1;
+                    assert_eq!(o.status, EpisodeStatus::Crashed, "steer {steer}, box {at}");
+                }
+                if o.done {
+                    break;
+                }
+            }
+        }
+    }
+    assert!(both > 0, "no run touched the box while off the track: the table tests nothing");
+}
+
+#[test]
+fn issue_31_object_params_in_the_environment_are_the_hand_computed_ones() {
+    // Boxes at 72 m (inner lane, on the last side: x = 0.15, y = 8) and at 4 m (outer lane).
+    let mut env = Env::new(spec(), boxes(&["0.9,1", "0.05,-1"]), Mode::Training, 1, 0.0).unwrap();
+    env.advance(STRAIGHT);
+    let p = env.params().objects.clone();
+    assert_eq!(p.objects_location.len(), 2);
+    for (got, want) in p.objects_location.iter().zip([[0.15, 8.0], [4.0, -0.15]]) {
+        assert!((got[0] - want[0]).abs() < 1e-9 && (got[1] - want[1]).abs() < 1e-9, "{:?}", p.objects_location);
+    }
+    for (got, want) in p.objects_distance.iter().zip([72.0, 4.0]) {
+        assert!((got - want).abs() < 1e-9, "{:?}", p.objects_distance);
+    }
+    assert_eq!(p.objects_left_of_center, [true, false]);
+    for d in &p.objects_distance_from_center {
+        assert!((d - 0.15).abs() < 1e-9);
+    }
+    assert_eq!((p.objects_heading.clone(), p.objects_speed.clone()), (vec![0.0; 2], vec![0.0; 2]));
+    // The car at 0.14 m: the next object is the one at 4 m (index 1), the previous the one
+    // at 72 m (wrapping round the lap).
+    assert_eq!(p.closest_objects, [0, 1]);
+    // DeepRacer's off-by-one: `object_in_camera` looks at object next − 1 = 0, behind the
+    // car, though object 1 is straight ahead.
+    assert!(!env.params().object_in_camera);
+    assert!(!env.params().is_crashed);
+    env.finish(0.0);
+    // Listed the other way round, next − 1 is the box ahead: in view.
+    let mut env = Env::new(spec(), boxes(&["0.1,1", "0.05,-1"]), Mode::Training, 1, 0.0).unwrap();
+    env.advance(STRAIGHT);
+    assert_eq!(env.params().objects.closest_objects, [0, 1]);
+    assert!(env.params().object_in_camera);
+    // A time trial keeps DeepRacer's defaults.
+    let mut tt = Env::new(spec(), Arc::new(SimConfig::default()), Mode::Training, 1, 0.0).unwrap();
+    tt.advance(STRAIGHT);
+    assert_eq!(tt.params().objects, sim_agent::params::ObjectParams::default());
+    assert!(!tt.params().object_in_camera && !tt.params().is_crashed);
+}
+
+fn bots(lane_change: bool) -> RaceConfig {
+    RaceConfig {
+        race_type: RaceType::HeadToBot,
+        number_of_bot_cars: 2,
+        bot_car_speed: 0.5,
+        is_lane_change: lane_change,
+        lower_lane_change_time: 3.0,
+        upper_lane_change_time: 3.0,
+        ..RaceConfig::default()
+    }
+}
+
+#[test]
+fn issue_31_bots_drive_their_lanes_at_their_speed_and_stop_when_hit_from_behind() {
+    use rand::SeedableRng;
+    let track = square();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+    let mut t = Traffic::new(&track, &bots(false), "test").unwrap().expect("bots");
+    t.reset(&track, &mut rng);
+    // Started 2 m apart at least, spread evenly from 2 m to 1 m before the end (79 m), in
+    // the inner then the outer lane.
+    let at = |t: &Traffic, i: usize| t.objects()[i].pose;
+    assert!((at(&t, 0).along - 2.0).abs() < 1e-9 && (at(&t, 1).along - 79.0).abs() < 1e-9);
+    t.update(&track, 4.0, &mut rng);
+    let (a, b) = (at(&t, 0), at(&t, 1));
+    assert!((a.position - P2::new(4.0, 0.15)).norm() < 1e-9 && a.heading.abs() < 1e-6, "{a:?}");
+    // 79 + 2 m wraps to 1 m, in the outer lane.
+    assert!((b.position - P2::new(1.0, -0.15)).norm() < 1e-9, "{b:?}");
+    assert_eq!(t.bot_speed(), Some(0.5));
+    // A car running into bot 0 from behind crashes; one the bot runs into does not.
+    let progress = |x: f64| 100.0 * x / 80.0;
+    // (0.02 m to the left of the bot: lined up exactly, the corners would be on its edges,
+    // which the rule counts as outside.)
+    assert_eq!(t.contact(&track, P2::new(3.7, 0.17), 0.0, progress(3.84)), Some(Contact::RearEnded(0)));
+    assert_eq!(t.contact(&track, P2::new(3.6, 0.17), 0.0, progress(3.74)), None);
+    let ahead = t.contact(&track, P2::new(4.3, 0.17), 0.0, progress(4.44));
+    assert_eq!(ahead, Some(Contact::HitByBot(0)));
+    assert!(!ahead.unwrap().is_crash());
+    // Hit from behind, the bots stand still for bot_car_penalty (2 s), then drive on from there.
+    t.bots_hit(4.0);
+    t.update(&track, 5.5, &mut rng);
+    assert!((at(&t, 0).position - P2::new(4.0, 0.15)).norm() < 1e-9);
+    t.update(&track, 7.0, &mut rng);
+    assert!((at(&t, 0).position - P2::new(4.5, 0.15)).norm() < 1e-9, "{:?}", at(&t, 0));
+}
+
+#[test]
+fn issue_31_bots_change_lanes_over_the_lane_change_distance() {
+    use rand::SeedableRng;
+    let track = square();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+    let mut t = Traffic::new(&track, &bots(true), "test").unwrap().unwrap();
+    t.reset(&track, &mut rng);
+    // Every 3 s (lower = upper) plus the change's 2 s (1 m at 0.5 m/s): the first change
+    // runs from 3 s to 5 s, the bot midway at 4 s, in the outer lane from 5 s.
+    let y = |t: &mut Traffic, s: f64, rng: &mut _| {
+        t.update(&track, s, rng);
+        t.objects()[0].pose.position.y
+    };
+    assert!((y(&mut t, 2.0, &mut rng) - 0.15).abs() < 1e-9);
+    assert!(y(&mut t, 4.0, &mut rng).abs() < 1e-9);
+    assert!((y(&mut t, 5.0, &mut rng) + 0.15).abs() < 1e-9);
+    assert!((y(&mut t, 7.9, &mut rng) + 0.15).abs() < 1e-9);
+    assert!(y(&mut t, 9.0, &mut rng).abs() < 1e-9, "the next change, 8 s to 10 s");
+}
+
+#[test]
+fn issue_31_a_track_too_short_for_the_race_is_refused_naming_the_key() {
+    let track = square();
+    for (race, want) in [
+        (
+            RaceConfig { race_type: RaceType::ObjectAvoidance, number_of_obstacles: 60, ..RaceConfig::default() },
+            "NUMBER_OF_OBSTACLES is 60",
+        ),
+        (
+            RaceConfig { race_type: RaceType::HeadToBot, number_of_bot_cars: 50, ..RaceConfig::default() },
+            "race.number_of_bot_cars (NUMBER_OF_BOT_CARS) 50",
+        ),
+    ] {
+        let e = Traffic::new(&track, &race, "job.toml").unwrap_err();
+        assert!(e.starts_with("job.toml: square: ") && e.contains(want), "{e}");
+    }
+    assert!(Traffic::new(&track, &RaceConfig::default(), "x").unwrap().is_none(), "a time trial has none");
+}
+
+#[test]
+fn issue_31_the_builtin_object_avoidance_reward_penalises_closing_in_on_the_next_object_in_its_lane() {
+    // A box at 4 m in the outer lane, the car on the centre line (not left of it: the box's
+    // side): 4 + 1 + 0.001 far off, then ×0.5, ×0.2 and 0.001 for the avoidance term as the
+    // gap from the car's reference point falls under 0.8, 0.5 and 0.3 m.
+    let mut env = Env::new(spec(), boxes(&["0.05,-1"]), Mode::Training, 1, 0.0).unwrap();
+    let mut seen = vec![];
+    loop {
+        env.advance(STRAIGHT);
+        let p = env.params().clone();
+        let r = BuiltinReward::ObjectAvoidance.reward(&p);
+        let gap = 4.0 - p.x;
+        let want = if gap >= 0.8 {
+            5.001
+        } else if gap >= 0.5 {
+            3.001
+        } else if gap >= 0.3 {
+            1.801
+        } else {
+            1.005
+        };
+        assert!((r - want).abs() < 1e-9, "gap {gap}: {r}");
+        if seen.last() != Some(&want.to_string()) {
+            seen.push(want.to_string());
+        }
+        if env.finish(r).done {
+            break;
+        }
+    }
+    assert_eq!(seen, ["5.001", "3.001", "1.801", "1.005"]);
+    // In the other lane the box costs nothing.
+    let mut env = Env::new(spec(), boxes(&["0.05,1"]), Mode::Training, 1, 0.0).unwrap();
+    env.advance(Action { steering_angle: 0.0, speed: 0.0 });
+    env.finish(0.0);
+    env.advance(STRAIGHT);
+    assert!((BuiltinReward::ObjectAvoidance.reward(env.params()) - 5.001).abs() < 1e-9);
+}
