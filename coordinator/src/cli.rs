@@ -367,12 +367,57 @@ pub struct RaceArgs {
     #[arg(long, value_name = "M_PER_S")]
     pub bot_speed: Option<f64>,
     /// A deepracer-for-cloud run.env: its DR_RACE_TYPE, DR_OA_* and DR_H2B_* keys configure
-    /// the race (the flags above and --set override them).
+    /// the race (the flags above and --set override them); for train and up its
+    /// DR_WORLD_NAME is the world, DR_ENABLE_DOMAIN_RANDOMIZATION the camera's randomisation,
+    /// and custom_files/ beside it (reward_function.py, model_metadata.json,
+    /// hyperparameters.json) the files, where the command's own flags do not name them.
     #[arg(long, value_name = "run.env")]
     pub run_env: Option<PathBuf>,
 }
 
+/// What a deepracer-for-cloud `run.env` names besides the race.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct RunEnvFiles {
+    /// `DR_WORLD_NAME`.
+    pub world: Option<String>,
+    /// `custom_files/reward_function.py`, when it exists.
+    pub reward: Option<PathBuf>,
+    /// `custom_files/model_metadata.json`, when it exists.
+    pub model_metadata: Option<PathBuf>,
+    /// `custom_files/hyperparameters.json`, when it exists.
+    pub hyperparameters: Option<PathBuf>,
+    /// `DR_ENABLE_DOMAIN_RANDOMIZATION`.
+    pub randomize: Option<bool>,
+}
+
 impl RaceArgs {
+    /// The world and files `--run-env` names (none without it), as deepracer-for-cloud lays
+    /// them out: `custom_files/` beside `run.env`.
+    pub fn run_env_files(&self) -> anyhow::Result<Option<RunEnvFiles>> {
+        use anyhow::Context;
+        let Some(path) = &self.run_env else { return Ok(None) };
+        let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+        let origin = path.display().to_string();
+        let mut f = RunEnvFiles::default();
+        for (k, v) in sim_agent::race::parse_env(&text, &origin)? {
+            match k.as_str() {
+                "DR_WORLD_NAME" if !v.is_empty() => f.world = Some(v),
+                "DR_ENABLE_DOMAIN_RANDOMIZATION" => match v.to_ascii_lowercase().as_str() {
+                    "true" => f.randomize = Some(true),
+                    "false" => f.randomize = Some(false),
+                    _ => anyhow::bail!("{origin}: DR_ENABLE_DOMAIN_RANDOMIZATION is {v:?}; expected True or False"),
+                },
+                _ => {}
+            }
+        }
+        let custom = path.parent().unwrap_or(std::path::Path::new(".")).join("custom_files");
+        let file = |name: &str| Some(custom.join(name)).filter(|p| p.is_file());
+        f.reward = file("reward_function.py");
+        f.model_metadata = file("model_metadata.json");
+        f.hyperparameters = file("hyperparameters.json");
+        Ok(Some(f))
+    }
+
     /// `sets` with the race's overrides in front (so that `--set` has the last word).
     pub fn with_sets(&self, sets: &[String]) -> anyhow::Result<Vec<String>> {
         use anyhow::Context;
@@ -509,9 +554,9 @@ pub struct TrainArgs {
     /// over the worlds and every evaluation runs on each). Default: reinvent_base.
     #[arg(long)]
     pub world: Vec<String>,
-    /// Reward: a DeepRacer Python file or builtin:NAME.
-    #[arg(long, default_value = "builtin:center_line")]
-    pub reward: String,
+    /// Reward: a DeepRacer Python file or builtin:NAME (default builtin:center_line).
+    #[arg(long)]
+    pub reward: Option<String>,
     /// DeepRacer hyperparameters.json (default: the console's PPO defaults).
     #[arg(long)]
     pub hyperparameters: Option<PathBuf>,
@@ -710,6 +755,9 @@ pub struct ValidateArgs {
     /// Seconds one call may take (the simulator's `reward_time_limit`).
     #[arg(long, default_value_t = 1.0)]
     pub time_limit: f64,
+    /// The race whose objects the sampled states have.
+    #[command(flatten)]
+    pub race: RaceArgs,
 }
 
 #[derive(Args)]

@@ -120,6 +120,7 @@ pub fn drive(args: DriveArgs) -> Result<i32> {
 }
 
 pub fn validate(args: ValidateArgs) -> Result<i32> {
+    let race: SimConfig = load_config(None, &args.race.with_sets(&[])?)?;
     let world = resolve_world(&args.track)?;
     let track = world.track(direction(args.reversed));
     let space = match &args.model_metadata {
@@ -140,7 +141,7 @@ pub fn validate(args: ValidateArgs) -> Result<i32> {
         world.name,
         if args.reversed { "reversed" } else { "forward" }
     );
-    match validate_reward(&mut reward, &track, &space, args.positions) {
+    match validate_reward(&mut reward, &track, &space, args.positions, &race.race) {
         Ok(report) => {
             for (kind, mean) in &report.mean_by_kind {
                 println!("  {kind:<22} mean reward {mean:.4}");

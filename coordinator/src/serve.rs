@@ -309,7 +309,7 @@ fn validate(doc: &Job) -> std::result::Result<(), String> {
         let meta = policy::ModelMetadata::parse(&doc.model_metadata_json, "model_metadata.json")?;
         for w in &doc.worlds {
             let track = tracks::world(w)?.track(tracks::Direction::Forward);
-            sim_agent::validate::validate_reward(&mut reward, &track, &meta.action_space, 20)?;
+            sim_agent::validate::validate_reward(&mut reward, &track, &meta.action_space, 20, &cfg.race)?;
         }
         Ok(())
     })();

@@ -132,6 +132,18 @@ fn stop_rules(args: &TrainArgs) -> StopRules {
 
 pub fn train(mut args: TrainArgs) -> Result<i32> {
     args.sets = args.race.with_sets(&args.sets)?;
+    if let Some(f) = args.race.run_env_files()? {
+        if args.world.is_empty() {
+            args.world.extend(f.world);
+        }
+        args.reward = args.reward.or(f.reward.map(|p| p.display().to_string()));
+        args.model_metadata = args.model_metadata.or(f.model_metadata);
+        args.hyperparameters = args.hyperparameters.or(f.hyperparameters);
+        if let Some(r) = f.randomize {
+            args.sets.insert(0, format!("camera.randomize={r}"));
+        }
+    }
+    let reward_spec = args.reward.clone().unwrap_or_else(|| "builtin:center_line".into());
     let worlds_arg = if args.world.is_empty() { vec!["reinvent_base".to_string()] } else { args.world.clone() };
     let out = args.out.clone().unwrap_or_else(|| default_run_dir(&worlds_arg.join("+")));
     let start = match (args.resume, args.force) {
@@ -166,10 +178,16 @@ pub fn train(mut args: TrainArgs) -> Result<i32> {
     check_sensors(&meta, &mut cfg)?;
     let worlds = worlds_arg.iter().map(|w| resolve_world(w)).collect::<Result<Vec<_>>>()?;
     // Validate the reward before any training: a broken file stops here with its traceback.
-    let mut reward = RewardFn::from_spec(&args.reward)?.with_time_limit(cfg.reward_time_limit());
+    let mut reward = RewardFn::from_spec(&reward_spec)?.with_time_limit(cfg.reward_time_limit());
     for w in &worlds {
-        sim_agent::validate::validate_reward(&mut reward, &w.track(Direction::Forward), &meta.action_space, 20)
-            .with_context(|| format!("the reward function {} failed validation on {}", args.reward, w.name))?;
+        sim_agent::validate::validate_reward(
+            &mut reward,
+            &w.track(Direction::Forward),
+            &meta.action_space,
+            20,
+            &cfg.race,
+        )
+        .with_context(|| format!("the reward function {reward_spec} failed validation on {}", w.name))?;
     }
     let obs_size = obs_dim(&cfg.observation);
     let threads = learner::use_threads(args.threads);
@@ -212,7 +230,7 @@ pub fn train(mut args: TrainArgs) -> Result<i32> {
         worlds.iter().map(|w| format!("{} ({})", w.name, w.surface.name())).collect::<Vec<_>>().join(", "),
         args.minutes,
         args.envs,
-        args.reward,
+        reward_spec,
         out.display()
     );
     let budget = args.minutes * 60.0;

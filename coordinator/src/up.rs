@@ -132,6 +132,19 @@ fn spawn(
 
 pub fn up(mut args: UpArgs) -> Result<i32> {
     args.sets = args.race.with_sets(&args.sets)?;
+    if let Some(f) = args.race.run_env_files()? {
+        if args.world.is_empty() {
+            args.world.extend(f.world);
+        }
+        args.reward = args.reward.or(f.reward.map(|p| p.display().to_string()));
+        if args.sensor == "state" {
+            args.model_metadata = args.model_metadata.or(f.model_metadata);
+        }
+        args.hyperparameters = args.hyperparameters.or(f.hyperparameters);
+        if let Some(r) = f.randomize {
+            args.sets.insert(0, format!("camera.randomize={r}"));
+        }
+    }
     let out = args.out.clone().unwrap_or_else(|| {
         let t = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs()).unwrap_or(0);
         PathBuf::from("runs").join(format!("up-{t}"))

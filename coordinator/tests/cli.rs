@@ -128,6 +128,13 @@ fn reward_validate_passes_deepracers_samples_and_fails_broken_files() {
         assert_eq!(o.status.code(), Some(1), "{f}");
         assert!(stdout(&o).contains("FAILED") && stdout(&o).contains(want), "{f}: {}", stdout(&o));
     }
+    // issue 31: the object-avoidance sample reads objects_*: validated in a race with boxes
+    // it passes; in a time trial (no objects, as DeepRacer would run it) it fails naming why.
+    let oa = repo("examples/rewards/object_avoidance.py");
+    let o = coordinator(dir.path(), &["reward", "validate", &oa, "--obstacles", "3"]);
+    assert!(o.status.success() && stdout(&o).contains("PASSED"), "{}{}", stdout(&o), stderr(&o));
+    let o = coordinator(dir.path(), &["reward", "validate", &oa]);
+    assert!(o.status.code() == Some(1) && stdout(&o).contains("IndexError"), "{}", stdout(&o));
     // A reward that never returns is stopped at its time limit, naming the file,
     // the step and the line where it was stuck.
     let o = coordinator(

@@ -157,11 +157,54 @@ fn train_reads_deepracer_files_and_rejects_bad_ones_by_key() {
     assert!(!b.status.success() && text(&b).contains("bad.json: key 'batch_size'"), "{}", text(&b));
     std::fs::write(
         d.join("stereo.json"),
-        r#"{"action_space":[{"steering_angle":0,"speed":1}],"sensor":["STEREO_CAMERAS"],"version":"5"}"#,
+        r#"{"action_space":[{"steering_angle":0,"speed":1}],"sensor":["FRONT_FACING_CAMERA","LIDAR"],"version":"5"}"#,
     )
     .unwrap();
     let c = coordinator(d, &["train", "--model-metadata", "stereo.json", "--out", "run_cam"]);
-    assert!(!c.status.success() && text(&c).contains("FRONT_FACING_CAMERA or STATE_VECTOR"), "{}", text(&c));
+    assert!(!c.status.success() && text(&c).contains("a camera with a LiDAR is not trained yet"), "{}", text(&c));
+}
+
+#[test]
+fn issue_31_a_deepracer_for_cloud_run_env_trains_its_race_with_its_custom_files() {
+    // deepracer-for-cloud's layout: run.env, and custom_files/ beside it.
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    std::fs::create_dir_all(d.join("exp/custom_files")).unwrap();
+    std::fs::write(
+        d.join("exp/run.env"),
+        "DR_WORLD_NAME=reinvent_wood\nDR_RACE_TYPE=OBJECT_AVOIDANCE\nDR_OA_NUMBER_OF_OBSTACLES=2\n\
+         DR_OA_RANDOMIZE_OBSTACLE_LOCATIONS=False\nDR_ENABLE_DOMAIN_RANDOMIZATION=False\n",
+    )
+    .unwrap();
+    std::fs::copy(repo("examples/rewards/object_avoidance.py"), d.join("exp/custom_files/reward_function.py")).unwrap();
+    std::fs::write(d.join("exp/custom_files/hyperparameters.json"), r#"{"batch_size": 64, "typo_key": 1}"#).unwrap();
+    let o = coordinator(
+        d,
+        &[
+            "train",
+            "--run-env",
+            "exp/run.env",
+            "--target-laps",
+            "0",
+            "--max-episodes",
+            "40",
+            "--minutes",
+            "1",
+            "--out",
+            "run",
+        ],
+    );
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    assert!(t.contains("reinvent_wood") && t.contains("reward_function.py"), "the world and the reward: {t}");
+    assert!(t.contains("unknown key 'typo_key'"), "custom_files/hyperparameters.json was read: {t}");
+    let sim = std::fs::read_to_string(d.join("run/sim.toml")).unwrap();
+    assert!(sim.contains("race_type = \"object_avoidance\"") && sim.contains("number_of_obstacles = 2"), "{sim}");
+    assert!(sim.contains("randomize_obstacle_locations = false"), "{sim}");
+    // Flags win over the file; a bad key in it is refused naming it.
+    std::fs::write(d.join("exp/bad.env"), "DR_RACE_TYPE=DRAG_RACE\n").unwrap();
+    let b = coordinator(d, &["train", "--run-env", "exp/bad.env", "--out", "run_bad"]);
+    assert!(!b.status.success() && text(&b).contains("exp/bad.env: DR_RACE_TYPE is \"DRAG_RACE\""), "{}", text(&b));
 }
 
 #[test]

@@ -241,16 +241,43 @@ fn camera_bench(world: &tracks::World, spec: &EnvSpec, cfg: &Arc<SimConfig>, n: 
         frames += n;
     }
     let fps = frames as f64 / t.elapsed().as_secs_f64();
-    let mut cam = (**cfg).clone();
-    cam.observation.kind = ObservationKind::Camera;
     let threads = std::thread::available_parallelism().map(|x| x.get()).unwrap_or(1);
-    let res =
-        run_vec(spec, &Arc::new(cam), n, threads, RewardFn::Builtin(sim_agent::BuiltinReward::CenterLine), seconds)?;
     println!(
-        "camera on {}: {fps:.0} frames/s rendering {n} views of 160x120 per batch (render + readback + luma); {:.0} camera env steps/s (physics + render + reward, {threads} threads)",
-        r.adapter(),
-        res.steps_per_s
+        "camera on {}: {fps:.0} frames/s rendering {n} views of 160x120 per batch (render + readback + luma)",
+        r.adapter()
     );
+    drop(r);
+    // Camera env steps/s (physics + render + reward) for each race and the stereo pair, against
+    // the time trial, in the same run.
+    use sim_agent::race::{RaceConfig, RaceType};
+    let oa = RaceConfig { race_type: RaceType::ObjectAvoidance, number_of_obstacles: 3, ..RaceConfig::default() };
+    let h2b = RaceConfig {
+        race_type: RaceType::HeadToBot,
+        number_of_bot_cars: 2,
+        bot_car_speed: 0.5,
+        ..RaceConfig::default()
+    };
+    let mut base = 0.0;
+    for (name, kind, race) in [
+        ("time trial", ObservationKind::Camera, RaceConfig::default()),
+        ("object avoidance, 3 boxes", ObservationKind::Camera, oa),
+        ("head-to-bot, 2 bots", ObservationKind::Camera, h2b),
+        ("stereo pair, time trial", ObservationKind::Stereo, RaceConfig::default()),
+    ] {
+        let mut cam = (**cfg).clone();
+        cam.observation.kind = kind;
+        cam.race = race;
+        let reward = RewardFn::Builtin(sim_agent::BuiltinReward::CenterLine);
+        let res = run_vec(spec, &Arc::new(cam), n, threads, reward, seconds)?;
+        if base == 0.0 {
+            base = res.steps_per_s;
+        }
+        println!(
+            "camera env steps/s, {name}: {:.0} ({:.2}× the time trial; {threads} threads)",
+            res.steps_per_s,
+            res.steps_per_s / base
+        );
+    }
     Ok(())
 }
 

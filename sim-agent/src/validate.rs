@@ -1,11 +1,17 @@
 //! DeepRacer console's "Validate" for reward files, and more: call the reward function on
 //! states sampled along a track — on the centre line, near each border, off the track,
-//! facing backwards — and report the range of rewards or the first failure.
+//! facing backwards — and report the range of rewards or the first failure. In a race with
+//! objects the states have them (placed as the race's first episode places them), so a
+//! reward reading `objects_*` is called as training will call it.
 
 use crate::car::{CarParams, wheel_points_at};
-use crate::params::{EpisodeClock, Pose, compute_params};
+use crate::objects::Traffic;
+use crate::params::{EpisodeClock, Pose, compute_params, object_params};
+use crate::race::RaceConfig;
 use crate::reward::{RewardError, RewardFn, check_reward};
 use policy::{Action, ActionSpace};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
 use tracks::Track;
 
 /// What a passing validation saw.
@@ -27,15 +33,21 @@ pub struct ValidationReport {
 pub const SAMPLE_KINDS: [&str; 5] =
     ["centre line", "near the left border", "near the right border", "off track", "facing backwards"];
 
-/// Call `reward` on sampled states of `track`. Actions come from `space` (all discrete
-/// actions, or the corners and middle of a continuous range).
+/// Call `reward` on sampled states of `track` in `race`. Actions come from `space` (all
+/// discrete actions, or the corners and middle of a continuous range).
 pub fn validate_reward(
     reward: &mut RewardFn,
     track: &Track,
     space: &ActionSpace,
     positions: usize,
+    race: &RaceConfig,
 ) -> Result<ValidationReport, RewardError> {
     let car = CarParams::default();
+    let mut traffic =
+        Traffic::new(track, race, "the race").map_err(|msg| RewardError::Load { origin: "the race".into(), msg })?;
+    if let Some(t) = traffic.as_mut() {
+        t.reset(track, &mut ChaCha8Rng::seed_from_u64(1));
+    }
     let actions: Vec<Action> = match space {
         ActionSpace::Discrete(a) => a.clone(),
         ActionSpace::Continuous { steering_angle: (sl, sh), speed: (vl, vh) } => {
@@ -80,6 +92,14 @@ pub fn validate_reward(
                 };
                 let mut params = compute_params(track, &pose, &wheels, action, &clock);
                 params.sim_time = params.steps / 15.0;
+                if let Some(t) = &traffic {
+                    let at = tracks::P2::new(pose.x, pose.y);
+                    let lap = (params.progress).rem_euclid(100.0);
+                    params.is_crashed = t.contact(track, at, pose.yaw, lap).is_some_and(|c| c.is_crash());
+                    params.objects = object_params(track, pose.front(), &t.track_objects(), t.bot_speed());
+                    let next = params.objects.closest_objects[1];
+                    params.object_in_camera = crate::objects::object_in_camera(at, pose.yaw, t.objects(), next);
+                }
                 let r = match reward {
                     RewardFn::Builtin(b) => check_reward(b.reward(&params), &params)?,
                     RewardFn::Python(py) => py.call(0, 0, track, &params)?,
