@@ -18,7 +18,7 @@
 //! (`tstamp`, `sim_time`) runs on across episodes.
 //!
 //! Races with objects ([`crate::objects`]): obstacles are placed and bots started at every
-//! reset, and a training start within a metre of one moves to the other lane. `crashed`
+//! reset, and a start within a metre of one moves to the other lane. `crashed`
 //! (a car corner inside an obstacle, or inside a bot the car runs into from behind) comes
 //! after `lap_complete` and before `off_track`, as DeepRacer's status order has it; training
 //! ends there, evaluation pays `collision_penalty_s` and, after an obstacle, puts the car a
@@ -250,11 +250,12 @@ impl Env {
         if let Some(traffic) = self.traffic.as_mut() {
             let track = &self.spec.track;
             traffic.reset(track, &mut self.rng);
-            // DeepRacer's training start beside an object: the other lane.
+            // DeepRacer's training start beside an object: the other lane. Evaluation too,
+            // where DeepRacer starts on the centre line whatever stands there, so that a box
+            // placed at random just past the start line makes the trial a crash at its first
+            // step (docs/simulator.md).
             let poses: Vec<_> = traffic.objects().iter().map(|o| o.pose).collect();
-            if self.mode == Mode::Training
-                && let Some(lane) = tracks::objects::start_lane(track, start * track.length(), &poses)
-            {
+            if let Some(lane) = tracks::objects::start_lane(track, start * track.length(), &poses) {
                 let at = track.lane_pose(lane, start * track.length());
                 self.place(at.position, at.heading);
             }
