@@ -7,6 +7,7 @@
 //! - [`params`]: reward `params` from a pose.
 //! - [`reward`] and [`python`]: built-in and Python reward functions.
 //! - [`obs`]: the state vector and lidar.
+//! - [`lidar`]: DeepRacer's simulated LiDAR against the race's objects, and its input filters.
 //! - [`objects`]: a race's obstacles and bot cars in one environment, and the crash rule.
 //! - [`vec_env`]: many environments on all cores.
 //! - [`rollout`]: a policy acting in them (trajectories), and evaluation trials.
@@ -26,6 +27,7 @@ pub mod config;
 pub mod driver;
 pub mod env;
 pub mod handling;
+pub mod lidar;
 pub mod objects;
 pub mod obs;
 pub mod params;
