@@ -390,6 +390,33 @@ pub struct RunEnvFiles {
     pub randomize: Option<bool>,
 }
 
+impl RunEnvFiles {
+    /// Fill what a command's own flags left unnamed: the world, the reward, the
+    /// hyperparameters and the camera's randomisation (before `sets`, so `--set` wins).
+    /// Returns `model_metadata.json`, which the caller takes unless it has a sensor of its own.
+    pub fn fill(
+        self,
+        world: &mut Vec<String>,
+        reward: &mut Option<String>,
+        hyperparameters: &mut Option<PathBuf>,
+        sets: &mut Vec<String>,
+    ) -> Option<PathBuf> {
+        if world.is_empty() {
+            world.extend(self.world);
+        }
+        if reward.is_none() {
+            *reward = self.reward.map(|p| p.display().to_string());
+        }
+        if hyperparameters.is_none() {
+            *hyperparameters = self.hyperparameters;
+        }
+        if let Some(r) = self.randomize {
+            sets.insert(0, format!("camera.randomize={r}"));
+        }
+        self.model_metadata
+    }
+}
+
 impl RaceArgs {
     /// The world and files `--run-env` names (none without it), as deepracer-for-cloud lays
     /// them out: `custom_files/` beside `run.env`.

@@ -133,15 +133,8 @@ fn stop_rules(args: &TrainArgs) -> StopRules {
 pub fn train(mut args: TrainArgs) -> Result<i32> {
     args.sets = args.race.with_sets(&args.sets)?;
     if let Some(f) = args.race.run_env_files()? {
-        if args.world.is_empty() {
-            args.world.extend(f.world);
-        }
-        args.reward = args.reward.or(f.reward.map(|p| p.display().to_string()));
-        args.model_metadata = args.model_metadata.or(f.model_metadata);
-        args.hyperparameters = args.hyperparameters.or(f.hyperparameters);
-        if let Some(r) = f.randomize {
-            args.sets.insert(0, format!("camera.randomize={r}"));
-        }
+        let meta = f.fill(&mut args.world, &mut args.reward, &mut args.hyperparameters, &mut args.sets);
+        args.model_metadata = args.model_metadata.or(meta);
     }
     let reward_spec = args.reward.clone().unwrap_or_else(|| "builtin:center_line".into());
     let worlds_arg = if args.world.is_empty() { vec!["reinvent_base".to_string()] } else { args.world.clone() };

@@ -133,16 +133,11 @@ fn spawn(
 pub fn up(mut args: UpArgs) -> Result<i32> {
     args.sets = args.race.with_sets(&args.sets)?;
     if let Some(f) = args.race.run_env_files()? {
-        if args.world.is_empty() {
-            args.world.extend(f.world);
-        }
-        args.reward = args.reward.or(f.reward.map(|p| p.display().to_string()));
+        let meta = f.fill(&mut args.world, &mut args.reward, &mut args.hyperparameters, &mut args.sets);
+        // An explicit --sensor is the user's choice of model; the file's metadata does not
+        // override it.
         if args.sensor == "state" {
-            args.model_metadata = args.model_metadata.or(f.model_metadata);
-        }
-        args.hyperparameters = args.hyperparameters.or(f.hyperparameters);
-        if let Some(r) = f.randomize {
-            args.sets.insert(0, format!("camera.randomize={r}"));
+            args.model_metadata = args.model_metadata.or(meta);
         }
     }
     let out = args.out.clone().unwrap_or_else(|| {

@@ -323,6 +323,30 @@ fn solid(out: &mut Vec<Vertex>, eye: [f64; 3], o: &crate::objects::Object, size:
     }
 }
 
+/// Write `bytes` to the buffer in `slot`, first growing it (to a power of two, at least
+/// 4 KiB) when it is missing or too small.
+fn upload(
+    device: &wgpu::Device,
+    queue: &wgpu::Queue,
+    slot: &mut Option<(wgpu::Buffer, u64)>,
+    bytes: &[u8],
+    usage: wgpu::BufferUsages,
+    label: &str,
+) {
+    let len = bytes.len() as u64;
+    if slot.as_ref().is_none_or(|(_, cap)| *cap < len) {
+        let cap = len.next_power_of_two().max(4096);
+        let buf = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size: cap,
+            usage,
+            mapped_at_creation: false,
+        });
+        *slot = Some((buf, cap));
+    }
+    queue.write_buffer(&slot.as_ref().expect("made above").0, 0, bytes);
+}
+
 /// A quad's bounding circle in the plane, for culling.
 #[derive(Clone, Copy)]
 struct Item {
@@ -589,33 +613,13 @@ impl Renderer {
             object_ranges.push(start..object_vertices.len() as u32);
         }
         if !object_vertices.is_empty() {
-            let bytes = std::mem::size_of_val(object_vertices.as_slice()) as u64;
-            if self.object_vertices.as_ref().is_none_or(|(_, cap)| *cap < bytes) {
-                let cap = bytes.next_power_of_two().max(4096);
-                let buf = self.device.create_buffer(&wgpu::BufferDescriptor {
-                    label: Some("objects"),
-                    size: cap,
-                    usage: wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::COPY_DST,
-                    mapped_at_creation: false,
-                });
-                self.object_vertices = Some((buf, cap));
-            }
-            let (obuf, _) = self.object_vertices.as_ref().expect("made above");
-            self.queue.write_buffer(obuf, 0, bytemuck::cast_slice(&object_vertices));
+            let bytes: &[u8] = bytemuck::cast_slice(&object_vertices);
+            let usage = wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::COPY_DST;
+            upload(&self.device, &self.queue, &mut self.object_vertices, bytes, usage, "objects");
         }
-        let bytes = (indices.len() * 4) as u64;
-        if self.indices.as_ref().is_none_or(|(_, cap)| *cap < bytes) {
-            let cap = bytes.next_power_of_two().max(4096);
-            let buf = self.device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("indices"),
-                size: cap,
-                usage: wgpu::BufferUsages::INDEX | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            });
-            self.indices = Some((buf, cap));
-        }
-        let (ibuf, _) = self.indices.as_ref().expect("made above");
-        self.queue.write_buffer(ibuf, 0, bytemuck::cast_slice(&indices));
+        let usage = wgpu::BufferUsages::INDEX | wgpu::BufferUsages::COPY_DST;
+        upload(&self.device, &self.queue, &mut self.indices, bytemuck::cast_slice(&indices), usage, "indices");
+        let (ibuf, _) = self.indices.as_ref().expect("uploaded above");
         let (texture, readback, uniforms, bind, stencil) = self.target.as_ref().expect("ensured");
         let stencil_view = stencil.create_view(&wgpu::TextureViewDescriptor::default());
         let mut data = vec![0u8; (UNIFORM_STRIDE * n as u64) as usize];

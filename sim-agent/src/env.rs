@@ -27,7 +27,7 @@
 use crate::car::Car;
 use crate::config::{NoiseConfig, SimConfig};
 use crate::objects::{Contact, Traffic};
-use crate::params::{EpisodeClock, Pose, RewardParams, compute_params, object_params};
+use crate::params::{EpisodeClock, Pose, RewardParams, compute_params};
 use crate::reward::{BuiltinReward, RewardError, check_reward};
 use policy::{Action, MAX_SPEED, MAX_STEERING_DEG, MIN_SPEED};
 use rand::SeedableRng;
@@ -324,22 +324,15 @@ impl Env {
             let track = &self.spec.track;
             let t = self.clock.sim_time - self.episode_start;
             traffic.update(track, t, &mut self.rng);
-            let car = tracks::P2::new(self.pose.x, self.pose.y);
             if !held {
                 let lap_progress = (params.progress + self.start_ndist * 100.0).rem_euclid(100.0);
+                let car = tracks::P2::new(self.pose.x, self.pose.y);
                 contact = traffic.contact(track, car, self.pose.yaw, lap_progress);
                 if let Some(Contact::HitByBot(_)) = contact {
                     traffic.bots_hit(t);
                 }
             }
-            params.is_crashed = contact.is_some_and(Contact::is_crash);
-            params.objects = object_params(track, self.pose.front(), &traffic.track_objects(), traffic.bot_speed());
-            params.object_in_camera = crate::objects::object_in_camera(
-                car,
-                self.pose.yaw,
-                traffic.objects(),
-                params.objects.closest_objects[1],
-            );
+            traffic.fill_params(track, &self.pose, contact, &mut params);
         }
 
         let ep = &self.cfg.episode;

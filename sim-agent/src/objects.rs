@@ -11,7 +11,7 @@
 //! (plus the change's own duration) after the previous change; the blend is a smoothstep
 //! where DeepRacer's is a spline through the two lanes' vertices.
 
-use crate::params::TrackObject;
+use crate::params::{Pose, RewardParams, TrackObject, object_params};
 use crate::race::{RaceConfig, RaceType};
 use rand::Rng;
 use tracks::objects::{self, BOX_FOOTPRINT, CAR_FOOTPRINT, Lane, ObjectPose, Placement};
@@ -209,6 +209,9 @@ impl Traffic {
             }
             let at = |s: f64, w: f64| {
                 let a = track.lane_pose(bot.lane, s.rem_euclid(len)).position;
+                if w == 0.0 {
+                    return a;
+                }
                 let b = track.lane_pose(bot.lane.other(), s.rem_euclid(len)).position;
                 a + (b - a) * w
             };
@@ -257,6 +260,15 @@ impl Traffic {
                 if car_progress < bot_progress { Contact::RearEnded(i) } else { Contact::HitByBot(i) }
             }
         })
+    }
+
+    /// Fill the object keys of `params` for a car at `pose` that touched `contact` this step:
+    /// `is_crashed`, every `objects_*`, `closest_objects` and `object_in_camera`.
+    pub fn fill_params(&self, track: &Track, pose: &Pose, contact: Option<Contact>, params: &mut RewardParams) {
+        params.is_crashed = contact.is_some_and(Contact::is_crash);
+        params.objects = object_params(track, pose.front(), &self.track_objects(), self.bot_speed());
+        let car = P2::new(pose.x, pose.y);
+        params.object_in_camera = object_in_camera(car, pose.yaw, &self.objects, params.objects.closest_objects[1]);
     }
 
     /// A car ran into the bots from behind at `t`: they all stand still for the penalty

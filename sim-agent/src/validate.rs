@@ -6,7 +6,7 @@
 
 use crate::car::{CarParams, wheel_points_at};
 use crate::objects::Traffic;
-use crate::params::{EpisodeClock, Pose, compute_params, object_params};
+use crate::params::{EpisodeClock, Pose, compute_params};
 use crate::race::RaceConfig;
 use crate::reward::{RewardError, RewardFn, check_reward};
 use policy::{Action, ActionSpace};
@@ -94,11 +94,8 @@ pub fn validate_reward(
                 params.sim_time = params.steps / 15.0;
                 if let Some(t) = &traffic {
                     let at = tracks::P2::new(pose.x, pose.y);
-                    let lap = (params.progress).rem_euclid(100.0);
-                    params.is_crashed = t.contact(track, at, pose.yaw, lap).is_some_and(|c| c.is_crash());
-                    params.objects = object_params(track, pose.front(), &t.track_objects(), t.bot_speed());
-                    let next = params.objects.closest_objects[1];
-                    params.object_in_camera = crate::objects::object_in_camera(at, pose.yaw, t.objects(), next);
+                    let contact = t.contact(track, at, pose.yaw, params.progress.rem_euclid(100.0));
+                    t.fill_params(track, &pose, contact, &mut params);
                 }
                 let r = match reward {
                     RewardFn::Builtin(b) => check_reward(b.reward(&params), &params)?,
