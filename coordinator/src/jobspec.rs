@@ -129,8 +129,7 @@ pub fn parse(text: &str, base: &Path, origin: &str, id: &str) -> Result<Job> {
         None => SimConfig::default(),
     };
     let meta = ModelMetadata::parse(&model_metadata_json, "model_metadata.json")?;
-    sim.observation.kind =
-        sim_agent::config::observation_kind_for(&meta).map_err(|e| anyhow::anyhow!("{origin}: model_metadata: {e}"))?;
+    sim.observation.set_sensors(&meta).map_err(|e| anyhow::anyhow!("{origin}: model_metadata: {e}"))?;
     if spec.stop.minutes <= 0.0 || !spec.stop.minutes.is_finite() {
         bail!("{origin}: field 'stop.minutes' must be a positive number of minutes");
     }

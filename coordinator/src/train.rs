@@ -28,8 +28,11 @@ use tracks::Direction;
 
 /// The simulator configuration a model's sensors call for.
 fn check_sensors(meta: &ModelMetadata, cfg: &mut SimConfig) -> Result<()> {
-    cfg.observation.kind =
-        sim_agent::config::observation_kind_for(meta).map_err(|e| anyhow::anyhow!("model_metadata.json: {e}"))?;
+    cfg.observation.set_sensors(meta).map_err(|e| anyhow::anyhow!("model_metadata.json: {e}"))?;
+    let (sim, model) = (obs_dim(&cfg.observation), policy::model::input_size(meta, obs_dim(&cfg.observation)));
+    if sim != model {
+        anyhow::bail!("model_metadata.json: the network takes {model} values a step, the simulator gives {sim}");
+    }
     Ok(())
 }
 

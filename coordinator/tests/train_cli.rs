@@ -156,12 +156,19 @@ fn train_reads_deepracer_files_and_rejects_bad_ones_by_key() {
     let b = coordinator(d, &["train", "--hyperparameters", "bad.json", "--out", "run_bad"]);
     assert!(!b.status.success() && text(&b).contains("bad.json: key 'batch_size'"), "{}", text(&b));
     std::fs::write(
-        d.join("stereo.json"),
-        r#"{"action_space":[{"steering_angle":0,"speed":1}],"sensor":["FRONT_FACING_CAMERA","LIDAR"],"version":"5"}"#,
+        d.join("lidar.json"),
+        r#"{"action_space":[{"steering_angle":0,"speed":1}],"sensor":["FRONT_FACING_CAMERA","DISCRETIZED_SECTOR_LIDAR"],
+            "lidar_config":{"num_sectors":5},"version":"5"}"#,
     )
     .unwrap();
-    let c = coordinator(d, &["train", "--model-metadata", "stereo.json", "--out", "run_cam"]);
-    assert!(!c.status.success() && text(&c).contains("a camera with a LiDAR is not trained yet"), "{}", text(&c));
+    let c = coordinator(d, &["train", "--model-metadata", "lidar.json", "--out", "run_cam"]);
+    let out = text(&c);
+    assert!(
+        !c.status.success()
+            && out.contains("lidar.json: field 'lidar_config.num_sectors' is 5: 64 % Number of sector (n) must be 0!"),
+        "{out}"
+    );
+    assert!(!d.join("run_cam").exists(), "nothing was trained or written");
 }
 
 #[test]

@@ -278,7 +278,7 @@ fn subnet(net: &Net, layers: &[Layer]) -> Net {
             ref other => other.clone(),
         })
         .collect();
-    Net { layers: out, params }
+    Net { layers: out, params, inputs: Vec::new() }
 }
 
 impl CarPolicy {

@@ -180,8 +180,35 @@ pub struct ModelMetadata {
     pub training_algorithm: TrainingAlgorithm,
     /// Simapp version (parsed as a number by DeepRacer).
     pub version: f64,
+    /// How the LiDAR sensor in `sensor`, if any, is fed to the network.
+    pub lidar: Option<LidarInput>,
     /// The file as read, for round-tripping.
     pub raw: Map<String, Value>,
+}
+
+/// A LiDAR sensor's input to the network: the 64 clipped ranges (`LIDAR`), or per sector of
+/// consecutive rays a one-hot distance bin (`SECTOR_LIDAR`: 8 sectors, 1 value, 0.5 m;
+/// `DISCRETIZED_SECTOR_LIDAR`: its `lidar_config`, by default 8 × 8 within 2 m).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LidarInput {
+    /// Which LiDAR sensor.
+    pub sensor: Sensor,
+    /// Sectors (64 for `LIDAR`: a value per ray).
+    pub sectors: usize,
+    /// Values per sector (distance bins).
+    pub values: usize,
+    /// Readings beyond this distance (m) count as nothing (`LIDAR`: clipped to [0.15, 1.0]).
+    pub clip: f32,
+}
+
+impl LidarInput {
+    /// The rays of DeepRacer's simulated LiDAR.
+    pub const RAYS: usize = 64;
+
+    /// Values per sample.
+    pub fn size(&self) -> usize {
+        self.sectors * self.values
+    }
 }
 
 /// Why a `model_metadata.json` was refused.
@@ -282,6 +309,16 @@ impl ModelMetadata {
         if lidars > 1 {
             return Err(err(format!("field 'sensor': model_metadata contains more than 1 lidar sensor: {names:?}")));
         }
+        let lidar = match sensor.iter().find(|s| !s.is_primary()) {
+            Some(&Sensor::DiscretizedSectorLidar) => Some(parse_lidar_config(raw.get("lidar_config")).map_err(err)?),
+            Some(&Sensor::SectorLidar) => {
+                Some(LidarInput { sensor: Sensor::SectorLidar, sectors: 8, values: 1, clip: 0.5 })
+            }
+            Some(&Sensor::Lidar) => {
+                Some(LidarInput { sensor: Sensor::Lidar, sectors: LidarInput::RAYS, values: 1, clip: 1.0 })
+            }
+            _ => None,
+        };
         let state = sensor.contains(&Sensor::StateVector);
         if state != (neural_network == NeuralNetwork::PaddockMlp) {
             return Err(err(format!(
@@ -290,7 +327,7 @@ impl ModelMetadata {
                 neural_network.name()
             )));
         }
-        Ok(ModelMetadata { action_space, sensor, neural_network, training_algorithm, version, raw })
+        Ok(ModelMetadata { action_space, sensor, neural_network, training_algorithm, version, lidar, raw })
     }
 
     /// Paddock's default for state-vector training: 5 steering angles × 2 speeds, discrete.
@@ -307,6 +344,7 @@ impl ModelMetadata {
             neural_network: NeuralNetwork::PaddockMlp,
             training_algorithm: TrainingAlgorithm::ClippedPpo,
             version: 5.0,
+            lidar: None,
             raw: Map::new(),
         };
         let text = meta.to_json();
@@ -400,6 +438,44 @@ impl ModelMetadata {
         }
         Ok(())
     }
+}
+
+/// `lidar_config` for `DISCRETIZED_SECTOR_LIDAR`, with DeepRacer's defaults and checks
+/// (`DiscretizedSectorLidarDefaults`, `parse_model_metadata`).
+fn parse_lidar_config(config: Option<&Value>) -> Result<LidarInput, String> {
+    let mut out = LidarInput { sensor: Sensor::DiscretizedSectorLidar, sectors: 8, values: 8, clip: 2.0 };
+    let Some(config) = config else { return Ok(out) };
+    let Value::Object(config) = config else {
+        return Err(format!("field 'lidar_config' is {config}, expected an object"));
+    };
+    let count = |key: &str, default: usize| match config.get(key) {
+        None => Ok(default),
+        Some(v) => v
+            .as_u64()
+            .or_else(|| v.as_f64().filter(|f| f.fract() == 0.0 && *f >= 0.0).map(|f| f as u64))
+            .map(|n| n as usize)
+            .ok_or_else(|| format!("field 'lidar_config.{key}' is {v}, expected a whole number")),
+    };
+    out.sectors = count("num_sectors", 8)?;
+    if out.sectors == 0 || !LidarInput::RAYS.is_multiple_of(out.sectors) {
+        return Err(format!(
+            "field 'lidar_config.num_sectors' is {}: 64 % Number of sector (n) must be 0! (1, 2, 4, 8, 16, 32 or 64)",
+            out.sectors
+        ));
+    }
+    out.values = count("num_values_per_sector", 8)?;
+    if out.values == 0 {
+        return Err("field 'lidar_config.num_values_per_sector' is 0, expected at least 1".into());
+    }
+    if let Some(v) = config.get("clipping_dist") {
+        let clip = number(v, "lidar_config.clipping_dist")?;
+        if clip <= 0.0 {
+            return Err(format!("field 'lidar_config.clipping_dist' is {clip}, expected a distance over 0 m"));
+        }
+        // DeepRacer's filter clamps it to the sensor's range.
+        out.clip = clip.clamp(0.15, 12.0) as f32;
+    }
+    Ok(out)
 }
 
 fn number(v: &Value, field: &str) -> Result<f64, String> {
@@ -499,10 +575,58 @@ mod tests {
                 "model_metadata contains more than 1 lidar sensor",
             ),
             (r#"{"action_space":[{"steering_angle":0,"speed":1}],"training_algorithm":"sac"}"#, "needs a continuous"),
+            (
+                r#"{"action_space":[{"steering_angle":0,"speed":1}],"version":"4","sensor":["FRONT_FACING_CAMERA","DISCRETIZED_SECTOR_LIDAR"],"lidar_config":{"num_sectors":3}}"#,
+                "field 'lidar_config.num_sectors' is 3: 64 % Number of sector (n) must be 0!",
+            ),
+            (
+                r#"{"action_space":[{"steering_angle":0,"speed":1}],"version":"4","sensor":["FRONT_FACING_CAMERA","DISCRETIZED_SECTOR_LIDAR"],"lidar_config":{"num_values_per_sector":0}}"#,
+                "field 'lidar_config.num_values_per_sector' is 0",
+            ),
+            (
+                r#"{"action_space":[{"steering_angle":0,"speed":1}],"version":"4","sensor":["FRONT_FACING_CAMERA","DISCRETIZED_SECTOR_LIDAR"],"lidar_config":{"clipping_dist":"far"}}"#,
+                "field 'lidar_config.clipping_dist' is \"far\", expected a number",
+            ),
         ];
         for (text, want) in cases {
             let e = ModelMetadata::parse(text, "bad.json").expect_err(want).to_string();
             assert!(e.starts_with("bad.json: ") && e.contains(want), "{want}: {e}");
+        }
+    }
+
+    #[test]
+    fn issue_31_lidar_inputs_as_deepracer_reads_them() {
+        let parse = |sensors: &str, extra: &str| {
+            ModelMetadata::parse(
+                &format!(
+                    r#"{{"action_space":[{{"steering_angle":0,"speed":1}}],"version":"5","sensor":[{sensors}]{extra}}}"#
+                ),
+                "m.json",
+            )
+            .unwrap()
+            .lidar
+        };
+        let l = |sensor, sectors, values, clip| Some(LidarInput { sensor, sectors, values, clip });
+        // (sensors, lidar_config, what the network gets)
+        let table = [
+            (r#""FRONT_FACING_CAMERA""#, "", None),
+            (r#""FRONT_FACING_CAMERA","LIDAR""#, "", l(Sensor::Lidar, 64, 1, 1.0)),
+            (r#""STEREO_CAMERAS","SECTOR_LIDAR""#, "", l(Sensor::SectorLidar, 8, 1, 0.5)),
+            // SECTOR_LIDAR ignores lidar_config, as DeepRacer does.
+            (
+                r#""FRONT_FACING_CAMERA","SECTOR_LIDAR""#,
+                r#","lidar_config":{"num_sectors":4}"#,
+                l(Sensor::SectorLidar, 8, 1, 0.5),
+            ),
+            (r#""FRONT_FACING_CAMERA","DISCRETIZED_SECTOR_LIDAR""#, "", l(Sensor::DiscretizedSectorLidar, 8, 8, 2.0)),
+            (
+                r#""FRONT_FACING_CAMERA","DISCRETIZED_SECTOR_LIDAR""#,
+                r#","lidar_config":{"num_sectors":16,"num_values_per_sector":4,"clipping_dist":20}"#,
+                l(Sensor::DiscretizedSectorLidar, 16, 4, 12.0),
+            ),
+        ];
+        for (sensors, extra, want) in table {
+            assert_eq!(parse(sensors, extra), want, "{sensors} {extra}");
         }
     }
 }

@@ -142,10 +142,11 @@ pub fn tower_specs(network: NeuralNetwork, stereo: bool) -> Vec<LayerSpec> {
     }
 }
 
-/// The network input for a model: the camera frame, or a vector of `obs_size`.
+/// The network input for a model's camera (or state vector): the camera frame (two
+/// channels for the stereo pair), or a vector of `obs_size`.
 pub fn input_shape(meta: &ModelMetadata, obs_size: usize) -> InputShape {
     if meta.sensor.contains(&Sensor::StateVector) {
-        InputShape::Flat(obs_size)
+        InputShape::Flat(obs_size - inputs_beside(meta))
     } else {
         let (h, w, c) = CAMERA_SHAPE;
         let c = if meta.sensor.contains(&Sensor::StereoCameras) { 2 } else { c };
@@ -153,22 +154,69 @@ pub fn input_shape(meta: &ModelMetadata, obs_size: usize) -> InputShape {
     }
 }
 
+fn inputs_beside(meta: &ModelMetadata) -> usize {
+    if meta.sensor.contains(&Sensor::StateVector) { 0 } else { meta.lidar.map_or(0, |l| l.size()) }
+}
+
+/// A model's network inputs in the order a sample holds them and the network concatenates
+/// their embeddings: DeepRacer's sorted input names (COACH's `merger`), so
+/// `FRONT_FACING_CAMERA` comes before `SECTOR_LIDAR`, and `LIDAR` before `STEREO_CAMERAS`.
+/// One input for a camera alone or the state vector (whose lidar is part of its vector).
+pub fn inputs(meta: &ModelMetadata, obs_size: usize) -> Vec<(Sensor, InputShape)> {
+    let primary = *meta.sensor.iter().find(|s| s.is_primary()).expect("a parsed metadata has one camera");
+    let mut out = vec![(primary, input_shape(meta, obs_size))];
+    if let (Some(lidar), false) = (meta.lidar, primary == Sensor::StateVector) {
+        out.push((lidar.sensor, InputShape::Flat(lidar.size())));
+        out.sort_by_key(|(s, _)| s.name());
+    }
+    out
+}
+
+/// Values per sample a model takes (`obs_size` for the state vector, whose length the
+/// simulator's configuration decides).
+pub fn input_size(meta: &ModelMetadata, obs_size: usize) -> usize {
+    inputs(meta, obs_size).iter().map(|(_, s)| s.size()).sum()
+}
+
+/// DeepRacer's LiDAR embedder (`sensors/utils.py`): two dense layers of 256.
+pub const LIDAR_EMBEDDER: [LayerSpec; 4] =
+    [LayerSpec::Dense(256), LayerSpec::Relu, LayerSpec::Dense(256), LayerSpec::Relu];
+
+/// One tower for `meta`, its output layer `out` wide.
+fn tower(
+    meta: &ModelMetadata,
+    obs_size: usize,
+    out: usize,
+    last_std: impl Fn(&[LayerSpec]) -> f32,
+    rng: &mut impl Rng,
+) -> Net {
+    let mut specs = tower_specs(meta.neural_network, meta.sensor.contains(&Sensor::StereoCameras));
+    specs.push(LayerSpec::Dense(out));
+    let inputs = inputs(meta, obs_size);
+    if let [(_, shape)] = inputs[..] {
+        return Net::new(shape, &specs, Some(last_std(&specs)), rng);
+    }
+    // The camera's layers up to the middleware are its embedder; the LiDAR has its own.
+    let middle = specs.iter().position(|s| matches!(s, LayerSpec::Dense(_))).expect("a dense layer");
+    let (camera, trunk) = specs.split_at(middle);
+    let parts: Vec<(&str, InputShape, &[LayerSpec])> = inputs
+        .iter()
+        .map(|&(s, shape)| (s.name(), shape, if s.is_primary() { camera } else { &LIDAR_EMBEDDER[..] }))
+        .collect();
+    Net::new_multi(&parts, trunk, Some(last_std(trunk)), rng)
+}
+
 impl ActorCritic {
     /// A freshly initialised model for `meta` (state-vector models take `obs_size` inputs).
     pub fn new(meta: &ModelMetadata, obs_size: usize, rng: &mut impl Rng) -> ActorCritic {
-        let input = input_shape(meta, obs_size);
-        let mut pi_specs = tower_specs(meta.neural_network, meta.sensor.contains(&Sensor::StereoCameras));
-        let mut v_specs = pi_specs.clone();
         let head = match meta.action_space {
             ActionSpace::Discrete(ref a) => Head::Categorical(a.len()),
             ActionSpace::Continuous { .. } => Head::Gaussian { log_std: [0.0, 0.0] },
         };
-        pi_specs.push(LayerSpec::Dense(meta.action_space.dim()));
-        v_specs.push(LayerSpec::Dense(1));
         // Small initial policy outputs: near-uniform actions at the start (DeepRacer's
         // continuous head uses std 0.01); value head with unit-scale weights.
-        let pi = Net::new(input, &pi_specs, Some(0.01), rng);
-        let v = Net::new(input, &v_specs, Some(1.0 / (tower_width(&v_specs) as f32).sqrt()), rng);
+        let pi = tower(meta, obs_size, meta.action_space.dim(), |_| 0.01, rng);
+        let v = tower(meta, obs_size, 1, |specs| 1.0 / (tower_width(specs) as f32).sqrt(), rng);
         ActorCritic { pi, v, head }
     }
 

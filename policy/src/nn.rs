@@ -146,13 +146,41 @@ impl Layer {
     }
 }
 
-/// A sequential network: layers and one flat parameter vector.
+/// A network: layers and one flat parameter vector. Sequential from one input, or, for
+/// several inputs (DeepRacer's camera and LiDAR), one embedder per input whose outputs are
+/// concatenated, in input order, into the rest of the layers (COACH's `merger`).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Net {
-    /// The layers, in order.
+    /// The layers, in order: each input's embedder in turn (see `inputs`), then the layers
+    /// that take their concatenated outputs.
     pub layers: Vec<Layer>,
     /// All parameters.
     pub params: Vec<f32>,
+    /// The inputs of a multi-input network, in the order their values sit in a sample and
+    /// their embedders' outputs are concatenated; empty for a sequential network.
+    pub inputs: Vec<Embedder>,
+}
+
+/// One input of a multi-input network and its embedder.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Embedder {
+    /// The input's name (DeepRacer's sensor name: the graph's placeholder).
+    pub name: String,
+    /// The input's shape.
+    pub shape: InputShape,
+    /// How many of the network's layers, from where the previous embedder's end, are this
+    /// input's embedder (0: the input goes into the concatenation as it is).
+    pub layers: usize,
+}
+
+impl InputShape {
+    /// Values per sample.
+    pub fn size(self) -> usize {
+        match self {
+            InputShape::Flat(n) => n,
+            InputShape::Image(h, w, c) => h * w * c,
+        }
+    }
 }
 
 /// What a forward pass keeps for the backward pass, and the backward pass's scratch
@@ -160,7 +188,8 @@ pub struct Net {
 /// allocates nothing.
 #[derive(Default, Debug)]
 pub struct Tape {
-    /// Input of every layer, then the final output.
+    /// Input of every layer, then the final output (a multi-input network: each embedder's
+    /// input, layers' inputs and output in turn, then the concatenation and the rest).
     acts: Vec<Vec<f32>>,
     /// The conv layers' scratch, one per thread's share of the samples.
     conv: Vec<ConvScratch>,
@@ -172,6 +201,8 @@ pub struct Tape {
     spare: Vec<Vec<f32>>,
     /// A dense layer's output as `out × batch`, before it is turned into `batch × out`.
     out_t: Vec<f32>,
+    /// A multi-input network's gradient wrt its concatenated embeddings.
+    merged: Vec<f32>,
 }
 
 impl Tape {
@@ -209,6 +240,37 @@ pub enum InputShape {
     Image(usize, usize, usize),
 }
 
+/// Append the layers of `specs` on an input of `input` to `layers`, their parameters from
+/// `offset` on; returns the features per sample coming out.
+fn push_layers(input: InputShape, specs: &[LayerSpec], layers: &mut Vec<Layer>, offset: &mut usize) -> usize {
+    let (mut flat, mut image) = match input {
+        InputShape::Flat(n) => (n, None),
+        InputShape::Image(h, w, c) => (h * w * c, Some([h, w, c])),
+    };
+    for spec in specs {
+        let layer = match *spec {
+            LayerSpec::Scale(factor) => Layer::Scale { size: flat, factor },
+            LayerSpec::Relu => Layer::Relu { size: flat },
+            LayerSpec::Dense(out) => {
+                image = None;
+                Layer::Dense { inp: flat, out, offset: *offset }
+            }
+            LayerSpec::Conv(filters, kernel, stride) => {
+                let input = image.expect("a conv layer needs an image input");
+                Layer::Conv2d { input, filters, kernel, stride, offset: *offset }
+            }
+        };
+        *offset += layer.param_count();
+        flat = layer.out_size();
+        if let Layer::Conv2d { filters, .. } = layer {
+            let [oh, ow] = layer.conv_out();
+            image = Some([oh, ow, filters]);
+        }
+        layers.push(layer);
+    }
+    flat
+}
+
 impl Net {
     /// Build a network; weights are drawn with He-normal scaling from `rng`, biases zero.
     /// `last_std`, when given, is the standard deviation of the final dense layer's weights
@@ -216,32 +278,33 @@ impl Net {
     pub fn new(input: InputShape, specs: &[LayerSpec], last_std: Option<f32>, rng: &mut impl Rng) -> Net {
         let mut layers = Vec::new();
         let mut offset = 0;
-        let (mut flat, mut image) = match input {
-            InputShape::Flat(n) => (n, None),
-            InputShape::Image(h, w, c) => (h * w * c, Some([h, w, c])),
-        };
-        for spec in specs {
-            let layer = match *spec {
-                LayerSpec::Scale(factor) => Layer::Scale { size: flat, factor },
-                LayerSpec::Relu => Layer::Relu { size: flat },
-                LayerSpec::Dense(out) => {
-                    image = None;
-                    Layer::Dense { inp: flat, out, offset }
-                }
-                LayerSpec::Conv(filters, kernel, stride) => {
-                    let input = image.expect("a conv layer needs an image input");
-                    Layer::Conv2d { input, filters, kernel, stride, offset }
-                }
-            };
-            offset += layer.param_count();
-            flat = layer.out_size();
-            if let Layer::Conv2d { filters, .. } = layer {
-                let [oh, ow] = layer.conv_out();
-                image = Some([oh, ow, filters]);
-            }
-            layers.push(layer);
+        push_layers(input, specs, &mut layers, &mut offset);
+        Net::init(layers, offset, Vec::new(), last_std, rng)
+    }
+
+    /// A network of several inputs: each `(name, shape, embedder)` in the order of a sample's
+    /// values, their embedders' (flattened) outputs concatenated in that order into `trunk`.
+    pub fn new_multi(
+        inputs: &[(&str, InputShape, &[LayerSpec])],
+        trunk: &[LayerSpec],
+        last_std: Option<f32>,
+        rng: &mut impl Rng,
+    ) -> Net {
+        let mut layers = Vec::new();
+        let mut offset = 0;
+        let mut merged = 0;
+        let mut embedders = Vec::new();
+        for (name, shape, specs) in inputs {
+            let before = layers.len();
+            merged += push_layers(*shape, specs, &mut layers, &mut offset);
+            embedders.push(Embedder { name: name.to_string(), shape: *shape, layers: layers.len() - before });
         }
-        let mut params = vec![0.0f32; offset];
+        push_layers(InputShape::Flat(merged), trunk, &mut layers, &mut offset);
+        Net::init(layers, offset, embedders, last_std, rng)
+    }
+
+    fn init(layers: Vec<Layer>, n: usize, inputs: Vec<Embedder>, last_std: Option<f32>, rng: &mut impl Rng) -> Net {
+        let mut params = vec![0.0f32; n];
         let last_dense = layers.iter().rposition(|l| matches!(l, Layer::Dense { .. }));
         for (i, layer) in layers.iter().enumerate() {
             let (fan_in, n_w, off) = match *layer {
@@ -260,12 +323,29 @@ impl Net {
                 *p = normal.sample(rng);
             }
         }
-        Net { layers, params }
+        Net { layers, params, inputs }
+    }
+
+    /// The layers of each embedder (in input order) and then of the rest, as index ranges;
+    /// one range, all layers, for a sequential network.
+    pub fn sections(&self) -> Vec<std::ops::Range<usize>> {
+        let mut out = Vec::new();
+        let mut at = 0;
+        for e in &self.inputs {
+            out.push(at..at + e.layers);
+            at += e.layers;
+        }
+        out.push(at..self.layers.len());
+        out
     }
 
     /// Features per sample in.
     pub fn in_size(&self) -> usize {
-        self.layers.first().map(|l| l.in_size()).unwrap_or(0)
+        if self.inputs.is_empty() {
+            self.layers.first().map(|l| l.in_size()).unwrap_or(0)
+        } else {
+            self.inputs.iter().map(|e| e.shape.size()).sum()
+        }
     }
 
     /// Features per sample out.
@@ -276,18 +356,56 @@ impl Net {
     /// Forward a batch (`batch × in`), keeping what backward needs in `tape`.
     pub fn forward(&self, x: &[f32], batch: usize, tape: &mut Tape, par: Par) {
         assert_eq!(x.len(), batch * self.in_size(), "input size");
-        tape.acts.resize_with(self.layers.len() + 1, Vec::new);
+        let sections = self.sections();
+        tape.acts.resize_with(self.layers.len() + sections.len(), Vec::new);
         tape.batch = batch;
-        tape.acts[0].clear();
-        tape.acts[0].extend_from_slice(x);
+        if self.inputs.is_empty() {
+            tape.acts[0].clear();
+            tape.acts[0].extend_from_slice(x);
+            self.forward_layers(0..self.layers.len(), 0, batch, tape, par);
+            return;
+        }
+        // Each input's values out of every sample, through its embedder.
+        let per = self.in_size();
+        let mut at = 0;
+        for (j, (e, range)) in self.inputs.iter().zip(&sections).enumerate() {
+            let n = e.shape.size();
+            let slot = &mut tape.acts[range.start + j];
+            slot.clear();
+            for row in x.chunks_exact(per) {
+                slot.extend_from_slice(&row[at..at + n]);
+            }
+            at += n;
+            self.forward_layers(range.clone(), j, batch, tape, par);
+        }
+        // Their outputs, concatenated sample by sample, into the rest.
+        let trunk = sections.last().expect("the rest").clone();
+        let nb = self.inputs.len();
+        let mut merged = std::mem::take(&mut tape.acts[trunk.start + nb]);
+        merged.clear();
+        for b in 0..batch {
+            for (j, range) in sections[..nb].iter().enumerate() {
+                let out = &tape.acts[range.end + j];
+                let n = out.len() / batch;
+                merged.extend_from_slice(&out[b * n..(b + 1) * n]);
+            }
+        }
+        tape.acts[trunk.start + nb] = merged;
+        self.forward_layers(trunk, nb, batch, tape, par);
+    }
+
+    /// Forward through the layers `range`, whose inputs are the tape's slots `range` shifted
+    /// by `shift` (the slot of layer `i`'s input is `i + shift`, its output's `i + shift + 1`).
+    fn forward_layers(&self, range: std::ops::Range<usize>, shift: usize, batch: usize, tape: &mut Tape, par: Par) {
         let mut done = false;
-        for (i, layer) in self.layers.iter().enumerate() {
+        for i in range.clone() {
+            let layer = &self.layers[i];
             if std::mem::take(&mut done) {
                 // A ReLU its conv layer applied.
                 continue;
             }
-            let (before, after) = tape.acts.split_at_mut(i + 1);
-            let inp = &before[i];
+            let (before, after) = tape.acts.split_at_mut(i + shift + 1);
+            let inp = &before[i + shift];
             let (out, rest) = after.split_first_mut().expect("an output per layer");
             out.resize(batch * layer.out_size(), 0.0);
             match *layer {
@@ -327,7 +445,7 @@ impl Net {
                     let b = &self.params[offset + filters * kkc..offset + filters * kkc + filters];
                     // A ReLU after it is applied chunk by chunk, while the output is in cache.
                     let relu = match self.layers.get(i + 1) {
-                        Some(Layer::Relu { .. }) => {
+                        Some(Layer::Relu { .. }) if i + 1 < range.end => {
                             rest[0].resize(out.len(), 0.0);
                             done = true;
                             Some(&mut rest[0][..])
@@ -377,9 +495,56 @@ impl Net {
         let mut d_prev = std::mem::take(&mut tape.d_prev);
         d.clear();
         d.extend_from_slice(d_out);
-        for (i, layer) in self.layers.iter().enumerate().rev() {
-            let inp = &tape.acts[i];
-            let need_dx = self.layers[..i].iter().any(|l| l.param_count() > 0);
+        let sections = self.sections();
+        let nb = self.inputs.len();
+        let trunk = sections.last().expect("the rest").clone();
+        let mut pass = Backward { tape, grad, par, defer, factors };
+        self.backward_layers(trunk.clone(), nb, 0, &mut d, &mut d_prev, &mut pass);
+        if nb > 0 {
+            // The gradient wrt the concatenation, split between the embedders.
+            let mut merged = std::mem::take(&mut pass.tape.merged);
+            merged.clear();
+            merged.extend_from_slice(&d[..batch * self.layers[trunk.start].in_size()]);
+            let width = merged.len() / batch.max(1);
+            let mut at = 0;
+            for (j, range) in sections[..nb].iter().enumerate() {
+                let n = pass.tape.acts[range.end + j].len() / batch.max(1);
+                if range.is_empty() || !self.layers[range.clone()].iter().any(|l| l.param_count() > 0) {
+                    at += n;
+                    continue;
+                }
+                d.clear();
+                for row in merged.chunks_exact(width) {
+                    d.extend_from_slice(&row[at..at + n]);
+                }
+                at += n;
+                self.backward_layers(range.clone(), j, range.start, &mut d, &mut d_prev, &mut pass);
+            }
+            pass.tape.merged = merged;
+        }
+        pass.tape.d = d;
+        pass.tape.d_prev = d_prev;
+    }
+
+    /// Backward through the layers `range` (tape slots shifted by `shift`, as in
+    /// [`Net::forward_layers`]) from `d`, the gradient wrt their output; an input gradient
+    /// is computed as long as a layer from `first` on before it has parameters.
+    fn backward_layers(
+        &self,
+        range: std::ops::Range<usize>,
+        shift: usize,
+        first: usize,
+        d: &mut Vec<f32>,
+        d_prev: &mut Vec<f32>,
+        pass: &mut Backward<'_, '_>,
+    ) {
+        let Backward { tape, grad, par, defer, factors } = pass;
+        let (par, defer) = (*par, *defer);
+        let batch = tape.batch;
+        for i in range.clone().rev() {
+            let layer = &self.layers[i];
+            let inp = &tape.acts[i + shift];
+            let need_dx = self.layers[first..i].iter().any(|l| l.param_count() > 0);
             match *layer {
                 Layer::Scale { factor, .. } => {
                     if !need_dx {
@@ -389,7 +554,7 @@ impl Net {
                     continue;
                 }
                 Layer::Relu { .. } => {
-                    if i > 0 && matches!(self.layers[i - 1], Layer::Conv2d { .. }) {
+                    if i > range.start && matches!(self.layers[i - 1], Layer::Conv2d { .. }) {
                         // The conv layer before masks the gradient chunk by chunk.
                         continue;
                     }
@@ -405,11 +570,11 @@ impl Net {
                     if defer.contains(&i) {
                         // The layer's input is not read again by this pass: hand it out as it
                         // is, and leave a spare buffer for the next forward pass to fill.
-                        let x = std::mem::replace(&mut tape.acts[i], tape.spare.pop().unwrap_or_default());
+                        let x = std::mem::replace(&mut tape.acts[i + shift], tape.spare.pop().unwrap_or_default());
                         factors.push(Factors { offset, n_in, n_out, batch, x, d: d.clone() });
                     } else {
                         // dW (out × in) += dᵀ (out × batch) · x (batch × in)
-                        gemm(gw, n_out, n_in, batch, &d, true, inp, false, true, par);
+                        gemm(gw, n_out, n_in, batch, d, true, inp, false, true, par);
                     }
                     for row in d.chunks(n_out) {
                         for (g, v) in gb.iter_mut().zip(row) {
@@ -419,7 +584,7 @@ impl Net {
                     if need_dx {
                         d_prev.resize(batch * n_in, 0.0);
                         let w = &self.params[offset..offset + n_in * n_out];
-                        gemm(&mut d_prev, batch, n_in, n_out, &d, false, w, false, false, par);
+                        gemm(d_prev, batch, n_in, n_out, d, false, w, false, false, par);
                     }
                 }
                 Layer::Conv2d { filters, offset, .. } => {
@@ -427,7 +592,7 @@ impl Net {
                     let w = &self.params[offset..offset + filters * kkc];
                     let sums = grad[offset..offset + filters * kkc + filters].split_at_mut(filters * kkc);
                     let relu_in = match self.layers.get(i + 1) {
-                        Some(Layer::Relu { .. }) => Some(&tape.acts[i + 1][..]),
+                        Some(Layer::Relu { .. }) if i + 1 < range.end => Some(&tape.acts[i + shift + 1][..]),
                         _ => None,
                     };
                     let dx = if need_dx {
@@ -437,17 +602,24 @@ impl Net {
                     } else {
                         None
                     };
-                    conv_backward(layer, inp, &mut d, relu_in, dx, w, sums, &mut tape.conv, par);
+                    conv_backward(layer, inp, d, relu_in, dx, w, sums, &mut tape.conv, par);
                 }
             }
             if !need_dx {
                 break;
             }
-            std::mem::swap(&mut d, &mut d_prev);
+            std::mem::swap(d, d_prev);
         }
-        tape.d = d;
-        tape.d_prev = d_prev;
     }
+}
+
+/// What one backward pass carries through every section of a network.
+struct Backward<'t, 'f> {
+    tape: &'t mut Tape,
+    grad: &'t mut [f32],
+    par: Par,
+    defer: &'t [usize],
+    factors: &'f mut Vec<Factors>,
 }
 
 /// A dense layer's weight gradient as its factors, `dW = dᵀ · x`: what a learner team's

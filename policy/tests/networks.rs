@@ -92,3 +92,48 @@ fn shallow_layer_shapes_follow_the_reference() {
         "pixels scaled /255 inside the model"
     );
 }
+
+#[test]
+fn issue_31_camera_and_lidar_networks_concatenate_embedders_in_deepracers_order() {
+    let meta = |sensors: &str, network: NeuralNetwork| {
+        ModelMetadata::parse(
+            &format!(
+                r#"{{"action_space":[{{"steering_angle":0,"speed":1}},{{"steering_angle":10,"speed":1}}],"sensor":[{sensors}],"neural_network":"{}","version":"5"}}"#,
+                network.name()
+            ),
+            "m.json",
+        )
+        .unwrap()
+    };
+    let shallow = NeuralNetwork::DeepConvolutionalNetworkShallow;
+    let lidar_embedder = |n: usize| n * 256 + 256 + 256 * 256 + 256;
+    // (sensors, inputs in order, merged width, parameters of the policy tower)
+    let camera = tower(shallow).params.len();
+    let mono_convs = camera - 11_264 * 512 - 512;
+    let table = [
+        (r#""FRONT_FACING_CAMERA","SECTOR_LIDAR""#, vec!["FRONT_FACING_CAMERA", "SECTOR_LIDAR"], 11_264 + 256, 8),
+        (r#""FRONT_FACING_CAMERA","LIDAR""#, vec!["FRONT_FACING_CAMERA", "LIDAR"], 11_264 + 256, 64),
+        (
+            r#""FRONT_FACING_CAMERA","DISCRETIZED_SECTOR_LIDAR""#,
+            vec!["DISCRETIZED_SECTOR_LIDAR", "FRONT_FACING_CAMERA"],
+            256 + 11_264,
+            64,
+        ),
+        (r#""STEREO_CAMERAS","LIDAR""#, vec!["LIDAR", "STEREO_CAMERAS"], 256 + 11_264, 64),
+        (r#""STEREO_CAMERAS","SECTOR_LIDAR""#, vec!["SECTOR_LIDAR", "STEREO_CAMERAS"], 256 + 11_264, 8),
+    ];
+    for (sensors, order, merged, lidar) in table {
+        let m = meta(sensors, shallow);
+        let net = policy::ActorCritic::new(&m, 0, &mut rand_chacha::ChaCha8Rng::seed_from_u64(1)).pi;
+        let names: Vec<&str> = net.inputs.iter().map(|e| e.name.as_str()).collect();
+        assert_eq!(names, order, "{sensors}");
+        let frame = if sensors.contains("STEREO") { 2 * 19_200 } else { 19_200 };
+        assert_eq!(net.in_size(), frame + lidar, "{sensors}");
+        assert_eq!(policy::model::input_size(&m, 0), frame + lidar, "{sensors}");
+        let trunk = net.sections().last().unwrap().start;
+        assert!(matches!(net.layers[trunk], Layer::Dense { inp, out: 512, .. } if inp == merged), "{sensors}");
+        let convs = if sensors.contains("STEREO") { mono_convs + 8 * 8 * 32 } else { mono_convs };
+        let head = 512 * 2 + 2;
+        assert_eq!(net.params.len(), convs + lidar_embedder(lidar) + merged * 512 + 512 + head, "{sensors}");
+    }
+}

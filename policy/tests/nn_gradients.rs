@@ -14,7 +14,11 @@ fn loss(net: &Net, x: &[f32], batch: usize, c: &[f32]) -> f64 {
 
 fn check(input: InputShape, specs: &[LayerSpec], batch: usize, seed: u64) {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let mut net = Net::new(input, specs, None, &mut rng);
+    let net = Net::new(input, specs, None, &mut rng);
+    check_net(net, batch, &format!("{specs:?}"), &mut rng);
+}
+
+fn check_net(mut net: Net, batch: usize, what: &str, rng: &mut ChaCha8Rng) {
     // Non-zero biases so ReLUs sit away from their kink for most units.
     for p in net.params.iter_mut() {
         *p += rng.random_range(-0.05..0.05);
@@ -47,7 +51,7 @@ fn check(input: InputShape, specs: &[LayerSpec], batch: usize, seed: u64) {
     // A ReLU kink inside ±h can spoil a rare difference quotient; a wrong backward spoils most.
     assert!(
         bad.len() <= checked / 50,
-        "{specs:?}: {} of {checked} gradients disagree: {:?}",
+        "{what}: {} of {checked} gradients disagree: {:?}",
         bad.len(),
         &bad[..bad.len().min(5)]
     );
@@ -362,4 +366,67 @@ fn issue_8_a_forward_pass_over_no_samples_gives_no_output() {
     let mut tape = Tape::default();
     net.forward(&[], 0, &mut tape, Par::Seq);
     assert!(tape.output().is_empty());
+}
+
+/// DeepRacer's camera + LiDAR network in small: a conv embedder and a dense embedder whose
+/// outputs are concatenated into the middleware and the head.
+fn two_input_net(rng: &mut ChaCha8Rng) -> Net {
+    use LayerSpec::*;
+    Net::new_multi(
+        &[
+            ("FRONT_FACING_CAMERA", InputShape::Image(12, 14, 1), &[Scale(0.5), Conv(4, 3, 2), Relu]),
+            ("SECTOR_LIDAR", InputShape::Flat(8), &[Dense(6), Relu, Dense(5), Relu]),
+        ],
+        &[Dense(7), Relu, Dense(3)],
+        None,
+        rng,
+    )
+}
+
+#[test]
+fn issue_31_a_two_input_network_matches_finite_differences_in_every_embedder() {
+    let mut rng = ChaCha8Rng::seed_from_u64(31);
+    let net = two_input_net(&mut rng);
+    assert_eq!(net.in_size(), 12 * 14 + 8);
+    assert_eq!(net.sections(), [0..3, 3..7, 7..10]);
+    check_net(net, 3, "camera + lidar", &mut rng);
+    // An input with no embedder of its own goes into the concatenation as it is.
+    let net = Net::new_multi(
+        &[("A", InputShape::Flat(4), &[LayerSpec::Dense(3), LayerSpec::Relu]), ("B", InputShape::Flat(2), &[])],
+        &[LayerSpec::Dense(2)],
+        None,
+        &mut rng,
+    );
+    check_net(net, 4, "dense + bare input", &mut rng);
+}
+
+#[test]
+fn issue_31_embedders_are_concatenated_in_input_order_sample_by_sample() {
+    let mut rng = ChaCha8Rng::seed_from_u64(32);
+    let net = two_input_net(&mut rng);
+    let batch = 3;
+    let x: Vec<f32> = (0..batch * net.in_size()).map(|_| rng.random_range(-1.0..1.0)).collect();
+    let mut tape = Tape::default();
+    net.forward(&x, batch, &mut tape, Par::Seq);
+    let got = tape.output().to_vec();
+    // The same sums by hand: each embedder as a network of its own, then the rest on the
+    // concatenation (camera first, then lidar, per sample).
+    let part = |layers: std::ops::Range<usize>| Net {
+        layers: net.layers[layers].to_vec(),
+        params: net.params.clone(),
+        inputs: vec![],
+    };
+    let (cam, lidar, rest) = (part(0..3), part(3..7), part(7..10));
+    let per = net.in_size();
+    let mut merged = Vec::new();
+    for row in x.chunks(per) {
+        cam.forward(&row[..168], 1, &mut tape, Par::Seq);
+        merged.extend_from_slice(tape.output());
+        lidar.forward(&row[168..], 1, &mut tape, Par::Seq);
+        merged.extend_from_slice(tape.output());
+    }
+    rest.forward(&merged, batch, &mut tape, Par::Seq);
+    let want = tape.output().to_vec();
+    let off = got.iter().zip(&want).filter(|(a, b)| (*a - *b).abs() > 1e-5).count();
+    assert_eq!(off, 0, "{off} of {} outputs differ", want.len());
 }

@@ -161,6 +161,48 @@ pub struct ObservationConfig {
     pub lidar_fov_deg: f64,
     /// Lidar range (m); readings are clipped to it.
     pub lidar_range: f64,
+    /// DeepRacer's LiDAR beside the camera, as the model's sensors ask for it (set from
+    /// `model_metadata.json`; absent without one).
+    pub camera_lidar: Option<CameraLidar>,
+}
+
+/// DeepRacer's simulated LiDAR ([`crate::lidar`]) fed beside the camera: its 64 clipped
+/// ranges (`LIDAR`), or a one-hot distance bin per sector (`SECTOR_LIDAR`,
+/// `DISCRETIZED_SECTOR_LIDAR`).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CameraLidar {
+    /// Which of DeepRacer's LiDAR inputs.
+    pub sensor: LidarSensor,
+    /// Sectors of consecutive rays (64 for `lidar`).
+    pub sectors: usize,
+    /// Distance bins per sector (1 for `lidar`).
+    pub values: usize,
+    /// Readings beyond this (m) count as nothing (`lidar`: clipped to [0.15, 1.0]).
+    pub clip: f32,
+    /// The LiDAR's values come before the camera's in the observation (DeepRacer's sorted
+    /// input names: `DISCRETIZED_SECTOR_LIDAR` before `FRONT_FACING_CAMERA`, `LIDAR` before
+    /// `STEREO_CAMERAS`).
+    pub first: bool,
+}
+
+impl CameraLidar {
+    /// Values per observation.
+    pub fn size(&self) -> usize {
+        self.sectors * self.values
+    }
+}
+
+/// DeepRacer's LiDAR inputs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LidarSensor {
+    /// `LIDAR`.
+    Lidar,
+    /// `SECTOR_LIDAR`.
+    SectorLidar,
+    /// `DISCRETIZED_SECTOR_LIDAR`.
+    DiscretizedSectorLidar,
 }
 
 impl Default for ObservationConfig {
@@ -172,6 +214,7 @@ impl Default for ObservationConfig {
             lidar_rays: 32,
             lidar_fov_deg: 300.0,
             lidar_range: 2.0,
+            camera_lidar: None,
         }
     }
 }
@@ -265,28 +308,41 @@ where
     })
 }
 
-/// The observation a model's `sensor` list calls for: the state vector (with or without the
-/// lidar), the front camera or the stereo pair.
-pub fn observation_kind_for(meta: &policy::ModelMetadata) -> Result<ObservationKind, String> {
-    use policy::Sensor;
-    let camera = [Sensor::FrontFacingCamera, Sensor::LeftCamera, Sensor::Observation, Sensor::StereoCameras]
-        .into_iter()
-        .find(|s| meta.sensor.contains(s));
-    if meta.sensor.contains(&Sensor::StateVector) {
-        Ok(if meta.sensor.contains(&Sensor::Lidar) { ObservationKind::StateLidar } else { ObservationKind::State })
-    } else if let Some(camera) = camera {
-        if meta.sensor.len() > 1 {
+impl ObservationConfig {
+    /// The observation a model's `sensor` list calls for: the state vector (with or without
+    /// Paddock's border lidar), or the front camera or the stereo pair, each with or without
+    /// DeepRacer's LiDAR.
+    pub fn set_sensors(&mut self, meta: &policy::ModelMetadata) -> Result<(), String> {
+        use policy::Sensor;
+        let camera = [Sensor::FrontFacingCamera, Sensor::LeftCamera, Sensor::Observation, Sensor::StereoCameras]
+            .into_iter()
+            .find(|s| meta.sensor.contains(s));
+        self.camera_lidar = None;
+        if meta.sensor.contains(&Sensor::StateVector) {
+            self.kind =
+                if meta.sensor.contains(&Sensor::Lidar) { ObservationKind::StateLidar } else { ObservationKind::State };
+        } else if let Some(camera) = camera {
+            self.kind = if camera == Sensor::StereoCameras { ObservationKind::Stereo } else { ObservationKind::Camera };
+            if let Some(l) = meta.lidar {
+                let inputs = policy::model::inputs(meta, 0);
+                self.camera_lidar = Some(CameraLidar {
+                    sensor: match l.sensor {
+                        Sensor::Lidar => LidarSensor::Lidar,
+                        Sensor::SectorLidar => LidarSensor::SectorLidar,
+                        _ => LidarSensor::DiscretizedSectorLidar,
+                    },
+                    sectors: l.sectors,
+                    values: l.values,
+                    clip: l.clip,
+                    first: inputs[0].0 == l.sensor,
+                });
+            }
+        } else {
             return Err(format!(
-                "sensor {:?}: a camera with a LiDAR is not trained yet; use {} alone",
-                meta.sensor.iter().map(|s| s.name()).collect::<Vec<_>>(),
-                camera.name()
+                "sensor {:?} is not supported: Paddock trains from a camera (with or without a LiDAR) or STATE_VECTOR",
+                meta.sensor.iter().map(|s| s.name()).collect::<Vec<_>>()
             ));
         }
-        Ok(if camera == Sensor::StereoCameras { ObservationKind::Stereo } else { ObservationKind::Camera })
-    } else {
-        Err(format!(
-            "sensor {:?} is not supported: Paddock trains from FRONT_FACING_CAMERA or STATE_VECTOR",
-            meta.sensor.iter().map(|s| s.name()).collect::<Vec<_>>()
-        ))
+        Ok(())
     }
 }

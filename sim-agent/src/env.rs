@@ -167,6 +167,9 @@ pub struct Env {
     episode_reward: f64,
     pending: Option<Pending>,
     done: bool,
+    /// DeepRacer's LiDAR: its noise, and the last scan (when the observation has one).
+    lidar_rng: ChaCha8Rng,
+    scan: Option<[f32; crate::lidar::RAYS]>,
 }
 
 struct Pending {
@@ -201,6 +204,25 @@ impl Env {
         if !(cfg.control_hz > 0.0) || cfg.physics_substeps == 0 {
             return Err(EnvError::Config("control_hz must be positive and physics_substeps at least 1".into()));
         }
+        if let Some(l) = cfg.observation.camera_lidar {
+            if !cfg.observation.kind.is_camera() {
+                return Err(EnvError::Config(format!(
+                    "observation.camera_lidar goes beside a camera; observation.kind is {:?}",
+                    cfg.observation.kind
+                )));
+            }
+            if l.sectors == 0
+                || !crate::lidar::RAYS.is_multiple_of(l.sectors)
+                || l.values == 0
+                || l.clip.is_nan()
+                || l.clip <= 0.0
+            {
+                return Err(EnvError::Config(format!(
+                    "observation.camera_lidar: {} sectors of {} values within {} m; sectors must divide 64 and values and the clip be positive",
+                    l.sectors, l.values, l.clip
+                )));
+            }
+        }
         let dt = 1.0 / cfg.control_hz;
         let car = Car::new(&cfg.car, spec.friction, dt / cfg.physics_substeps as f64);
         let traffic = Traffic::new(&spec.track, &cfg.race, "the simulator configuration").map_err(EnvError::Config)?;
@@ -229,6 +251,8 @@ impl Env {
             episode_reward: 0.0,
             pending: None,
             done: true,
+            lidar_rng: ChaCha8Rng::seed_from_u64(seed ^ 0x11DA_4000),
+            scan: None,
         };
         env.reset();
         Ok(env)
@@ -273,6 +297,23 @@ impl Env {
         self.episode_reward = 0.0;
         self.pending = None;
         self.done = false;
+        self.sense();
+    }
+
+    /// A fresh LiDAR scan, when the observation has the LiDAR (a scan a step, where
+    /// DeepRacer's 10 Hz sensor is read at the 15 Hz step).
+    fn sense(&mut self) {
+        if self.cfg.observation.camera_lidar.is_some() {
+            let objects = self.traffic.as_ref().map_or(&[][..], |t| t.objects());
+            let at = tracks::P2::new(self.pose.x, self.pose.y);
+            self.scan = Some(crate::lidar::scan(at, self.pose.yaw, objects, &mut self.lidar_rng));
+        }
+    }
+
+    /// The last LiDAR scan (m; infinity where nothing is in range), when the observation
+    /// has the LiDAR.
+    pub fn lidar_scan(&self) -> Option<&[f32; crate::lidar::RAYS]> {
+        self.scan.as_ref()
     }
 
     fn place_on_centre_line(&mut self, ndist: f64) {
@@ -460,6 +501,7 @@ impl Env {
             self.immobile_count = 0;
         }
         self.done = p.ends;
+        self.sense();
         let q = &p.params;
         let [prev, next] = q.closest_waypoints;
         let wp = self.spec.track.waypoints();

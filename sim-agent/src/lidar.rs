@@ -12,8 +12,8 @@
 //! `SECTOR_LIDAR` and `DISCRETIZED_SECTOR_LIDAR` take the nearest reading of each sector of
 //! consecutive rays and one-hot encode its distance bin ([`sectors`]).
 //!
-//! The environment does not feed this to a model yet: the camera-and-LiDAR network is the
-//! next step.
+//! The environment scans once a step when the observation has the LiDAR
+//! (`observation.camera_lidar`, set from `model_metadata.json`); [`crate::obs`] filters it.
 
 use crate::objects::Object;
 use rand::Rng;

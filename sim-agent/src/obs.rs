@@ -21,8 +21,11 @@
 //! [`crate::camera`] for a whole `VecEnv` in one batch. The stereo pair (`kind = stereo`):
 //! the left and right cameras' pixels interleaved (120 × 160 × 2, channel 0 left), as
 //! DeepRacer stacks them.
+//!
+//! DeepRacer's LiDAR beside a camera (`camera_lidar`): its filtered scan ([`crate::lidar`]),
+//! before or after the pixels as DeepRacer orders the inputs (sorted by name).
 
-use crate::config::{ObservationConfig, ObservationKind};
+use crate::config::{CameraLidar, LidarSensor, ObservationConfig, ObservationKind};
 use crate::env::Env;
 use tracks::P2;
 
@@ -33,9 +36,23 @@ pub fn obs_dim(cfg: &ObservationConfig) -> usize {
         ObservationKind::State => state,
         ObservationKind::Lidar => cfg.lidar_rays,
         ObservationKind::StateLidar => state + cfg.lidar_rays,
-        ObservationKind::Camera => (crate::camera::WIDTH * crate::camera::HEIGHT) as usize,
-        ObservationKind::Stereo => 2 * (crate::camera::WIDTH * crate::camera::HEIGHT) as usize,
+        ObservationKind::Camera | ObservationKind::Stereo => camera_dim(cfg) + cfg.camera_lidar.map_or(0, |l| l.size()),
     }
+}
+
+/// Pixels per observation (0 without a camera).
+pub fn camera_dim(cfg: &ObservationConfig) -> usize {
+    let frame = (crate::camera::WIDTH * crate::camera::HEIGHT) as usize;
+    match cfg.kind {
+        ObservationKind::Camera => frame,
+        ObservationKind::Stereo => 2 * frame,
+        _ => 0,
+    }
+}
+
+/// Where the camera's pixels start in an observation.
+pub fn camera_offset(cfg: &ObservationConfig) -> usize {
+    cfg.camera_lidar.filter(|l| l.first).map_or(0, |l| l.size())
 }
 
 /// Write `env`'s current observation into `out` (length [`obs_dim`]).
@@ -52,7 +69,22 @@ pub fn observe(env: &Env, out: &mut [f32]) {
         }
         // Camera frames are rendered for a whole vector of environments at once
         // (`VecEnv`); a lone `Env` has no renderer.
-        ObservationKind::Camera | ObservationKind::Stereo => {}
+        ObservationKind::Camera | ObservationKind::Stereo => {
+            if let (Some(l), Some(scan)) = (cfg.camera_lidar, env.lidar_scan()) {
+                let at = if l.first { 0 } else { camera_dim(cfg) };
+                lidar_input(&l, scan, &mut out[at..at + l.size()]);
+            }
+        }
+    }
+}
+
+/// DeepRacer's input filter for a LiDAR scan into `out` ([`CameraLidar::size`] values).
+pub fn lidar_input(l: &CameraLidar, scan: &[f32], out: &mut [f32]) {
+    match l.sensor {
+        LidarSensor::Lidar => out.copy_from_slice(&crate::lidar::clipped(scan)),
+        LidarSensor::SectorLidar | LidarSensor::DiscretizedSectorLidar => {
+            out.copy_from_slice(&crate::lidar::sectors(scan, l.sectors, l.values, l.clip))
+        }
     }
 }
 

@@ -245,9 +245,12 @@ impl VecEnv {
         let frame = frames.len() / self.envs.len().max(1);
         let channels = lateral.len();
         let noise = if cfg.randomize && cfg.image_noise > 0.0 { Normal::new(0.0, cfg.image_noise).ok() } else { None };
+        // The pixels' place in each observation (a LiDAR's values may come first).
+        let at = self.envs.first().map_or(0, |e| crate::obs::camera_offset(&e.config().observation));
         for ((o, px), (_, _, rng)) in
-            self.obs.chunks_mut(frame).zip(frames.chunks(frame)).zip(self.camera_draws.iter_mut())
+            self.obs.chunks_mut(self.dim.max(1)).zip(frames.chunks(frame)).zip(self.camera_draws.iter_mut())
         {
+            let o = &mut o[at..at + frame];
             // The frames of one environment, one after the other, to its channels (HWC).
             let plane = frame / channels;
             for (k, o) in o.iter_mut().enumerate() {

@@ -321,3 +321,49 @@ fn issue_31_the_builtin_object_avoidance_reward_penalises_closing_in_on_the_next
     env.advance(STRAIGHT);
     assert!((BuiltinReward::ObjectAvoidance.reward(env.params()) - 5.001).abs() < 1e-9);
 }
+
+#[test]
+fn issue_31_a_camera_and_lidar_observation_holds_the_pixels_and_the_filtered_scan_in_deepracers_order() {
+    use sim_agent::config::{CameraLidar, LidarSensor, ObservationKind};
+    // A box 0.8 m behind the start line: the car starts in the other lane, the box at its
+    // back, within the LiDAR's 2 m.
+    let observe = |lidar: Option<CameraLidar>| {
+        let mut cfg = (*boxes(&["0.99,1"])).clone();
+        cfg.observation.kind = ObservationKind::Camera;
+        cfg.observation.camera_lidar = lidar;
+        let v = sim_agent::VecEnv::with_mode(
+            vec![spec(); 2],
+            Arc::new(cfg),
+            3,
+            sim_agent::RewardFn::Builtin(BuiltinReward::CenterLine),
+            1,
+            Mode::Evaluation(EvalRules::default()),
+        )
+        .expect("lavapipe or a GPU");
+        let scans: Vec<[f32; 64]> = v.envs().iter().map(|e| *e.lidar_scan().unwrap_or(&[0.0; 64])).collect();
+        (v.observations().to_vec(), v.obs_dim(), scans)
+    };
+    let (camera, _, _) = observe(None);
+    let frame = 160 * 120;
+    for (sensor, sectors, values, clip, first) in [
+        (LidarSensor::DiscretizedSectorLidar, 8, 8, 2.0, true),
+        (LidarSensor::Lidar, 64, 1, 1.0, false),
+        (LidarSensor::SectorLidar, 8, 1, 0.5, false),
+    ] {
+        let l = CameraLidar { sensor, sectors, values, clip, first };
+        let (obs, dim, scans) = observe(Some(l));
+        assert_eq!(dim, frame + sectors * values);
+        for (e, scan) in scans.iter().enumerate() {
+            let o = &obs[e * dim..(e + 1) * dim];
+            let (pixels, lidar) = if first { (&o[64..], &o[..64]) } else { (&o[..frame], &o[frame..]) };
+            assert_eq!(pixels, &camera[e * frame..(e + 1) * frame], "{sensor:?}: the same pixels");
+            let want = match sensor {
+                LidarSensor::Lidar => sim_agent::lidar::clipped(scan),
+                _ => sim_agent::lidar::sectors(scan, sectors, values, clip),
+            };
+            assert_eq!(lidar, &want[..], "{sensor:?}: the filtered scan");
+        }
+        let near = scans[0].iter().filter(|d| d.is_finite()).fold(f32::INFINITY, |a, &b| a.min(b));
+        assert!(near < 1.0, "{sensor:?}: the box is seen behind, {near} m");
+    }
+}
