@@ -8,10 +8,15 @@
 //! two `Transpose`s (weights `[f, ky, kx, c]` become `[f, c, ky, kx]`); dense layers are
 //! `Gemm` with `transB` (Paddock keeps `W` as `out × in`), after a `Flatten` of the NHWC
 //! activations, so that the flattening order is Paddock's. Opset 13; `N` is symbolic.
+//!
+//! A camera + LiDAR model has one input per sensor, named as `model_metadata.json` names them
+//! (`FRONT_FACING_CAMERA` `[N, 120, 160, 1]`, `SECTOR_LIDAR` `[N, 8]`, …): each goes through
+//! its embedder, and the embedders' outputs are concatenated (`Concat`, in DeepRacer's sorted
+//! input order) into the middleware.
 
 use policy::ActorCritic;
 use policy::model::Head;
-use policy::nn::{Layer, Net};
+use policy::nn::{InputShape, Layer, Net};
 use prost::Message;
 
 #[allow(missing_docs, clippy::all)]
@@ -85,83 +90,133 @@ fn value_info(name: &str, dims: &[Option<usize>]) -> pb::ValueInfoProto {
     }
 }
 
+/// What a run of layers has made of its value so far.
+#[derive(Clone, Copy)]
+struct Form {
+    nchw: bool,
+    flat: bool,
+}
+
+/// The ONNX nodes of layer `i` of `net` on `cur`; its output's name.
+fn emit(
+    net: &Net,
+    i: usize,
+    cur: &str,
+    form: &mut Form,
+    nodes: &mut Vec<pb::NodeProto>,
+    init: &mut Vec<pb::TensorProto>,
+) -> String {
+    let out = format!("l{i}");
+    let mut cur = cur.to_string();
+    match net.layers[i] {
+        Layer::Scale { factor, .. } => {
+            init.push(tensor(&format!("l{i}.factor"), &[], vec![factor]));
+            nodes.push(node("Mul", &[&cur, &format!("l{i}.factor")], &out, vec![]));
+        }
+        Layer::Relu { .. } => nodes.push(node("Relu", &[&cur], &out, vec![])),
+        Layer::Conv2d { input: [_, _, c], filters, kernel: k, stride, offset } => {
+            if !form.nchw {
+                let t = format!("l{i}.nchw");
+                nodes.push(node("Transpose", &[&cur], &t, vec![ints("perm", &[0, 3, 1, 2])]));
+                cur = t;
+                form.nchw = true;
+            }
+            let w = &net.params[offset..offset + filters * k * k * c];
+            let mut wt = vec![0.0f32; w.len()];
+            for f in 0..filters {
+                for ky in 0..k {
+                    for kx in 0..k {
+                        for ch in 0..c {
+                            wt[((f * c + ch) * k + ky) * k + kx] = w[((f * k + ky) * k + kx) * c + ch];
+                        }
+                    }
+                }
+            }
+            let b = net.params[offset + w.len()..offset + w.len() + filters].to_vec();
+            init.push(tensor(&format!("l{i}.weight"), &[filters, c, k, k], wt));
+            init.push(tensor(&format!("l{i}.bias"), &[filters], b));
+            nodes.push(node(
+                "Conv",
+                &[&cur, &format!("l{i}.weight"), &format!("l{i}.bias")],
+                &out,
+                vec![ints("kernel_shape", &[k as i64, k as i64]), ints("strides", &[stride as i64, stride as i64])],
+            ));
+        }
+        Layer::Dense { inp, out: n, offset } => {
+            cur = flatten(&cur, &format!("l{i}"), form, nodes);
+            init.push(tensor(&format!("l{i}.weight"), &[n, inp], net.params[offset..offset + inp * n].to_vec()));
+            init.push(tensor(&format!("l{i}.bias"), &[n], net.params[offset + inp * n..offset + inp * n + n].to_vec()));
+            nodes.push(node(
+                "Gemm",
+                &[&cur, &format!("l{i}.weight"), &format!("l{i}.bias")],
+                &out,
+                vec![int("transB", 1)],
+            ));
+        }
+    }
+    out
+}
+
+/// `cur` as `[N, features]` in Paddock's (NHWC) order.
+fn flatten(cur: &str, prefix: &str, form: &mut Form, nodes: &mut Vec<pb::NodeProto>) -> String {
+    let mut cur = cur.to_string();
+    if form.nchw {
+        let t = format!("{prefix}.nhwc");
+        nodes.push(node("Transpose", &[&cur], &t, vec![ints("perm", &[0, 2, 3, 1])]));
+        cur = t;
+        form.nchw = false;
+    }
+    if !form.flat {
+        let t = format!("{prefix}.flat");
+        nodes.push(node("Flatten", &[&cur], &t, vec![int("axis", 1)]));
+        cur = t;
+        form.flat = true;
+    }
+    cur
+}
+
 /// The policy tower of `model` as an ONNX model's bytes; `name` goes in the graph's name.
+/// A camera + LiDAR model takes one input per sensor, named as DeepRacer names them.
 pub fn policy_to_onnx(model: &ActorCritic, name: &str) -> Vec<u8> {
     let net: &Net = &model.pi;
     let mut nodes = Vec::new();
     let mut init = Vec::new();
-    let mut cur = "observation".to_string();
-    let first_shape = match net.layers.iter().find(|l| matches!(l, Layer::Conv2d { .. })) {
-        Some(Layer::Conv2d { input: [h, w, c], .. }) => vec![None, Some(*h), Some(*w), Some(*c)],
-        _ => vec![None, Some(net.in_size())],
+    let sections = net.sections();
+    let shape = |s: InputShape| match s {
+        InputShape::Image(h, w, c) => vec![None, Some(h), Some(w), Some(c)],
+        InputShape::Flat(n) => vec![None, Some(n)],
     };
-    let mut nchw = false;
-    let mut flat = first_shape.len() == 2;
-    for (i, layer) in net.layers.iter().enumerate() {
-        let out = format!("l{i}");
-        match *layer {
-            Layer::Scale { factor, .. } => {
-                init.push(tensor(&format!("l{i}.factor"), &[], vec![factor]));
-                nodes.push(node("Mul", &[&cur, &format!("l{i}.factor")], &out, vec![]));
-            }
-            Layer::Relu { .. } => nodes.push(node("Relu", &[&cur], &out, vec![])),
-            Layer::Conv2d { input: [_, _, c], filters, kernel: k, stride, offset } => {
-                if !nchw {
-                    let t = format!("l{i}.nchw");
-                    nodes.push(node("Transpose", &[&cur], &t, vec![ints("perm", &[0, 3, 1, 2])]));
-                    cur = t;
-                    nchw = true;
-                }
-                let w = &net.params[offset..offset + filters * k * k * c];
-                let mut wt = vec![0.0f32; w.len()];
-                for f in 0..filters {
-                    for ky in 0..k {
-                        for kx in 0..k {
-                            for ch in 0..c {
-                                wt[((f * c + ch) * k + ky) * k + kx] = w[((f * k + ky) * k + kx) * c + ch];
-                            }
-                        }
-                    }
-                }
-                let b = net.params[offset + w.len()..offset + w.len() + filters].to_vec();
-                init.push(tensor(&format!("l{i}.weight"), &[filters, c, k, k], wt));
-                init.push(tensor(&format!("l{i}.bias"), &[filters], b));
-                nodes.push(node(
-                    "Conv",
-                    &[&cur, &format!("l{i}.weight"), &format!("l{i}.bias")],
-                    &out,
-                    vec![ints("kernel_shape", &[k as i64, k as i64]), ints("strides", &[stride as i64, stride as i64])],
-                ));
-            }
-            Layer::Dense { inp, out: n, offset } => {
-                if nchw {
-                    let t = format!("l{i}.nhwc");
-                    nodes.push(node("Transpose", &[&cur], &t, vec![ints("perm", &[0, 2, 3, 1])]));
-                    cur = t;
-                    nchw = false;
-                }
-                if !flat {
-                    let t = format!("l{i}.flat");
-                    nodes.push(node("Flatten", &[&cur], &t, vec![int("axis", 1)]));
-                    cur = t;
-                    flat = true;
-                }
-                init.push(tensor(&format!("l{i}.weight"), &[n, inp], net.params[offset..offset + inp * n].to_vec()));
-                init.push(tensor(
-                    &format!("l{i}.bias"),
-                    &[n],
-                    net.params[offset + inp * n..offset + inp * n + n].to_vec(),
-                ));
-                nodes.push(node(
-                    "Gemm",
-                    &[&cur, &format!("l{i}.weight"), &format!("l{i}.bias")],
-                    &out,
-                    vec![int("transB", 1)],
-                ));
-            }
+    let (inputs, cur) = if net.inputs.is_empty() {
+        let first_shape = match net.layers.iter().find(|l| matches!(l, Layer::Conv2d { .. })) {
+            Some(Layer::Conv2d { input: [h, w, c], .. }) => vec![None, Some(*h), Some(*w), Some(*c)],
+            _ => vec![None, Some(net.in_size())],
+        };
+        let mut form = Form { nchw: false, flat: first_shape.len() == 2 };
+        let mut cur = "observation".to_string();
+        for i in 0..net.layers.len() {
+            cur = emit(net, i, &cur, &mut form, &mut nodes, &mut init);
         }
-        cur = out;
-    }
+        (vec![value_info("observation", &first_shape)], cur)
+    } else {
+        // Each sensor through its embedder, flattened; side by side; then the rest.
+        let mut merged = Vec::new();
+        for (e, range) in net.inputs.iter().zip(&sections) {
+            let mut form = Form { nchw: false, flat: matches!(e.shape, InputShape::Flat(_)) };
+            let mut cur = e.name.clone();
+            for i in range.clone() {
+                cur = emit(net, i, &cur, &mut form, &mut nodes, &mut init);
+            }
+            merged.push(flatten(&cur, &format!("{}.out", e.name), &mut form, &mut nodes));
+        }
+        let ins: Vec<&str> = merged.iter().map(|s| s.as_str()).collect();
+        nodes.push(node("Concat", &ins, "merged", vec![int("axis", 1)]));
+        let mut form = Form { nchw: false, flat: true };
+        let mut cur = "merged".to_string();
+        for i in sections.last().expect("the rest").clone() {
+            cur = emit(net, i, &cur, &mut form, &mut nodes, &mut init);
+        }
+        (net.inputs.iter().map(|e| value_info(&e.name, &shape(e.shape))).collect(), cur)
+    };
     let actions = net.out_size();
     nodes.push(node("Identity", &[&cur], "logits", vec![]));
     let mut outputs = vec![value_info("logits", &[None, Some(actions)])];
@@ -173,7 +228,7 @@ pub fn policy_to_onnx(model: &ActorCritic, name: &str) -> Vec<u8> {
         name: Some(name.into()),
         node: nodes,
         initializer: init,
-        input: vec![value_info("observation", &first_shape)],
+        input: inputs,
         output: outputs,
         ..Default::default()
     };

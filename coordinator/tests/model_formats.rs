@@ -12,18 +12,22 @@ use support::python;
 
 const RUN: &str = r#"
 import sys, numpy as np, onnx, onnxruntime as ort
-path, inputs, shape, out = sys.argv[1], sys.argv[2], [int(s) for s in sys.argv[3].split(",")], sys.argv[4]
+path, out = sys.argv[1], sys.argv[2]
 m = onnx.load(path)
 onnx.checker.check_model(m, full_check=True)
 sess = ort.InferenceSession(path, providers=["CPUExecutionProvider"])
-x = np.fromfile(inputs, dtype="<f4").reshape(shape)
+# Each input: its name, its values' file, its shape (batch first).
+feed = {sys.argv[k]: np.fromfile(sys.argv[k + 1], dtype="<f4").reshape([int(s) for s in sys.argv[k + 2].split(",")])
+        for k in range(3, len(sys.argv), 3)}
+assert sorted(feed) == sorted(i.name for i in sess.get_inputs()), [i.name for i in sess.get_inputs()]
 names = [o.name for o in sess.get_outputs()]
-res = sess.run(None, {"observation": x})
+res = sess.run(None, feed)
 np.concatenate([r.reshape(-1) for r in res]).astype("<f4").tofile(out)
 print(",".join(names))
 "#;
 
-fn check(meta: &ModelMetadata, obs_size: usize, shape: &[usize], seed: u64) {
+fn check(meta: &ModelMetadata, obs_size: usize, seed: u64) {
+    let obs_size = policy::model::input_size(meta, obs_size);
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     let model = ActorCritic::new(meta, obs_size, &mut rand_chacha::ChaCha8Rng::seed_from_u64(seed));
@@ -46,26 +50,31 @@ fn check(meta: &ModelMetadata, obs_size: usize, shape: &[usize], seed: u64) {
         .output()
         .unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    // Sample inputs: grey frames (or state vectors) with structure, batch of 3.
+    // Sample inputs: grey frames (or state vectors, or LiDAR readings) with structure, batch of 3.
     let batch = 3;
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed + 1);
-    let x: Vec<f32> =
-        (0..batch * obs_size).map(|i| ((i % 251) as f32 + rng.random_range(0.0..4.0)).min(255.0)).collect();
-    let inputs = d.join("x.bin");
-    std::fs::write(&inputs, x.iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<u8>>()).unwrap();
+    let inputs = policy::model::inputs(meta, obs_size);
+    let x = observations(&inputs, batch, seed + 1);
     let script = d.join("run.py");
     std::fs::write(&script, RUN).unwrap();
-    let shape_arg =
-        std::iter::once(batch).chain(shape.iter().copied()).map(|s| s.to_string()).collect::<Vec<_>>().join(",");
     let got_path = d.join("y.bin");
-    let out = Command::new(python("onnx and onnxruntime"))
-        .arg(&script)
-        .arg(&onnx)
-        .arg(&inputs)
-        .arg(&shape_arg)
-        .arg(&got_path)
-        .output()
-        .unwrap();
+    let mut cmd = Command::new(python("onnx and onnxruntime"));
+    cmd.arg(&script).arg(&onnx).arg(&got_path);
+    let size = policy::model::input_size(meta, obs_size);
+    let mut at = 0;
+    for (k, (sensor, shape)) in inputs.iter().enumerate() {
+        let n = shape.size();
+        let part: Vec<f32> = x.chunks(size).flat_map(|row| row[at..at + n].to_vec()).collect();
+        at += n;
+        let file = d.join(format!("x{k}.bin"));
+        write_floats(&file, &part);
+        let dims = match *shape {
+            policy::nn::InputShape::Image(h, w, c) => format!("{batch},{h},{w},{c}"),
+            policy::nn::InputShape::Flat(n) => format!("{batch},{n}"),
+        };
+        let name = if inputs.len() == 1 { "observation" } else { sensor.name() };
+        cmd.arg(name).arg(&file).arg(dims);
+    }
+    let out = cmd.output().unwrap();
     assert!(out.status.success(), "onnxruntime: {}", String::from_utf8_lossy(&out.stderr));
     let names = String::from_utf8_lossy(&out.stdout).trim().to_string();
     let got: Vec<f32> = std::fs::read(&got_path)
@@ -99,15 +108,36 @@ fn check(meta: &ModelMetadata, obs_size: usize, shape: &[usize], seed: u64) {
 #[test]
 fn issue_9_onnx_export_matches_paddocks_forward_pass_in_onnxruntime() {
     // DeepRacer's SHALLOW camera network, discrete actions.
-    check(&ModelMetadata::default_camera(), 120 * 160, &[120, 160, 1], 3);
+    check(&ModelMetadata::default_camera(), 120 * 160, 3);
     // The deeper camera network with a continuous action space.
     let text = r#"{"action_space": {"steering_angle": {"low": -30, "high": 30}, "speed": {"low": 0.5, "high": 3}},
         "sensor": ["FRONT_FACING_CAMERA"], "neural_network": "DEEP_CONVOLUTIONAL_NETWORK", "training_algorithm": "clipped_ppo",
         "action_space_type": "continuous", "version": "5"}"#;
     let meta = ModelMetadata::parse(text, "continuous").unwrap();
-    check(&meta, 120 * 160, &[120, 160, 1], 4);
+    check(&meta, 120 * 160, 4);
     // The state-vector model.
-    check(&ModelMetadata::default_state_vector(), 20, &[20], 5);
+    check(&ModelMetadata::default_state_vector(), 20, 5);
+}
+
+#[test]
+fn issue_31_onnx_export_of_camera_and_lidar_models_takes_an_input_per_sensor_in_onnxruntime() {
+    // The camera first (FRONT_FACING_CAMERA < SECTOR_LIDAR), and the LiDAR first
+    // (DISCRETIZED_SECTOR_LIDAR < FRONT_FACING_CAMERA, LIDAR < STEREO_CAMERAS).
+    for (sensors, extra) in [
+        (r#""FRONT_FACING_CAMERA", "SECTOR_LIDAR""#, ""),
+        (
+            r#""FRONT_FACING_CAMERA", "DISCRETIZED_SECTOR_LIDAR""#,
+            r#", "lidar_config": {"num_sectors": 4, "num_values_per_sector": 3}"#,
+        ),
+        (r#""STEREO_CAMERAS", "LIDAR""#, ""),
+    ] {
+        let text = format!(
+            r#"{{"action_space": [{{"steering_angle": -20, "speed": 1}}, {{"steering_angle": 20, "speed": 1}}],
+            "sensor": [{sensors}], "neural_network": "DEEP_CONVOLUTIONAL_NETWORK_SHALLOW", "version": "5"{extra}}}"#
+        );
+        let meta = ModelMetadata::parse(&text, "m.json").unwrap();
+        check(&meta, 0, 6);
+    }
 }
 
 // ---------------------------------------------------------------------------------------
@@ -124,9 +154,13 @@ fn car_python() -> std::path::PathBuf {
 /// that, and runs it in OpenVINO: each result into OUT.<engine>.bin.
 const CAR_SIDE: &str = r#"
 import os, sys, tarfile, tempfile, numpy as np
-archive, inputs, shape, out, inp, outp = sys.argv[1:7]
-shape = [int(s) for s in shape.split(",")]
-x = np.fromfile(inputs, dtype="<f4").reshape(shape)
+archive, out, outp = sys.argv[1:4]
+# Each input: its placeholder, its values' file, its shape (batch first).
+ins = []
+for k in range(4, len(sys.argv), 3):
+    shape = [int(s) for s in sys.argv[k + 2].split(",")]
+    ins.append((sys.argv[k], np.fromfile(sys.argv[k + 1], dtype="<f4").reshape(shape)))
+batch = ins[0][1].shape[0]
 work = tempfile.mkdtemp()
 with tarfile.open(archive) as t:
     names = t.getnames()
@@ -140,31 +174,33 @@ g.ParseFromString(open(pb, "rb").read())
 with tf.Graph().as_default() as graph:
     tf.compat.v1.import_graph_def(g, name="")
     with tf.compat.v1.Session(graph=graph) as sess:
-        y = sess.run(outp + ":0", {inp + ":0": x})
+        y = sess.run(outp + ":0", {name + ":0": x for name, x in ins})
 y.astype("<f4").tofile(out + ".tf.bin")
 # deepracer-custom-car's model optimizer node, with its arguments (TFLITE engine).
 conv = tf.compat.v1.lite.TFLiteConverter.from_frozen_graph(
-    graph_def_file=pb, input_arrays=[inp], output_arrays=[outp],
-    input_shapes={inp: [1] + shape[1:]})
+    graph_def_file=pb, input_arrays=[name for name, _ in ins], output_arrays=[outp],
+    input_shapes={name: [1] + list(x.shape[1:]) for name, x in ins})
 conv.allow_custom_ops = True
 conv.optimizations = [tf.lite.Optimize.DEFAULT]
 conv.target_spec.supported_types = [tf.float16]
 lite = conv.convert()
 it = tf.lite.Interpreter(model_content=lite)
 it.allocate_tensors()
+slots = {d["name"]: d["index"] for d in it.get_input_details()}
 rows = []
-for i in range(shape[0]):
-    it.set_tensor(it.get_input_details()[0]["index"], x[i:i + 1])
+for i in range(batch):
+    for name, x in ins:
+        it.set_tensor(slots[name], x[i:i + 1])
     it.invoke()
     rows.append(it.get_tensor(it.get_output_details()[0]["index"]).copy())
 np.concatenate(rows).astype("<f4").tofile(out + ".tflite.bin")
 # OpenVINO, as the car's OV 2024 engine converts it (the names it finds carry ":0"; FP16
 # weights), on the CPU.
 import openvino as ov
-m = ov.convert_model(pb, input=[(inp + ":0", [1] + shape[1:])], output=outp + ":0")
+m = ov.convert_model(pb, input=[(name + ":0", [1] + list(x.shape[1:])) for name, x in ins], output=outp + ":0")
 ov.save_model(m, os.path.join(work, "model.xml"), compress_to_fp16=True)
 c = ov.Core().compile_model(os.path.join(work, "model.xml"), "CPU")
-rows = [c(x[i:i + 1])[c.output(0)] for i in range(shape[0])]
+rows = [c({name + ":0": x[i:i + 1] for name, x in ins})[c.output(0)] for i in range(batch)]
 np.concatenate(rows).astype("<f4").tofile(out + ".openvino.bin")
 print(" ".join(names))
 "#;
@@ -214,15 +250,25 @@ fn issue_30_the_car_archive_runs_in_tensorflow_tflite_and_openvino_as_paddock_do
         {"steering_angle": 20, "speed": 1}, {"steering_angle": 0, "speed": 1}],
         "sensor": ["STEREO_CAMERAS"], "neural_network": "DEEP_CONVOLUTIONAL_NETWORK_DEEP", "training_algorithm": "clipped_ppo",
         "action_space_type": "discrete", "version": "5"}"#;
+    let lidar = r#"{"action_space": [{"steering_angle": -20, "speed": 1}, {"steering_angle": 0, "speed": 2}, {"steering_angle": 20, "speed": 1}],
+        "sensor": ["FRONT_FACING_CAMERA", "SECTOR_LIDAR"], "neural_network": "DEEP_CONVOLUTIONAL_NETWORK_SHALLOW", "training_algorithm": "clipped_ppo",
+        "action_space_type": "discrete", "version": "5"}"#;
+    let stereo_lidar = r#"{"action_space": {"steering_angle": {"low": -30, "high": 30}, "speed": {"low": 0.5, "high": 3}},
+        "sensor": ["STEREO_CAMERAS", "LIDAR"], "neural_network": "DEEP_CONVOLUTIONAL_NETWORK", "training_algorithm": "clipped_ppo",
+        "action_space_type": "continuous", "version": "5"}"#;
     let cases = [
-        ("shallow", ModelMetadata::default_camera(), 1usize),
-        ("deep", ModelMetadata::parse(continuous, "deep").unwrap(), 1),
-        ("deeper", ModelMetadata::parse(stereo, "deeper").unwrap(), 2),
+        ("shallow", ModelMetadata::default_camera(), true),
+        ("deep", ModelMetadata::parse(continuous, "deep").unwrap(), true),
+        ("deeper", ModelMetadata::parse(stereo, "deeper").unwrap(), true),
+        // Camera + LiDAR (issue 31): two placeholders, the embedders merged; written only.
+        ("lidar", ModelMetadata::parse(lidar, "lidar").unwrap(), false),
+        ("stereo-lidar", ModelMetadata::parse(stereo_lidar, "stereo-lidar").unwrap(), false),
     ];
     let script = d.join("car_side.py");
     std::fs::write(&script, CAR_SIDE).unwrap();
-    for (name, meta, channels) in cases {
-        let size = 120 * 160 * channels;
+    for (name, meta, comes_back) in cases {
+        let inputs = policy::model::inputs(&meta, 0);
+        let size = policy::model::input_size(&meta, 0);
         let model = ActorCritic::new(&meta, size, &mut rand_chacha::ChaCha8Rng::seed_from_u64(7));
         let manifest = Manifest {
             format: "paddock-model-1".into(),
@@ -238,19 +284,26 @@ fn issue_30_the_car_archive_runs_in_tensorflow_tflite_and_openvino_as_paddock_do
         let archive = d.join(format!("{name}.tar.gz"));
         let said = coordinator(&["export".as_ref(), folder.as_os_str(), "--car".as_ref(), archive.as_os_str()], d);
         assert!(said.contains(&format!("a car lists it as '{name}'")), "{said}");
+        // Camera frames and LiDAR readings (0/1 sectors or 0.15-1 m), each input to its file.
         let batch = 3;
-        let x = frames(batch, size, 11);
-        write_floats(&d.join("x.bin"), &x);
+        let x = observations(&inputs, batch, 11);
         let names = policy::tfgraph::Names::of(&meta).unwrap();
-        let out = Command::new(car_python())
-            .arg(&script)
-            .arg(&archive)
-            .arg(d.join("x.bin"))
-            .arg(format!("{batch},120,160,{channels}"))
-            .arg(d.join(name))
-            .args([&names.input, &names.output])
-            .output()
-            .unwrap();
+        let mut cmd = Command::new(car_python());
+        cmd.arg(&script).arg(&archive).arg(d.join(name)).arg(&names.output);
+        let mut at = 0;
+        for (k, ((_, shape), placeholder)) in inputs.iter().zip(&names.inputs).enumerate() {
+            let n = shape.size();
+            let part: Vec<f32> = x.chunks(size).flat_map(|row| row[at..at + n].to_vec()).collect();
+            at += n;
+            let file = d.join(format!("{name}.x{k}.bin"));
+            write_floats(&file, &part);
+            let dims = match *shape {
+                policy::nn::InputShape::Image(h, w, c) => format!("{batch},{h},{w},{c}"),
+                policy::nn::InputShape::Flat(n) => format!("{batch},{n}"),
+            };
+            cmd.arg(placeholder).arg(&file).arg(dims);
+        }
+        let out = cmd.output().unwrap();
         assert!(out.status.success(), "{name}: {}", String::from_utf8_lossy(&out.stderr));
         assert_eq!(String::from_utf8_lossy(&out.stdout).trim(), "agent/model.pb model_metadata.json");
         let want = paddock_policy(&model, &x, batch);
@@ -264,6 +317,9 @@ fn issue_30_the_car_archive_runs_in_tensorflow_tflite_and_openvino_as_paddock_do
                 assert!((a - b).abs() <= tol * scale + 1e-6, "{name} {engine} output {i}: {a}, Paddock {b}");
             }
         }
+        if !comes_back {
+            continue;
+        }
         // And back: the archive imports to the same policy tower, bit for bit.
         let back = d.join(format!("{name}-back"));
         coordinator(&["import".as_ref(), archive.as_os_str(), "--out".as_ref(), back.as_os_str()], d);
@@ -272,6 +328,25 @@ fn issue_30_the_car_archive_runs_in_tensorflow_tflite_and_openvino_as_paddock_do
         assert_eq!(f.metadata.action_space, meta.action_space);
         assert_eq!(f.manifest.training["imported"]["graph"], "agent/model.pb");
     }
+}
+
+/// Observations for a model's inputs, `batch` of them: camera frames with structure (0-255)
+/// and LiDAR readings (sector bits, or ranges in [0.15, 1] m).
+fn observations(inputs: &[(policy::Sensor, policy::nn::InputShape)], batch: usize, seed: u64) -> Vec<f32> {
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let mut rows = vec![Vec::new(); batch];
+    for (sensor, shape) in inputs {
+        let n = shape.size();
+        let part = match sensor {
+            policy::Sensor::Lidar => (0..batch * n).map(|_| rng.random_range(0.15..1.0)).collect(),
+            s if !s.is_primary() => (0..batch * n).map(|_| f32::from(rng.random_bool(0.3))).collect(),
+            _ => frames(batch, n, seed),
+        };
+        for (row, p) in rows.iter_mut().zip(part.chunks(n)) {
+            row.extend_from_slice(p);
+        }
+    }
+    rows.concat()
 }
 
 /// DeepRacer's SHALLOW network as rl_coach builds it (its scopes and names, `/255` and the
