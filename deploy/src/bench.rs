@@ -51,7 +51,7 @@ fn frame_bytes(layout: ros::Layout, w: u32, h: u32) -> Vec<u8> {
             data: ByteBuf::from(rgb),
         }),
     };
-    ros::encode_sensor(vec![frame], layout)
+    ros::encode_sensor(vec![frame], &[], layout)
 }
 
 fn model_message(signer: &Signer, version: u64) -> Vec<u8> {

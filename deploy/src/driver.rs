@@ -9,7 +9,7 @@
 //! [`Driver::tick`] sends throttle 0 when frames stop for `watchdog_ms`, again every period,
 //! until they return. Every state change is logged.
 
-use crate::frame::{FrameError, preprocess};
+use crate::frame::{add_lidar, preprocess};
 use crate::infer::Scratch;
 use crate::verify::{VerifiedModel, verify};
 use arc_swap::ArcSwapOption;
@@ -304,7 +304,7 @@ impl Driver {
             Layout::Community => ros::Layout::Community,
             Layout::Aws => ros::Layout::Aws,
         };
-        let frames = match ros::decode_sensor(bytes, layout) {
+        let sensors = match ros::decode_sensor(bytes, layout) {
             Ok(f) => f,
             Err(e) => {
                 self.figures.bad_frames += 1;
@@ -317,7 +317,7 @@ impl Driver {
         while self.recent.front().is_some_and(|t| now.duration_since(*t) > Duration::from_secs(1)) {
             self.recent.pop_front();
         }
-        let correlation = frames.first().map(|f| f.header().clone()).unwrap_or_default();
+        let correlation = sensors.frames.first().map(|f| f.header().clone()).unwrap_or_default();
         let model = self.slot.current();
         let command = match (&model, self.estop) {
             (_, true) => Command::stop(correlation),
@@ -327,13 +327,11 @@ impl Driver {
             }
             (Some(m), false) => {
                 let (h, w, c) = m.input;
-                if let Err(e) = preprocess(&frames, h, w, c, &mut self.obs) {
+                if let Err(e) = preprocess(&sensors.frames, h, w, c, &mut self.obs)
+                    .and_then(|()| add_lidar(m.lidar, &sensors.lidar, &mut self.obs))
+                {
                     self.figures.bad_frames += 1;
-                    return Err(match e {
-                        FrameError::Missing { .. } | FrameError::Decode { .. } | FrameError::Raw { .. } => {
-                            e.to_string()
-                        }
-                    });
+                    return Err(e.to_string());
                 }
                 let t0 = Instant::now();
                 let choice = m.policy.mode(&self.obs, &mut self.scratch);

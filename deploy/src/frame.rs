@@ -9,7 +9,16 @@
 //! `(4899·R + 9617·G + 1868·B + 8192) >> 14`; both are written here because no Rust crate
 //! reproduces OpenCV's conventions, and a frame that already has the model's size (the
 //! community car resizes at the source) passes through unchanged but for the grey conversion.
+//!
+//! A LiDAR model's input comes from the message's `lidar_data` ([`add_lidar`]): as the
+//! sensor-fusion node sends it, already the model's input (64 clipped ranges for `LIDAR`, 8
+//! sector bits for `SECTOR_LIDAR`), as DeepRacer's inference node takes it; or, when the
+//! model wants sectors and the message holds the 64 raw ranges, through DeepRacer's sector
+//! filter here. `DISCRETIZED_SECTOR_LIDAR`'s default 8 × 8 input is 64 values too: it is taken
+//! as the fusion node's output.
 
+use policy::Sensor;
+use policy::metadata::{LidarInput, clipped};
 use protocol::ros::RawFrame;
 
 /// Why a frame could not be used.
@@ -39,6 +48,9 @@ pub enum FrameError {
         /// Why.
         msg: String,
     },
+    /// The message's `lidar_data` is not what the model's LiDAR input needs.
+    #[error("lidar_data: {0}")]
+    Lidar(String),
 }
 
 /// The largest frame accepted (pixels): a 4K camera, with room.
@@ -161,6 +173,42 @@ pub fn preprocess(
         for (i, p) in img.px.chunks_exact(3).enumerate() {
             out[i * channels + c] = grey(p[0], p[1], p[2]) as f32;
         }
+    }
+    Ok(())
+}
+
+/// Put a LiDAR model's input from `lidar_data` (see the module documentation) before or after
+/// the camera's pixels in `obs` (`lidar`: the model's LiDAR input and whether it comes first;
+/// nothing to do without one).
+pub fn add_lidar(lidar: Option<(LidarInput, bool)>, data: &[f32], obs: &mut Vec<f32>) -> Result<(), FrameError> {
+    let Some((l, first)) = lidar else { return Ok(()) };
+    let values = if data.len() == l.size() {
+        if l.sensor == Sensor::Lidar {
+            clipped(data)
+        } else if let Some(i) = data.iter().position(|v| !v.is_finite()) {
+            return Err(FrameError::Lidar(format!(
+                "value {i} is {}, expected the model's {} input",
+                data[i],
+                l.sensor.name()
+            )));
+        } else {
+            data.to_vec()
+        }
+    } else if data.len() == LidarInput::RAYS {
+        l.filter(data)
+    } else {
+        return Err(FrameError::Lidar(format!(
+            "{} values; the model's {} takes {} (or the LiDAR's {} ranges)",
+            data.len(),
+            l.sensor.name(),
+            l.size(),
+            LidarInput::RAYS
+        )));
+    };
+    if first {
+        obs.splice(0..0, values);
+    } else {
+        obs.extend_from_slice(&values);
     }
     Ok(())
 }

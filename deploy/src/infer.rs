@@ -287,7 +287,15 @@ impl CarPolicy {
         let net = &model.pi;
         let mut stages = Vec::new();
         let mut run: Vec<Layer> = Vec::new();
-        for l in &net.layers {
+        // A camera + LiDAR network: its embedders, in f32, as a first stage that hands over
+        // their concatenated outputs; the middleware and head staged as a camera's are.
+        let trunk = net.sections().last().expect("the rest").start;
+        if !net.inputs.is_empty() {
+            let mut embedders = subnet(net, &net.layers[..trunk]);
+            embedders.inputs = net.inputs.clone();
+            stages.push(Stage::Exact(embedders));
+        }
+        for l in &net.layers[trunk..] {
             match *l {
                 Layer::Dense { inp, out, offset } if inp * out >= HALF_FROM => {
                     if !run.is_empty() {
@@ -408,6 +416,36 @@ mod tests {
         let obs = vec![0.3f32; 20];
         m.pi.forward(&obs, 1, &mut tape, faer::Par::Seq);
         assert_eq!(car.logits(&obs, &mut s), tape.output());
+    }
+
+    #[test]
+    fn issue_31_a_camera_and_lidar_tower_runs_its_embedders_then_the_half_precision_middleware() {
+        let meta = ModelMetadata::parse(
+            r#"{"action_space":[{"steering_angle":-20,"speed":1},{"steering_angle":20,"speed":1}],
+                "sensor":["STEREO_CAMERAS","LIDAR"],"version":"5"}"#,
+            "m.json",
+        )
+        .unwrap();
+        let size = 2 * 120 * 160 + 64;
+        let m = ActorCritic::new(&meta, size, &mut rand_chacha::ChaCha8Rng::seed_from_u64(4));
+        for precision in [Precision::F16, Precision::Int8] {
+            let car = CarPolicy::new(&m, precision);
+            assert!(matches!(&car.stages[0], Stage::Exact(n) if n.inputs.len() == 2), "the embedders first");
+            assert!(matches!(car.stages[1], Stage::Half(_) | Stage::Int8(_)), "then the merged 11,520 → 512 layer");
+            let (mut s, mut tape) = (Scratch::default(), Tape::default());
+            // LiDAR first (LIDAR < STEREO_CAMERAS): ranges, then the two channels' pixels.
+            let obs: Vec<f32> = (0..size as u32)
+                .map(|i| if i < 64 { 0.15 + (i % 7) as f32 * 0.1 } else { ((i * 7 + i / 320 * 3) % 256) as f32 })
+                .collect();
+            m.pi.forward(&obs, 1, &mut tape, faer::Par::Seq);
+            let exact = tape.output().to_vec();
+            let got = car.logits(&obs, &mut s).to_vec();
+            let scale = exact.iter().fold(0.0f32, |a, v| a.max(v.abs()));
+            let tol = if precision == Precision::F16 { 2e-3 } else { 2e-2 };
+            for (a, b) in got.iter().zip(&exact) {
+                assert!((a - b).abs() <= tol * scale, "{precision:?}: {got:?} vs {exact:?}");
+            }
+        }
     }
 
     #[test]

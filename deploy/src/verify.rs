@@ -2,7 +2,7 @@
 //! for a DeepRacer archive, which no one signs, named in `car.toml`'s `trust_unsigned`); the
 //! weights' sha256 equals the manifest's (and every tensor fits `model_metadata.json`); the
 //! model's sensors and action space fit the car (`car.toml`); its input is the camera frame
-//! the car produces.
+//! (and the LiDAR's values) the car produces.
 
 use crate::infer::CarPolicy;
 use policy::car::{CarConfig, ServoMap};
@@ -31,8 +31,11 @@ pub struct VerifiedModel {
     pub policy: CarPolicy,
     /// Actions to servo ratios for this model.
     pub servo: ServoMap,
-    /// Input rows, columns, channels.
+    /// The camera's input: rows, columns, channels.
     pub input: (usize, usize, usize),
+    /// The LiDAR's input, when the model has one, and whether its values come before the
+    /// camera's (DeepRacer's sorted input names).
+    pub lidar: Option<(policy::metadata::LidarInput, bool)>,
     /// The files as verified (what `--model-dir` keeps).
     pub parts: ModelParts,
 }
@@ -63,12 +66,21 @@ fn checked(parts: ModelParts, key: String, car: &CarConfig, source: &str) -> Res
         InputShape::Flat(n) => return Err(format!("the model takes a vector of {n}, not a camera frame")),
     };
     let (h, w, _) = CAMERA_SHAPE;
-    if folder.manifest.obs_size != input.0 * input.1 * input.2 || (input.0, input.1) != (h, w) {
+    let size = policy::model::input_size(&folder.metadata, folder.manifest.obs_size);
+    if folder.manifest.obs_size != size || (input.0, input.1) != (h, w) {
         return Err(format!(
-            "the manifest says {} inputs; the car gives {}×{}×{} frames",
-            folder.manifest.obs_size, input.0, input.1, input.2
+            "the manifest says {} inputs; the car gives {}×{}×{} frames{}",
+            folder.manifest.obs_size,
+            input.0,
+            input.1,
+            input.2,
+            folder.metadata.lidar.map_or(String::new(), |l| format!(" and {} LiDAR values", l.size()))
         ));
     }
+    let lidar = folder.metadata.lidar.map(|l| {
+        let first = policy::model::inputs(&folder.metadata, 0)[0].0 == l.sensor;
+        (l, first)
+    });
     let servo = ServoMap::new(&car.mapping, &folder.metadata.action_space);
     Ok(VerifiedModel {
         version: folder.manifest.policy_version,
@@ -76,6 +88,7 @@ fn checked(parts: ModelParts, key: String, car: &CarConfig, source: &str) -> Res
         key,
         servo,
         input,
+        lidar,
         metadata: folder.metadata,
         manifest: folder.manifest,
         policy: CarPolicy::new(&folder.model, car.precision),

@@ -39,7 +39,7 @@ fn aws_frame(sec: i32) -> Vec<u8> {
         step: 640 * 3,
         data: ByteBuf::from((0..640 * 480 * 3).map(|i| (i % 251) as u8).collect::<Vec<u8>>()),
     };
-    ros::encode_sensor(vec![RawFrame::Raw(img)], Layout::Aws)
+    ros::encode_sensor(vec![RawFrame::Raw(img)], &[], Layout::Aws)
 }
 
 fn aws_car() -> CarConfig {
@@ -117,7 +117,7 @@ fn issue_9_no_throttle_before_a_model_then_the_models_choice() {
     assert_eq!(d.state(), CarState::Driving);
     // The command is the model's own choice, mapped as the navigation node maps it.
     let m = slot.current().unwrap();
-    let frames = ros::decode_sensor(&aws_frame(2), Layout::Aws).unwrap();
+    let frames = ros::decode_sensor(&aws_frame(2), Layout::Aws).unwrap().frames;
     let mut obs = Vec::new();
     deploy::frame::preprocess(&frames, 120, 160, 1, &mut obs).unwrap();
     let choice = m.policy.mode(&obs, &mut deploy::infer::Scratch::default());
@@ -271,12 +271,12 @@ fn issue_31_a_stereo_model_drives_from_both_images_in_both_layouts() {
         let slot = Arc::new(ModelSlot::default());
         let mut d = Driver::new(car.clone(), slot.clone());
         assert_eq!(slot.offer(parts(), &trust, &car, "latest", &Follow::Latest), Offer::Taken(6));
-        let msg = ros::encode_sensor(frames(3), layout);
+        let msg = ros::encode_sensor(frames(3), &[], layout);
         let c = d.frame(&msg, Instant::now()).unwrap();
         assert_eq!(c.version, Some(6), "{layout:?}");
         // As Paddock computes it: channel 0 the first (left) image, channel 1 the second.
         let mut obs = Vec::new();
-        deploy::frame::preprocess(&ros::decode_sensor(&msg, layout).unwrap(), 120, 160, 2, &mut obs).unwrap();
+        deploy::frame::preprocess(&ros::decode_sensor(&msg, layout).unwrap().frames, 120, 160, 2, &mut obs).unwrap();
         assert_ne!(obs.iter().step_by(2).collect::<Vec<_>>(), obs.iter().skip(1).step_by(2).collect::<Vec<_>>());
         let m = slot.current().unwrap();
         let action = match m.policy.mode(&obs, &mut deploy::infer::Scratch::default()) {
@@ -285,7 +285,94 @@ fn issue_31_a_stereo_model_drives_from_both_images_in_both_layouts() {
         };
         assert_eq!((c.servo.angle, c.servo.throttle), m.servo.to_servo(action), "{layout:?}");
         // One image is not enough for a stereo model: an error, not a command.
-        let one = ros::encode_sensor(frames(4).into_iter().take(1).collect(), layout);
+        let one = ros::encode_sensor(frames(4).into_iter().take(1).collect(), &[], layout);
         assert!(d.frame(&one, Instant::now()).is_err(), "{layout:?}");
+    }
+}
+
+#[test]
+fn issue_31_a_camera_and_sector_lidar_model_drives_from_the_messages_lidar_data_in_both_layouts() {
+    let learner = Signer::from_seed([1; 32]);
+    let mut trust = TrustedKeys::default();
+    trust.add("learner.pub", &learner);
+    let meta = ModelMetadata::parse(
+        r#"{"action_space": [{"steering_angle": -20, "speed": 1}, {"steering_angle": 0, "speed": 2}, {"steering_angle": 20, "speed": 1}],
+            "sensor": ["FRONT_FACING_CAMERA", "SECTOR_LIDAR"], "neural_network": "DEEP_CONVOLUTIONAL_NETWORK_SHALLOW", "version": "5"}"#,
+        "m.json",
+    )
+    .unwrap();
+    let size = 120 * 160 + 8;
+    let model = ActorCritic::new(&meta, size, &mut rand_chacha::ChaCha8Rng::seed_from_u64(31));
+    let parts = || ModelParts::new(&meta, &model, &manifest(9, size), Some(&learner));
+    // A car without the LiDAR does not take the model.
+    let slot = ModelSlot::default();
+    let refused = slot.offer(parts(), &trust, &CarConfig::default(), "latest", &Follow::Latest);
+    assert!(matches!(&refused, Offer::Refused(r) if r.contains("needs sensor SECTOR_LIDAR")), "{refused:?}");
+    let image = Image {
+        header: Header { stamp: Time { sec: 5, nanosec: 0 }, frame_id: "camera".into() },
+        height: 120,
+        width: 160,
+        encoding: "rgb8".into(),
+        is_bigendian: 0,
+        step: 160 * 3,
+        data: ByteBuf::from((0..160 * 120 * 3).map(|i| ((i / 3) % 233) as u8).collect::<Vec<u8>>()),
+    };
+    let with_lidar =
+        |c: CarConfig| CarConfig { sensors: vec!["FRONT_FACING_CAMERA".into(), "SECTOR_LIDAR".into()], ..c };
+    for (layout, car) in [(Layout::Aws, with_lidar(aws_car())), (Layout::Community, with_lidar(CarConfig::default()))] {
+        let frame = match layout {
+            Layout::Aws => RawFrame::Raw(image.clone()),
+            Layout::Community => {
+                let rgb = image::RgbImage::from_raw(160, 120, image.data.to_vec()).unwrap();
+                let mut out = Vec::new();
+                image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, 95).encode_image(&rgb).unwrap();
+                RawFrame::Compressed(ros::CompressedImage {
+                    header: image.header.clone(),
+                    format: "jpeg".into(),
+                    data: ByteBuf::from(out),
+                })
+            }
+        };
+        let slot = Arc::new(ModelSlot::default());
+        let mut d = Driver::new(car.clone(), slot.clone());
+        assert_eq!(slot.offer(parts(), &trust, &car, "latest", &Follow::Latest), Offer::Taken(9));
+        let m = slot.current().unwrap();
+        let mut pixels = Vec::new();
+        deploy::frame::preprocess(std::slice::from_ref(&frame), 120, 160, 1, &mut pixels).unwrap();
+        // The car's choice with the camera's pixels first, then the 8 sector bits
+        // (FRONT_FACING_CAMERA < SECTOR_LIDAR).
+        let bits = |p: u32| (0..8).map(|s| f32::from(p >> s & 1 == 1)).collect::<Vec<f32>>();
+        let want = |p: u32| {
+            let obs = [pixels.clone(), bits(p)].concat();
+            let action = match m.policy.mode(&obs, &mut deploy::infer::Scratch::default()) {
+                policy::Choice::Discrete(i) => m.metadata.action_space.discrete(i).unwrap(),
+                policy::Choice::Continuous(_) => unreachable!(),
+            };
+            m.servo.to_servo(action)
+        };
+        // Two LiDAR readings the model answers differently: the LiDAR steers the car.
+        let (p1, p2) = (0..256u32)
+            .flat_map(|a| (a + 1..256).map(move |b| (a, b)))
+            .find(|&(a, b)| want(a) != want(b))
+            .expect("some LiDAR readings change the model's choice");
+        for p in [p1, p2] {
+            // The fusion node's sectors as they are, and the 64 raw ranges through DeepRacer's
+            // filter (0.3 m in a sector with something near, 5 m elsewhere).
+            let raw: Vec<f32> = (0..64).map(|k| if p >> (k / 8) & 1 == 1 { 0.3 } else { 5.0 }).collect();
+            for lidar in [bits(p), raw] {
+                let c = d.frame(&ros::encode_sensor(vec![frame.clone()], &lidar, layout), Instant::now()).unwrap();
+                assert_eq!(
+                    (c.servo.angle, c.servo.throttle),
+                    want(p),
+                    "{layout:?} {p:08b} from {} values",
+                    lidar.len()
+                );
+            }
+        }
+        // No LiDAR values, or a count the model cannot take: an error naming lidar_data.
+        for lidar in [vec![], vec![0.5; 5]] {
+            let e = d.frame(&ros::encode_sensor(vec![frame.clone()], &lidar, layout), Instant::now()).unwrap_err();
+            assert!(e.starts_with("lidar_data: ") && e.contains("SECTOR_LIDAR takes 8"), "{e}");
+        }
     }
 }

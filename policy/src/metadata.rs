@@ -209,6 +209,37 @@ impl LidarInput {
     pub fn size(&self) -> usize {
         self.sectors * self.values
     }
+
+    /// DeepRacer's input filter on a scan of [`LidarInput::RAYS`] ranges (m; infinity where
+    /// nothing is in range): the network's input.
+    pub fn filter(&self, scan: &[f32]) -> Vec<f32> {
+        match self.sensor {
+            Sensor::Lidar => clipped(scan),
+            _ => sectors(scan, self.sectors, self.values, self.clip),
+        }
+    }
+}
+
+/// `LIDAR`'s input: every reading clipped to [0.15, 1.0] m (infinity reads 1.0).
+pub fn clipped(scan: &[f32]) -> Vec<f32> {
+    scan.iter().map(|&d| if d.is_nan() { 1.0 } else { d.clamp(0.15, 1.0) }).collect()
+}
+
+/// `SECTOR_LIDAR` (8 sectors, 1 value, 0.5 m) and `DISCRETIZED_SECTOR_LIDAR` (its
+/// `lidar_config`): per sector of consecutive rays its nearest reading `v` (infinity reads
+/// `clip`), `min(v, clip)`, bin `k = floor(v / (clip / values))` up to `values`, one-hot over
+/// `values + 1` bins with the last (nothing within `clip`) dropped.
+pub fn sectors(scan: &[f32], sectors: usize, values: usize, clip: f32) -> Vec<f32> {
+    let per = scan.len() / sectors.max(1);
+    let mut out = vec![0.0; sectors * values];
+    for s in 0..sectors {
+        let v = scan[s * per..(s + 1) * per].iter().map(|&d| if d.is_finite() { d } else { clip }).fold(clip, f32::min);
+        let k = ((v / (clip / values as f32)).floor().max(0.0) as usize).min(values);
+        if k < values {
+            out[s * values + k] = 1.0;
+        }
+    }
+    out
 }
 
 /// Why a `model_metadata.json` was refused.

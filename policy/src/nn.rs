@@ -348,9 +348,17 @@ impl Net {
         }
     }
 
-    /// Features per sample out.
+    /// Features per sample out (a multi-input network without layers after its embedders:
+    /// their outputs side by side).
     pub fn out_size(&self) -> usize {
-        self.layers.last().map(|l| l.out_size()).unwrap_or(0)
+        let sections = self.sections();
+        let trunk = sections.last().expect("the rest");
+        if !trunk.is_empty() || self.inputs.is_empty() {
+            return self.layers.last().map(|l| l.out_size()).unwrap_or(0);
+        }
+        (self.inputs.iter().zip(&sections))
+            .map(|(e, r)| self.layers[r.clone()].last().map_or(e.shape.size(), |l| l.out_size()))
+            .sum()
     }
 
     /// Forward a batch (`batch × in`), keeping what backward needs in `tape`.

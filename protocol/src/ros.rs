@@ -229,36 +229,44 @@ impl RawFrame {
     }
 }
 
-/// Decode one `EvoSensorMsg` in `layout`: its camera frames.
-pub fn decode_sensor(bytes: &[u8], layout: Layout) -> Result<Vec<RawFrame>, CdrError> {
+/// What one `EvoSensorMsg` carries for a model: its camera frames and its `lidar_data`.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct SensorFrames {
+    /// The camera images (one, or the stereo pair).
+    pub frames: Vec<RawFrame>,
+    /// The LiDAR's values as the sensor-fusion node sends them (empty without a LiDAR).
+    pub lidar: Vec<f32>,
+}
+
+/// Decode one `EvoSensorMsg` in `layout`.
+pub fn decode_sensor(bytes: &[u8], layout: Layout) -> Result<SensorFrames, CdrError> {
     Ok(match layout {
-        Layout::Community => from_cdr::<EvoSensorCommunity>(bytes, "EvoSensorMsg (community layout)")?
-            .images
-            .into_iter()
-            .map(RawFrame::Compressed)
-            .collect(),
-        Layout::Aws => from_cdr::<EvoSensorAws>(bytes, "EvoSensorMsg (AWS layout)")?
-            .images
-            .into_iter()
-            .map(RawFrame::Raw)
-            .collect(),
+        Layout::Community => {
+            let m = from_cdr::<EvoSensorCommunity>(bytes, "EvoSensorMsg (community layout)")?;
+            SensorFrames { frames: m.images.into_iter().map(RawFrame::Compressed).collect(), lidar: m.lidar_data }
+        }
+        Layout::Aws => {
+            let m = from_cdr::<EvoSensorAws>(bytes, "EvoSensorMsg (AWS layout)")?;
+            SensorFrames { frames: m.images.into_iter().map(RawFrame::Raw).collect(), lidar: m.lidar_data }
+        }
     })
 }
 
-/// Encode one `EvoSensorMsg` in `layout` from frames of the matching kind (the simulated car).
-pub fn encode_sensor(frames: Vec<RawFrame>, layout: Layout) -> Vec<u8> {
+/// Encode one `EvoSensorMsg` in `layout` from frames of the matching kind and LiDAR values
+/// (the simulated car).
+pub fn encode_sensor(frames: Vec<RawFrame>, lidar: &[f32], layout: Layout) -> Vec<u8> {
     match layout {
         Layout::Community => to_cdr(&EvoSensorCommunity {
             images: frames
                 .into_iter()
                 .filter_map(|f| if let RawFrame::Compressed(c) = f { Some(c) } else { None })
                 .collect(),
-            lidar_data: Vec::new(),
+            lidar_data: lidar.to_vec(),
             imu_data: Imu::default(),
         }),
         Layout::Aws => to_cdr(&EvoSensorAws {
             images: frames.into_iter().filter_map(|f| if let RawFrame::Raw(i) = f { Some(i) } else { None }).collect(),
-            lidar_data: Vec::new(),
+            lidar_data: lidar.to_vec(),
         }),
     }
 }
@@ -354,12 +362,13 @@ mod tests {
             step: 9,
             data: ByteBuf::from((0..18u8).collect::<Vec<_>>()),
         };
-        let b = encode_sensor(vec![RawFrame::Raw(img.clone())], Layout::Aws);
-        assert_eq!(decode_sensor(&b, Layout::Aws).unwrap(), vec![RawFrame::Raw(img)]);
+        let b = encode_sensor(vec![RawFrame::Raw(img.clone())], &[0.25, 1.0], Layout::Aws);
+        let d = decode_sensor(&b, Layout::Aws).unwrap();
+        assert_eq!((d.frames, d.lidar), (vec![RawFrame::Raw(img)], vec![0.25, 1.0]));
         let jpeg =
             CompressedImage { header: Header::default(), format: "jpeg".into(), data: ByteBuf::from(vec![1, 2, 3]) };
-        let b = encode_sensor(vec![RawFrame::Compressed(jpeg.clone())], Layout::Community);
-        assert_eq!(decode_sensor(&b, Layout::Community).unwrap(), vec![RawFrame::Compressed(jpeg)]);
+        let b = encode_sensor(vec![RawFrame::Compressed(jpeg.clone())], &[], Layout::Community);
+        assert_eq!(decode_sensor(&b, Layout::Community).unwrap().frames, vec![RawFrame::Compressed(jpeg)]);
         for bad in [&b"\x00\x01"[..], b"\x00\x01\x00\x00\xff\xff\xff\xff", b"\x01\x02\x00\x00abcd"] {
             assert!(decode_sensor(bad, Layout::Community).is_err());
             assert!(decode_servo(bad, Layout::Aws).is_err());

@@ -171,7 +171,7 @@ pub fn run(args: CarArgs) -> Result<()> {
         };
         let sent = Instant::now();
         last_sent = sent;
-        publisher.put(ros::encode_sensor(vec![frame], layout)).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
+        publisher.put(ros::encode_sensor(vec![frame], &[], layout)).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
         s.frames_sent += 1;
         // The frame period: take the commands that come; note the one that answers this frame.
         // A frame sent late (the renderer fell behind its schedule) still gets a whole period

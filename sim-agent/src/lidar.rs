@@ -87,27 +87,7 @@ pub fn scan(car: P2, yaw: f64, objects: &[Object], rng: &mut impl Rng) -> [f32; 
     out
 }
 
-/// `LIDAR`'s input: every reading clipped to [0.15, 1.0] m (infinity reads 1.0).
-pub fn clipped(scan: &[f32]) -> Vec<f32> {
-    scan.iter().map(|&d| d.clamp(0.15, 1.0)).collect()
-}
-
-/// `SECTOR_LIDAR` (8 sectors, 1 value, 0.5 m) and `DISCRETIZED_SECTOR_LIDAR` (its
-/// `lidar_config`): per sector of consecutive rays its nearest reading `v` (infinity reads
-/// `clip`), `min(v, clip)`, bin `k = floor(v / (clip / values))` up to `values`, one-hot over
-/// `values + 1` bins with the last (nothing within `clip`) dropped.
-pub fn sectors(scan: &[f32], sectors: usize, values: usize, clip: f32) -> Vec<f32> {
-    let per = scan.len() / sectors.max(1);
-    let mut out = vec![0.0; sectors * values];
-    for s in 0..sectors {
-        let v = scan[s * per..(s + 1) * per].iter().map(|&d| if d.is_finite() { d } else { clip }).fold(clip, f32::min);
-        let k = ((v / (clip / values as f32)).floor() as usize).min(values);
-        if k < values {
-            out[s * values + k] = 1.0;
-        }
-    }
-    out
-}
+pub use policy::metadata::{clipped, sectors};
 
 #[cfg(test)]
 mod tests {

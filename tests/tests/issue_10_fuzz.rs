@@ -220,8 +220,8 @@ fn cdr_seeds() -> Vec<Vec<u8>> {
     });
     let servo = Servo { angle: 0.5, throttle: -0.25 };
     vec![
-        ros::encode_sensor(vec![jpeg], Layout::Community),
-        ros::encode_sensor(vec![raw], Layout::Aws),
+        ros::encode_sensor(vec![jpeg], &[0.5, 2.0], Layout::Community),
+        ros::encode_sensor(vec![raw], &[], Layout::Aws),
         ros::encode_servo(servo, Layout::Community, Time::from_secs_f64(1.5), 3, &Header::default()),
         ros::encode_servo(servo, Layout::Aws, Time::from_secs_f64(1.5), 3, &Header::default()),
     ]
