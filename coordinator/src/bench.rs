@@ -849,7 +849,7 @@ pub fn long_job(minutes: f64, trials: u32, out: &std::path::Path) -> Result<i32>
 }
 
 /// One race of `bench races`: its name, the flags that make it (sensor, race, reward).
-const RACES: [(&str, &[&str]); 4] = [
+const RACES: [(&str, &[&str]); 5] = [
     ("time_trial", &["--sensor", "camera"]),
     ("object_avoidance", &["--sensor", "camera", "--obstacles", "3", "--reward", "builtin:object_avoidance"]),
     (
@@ -857,6 +857,7 @@ const RACES: [(&str, &[&str]); 4] = [
         &["--sensor", "camera", "--bots", "2", "--bot-speed", "0.5", "--reward", "builtin:object_avoidance"],
     ),
     ("stereo", &["--sensor", "stereo"]),
+    ("camera_sector_lidar", &["--sensor", "camera+lidar", "--obstacles", "3", "--reward", "builtin:object_avoidance"]),
 ];
 
 /// `bench races`: every race trained from pixels and evaluated under its rules.

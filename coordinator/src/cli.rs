@@ -209,8 +209,9 @@ pub enum BenchCommand {
         out: PathBuf,
     },
     /// Every DeepRacer race from pixels (issue 31): the time trial, object avoidance (3 random
-    /// boxes), head-to-bot (2 bots at 0.5 m/s) and the stereo pair, each trained by `train`
-    /// and by `up` with 2 agents, then evaluated under the race's rules. Prints a table and a
+    /// boxes), head-to-bot (2 bots at 0.5 m/s), the stereo pair, and the camera with the
+    /// console's LiDAR (SECTOR_LIDAR) among 3 boxes, each trained by `train` and by `up` with 2
+    /// agents, then evaluated under the race's rules. Prints a table and a
     /// verdict (exit 1 when a model fails: fewer laps than trials, or a crash).
     Races {
         /// The track.
@@ -219,7 +220,8 @@ pub enum BenchCommand {
         /// Budget per training (minutes).
         #[arg(long, default_value_t = 10.0)]
         minutes: f64,
-        /// Which races (time_trial, object_avoidance, head_to_bot, stereo; default all).
+        /// Which races (time_trial, object_avoidance, head_to_bot, stereo, camera_sector_lidar;
+        /// default all).
         #[arg(long = "race")]
         races: Vec<String>,
         /// Skip `up` (train in one process only).
@@ -543,8 +545,9 @@ pub struct UpArgs {
     /// Reward: a DeepRacer Python file or builtin:NAME.
     #[arg(long)]
     pub reward: Option<String>,
-    /// "state" (the state vector), "camera" (FRONT_FACING_CAMERA, SHALLOW network) or "stereo"
-    /// (STEREO_CAMERAS, SHALLOW network).
+    /// "state" (the state vector), "camera" (FRONT_FACING_CAMERA, SHALLOW network), "stereo"
+    /// (STEREO_CAMERAS, SHALLOW network), or "camera+lidar" / "stereo+lidar" (with SECTOR_LIDAR,
+    /// the console's LiDAR).
     #[arg(long, default_value = "state")]
     pub sensor: String,
     /// Override a simulator configuration key for the job (`key=value`, repeatable), e.g.
@@ -591,8 +594,9 @@ pub struct TrainArgs {
     #[arg(long)]
     pub model_metadata: Option<PathBuf>,
     /// Without a model_metadata.json: "state" (the state vector, PADDOCK_MLP), "camera"
-    /// (FRONT_FACING_CAMERA, DEEP_CONVOLUTIONAL_NETWORK_SHALLOW) or "stereo" (STEREO_CAMERAS,
-    /// the same network on two channels); 5 steering angles x 2 speeds.
+    /// (FRONT_FACING_CAMERA, DEEP_CONVOLUTIONAL_NETWORK_SHALLOW), "stereo" (STEREO_CAMERAS,
+    /// the same network on two channels), or "camera+lidar" / "stereo+lidar" (with
+    /// SECTOR_LIDAR, the console's LiDAR); 5 steering angles x 2 speeds.
     #[arg(long, default_value = "state")]
     pub sensor: String,
     /// Wall-clock budget in minutes.

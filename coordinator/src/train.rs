@@ -158,10 +158,9 @@ pub fn train(mut args: TrainArgs) -> Result<i32> {
     let sim_path = args.config.clone().or_else(|| from_run("sim.toml"));
     let meta = match (&meta_path, args.sensor.as_str()) {
         (Some(p), _) => ModelMetadata::load(p)?,
-        (None, "state") => ModelMetadata::default_state_vector(),
-        (None, "camera") => ModelMetadata::default_camera(),
-        (None, "stereo") => ModelMetadata::default_stereo(),
-        (None, other) => bail!("--sensor is {other:?}, expected \"state\", \"camera\" or \"stereo\""),
+        (None, name) => ModelMetadata::for_sensor(name).ok_or_else(|| {
+            anyhow::anyhow!("--sensor is {name:?}, expected one of {:?}", ModelMetadata::SENSOR_NAMES)
+        })?,
     };
     let mut hyper = match &hyper_path {
         Some(p) => hyperparameters(p)?,

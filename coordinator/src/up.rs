@@ -338,17 +338,14 @@ fn job_spec(args: &UpArgs, out: &Path) -> Result<String> {
     let meta = match (&args.model_metadata, args.sensor.as_str()) {
         (Some(p), _) => Some(absolute("--model-metadata", p)?),
         (None, "state") => None,
-        (None, camera @ ("camera" | "stereo")) => {
+        (None, name) => {
+            let meta = policy::ModelMetadata::for_sensor(name).ok_or_else(|| {
+                anyhow::anyhow!("--sensor is {name:?}, expected one of {:?}", policy::ModelMetadata::SENSOR_NAMES)
+            })?;
             let p = out.join("model_metadata.json");
-            let meta = if camera == "camera" {
-                policy::ModelMetadata::default_camera()
-            } else {
-                policy::ModelMetadata::default_stereo()
-            };
             std::fs::write(&p, meta.to_json())?;
             Some(p.display().to_string())
         }
-        (None, other) => bail!("--sensor is {other:?}, expected \"state\", \"camera\" or \"stereo\""),
     };
     if let Some(m) = meta {
         t.insert("model_metadata".into(), Value::String(m));

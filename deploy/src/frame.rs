@@ -14,8 +14,8 @@
 //! sensor-fusion node sends it, already the model's input (64 clipped ranges for `LIDAR`, 8
 //! sector bits for `SECTOR_LIDAR`), as DeepRacer's inference node takes it; or, when the
 //! model wants sectors and the message holds the 64 raw ranges, through DeepRacer's sector
-//! filter here. `DISCRETIZED_SECTOR_LIDAR`'s default 8 × 8 input is 64 values too: it is taken
-//! as the fusion node's output.
+//! filter here. `DISCRETIZED_SECTOR_LIDAR`'s default 8 × 8 input is 64 values too: 64 values
+//! that are all 0 or 1 are taken as its one-hot input, any others as ranges.
 
 use policy::Sensor;
 use policy::metadata::{LidarInput, clipped};
@@ -182,7 +182,11 @@ pub fn preprocess(
 /// nothing to do without one).
 pub fn add_lidar(lidar: Option<(LidarInput, bool)>, data: &[f32], obs: &mut Vec<f32>) -> Result<(), FrameError> {
     let Some((l, first)) = lidar else { return Ok(()) };
-    let values = if data.len() == l.size() {
+    // A sector input is one-hot: 64 values of which some are neither 0 nor 1 are ranges.
+    let one_hot = |d: &[f32]| d.iter().all(|v| *v == 0.0 || *v == 1.0);
+    let as_is =
+        data.len() == l.size() && (l.sensor == Sensor::Lidar || data.len() != LidarInput::RAYS || one_hot(data));
+    let values = if as_is {
         if l.sensor == Sensor::Lidar {
             clipped(data)
         } else if let Some(i) = data.iter().position(|v| !v.is_finite()) {
@@ -298,5 +302,53 @@ mod tests {
         let want = grey(90, 120, 150) as f32;
         assert_eq!(out.len(), 120 * 160);
         assert!(out.iter().all(|v| (v - want).abs() <= 2.0), "{want} vs {:?}", &out[..4]);
+    }
+
+    #[test]
+    fn issue_31_lidar_data_as_the_fusion_node_sends_it_or_as_raw_ranges() {
+        let input = |sensor, sectors, values, clip| LidarInput { sensor, sectors, values, clip };
+        let discretized = input(Sensor::DiscretizedSectorLidar, 8, 8, 2.0);
+        let mut ranges = [f32::INFINITY; 64];
+        ranges[3] = 0.3;
+        ranges[20] = 1.1;
+        // (model input, lidar_data, its place, the values the network gets)
+        let one_hot = policy::metadata::sectors(&ranges, 8, 8, 2.0);
+        let table: Vec<(LidarInput, Vec<f32>, bool, Vec<f32>)> = vec![
+            // DISCRETIZED's 8 × 8: one-hot values as they are; ranges through the filter.
+            (discretized, one_hot.clone(), false, one_hot.clone()),
+            (discretized, ranges.to_vec(), true, one_hot.clone()),
+            // SECTOR_LIDAR: its 8 bits, or the 64 ranges filtered (0.3 m in sector 0).
+            (
+                input(Sensor::SectorLidar, 8, 1, 0.5),
+                vec![0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
+                false,
+                vec![0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
+            ),
+            (
+                input(Sensor::SectorLidar, 8, 1, 0.5),
+                ranges.to_vec(),
+                false,
+                vec![1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+            ),
+            // LIDAR: the 64 ranges clipped to [0.15, 1] (infinity reads 1).
+            (input(Sensor::Lidar, 64, 1, 1.0), ranges.to_vec(), true, policy::metadata::clipped(&ranges)),
+        ];
+        for (l, data, first, want) in table {
+            let mut obs = vec![7.0; 3];
+            add_lidar(Some((l, first)), &data, &mut obs).unwrap();
+            let (lidar, pixels) = if first { (&obs[..want.len()], &obs[want.len()..]) } else { (&obs[3..], &obs[..3]) };
+            assert_eq!((lidar, pixels), (&want[..], &[7.0; 3][..]), "{:?} from {} values", l.sensor, data.len());
+        }
+        // No LiDAR: nothing added. A count that fits neither, or a sector that is not a number: an error.
+        let mut obs = vec![1.0];
+        add_lidar(None, &[0.5; 9], &mut obs).unwrap();
+        assert_eq!(obs, [1.0]);
+        let e = add_lidar(Some((discretized, false)), &[0.5; 9], &mut obs).unwrap_err().to_string();
+        assert_eq!(e, "lidar_data: 9 values; the model's DISCRETIZED_SECTOR_LIDAR takes 64 (or the LiDAR's 64 ranges)");
+        let mut bits = vec![0.0; 8];
+        bits[2] = f32::NAN;
+        let e =
+            add_lidar(Some((input(Sensor::SectorLidar, 8, 1, 0.5), false)), &bits, &mut obs).unwrap_err().to_string();
+        assert!(e.contains("value 2 is NaN"), "{e}");
     }
 }

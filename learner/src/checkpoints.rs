@@ -69,12 +69,12 @@ pub enum RunError {
     #[error("{0} holds no run to resume (no model/ folder)")]
     NothingToResume(String),
     /// A file operation failed.
-    #[error("{path}: {source}")]
+    #[error("{path}: {error}")]
     Io {
         /// The file.
         path: String,
         /// The error.
-        source: std::io::Error,
+        error: std::io::Error,
     },
     /// A file holds something unexpected.
     #[error("{path}: {msg}")]
@@ -87,7 +87,7 @@ pub enum RunError {
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> RunError + '_ {
-    move |source| RunError::Io { path: path.display().to_string(), source }
+    move |source| RunError::Io { path: path.display().to_string(), error: source }
 }
 
 /// Write `bytes` to `path` through a temporary file and a rename.

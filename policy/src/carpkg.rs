@@ -26,12 +26,12 @@ pub const METADATA_PATH: &str = "model_metadata.json";
 #[derive(Debug, thiserror::Error)]
 pub enum PackageError {
     /// A file could not be read or written.
-    #[error("{path}: {source}")]
+    #[error("{path}: {error}")]
     Io {
         /// The file.
         path: String,
         /// The error.
-        source: std::io::Error,
+        error: std::io::Error,
     },
     /// The archive is not what a car takes.
     #[error("{path}: {msg}")]
@@ -42,15 +42,15 @@ pub enum PackageError {
         msg: String,
     },
     /// Its metadata is not a `model_metadata.json` Paddock reads.
-    #[error("{0}")]
+    #[error(transparent)]
     Metadata(#[from] crate::metadata::MetadataError),
     /// Its graph is not the network the metadata names.
-    #[error("{path}: {source}")]
+    #[error("{path}: {error}")]
     Graph {
         /// The graph's file.
         path: String,
         /// What is wrong.
-        source: GraphError,
+        error: GraphError,
     },
 }
 
@@ -94,8 +94,9 @@ pub fn pack(model: &ActorCritic, meta: &ModelMetadata) -> Result<Vec<u8>, GraphE
 
 /// Write the archive at `path` (whole or not at all: a temporary file renamed); its size.
 pub fn write(path: &Path, model: &ActorCritic, meta: &ModelMetadata) -> Result<usize, PackageError> {
-    let bytes = pack(model, meta).map_err(|source| PackageError::Graph { path: path.display().to_string(), source })?;
-    let io = |source| PackageError::Io { path: path.display().to_string(), source };
+    let bytes =
+        pack(model, meta).map_err(|source| PackageError::Graph { path: path.display().to_string(), error: source })?;
+    let io = |source| PackageError::Io { path: path.display().to_string(), error: source };
     let tmp = path.with_file_name(format!(
         ".{}.tmp",
         path.file_name().map(|f| f.to_string_lossy().into_owned()).unwrap_or_default()
@@ -110,7 +111,8 @@ pub fn write(path: &Path, model: &ActorCritic, meta: &ModelMetadata) -> Result<u
 
 /// Read an archive (`.tar.gz`, or a plain `.tar`), as a car's loader does.
 pub fn read(path: &Path) -> Result<Package, PackageError> {
-    let bytes = std::fs::read(path).map_err(|source| PackageError::Io { path: path.display().to_string(), source })?;
+    let bytes =
+        std::fs::read(path).map_err(|source| PackageError::Io { path: path.display().to_string(), error: source })?;
     unpack(&bytes, &path.display().to_string())
 }
 
@@ -180,7 +182,7 @@ impl Package {
     /// value tower from `seed`.
     pub fn model(&self, origin: &str, seed: u64) -> Result<ActorCritic, PackageError> {
         tfgraph::read(&self.graph, &self.metadata, seed)
-            .map_err(|source| PackageError::Graph { path: format!("{origin}: {}", self.graph_path), source })
+            .map_err(|source| PackageError::Graph { path: format!("{origin}: {}", self.graph_path), error: source })
     }
 
     /// The model as a Paddock model folder (policy version 0; the manifest says where it came

@@ -69,12 +69,12 @@ pub struct ModelFolder {
 #[derive(Debug, thiserror::Error)]
 pub enum ModelError {
     /// A file could not be read or written.
-    #[error("{path}: {source}")]
+    #[error("{path}: {error}")]
     Io {
         /// The file.
         path: String,
         /// The error.
-        source: std::io::Error,
+        error: std::io::Error,
     },
     /// The folder's contents are inconsistent.
     #[error("{path}: {msg}")]
@@ -87,7 +87,7 @@ pub enum ModelError {
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> ModelError + '_ {
-    move |source| ModelError::Io { path: path.display().to_string(), source }
+    move |source| ModelError::Io { path: path.display().to_string(), error: source }
 }
 
 /// Named tensors of a model: (name, shape, values).

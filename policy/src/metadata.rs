@@ -399,6 +399,31 @@ impl ModelMetadata {
         ModelMetadata::parse(&text, "default").expect("the default stereo metadata parses")
     }
 
+    /// The default metadata for a `--sensor` name: `state`, `camera`, `stereo`, and either
+    /// camera with the LiDAR as the DeepRacer console's checkbox adds it (`SECTOR_LIDAR`):
+    /// `camera+lidar`, `stereo+lidar`.
+    pub fn for_sensor(name: &str) -> Option<ModelMetadata> {
+        let (camera, lidar) = match name.split_once('+') {
+            Some((c, "lidar")) => (c, true),
+            Some(_) => return None,
+            None => (name, false),
+        };
+        let mut m = match camera {
+            "state" if !lidar => return Some(ModelMetadata::default_state_vector()),
+            "camera" => ModelMetadata::default_camera(),
+            "stereo" => ModelMetadata::default_stereo(),
+            _ => return None,
+        };
+        if lidar {
+            m.sensor.push(Sensor::SectorLidar);
+            m = ModelMetadata::parse(&m.to_json(), "default").expect("the default LiDAR metadata parses");
+        }
+        Some(m)
+    }
+
+    /// The `--sensor` names [`ModelMetadata::for_sensor`] knows.
+    pub const SENSOR_NAMES: [&'static str; 5] = ["state", "camera", "stereo", "camera+lidar", "stereo+lidar"];
+
     /// The file as DeepRacer writes it (its keys, in its order; unknown keys kept).
     pub fn to_json(&self) -> String {
         let mut out = Map::new();

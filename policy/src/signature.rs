@@ -32,12 +32,12 @@ pub const FORMAT: &str = "paddock-signature-1";
 #[derive(Debug, thiserror::Error)]
 pub enum SignatureError {
     /// A key file could not be read or written.
-    #[error("{path}: {source}")]
+    #[error("{path}: {error}")]
     Io {
         /// The file.
         path: String,
         /// The error.
-        source: std::io::Error,
+        error: std::io::Error,
     },
     /// A key file is not a key of the expected kind.
     #[error("{path}: {msg}")]
@@ -86,7 +86,7 @@ pub fn signed_text(weights: &[u8], metadata_json: &str, manifest_json: &str) -> 
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> SignatureError + '_ {
-    move |source| SignatureError::Io { path: path.display().to_string(), source }
+    move |source| SignatureError::Io { path: path.display().to_string(), error: source }
 }
 
 impl Signer {

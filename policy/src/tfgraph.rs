@@ -408,10 +408,13 @@ fn base_name(input: &str) -> &str {
     s.split(':').next().unwrap_or(s)
 }
 
-/// A value on the way from the input to the output: `a·T + b`, `T` the output of layer
-/// `layer` (`None`: the placeholder), with `T`'s shape per sample.
+/// A value on the way from an input to the output: `a·T + b`, `T` the output of layer
+/// `layer` of chain `chain` (`None`: the chain's start), with `T`'s shape per sample.
 #[derive(Clone, Debug)]
 struct Affine {
+    /// Which chain of layers: an input's embedder (the input's index), or, after a
+    /// multi-input graph's merger, the rest (the number of inputs).
+    chain: usize,
     layer: Option<usize>,
     a: f32,
     b: f32,
@@ -436,9 +439,11 @@ enum Read {
 
 struct Reader<'g> {
     nodes: HashMap<&'g str, &'g pb::NodeDef>,
-    input: &'g str,
+    /// The input placeholders, in the network's input order.
+    inputs: Vec<&'g str>,
     memo: HashMap<&'g str, Value>,
-    layers: Vec<Read>,
+    /// The layers read: one chain per input, then (after a merger) the rest.
+    chains: Vec<Vec<Read>>,
     softmax: bool,
 }
 
@@ -503,16 +508,20 @@ impl<'g> Reader<'g> {
     fn eval(&mut self, n: &'g pb::NodeDef) -> Result<Value, GraphError> {
         let bad = |why: String| Err(GraphError::Mismatch(format!("{} ({}): {why}", n.name, n.op)));
         Ok(match n.op.as_str() {
-            "Placeholder" if n.name == self.input => {
+            "Placeholder" if self.inputs.contains(&n.name.as_str()) => {
                 let dims = match n.attr.get("shape").and_then(|a| a.value.as_ref()) {
                     Some(pb::attr_value::Value::Shape(s)) => {
                         s.dim.iter().skip(1).map(|d| d.size.max(0) as usize).collect()
                     }
                     _ => vec![],
                 };
-                Value::Data(Affine { layer: None, a: 1.0, b: 0.0, dims })
+                let chain = self.inputs.iter().position(|i| *i == n.name).expect("an input");
+                Value::Data(Affine { chain, layer: None, a: 1.0, b: 0.0, dims })
             }
-            "Placeholder" | "PlaceholderWithDefault" => return bad(format!("a second input beside {}", self.input)),
+            "Placeholder" | "PlaceholderWithDefault" => {
+                return bad(format!("an input beside the model's ({})", self.inputs.join(", ")));
+            }
+            "ConcatV2" if matches!(self.input(n, 0)?, Value::Data(_)) => self.merger(n)?,
             "Const" => match n.attr.get("value").and_then(|a| a.value.as_ref()) {
                 Some(pb::attr_value::Value::Tensor(t)) => {
                     let (dims, values) = tensor_values(t, &n.name)?;
@@ -630,10 +639,11 @@ impl<'g> Reader<'g> {
             "BiasAdd" => {
                 let Value::Data(x) = self.input(n, 0)? else { return bad("adds to a constant".into()) };
                 let (_, bias) = self.constant(n, 1)?;
-                let Some(l) = x.layer.filter(|&l| x.a == 1.0 && x.b == 0.0 && l + 1 == self.layers.len()) else {
+                let chain = &mut self.chains[x.chain];
+                let Some(l) = x.layer.filter(|&l| x.a == 1.0 && x.b == 0.0 && l + 1 == chain.len()) else {
                     return bad("a bias not right after a layer".into());
                 };
-                match &mut self.layers[l] {
+                match &mut chain[l] {
                     Read::Conv { b, .. } | Read::Dense { b, .. } if b.len() == bias.len() => {
                         b.iter_mut().zip(&bias).for_each(|(b, v)| *b += v)
                     }
@@ -660,12 +670,14 @@ impl<'g> Reader<'g> {
     /// A layer on `x` (whose `a·T + b` folds into the layer's weights; on the input itself,
     /// the scaling is a layer of its own, as Paddock's networks begin with `/255`).
     fn layer(&mut self, x: Affine, mut read: Read, dims: Vec<usize>) -> Result<Value, GraphError> {
-        if !x.layer.map_or(self.layers.is_empty(), |l| l + 1 == self.layers.len()) {
-            return Err(GraphError::Mismatch("the layers do not form one chain from the input".into()));
+        let input = x.chain < self.inputs.len();
+        let chain = &mut self.chains[x.chain];
+        if !x.layer.map_or(chain.is_empty(), |l| l + 1 == chain.len()) {
+            return Err(GraphError::Mismatch("the layers do not form one chain from each input".into()));
         }
         let (mut a, b) = (x.a, x.b);
-        if x.layer.is_none() && self.layers.is_empty() && a != 1.0 {
-            self.layers.push(Read::Scale(a));
+        if input && x.layer.is_none() && chain.is_empty() && a != 1.0 {
+            chain.push(Read::Scale(a));
             a = 1.0;
         }
         if a != 1.0 || b != 0.0 {
@@ -681,8 +693,36 @@ impl<'g> Reader<'g> {
                 _ => return Err(GraphError::Mismatch(format!("an activation of {a}·x + {b}"))),
             }
         }
-        self.layers.push(read);
-        Ok(Value::Data(Affine { layer: Some(self.layers.len() - 1), a: 1.0, b: 0.0, dims }))
+        chain.push(read);
+        Ok(Value::Data(Affine { chain: x.chain, layer: Some(chain.len() - 1), a: 1.0, b: 0.0, dims }))
+    }
+
+    /// COACH's `merger`: every input's embedding (flattened, in input order) side by side,
+    /// where the rest of the layers starts.
+    fn merger(&mut self, n: &'g pb::NodeDef) -> Result<Value, GraphError> {
+        let bad = |why: String| Err(GraphError::Mismatch(format!("{} ({}): {why}", n.name, n.op)));
+        let parts = n.input.iter().filter(|s| !s.starts_with('^')).count();
+        let (_, axis) = self.constant(n, parts - 1)?;
+        if axis.len() != 1 || !(axis[0] == 1.0 || axis[0] == -1.0) {
+            return bad(format!("concatenation on axis {axis:?}, not the features'"));
+        }
+        let mut width = 0;
+        for i in 0..parts - 1 {
+            let Value::Data(x) = self.input(n, i)? else { return bad(format!("input {i} is a constant")) };
+            let end = x.layer.map_or(self.chains[x.chain].is_empty(), |l| l + 1 == self.chains[x.chain].len());
+            if x.chain != i || x.a != 1.0 || x.b != 0.0 || !end || x.dims.len() != 1 {
+                return bad(format!(
+                    "input {i} is not the whole, flattened embedding of input {i} ({})",
+                    self.inputs.get(i).unwrap_or(&"none")
+                ));
+            }
+            width += x.dims[0];
+        }
+        if parts - 1 != self.inputs.len() || self.chains.len() != self.inputs.len() {
+            return bad(format!("{} embeddings for {} inputs", parts - 1, self.inputs.len()));
+        }
+        self.chains.push(Vec::new());
+        Ok(Value::Data(Affine { chain: self.inputs.len(), layer: None, a: 1.0, b: 0.0, dims: vec![width] }))
     }
 
     fn binary(&mut self, n: &pb::NodeDef, x: Value, y: Value) -> Result<Value, GraphError> {
@@ -721,7 +761,9 @@ impl<'g> Reader<'g> {
                 };
                 Value::Data(Affine { a, b, ..d.clone() })
             }
-            (Value::Data(p), Value::Data(q)) if p.layer == q.layer && matches!(op, "Add" | "AddV2" | "Sub") => {
+            (Value::Data(p), Value::Data(q))
+                if (p.chain, p.layer) == (q.chain, q.layer) && matches!(op, "Add" | "AddV2" | "Sub") =>
+            {
                 let s = if op == "Sub" { -1.0 } else { 1.0 };
                 Value::Data(Affine { a: p.a + s * q.a, b: p.b + s * q.b, ..p.clone() })
             }
@@ -751,12 +793,6 @@ pub fn read(bytes: &[u8], meta: &ModelMetadata, seed: u64) -> Result<ActorCritic
 /// [`read`] of a decoded graph.
 pub fn read_graph(g: &GraphDef, meta: &ModelMetadata, seed: u64) -> Result<ActorCritic, GraphError> {
     let names = Names::of(meta)?;
-    if names.inputs.len() > 1 {
-        return Err(GraphError::Unsupported(format!(
-            "sensors {:?}: reading a graph with a LiDAR input is not supported yet (one camera input only)",
-            meta.sensor.iter().map(|s| s.name()).collect::<Vec<_>>()
-        )));
-    }
     let nodes: HashMap<&str, &pb::NodeDef> = g.node.iter().map(|n| (n.name.as_str(), n)).collect();
     let Some(out) = nodes.get(names.output.as_str()).copied() else {
         let outputs: Vec<&str> =
@@ -766,16 +802,30 @@ pub fn read_graph(g: &GraphDef, meta: &ModelMetadata, seed: u64) -> Result<Actor
             names.output
         )));
     };
-    if !nodes.contains_key(names.input.as_str()) {
-        return Err(GraphError::Mismatch(format!("no input placeholder {}", names.input)));
+    for input in &names.inputs {
+        if !nodes.contains_key(input.as_str()) {
+            return Err(GraphError::Mismatch(format!("no input placeholder {input}")));
+        }
     }
-    let mut r = Reader { nodes, input: &names.input, memo: HashMap::new(), layers: vec![], softmax: false };
+    let inputs: Vec<&str> = names.inputs.iter().map(|s| s.as_str()).collect();
+    let chains = vec![Vec::new(); inputs.len()];
+    let mut r = Reader { nodes, inputs, memo: HashMap::new(), chains, softmax: false };
     // Deep graphs are short chains (tens of nodes); the recursion depth stays small.
     let Value::Data(last) = r.value(out)? else {
         return Err(GraphError::Mismatch("the output does not depend on the input".into()));
     };
-    if last.a != 1.0 || last.b != 0.0 || last.layer.map(|l| l + 1) != Some(r.layers.len()) {
-        return Err(GraphError::Mismatch("the output is not the last layer's".into()));
+    // The output: the last layer of the one chain, or of the layers after the merger.
+    let end = if names.inputs.len() > 1 { names.inputs.len() } else { 0 };
+    if last.a != 1.0
+        || last.b != 0.0
+        || last.chain != end
+        || last.layer.map(|l| l + 1) != r.chains.get(end).map(|c| c.len())
+    {
+        return Err(GraphError::Mismatch(if r.chains.len() <= end {
+            "the inputs' embeddings are never merged".into()
+        } else {
+            "the output is not the last layer's".into()
+        }));
     }
     let discrete = matches!(meta.action_space, ActionSpace::Discrete(_));
     if r.softmax != discrete {
@@ -787,12 +837,15 @@ pub fn read_graph(g: &GraphDef, meta: &ModelMetadata, seed: u64) -> Result<Actor
     }
     let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(seed);
     let mut model = ActorCritic::new(meta, 0, &mut rng);
-    fill(&mut model.pi, &r.layers)?;
+    for (section, read) in model.pi.sections().into_iter().zip(&r.chains) {
+        fill(&mut model.pi, section, read)?;
+    }
     Ok(model)
 }
 
-/// Copy the read layers into `net`, which must have the same layers.
-fn fill(net: &mut Net, read: &[Read]) -> Result<(), GraphError> {
+/// Copy the read layers into the layers `range` of `net`, which must be the same layers.
+fn fill(net: &mut Net, range: std::ops::Range<usize>, read: &[Read]) -> Result<(), GraphError> {
+    let at = range.start;
     let describe = |l: &Layer| match *l {
         Layer::Scale { factor, .. } => format!("scale {factor}"),
         Layer::Conv2d { filters, kernel, stride, input: [_, _, c], .. } => {
@@ -809,25 +862,27 @@ fn fill(net: &mut Net, read: &[Read]) -> Result<(), GraphError> {
         Read::Dense { inp, out, .. } => format!("dense {inp}→{out}"),
         Read::Relu => "relu".into(),
     };
-    let want: Vec<String> = net.layers.iter().map(describe).collect();
+    let layers = &net.layers[range];
+    let want: Vec<String> = layers.iter().map(describe).collect();
     let got: Vec<String> = read.iter().map(describe_read).collect();
     let same_scale = |a: f32, b: f32| ((a - b) / b).abs() < 1e-5;
     let fits = want.len() == got.len()
-        && net.layers.iter().zip(read).all(|(l, r)| match (l, r) {
+        && layers.iter().zip(read).all(|(l, r)| match (l, r) {
             (Layer::Scale { factor, .. }, Read::Scale(f)) => same_scale(*f, *factor),
             _ => describe(l) == describe_read(r),
         });
     if !fits {
         let first = want.iter().zip(&got).position(|(a, b)| a != b).unwrap_or(want.len().min(got.len()));
         return Err(GraphError::Mismatch(format!(
-            "layer {first}: the metadata's network has {}, the graph {} ({} layers against {})",
+            "layer {}: the metadata's network has {}, the graph {} ({} layers against {})",
+            at + first,
             want.get(first).map_or("nothing", |s| s.as_str()),
             got.get(first).map_or("nothing", |s| s.as_str()),
             want.len(),
             got.len()
         )));
     }
-    for (l, r) in net.layers.clone().iter().zip(read) {
+    for (l, r) in layers.to_vec().iter().zip(read) {
         match (l, r) {
             (Layer::Conv2d { offset, .. }, Read::Conv { w, b, .. })
             | (Layer::Dense { offset, .. }, Read::Dense { w, b, .. }) => {
@@ -1012,14 +1067,38 @@ mod tests {
         let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(1);
         let e = write(&ActorCritic::new(&state, 20, &mut rng), &state).unwrap_err().to_string();
         assert!(e.contains("STATE_VECTOR"), "{e}");
-        // A camera + LiDAR graph is written (checked in TensorFlow by coordinator's
-        // model_formats tests); reading one back is refused by name.
-        let lidar = meta("FRONT_FACING_CAMERA\", \"LIDAR", "DEEP_CONVOLUTIONAL_NETWORK_SHALLOW", false);
-        let bytes = write(&ActorCritic::new(&lidar, 0, &mut rng), &lidar).unwrap();
-        let e = read(&bytes, &lidar, 1).unwrap_err().to_string();
-        assert!(
-            e.contains("[\"FRONT_FACING_CAMERA\", \"LIDAR\"]: reading a graph with a LiDAR input is not supported yet"),
-            "{e}"
-        );
+    }
+
+    #[test]
+    fn issue_31_camera_and_lidar_graphs_come_back_whole_and_a_wrong_merger_is_refused() {
+        let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(31);
+        for (sensors, network) in [
+            ("FRONT_FACING_CAMERA\", \"SECTOR_LIDAR", "DEEP_CONVOLUTIONAL_NETWORK_SHALLOW"),
+            ("STEREO_CAMERAS\", \"LIDAR", "DEEP_CONVOLUTIONAL_NETWORK"),
+            ("FRONT_FACING_CAMERA\", \"DISCRETIZED_SECTOR_LIDAR", "DEEP_CONVOLUTIONAL_NETWORK_DEEP"),
+        ] {
+            let m = meta(sensors, network, false);
+            let model = ActorCritic::new(&m, 0, &mut rng);
+            let bytes = write(&model, &m).unwrap();
+            assert_eq!(Names::of(&m).unwrap().inputs.len(), 2);
+            assert_eq!(read(&bytes, &m, 1).unwrap().pi, model.pi, "{sensors}");
+        }
+        let m = meta("FRONT_FACING_CAMERA\", \"SECTOR_LIDAR", "DEEP_CONVOLUTIONAL_NETWORK_SHALLOW", false);
+        let bytes = write(&ActorCritic::new(&m, 0, &mut rng), &m).unwrap();
+        // Read as a LIDAR model (64 inputs, not 8): refused naming the layer.
+        let other = meta("FRONT_FACING_CAMERA\", \"LIDAR", "DEEP_CONVOLUTIONAL_NETWORK_SHALLOW", false);
+        let mut g = GraphDef::decode(bytes.as_slice()).unwrap();
+        for n in g.node.iter_mut() {
+            n.name = n.name.replace("SECTOR_LIDAR", "LIDAR");
+            n.input.iter_mut().for_each(|i| *i = i.replace("SECTOR_LIDAR", "LIDAR"));
+        }
+        let e = read(&g.encode_to_vec(), &other, 1).unwrap_err().to_string();
+        assert!(e.contains("dense 64→256") && e.contains("dense 8→256"), "{e}");
+        // The embeddings merged in the other order: refused.
+        let mut g = GraphDef::decode(bytes.as_slice()).unwrap();
+        let merger = g.node.iter_mut().find(|n| n.op == "ConcatV2").unwrap();
+        merger.input.swap(0, 1);
+        let e = read(&g.encode_to_vec(), &m, 1).unwrap_err().to_string();
+        assert!(e.contains("merger (ConcatV2): input 0 is not the whole, flattened embedding of input 0"), "{e}");
     }
 }

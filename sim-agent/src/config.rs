@@ -247,12 +247,12 @@ impl ObservationKind {
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
     /// The file could not be read.
-    #[error("{path}: {source}")]
+    #[error("{path}: {error}")]
     Io {
         /// The file.
         path: String,
         /// The error.
-        source: std::io::Error,
+        error: std::io::Error,
     },
     /// The TOML is malformed or a field is wrong.
     #[error("{origin}: {msg}")]
@@ -278,7 +278,7 @@ where
     let mut table: toml::Table = match file {
         Some(path) => {
             let text = std::fs::read_to_string(path)
-                .map_err(|source| ConfigError::Io { path: path.display().to_string(), source })?;
+                .map_err(|source| ConfigError::Io { path: path.display().to_string(), error: source })?;
             parse_toml(&text, &path.display().to_string())?
         }
         None => toml::Table::try_from(T::default()).expect("defaults serialise"),

@@ -1,9 +1,11 @@
 //! `sim-agent car`: the simulator plays the physical car for `deploy` (hardware in the loop,
 //! with no car).
 //!
-//! At 15 Hz it renders the front camera at the car's pose and publishes it on the car's input
-//! key in the car's message layout (`EvoSensorMsg`: JPEG for the community stack, raw bgr8 for
-//! the AWS one), waits out the frame period for the `ServoCtrlMsg` that answers it, turns that
+//! At 15 Hz it renders the front camera (or the stereo pair, when `car.toml`'s sensors say so)
+//! at the car's pose and publishes it on the car's input key in the car's message layout
+//! (`EvoSensorMsg`: JPEG for the community stack, raw bgr8 for the AWS one; the LiDAR's 64
+//! ranges in `lidar_data` when the car has one, among the race's objects from `--set race.…`),
+//! waits out the frame period for the `ServoCtrlMsg` that answers it, turns that
 //! command back into an action through the inverse of `car.toml`'s mapping, and steps the
 //! physics with DeepRacer's evaluation rules. Throttle 0 holds the car still (the physics is
 //! not stepped): a stopped real car is not "immobilised". After `--laps` laps (or
@@ -16,8 +18,8 @@ use protocol::net::{self, NetCli, zenoh};
 use protocol::ros::{self, CarKeys, CompressedImage, Header, Image, RawFrame, Servo, Time};
 use serde_bytes::ByteBuf;
 use sim_agent::BuiltinReward;
-use sim_agent::camera::{Renderer, View};
-use sim_agent::config::SimConfig;
+use sim_agent::camera::{Renderer, STEREO_OFFSET, View, beside};
+use sim_agent::config::{CameraLidar, LidarSensor, ObservationKind, SimConfig};
 use sim_agent::env::{EnvSpec, EvalRules, Mode};
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -48,6 +50,13 @@ pub struct CarArgs {
     /// Off-track resets a trial survives (DeepRacer's NUMBER_OF_RESETS).
     #[arg(long, default_value_t = 0)]
     resets: u32,
+    /// The simulator's configuration (config/default.toml's keys), e.g. a race's.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Override a configuration key (`key=value`, repeatable), e.g.
+    /// `race.race_type=object_avoidance`.
+    #[arg(long = "set")]
+    sets: Vec<String>,
     #[command(flatten)]
     net: NetCli,
 }
@@ -92,7 +101,16 @@ pub fn run(args: CarArgs) -> Result<()> {
     let map = ServoMap::with(&car.mapping, steer, speed);
     let world = tracks::world(&args.world)?;
     let spec = EnvSpec::from_world(&world, Direction::Forward);
-    let cfg = Arc::new(SimConfig::default());
+    // The car's sensors (car.toml): the front camera or the stereo pair, and the LiDAR's 64
+    // ranges when it has one (as the sensor-fusion node passes them on; `deploy` filters them
+    // for the model).
+    let stereo = car.sensors.iter().any(|s| s == "STEREO_CAMERAS");
+    let lidar = car.sensors.iter().any(|s| s.contains("LIDAR"));
+    let mut cfg: SimConfig = sim_agent::config::load_config(args.config.as_deref(), &args.sets)?;
+    cfg.observation.kind = if stereo { ObservationKind::Stereo } else { ObservationKind::Camera };
+    cfg.observation.camera_lidar =
+        lidar.then_some(CameraLidar { sensor: LidarSensor::Lidar, sectors: 64, values: 1, clip: 1.0, first: false });
+    let cfg = Arc::new(cfg);
     let rules = EvalRules { max_resets: args.resets, ..EvalRules::default() };
     let mut env = sim_agent::env::Env::new(spec.clone(), cfg, Mode::Evaluation(rules), 0, 0.0)?;
     env.reset();
@@ -135,43 +153,53 @@ pub fn run(args: CarArgs) -> Result<()> {
     while s.laps < args.laps && start.elapsed().as_secs_f64() < args.seconds {
         k += 1;
         let p = env.pose();
-        let rgb = renderer.render(
-            &[View {
+        let sides: &[f64] = if stereo { &[STEREO_OFFSET, -STEREO_OFFSET] } else { &[0.0] };
+        let views: Vec<View<'_>> = sides
+            .iter()
+            .map(|&side| View {
                 track: env.track(),
                 surface: spec.surface,
                 lighting: spec.lighting,
-                pose: [p.x, p.y, p.yaw],
+                pose: beside([p.x, p.y, p.yaw], side),
                 jitter: [0.0, 0.0],
                 texture_seed: 0,
                 objects: env.objects(),
-            }],
-            true,
-        );
+            })
+            .collect();
+        let rgb = renderer.render(&views, true);
         let header = Header { stamp: Time::from_secs_f64(start.elapsed().as_secs_f64()), frame_id: k.to_string() };
-        let frame = match layout {
-            ros::Layout::Community => {
-                let mut jpeg = Vec::new();
-                image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, 90)
-                    .encode(&rgb, 160, 120, image::ExtendedColorType::Rgb8)
-                    .context("JPEG")?;
-                RawFrame::Compressed(CompressedImage { header, format: "jpeg".into(), data: ByteBuf::from(jpeg) })
-            }
-            ros::Layout::Aws => {
-                let bgr: Vec<u8> = rgb.chunks_exact(3).flat_map(|p| [p[2], p[1], p[0]]).collect();
-                RawFrame::Raw(Image {
-                    header,
-                    height: 120,
-                    width: 160,
-                    encoding: "bgr8".into(),
-                    is_bigendian: 0,
-                    step: 160 * 3,
-                    data: ByteBuf::from(bgr),
-                })
-            }
-        };
+        let mut frames = Vec::new();
+        for rgb in rgb.chunks(rgb.len() / sides.len()) {
+            frames.push(match layout {
+                ros::Layout::Community => {
+                    let mut jpeg = Vec::new();
+                    image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, 90)
+                        .encode(rgb, 160, 120, image::ExtendedColorType::Rgb8)
+                        .context("JPEG")?;
+                    RawFrame::Compressed(CompressedImage {
+                        header: header.clone(),
+                        format: "jpeg".into(),
+                        data: ByteBuf::from(jpeg),
+                    })
+                }
+                ros::Layout::Aws => {
+                    let bgr: Vec<u8> = rgb.chunks_exact(3).flat_map(|p| [p[2], p[1], p[0]]).collect();
+                    RawFrame::Raw(Image {
+                        header: header.clone(),
+                        height: 120,
+                        width: 160,
+                        encoding: "bgr8".into(),
+                        is_bigendian: 0,
+                        step: 160 * 3,
+                        data: ByteBuf::from(bgr),
+                    })
+                }
+            });
+        }
+        let ranges: &[f32] = env.lidar_scan().map_or(&[], |s| &s[..]);
         let sent = Instant::now();
         last_sent = sent;
-        publisher.put(ros::encode_sensor(vec![frame], &[], layout)).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
+        publisher.put(ros::encode_sensor(frames, ranges, layout)).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
         s.frames_sent += 1;
         // The frame period: take the commands that come; note the one that answers this frame.
         // A frame sent late (the renderer fell behind its schedule) still gets a whole period

@@ -257,15 +257,24 @@ fn camera_bench(world: &tracks::World, spec: &EnvSpec, cfg: &Arc<SimConfig>, n: 
         bot_car_speed: 0.5,
         ..RaceConfig::default()
     };
+    let sector = sim_agent::config::CameraLidar {
+        sensor: sim_agent::config::LidarSensor::SectorLidar,
+        sectors: 8,
+        values: 1,
+        clip: 0.5,
+        first: false,
+    };
     let mut base = 0.0;
-    for (name, kind, race) in [
-        ("time trial", ObservationKind::Camera, RaceConfig::default()),
-        ("object avoidance, 3 boxes", ObservationKind::Camera, oa),
-        ("head-to-bot, 2 bots", ObservationKind::Camera, h2b),
-        ("stereo pair, time trial", ObservationKind::Stereo, RaceConfig::default()),
+    for (name, kind, race, lidar) in [
+        ("time trial", ObservationKind::Camera, RaceConfig::default(), None),
+        ("object avoidance, 3 boxes", ObservationKind::Camera, oa.clone(), None),
+        ("head-to-bot, 2 bots", ObservationKind::Camera, h2b, None),
+        ("stereo pair, time trial", ObservationKind::Stereo, RaceConfig::default(), None),
+        ("camera + SECTOR_LIDAR, object avoidance, 3 boxes", ObservationKind::Camera, oa, Some(sector)),
     ] {
         let mut cam = (**cfg).clone();
         cam.observation.kind = kind;
+        cam.observation.camera_lidar = lidar;
         cam.race = race;
         let reward = RewardFn::Builtin(sim_agent::BuiltinReward::CenterLine);
         let res = run_vec(spec, &Arc::new(cam), n, threads, reward, seconds)?;

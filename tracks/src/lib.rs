@@ -28,12 +28,12 @@ use std::path::Path;
 #[derive(Debug, thiserror::Error)]
 pub enum TrackError {
     /// The file could not be read.
-    #[error("{path}: {source}")]
+    #[error("{path}: {error}")]
     Io {
         /// The file.
         path: String,
         /// The I/O error.
-        source: std::io::Error,
+        error: std::io::Error,
     },
     /// The file was read but is not a usable track.
     #[error("{origin}: {msg}")]
@@ -55,7 +55,8 @@ pub enum TrackError {
 
 /// Read and validate a user's `.npy` track file.
 pub fn load_npy(path: &Path) -> Result<TrackRows, TrackError> {
-    let bytes = std::fs::read(path).map_err(|source| TrackError::Io { path: path.display().to_string(), source })?;
+    let bytes =
+        std::fs::read(path).map_err(|source| TrackError::Io { path: path.display().to_string(), error: source })?;
     parse_track_npy(&bytes, &path.display().to_string())
 }
 
