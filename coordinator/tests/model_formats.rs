@@ -59,18 +59,7 @@ fn check(meta: &ModelMetadata, obs_size: usize, seed: u64) {
     let got_path = d.join("y.bin");
     let mut cmd = Command::new(python("onnx and onnxruntime"));
     cmd.arg(&script).arg(&onnx).arg(&got_path);
-    let size = policy::model::input_size(meta, obs_size);
-    let mut at = 0;
-    for (k, (sensor, shape)) in inputs.iter().enumerate() {
-        let n = shape.size();
-        let part: Vec<f32> = x.chunks(size).flat_map(|row| row[at..at + n].to_vec()).collect();
-        at += n;
-        let file = d.join(format!("x{k}.bin"));
-        write_floats(&file, &part);
-        let dims = match *shape {
-            policy::nn::InputShape::Image(h, w, c) => format!("{batch},{h},{w},{c}"),
-            policy::nn::InputShape::Flat(n) => format!("{batch},{n}"),
-        };
+    for ((sensor, _), (file, dims)) in inputs.iter().zip(input_files(&inputs, &x, batch, &d.join("x"))) {
         let name = if inputs.len() == 1 { "observation" } else { sensor.name() };
         cmd.arg(name).arg(&file).arg(dims);
     }
@@ -290,17 +279,7 @@ fn issue_30_the_car_archive_runs_in_tensorflow_tflite_and_openvino_as_paddock_do
         let names = policy::tfgraph::Names::of(&meta).unwrap();
         let mut cmd = Command::new(car_python());
         cmd.arg(&script).arg(&archive).arg(d.join(name)).arg(&names.output);
-        let mut at = 0;
-        for (k, ((_, shape), placeholder)) in inputs.iter().zip(&names.inputs).enumerate() {
-            let n = shape.size();
-            let part: Vec<f32> = x.chunks(size).flat_map(|row| row[at..at + n].to_vec()).collect();
-            at += n;
-            let file = d.join(format!("{name}.x{k}.bin"));
-            write_floats(&file, &part);
-            let dims = match *shape {
-                policy::nn::InputShape::Image(h, w, c) => format!("{batch},{h},{w},{c}"),
-                policy::nn::InputShape::Flat(n) => format!("{batch},{n}"),
-            };
+        for (placeholder, (file, dims)) in names.inputs.iter().zip(input_files(&inputs, &x, batch, &d.join(name))) {
             cmd.arg(placeholder).arg(&file).arg(dims);
         }
         let out = cmd.output().unwrap();
@@ -325,6 +304,32 @@ fn issue_30_the_car_archive_runs_in_tensorflow_tflite_and_openvino_as_paddock_do
         assert_eq!(f.metadata.action_space, meta.action_space);
         assert_eq!(f.manifest.training["imported"]["graph"], "agent/model.pb");
     }
+}
+
+/// Each input's values out of `batch` samples `x`, written to `PREFIX.xK.bin`: the files and
+/// their shapes (batch first, comma-separated), in input order.
+fn input_files(
+    inputs: &[(policy::Sensor, policy::nn::InputShape)],
+    x: &[f32],
+    batch: usize,
+    prefix: &std::path::Path,
+) -> Vec<(std::path::PathBuf, String)> {
+    let size: usize = inputs.iter().map(|(_, s)| s.size()).sum();
+    let mut at = 0;
+    let mut out = Vec::new();
+    for (k, (_, shape)) in inputs.iter().enumerate() {
+        let n = shape.size();
+        let part: Vec<f32> = x.chunks(size).flat_map(|row| row[at..at + n].to_vec()).collect();
+        at += n;
+        let file = prefix.with_extension(format!("x{k}.bin"));
+        write_floats(&file, &part);
+        let dims = match *shape {
+            policy::nn::InputShape::Image(h, w, c) => format!("{batch},{h},{w},{c}"),
+            policy::nn::InputShape::Flat(n) => format!("{batch},{n}"),
+        };
+        out.push((file, dims));
+    }
+    out
 }
 
 /// Observations for a model's inputs, `batch` of them: camera frames with structure (0-255)
