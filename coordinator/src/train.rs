@@ -162,6 +162,9 @@ pub fn train(mut args: TrainArgs) -> Result<i32> {
             anyhow::anyhow!("--sensor is {name:?}, expected one of {:?}", ModelMetadata::SENSOR_NAMES)
         })?,
     };
+    if let (Err(e), Some(p)) = (learner::check_algorithm(&meta), &meta_path) {
+        bail!("{}: {e}", p.display());
+    }
     let mut hyper = match &hyper_path {
         Some(p) => hyperparameters(p)?,
         None => Hyperparameters::default(),

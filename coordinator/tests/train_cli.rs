@@ -172,6 +172,39 @@ fn train_reads_deepracer_files_and_rejects_bad_ones_by_key() {
 }
 
 #[test]
+fn issue_32_a_sac_model_is_refused_never_trained_by_ppo_under_its_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    // deepracer-for-cloud's `defaults/model_metadata_sac.json`, on the state vector.
+    std::fs::write(
+        d.join("model_metadata_sac.json"),
+        r#"{"action_space":{"speed":{"high":2,"low":1},"steering_angle":{"high":30,"low":-30}},
+            "sensor":["STATE_VECTOR"],"neural_network":"PADDOCK_MLP","training_algorithm":"sac",
+            "action_space_type":"continuous","version":"4"}"#,
+    )
+    .unwrap();
+    let o = coordinator(d, &["train", "--model-metadata", "model_metadata_sac.json", "--minutes", "1", "--out", "run"]);
+    let out = text(&o);
+    assert!(
+        !o.status.success()
+            && out.contains(
+                "model_metadata_sac.json: field 'training_algorithm' is \"sac\", which Paddock does not train"
+            ),
+        "{out}"
+    );
+    assert!(!d.join("run").exists(), "nothing was trained or written");
+    // A discrete action space with SAC gets DeepRacer's own error.
+    std::fs::write(
+        d.join("discrete_sac.json"),
+        r#"{"action_space":[{"steering_angle":0,"speed":1}],"sensor":["STATE_VECTOR"],"training_algorithm":"sac"}"#,
+    )
+    .unwrap();
+    let o = coordinator(d, &["train", "--model-metadata", "discrete_sac.json", "--out", "run2"]);
+    let out = text(&o);
+    assert!(!o.status.success() && out.contains("defining SACActionSpaceConfig"), "{out}");
+}
+
+#[test]
 fn issue_31_a_deepracer_for_cloud_run_env_trains_its_race_with_its_custom_files() {
     // deepracer-for-cloud's layout: run.env, and custom_files/ beside it.
     let dir = tempfile::tempdir().unwrap();

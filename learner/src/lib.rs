@@ -20,6 +20,21 @@ pub mod run;
 pub mod trend;
 
 pub use hyperparams::{Hyperparameters, LossType, LrSchedule};
+
+use policy::{ModelMetadata, TrainingAlgorithm};
+
+/// Whether this learner trains the algorithm `model_metadata.json` names. A model is never
+/// trained by another algorithm under its name: a file asking for one Paddock does not run
+/// is refused, with the key named, before anything is simulated or written.
+pub fn check_algorithm(metadata: &ModelMetadata) -> Result<(), String> {
+    match metadata.training_algorithm {
+        TrainingAlgorithm::ClippedPpo => Ok(()),
+        TrainingAlgorithm::Sac => Err("field 'training_algorithm' is \"sac\", which Paddock does not train \
+             yet, and a SAC model is never trained by PPO under its name; set \"training_algorithm\": \
+             \"clipped_ppo\" to train this action space with clipped PPO"
+            .into()),
+    }
+}
 pub use ppo::{Alone, GroupError, Ppo, Reducer, Refused, StateMismatch, UpdateStats};
 
 /// Run this process's parallel network maths on `threads` threads (default: one per core):

@@ -296,7 +296,10 @@ impl ModelMetadata {
             Some(_) => return Err(err("field 'training_algorithm' must be \"clipped_ppo\" or \"sac\"".into())),
         };
         if training_algorithm == TrainingAlgorithm::Sac && matches!(action_space, ActionSpace::Discrete(_)) {
-            return Err(err("training_algorithm \"sac\" needs a continuous action space".into()));
+            return Err(err("training_algorithm \"sac\" needs a continuous action space (DeepRacer: \"Unsupported \
+                 action space type passed while defining SACActionSpaceConfig\"); field 'action_space_type' is \
+                 \"discrete\""
+                .into()));
         }
         let neural_network = match raw.get("neural_network").map(|v| v.as_str()) {
             None | Some(Some("DEEP_CONVOLUTIONAL_NETWORK_SHALLOW")) => NeuralNetwork::DeepConvolutionalNetworkShallow,

@@ -477,6 +477,7 @@ impl<'a> Run<'a> {
         if spec.worlds.is_empty() {
             return Err(RunFailure::Inputs("the run names no world".into()));
         }
+        crate::check_algorithm(&spec.metadata).map_err(RunFailure::Inputs)?;
         let (dir, model, version, parent, first_iteration) = open(spec)?;
         // A learner restarted mid-job goes on from the run's records: the training time,
         // episodes and env steps so far count towards the job's stop rules (it does not start
