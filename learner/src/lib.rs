@@ -6,6 +6,7 @@
 //! - [`record`]: the run's logs: DeepRacer's sim-trace and metrics JSON (DRfC's layout), MCAP.
 //! - [`run`]: one training run (flow control, updates, evaluations on the workers,
 //!   checkpoints, stop rules) over any [`run::Link`]: in-process channels or Zenoh.
+//! - [`sac`]: soft actor-critic as DeepRacer trains it: its networks, losses and replay memory.
 //! - [`trend`]: when to stop: plateaus and collapses of evaluation progress.
 //!
 //! Architecture invariant: no simulator and no transport here. Experience and evaluation
@@ -17,6 +18,7 @@ pub mod hyperparams;
 pub mod ppo;
 pub mod record;
 pub mod run;
+pub mod sac;
 pub mod trend;
 
 pub use hyperparams::{Hyperparameters, LossType, LrSchedule};

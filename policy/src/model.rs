@@ -190,7 +190,20 @@ fn tower(
     last_std: impl Fn(&[LayerSpec]) -> f32,
     rng: &mut impl Rng,
 ) -> Net {
+    tower_with(meta, obs_size, &[], out, last_std, rng)
+}
+
+/// One tower for `meta` with `head` between the middleware and the output layer.
+fn tower_with(
+    meta: &ModelMetadata,
+    obs_size: usize,
+    head: &[LayerSpec],
+    out: usize,
+    last_std: impl Fn(&[LayerSpec]) -> f32,
+    rng: &mut impl Rng,
+) -> Net {
     let mut specs = tower_specs(meta.neural_network, meta.sensor.contains(&Sensor::StereoCameras));
+    specs.extend_from_slice(head);
     specs.push(LayerSpec::Dense(out));
     let inputs = inputs(meta, obs_size);
     if let [(_, shape)] = inputs[..] {
@@ -281,6 +294,79 @@ impl ActorCritic {
             })
             .collect()
     }
+}
+
+/// SAC's clip on its policy's log-std (COACH's `sac_head.py`).
+pub const SAC_LOG_STD_RANGE: (f32, f32) = (-20.0, 2.0);
+
+/// SAC's policy network (COACH's `SoftActorCriticAgent`, `sac_head.py`): the sensor
+/// embedders and middleware, Dense 256 ReLU, then the two means and the two log-stds side by
+/// side (`policy_mean` and `log_std`, one output layer of 4).
+pub fn sac_policy(meta: &ModelMetadata, obs_size: usize, rng: &mut impl Rng) -> Net {
+    tower_with(meta, obs_size, &[LayerSpec::Dense(256), LayerSpec::Relu], 4, |_| 0.01, rng)
+}
+
+/// SAC's V network: the embedders and middleware, then one output (its target copy is the
+/// learner's).
+pub fn sac_value(meta: &ModelMetadata, obs_size: usize, rng: &mut impl Rng) -> Net {
+    tower(meta, obs_size, 1, |specs| 1.0 / (tower_width(specs) as f32).sqrt(), rng)
+}
+
+/// The layers of SAC's Q heads, on the embedding and the action side by side (`sac_q_head.py`).
+pub const SAC_Q_HEAD: [LayerSpec; 5] =
+    [LayerSpec::Dense(256), LayerSpec::Relu, LayerSpec::Dense(256), LayerSpec::Relu, LayerSpec::Dense(1)];
+
+/// SAC's Q network's sensor embedders (no middleware: `MiddlewareScheme.Empty`), shared by its
+/// two heads; `None` where the input goes to the heads as it is (the state vector, whose
+/// Paddock network has only dense layers).
+pub fn sac_q_embedder(meta: &ModelMetadata, obs_size: usize, rng: &mut impl Rng) -> Option<Net> {
+    let specs = tower_specs(meta.neural_network, meta.sensor.contains(&Sensor::StereoCameras));
+    let middle = specs.iter().position(|s| matches!(s, LayerSpec::Dense(_))).unwrap_or(specs.len());
+    let camera = &specs[..middle];
+    let inputs = inputs(meta, obs_size);
+    if let [(_, shape)] = inputs[..] {
+        return (!camera.is_empty()).then(|| Net::new(shape, camera, None, rng));
+    }
+    let parts: Vec<(&str, InputShape, &[LayerSpec])> = inputs
+        .iter()
+        .map(|&(s, shape)| (s.name(), shape, if s.is_primary() { camera } else { &LIDAR_EMBEDDER[..] }))
+        .collect();
+    Some(Net::new_multi(&parts, &[], None, rng))
+}
+
+/// One of SAC's Q heads on `embedding` features and the two action values.
+pub fn sac_q_head(embedding: usize, rng: &mut impl Rng) -> Net {
+    Net::new(InputShape::Flat(embedding + 2), &SAC_Q_HEAD, None, rng)
+}
+
+/// SAC's squashed Gaussian for one row of its policy's output (`[mean; 2]`, `[log_std; 2]`)
+/// and a standard-normal draw `eps` (zero for the deterministic action): the pre-tanh sample
+/// `u = mean + exp(log_std)·eps`, the action `a = tanh(u)` in [-1, 1] (the environment takes
+/// `scale·a + bias`), and log π(a) as COACH computes it, `log N(u) − Σ log(clip(scale·(1 − a²)
+/// + ε, 1e-10, 1))` with `scale` the half-range of each action in the environment's units.
+pub fn squashed(row: &[f32], eps: [f32; 2], scale: [f32; 2]) -> Squashed {
+    let mut out = Squashed { u: [0.0; 2], a: [0.0; 2], logp: 0.0 };
+    for d in 0..2 {
+        let ls = row[2 + d].clamp(SAC_LOG_STD_RANGE.0, SAC_LOG_STD_RANGE.1);
+        let u = row[d] + ls.exp() * eps[d];
+        let a = u.tanh().clamp(-1.0, 1.0);
+        let jac = (scale[d] * (1.0 - a * a) + f32::EPSILON).clamp(1e-10, 1.0);
+        out.u[d] = u;
+        out.a[d] = a;
+        out.logp += -0.5 * eps[d] * eps[d] - ls - 0.5 * (2.0 * std::f32::consts::PI).ln() - jac.ln();
+    }
+    out
+}
+
+/// A draw from SAC's policy: see [`squashed`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Squashed {
+    /// The pre-tanh sample.
+    pub u: [f32; 2],
+    /// The action in [-1, 1].
+    pub a: [f32; 2],
+    /// log π(a | s).
+    pub logp: f32,
 }
 
 fn tower_width(specs: &[LayerSpec]) -> usize {

@@ -473,6 +473,16 @@ impl Net {
         self.backward_factored(tape, d_out, grad, par, &[], &mut Vec::new());
     }
 
+    /// [`Net::backward`], and the gradient wrt the network's input into `d_in` (`batch ×
+    /// in`, a sample's inputs in their order): what a loss that flows through this network
+    /// into something upstream needs (SAC's policy loss through the Q network's action).
+    pub fn backward_input(&self, tape: &mut Tape, d_out: &[f32], grad: &mut [f32], par: Par, d_in: &mut Vec<f32>) {
+        let batch = tape.batch;
+        d_in.clear();
+        d_in.resize(batch * self.in_size(), 0.0);
+        self.backward_pass(tape, d_out, grad, par, &[], &mut Vec::new(), Some(d_in));
+    }
+
     /// The dense layers whose weight gradient for `batch` samples is at least four times
     /// the size of its factors (the layer's inputs and output gradients): the camera
     /// networks' first dense layer (11.5 M weights; 64 samples' factors are 1.5 M numbers).
@@ -496,6 +506,20 @@ impl Net {
         defer: &[usize],
         factors: &mut Vec<Factors>,
     ) {
+        self.backward_pass(tape, d_out, grad, par, defer, factors, None);
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn backward_pass(
+        &self,
+        tape: &mut Tape,
+        d_out: &[f32],
+        grad: &mut [f32],
+        par: Par,
+        defer: &[usize],
+        factors: &mut Vec<Factors>,
+        mut d_in: Option<&mut Vec<f32>>,
+    ) {
         let batch = tape.batch;
         assert_eq!(d_out.len(), batch * self.out_size());
         assert_eq!(grad.len(), self.params.len());
@@ -506,18 +530,27 @@ impl Net {
         let sections = self.sections();
         let nb = self.inputs.len();
         let trunk = sections.last().expect("the rest").clone();
-        let mut pass = Backward { tape, grad, par, defer, factors };
+        let want_input = d_in.is_some();
+        let mut pass = Backward { tape, grad, par, defer, factors, want_input };
         self.backward_layers(trunk.clone(), nb, 0, &mut d, &mut d_prev, &mut pass);
+        if let (0, Some(d_in)) = (nb, d_in.as_deref_mut()) {
+            let n = d_in.len();
+            d_in.copy_from_slice(&d[..n]);
+        }
         if nb > 0 {
             // The gradient wrt the concatenation, split between the embedders.
             let mut merged = std::mem::take(&mut pass.tape.merged);
             merged.clear();
-            merged.extend_from_slice(&d[..batch * self.layers[trunk.start].in_size()]);
+            let width = if trunk.is_empty() { self.out_size() } else { self.layers[trunk.start].in_size() };
+            merged.extend_from_slice(&d[..batch * width]);
             let width = merged.len() / batch.max(1);
+            let (per, mut at_in) = (self.in_size(), 0);
             let mut at = 0;
             for (j, range) in sections[..nb].iter().enumerate() {
                 let n = pass.tape.acts[range.end + j].len() / batch.max(1);
-                if range.is_empty() || !self.layers[range.clone()].iter().any(|l| l.param_count() > 0) {
+                let n_in = self.inputs[j].shape.size();
+                if !want_input && (range.is_empty() || !self.layers[range.clone()].iter().any(|l| l.param_count() > 0))
+                {
                     at += n;
                     continue;
                 }
@@ -526,7 +559,15 @@ impl Net {
                     d.extend_from_slice(&row[at..at + n]);
                 }
                 at += n;
-                self.backward_layers(range.clone(), j, range.start, &mut d, &mut d_prev, &mut pass);
+                if !range.is_empty() {
+                    self.backward_layers(range.clone(), j, range.start, &mut d, &mut d_prev, &mut pass);
+                }
+                if let Some(d_in) = d_in.as_deref_mut() {
+                    for (row, g) in d_in.chunks_exact_mut(per).zip(d.chunks_exact(n_in)) {
+                        row[at_in..at_in + n_in].copy_from_slice(g);
+                    }
+                }
+                at_in += n_in;
             }
             pass.tape.merged = merged;
         }
@@ -546,13 +587,13 @@ impl Net {
         d_prev: &mut Vec<f32>,
         pass: &mut Backward<'_, '_>,
     ) {
-        let Backward { tape, grad, par, defer, factors } = pass;
-        let (par, defer) = (*par, *defer);
+        let Backward { tape, grad, par, defer, factors, want_input } = pass;
+        let (par, defer, want_input) = (*par, *defer, *want_input);
         let batch = tape.batch;
         for i in range.clone().rev() {
             let layer = &self.layers[i];
             let inp = &tape.acts[i + shift];
-            let need_dx = self.layers[first..i].iter().any(|l| l.param_count() > 0);
+            let need_dx = want_input || self.layers[first..i].iter().any(|l| l.param_count() > 0);
             match *layer {
                 Layer::Scale { factor, .. } => {
                     if !need_dx {
@@ -628,6 +669,8 @@ struct Backward<'t, 'f> {
     par: Par,
     defer: &'t [usize],
     factors: &'f mut Vec<Factors>,
+    /// Carry the gradient down to the network's input.
+    want_input: bool,
 }
 
 /// A dense layer's weight gradient as its factors, `dW = dᵀ · x`: what a learner team's

@@ -430,3 +430,74 @@ fn issue_31_embedders_are_concatenated_in_input_order_sample_by_sample() {
     let off = got.iter().zip(&want).filter(|(a, b)| (*a - *b).abs() > 1e-5).count();
     assert_eq!(off, 0, "{off} of {} outputs differ", want.len());
 }
+
+/// dL/dx from `backward_input` against finite differences in the input, and the parameter
+/// gradient it adds the same as `backward`'s.
+fn check_input_grad(mut net: Net, batch: usize, what: &str, rng: &mut ChaCha8Rng) {
+    for p in net.params.iter_mut() {
+        *p += rng.random_range(-0.05..0.05);
+    }
+    let mut x: Vec<f32> = (0..batch * net.in_size()).map(|_| rng.random_range(-1.0..1.0)).collect();
+    let c: Vec<f32> = (0..batch * net.out_size()).map(|_| rng.random_range(-1.0..1.0)).collect();
+    let mut tape = Tape::default();
+    net.forward(&x, batch, &mut tape, Par::Seq);
+    let (mut grad, mut d_in) = (vec![0.0f32; net.params.len()], Vec::new());
+    net.backward_input(&mut tape, &c, &mut grad, Par::Seq, &mut d_in);
+    net.forward(&x, batch, &mut tape, Par::Seq);
+    let mut plain = vec![0.0f32; net.params.len()];
+    net.backward(&mut tape, &c, &mut plain, Par::Seq);
+    assert_eq!(grad, plain, "{what}: the parameter gradient");
+    assert_eq!(d_in.len(), x.len());
+    let h = 2e-3f32;
+    let mut bad = Vec::new();
+    let checks = x.len().min(150);
+    for k in 0..checks {
+        let i = if x.len() <= 150 { k } else { rng.random_range(0..x.len()) };
+        let orig = x[i];
+        x[i] = orig + h;
+        let up = loss(&net, &x, batch, &c);
+        x[i] = orig - h;
+        let down = loss(&net, &x, batch, &c);
+        x[i] = orig;
+        let numeric = (up - down) / (2.0 * h as f64);
+        if (numeric - d_in[i] as f64).abs() > 1.5e-3 + 2e-2 * (d_in[i] as f64).abs() {
+            bad.push((i, numeric, d_in[i]));
+        }
+    }
+    assert!(
+        bad.len() <= checks / 50,
+        "{what}: {} of {checks} input gradients disagree: {:?}",
+        bad.len(),
+        &bad[..bad.len().min(5)]
+    );
+}
+
+#[test]
+fn issue_32_the_gradient_wrt_the_input_matches_finite_differences() {
+    use LayerSpec::*;
+    let mut rng = ChaCha8Rng::seed_from_u64(32);
+    let mlp = Net::new(InputShape::Flat(9), &[Dense(16), Relu, Dense(16), Relu, Dense(1)], None, &mut rng);
+    check_input_grad(mlp, 5, "mlp", &mut rng);
+    let conv = Net::new(
+        InputShape::Image(12, 14, 2),
+        &[Scale(0.5), Conv(4, 3, 2), Relu, Conv(3, 3, 1), Relu, Dense(5), Relu, Dense(2)],
+        None,
+        &mut rng,
+    );
+    check_input_grad(conv, 2, "scaled conv stack", &mut rng);
+    // SAC's Q head: an embedding and the action side by side; and an embedder of its own.
+    let q = Net::new_multi(
+        &[("A", InputShape::Flat(6), &[Dense(4), Relu]), ("action", InputShape::Flat(2), &[])],
+        &[Dense(8), Relu, Dense(1)],
+        None,
+        &mut rng,
+    );
+    check_input_grad(q, 4, "embedder + bare input", &mut rng);
+    let parallel = Net::new_multi(
+        &[("A", InputShape::Image(6, 6, 1), &[Conv(2, 3, 1), Relu]), ("B", InputShape::Flat(3), &[Scale(2.0)])],
+        &[],
+        None,
+        &mut rng,
+    );
+    check_input_grad(parallel, 3, "embedders side by side", &mut rng);
+}

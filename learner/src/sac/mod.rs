@@ -1,0 +1,397 @@
+//! Soft actor-critic as DeepRacer trains it (COACH's `SoftActorCriticAgent`, read in
+//! `../shared/reference/races-sensors-sac.md` §5): three networks without shared weights,
+//! the policy a tanh-squashed Gaussian, twin Q heads on one embedder, V with a target copy;
+//! per gradient step, on one batch and the weights as they were:
+//!
+//! 1. policy: `mean(α·log π(a|s) − min(q1, q2)(s, a))`, `a ~ π(s)` reparameterised, the
+//!    gradient flowing through the Q heads' action input into the policy alone;
+//! 2. V: `V(s)` against `min(q1, q2)(s, a) − α·log π(a|s)` (the same draw), mean squared
+//!    error or Huber (`loss_type`);
+//! 3. Q: each head against `r + (1 − done)·γ·V_target(s')`, `0.5·mean((q − y)²)` each, the
+//!    batch's actions.
+//!
+//! The target copy follows V by `tau` once per iteration ([`Sac::update_target`]): DeepRacer's
+//! τ = 1 is a hard copy. Paddock's one addition to the update is the temperature tuned to a
+//! target entropy (`target_entropy`; DeepRacer's `sac_alpha` is fixed). The Q heads take the
+//! action as the policy gives it, in [-1, 1]; DeepRacer's take it rescaled to the environment's
+//! units (degrees, m/s), a choice of input scale invisible outside the learner.
+
+pub mod replay;
+
+use faer::Par;
+use policy::model::{SAC_LOG_STD_RANGE, Squashed, sac_policy, sac_q_embedder, sac_q_head, sac_value, squashed};
+use policy::nn::{Adam, Net, Tape};
+use policy::{ActionSpace, ModelMetadata};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, StandardNormal};
+
+pub use replay::{Replay, ReplayError};
+
+/// What one SAC update does, from `hyperparameters.json` and the action space.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SacSettings {
+    /// Transitions per gradient step (`batch_size`).
+    pub batch_size: usize,
+    /// Adam's rate for all three networks (`lr`).
+    pub lr: f32,
+    /// γ (`discount_factor`).
+    pub gamma: f32,
+    /// The temperature (`sac_alpha`): fixed, or where the tuning starts.
+    pub alpha: f32,
+    /// Tune the temperature so that the policy's entropy approaches this (nats); `None`:
+    /// `alpha` stays as it is, as in DeepRacer.
+    pub target_entropy: Option<f32>,
+    /// How far the V target moves towards V at each [`Sac::update_target`] (1: a copy).
+    pub tau: f32,
+    /// V's loss is Huber (δ = 1) rather than the mean squared error (`loss_type`).
+    pub huber: bool,
+    /// Half the range of each action in the environment's units (steering degrees, m/s):
+    /// the scale in log π's tanh correction.
+    pub scale: [f32; 2],
+}
+
+impl SacSettings {
+    /// DeepRacer's defaults for a continuous action space.
+    pub fn for_space(space: &ActionSpace) -> Option<SacSettings> {
+        let ActionSpace::Continuous { steering_angle, speed } = space else { return None };
+        let half = |r: &(f64, f64)| ((r.1 - r.0) / 2.0) as f32;
+        Some(SacSettings {
+            batch_size: 64,
+            lr: 3e-4,
+            gamma: 0.999,
+            alpha: 0.2,
+            target_entropy: None,
+            tau: 1.0,
+            huber: false,
+            scale: [half(steering_angle), half(speed)],
+        })
+    }
+}
+
+/// The twin Q network: one embedder, two heads on the embedding and the action.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TwinQ {
+    /// The sensors' embedder; `None`: the observation goes to the heads as it is.
+    pub embed: Option<Net>,
+    /// `q1_head`.
+    pub q1: Net,
+    /// `q2_head`.
+    pub q2: Net,
+}
+
+/// SAC's networks.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SacNets {
+    /// The policy: means and log-stds (what is published and driven).
+    pub policy: Net,
+    /// The critics.
+    pub q: TwinQ,
+    /// The state value.
+    pub v: Net,
+    /// V's target copy.
+    pub v_target: Net,
+}
+
+impl SacNets {
+    /// Fresh networks for `meta` (its action space must be continuous).
+    pub fn new(meta: &ModelMetadata, obs_size: usize, rng: &mut impl rand::Rng) -> SacNets {
+        let policy = sac_policy(meta, obs_size, rng);
+        let embed = sac_q_embedder(meta, obs_size, rng);
+        let width = embed.as_ref().map_or(policy.in_size(), |e| e.out_size());
+        let (q1, q2) = (sac_q_head(width, rng), sac_q_head(width, rng));
+        let v = sac_value(meta, obs_size, rng);
+        SacNets { policy, q: TwinQ { embed, q1, q2 }, v_target: v.clone(), v }
+    }
+
+    /// Values per observation.
+    pub fn obs_size(&self) -> usize {
+        self.policy.in_size()
+    }
+}
+
+/// A batch of transitions, row-major.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Batch {
+    /// `len × obs` observations.
+    pub obs: Vec<f32>,
+    /// `len × 2` actions in [-1, 1] (the policy's `tanh(u)`).
+    pub action: Vec<f32>,
+    /// Rewards.
+    pub reward: Vec<f32>,
+    /// 1 where the episode ended at the step (no bootstrap), else 0.
+    pub done: Vec<f32>,
+    /// `len × obs` next observations.
+    pub next_obs: Vec<f32>,
+}
+
+impl Batch {
+    /// Transitions held.
+    pub fn len(&self) -> usize {
+        self.reward.len()
+    }
+
+    /// No transitions.
+    pub fn is_empty(&self) -> bool {
+        self.reward.is_empty()
+    }
+}
+
+/// The three losses, and what the logs show of an update.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Losses {
+    /// `mean(α·log π − min q)`.
+    pub policy: f64,
+    /// The two Q heads' loss.
+    pub q: f64,
+    /// V's loss.
+    pub v: f64,
+    /// `mean(−log π)` of the policy's draws.
+    pub entropy: f64,
+    /// `mean(min(q1, q2))` at the policy's draws.
+    pub q_mean: f64,
+    /// The temperature used.
+    pub alpha: f64,
+}
+
+/// Parameter gradients of the three losses (and the temperature's).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Grads {
+    /// Of the policy loss wrt the policy's parameters.
+    pub policy: Vec<f32>,
+    /// Of the Q loss wrt the embedder's parameters (empty without one).
+    pub q_embed: Vec<f32>,
+    /// Of the Q loss wrt `q1`'s.
+    pub q1: Vec<f32>,
+    /// Of the Q loss wrt `q2`'s.
+    pub q2: Vec<f32>,
+    /// Of V's loss wrt V's.
+    pub v: Vec<f32>,
+    /// Of the temperature's loss wrt log α (0 when the temperature is fixed).
+    pub log_alpha: f32,
+}
+
+/// Buffers kept between gradient steps.
+#[derive(Debug, Default)]
+pub struct Tapes {
+    policy: Tape,
+    embed: Tape,
+    q1: Tape,
+    q2: Tape,
+    v: Tape,
+    target: Tape,
+    x: Vec<f32>,
+    dx1: Vec<f32>,
+    dx2: Vec<f32>,
+    scratch1: Vec<f32>,
+    scratch2: Vec<f32>,
+}
+
+/// The three losses on `batch` and their gradients, with the weights as they are: `eps`
+/// (`len × 2`) is the standard-normal noise of the policy's draws, so the result is a
+/// function of the weights alone (what the finite-difference checks need).
+pub fn losses_and_grads(
+    nets: &SacNets,
+    s: &SacSettings,
+    alpha: f32,
+    batch: &Batch,
+    eps: &[f32],
+    par: Par,
+    t: &mut Tapes,
+) -> (Losses, Grads) {
+    let b = batch.len();
+    let inv = 1.0 / b as f32;
+    assert_eq!(eps.len(), 2 * b, "two noise values per transition");
+    let mut g = Grads {
+        policy: vec![0.0; nets.policy.params.len()],
+        q_embed: vec![0.0; nets.q.embed.as_ref().map_or(0, |e| e.params.len())],
+        q1: vec![0.0; nets.q.q1.params.len()],
+        q2: vec![0.0; nets.q.q2.params.len()],
+        v: vec![0.0; nets.v.params.len()],
+        log_alpha: 0.0,
+    };
+    // The policy's draws.
+    nets.policy.forward(&batch.obs, b, &mut t.policy, par);
+    let out = t.policy.output().to_vec();
+    let draws: Vec<Squashed> =
+        (0..b).map(|i| squashed(&out[i * 4..i * 4 + 4], [eps[2 * i], eps[2 * i + 1]], s.scale)).collect();
+    // The Q embedding of s, used by both evaluations of the heads.
+    let emb = match &nets.q.embed {
+        Some(e) => {
+            e.forward(&batch.obs, b, &mut t.embed, par);
+            t.embed.output().to_vec()
+        }
+        None => batch.obs.clone(),
+    };
+    let width = emb.len() / b.max(1);
+    let heads_on = |x: &mut Vec<f32>, actions: &mut dyn Iterator<Item = [f32; 2]>| {
+        x.clear();
+        for (row, a) in emb.chunks_exact(width).zip(actions) {
+            x.extend_from_slice(row);
+            x.extend_from_slice(&a);
+        }
+    };
+    // Q: the batch's actions against r + (1 − done)·γ·V_target(s').
+    nets.v_target.forward(&batch.next_obs, b, &mut t.target, par);
+    let v_next = t.target.output().to_vec();
+    heads_on(&mut t.x, &mut batch.action.chunks_exact(2).map(|a| [a[0], a[1]]));
+    nets.q.q1.forward(&t.x, b, &mut t.q1, par);
+    nets.q.q2.forward(&t.x, b, &mut t.q2, par);
+    let (mut d1, mut d2) = (vec![0.0f32; b], vec![0.0f32; b]);
+    let mut q_loss = 0.0f64;
+    for i in 0..b {
+        let y = batch.reward[i] + (1.0 - batch.done[i]) * s.gamma * v_next[i];
+        let (e1, e2) = (t.q1.output()[i] - y, t.q2.output()[i] - y);
+        q_loss += 0.5 * (e1 as f64).powi(2) + 0.5 * (e2 as f64).powi(2);
+        d1[i] = e1 * inv;
+        d2[i] = e2 * inv;
+    }
+    nets.q.q1.backward_input(&mut t.q1, &d1, &mut g.q1, par, &mut t.dx1);
+    nets.q.q2.backward_input(&mut t.q2, &d2, &mut g.q2, par, &mut t.dx2);
+    if let Some(e) = &nets.q.embed {
+        let d_emb: Vec<f32> = (t.dx1.chunks_exact(width + 2).zip(t.dx2.chunks_exact(width + 2)))
+            .flat_map(|(r1, r2)| r1[..width].iter().zip(&r2[..width]).map(|(x, y)| x + y).collect::<Vec<_>>())
+            .collect();
+        e.backward(&mut t.embed, &d_emb, &mut g.q_embed, par);
+    }
+    // The policy's draws through the heads: min(q1, q2) and its gradient wrt the action.
+    heads_on(&mut t.x, &mut draws.iter().map(|d| d.a));
+    nets.q.q1.forward(&t.x, b, &mut t.q1, par);
+    nets.q.q2.forward(&t.x, b, &mut t.q2, par);
+    let (q1p, q2p) = (t.q1.output().to_vec(), t.q2.output().to_vec());
+    let min_q: Vec<f32> = q1p.iter().zip(&q2p).map(|(a, b)| a.min(*b)).collect();
+    let first: Vec<bool> = q1p.iter().zip(&q2p).map(|(a, b)| a <= b).collect();
+    let dm1: Vec<f32> = first.iter().map(|&f| if f { -inv } else { 0.0 }).collect();
+    let dm2: Vec<f32> = first.iter().map(|&f| if f { 0.0 } else { -inv }).collect();
+    t.scratch1.clear();
+    t.scratch1.resize(g.q1.len(), 0.0);
+    t.scratch2.clear();
+    t.scratch2.resize(g.q2.len(), 0.0);
+    nets.q.q1.backward_input(&mut t.q1, &dm1, &mut t.scratch1, par, &mut t.dx1);
+    nets.q.q2.backward_input(&mut t.q2, &dm2, &mut t.scratch2, par, &mut t.dx2);
+    let mut d_out = vec![0.0f32; 4 * b];
+    let (mut pi_loss, mut ent, mut qm) = (0.0f64, 0.0f64, 0.0f64);
+    for (i, d) in draws.iter().enumerate() {
+        pi_loss += (alpha * d.logp - min_q[i]) as f64;
+        ent -= d.logp as f64;
+        qm += min_q[i] as f64;
+        for k in 0..2 {
+            let a = d.a[k];
+            let slope = 1.0 - a * a;
+            let jac = s.scale[k] * slope + f32::EPSILON;
+            let d_corr = if jac > 1e-10 && jac < 1.0 { 2.0 * a * s.scale[k] * slope / jac } else { 0.0 };
+            let dq_da = t.dx1[i * (width + 2) + width + k] + t.dx2[i * (width + 2) + width + k];
+            let d_u = alpha * inv * d_corr + dq_da * slope;
+            let ls = out[i * 4 + 2 + k];
+            d_out[i * 4 + k] = d_u;
+            if ls > SAC_LOG_STD_RANGE.0 && ls < SAC_LOG_STD_RANGE.1 {
+                d_out[i * 4 + 2 + k] = -alpha * inv + d_u * ls.exp() * eps[2 * i + k];
+            }
+        }
+    }
+    nets.policy.backward(&mut t.policy, &d_out, &mut g.policy, par);
+    // V against min q − α·log π of the same draws.
+    nets.v.forward(&batch.obs, b, &mut t.v, par);
+    let mut dv = vec![0.0f32; b];
+    let mut v_loss = 0.0f64;
+    for i in 0..b {
+        let e = t.v.output()[i] - (min_q[i] - alpha * draws[i].logp);
+        if s.huber {
+            v_loss += if e.abs() <= 1.0 { 0.5 * (e as f64).powi(2) } else { e.abs() as f64 - 0.5 };
+            dv[i] = e.clamp(-1.0, 1.0) * inv;
+        } else {
+            v_loss += (e as f64).powi(2);
+            dv[i] = 2.0 * e * inv;
+        }
+    }
+    nets.v.backward(&mut t.v, &dv, &mut g.v, par);
+    if let Some(h) = s.target_entropy {
+        // SAC's temperature loss −log α·(log π + H̄), as Stable-Baselines3 writes it.
+        g.log_alpha = -draws.iter().map(|d| d.logp + h).sum::<f32>() * inv;
+    }
+    let n = b as f64;
+    let losses = Losses {
+        policy: pi_loss / n,
+        q: q_loss / n,
+        v: v_loss / n,
+        entropy: ent / n,
+        q_mean: qm / n,
+        alpha: alpha as f64,
+    };
+    (losses, g)
+}
+
+/// A SAC learner's state: the networks, their optimisers, the temperature.
+#[derive(Clone, Debug)]
+pub struct Sac {
+    /// The networks.
+    pub nets: SacNets,
+    /// The settings.
+    pub settings: SacSettings,
+    /// log α.
+    pub log_alpha: f32,
+    /// Gradient steps taken.
+    pub steps: u64,
+    adam_policy: Adam,
+    adam_embed: Adam,
+    adam_q1: Adam,
+    adam_q2: Adam,
+    adam_v: Adam,
+    adam_alpha: Adam,
+    rng: ChaCha8Rng,
+}
+
+impl Sac {
+    /// A learner for `nets`, its noise from `seed`.
+    pub fn new(nets: SacNets, settings: SacSettings, seed: u64) -> Sac {
+        let lr = settings.lr;
+        let adam = |n: &Net| Adam::new(n.params.len(), lr);
+        Sac {
+            adam_policy: adam(&nets.policy),
+            adam_embed: Adam::new(nets.q.embed.as_ref().map_or(0, |e| e.params.len()), lr),
+            adam_q1: adam(&nets.q.q1),
+            adam_q2: adam(&nets.q.q2),
+            adam_v: adam(&nets.v),
+            adam_alpha: Adam::new(1, lr),
+            log_alpha: settings.alpha.ln(),
+            steps: 0,
+            rng: ChaCha8Rng::seed_from_u64(seed ^ 0x5ac),
+            nets,
+            settings,
+        }
+    }
+
+    /// The temperature now.
+    pub fn alpha(&self) -> f32 {
+        self.log_alpha.exp()
+    }
+
+    /// One gradient step on `batch`: all three losses from the weights as they were, then
+    /// each network's Adam step (and the temperature's, when it is tuned).
+    pub fn step(&mut self, batch: &Batch, par: Par, tapes: &mut Tapes) -> Losses {
+        let eps: Vec<f32> = (0..2 * batch.len()).map(|_| StandardNormal.sample(&mut self.rng)).collect();
+        let (losses, g) = losses_and_grads(&self.nets, &self.settings, self.alpha(), batch, &eps, par, tapes);
+        self.adam_policy.step_with(&mut self.nets.policy.params, &g.policy, par);
+        if let Some(e) = self.nets.q.embed.as_mut() {
+            self.adam_embed.step_with(&mut e.params, &g.q_embed, par);
+        }
+        self.adam_q1.step_with(&mut self.nets.q.q1.params, &g.q1, par);
+        self.adam_q2.step_with(&mut self.nets.q.q2.params, &g.q2, par);
+        self.adam_v.step_with(&mut self.nets.v.params, &g.v, par);
+        if self.settings.target_entropy.is_some() {
+            let mut la = [self.log_alpha];
+            self.adam_alpha.step(&mut la, &[g.log_alpha]);
+            self.log_alpha = la[0];
+        }
+        self.steps += 1;
+        losses
+    }
+
+    /// Move V's target copy towards V by `tau` (1: copy it).
+    pub fn update_target(&mut self) {
+        let tau = self.settings.tau;
+        for (t, v) in self.nets.v_target.params.iter_mut().zip(&self.nets.v.params) {
+            *t = if tau >= 1.0 { *v } else { tau * v + (1.0 - tau) * *t };
+        }
+    }
+}

@@ -1,0 +1,226 @@
+//! SAC's maths: each of its three losses against finite differences in every network it
+//! trains, the replay memory's bookkeeping, and learning a task whose answer is known.
+
+use faer::Par;
+use learner::sac::{Batch, Losses, Replay, ReplayError, Sac, SacNets, SacSettings, Tapes, TwinQ, losses_and_grads};
+use policy::ModelMetadata;
+use policy::nn::{InputShape, LayerSpec, Net};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+fn meta(obs: usize) -> (ModelMetadata, usize) {
+    let text = r#"{"action_space":{"steering_angle":{"low":-30,"high":30},"speed":{"low":1,"high":2}},
+        "action_space_type":"continuous","training_algorithm":"sac","sensor":["STATE_VECTOR"],
+        "neural_network":"PADDOCK_MLP","version":"5"}"#;
+    (ModelMetadata::parse(text, "meta").unwrap(), obs)
+}
+
+/// SAC's networks for a small camera: a conv embedder shared by the Q heads, as DeepRacer's
+/// camera networks have, at a size finite differences can afford. Small output weights, as
+/// SAC's policy starts: with |u| of 5 the tanh's curvature spoils quotients at this step size.
+fn small_camera_nets(rng: &mut ChaCha8Rng) -> SacNets {
+    use LayerSpec::*;
+    let image = InputShape::Image(8, 10, 1);
+    let embed = [Scale(1.0 / 255.0), Conv(3, 3, 2), Relu];
+    let tower = |out: usize, rng: &mut ChaCha8Rng| {
+        let mut specs = embed.to_vec();
+        specs.extend([Dense(12), Relu]);
+        if out == 4 {
+            specs.extend([Dense(8), Relu]);
+        }
+        specs.push(Dense(out));
+        Net::new(image, &specs, Some(0.1), rng)
+    };
+    let e = Net::new(image, &embed, None, rng);
+    let w = e.out_size();
+    let head = |rng: &mut ChaCha8Rng| {
+        Net::new(InputShape::Flat(w + 2), &[Dense(8), Relu, Dense(6), Relu, Dense(1)], None, rng)
+    };
+    let v = tower(1, rng);
+    SacNets { policy: tower(4, rng), q: TwinQ { embed: Some(e), q1: head(rng), q2: head(rng) }, v_target: v.clone(), v }
+}
+
+fn random_batch(nets: &SacNets, n: usize, pixels: bool, rng: &mut ChaCha8Rng) -> Batch {
+    let per = nets.obs_size();
+    let obs_value =
+        |rng: &mut ChaCha8Rng| if pixels { rng.random_range(0..256) as f32 } else { rng.random_range(-1.0..1.0) };
+    Batch {
+        obs: (0..n * per).map(|_| obs_value(rng)).collect(),
+        next_obs: (0..n * per).map(|_| obs_value(rng)).collect(),
+        action: (0..2 * n).map(|_| rng.random_range(-0.95..0.95)).collect(),
+        reward: (0..n).map(|_| rng.random_range(-1.0..1.0)).collect(),
+        done: (0..n).map(|i| if i % 3 == 0 { 1.0 } else { 0.0 }).collect(),
+    }
+}
+
+/// Perturb each network's parameters so the losses depend visibly on all of them.
+fn jitter(nets: &mut SacNets, rng: &mut ChaCha8Rng) {
+    let mut all: Vec<&mut Net> =
+        vec![&mut nets.policy, &mut nets.q.q1, &mut nets.q.q2, &mut nets.v, &mut nets.v_target];
+    if let Some(e) = nets.q.embed.as_mut() {
+        all.push(e);
+    }
+    for net in all {
+        for p in net.params.iter_mut() {
+            *p += rng.random_range(-0.05..0.05);
+        }
+    }
+}
+
+/// Which network a finite difference moves, the loss it reads and the gradient it checks.
+type Pick =
+    (&'static str, fn(&mut SacNets) -> &mut Vec<f32>, fn(&Losses) -> f64, fn(&learner::sac::Grads) -> &Vec<f32>);
+
+fn check(mut nets: SacNets, settings: &SacSettings, pixels: bool, rng: &mut ChaCha8Rng, what: &str) {
+    jitter(&mut nets, rng);
+    let batch = random_batch(&nets, 5, pixels, rng);
+    let eps: Vec<f32> = (0..10).map(|_| rng.random_range(-1.5..1.5)).collect();
+    let alpha = 0.3;
+    let mut tapes = Tapes::default();
+    let (_, g) = losses_and_grads(&nets, settings, alpha, &batch, &eps, Par::Seq, &mut tapes);
+    let mut picks: Vec<Pick> = vec![
+        ("policy", |n| &mut n.policy.params, |l| l.policy, |g| &g.policy),
+        ("q1", |n| &mut n.q.q1.params, |l| l.q, |g| &g.q1),
+        ("q2", |n| &mut n.q.q2.params, |l| l.q, |g| &g.q2),
+        ("v", |n| &mut n.v.params, |l| l.v, |g| &g.v),
+    ];
+    if nets.q.embed.is_some() {
+        picks.push(("q embedder", |n| &mut n.q.embed.as_mut().unwrap().params, |l| l.q, |g| &g.q_embed));
+    }
+    for (name, params, loss, grad) in picks {
+        let grad = grad(&g).clone();
+        let h = 2e-3f32;
+        let mut bad = Vec::new();
+        let checks = 120;
+        for _ in 0..checks {
+            let i = rng.random_range(0..grad.len());
+            let orig = params(&mut nets)[i];
+            let mut at = |v: f32, nets: &mut SacNets| {
+                params(nets)[i] = v;
+                loss(&losses_and_grads(nets, settings, alpha, &batch, &eps, Par::Seq, &mut tapes).0)
+            };
+            let numeric = (at(orig + h, &mut nets) - at(orig - h, &mut nets)) / (2.0 * h as f64);
+            params(&mut nets)[i] = orig;
+            if (numeric - grad[i] as f64).abs() > 2e-3 + 3e-2 * (grad[i] as f64).abs() {
+                bad.push((i, numeric, grad[i]));
+            }
+        }
+        // A ReLU kink or a switch of min(q1, q2) within ±h spoils a rare quotient.
+        assert!(
+            bad.len() <= checks / 30,
+            "{what}: {name}: {} of {checks} disagree: {:?}",
+            bad.len(),
+            &bad[..bad.len().min(5)]
+        );
+    }
+}
+
+#[test]
+fn issue_32_the_three_sac_losses_match_finite_differences() {
+    let mut rng = ChaCha8Rng::seed_from_u64(32);
+    let (m, obs) = meta(7);
+    let settings = SacSettings::for_space(&m.action_space).unwrap();
+    assert_eq!(settings.scale, [30.0, 0.5], "half-ranges in the environment's units");
+    let nets = SacNets::new(&m, obs, &mut rng);
+    assert!(nets.q.embed.is_none(), "the state vector goes to the Q heads as it is");
+    check(nets.clone(), &settings, false, &mut rng, "state vector, MSE");
+    check(nets, &SacSettings { huber: true, ..settings.clone() }, false, &mut rng, "state vector, Huber");
+    let cam = small_camera_nets(&mut rng);
+    check(cam, &settings, true, &mut rng, "camera embedder");
+}
+
+#[test]
+fn issue_32_the_temperature_follows_the_entropy_target() {
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    let (m, obs) = meta(4);
+    let nets = SacNets::new(&m, obs, &mut rng);
+    let s = SacSettings { target_entropy: Some(-2.0), ..SacSettings::for_space(&m.action_space).unwrap() };
+    let batch = random_batch(&nets, 6, false, &mut rng);
+    let eps: Vec<f32> = (0..12).map(|_| rng.random_range(-1.0..1.0)).collect();
+    let (l, g) = losses_and_grads(&nets, &s, 0.2, &batch, &eps, Par::Seq, &mut Tapes::default());
+    // d/d log α of −log α·(log π + H̄): −mean(log π) − H̄ = entropy − H̄, with H̄ = −2.
+    assert!((g.log_alpha as f64 - (l.entropy + 2.0)).abs() < 1e-4, "{} vs {}", g.log_alpha, l.entropy);
+    let fixed = SacSettings { target_entropy: None, ..s };
+    assert_eq!(losses_and_grads(&nets, &fixed, 0.2, &batch, &eps, Par::Seq, &mut Tapes::default()).1.log_alpha, 0.0);
+}
+
+#[test]
+fn issue_32_the_replay_memory_keeps_episodes_in_order_and_pixels_as_bytes() {
+    // Two values a step: a float, then a pixel.
+    let pixel = std::ops::Range { start: 1, end: 2 };
+    let mut r = Replay::new(5, 2, vec![pixel]);
+    let ep = |k: f32, n: usize| -> Vec<f32> { (0..n).flat_map(|i| [k + i as f32 * 0.5, (10 * i) as f32]).collect() };
+    r.push_episode(&ep(1.0, 3), &[[0.1, 0.2]; 3], &[1.0, 2.0, 3.0], true).unwrap();
+    assert_eq!((r.len(), r.usable()), (3, 3));
+    let mut rng = ChaCha8Rng::seed_from_u64(1);
+    let b = r.sample(200, &mut rng).unwrap();
+    for i in 0..b.len() {
+        let (s, s2) = (&b.obs[2 * i..2 * i + 2], &b.next_obs[2 * i..2 * i + 2]);
+        let step = ((s[0] - 1.0) / 0.5).round() as usize;
+        assert_eq!(b.reward[i], 1.0 + step as f32, "the step's own reward");
+        assert_eq!(s[1], (10 * step) as f32, "the pixel back as it was");
+        if step == 2 {
+            assert_eq!(b.done[i], 1.0, "the episode ended there");
+        } else {
+            assert_eq!((b.done[i], s2[0]), (0.0, s[0] + 0.5), "the next slot is the next step");
+        }
+    }
+    // A cut episode's last step has no successor: never sampled. The ring wraps over the oldest.
+    r.push_episode(&ep(5.0, 3), &[[0.0, 0.0]; 3], &[7.0, 8.0, 9.0], false).unwrap();
+    assert_eq!((r.len(), r.usable(), r.added()), (5, 4, 6));
+    let b = r.sample(300, &mut rng).unwrap();
+    assert!(!b.reward.contains(&9.0) && !b.reward.contains(&1.0), "the cut step and the overwritten one");
+    assert!(b.reward.contains(&8.0) && b.reward.contains(&2.0));
+    // A pixel that is not a byte is refused, and nothing of its episode is stored.
+    let bad = [0.0, 12.0, 0.0, 300.0];
+    assert_eq!(
+        r.push_episode(&bad, &[[0.0, 0.0]; 2], &[0.0, 0.0], true),
+        Err(ReplayError::NotAByte { step: 1, index: 1, value: 300.0 })
+    );
+    assert_eq!(r.added(), 6);
+}
+
+/// A bandit whose best action is known: a = (x₀, −x₁/2) for the observation x. SAC must find it
+/// (a wrong sign in the policy's gradient through Q, or a wrong target, fails it).
+#[test]
+fn issue_32_sac_learns_a_task_whose_answer_is_known() {
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let (m, obs) = meta(2);
+    let nets = SacNets::new(&m, obs, &mut rng);
+    let settings = SacSettings { alpha: 0.01, lr: 1e-3, ..SacSettings::for_space(&m.action_space).unwrap() };
+    let mut sac = Sac::new(nets, settings, 5);
+    let mut replay = Replay::new(10_000, 2, vec![]);
+    let mut tapes = Tapes::default();
+    let mut act_rng = ChaCha8Rng::seed_from_u64(6);
+    let best = |x: &[f32]| [x[0] * 0.8, -x[1] * 0.4];
+    let error = |sac: &Sac, rng: &mut ChaCha8Rng| {
+        let mut worst = 0.0f32;
+        let mut tape = policy::nn::Tape::default();
+        for _ in 0..50 {
+            let x = [rng.random_range(-1.0..1.0f32), rng.random_range(-1.0..1.0f32)];
+            sac.nets.policy.forward(&x, 1, &mut tape, Par::Seq);
+            let a = policy::model::squashed(tape.output(), [0.0; 2], sac.settings.scale).a;
+            let b = best(&x);
+            worst = worst.max((a[0] - b[0]).abs()).max((a[1] - b[1]).abs());
+        }
+        worst
+    };
+    let before = error(&sac, &mut act_rng);
+    let mut tape = policy::nn::Tape::default();
+    for step in 0..3000 {
+        let x = [act_rng.random_range(-1.0..1.0f32), act_rng.random_range(-1.0..1.0f32)];
+        sac.nets.policy.forward(&x, 1, &mut tape, Par::Seq);
+        let eps = [act_rng.random::<f32>() * 2.0 - 1.0, act_rng.random::<f32>() * 2.0 - 1.0];
+        let a = policy::model::squashed(tape.output(), eps, sac.settings.scale).a;
+        let b = best(&x);
+        let reward = -((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2));
+        replay.push_episode(&x, &[a], &[reward], true).unwrap();
+        if step >= 64 {
+            let batch = replay.sample(64, &mut rng).unwrap();
+            sac.step(&batch, Par::Seq, &mut tapes);
+            sac.update_target();
+        }
+    }
+    let after = error(&sac, &mut act_rng);
+    assert!(after < 0.15 && after < before / 3.0, "largest action error {before:.3} → {after:.3}");
+}
