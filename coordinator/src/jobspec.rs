@@ -129,7 +129,6 @@ pub fn parse(text: &str, base: &Path, origin: &str, id: &str) -> Result<Job> {
         None => SimConfig::default(),
     };
     let meta = ModelMetadata::parse(&model_metadata_json, "model_metadata.json")?;
-    learner::check_algorithm(&meta).map_err(|e| anyhow::anyhow!("{origin}: {e}"))?;
     sim.observation.set_sensors(&meta).map_err(|e| anyhow::anyhow!("{origin}: model_metadata: {e}"))?;
     if spec.stop.minutes <= 0.0 || !spec.stop.minutes.is_finite() {
         bail!("{origin}: field 'stop.minutes' must be a positive number of minutes");
@@ -186,21 +185,6 @@ mod tests {
         assert_eq!(ok.worlds.len(), 2);
         assert_eq!(ok.reward_source, "builtin:center_line");
         assert_eq!(ok.out, "runs/j");
-    }
-
-    #[test]
-    fn issue_32_a_job_asking_for_sac_is_refused_naming_the_key() {
-        let dir = tempfile::tempdir().unwrap();
-        std::fs::write(
-            dir.path().join("sac.json"),
-            r#"{"action_space":{"steering_angle":{"low":-30,"high":30},"speed":{"low":1,"high":2}},
-                "sensor":["STATE_VECTOR"],"neural_network":"PADDOCK_MLP","training_algorithm":"sac",
-                "action_space_type":"continuous","version":"5"}"#,
-        )
-        .unwrap();
-        let text = "worlds = [\"reinvent_base\"]\nmodel_metadata = \"sac.json\"\n";
-        let e = format!("{:#}", parse(text, dir.path(), "job.toml", "j").unwrap_err());
-        assert!(e.contains("job.toml") && e.contains("field 'training_algorithm' is \"sac\""), "{e}");
     }
 
     #[test]

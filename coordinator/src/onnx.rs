@@ -3,7 +3,10 @@
 //! The graph takes DeepRacer's input, `observation` of shape `[N, 120, 160, C]` (NHWC, grey
 //! levels 0–255, C = 1 or 2 for stereo; `[N, n]` for a state-vector model), and gives `logits`
 //! (`[N, actions]`, or the two Gaussian means of a continuous space) and, for a discrete
-//! space, `probabilities` (their softmax: DeepRacer's policy output). Layers map one to one:
+//! space, `probabilities` (their softmax: DeepRacer's policy output); for a SAC model,
+//! `logits` are the two means and the two log-stds, and `action` is `tanh` of the means (in
+//! [-1, 1]; the car maps it linearly onto the action ranges, as the simulator does). Layers
+//! map one to one:
 //! the in-graph `/255` is `Mul`; Paddock's NHWC convolutions are ONNX's NCHW `Conv` between
 //! two `Transpose`s (weights `[f, ky, kx, c]` become `[f, c, ky, kx]`); dense layers are
 //! `Gemm` with `transB` (Paddock keeps `W` as `out × in`), after a `Flatten` of the NHWC
@@ -32,6 +35,17 @@ fn tensor(name: &str, dims: &[usize], values: Vec<f32>) -> pb::TensorProto {
         dims: dims.iter().map(|d| *d as i64).collect(),
         data_type: Some(FLOAT),
         float_data: values,
+        ..Default::default()
+    }
+}
+
+/// A one-element INT64 tensor (`Slice`'s starts, ends and axes).
+fn int64_tensor(name: &str, v: i64) -> pb::TensorProto {
+    pb::TensorProto {
+        name: Some(name.into()),
+        dims: vec![1],
+        data_type: Some(7), // TensorProto.DataType.INT64
+        int64_data: vec![v],
         ..Default::default()
     }
 }
@@ -220,9 +234,21 @@ pub fn policy_to_onnx(model: &ActorCritic, name: &str) -> Vec<u8> {
     let actions = net.out_size();
     nodes.push(node("Identity", &[&cur], "logits", vec![]));
     let mut outputs = vec![value_info("logits", &[None, Some(actions)])];
-    if matches!(model.head, Head::Categorical(_)) {
-        nodes.push(node("Softmax", &["logits"], "probabilities", vec![int("axis", 1)]));
-        outputs.push(value_info("probabilities", &[None, Some(actions)]));
+    match model.head {
+        Head::Categorical(_) => {
+            nodes.push(node("Softmax", &["logits"], "probabilities", vec![int("axis", 1)]));
+            outputs.push(value_info("probabilities", &[None, Some(actions)]));
+        }
+        Head::Squashed { .. } => {
+            // SAC: the means are the first two outputs; the action is their tanh.
+            for (name, v) in [("means.starts", 0), ("means.ends", 2), ("means.axes", 1)] {
+                init.push(int64_tensor(name, v));
+            }
+            nodes.push(node("Slice", &["logits", "means.starts", "means.ends", "means.axes"], "means", vec![]));
+            nodes.push(node("Tanh", &["means"], "action", vec![]));
+            outputs.push(value_info("action", &[None, Some(2)]));
+        }
+        Head::Gaussian { .. } => {}
     }
     let graph = pb::GraphProto {
         name: Some(name.into()),

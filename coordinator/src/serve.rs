@@ -307,7 +307,6 @@ fn validate(doc: &Job) -> std::result::Result<(), String> {
         let mut reward =
             sim_agent::RewardFn::from_source(name, &doc.reward_source)?.with_time_limit(cfg.reward_time_limit());
         let meta = policy::ModelMetadata::parse(&doc.model_metadata_json, "model_metadata.json")?;
-        learner::check_algorithm(&meta).map_err(|e| anyhow::anyhow!("model_metadata.json: {e}"))?;
         for w in &doc.worlds {
             let track = tracks::world(w)?.track(tracks::Direction::Forward);
             sim_agent::validate::validate_reward(&mut reward, &track, &meta.action_space, 20, &cfg.race)?;

@@ -36,14 +36,19 @@ fn check_sensors(meta: &ModelMetadata, cfg: &mut SimConfig) -> Result<()> {
     Ok(())
 }
 
-fn hyperparameters(path: &Path) -> Result<Hyperparameters> {
+fn hyperparameters(path: &Path, algorithm: policy::TrainingAlgorithm) -> Result<Hyperparameters> {
     let parsed = Hyperparameters::load(path)?;
     for k in &parsed.unknown {
         tracing::warn!(file = %path.display(), key = %k, "unknown key in hyperparameters.json, not used");
         eprintln!("warning: {}: unknown key '{k}' is not used", path.display());
     }
-    for k in &parsed.ignored {
-        tracing::info!(file = %path.display(), "{k}");
+    for k in parsed.ignored_for(algorithm) {
+        if algorithm == policy::TrainingAlgorithm::Sac && !k.starts_with("stack_size") {
+            tracing::warn!(file = %path.display(), "{k}");
+            eprintln!("warning: {}: {k}", path.display());
+        } else {
+            tracing::info!(file = %path.display(), "{k}");
+        }
     }
     Ok(parsed.hyperparameters)
 }
@@ -61,25 +66,27 @@ struct Terminal {
 
 impl Observer for Terminal {
     fn iteration(&mut self, r: &IterationRecord) {
-        self.bar.suspend(|| {
-            println!(
-                "it {:>4} v{:<4} episodes {:>3} steps {:>6} reward {:>8.2} progress {:>5.1}% | pi {:>7.4} v {:>7.4} H {:.3} kl {:.4} clip {:.3} ev {:>5.2} | {:>6.0} samples/s lag {}",
-                r.iteration,
-                r.policy_version,
-                r.episodes,
-                r.steps,
-                r.mean_reward,
-                r.mean_progress,
+        let head = format!(
+            "it {:>4} v{:<4} episodes {:>3} steps {:>6} reward {:>8.2} progress {:>5.1}%",
+            r.iteration, r.policy_version, r.episodes, r.steps, r.mean_reward, r.mean_progress
+        );
+        let maths = match &r.sac {
+            Some(s) => format!(
+                "pi {:>8.3} q {:>8.4} v {:>7.4} H {:>6.3} α {:.3} | {:>5} gradient steps, replay {}",
+                r.policy_loss, s.q_loss, r.value_loss, r.entropy, s.alpha, r.gradient_steps, s.replay
+            ),
+            None => format!(
+                "pi {:>7.4} v {:>7.4} H {:.3} kl {:.4} clip {:.3} ev {:>5.2} | {:>6.0} samples/s",
                 r.policy_loss,
                 r.value_loss,
                 r.entropy,
                 r.approx_kl,
                 r.clip_fraction,
                 r.explained_variance,
-                r.samples_per_s,
-                r.policy_lag
-            )
-        });
+                r.samples_per_s
+            ),
+        };
+        self.bar.suspend(|| println!("{head} | {maths} lag {}", r.policy_lag));
         if let Some(why) = &r.refused {
             self.bar.suspend(|| eprintln!("warning: iteration {}: {why}", r.iteration));
         }
@@ -162,11 +169,8 @@ pub fn train(mut args: TrainArgs) -> Result<i32> {
             anyhow::anyhow!("--sensor is {name:?}, expected one of {:?}", ModelMetadata::SENSOR_NAMES)
         })?,
     };
-    if let (Err(e), Some(p)) = (learner::check_algorithm(&meta), &meta_path) {
-        bail!("{}: {e}", p.display());
-    }
     let mut hyper = match &hyper_path {
-        Some(p) => hyperparameters(p)?,
+        Some(p) => hyperparameters(p, meta.training_algorithm)?,
         None => Hyperparameters::default(),
     };
     if let Some(lr) = args.lr {
@@ -355,7 +359,7 @@ pub fn clone_cmd(args: CloneArgs) -> Result<i32> {
         None => f.metadata.clone(),
     };
     let mut hyper = match &args.hyperparameters {
-        Some(p) => hyperparameters(p)?,
+        Some(p) => hyperparameters(p, meta.training_algorithm)?,
         None => f
             .manifest
             .training

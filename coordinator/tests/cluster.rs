@@ -296,6 +296,36 @@ fn issue_4_up_runs_a_job_to_its_stop_and_the_model_improves() {
 }
 
 #[test]
+fn issue_32_sac_trains_to_laps_under_up_with_every_step_the_agents_simulate() {
+    let _turn = exclusive();
+    let dir = tempfile::tempdir().unwrap();
+    // deepracer-for-cloud's SAC model_metadata.json, on the state vector.
+    std::fs::write(
+        dir.path().join("sac.json"),
+        r#"{"action_space":{"speed":{"high":2,"low":1},"steering_angle":{"high":30,"low":-30}},
+            "sensor":["STATE_VECTOR"],"neural_network":"PADDOCK_MLP","training_algorithm":"sac",
+            "action_space_type":"continuous","version":"4"}"#,
+    )
+    .unwrap();
+    let o = Command::new(bin("coordinator"))
+        .args(["up", "--model-metadata", "sac.json", "--world", "reinvent_base", "--agents", "2", "--envs", "8"])
+        .args(["--minutes", "2", "--target-laps", "3", "--out", "up"])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&o.stdout).to_string() + &String::from_utf8_lossy(&o.stderr);
+    // The stop needs evaluations, which arrive while the next round's experience streams in.
+    assert!(o.status.success() && text.contains("target laps reached"), "{text}");
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.path().join("up/summary.json")).unwrap()).unwrap();
+    let learner = &summary["learner"];
+    assert_eq!(learner["dropped_stale"], 0, "off-policy experience is never stale: {summary}");
+    let metrics = std::fs::read_to_string(dir.path().join("up/run/metrics.jsonl")).unwrap();
+    let last: serde_json::Value = serde_json::from_str(metrics.lines().last().unwrap()).unwrap();
+    assert!(last["sac"]["replay"].as_u64().unwrap() > 0, "{last}");
+}
+
+#[test]
 fn issue_4_killed_agent_world_reassigned_learner_and_coordinator_restart() {
     let mut c = Cluster::new();
     c.coordinator();

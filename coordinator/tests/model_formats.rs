@@ -89,6 +89,15 @@ fn check(meta: &ModelMetadata, obs_size: usize, seed: u64) {
                 assert!((a - b).abs() < 1e-5, "probability {r},{j}: {a} vs {b}");
             }
         }
+    } else if let policy::Head::Squashed { .. } = model.head {
+        // SAC: the simulator's deterministic action, tanh of the means.
+        assert_eq!(names, "logits,action");
+        for r in 0..batch {
+            for j in 0..2 {
+                let (a, b) = (got[n + r * 2 + j], logits[r * 4 + j].tanh());
+                assert!((a - b).abs() < 1e-5, "action {r},{j}: {a} vs {b}");
+            }
+        }
     } else {
         assert_eq!(names, "logits");
     }
@@ -106,6 +115,14 @@ fn issue_9_onnx_export_matches_paddocks_forward_pass_in_onnxruntime() {
     check(&meta, 120 * 160, 4);
     // The state-vector model.
     check(&ModelMetadata::default_state_vector(), 20, 5);
+}
+
+#[test]
+fn issue_32_onnx_export_of_a_sac_model_gives_the_simulators_action_in_onnxruntime() {
+    let text = r#"{"action_space": {"steering_angle": {"low": -30, "high": 30}, "speed": {"low": 1, "high": 2}},
+        "sensor": ["FRONT_FACING_CAMERA"], "neural_network": "DEEP_CONVOLUTIONAL_NETWORK_SHALLOW",
+        "training_algorithm": "sac", "action_space_type": "continuous", "version": "4"}"#;
+    check(&ModelMetadata::parse(text, "sac").unwrap(), 120 * 160, 6);
 }
 
 #[test]

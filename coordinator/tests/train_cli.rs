@@ -171,37 +171,84 @@ fn train_reads_deepracer_files_and_rejects_bad_ones_by_key() {
     assert!(!d.join("run_cam").exists(), "nothing was trained or written");
 }
 
+/// deepracer-for-cloud's `defaults/model_metadata_sac.json`, on the state vector.
+const SAC_METADATA: &str = r#"{"action_space":{"speed":{"high":2,"low":1},"steering_angle":{"high":30,"low":-30}},
+    "sensor":["STATE_VECTOR"],"neural_network":"PADDOCK_MLP","training_algorithm":"sac",
+    "action_space_type":"continuous","version":"4"}"#;
+
+/// deepracer-for-cloud's `defaults/hyperparameters.json`, unchanged.
+const DRFC_HYPERPARAMETERS: &str = r#"{"batch_size": 64, "beta_entropy": 0.01, "discount_factor": 0.99,
+    "e_greedy_value": 0.05, "epsilon_steps": 10000, "exploration_type": "categorical", "loss_type": "huber",
+    "lr": 0.0003, "num_episodes_between_training": 20, "num_epochs": 10, "stack_size": 1,
+    "term_cond_avg_score": 350.0, "term_cond_max_episodes": 1000, "sac_alpha": 0.2}"#;
+
+fn metrics(path: &Path) -> Vec<serde_json::Value> {
+    std::fs::read_to_string(path).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect()
+}
+
 #[test]
-fn issue_32_a_sac_model_is_refused_never_trained_by_ppo_under_its_name() {
+fn issue_32_sac_trains_to_laps_and_a_resumed_run_goes_on_with_its_critics_and_memory() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    // deepracer-for-cloud's `defaults/model_metadata_sac.json`, on the state vector.
-    std::fs::write(
-        d.join("model_metadata_sac.json"),
-        r#"{"action_space":{"speed":{"high":2,"low":1},"steering_angle":{"high":30,"low":-30}},
-            "sensor":["STATE_VECTOR"],"neural_network":"PADDOCK_MLP","training_algorithm":"sac",
-            "action_space_type":"continuous","version":"4"}"#,
-    )
-    .unwrap();
-    let o = coordinator(d, &["train", "--model-metadata", "model_metadata_sac.json", "--minutes", "1", "--out", "run"]);
-    let out = text(&o);
-    assert!(
-        !o.status.success()
-            && out.contains(
-                "model_metadata_sac.json: field 'training_algorithm' is \"sac\", which Paddock does not train"
-            ),
-        "{out}"
+    std::fs::write(d.join("model_metadata_sac.json"), SAC_METADATA).unwrap();
+    std::fs::write(d.join("hyperparameters.json"), DRFC_HYPERPARAMETERS).unwrap();
+    let files = ["--model-metadata", "model_metadata_sac.json", "--hyperparameters", "hyperparameters.json"];
+    let o = coordinator(
+        d,
+        &[&["train"][..], &files[..], &["--target-laps", "3", "--minutes", "3", "--out", "run"]].concat(),
     );
-    assert!(!d.join("run").exists(), "nothing was trained or written");
-    // A discrete action space with SAC gets DeepRacer's own error.
+    let out = text(&o);
+    assert!(o.status.success() && out.contains("target laps reached"), "{out}");
+    // The keys SAC does not read are named once, never silently taken.
+    assert!(out.contains("num_epochs (clipped PPO's, not used by SAC)"), "{out}");
+    let run = d.join("run");
+    let model_meta = std::fs::read_to_string(run.join("model/model_metadata.json")).unwrap();
+    assert!(model_meta.contains("\"training_algorithm\": \"sac\""), "{model_meta}");
+    let first = metrics(&run.join("metrics.jsonl"));
+    for m in &first {
+        // Flow control: one gradient step per new transition (DeepRacer's ratio).
+        let sac = &m["sac"];
+        assert_eq!(m["gradient_steps"], sac["new_transitions"], "{m}");
+        assert!(
+            sac["q_loss"].as_f64().unwrap().is_finite() && (sac["alpha"].as_f64().unwrap() - 0.2).abs() < 1e-6,
+            "{m}"
+        );
+    }
+    let kept = first.last().unwrap()["sac"]["replay"].as_u64().unwrap();
+    let last_ckpt = std::fs::read_dir(run.join("checkpoints"))
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .map(|e| e.path())
+        .filter(|p| p.is_dir())
+        .max()
+        .unwrap();
+    assert!(last_ckpt.join("sac.safetensors").exists(), "the critics beside the checkpoint's model");
+    assert!(run.join("replay.safetensors").exists(), "the replay memory kept at the end");
+    // The resumed run's first update finds the memory it left (the next iteration's episodes
+    // on top), and trains with its critics.
+    let o = coordinator(
+        d,
+        &[&["train"][..], &files[..], &["--resume", "--max-episodes", "20", "--minutes", "1", "--out", "run"]].concat(),
+    );
+    assert!(o.status.success(), "{}", text(&o));
+    let resumed = metrics(&run.join("metrics.jsonl"));
+    let next = &resumed[first.len()]["sac"];
+    assert_eq!(next["replay"].as_u64().unwrap(), kept + next["new_transitions"].as_u64().unwrap(), "{next}");
+}
+
+#[test]
+fn issue_32_sac_with_a_discrete_action_space_gets_deepracers_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
     std::fs::write(
         d.join("discrete_sac.json"),
         r#"{"action_space":[{"steering_angle":0,"speed":1}],"sensor":["STATE_VECTOR"],"training_algorithm":"sac"}"#,
     )
     .unwrap();
-    let o = coordinator(d, &["train", "--model-metadata", "discrete_sac.json", "--out", "run2"]);
+    let o = coordinator(d, &["train", "--model-metadata", "discrete_sac.json", "--out", "run"]);
     let out = text(&o);
     assert!(!o.status.success() && out.contains("defining SACActionSpaceConfig"), "{out}");
+    assert!(!d.join("run").exists());
 }
 
 #[test]

@@ -359,6 +359,9 @@ impl CarPolicy {
                 z.iter().enumerate().fold((0, f32::MIN), |b, (i, &x)| if x > b.1 { (i, x) } else { b }).0,
             ),
             Head::Gaussian { .. } => Choice::Continuous([z[0], z[1]]),
+            // SAC: the simulator's deterministic action, tanh of the means. (DeepRacer's
+            // navigation node clips the pre-tanh means instead.)
+            Head::Squashed { .. } => Choice::Continuous([z[0].tanh(), z[1].tanh()]),
         }
     }
 }

@@ -6,6 +6,7 @@
 //! and reported (`ignored`), an unknown key is reported as a warning, and a key of the wrong
 //! type is refused naming the key. Defaults are the DeepRacer console's PPO defaults.
 
+use policy::TrainingAlgorithm;
 use serde_json::Value;
 use std::path::Path;
 
@@ -88,6 +89,22 @@ pub struct Hyperparameters {
     /// `clone` sets this for it, so that the advantages are worth following before the
     /// policy moves.
     pub value_warmup_updates: u64,
+    /// SAC's temperature α (`sac_alpha`): fixed, as in DeepRacer, unless `sac_target_entropy`
+    /// is set, when it is where the tuning starts.
+    pub sac_alpha: f64,
+    /// Paddock's addition for SAC (default `null`: α fixed, as in DeepRacer): tune α so
+    /// that the policy's entropy approaches this many nats; `"auto"` is −2 (minus the
+    /// actions' dimension, SAC's usual target).
+    pub sac_target_entropy: Option<f64>,
+    /// Paddock's addition for SAC (default 1: DeepRacer's copy): how far V's target moves
+    /// towards V once per iteration (τ).
+    pub sac_tau: f64,
+    /// SAC's replay memory, in transitions (DeepRacer's 1,000,000 by default).
+    pub sac_replay_size: usize,
+    /// Paddock's addition for SAC (default 1: DeepRacer's one gradient step per transition
+    /// collected): gradient steps per new transition, the bound flow control keeps on the
+    /// replay's intake.
+    pub sac_gradient_steps_per_transition: f64,
 }
 
 impl Default for Hyperparameters {
@@ -105,6 +122,11 @@ impl Default for Hyperparameters {
             target_kl: Some(DEFAULT_TARGET_KL),
             lr_schedule: LrSchedule::Cooldown,
             value_warmup_updates: 0,
+            sac_alpha: 0.2,
+            sac_target_entropy: None,
+            sac_tau: 1.0,
+            sac_replay_size: 1_000_000,
+            sac_gradient_steps_per_transition: 1.0,
         }
     }
 }
@@ -114,10 +136,38 @@ impl Default for Hyperparameters {
 pub struct Parsed {
     /// The values.
     pub hyperparameters: Hyperparameters,
-    /// Keys DeepRacer knows that Paddock's PPO does not use (e.g. `sac_alpha`), with why.
-    pub ignored: Vec<String>,
+    /// The keys the file sets.
+    pub keys: Vec<String>,
     /// Keys nobody knows.
     pub unknown: Vec<String>,
+}
+
+impl Parsed {
+    /// The keys the file sets that `algorithm` does not use, each with why.
+    pub fn ignored_for(&self, algorithm: TrainingAlgorithm) -> Vec<String> {
+        let ppo_only = "clipped PPO's, not used by SAC";
+        let why = |k: &str| -> Option<&str> {
+            match (algorithm, k) {
+                (_, "stack_size") => Some("DeepRacer reads it but always stacks 1 frame"),
+                (TrainingAlgorithm::ClippedPpo, "e_greedy_value" | "epsilon_steps") => {
+                    Some("not used by clipped PPO with categorical exploration")
+                }
+                (TrainingAlgorithm::ClippedPpo, k) if k.starts_with("sac_") => Some("SAC's, not used by clipped PPO"),
+                (
+                    TrainingAlgorithm::Sac,
+                    "beta_entropy"
+                    | "num_epochs"
+                    | "target_kl"
+                    | "value_warmup_updates"
+                    | "exploration_type"
+                    | "e_greedy_value"
+                    | "epsilon_steps",
+                ) => Some(ppo_only),
+                _ => None,
+            }
+        };
+        self.keys.iter().filter_map(|k| why(k).map(|w| format!("{k} ({w})"))).collect()
+    }
 }
 
 /// Why a file was refused.
@@ -145,7 +195,7 @@ impl Hyperparameters {
         let v: Value = serde_json::from_str(text).map_err(|e| err(format!("not valid JSON: {e}")))?;
         let Value::Object(map) = v else { return Err(err("expected a JSON object".into())) };
         let mut h = Hyperparameters::default();
-        let mut ignored = Vec::new();
+        let keys: Vec<String> = map.keys().cloned().collect();
         let mut unknown = Vec::new();
         let int = |k: &str, v: &Value| -> Result<u64, HyperparameterError> {
             match v {
@@ -220,15 +270,43 @@ impl Hyperparameters {
                 "value_warmup_updates" => h.value_warmup_updates = int(k, v)?,
                 "stack_size" => {
                     int(k, v)?;
-                    ignored.push("stack_size (DeepRacer reads it but always stacks 1 frame)".into());
                 }
-                "e_greedy_value" | "sac_alpha" => {
+                "e_greedy_value" => {
                     float(k, v)?;
-                    ignored.push(format!("{k} (not used by clipped PPO with categorical exploration)"));
                 }
                 "epsilon_steps" => {
                     int(k, v)?;
-                    ignored.push("epsilon_steps (not used by categorical exploration)".into());
+                }
+                "sac_alpha" => {
+                    h.sac_alpha = float(k, v)?;
+                    if !(h.sac_alpha > 0.0 && h.sac_alpha.is_finite()) {
+                        return Err(err(format!("key 'sac_alpha' is {v}, expected a positive number")));
+                    }
+                }
+                "sac_target_entropy" => {
+                    h.sac_target_entropy = match v {
+                        Value::Null => None,
+                        Value::String(s) if s == "auto" => Some(-2.0),
+                        _ => Some(float(k, v).map_err(|_| {
+                            err(format!("key 'sac_target_entropy' is {v}, expected a number of nats, \"auto\" or null"))
+                        })?),
+                    };
+                }
+                "sac_tau" => {
+                    h.sac_tau = float(k, v)?;
+                    if !(h.sac_tau > 0.0 && h.sac_tau <= 1.0) {
+                        return Err(err(format!("key 'sac_tau' is {v}, expected a value in (0, 1]")));
+                    }
+                }
+                "sac_replay_size" => h.sac_replay_size = positive(k, int(k, v)?)?,
+                "sac_gradient_steps_per_transition" => {
+                    h.sac_gradient_steps_per_transition = float(k, v)?;
+                    let r = h.sac_gradient_steps_per_transition;
+                    if !(r > 0.0 && r <= 1000.0) {
+                        return Err(err(format!(
+                            "key 'sac_gradient_steps_per_transition' is {v}, expected a number above 0 (at most 1000)"
+                        )));
+                    }
                 }
                 "exploration_type" => match v.as_str() {
                     Some("categorical") | Some("Categorical") => {}
@@ -242,7 +320,7 @@ impl Hyperparameters {
                 _ => unknown.push(k.clone()),
             }
         }
-        Ok(Parsed { hyperparameters: h, ignored, unknown })
+        Ok(Parsed { hyperparameters: h, keys, unknown })
     }
 
     /// The file as DeepRacer writes it.
@@ -264,6 +342,11 @@ impl Hyperparameters {
             "term_cond_avg_score": self.term_cond_avg_score,
             "term_cond_max_episodes": self.term_cond_max_episodes,
             "value_warmup_updates": self.value_warmup_updates,
+            "sac_alpha": self.sac_alpha,
+            "sac_target_entropy": self.sac_target_entropy,
+            "sac_tau": self.sac_tau,
+            "sac_replay_size": self.sac_replay_size,
+            "sac_gradient_steps_per_transition": self.sac_gradient_steps_per_transition,
         }))
         .expect("JSON")
     }
@@ -283,7 +366,8 @@ mod tests {
         assert_eq!(p.hyperparameters.num_epochs, 5);
         assert_eq!(p.hyperparameters.term_cond_max_episodes, 1000);
         assert!(p.unknown.is_empty());
-        assert_eq!(p.ignored.len(), 4, "{:?}", p.ignored);
+        let ignored = p.ignored_for(TrainingAlgorithm::ClippedPpo);
+        assert_eq!(ignored.len(), 4, "{ignored:?}");
         let back = Hyperparameters::parse(&p.hyperparameters.to_json(), "back.json").unwrap();
         assert_eq!(back.hyperparameters, p.hyperparameters);
         // DeepRacer's file has no `target_kl`: Paddock's default applies.

@@ -1,5 +1,6 @@
-//! The learner, a plain library: PPO on faer, DeepRacer's hyperparameters, checkpoints.
+//! The learner, a plain library: PPO and SAC on faer, DeepRacer's hyperparameters, checkpoints.
 //!
+//! - [`algorithm`]: what a run needs of its algorithm, PPO's or SAC's.
 //! - [`hyperparams`]: `hyperparameters.json`, read unchanged.
 //! - [`ppo`]: GAE, the clipped surrogate, the value loss, their gradients, the update.
 //! - [`checkpoints`]: run folders, atomic checkpoints, best/last records.
@@ -13,6 +14,7 @@
 //! results arrive as [`policy::exchange`] values through a [`run::Link`], from a worker in the
 //! same process or from the network; the learner package does not depend on `sim-agent`.
 
+pub mod algorithm;
 pub mod checkpoints;
 pub mod hyperparams;
 pub mod ppo;
@@ -22,21 +24,6 @@ pub mod sac;
 pub mod trend;
 
 pub use hyperparams::{Hyperparameters, LossType, LrSchedule};
-
-use policy::{ModelMetadata, TrainingAlgorithm};
-
-/// Whether this learner trains the algorithm `model_metadata.json` names. A model is never
-/// trained by another algorithm under its name: a file asking for one Paddock does not run
-/// is refused, with the key named, before anything is simulated or written.
-pub fn check_algorithm(metadata: &ModelMetadata) -> Result<(), String> {
-    match metadata.training_algorithm {
-        TrainingAlgorithm::ClippedPpo => Ok(()),
-        TrainingAlgorithm::Sac => Err("field 'training_algorithm' is \"sac\", which Paddock does not train \
-             yet, and a SAC model is never trained by PPO under its name; set \"training_algorithm\": \
-             \"clipped_ppo\" to train this action space with clipped PPO"
-            .into()),
-    }
-}
 pub use ppo::{Alone, GroupError, Ppo, Reducer, Refused, StateMismatch, UpdateStats};
 
 /// Run this process's parallel network maths on `threads` threads (default: one per core):

@@ -477,6 +477,15 @@ impl Link for ZenohLink<'_> {
                 tracing::warn!(job = %self.job, "no word from the coordinator for 15 s; carrying on");
                 self.last_table = Instant::now();
             }
+            // Reports first: they are few, and experience can arrive faster than it is taken
+            // (SAC's next round comes in while an update runs), which would starve them.
+            if let Some((key, r)) = try_next::<protocol::EvalReport>(&self.eval_sub, &self.drops) {
+                let agent = keys::last(&key).to_string();
+                match wire::eval_report_from_wire(r, &self.view(), &agent) {
+                    Ok(r) => return Ok(Some(Inbound::Eval(r))),
+                    Err(e) => self.refuse(&e, "an evaluation report"),
+                }
+            }
             if let Some((key, b)) = try_next::<ExperienceBatch>(&self.exp_sub, &self.drops) {
                 let agent = keys::last(&key).to_string();
                 match wire::experience_from_wire(b, &self.view(), &agent) {
@@ -487,13 +496,6 @@ impl Link for ZenohLink<'_> {
                         return Ok(Some(Inbound::Experience(e)));
                     }
                     Err(e) => self.refuse(&e, "an experience batch"),
-                }
-            }
-            if let Some((key, r)) = try_next::<protocol::EvalReport>(&self.eval_sub, &self.drops) {
-                let agent = keys::last(&key).to_string();
-                match wire::eval_report_from_wire(r, &self.view(), &agent) {
-                    Ok(r) => return Ok(Some(Inbound::Eval(r))),
-                    Err(e) => self.refuse(&e, "an evaluation report"),
                 }
             }
             if Instant::now() >= deadline {

@@ -333,6 +333,11 @@ impl<'a> TeamLead<'a> {
 }
 
 impl Team for TeamLead<'_> {
+    fn members(&mut self) -> usize {
+        self.hear();
+        self.members.len()
+    }
+
     fn update(&mut self, ppo: &mut Ppo, trajs: &[Trajectory]) -> Result<UpdateStats, Refused> {
         self.hear();
         self.plan += 1;

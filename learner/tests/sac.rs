@@ -224,3 +224,38 @@ fn issue_32_sac_learns_a_task_whose_answer_is_known() {
     let after = error(&sac, &mut act_rng);
     assert!(after < 0.15 && after < before / 3.0, "largest action error {before:.3} → {after:.3}");
 }
+
+#[test]
+fn issue_32_the_replay_memory_survives_a_save_and_a_smaller_capacity_keeps_the_newest() {
+    let dir = tempfile::tempdir().unwrap();
+    let pixel = std::ops::Range { start: 0, end: 1 };
+    let mut r = Replay::new(6, 3, vec![pixel]);
+    for k in 0..3 {
+        let obs: Vec<f32> = (0..3).flat_map(|i| [(10 * k + i) as f32, 0.25 * i as f32, -1.5]).collect();
+        r.push_episode(&obs, &[[0.5, -0.5]; 3], &[k as f32; 3], k != 1).unwrap();
+    }
+    let path = dir.path().join("replay.safetensors");
+    r.save(&path).unwrap();
+    let bytes = std::fs::read(&path).unwrap();
+    let back = Replay::from_bytes(&bytes, 6).unwrap();
+    assert_eq!((back.len(), back.added(), back.usable()), (6, 9, 5));
+    // Oldest first from slot 0: saved and read again, the same memory.
+    back.save(&dir.path().join("again.safetensors")).unwrap();
+    let again = Replay::from_bytes(&std::fs::read(dir.path().join("again.safetensors")).unwrap(), 6).unwrap();
+    assert!(again == back, "the same memory");
+    let rewards = |r: &Replay| {
+        let mut v = r.sample(200, &mut ChaCha8Rng::seed_from_u64(3)).unwrap().reward;
+        v.sort_by(f32::total_cmp);
+        v.dedup();
+        v
+    };
+    assert_eq!(rewards(&back), rewards(&r), "the same episodes (the cut one's last step never drawn)");
+    // Three slots: the newest episode only.
+    let small = Replay::from_bytes(&bytes, 3).unwrap();
+    assert_eq!((small.len(), small.added(), small.usable()), (3, 9, 3));
+    let b = small.sample(50, &mut ChaCha8Rng::seed_from_u64(2)).unwrap();
+    assert!(b.reward.iter().all(|&x| x == 2.0) && b.obs.chunks(3).all(|o| o[0] >= 20.0), "{:?}", b.reward);
+    // A damaged file is refused, naming what is wrong.
+    let e = Replay::from_bytes(&bytes[..bytes.len() / 2], 6).unwrap_err();
+    assert!(e.contains("safetensors"), "{e}");
+}

@@ -32,7 +32,7 @@ pub struct PolicyVersion {
 pub struct Credit {
     /// The policy version the episodes are for.
     pub version: u64,
-    /// Grant round within the version: increases with every grant of a run, and a later
+    /// Grant round: increases with every grant of a run, whatever the version, and a later
     /// run (a restarted learner) starts above its predecessor's.
     pub round: u64,
     /// Worker id → episodes granted in this round.

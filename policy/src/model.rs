@@ -8,7 +8,7 @@
 //! Gaussian's), and the environment receives it clipped to [-1, 1] and rescaled linearly to
 //! [low, high], as DeepRacer's `ScalableBoxActionSpace` does.
 
-use crate::metadata::{Action, ActionSpace, ModelMetadata, NeuralNetwork, Sensor};
+use crate::metadata::{Action, ActionSpace, ModelMetadata, NeuralNetwork, Sensor, TrainingAlgorithm};
 use crate::nn::{InputShape, LayerSpec, Net, Tape};
 use faer::Par;
 use rand::Rng;
@@ -29,6 +29,13 @@ pub enum Head {
         /// log σ for (steering, speed).
         log_std: [f32; 2],
     },
+    /// SAC's tanh-squashed Gaussian: the tower gives two means and two log-stds; the
+    /// action is `tanh(u)` for a draw `u` (`tanh(mean)` when deterministic), which the
+    /// environment rescales linearly (see [`squashed`]).
+    Squashed {
+        /// Half of each action's range in the environment's units (log π's tanh correction).
+        scale: [f32; 2],
+    },
 }
 
 /// What the policy chose for one observation.
@@ -36,7 +43,8 @@ pub enum Head {
 pub enum Choice {
     /// Index into the discrete action list.
     Discrete(usize),
-    /// The raw Gaussian sample (before clipping) for (steering, speed).
+    /// The raw Gaussian sample (before clipping) for (steering, speed); for SAC's head the
+    /// squashed action `tanh(u)`, in [-1, 1].
     Continuous([f32; 2]),
 }
 
@@ -222,6 +230,14 @@ fn tower_with(
 impl ActorCritic {
     /// A freshly initialised model for `meta` (state-vector models take `obs_size` inputs).
     pub fn new(meta: &ModelMetadata, obs_size: usize, rng: &mut impl Rng) -> ActorCritic {
+        if let (TrainingAlgorithm::Sac, ActionSpace::Continuous { steering_angle, speed }) =
+            (meta.training_algorithm, &meta.action_space)
+        {
+            let half = |r: &(f64, f64)| ((r.1 - r.0) / 2.0) as f32;
+            let pi = sac_policy(meta, obs_size, rng);
+            let v = sac_value(meta, obs_size, rng);
+            return ActorCritic { pi, v, head: Head::Squashed { scale: [half(steering_angle), half(speed)] } };
+        }
         let head = match meta.action_space {
             ActionSpace::Discrete(ref a) => Head::Categorical(a.len()),
             ActionSpace::Continuous { .. } => Head::Gaussian { log_std: [0.0, 0.0] },
@@ -247,6 +263,7 @@ impl ActorCritic {
         match self.head {
             Head::Categorical(_) => Choice::Discrete(argmax(row)),
             Head::Gaussian { .. } => Choice::Continuous([row[0], row[1]]),
+            Head::Squashed { scale } => Choice::Continuous(squashed(row, [0.0; 2], scale).a),
         }
     }
 
@@ -288,6 +305,14 @@ impl ActorCritic {
                             x[d] = row[d] + z * clip_log_std(log_std[d]).exp();
                         }
                         (Choice::Continuous(x), gaussian_logp(row, &log_std, &x))
+                    }
+                    Head::Squashed { scale } => {
+                        let mut eps = [0.0f32; 2];
+                        if !deterministic {
+                            eps = [StandardNormal.sample(rng), StandardNormal.sample(rng)];
+                        }
+                        let d = squashed(row, eps, scale);
+                        (Choice::Continuous(d.a), d.logp)
                     }
                 };
                 ActOutput { choice, logp, value: values[i] }

@@ -300,6 +300,9 @@ pub fn graph(model: &ActorCritic, meta: &ModelMetadata) -> Result<GraphDef, Grap
     match model.head {
         Head::Categorical(_) => g.node(&names.output, "Softmax", &[&cur], vec![float_type()]),
         Head::Gaussian { .. } => g.node(&names.output, "Identity", &[&cur], vec![float_type()]),
+        Head::Squashed { .. } => {
+            return Err(GraphError::Unsupported("SAC's policy head: Paddock writes clipped PPO's graph only".into()));
+        }
     };
     Ok(GraphDef {
         node: g.nodes,

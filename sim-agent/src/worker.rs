@@ -182,6 +182,7 @@ impl Worker {
                 if r.worker != self.id || self.evals.iter().any(|e| e.id == r.id) {
                     return;
                 }
+                tracing::debug!(id = r.id, version = r.version, world = %r.world, "evaluation requested");
                 match self.reports.iter().find(|d| d.id == r.id && d.version == r.version) {
                     Some(done) => self.resend = Some(done.clone()),
                     None => self.evals.push_back(r),
@@ -234,6 +235,7 @@ impl Worker {
         let ready = self.evals.iter().position(|r| newest.is_some_and(|v| r.version <= v));
         if let Some(i) = ready {
             let r = self.evals.remove(i).expect("found");
+            tracing::debug!(id = r.id, version = r.version, world = %r.world, "evaluating");
             let trials = match self.versions.iter().find(|p| p.version == r.version).cloned() {
                 Some(p) => self.evaluate(&p, &r).map_err(|e| format!("{e:#}")),
                 None => Err(format!("policy v{} is no longer held by {}", r.version, self.id)),

@@ -467,6 +467,8 @@ pub struct UpdateStats {
     /// The update stopped before its last epoch: this gradient step's approximate KL passed
     /// 1.5 × `target_kl` (the step itself was taken).
     pub kl_stop: Option<usize>,
+    /// SAC's figures (`None` for PPO).
+    pub sac: Option<crate::sac::SacStats>,
 }
 
 /// Everything that makes a learner's next update what it will be: the version, the weights

@@ -251,7 +251,7 @@ impl Ppo {
             Part::Policy => {
                 let log_std: &[f32] = match &self.model.head {
                     Head::Gaussian { log_std } => log_std,
-                    Head::Categorical(_) => &[],
+                    Head::Categorical(_) | Head::Squashed { .. } => &[],
                 };
                 vec![(&self.model.pi.params, &self.opt_pi), (log_std, &self.opt_log_std)]
             }
@@ -287,7 +287,7 @@ impl Ppo {
             Part::Policy => {
                 let log_std: &mut [f32] = match &mut model.head {
                     Head::Gaussian { log_std } => log_std,
-                    Head::Categorical(_) => &mut none,
+                    Head::Categorical(_) | Head::Squashed { .. } => &mut none,
                 };
                 vec![(&mut model.pi.params[..], opt_pi), (log_std, opt_log_std)]
             }

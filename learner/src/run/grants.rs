@@ -24,9 +24,10 @@ struct Round {
 /// The rounds of one run.
 pub(super) struct Grants {
     round: Option<Round>,
-    /// Round numbers count up from here: a restarted learner's grants are never taken for
-    /// repeats of its predecessor's.
-    base: u64,
+    /// The last round's number: they count up from the run's base, through every version
+    /// (a restarted learner's grants are never taken for repeats of its predecessor's, nor a
+    /// new round of the same version for a repeat of the last).
+    number: u64,
     last_announced: Option<Instant>,
     /// How long rounds take to be delivered (a moving average).
     round_seconds: Option<f64>,
@@ -35,7 +36,7 @@ pub(super) struct Grants {
 impl Grants {
     /// No round yet; round numbers start above `base`.
     pub(super) fn new(base: u64) -> Grants {
-        Grants { round: None, base, last_announced: None, round_seconds: None }
+        Grants { round: None, number: base, last_announced: None, round_seconds: None }
     }
 
     /// Round numbers above the wall clock's milliseconds × 1000 when the run starts.
@@ -85,8 +86,8 @@ impl Grants {
                     .all(|(w, n)| r.delivered.get(w).copied().unwrap_or(0) >= *n || !workers.contains(w))
         });
         if shortfall > 0 && spent {
-            let number = self.round.as_ref().map(|r| r.credit.round + 1).unwrap_or(self.base + 1);
-            self.round = split(version, number, shortfall, workers).map(|credit| Round {
+            self.number += 1;
+            self.round = split(version, self.number, shortfall, workers).map(|credit| Round {
                 credit,
                 delivered: BTreeMap::new(),
                 started: now,
@@ -148,6 +149,20 @@ mod tests {
     }
 
     #[test]
+    fn issue_32_a_new_round_after_clear_is_numbered_above_the_last_even_for_the_same_version() {
+        let t0 = Instant::now();
+        let a = names(&["a"]);
+        let mut g = Grants::new(1000);
+        assert_eq!(g.due(4, 20, &a, t0).map(|c| (c.version, c.round)), Some((4, 1001)));
+        // SAC grants the next round, of the same version, as its update starts: a worker must
+        // not take it for a repeat of the one it just delivered.
+        g.clear();
+        assert_eq!(g.due(4, 20, &a, t0).map(|c| (c.version, c.round)), Some((4, 1002)));
+        g.clear();
+        assert_eq!(g.due(5, 20, &a, t0).map(|c| (c.version, c.round)), Some((5, 1003)));
+    }
+
+    #[test]
     fn issue_29_a_round_is_announced_every_second_until_spent_then_the_shortfall_is_granted_anew() {
         let t0 = Instant::now();
         let at = |s: f64| t0 + Duration::from_secs_f64(s);
@@ -194,14 +209,14 @@ mod tests {
     }
 
     #[test]
-    fn issue_29_after_an_update_the_next_version_is_granted_at_once_from_the_first_round() {
+    fn issue_29_after_an_update_the_next_version_is_granted_at_once_in_a_new_round() {
         let t0 = Instant::now();
         let mut g = Grants::new(50);
         let a = names(&["a"]);
         assert_eq!(g.due(1, 20, &a, t0).map(|c| c.round), Some(51));
         g.clear();
         let c = g.due(2, 20, &a, t0 + Duration::from_millis(10)).expect("granted at once");
-        assert_eq!((c.version, c.round), (2, 51));
+        assert_eq!((c.version, c.round), (2, 52));
         // With no worker alive, nothing is granted.
         g.clear();
         assert_eq!(g.due(3, 20, &[], t0), None);

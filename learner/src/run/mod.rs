@@ -34,10 +34,12 @@ mod stop;
 
 pub use stop::{Standing, StopRules, TargetLaps};
 
+use crate::algorithm::Algorithm;
 use crate::checkpoints::{CheckpointRecord, OpenMode, RunDir, RunError};
 use crate::hyperparams::Hyperparameters;
 use crate::ppo::{Ppo, PpoState, Refused, UpdateStats};
 use crate::record::Recorder;
+use crate::sac::SacTrainer;
 use crate::trend::{Trend, TrendRules, Verdict};
 use buffer::{Admitted, Buffer};
 use eval::{EVAL_REPEAT, EVAL_TIMEOUT, EvalTurns, PendingEval};
@@ -133,6 +135,10 @@ pub trait Link {
 pub trait Team {
     /// This iteration's update, made with the members there are (alone when there are none).
     fn update(&mut self, ppo: &mut Ppo, trajs: &[Trajectory]) -> Result<UpdateStats, Refused>;
+    /// Learners in the team besides its leader.
+    fn members(&mut self) -> usize {
+        0
+    }
 }
 
 /// Hears about iterations and evaluations (a terminal, a log). Default: nothing.
@@ -268,6 +274,9 @@ pub struct IterationRecord {
     pub kl_stop: Option<usize>,
     /// The learning rate the update used (`lr` on the job's `lr_schedule`).
     pub lr: f64,
+    /// SAC's figures (the Q loss, the temperature, the replay memory); absent for PPO.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sac: Option<crate::sac::SacStats>,
 }
 
 /// One evaluation over every world.
@@ -433,7 +442,8 @@ struct Run<'a> {
     recorder: Option<Recorder>,
     metadata: Arc<ModelMetadata>,
     parent: Option<Parent>,
-    ppo: Ppo,
+    /// The algorithm: PPO or SAC.
+    algo: Box<dyn Algorithm>,
     /// The run's start (moved back by the training time of a job's earlier learner).
     start: Instant,
     /// Episodes an update takes (DeepRacer's `num_episodes_between_training`).
@@ -477,7 +487,6 @@ impl<'a> Run<'a> {
         if spec.worlds.is_empty() {
             return Err(RunFailure::Inputs("the run names no world".into()));
         }
-        crate::check_algorithm(&spec.metadata).map_err(RunFailure::Inputs)?;
         let (dir, model, version, parent, first_iteration) = open(spec)?;
         // A learner restarted mid-job goes on from the run's records: the training time,
         // episodes and env steps so far count towards the job's stop rules (it does not start
@@ -497,16 +506,7 @@ impl<'a> Run<'a> {
             "the run's logs (sim-trace, metrics JSON, MCAP) not opened",
             Recorder::open(&spec.out, &spec.metadata.action_space, &spec.tracks, first_iteration),
         );
-        let mut ppo = Ppo::new(model, spec.hyper.clone(), version, spec.seed, spec.par);
-        if let Some(state) = spec.adopt.clone().filter(|s| s.version > ppo.version) {
-            let v = state.version;
-            match ppo.restore(state) {
-                Ok(()) => {
-                    tracing::info!(run = %spec.name, version = v, "taking over from the team's state (newer than the run folder's)")
-                }
-                Err(e) => tracing::warn!(run = %spec.name, "the team's state does not fit this run: {e}"),
-            }
-        }
+        let algo = algorithm(spec, &dir, model, version, first_iteration)?;
         let best = dir.index()?.best_checkpoint;
         let trend = Trend::new(TrendRules {
             plateau_evals: spec.stop.plateau_evals.unwrap_or(TrendRules::default().plateau_evals),
@@ -521,7 +521,7 @@ impl<'a> Run<'a> {
             recorder,
             metadata: Arc::new(spec.metadata.clone()),
             parent,
-            ppo,
+            algo,
             start,
             want: spec.hyper.num_episodes_between_training.max(1) as u64,
             buffer: Buffer::new(so_far("total_episodes") as u64),
@@ -550,7 +550,7 @@ impl<'a> Run<'a> {
             stop_reason: None,
         };
         r.publish()?;
-        tracing::info!(run = %spec.name, version = r.ppo.version, folder = %spec.out.display(), "training");
+        tracing::info!(run = %spec.name, version = r.algo.version(), folder = %spec.out.display(), "training");
         Ok(r)
     }
 
@@ -558,7 +558,7 @@ impl<'a> Run<'a> {
     fn manifest(&self, training: serde_json::Value) -> Manifest {
         Manifest {
             format: "paddock-model-1".into(),
-            policy_version: self.ppo.version,
+            policy_version: self.algo.version(),
             parent: self.parent.clone(),
             weights_sha256: String::new(),
             obs_size: self.spec.obs_size,
@@ -570,8 +570,8 @@ impl<'a> Run<'a> {
     /// Make the current model the one workers act with.
     fn publish(&mut self) -> Result<(), LinkError> {
         let p = PolicyVersion {
-            version: self.ppo.version,
-            model: Arc::new(self.ppo.model.clone()),
+            version: self.algo.version(),
+            model: Arc::new(self.algo.model().clone()),
             metadata: self.metadata.clone(),
         };
         let manifest = self.manifest(serde_json::json!({"run": self.spec.name}));
@@ -606,7 +606,9 @@ impl<'a> Run<'a> {
         self.per_worker.entry(e.worker.clone()).or_default().push_back((now, e.env_steps));
         self.grants.delivered(e.credit, &e.worker, e.trajectories.len() as u64, now);
         let share = e.env_steps / e.trajectories.len().max(1) as u64;
-        let (version, lag, obs) = (self.ppo.version, self.spec.max_policy_lag, self.spec.obs_size);
+        // Off-policy experience is never stale.
+        let lag = if self.algo.off_policy() { u64::MAX } else { self.spec.max_policy_lag };
+        let (version, obs) = (self.algo.version(), self.spec.obs_size);
         for t in e.trajectories {
             let w = self.windows.entry(t.world.clone()).or_default();
             w.steps.push_back((now, share));
@@ -646,22 +648,27 @@ impl<'a> Run<'a> {
             return Ok(());
         }
         let spec = self.spec;
-        let (trajs, from) = self.buffer.take(self.want as usize);
-        let lag = trajs.iter().map(|t| self.ppo.version - t.policy_version).max().unwrap_or(0);
+        let off_policy = self.algo.off_policy();
+        let n = if off_policy { self.buffer.len() } else { self.want as usize };
+        let (trajs, from) = self.buffer.take(n);
+        if off_policy {
+            // The next round is simulated while this update runs.
+            let workers = self.link.workers();
+            self.grants.clear();
+            self.grant(&workers)?;
+        }
+        let lag = trajs.iter().map(|t| self.algo.version() - t.policy_version).max().unwrap_or(0);
         self.max_lag = self.max_lag.max(lag);
         let wait_s = self.wait_since.elapsed().as_secs_f64();
         let lr = spec.stop.lr(&spec.hyper, self.start.elapsed().as_secs_f64(), self.episodes, self.env_steps);
-        self.ppo.set_lr(lr);
+        self.algo.set_lr(lr);
         let t1 = Instant::now();
-        let result = match self.link.team() {
-            Some(team) => team.update(&mut self.ppo, &trajs),
-            None => self.ppo.update(&trajs),
-        };
+        let result = self.algo.update(&trajs, self.link.team());
         // A refused update changed nothing; it is recorded, and the next one goes on.
         let (stats, refused) = match result {
             Ok(stats) => (stats, None),
             Err(why) => {
-                (UpdateStats { policy_version: self.ppo.version, ..UpdateStats::default() }, Some(why.to_string()))
+                (UpdateStats { policy_version: self.algo.version(), ..UpdateStats::default() }, Some(why.to_string()))
             }
         };
         let update_s = t1.elapsed().as_secs_f64();
@@ -679,12 +686,14 @@ impl<'a> Run<'a> {
             tracing::warn!(run = %spec.name, iteration = self.iteration, "{why}");
         }
         self.publish()?;
-        self.buffer.drop_stale(self.ppo.version, spec.max_policy_lag);
-        self.grants.clear();
+        if !off_policy {
+            self.buffer.drop_stale(self.algo.version(), spec.max_policy_lag);
+            self.grants.clear();
+        }
         let steps: usize = trajs.iter().map(|t| t.len()).sum();
         let rec = IterationRecord {
             iteration: self.iteration,
-            policy_version: self.ppo.version,
+            policy_version: self.algo.version(),
             time_s: self.start.elapsed().as_secs_f64(),
             episodes: trajs.len(),
             total_episodes: self.episodes,
@@ -710,6 +719,7 @@ impl<'a> Run<'a> {
             gradient_steps: stats.gradient_steps,
             kl_stop: stats.kl_stop,
             lr,
+            sac: stats.sac,
         };
         noted(
             &self.dir,
@@ -734,7 +744,7 @@ impl<'a> Run<'a> {
             return Ok(());
         }
         let shortfall = self.want.saturating_sub(self.buffer.len() as u64);
-        match self.grants.due(self.ppo.version, shortfall, workers, Instant::now()) {
+        match self.grants.due(self.algo.version(), shortfall, workers, Instant::now()) {
             Some(credit) => self.link.grant(&credit),
             None => Ok(()),
         }
@@ -751,7 +761,7 @@ impl<'a> Run<'a> {
             && self.last_eval.is_none_or(|t| t.elapsed() >= every);
         let final_due = self.stop_reason.is_some()
             && self.iterations_here > 0
-            && self.evaluated_version != Some(self.ppo.version)
+            && self.evaluated_version != Some(self.algo.version())
             && self.pending.is_none()
             && !workers.is_empty();
         if !(due || final_due) {
@@ -769,8 +779,8 @@ impl<'a> Run<'a> {
         if self.pending.is_none() && !workers.is_empty() {
             let mut p = PendingEval {
                 iteration: self.iteration,
-                version: self.ppo.version,
-                model: self.ppo.model.clone(),
+                version: self.algo.version(),
+                model: self.algo.model().clone(),
                 manifest,
                 name,
                 asked: BTreeMap::new(),
@@ -790,17 +800,18 @@ impl<'a> Run<'a> {
         let written = folder::save_signed(
             &self.dir.checkpoint_dir(name),
             &self.spec.metadata,
-            &self.ppo.model,
+            self.algo.model(),
             manifest,
             Some(&self.signer),
         )
         .map_err(|e| e.to_string())
+        .and_then(|_| self.algo.save_state(&self.dir.checkpoint_dir(name)))
         .and_then(|_| {
             self.dir
                 .record_last(CheckpointRecord {
                     name: name.to_string(),
                     iteration: self.iteration,
-                    policy_version: self.ppo.version,
+                    policy_version: self.algo.version(),
                     avg_eval_metric: 0.0,
                     avg_lap_time: None,
                     time_stamp: self.start.elapsed().as_secs_f64(),
@@ -930,7 +941,7 @@ impl<'a> Run<'a> {
         );
         self.observer.evaluation(&e);
         // The final evaluation (of the last version) closes a stopping run.
-        Ok(self.stop_reason.is_some() && p.version == self.ppo.version)
+        Ok(self.stop_reason.is_some() && p.version == self.algo.version())
     }
 
     /// Check the stop rules; true when the run is over: stopping, and the last version's
@@ -955,7 +966,8 @@ impl<'a> Run<'a> {
         if self.stop_reason.is_none() {
             return false;
         }
-        if self.iterations_here == 0 || (self.pending.is_none() && self.evaluated_version == Some(self.ppo.version)) {
+        if self.iterations_here == 0 || (self.pending.is_none() && self.evaluated_version == Some(self.algo.version()))
+        {
             return true;
         }
         if workers.is_empty() {
@@ -1016,7 +1028,7 @@ impl<'a> Run<'a> {
             .collect();
         let (write_failures, write_error) = self.dir.failures();
         RunStatus {
-            policy_version: self.ppo.version,
+            policy_version: self.algo.version(),
             iteration: self.iteration,
             episodes: self.episodes,
             episodes_received: self.buffer.received,
@@ -1051,6 +1063,7 @@ impl<'a> Run<'a> {
         if let Some(r) = self.recorder.as_mut() {
             noted(&self.dir, "the run's logs not closed", r.finish());
         }
+        noted(&self.dir, "the replay memory not kept", self.algo.save_memory(self.dir.root()));
         let (write_failures, write_error) = self.dir.failures();
         let spec = self.spec;
         let summary = self.dir.write_file(
@@ -1059,14 +1072,14 @@ impl<'a> Run<'a> {
                 "run": spec.name, "worlds": spec.worlds, "iterations": self.iteration, "episodes": self.episodes,
                 "episodes_received": self.buffer.received, "dropped_stale": self.buffer.stale,
                 "env_steps": self.env_steps, "seconds": seconds, "stop_reason": reason, "best": self.best,
-                "policy_version": self.ppo.version, "write_failures": write_failures, "write_error": write_error,
+                "policy_version": self.algo.version(), "write_failures": write_failures, "write_error": write_error,
                 "trend": self.verdict.describe(),
             }))
             .expect("JSON")
             .as_bytes(),
         );
         noted(&self.dir, "summary.json not written", summary);
-        tracing::info!(run = %spec.name, version = self.ppo.version, "run finished: {reason}");
+        tracing::info!(run = %spec.name, version = self.algo.version(), "run finished: {reason}");
         Ok(Summary {
             stop_reason: reason,
             iterations: self.iteration,
@@ -1076,11 +1089,56 @@ impl<'a> Run<'a> {
             env_steps: self.env_steps,
             seconds,
             best: self.best,
-            policy_version: self.ppo.version,
+            policy_version: self.algo.version(),
             run_dir: spec.out.clone(),
             write_failures: self.dir.failures(),
         })
     }
+}
+
+/// The run's algorithm for its metadata, from the opened model: PPO (taking over a team's
+/// newer state when the spec carries one) or SAC (with the critics of the checkpoint it
+/// resumes from and the replay memory the run folder kept, when there are).
+fn algorithm(
+    spec: &RunSpec,
+    dir: &RunDir,
+    model: ActorCritic,
+    version: u64,
+    first_iteration: u64,
+) -> Result<Box<dyn Algorithm>, RunFailure> {
+    if spec.metadata.training_algorithm == policy::TrainingAlgorithm::Sac {
+        let mut sac = SacTrainer::new(model, &spec.metadata, spec.obs_size, &spec.hyper, version, spec.seed, spec.par)
+            .map_err(RunFailure::Inputs)?;
+        if first_iteration > 0 {
+            let last = dir.index()?.last_checkpoint.map(|l| dir.checkpoint_dir(&l.name));
+            match last.map(|d| sac.load_state(&d)).transpose() {
+                Ok(Some(true)) => tracing::info!(run = %spec.name, "SAC: the critics go on from the checkpoint"),
+                Ok(_) => tracing::warn!(run = %spec.name, "SAC: the checkpoint holds no critics: they start afresh"),
+                Err(e) => tracing::warn!(run = %spec.name, "SAC: the critics start afresh: {e}"),
+            }
+            match sac.load_memory(dir.root()) {
+                Ok(true) => {
+                    tracing::info!(run = %spec.name, transitions = sac.replay().len(), "SAC: the replay memory goes on")
+                }
+                Ok(false) => {
+                    tracing::warn!(run = %spec.name, "SAC: no replay memory kept (the run did not end cleanly): it starts empty")
+                }
+                Err(e) => tracing::warn!(run = %spec.name, "SAC: the replay memory starts empty: {e}"),
+            }
+        }
+        return Ok(Box::new(sac));
+    }
+    let mut ppo = Ppo::new(model, spec.hyper.clone(), version, spec.seed, spec.par);
+    if let Some(state) = spec.adopt.clone().filter(|s| s.version > ppo.version) {
+        let v = state.version;
+        match ppo.restore(state) {
+            Ok(()) => {
+                tracing::info!(run = %spec.name, version = v, "taking over from the team's state (newer than the run folder's)")
+            }
+            Err(e) => tracing::warn!(run = %spec.name, "the team's state does not fit this run: {e}"),
+        }
+    }
+    Ok(Box::new(ppo))
 }
 
 /// Open the run folder and the model.

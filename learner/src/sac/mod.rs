@@ -17,6 +17,7 @@
 //! units (degrees, m/s), a choice of input scale invisible outside the learner.
 
 pub mod replay;
+pub mod trainer;
 
 use faer::Par;
 use policy::model::{SAC_LOG_STD_RANGE, Squashed, sac_policy, sac_q_embedder, sac_q_head, sac_value, squashed};
@@ -27,6 +28,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 
 pub use replay::{Replay, ReplayError};
+pub use trainer::{SacStats, SacTrainer};
 
 /// What one SAC update does, from `hyperparameters.json` and the action space.
 #[derive(Clone, Debug, PartialEq)]
@@ -358,6 +360,21 @@ impl Sac {
             rng: ChaCha8Rng::seed_from_u64(seed ^ 0x5ac),
             nets,
             settings,
+        }
+    }
+
+    /// Set every optimiser's learning rate (the run's schedule).
+    pub fn set_lr(&mut self, lr: f32) {
+        self.settings.lr = lr;
+        for opt in [
+            &mut self.adam_policy,
+            &mut self.adam_embed,
+            &mut self.adam_q1,
+            &mut self.adam_q2,
+            &mut self.adam_v,
+            &mut self.adam_alpha,
+        ] {
+            opt.lr = lr;
         }
     }
 

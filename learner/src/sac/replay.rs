@@ -178,6 +178,113 @@ impl Replay {
         out.extend_from_slice(&self.floats[pf..pf + (self.per - at)]);
     }
 
+    /// Values per observation.
+    pub fn per(&self) -> usize {
+        self.per
+    }
+
+    /// The slots from the oldest to the newest.
+    fn chronological(&self) -> impl Iterator<Item = usize> + '_ {
+        let first = if self.len < self.capacity { 0 } else { self.head };
+        (0..self.len).map(move |i| (first + i) % self.capacity)
+    }
+
+    /// Write the memory to `path` (safetensors, atomically), oldest transition first.
+    pub fn save(&self, path: &std::path::Path) -> Result<(), String> {
+        use safetensors::Dtype;
+        let (mut pixels, mut floats, mut action, mut reward, mut end) =
+            (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        let fl = self.per - self.byte_len;
+        for slot in self.chronological() {
+            pixels.extend_from_slice(&self.pixels[slot * self.byte_len..(slot + 1) * self.byte_len]);
+            floats.extend(self.floats[slot * fl..(slot + 1) * fl].iter().flat_map(|x| x.to_le_bytes()));
+            action.extend(self.action[slot].iter().flat_map(|x| x.to_le_bytes()));
+            reward.extend(self.reward[slot].to_le_bytes());
+            end.push(self.end[slot]);
+        }
+        let ranges: Vec<String> = self.bytes.iter().map(|r| format!("{}-{}", r.start, r.end)).collect();
+        let info = std::collections::HashMap::from([
+            ("format".to_string(), "paddock-replay-1".to_string()),
+            ("per".to_string(), self.per.to_string()),
+            ("bytes".to_string(), ranges.join(",")),
+            ("added".to_string(), self.added.to_string()),
+        ]);
+        let named = [
+            ("pixels", pixels, Dtype::U8),
+            ("floats", floats, Dtype::F32),
+            ("action", action, Dtype::F32),
+            ("reward", reward, Dtype::F32),
+            ("end", end, Dtype::U8),
+        ];
+        super::trainer::write_tensors(path, &named, info)
+    }
+
+    /// A memory of `capacity` transitions holding what [`Replay::save`] wrote (the newest
+    /// of them, when it held more).
+    pub fn from_bytes(bytes: &[u8], capacity: usize) -> Result<Replay, String> {
+        let (_, meta) =
+            safetensors::SafeTensors::read_metadata(bytes).map_err(|e| format!("not a safetensors file: {e}"))?;
+        let st = safetensors::SafeTensors::deserialize(bytes).map_err(|e| format!("not a safetensors file: {e}"))?;
+        let info = meta.metadata().clone().unwrap_or_default();
+        let field = |k: &str| info.get(k).cloned().ok_or_else(|| format!("no '{k}' in its header"));
+        if field("format")? != "paddock-replay-1" {
+            return Err(format!("format '{}', expected paddock-replay-1", field("format")?));
+        }
+        let per: usize = field("per")?.parse().map_err(|_| "'per' is not a number".to_string())?;
+        let mut bytes_ranges = Vec::new();
+        for part in field("bytes")?.split(',').filter(|p| !p.is_empty()) {
+            let (a, b) = part.split_once('-').ok_or_else(|| format!("byte range '{part}'"))?;
+            let (a, b): (usize, usize) = (
+                a.parse().map_err(|_| format!("byte range '{part}'"))?,
+                b.parse().map_err(|_| format!("byte range '{part}'"))?,
+            );
+            if a > b || b > per || bytes_ranges.last().is_some_and(|r: &Range<usize>| r.end > a) {
+                return Err(format!("byte range '{part}' does not fit {per} values"));
+            }
+            bytes_ranges.push(a..b);
+        }
+        let tensor = |n: &str| st.tensor(n).map(|t| t.data().to_vec()).map_err(|_| format!("has no tensor '{n}'"));
+        let (pixels, floats, action, reward, end) =
+            (tensor("pixels")?, tensor("floats")?, tensor("action")?, tensor("reward")?, tensor("end")?);
+        let mut r = Replay::new(capacity, per, bytes_ranges);
+        let n = end.len();
+        let fl = per - r.byte_len;
+        if pixels.len() != n * r.byte_len
+            || floats.len() != n * fl * 4
+            || action.len() != n * 8
+            || reward.len() != n * 4
+        {
+            return Err(format!("tensor sizes do not agree with {n} transitions of {per} values"));
+        }
+        if end.iter().any(|&e| e > 2) {
+            return Err("tensor 'end' holds values other than 0, 1 and 2".into());
+        }
+        let f = |b: &[u8], i: usize| f32::from_le_bytes([b[4 * i], b[4 * i + 1], b[4 * i + 2], b[4 * i + 3]]);
+        let mut row = vec![0.0f32; per];
+        let from = n.saturating_sub(r.capacity);
+        for (i, &e) in end.iter().enumerate().skip(from) {
+            let (mut pb, mut pf, mut at) = (i * r.byte_len, i * fl, 0);
+            for range in r.bytes.clone() {
+                for v in &mut row[at..range.start] {
+                    *v = f(&floats, pf);
+                    pf += 1;
+                }
+                for v in &mut row[range.clone()] {
+                    *v = pixels[pb] as f32;
+                    pb += 1;
+                }
+                at = range.end;
+            }
+            for v in &mut row[at..] {
+                *v = f(&floats, pf);
+                pf += 1;
+            }
+            r.put(&row, [f(&action, 2 * i), f(&action, 2 * i + 1)], f(&reward, i), e);
+        }
+        r.added = field("added")?.parse().unwrap_or(n as u64).max(r.added);
+        Ok(r)
+    }
+
     /// Transitions that can be sampled (a cut episode's last step cannot).
     pub fn usable(&self) -> usize {
         self.end.iter().filter(|&&e| e != 2).count()

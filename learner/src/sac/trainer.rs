@@ -1,0 +1,358 @@
+//! SAC in a training run ([`crate::algorithm::Algorithm`]): every episode that arrives goes
+//! into the replay memory, whatever version acted (off-policy data is never stale); an
+//! iteration then takes `sac_gradient_steps_per_transition` gradient steps per new transition
+//! (DeepRacer's one), on batches of `batch_size` drawn with replacement (while the memory
+//! holds fewer, batches of the largest power of two below the iteration's steps, as
+//! DeepRacer's trainer does), moves V's target once, after the iteration's first gradient
+//! step, and publishes the policy as a new version.
+//!
+//! A checkpoint keeps the critics (`sac.safetensors` beside the model); the replay memory is
+//! written to the run folder (`replay.safetensors`) when the run ends, and a resumed run
+//! continues with both, or says which it starts without.
+
+use super::{Losses, Replay, Sac, SacNets, SacSettings, Tapes};
+use crate::algorithm::Algorithm;
+use crate::hyperparams::{Hyperparameters, LossType};
+use crate::ppo::{Refused, UpdateStats};
+use crate::run::Team;
+use faer::Par;
+use policy::model::Head;
+use policy::nn::InputShape;
+use policy::{ActorCritic, Choice, ModelMetadata, Trajectory};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use safetensors::{Dtype, SafeTensors, tensor::TensorView};
+use std::collections::HashMap;
+use std::path::Path;
+
+/// The critics' file in a checkpoint folder.
+pub const CRITICS_FILE: &str = "sac.safetensors";
+/// The replay memory's file in the run folder.
+pub const REPLAY_FILE: &str = "replay.safetensors";
+
+/// What an iteration's update reports beyond PPO's figures.
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+pub struct SacStats {
+    /// The Q heads' loss, averaged over the iteration's gradient steps.
+    pub q_loss: f64,
+    /// `min(q1, q2)` at the policy's draws, averaged.
+    pub q_mean: f64,
+    /// The temperature at the end of the iteration.
+    pub alpha: f64,
+    /// Transitions in the replay memory.
+    pub replay: usize,
+    /// New transitions this iteration.
+    pub new_transitions: usize,
+    /// Episodes not stored (a choice that is not a continuous action, or a bad observation).
+    pub refused_episodes: usize,
+}
+
+/// A SAC learner in a run.
+pub struct SacTrainer {
+    sac: Sac,
+    replay: Replay,
+    model: ActorCritic,
+    version: u64,
+    rng: ChaCha8Rng,
+    tapes: Tapes,
+    par: Par,
+    ratio: f64,
+    /// Fractional gradient steps carried to the next iteration.
+    carry: f64,
+    warned_team: bool,
+}
+
+/// The settings `hyperparameters.json` gives SAC for `model`'s action space.
+pub fn settings(h: &Hyperparameters, model: &ActorCritic) -> Option<SacSettings> {
+    let Head::Squashed { scale } = model.head else { return None };
+    Some(SacSettings {
+        batch_size: h.batch_size,
+        lr: h.lr as f32,
+        gamma: h.discount_factor as f32,
+        alpha: h.sac_alpha as f32,
+        target_entropy: h.sac_target_entropy.map(|t| t as f32),
+        tau: h.sac_tau as f32,
+        huber: h.loss_type == LossType::Huber,
+        scale,
+    })
+}
+
+/// The parts of a sample held as bytes in the replay memory: the cameras' pixels.
+fn pixel_ranges(meta: &ModelMetadata, obs_size: usize) -> Vec<std::ops::Range<usize>> {
+    let mut at = 0;
+    let mut out = Vec::new();
+    for (_, shape) in policy::model::inputs(meta, obs_size) {
+        if let InputShape::Image(..) = shape {
+            out.push(at..at + shape.size());
+        }
+        at += shape.size();
+    }
+    out
+}
+
+impl SacTrainer {
+    /// A SAC learner for `model` (SAC's policy and V: fresh, resumed or cloned) at `version`,
+    /// with fresh critics and an empty replay memory.
+    pub fn new(
+        model: ActorCritic,
+        meta: &ModelMetadata,
+        obs_size: usize,
+        h: &Hyperparameters,
+        version: u64,
+        seed: u64,
+        par: Par,
+    ) -> Result<SacTrainer, String> {
+        let s = settings(h, &model).ok_or("SAC needs SAC's policy head (a continuous action space)")?;
+        let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x0c1);
+        let mut nets = SacNets::new(meta, obs_size, &mut rng);
+        nets.policy = model.pi.clone();
+        nets.v = model.v.clone();
+        nets.v_target = model.v.clone();
+        let replay = Replay::new(h.sac_replay_size, nets.obs_size(), pixel_ranges(meta, obs_size));
+        Ok(SacTrainer {
+            sac: Sac::new(nets, s, seed),
+            replay,
+            model,
+            version,
+            rng,
+            tapes: Tapes::default(),
+            par,
+            ratio: h.sac_gradient_steps_per_transition,
+            carry: 0.0,
+            warned_team: false,
+        })
+    }
+
+    /// The replay memory.
+    pub fn replay(&self) -> &Replay {
+        &self.replay
+    }
+
+    /// The learner's networks and state.
+    pub fn sac(&self) -> &Sac {
+        &self.sac
+    }
+
+    /// Take the critics (and the temperature) from a checkpoint folder; false when it holds
+    /// none.
+    pub fn load_state(&mut self, dir: &Path) -> Result<bool, String> {
+        let path = dir.join(CRITICS_FILE);
+        let bytes = match std::fs::read(&path) {
+            Ok(b) => b,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(false),
+            Err(e) => return Err(format!("{}: {e}", path.display())),
+        };
+        let bad = |m: String| format!("{}: {m}", path.display());
+        let st = SafeTensors::deserialize(&bytes).map_err(|e| bad(format!("not a safetensors file: {e}")))?;
+        let mut next = self.sac.clone();
+        let nets = &mut next.nets;
+        let mut targets: Vec<(&str, &mut Vec<f32>)> =
+            vec![("q1", &mut nets.q.q1.params), ("q2", &mut nets.q.q2.params), ("v_target", &mut nets.v_target.params)];
+        if let Some(e) = nets.q.embed.as_mut() {
+            targets.push(("q_embed", &mut e.params));
+        }
+        for (name, dst) in targets {
+            read_into(&st, name, dst).map_err(bad)?;
+        }
+        let mut la = [0.0f32];
+        read_into(&st, "log_alpha", &mut la).map_err(bad)?;
+        next.log_alpha = la[0];
+        self.sac = next;
+        Ok(true)
+    }
+
+    /// Take the replay memory the run folder `root` kept; false when it holds none (or one
+    /// for other observations, which is said).
+    pub fn load_memory(&mut self, root: &Path) -> Result<bool, String> {
+        let path = root.join(REPLAY_FILE);
+        match std::fs::read(&path) {
+            Ok(bytes) => {
+                let r = Replay::from_bytes(&bytes, self.replay.capacity())
+                    .map_err(|e| format!("{}: {e}", path.display()))?;
+                if r.per() != self.replay.per() {
+                    return Err(format!(
+                        "{}: transitions of {} values, this run's observation has {}",
+                        path.display(),
+                        r.per(),
+                        self.replay.per()
+                    ));
+                }
+                self.replay = r;
+                Ok(true)
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(false),
+            Err(e) => Err(format!("{}: {e}", path.display())),
+        }
+    }
+
+    /// Store the episodes; returns (new transitions, episodes refused).
+    fn store(&mut self, trajs: &[Trajectory]) -> (usize, usize) {
+        let (mut new, mut refused) = (0, 0);
+        for t in trajs {
+            let actions: Option<Vec<[f32; 2]>> = t
+                .choices
+                .iter()
+                .map(|c| match c {
+                    Choice::Continuous(a) if a.iter().all(|v| v.is_finite() && v.abs() <= 1.0) => Some(*a),
+                    _ => None,
+                })
+                .collect();
+            let stored = actions
+                .ok_or_else(|| "an action that is not SAC's (a continuous action in [-1, 1])".to_string())
+                .and_then(|a| self.replay.push_episode(&t.obs, &a, &t.rewards, t.done).map_err(|e| e.to_string()));
+            match stored {
+                Ok(()) => new += t.rewards.len(),
+                Err(why) => {
+                    refused += 1;
+                    tracing::warn!(world = %t.world, env = t.env, episode = t.episode, "episode not stored in the replay memory: {why}");
+                }
+            }
+        }
+        (new, refused)
+    }
+}
+
+fn read_into(st: &SafeTensors, name: &str, dst: &mut [f32]) -> Result<(), String> {
+    let t = st.tensor(name).map_err(|_| format!("has no tensor '{name}'"))?;
+    if t.dtype() != Dtype::F32 || t.data().len() != dst.len() * 4 {
+        return Err(format!(
+            "tensor '{name}' holds {} bytes of {:?}, expected {} f32",
+            t.data().len(),
+            t.dtype(),
+            dst.len()
+        ));
+    }
+    for (d, c) in dst.iter_mut().zip(t.data().chunks_exact(4)) {
+        *d = f32::from_le_bytes([c[0], c[1], c[2], c[3]]);
+    }
+    Ok(())
+}
+
+fn f32_bytes(v: &[f32]) -> Vec<u8> {
+    v.iter().flat_map(|x| x.to_le_bytes()).collect()
+}
+
+/// Write named f32 vectors as safetensors, atomically (a temporary file renamed).
+pub(crate) fn write_tensors(
+    path: &Path,
+    named: &[(&str, Vec<u8>, Dtype)],
+    info: HashMap<String, String>,
+) -> Result<(), String> {
+    let views: Vec<(String, TensorView<'_>)> = named
+        .iter()
+        .map(|(n, b, d)| {
+            let len = b.len() * 8 / d.bitsize();
+            (n.to_string(), TensorView::new(*d, vec![len], b).expect("sizes agree"))
+        })
+        .collect();
+    let bytes = safetensors::serialize(views, Some(info)).map_err(|e| e.to_string())?;
+    let tmp = path.with_extension("tmp");
+    std::fs::write(&tmp, bytes)
+        .and_then(|_| std::fs::rename(&tmp, path))
+        .map_err(|e| format!("{}: {e}", path.display()))
+}
+
+impl Algorithm for SacTrainer {
+    fn name(&self) -> &'static str {
+        "sac"
+    }
+
+    fn version(&self) -> u64 {
+        self.version
+    }
+
+    fn model(&self) -> &ActorCritic {
+        &self.model
+    }
+
+    fn set_lr(&mut self, lr: f64) {
+        self.sac.set_lr(lr as f32);
+    }
+
+    fn off_policy(&self) -> bool {
+        true
+    }
+
+    fn update(&mut self, trajs: &[Trajectory], team: Option<&mut dyn Team>) -> Result<UpdateStats, Refused> {
+        if team.is_some_and(|t| t.members() > 0) && !std::mem::replace(&mut self.warned_team, true) {
+            tracing::warn!("SAC's updates are made by the team's leader alone: the other learners wait");
+        }
+        let (new, refused_episodes) = self.store(trajs);
+        let wanted = new as f64 * self.ratio + self.carry;
+        let steps = wanted.floor() as usize;
+        self.carry = wanted - steps as f64;
+        let batch_size = if self.replay.len() > self.sac.settings.batch_size {
+            self.sac.settings.batch_size
+        } else {
+            // DeepRacer's trainer before the memory holds a batch: the largest power of two
+            // not above the new steps.
+            1usize << (usize::BITS - 1 - new.max(1).leading_zeros())
+        };
+        let before = self.sac.clone();
+        let mut sum = Losses::default();
+        for i in 0..steps {
+            let Some(batch) = self.replay.sample(batch_size, &mut self.rng) else { break };
+            let l = self.sac.step(&batch, self.par, &mut self.tapes);
+            if ![l.policy, l.q, l.v].iter().all(|x| x.is_finite()) {
+                let loss = [l.policy, l.q, l.v].into_iter().find(|x| !x.is_finite()).unwrap_or(f64::NAN);
+                self.sac = before;
+                return Err(Refused::NonFinite { step: i, loss, version: self.version });
+            }
+            if i == 0 {
+                self.sac.update_target();
+            }
+            for (s, x) in [
+                (&mut sum.policy, l.policy),
+                (&mut sum.q, l.q),
+                (&mut sum.v, l.v),
+                (&mut sum.entropy, l.entropy),
+                (&mut sum.q_mean, l.q_mean),
+            ] {
+                *s += x;
+            }
+        }
+        let n = steps.max(1) as f64;
+        self.version += 1;
+        self.model.pi.params.clone_from(&self.sac.nets.policy.params);
+        self.model.v.params.clone_from(&self.sac.nets.v.params);
+        Ok(UpdateStats {
+            samples: steps * batch_size,
+            policy_loss: sum.policy / n,
+            value_loss: sum.v / n,
+            entropy: sum.entropy / n,
+            gradient_steps: steps,
+            policy_version: self.version,
+            sac: Some(SacStats {
+                q_loss: sum.q / n,
+                q_mean: sum.q_mean / n,
+                alpha: self.sac.alpha() as f64,
+                replay: self.replay.len(),
+                new_transitions: new,
+                refused_episodes,
+            }),
+            ..UpdateStats::default()
+        })
+    }
+
+    fn save_state(&self, dir: &Path) -> Result<(), String> {
+        let nets = &self.sac.nets;
+        let mut named = vec![
+            ("q1", f32_bytes(&nets.q.q1.params), Dtype::F32),
+            ("q2", f32_bytes(&nets.q.q2.params), Dtype::F32),
+            ("v_target", f32_bytes(&nets.v_target.params), Dtype::F32),
+            ("log_alpha", f32_bytes(&[self.sac.log_alpha]), Dtype::F32),
+        ];
+        if let Some(e) = &nets.q.embed {
+            named.push(("q_embed", f32_bytes(&e.params), Dtype::F32));
+        }
+        let info = HashMap::from([
+            ("format".to_string(), "paddock-sac-critics-1".to_string()),
+            ("policy_version".to_string(), self.version.to_string()),
+        ]);
+        write_tensors(&dir.join(CRITICS_FILE), &named, info)
+    }
+
+    fn save_memory(&self, root: &Path) -> Result<(), String> {
+        self.replay.save(&root.join(REPLAY_FILE))
+    }
+}
