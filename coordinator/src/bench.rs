@@ -939,3 +939,111 @@ pub fn races(world: &str, minutes: f64, which: &[String], up: bool, seed: u64, o
         Ok(1)
     }
 }
+
+/// deepracer-for-cloud's `defaults/model_metadata_sac.json` (speed 1–2 m/s, steering ±30°),
+/// for `sensor` and `network`, trained by `algorithm`.
+fn drfc_continuous(sensor: &str, network: &str, algorithm: &str) -> String {
+    format!(
+        r#"{{"action_space": {{"speed": {{"high": 2, "low": 1}}, "steering_angle": {{"high": 30, "low": -30}}}},
+  "sensor": ["{sensor}"], "neural_network": "{network}", "training_algorithm": "{algorithm}",
+  "action_space_type": "continuous", "version": "4"}}"#
+    )
+}
+
+/// One training of `bench sac`: wall-clock to its model, how it stopped, the model evaluated
+/// again (laps of 3).
+struct SacRow {
+    label: String,
+    secs: f64,
+    stop: String,
+    eval: String,
+    laps: u32,
+}
+
+/// `bench sac`: SAC against PPO from the same files, then SAC with 1, 2 and 4 agents.
+pub fn sac(
+    world: &str,
+    minutes: f64,
+    sensors: &[String],
+    agents: &[usize],
+    seed: u64,
+    out: &std::path::Path,
+) -> Result<i32> {
+    let sensors: Vec<&str> =
+        if sensors.is_empty() { vec!["state", "camera"] } else { sensors.iter().map(|s| s.as_str()).collect() };
+    let agents: Vec<usize> = if agents.is_empty() { vec![1, 2, 4] } else { agents.to_vec() };
+    let me = std::env::current_exe()?;
+    std::fs::create_dir_all(out)?;
+    let dir = out.canonicalize()?;
+    let mut rows: Vec<SacRow> = Vec::new();
+    let mut run = |label: String, args: Vec<String>, model: String| -> Result<()> {
+        let t0 = Instant::now();
+        let text = child(&me, &dir, &args)?;
+        let secs = t0.elapsed().as_secs_f64();
+        let stop = text
+            .lines()
+            .find(|l| l.starts_with("stopped after") || l.contains(": Finished") || l.contains(": Failed"))
+            .unwrap_or("")
+            .trim()
+            .to_string();
+        let eval = vec!["evaluate".to_string(), model, "--world".into(), world.into(), "--trials".into(), "3".into()];
+        let verdict = child(&me, &dir, &eval)?;
+        let line = verdict.lines().find(|l| l.contains("laps completed")).unwrap_or("").to_string();
+        let laps = line.split_whitespace().next().and_then(|n| n.parse::<u32>().ok()).unwrap_or(0);
+        rows.push(SacRow { label, secs, stop, eval: line, laps });
+        Ok(())
+    };
+    let common = |cmd: &str, folder: &str, meta: &str| -> Vec<String> {
+        [cmd, "--world", world, "--out", folder, "--force", "--model-metadata", meta, "--target-laps", "3"]
+            .iter()
+            .map(|s| s.to_string())
+            .chain(["--minutes".into(), minutes.to_string(), "--seed".into(), seed.to_string()])
+            .collect()
+    };
+    for sensor in &sensors {
+        let (name, network) = match *sensor {
+            "state" => ("STATE_VECTOR", "PADDOCK_MLP"),
+            "camera" => ("FRONT_FACING_CAMERA", "DEEP_CONVOLUTIONAL_NETWORK_SHALLOW"),
+            other => bail!("--sensor {other}: expected state or camera"),
+        };
+        for algorithm in ["sac", "clipped_ppo"] {
+            let meta = format!("{sensor}-{algorithm}.json");
+            std::fs::write(dir.join(&meta), drfc_continuous(name, network, algorithm))?;
+            let folder = format!("{sensor}-{algorithm}-train");
+            run(format!("{sensor}, {algorithm}, train"), common("train", &folder, &meta), format!("{folder}/model"))?;
+        }
+    }
+    // SAC under `up`: the learner's intake bound by one gradient step per transition.
+    std::fs::write(dir.join("state-sac.json"), drfc_continuous("STATE_VECTOR", "PADDOCK_MLP", "sac"))?;
+    for n in &agents {
+        let folder = format!("state-sac-up{n}");
+        let mut args = common("up", &folder, "state-sac.json");
+        args.extend(["--agents".to_string(), n.to_string(), "--envs".into(), "8".into()]);
+        run(format!("state, sac, up {n} agent(s) × 8 envs"), args, format!("{folder}/run/model"))?;
+    }
+    println!("# coordinator bench sac: {world}, seed {seed}, {minutes} min budget each");
+    println!();
+    println!("| training | wall-clock s (start to model) | how it stopped | evaluated again (3 trials) |");
+    println!("|---|---|---|---|");
+    for r in &rows {
+        println!("| {} | {:.0} | {} | {} |", r.label, r.secs, r.stop, r.eval);
+    }
+    println!();
+    let mut failed: Vec<String> =
+        rows.iter().filter(|r| r.label.contains("sac") && r.laps < 3).map(|r| r.label.clone()).collect();
+    let up_secs = |n: usize| rows.iter().find(|r| r.label.starts_with(&format!("state, sac, up {n} "))).map(|r| r.secs);
+    if let (Some(one), Some(two)) = (up_secs(1), up_secs(2)) {
+        let speedup = one / two.max(1e-9);
+        println!("2 agents against 1: {speedup:.2}× (goal ≥ 1.6×)");
+        if speedup < 1.6 {
+            failed.push(format!("2 agents {speedup:.2}× faster than 1"));
+        }
+    }
+    if failed.is_empty() {
+        println!("verdict: pass");
+        Ok(0)
+    } else {
+        println!("verdict: FAIL: {}", failed.join(", "));
+        Ok(1)
+    }
+}

@@ -234,6 +234,32 @@ pub enum BenchCommand {
         #[arg(long, default_value = "runs/bench-races")]
         out: PathBuf,
     },
+    /// SAC against PPO from the same files (issue 32): deepracer-for-cloud's continuous
+    /// `model_metadata.json` with `"training_algorithm": "sac"`, and the same with
+    /// `"clipped_ppo"`, trained by `train` to 3/3 laps on the state vector and from the camera;
+    /// then SAC under `up` with 1, 2 and 4 agents. Wall-clock to the model, each model
+    /// evaluated again; a table and a verdict (exit 1 when a SAC model does not lap 3/3, or 2
+    /// agents are not 1.6× faster than 1).
+    Sac {
+        /// The track.
+        #[arg(long, default_value = "reinvent_base")]
+        world: String,
+        /// Budget per training (minutes).
+        #[arg(long, default_value_t = 5.0)]
+        minutes: f64,
+        /// Observations: `state`, `camera` (repeatable; default both).
+        #[arg(long = "sensor")]
+        sensors: Vec<String>,
+        /// Agents for the `up` rows (repeatable; default 1, 2 and 4).
+        #[arg(long = "agents")]
+        agents: Vec<usize>,
+        /// Random seed.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Where the runs go (kept).
+        #[arg(long, default_value = "runs/bench-sac")]
+        out: PathBuf,
+    },
     /// Publish-to-4-agents latency of a SHALLOW camera model; bytes per env step.
     Publish {
         /// Publications to time.

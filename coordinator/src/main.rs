@@ -84,6 +84,9 @@ fn main() {
             cli::BenchCommand::Races { world, minutes, races, no_up, seed, out } => {
                 bench::races(&world, minutes, &races, !no_up, seed, &out)
             }
+            cli::BenchCommand::Sac { world, minutes, sensors, agents, seed, out } => {
+                bench::sac(&world, minutes, &sensors, &agents, seed, &out)
+            }
             cli::BenchCommand::Record { seconds, rounds } => bench::record(seconds, rounds).map(|()| 0),
             cli::BenchCommand::Wire { seconds, rounds, up_seconds } => bench::wire(seconds, rounds, up_seconds).map(|()| 0),
             cli::BenchCommand::Pixels { worlds, unseen, minutes, envs, evals, seeds, out } => {

@@ -108,7 +108,9 @@ impl SacTrainer {
         nets.policy = model.pi.clone();
         nets.v = model.v.clone();
         nets.v_target = model.v.clone();
-        let replay = Replay::new(h.sac_replay_size, nets.obs_size(), pixel_ranges(meta, obs_size));
+        let pixels = pixel_ranges(meta, obs_size);
+        let capacity = replay_capacity(h.sac_replay_size, nets.obs_size(), &pixels, total_memory());
+        let replay = Replay::new(capacity, nets.obs_size(), pixels);
         Ok(SacTrainer {
             sac: Sac::new(nets, s, seed),
             replay,
@@ -210,6 +212,33 @@ impl SacTrainer {
         }
         (new, refused)
     }
+}
+
+/// The machine's memory in bytes (Linux's `/proc/meminfo`), if known.
+fn total_memory() -> Option<u64> {
+    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let line = text.lines().find(|l| l.starts_with("MemTotal:"))?;
+    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib * 1024)
+}
+
+/// The replay memory's capacity: `wanted` transitions, or as many as half of `memory` holds
+/// when they would not fit (DeepRacer's million camera frames are 19 GB), which is said.
+pub fn replay_capacity(wanted: usize, per: usize, pixels: &[std::ops::Range<usize>], memory: Option<u64>) -> usize {
+    let bytes: usize = pixels.iter().map(|r| r.len()).sum();
+    let each = (bytes + 4 * (per - bytes) + 8 + 4 + 1) as u64;
+    let Some(memory) = memory else { return wanted };
+    let fits = (memory / 2 / each) as usize;
+    if wanted <= fits {
+        return wanted;
+    }
+    tracing::warn!(
+        "sac_replay_size {wanted} transitions of {each} bytes need {:.1} GB, more than half of this machine's {:.1} GB: \
+         the replay memory holds {fits}",
+        (wanted as u64 * each) as f64 / 1e9,
+        memory as f64 / 1e9
+    );
+    fits.max(1)
 }
 
 fn read_into(st: &SafeTensors, name: &str, dst: &mut [f32]) -> Result<(), String> {
