@@ -422,6 +422,28 @@ mod tests {
     }
 
     #[test]
+    fn issue_32_a_sac_model_drives_the_simulators_action_tanh_of_the_means() {
+        let meta = ModelMetadata::parse(
+            r#"{"action_space":{"steering_angle":{"low":-30,"high":30},"speed":{"low":1,"high":2}},
+                "sensor":["FRONT_FACING_CAMERA"],"training_algorithm":"sac","action_space_type":"continuous"}"#,
+            "m.json",
+        )
+        .unwrap();
+        let m = ActorCritic::new(&meta, 120 * 160, &mut rand_chacha::ChaCha8Rng::seed_from_u64(5));
+        let obs: Vec<f32> = (0..120 * 160u32).map(|i| ((i * 2654435761) >> 24) as f32).collect();
+        let (mut s, mut tape) = (Scratch::default(), Tape::default());
+        let sim = m.mode(&obs, &mut tape);
+        let Choice::Continuous(want) = sim else { panic!("a continuous choice") };
+        m.pi.forward(&obs, 1, &mut tape, faer::Par::Seq);
+        assert_eq!(want, [tape.output()[0].tanh(), tape.output()[1].tanh()], "the simulator: tanh of the means");
+        let car = CarPolicy::new(&m, Precision::F16);
+        let Choice::Continuous(got) = car.mode(&obs, &mut s) else { panic!("a continuous choice") };
+        for k in 0..2 {
+            assert!((got[k] - want[k]).abs() < 2e-2, "action {k}: car {} simulator {}", got[k], want[k]);
+        }
+    }
+
+    #[test]
     fn issue_31_a_camera_and_lidar_tower_runs_its_embedders_then_the_half_precision_middleware() {
         let meta = ModelMetadata::parse(
             r#"{"action_space":[{"steering_angle":-20,"speed":1},{"steering_angle":20,"speed":1}],

@@ -9,10 +9,13 @@
 //! `main_level/agent/main/online/network_1` as rl_coach names them (`{SENSOR}/Conv2d_0`,
 //! `middleware_fc_embedder/Dense_0`, `ppo_head_0/policy_fc`), and the output
 //! `…/network_1/ppo_head_0/policy`: the softmax of a discrete space, the two means of a
-//! continuous one. Only TF1 ops that every converter takes (Placeholder, Const, RealDiv,
+//! continuous one; for SAC (`training_algorithm: "sac"`) the `policy` network's
+//! `main_level/agent/policy/online/network_0`, its head `sac_policy_head_0` with the output
+//! `…/sac_policy_head_0/policy`, the pre-tanh means (the log-stds are not in DeepRacer's
+//! frozen graph, and an imported SAC model's are fresh). Only TF1 ops that every converter takes (Placeholder, Const, RealDiv,
 //! Conv2D, BiasAdd, Relu, Reshape, MatMul, Softmax, Identity); kernels are HWIO and dense
 //! weights `[in, out]`, so Paddock's NHWC layers map one to one. The names per sensor and
-//! algorithm are [`Names`]: a new sensor or SAC's output is one more case there.
+//! algorithm are [`Names`].
 //!
 //! **Reading.** Node names in real exports vary between TensorFlow releases, so the reader
 //! walks the graph from the output back to the input placeholder instead, and keeps every
@@ -102,26 +105,22 @@ impl Names {
                 ));
             }
         };
-        match meta.training_algorithm {
-            TrainingAlgorithm::ClippedPpo => {}
-            other => {
-                return unsupported(format!(
-                    "training_algorithm {other:?}: Paddock writes and reads clipped PPO's graph only"
-                ));
-            }
-        }
         if meta.neural_network == NeuralNetwork::PaddockMlp {
             return unsupported("neural_network PADDOCK_MLP is Paddock's own; DeepRacer has no graph for it".into());
         }
-        let agent = "main_level/agent/main/online";
+        // PPO's policy tower is the `main` network's second; SAC's is the `policy` network.
+        let (agent, network, head) = match meta.training_algorithm {
+            TrainingAlgorithm::ClippedPpo => ("main_level/agent/main/online", "network_1", "ppo_head_0"),
+            TrainingAlgorithm::Sac => ("main_level/agent/policy/online", "network_0", "sac_policy_head_0"),
+        };
         let placeholder = |name: &str| format!("{agent}/network_0/{name}/{name}");
         Ok(Names {
             sensor,
             inputs: crate::model::inputs(meta, 0).iter().map(|(s, _)| placeholder(s.name())).collect(),
             input: placeholder(sensor),
-            scope: format!("{agent}/network_1"),
-            head: "ppo_head_0",
-            output: format!("{agent}/network_1/ppo_head_0/policy"),
+            scope: format!("{agent}/{network}"),
+            head,
+            output: format!("{agent}/{network}/{head}/policy"),
             channels,
         })
     }
@@ -191,16 +190,18 @@ impl Writer {
     }
 
     /// `x·W + b` with Paddock's `W` (`out × in`) written as TensorFlow's kernel (`in × out`).
-    fn dense(&mut self, scope: &str, x: &str, net: &Net, inp: usize, out: usize, offset: usize) -> String {
+    /// A dense layer's first `rows` outputs (all of them but for SAC's policy means).
+    #[allow(clippy::too_many_arguments)]
+    fn dense(&mut self, scope: &str, x: &str, net: &Net, inp: usize, out: usize, rows: usize, offset: usize) -> String {
         let w = &net.params[offset..offset + inp * out];
-        let mut kernel = vec![0.0f32; inp * out];
-        for o in 0..out {
+        let mut kernel = vec![0.0f32; inp * rows];
+        for o in 0..rows {
             for i in 0..inp {
-                kernel[i * out + o] = w[o * inp + i];
+                kernel[i * rows + o] = w[o * inp + i];
             }
         }
-        let k = self.constant(&format!("{scope}/kernel"), &[inp as i64, out as i64], &kernel);
-        let b = self.constant(&format!("{scope}/bias"), &[out as i64], &net.params[offset + inp * out..][..out]);
+        let k = self.constant(&format!("{scope}/kernel"), &[inp as i64, rows as i64], &kernel);
+        let b = self.constant(&format!("{scope}/bias"), &[rows as i64], &net.params[offset + inp * out..][..rows]);
         let attrs = vec![
             float_type(),
             ("transpose_a".into(), attr(pb::attr_value::Value::B(false))),
@@ -300,9 +301,8 @@ pub fn graph(model: &ActorCritic, meta: &ModelMetadata) -> Result<GraphDef, Grap
     match model.head {
         Head::Categorical(_) => g.node(&names.output, "Softmax", &[&cur], vec![float_type()]),
         Head::Gaussian { .. } => g.node(&names.output, "Identity", &[&cur], vec![float_type()]),
-        Head::Squashed { .. } => {
-            return Err(GraphError::Unsupported("SAC's policy head: Paddock writes clipped PPO's graph only".into()));
-        }
+        // SAC's `policy` is the pre-tanh means, as DeepRacer freezes it.
+        Head::Squashed { .. } => g.node(&names.output, "Identity", &[&cur], vec![float_type()]),
     };
     Ok(GraphDef {
         node: g.nodes,
@@ -375,16 +375,22 @@ impl Writer {
             Layer::Dense { inp, out, offset } if !in_trunk => {
                 let scope = format!("{embedder}/Dense_{}", 2 * *own);
                 *own += 1;
-                self.dense(&scope, x, net, inp, out, offset)
+                self.dense(&scope, x, net, inp, out, out, offset)
             }
             Layer::Dense { inp, out, offset } => {
                 *denses += 1;
-                let scope = if *denses == trunk_denses {
-                    format!("{}/{}/policy_fc", names.scope, names.head)
+                let sac = names.head == "sac_policy_head_0";
+                let (scope, rows) = if *denses == trunk_denses && sac {
+                    // SAC's head: the means alone (`policy_mean`); the log-stds are not frozen.
+                    (format!("{}/{}/policy_mean", names.scope, names.head), 2)
+                } else if *denses == trunk_denses {
+                    (format!("{}/{}/policy_fc", names.scope, names.head), out)
+                } else if *denses + 1 == trunk_denses && sac {
+                    (format!("{}/{}/Dense_0", names.scope, names.head), out)
                 } else {
-                    format!("{}/middleware_fc_embedder/Dense_{}", names.scope, 2 * (*denses - 1))
+                    (format!("{}/middleware_fc_embedder/Dense_{}", names.scope, 2 * (*denses - 1)), out)
                 };
-                self.dense(&scope, x, net, inp, out, offset)
+                self.dense(&scope, x, net, inp, out, rows, offset)
             }
             Layer::Relu { .. } => {
                 let name = if in_trunk {
@@ -840,6 +846,20 @@ pub fn read_graph(g: &GraphDef, meta: &ModelMetadata, seed: u64) -> Result<Actor
     }
     let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(seed);
     let mut model = ActorCritic::new(meta, 0, &mut rng);
+    if let Head::Squashed { .. } = model.head {
+        // SAC's graph holds the means' rows of the last layer; the log-stds' stay fresh.
+        let last = r.chains.get_mut(end).and_then(|c| c.last_mut());
+        if let (Some(Read::Dense { inp, out, w, b }), Some(&Layer::Dense { inp: n_in, out: 4, offset })) =
+            (last, model.pi.layers.last())
+            && *out == 2
+            && *inp == n_in
+        {
+            let p = &model.pi.params;
+            w.extend_from_slice(&p[offset + 2 * n_in..offset + 4 * n_in]);
+            b.extend_from_slice(&p[offset + 4 * n_in + 2..offset + 4 * n_in + 4]);
+            *out = 4;
+        }
+    }
     for (section, read) in model.pi.sections().into_iter().zip(&r.chains) {
         fill(&mut model.pi, section, read)?;
     }
@@ -1062,6 +1082,40 @@ mod tests {
         // Not a graph at all.
         assert!(matches!(read(b"\xff\xff\xff", &shallow, 1), Err(GraphError::NotAGraph(_))));
         assert!(matches!(read(b"", &shallow, 1), Err(GraphError::NotAGraph(_))));
+    }
+
+    #[test]
+    fn issue_32_a_sac_policy_goes_out_as_deepracer_freezes_it_and_its_means_come_back() {
+        for (sensor, network) in [
+            ("FRONT_FACING_CAMERA", "DEEP_CONVOLUTIONAL_NETWORK_SHALLOW"),
+            ("STEREO_CAMERAS", "DEEP_CONVOLUTIONAL_NETWORK"),
+        ] {
+            let text = format!(
+                r#"{{"action_space": {{"steering_angle": {{"low": -30, "high": 30}}, "speed": {{"low": 1, "high": 2}}}},
+                    "sensor": ["{sensor}"], "neural_network": "{network}", "training_algorithm": "sac",
+                    "action_space_type": "continuous", "version": "4"}}"#
+            );
+            let m = ModelMetadata::parse(&text, "model_metadata.json").unwrap();
+            let a = model(&m, 4);
+            let bytes = write(&a, &m).unwrap();
+            let g = GraphDef::decode(bytes.as_slice()).unwrap();
+            // DeepRacer's names for SAC (`FROZEN_HEAD_OUTPUT_GRAPH_FORMAT_MAPPING`).
+            let input = format!("main_level/agent/policy/online/network_0/{sensor}/{sensor}");
+            assert!(g.node.iter().any(|n| n.name == input && n.op == "Placeholder"), "{sensor}");
+            let out = "main_level/agent/policy/online/network_0/sac_policy_head_0/policy";
+            assert_eq!(g.node.iter().find(|n| n.name == out).map(|n| n.op.as_str()), Some("Identity"));
+            let back = read(&bytes, &m, 9).unwrap();
+            assert_eq!(back.head, a.head);
+            // Every layer but the last as it was; the last's two means' rows too.
+            let last = a.pi.layers.len() - 1;
+            let Layer::Dense { inp, offset, .. } = a.pi.layers[last] else { panic!("a dense output") };
+            assert_eq!(back.pi.params[..offset + 2 * inp], a.pi.params[..offset + 2 * inp], "{sensor}");
+            let bias = offset + 4 * inp;
+            assert_eq!(back.pi.params[bias..bias + 2], a.pi.params[bias..bias + 2]);
+            let x: Vec<f32> = (0..a.pi.in_size()).map(|i| (i * 37 % 256) as f32).collect();
+            let (p, q) = (output(&a, &x), output(&back, &x));
+            assert_eq!(p[..2], q[..2], "the means");
+        }
     }
 
     #[test]
