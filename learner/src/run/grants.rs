@@ -72,18 +72,16 @@ impl Grants {
     pub(super) fn due(&mut self, version: u64, shortfall: u64, workers: &[String], now: Instant) -> Option<Credit> {
         let stall_after = self.round_seconds.map_or(30.0, |s| (4.0 * s).max(10.0));
         let spent = self.round.as_ref().is_none_or(|r| {
+            let delivered = (r.credit.episodes.iter())
+                .all(|(w, n)| r.delivered.get(w).copied().unwrap_or(0) >= *n || !workers.contains(w));
             let stalled = now.duration_since(r.last_delivery).as_secs_f64() > stall_after;
-            if stalled {
+            if stalled && !delivered && shortfall > 0 {
                 tracing::warn!(
                     version = r.credit.version,
                     "no episodes for {stall_after:.0} s: granting the shortfall again"
                 );
             }
-            stalled
-                || r.credit
-                    .episodes
-                    .iter()
-                    .all(|(w, n)| r.delivered.get(w).copied().unwrap_or(0) >= *n || !workers.contains(w))
+            stalled || delivered
         });
         if shortfall > 0 && spent {
             self.number += 1;
