@@ -183,40 +183,40 @@ impl Replay {
         self.per
     }
 
-    /// The slots from the oldest to the newest.
-    fn chronological(&self) -> impl Iterator<Item = usize> + '_ {
-        let first = if self.len < self.capacity { 0 } else { self.head };
-        (0..self.len).map(move |i| (first + i) % self.capacity)
-    }
-
-    /// Write the memory to `path` (safetensors, atomically), oldest transition first.
+    /// Write the memory to `path` (safetensors, streamed to a temporary file then renamed):
+    /// its buffers as they lie in the ring, the pixels without a copy, and where the oldest
+    /// transition is.
     pub fn save(&self, path: &std::path::Path) -> Result<(), String> {
-        use safetensors::Dtype;
-        let (mut pixels, mut floats, mut action, mut reward, mut end) =
-            (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
-        let fl = self.per - self.byte_len;
-        for slot in self.chronological() {
-            pixels.extend_from_slice(&self.pixels[slot * self.byte_len..(slot + 1) * self.byte_len]);
-            floats.extend(self.floats[slot * fl..(slot + 1) * fl].iter().flat_map(|x| x.to_le_bytes()));
-            action.extend(self.action[slot].iter().flat_map(|x| x.to_le_bytes()));
-            reward.extend(self.reward[slot].to_le_bytes());
-            end.push(self.end[slot]);
-        }
+        use safetensors::{Dtype, tensor::TensorView};
+        let le = |v: &mut dyn Iterator<Item = f32>| -> Vec<u8> { v.flat_map(|x| x.to_le_bytes()).collect() };
+        let floats = le(&mut self.floats.iter().copied());
+        let action = le(&mut self.action.iter().flatten().copied());
+        let reward = le(&mut self.reward.iter().copied());
+        let oldest = if self.len < self.capacity { 0 } else { self.head };
         let ranges: Vec<String> = self.bytes.iter().map(|r| format!("{}-{}", r.start, r.end)).collect();
         let info = std::collections::HashMap::from([
             ("format".to_string(), "paddock-replay-1".to_string()),
             ("per".to_string(), self.per.to_string()),
             ("bytes".to_string(), ranges.join(",")),
             ("added".to_string(), self.added.to_string()),
+            ("oldest".to_string(), oldest.to_string()),
         ]);
-        let named = [
-            ("pixels", pixels, Dtype::U8),
-            ("floats", floats, Dtype::F32),
-            ("action", action, Dtype::F32),
-            ("reward", reward, Dtype::F32),
-            ("end", end, Dtype::U8),
+        let named: [(&str, &[u8], Dtype); 5] = [
+            ("pixels", &self.pixels, Dtype::U8),
+            ("floats", &floats, Dtype::F32),
+            ("action", &action, Dtype::F32),
+            ("reward", &reward, Dtype::F32),
+            ("end", &self.end, Dtype::U8),
         ];
-        super::trainer::write_tensors(path, &named, info)
+        let views: Vec<(&str, TensorView<'_>)> = named
+            .iter()
+            .map(|(n, b, d)| (*n, TensorView::new(*d, vec![b.len() * 8 / d.bitsize()], b).expect("sizes agree")))
+            .collect();
+        let tmp = path.with_extension("tmp");
+        safetensors::serialize_to_file(views, Some(info), &tmp)
+            .map_err(|e| e.to_string())
+            .and_then(|_| std::fs::rename(&tmp, path).map_err(|e| e.to_string()))
+            .map_err(|e| format!("{}: {e}", path.display()))
     }
 
     /// A memory of `capacity` transitions holding what [`Replay::save`] wrote (the newest
@@ -243,7 +243,8 @@ impl Replay {
             }
             bytes_ranges.push(a..b);
         }
-        let tensor = |n: &str| st.tensor(n).map(|t| t.data().to_vec()).map_err(|_| format!("has no tensor '{n}'"));
+        // Borrowed from `bytes`: a camera memory is not copied twice on the way in.
+        let tensor = |n: &str| st.tensor(n).map(|t| t.data()).map_err(|_| format!("has no tensor '{n}'"));
         let (pixels, floats, action, reward, end) =
             (tensor("pixels")?, tensor("floats")?, tensor("action")?, tensor("reward")?, tensor("end")?);
         let mut r = Replay::new(capacity, per, bytes_ranges);
@@ -261,12 +262,17 @@ impl Replay {
         }
         let f = |b: &[u8], i: usize| f32::from_le_bytes([b[4 * i], b[4 * i + 1], b[4 * i + 2], b[4 * i + 3]]);
         let mut row = vec![0.0f32; per];
-        let from = n.saturating_sub(r.capacity);
-        for (i, &e) in end.iter().enumerate().skip(from) {
+        let oldest: usize = field("oldest")?.parse().map_err(|_| "'oldest' is not a number".to_string())?;
+        if n > 0 && oldest >= n {
+            return Err(format!("'oldest' is {oldest}, past the {n} transitions held"));
+        }
+        // Oldest first; the newest `capacity` of them when they do not all fit.
+        for i in (0..n).map(|k| (oldest + k) % n.max(1)).skip(n.saturating_sub(r.capacity)) {
+            let e = end[i];
             let (mut pb, mut pf, mut at) = (i * r.byte_len, i * fl, 0);
             for range in r.bytes.clone() {
                 for v in &mut row[at..range.start] {
-                    *v = f(&floats, pf);
+                    *v = f(floats, pf);
                     pf += 1;
                 }
                 for v in &mut row[range.clone()] {
@@ -276,10 +282,10 @@ impl Replay {
                 at = range.end;
             }
             for v in &mut row[at..] {
-                *v = f(&floats, pf);
+                *v = f(floats, pf);
                 pf += 1;
             }
-            r.put(&row, [f(&action, 2 * i), f(&action, 2 * i + 1)], f(&reward, i), e);
+            r.put(&row, [f(action, 2 * i), f(action, 2 * i + 1)], f(reward, i), e);
         }
         r.added = field("added")?.parse().unwrap_or(n as u64).max(r.added);
         Ok(r)

@@ -222,18 +222,20 @@ fn total_memory() -> Option<u64> {
     Some(kib * 1024)
 }
 
-/// The replay memory's capacity: `wanted` transitions, or as many as half of `memory` holds
-/// when they would not fit (DeepRacer's million camera frames are 19 GB), which is said.
+/// The replay memory's capacity: `wanted` transitions, or as many as a quarter of `memory`
+/// holds when they would not fit (DeepRacer's million camera frames are 19 GB), which is said.
+/// A quarter, so that writing it at the end and reading it back on resume, each with a copy
+/// of it in hand, stay within half.
 pub fn replay_capacity(wanted: usize, per: usize, pixels: &[std::ops::Range<usize>], memory: Option<u64>) -> usize {
     let bytes: usize = pixels.iter().map(|r| r.len()).sum();
     let each = (bytes + 4 * (per - bytes) + 8 + 4 + 1) as u64;
     let Some(memory) = memory else { return wanted };
-    let fits = (memory / 2 / each) as usize;
+    let fits = (memory / 4 / each) as usize;
     if wanted <= fits {
         return wanted;
     }
     tracing::warn!(
-        "sac_replay_size {wanted} transitions of {each} bytes need {:.1} GB, more than half of this machine's {:.1} GB: \
+        "sac_replay_size {wanted} transitions of {each} bytes need {:.1} GB, more than a quarter of this machine's {:.1} GB: \
          the replay memory holds {fits}",
         (wanted as u64 * each) as f64 / 1e9,
         memory as f64 / 1e9
