@@ -8,6 +8,9 @@ use policy::nn::{InputShape, LayerSpec, Net};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
+mod support;
+use support::Threads;
+
 fn meta(obs: usize) -> (ModelMetadata, usize) {
     let text = r#"{"action_space":{"steering_angle":{"low":-30,"high":30},"speed":{"low":1,"high":2}},
         "action_space_type":"continuous","training_algorithm":"sac","sensor":["STATE_VECTOR"],
@@ -274,5 +277,78 @@ fn issue_32_a_replay_memory_larger_than_a_quarter_of_the_machine_is_capped() {
     for (wanted, per, pixels, memory, want) in table {
         let pixels: Vec<_> = pixels.into_iter().collect();
         assert_eq!(replay_capacity(wanted, per, &pixels, memory), want, "{wanted} of {per} in {memory:?}");
+    }
+}
+
+/// Two and three learners, each with a share of every batch, make one learner's steps: the
+/// members end each step with the same state, bit for bit, and that state is one learner's
+/// on the whole batch (to the rounding of the sums' order).
+#[test]
+fn issue_32_a_team_of_learners_makes_one_learners_sac_steps() {
+    let mut rng = ChaCha8Rng::seed_from_u64(8);
+    let (m, obs) = meta(6);
+    let s = SacSettings { target_entropy: Some(-2.0), ..SacSettings::for_space(&m.action_space).unwrap() };
+    let start = Sac::new(SacNets::new(&m, obs, &mut rng), s, 8);
+    let mut replay = Replay::new(500, obs, vec![]);
+    for _ in 0..10 {
+        let n = 20;
+        let x: Vec<f32> = (0..n * obs).map(|_| rng.random_range(-1.0..1.0)).collect();
+        let a: Vec<[f32; 2]> = (0..n).map(|_| [rng.random_range(-0.9..0.9), rng.random_range(-0.9..0.9)]).collect();
+        let r: Vec<f32> = (0..n).map(|_| rng.random_range(-1.0..1.0)).collect();
+        replay.push_episode(&x, &a, &r, true).unwrap();
+    }
+    let batches: Vec<Batch> = (0..3).map(|_| replay.sample(64, &mut rng).unwrap()).collect();
+    let mut alone = start.clone();
+    let want: Vec<Losses> = batches.iter().map(|b| alone.step(b, Par::Seq, &mut Tapes::default())).collect();
+    for size in [2, 3] {
+        let mut members = vec![start.clone(); size];
+        let got: Vec<Vec<Losses>> = std::thread::scope(|sc| {
+            let handles: Vec<_> = members
+                .iter_mut()
+                .zip(Threads::team(size))
+                .map(|(sac, mut group)| {
+                    let batches = &batches;
+                    sc.spawn(move || {
+                        let mut tapes = Tapes::default();
+                        let steps = batches.iter().enumerate();
+                        steps
+                            .map(|(k, b)| sac.step_in(b, &mut group, k as u64, Par::Seq, &mut tapes).unwrap())
+                            .collect()
+                    })
+                })
+                .collect();
+            handles.into_iter().map(|h| h.join().unwrap()).collect()
+        });
+        // Each member took its share only: the summed losses are the whole batch's (Adam
+        // alone would not tell, as it forgets a gradient's scale).
+        for (k, w) in want.iter().enumerate() {
+            for l in &got {
+                for (a, b) in [(l[k].policy, w.policy), (l[k].q, w.q), (l[k].v, w.v), (l[k].entropy, w.entropy)] {
+                    assert!((a - b).abs() <= 1e-4 * b.abs().max(1.0), "size {size} step {k}: {a} vs {b}");
+                }
+            }
+        }
+        for other in &members[1..] {
+            assert!(other.nets == members[0].nets && other.log_alpha == members[0].log_alpha, "size {size}");
+        }
+        let pairs = [
+            (&members[0].nets.policy.params, &alone.nets.policy.params),
+            (&members[0].nets.q.q1.params, &alone.nets.q.q1.params),
+            (&members[0].nets.q.q2.params, &alone.nets.q.q2.params),
+            (&members[0].nets.v.params, &alone.nets.v.params),
+        ];
+        for (team, one) in pairs {
+            // Adam divides by the gradient's size: a near-zero gradient's rounding can move a
+            // weight by up to lr; every other weight within 1e-6 of one learner's.
+            let lr = start.settings.lr;
+            let far = team.iter().zip(one.iter()).filter(|(a, b)| (**a - **b).abs() > 1e-6).count();
+            let worst = team.iter().zip(one.iter()).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+            assert!(
+                worst <= 3.0 * lr && far * 100 <= team.len(),
+                "size {size}: {far} of {} differ, worst {worst}",
+                team.len()
+            );
+        }
+        assert!((members[0].log_alpha - alone.log_alpha).abs() < 1e-5, "size {size}");
     }
 }

@@ -19,6 +19,7 @@
 pub mod replay;
 pub mod trainer;
 
+use crate::ppo::{Alone, GroupError, Reducer};
 use faer::Par;
 use policy::model::{SAC_LOG_STD_RANGE, Squashed, sac_policy, sac_q_embedder, sac_q_head, sac_value, squashed};
 use policy::nn::{Adam, Net, Tape};
@@ -128,6 +129,18 @@ pub struct Batch {
 }
 
 impl Batch {
+    /// The transitions `rows` of the batch.
+    pub fn rows(&self, rows: std::ops::Range<usize>) -> Batch {
+        let per = if self.is_empty() { 0 } else { self.obs.len() / self.len() };
+        Batch {
+            obs: self.obs[rows.start * per..rows.end * per].to_vec(),
+            action: self.action[2 * rows.start..2 * rows.end].to_vec(),
+            reward: self.reward[rows.clone()].to_vec(),
+            done: self.done[rows.clone()].to_vec(),
+            next_obs: self.next_obs[rows.start * per..rows.end * per].to_vec(),
+        }
+    }
+
     /// Transitions held.
     pub fn len(&self) -> usize {
         self.reward.len()
@@ -201,8 +214,24 @@ pub fn losses_and_grads(
     par: Par,
     t: &mut Tapes,
 ) -> (Losses, Grads) {
+    losses_and_grads_share(nets, s, alpha, batch, eps, 1.0 / batch.len().max(1) as f32, par, t)
+}
+
+/// [`losses_and_grads`] of a share of a batch, each transition weighted by `weight` (one
+/// over the whole batch's size): the shares' losses and gradients add up to the batch's.
+#[allow(clippy::too_many_arguments)]
+pub fn losses_and_grads_share(
+    nets: &SacNets,
+    s: &SacSettings,
+    alpha: f32,
+    batch: &Batch,
+    eps: &[f32],
+    weight: f32,
+    par: Par,
+    t: &mut Tapes,
+) -> (Losses, Grads) {
     let b = batch.len();
-    let inv = 1.0 / b as f32;
+    let inv = weight;
     assert_eq!(eps.len(), 2 * b, "two noise values per transition");
     let mut g = Grads {
         policy: vec![0.0; nets.policy.params.len()],
@@ -212,6 +241,9 @@ pub fn losses_and_grads(
         v: vec![0.0; nets.v.params.len()],
         log_alpha: 0.0,
     };
+    if b == 0 {
+        return (Losses { alpha: alpha as f64, ..Losses::default() }, g);
+    }
     // The policy's draws.
     nets.policy.forward(&batch.obs, b, &mut t.policy, par);
     let out = t.policy.output().to_vec();
@@ -311,13 +343,13 @@ pub fn losses_and_grads(
         // SAC's temperature loss −log α·(log π + H̄), as Stable-Baselines3 writes it.
         g.log_alpha = -draws.iter().map(|d| d.logp + h).sum::<f32>() * inv;
     }
-    let n = b as f64;
+    let w = inv as f64;
     let losses = Losses {
-        policy: pi_loss / n,
-        q: q_loss / n,
-        v: v_loss / n,
-        entropy: ent / n,
-        q_mean: qm / n,
+        policy: pi_loss * w,
+        q: q_loss * w,
+        v: v_loss * w,
+        entropy: ent * w,
+        q_mean: qm * w,
         alpha: alpha as f64,
     };
     (losses, g)
@@ -386,8 +418,68 @@ impl Sac {
     /// One gradient step on `batch`: all three losses from the weights as they were, then
     /// each network's Adam step (and the temperature's, when it is tuned).
     pub fn step(&mut self, batch: &Batch, par: Par, tapes: &mut Tapes) -> Losses {
+        self.step_in(batch, &mut Alone, 0, par, tapes).expect("a learner alone cannot lose a member")
+    }
+
+    /// [`Sac::step`] as one member of a group that trains as one learner: every member
+    /// calls it with the same batch from the same state (the same noise is drawn), takes its
+    /// rank's share of the transitions, and the shares' gradients and losses are summed in
+    /// rank order (exchange `exchange` of the update), so every member applies the same Adam
+    /// steps and ends the step with the same state, that of one learner on the whole batch.
+    pub fn step_in(
+        &mut self,
+        batch: &Batch,
+        group: &mut dyn Reducer,
+        exchange: u64,
+        par: Par,
+        tapes: &mut Tapes,
+    ) -> Result<Losses, GroupError> {
         let eps: Vec<f32> = (0..2 * batch.len()).map(|_| StandardNormal.sample(&mut self.rng)).collect();
-        let (losses, g) = losses_and_grads(&self.nets, &self.settings, self.alpha(), batch, &eps, par, tapes);
+        let (rank, size) = group.shard();
+        let b = batch.len();
+        let (lo, hi) = (b * rank / size.max(1), b * (rank + 1) / size.max(1));
+        let weight = 1.0 / b.max(1) as f32;
+        let alpha = self.alpha();
+        let (mut losses, mut g) = if size > 1 {
+            let share = batch.rows(lo..hi);
+            losses_and_grads_share(&self.nets, &self.settings, alpha, &share, &eps[2 * lo..2 * hi], weight, par, tapes)
+        } else {
+            losses_and_grads_share(&self.nets, &self.settings, alpha, batch, &eps, weight, par, tapes)
+        };
+        if size > 1 {
+            // One exchange: the gradients, the temperature's, and the losses' shares.
+            let parts = [g.policy.len(), g.q_embed.len(), g.q1.len(), g.q2.len(), g.v.len()];
+            let mut flat: Vec<f32> = Vec::with_capacity(parts.iter().sum::<usize>() + 6);
+            for part in [&g.policy, &g.q_embed, &g.q1, &g.q2, &g.v] {
+                flat.extend_from_slice(part);
+            }
+            let l = &losses;
+            flat.extend([g.log_alpha, l.policy as f32, l.q as f32, l.v as f32, l.entropy as f32, l.q_mean as f32]);
+            let ranks: Vec<usize> = (0..size).collect();
+            group.all_reduce(exchange, &ranks, &mut flat, Vec::new())?;
+            let mut at = 0;
+            for part in [&mut g.policy, &mut g.q_embed, &mut g.q1, &mut g.q2, &mut g.v] {
+                let n = part.len();
+                part.copy_from_slice(&flat[at..at + n]);
+                at += n;
+            }
+            let tail = &flat[at..];
+            g.log_alpha = tail[0];
+            losses = Losses {
+                policy: tail[1] as f64,
+                q: tail[2] as f64,
+                v: tail[3] as f64,
+                entropy: tail[4] as f64,
+                q_mean: tail[5] as f64,
+                alpha: alpha as f64,
+            };
+        }
+        self.apply(&g, par);
+        Ok(losses)
+    }
+
+    /// Each network's Adam step on `g` (and the temperature's, when it is tuned).
+    fn apply(&mut self, g: &Grads, par: Par) {
         self.adam_policy.step_with(&mut self.nets.policy.params, &g.policy, par);
         if let Some(e) = self.nets.q.embed.as_mut() {
             self.adam_embed.step_with(&mut e.params, &g.q_embed, par);
@@ -401,7 +493,6 @@ impl Sac {
             self.log_alpha = la[0];
         }
         self.steps += 1;
-        losses
     }
 
     /// Move V's target copy towards V by `tau` (1: copy it).
