@@ -409,6 +409,9 @@ struct WorldWindow {
     crashes: u64,
 }
 
+/// Messages taken in one turn of the loop at most (a flood cannot hold it).
+const MAX_DRAIN: usize = 1000;
+
 /// Train until a stop rule, a stop message or a failure. Returns how it ended; the final
 /// checkpoint and the best model are in the run folder.
 pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> Result<Summary, RunFailure> {
@@ -417,6 +420,15 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
         let timeout = if r.update_ready() { Duration::ZERO } else { Duration::from_millis(50) };
         if let Some(m) = r.link.next(timeout)? {
             r.receive(m)?;
+            // Everything else already waiting, before an update holds the loop: an
+            // evaluation report behind a round of experience would otherwise wait a whole
+            // update, and a long one (SAC from pixels) makes it look lost.
+            for _ in 0..MAX_DRAIN {
+                match r.link.next(Duration::ZERO)? {
+                    Some(m) => r.receive(m)?,
+                    None => break,
+                }
+            }
         }
         r.update_if_ready()?;
         let workers = r.link.workers();
