@@ -860,6 +860,34 @@ const RACES: [(&str, &[&str]); 5] = [
     ("camera_sector_lidar", &["--sensor", "camera+lidar", "--obstacles", "3", "--reward", "builtin:object_avoidance"]),
 ];
 
+/// Run the training `args` (`train` or `up`), then evaluate its `model` again on `world`
+/// (3 trials, with the `race` flags): the wall-clock to the model, how the training stopped,
+/// the evaluation's summary line and its laps.
+fn train_then_evaluate(
+    me: &std::path::Path,
+    dir: &std::path::Path,
+    args: &[String],
+    model: String,
+    world: &str,
+    race: &[String],
+) -> Result<(f64, String, String, u32)> {
+    let t0 = Instant::now();
+    let text = child(me, dir, args)?;
+    let secs = t0.elapsed().as_secs_f64();
+    let stop = text
+        .lines()
+        .find(|l| l.starts_with("stopped after") || l.contains(": Finished") || l.contains(": Failed"))
+        .unwrap_or("")
+        .trim()
+        .to_string();
+    let mut eval = vec!["evaluate".to_string(), model, "--world".into(), world.into(), "--trials".into(), "3".into()];
+    eval.extend(race.iter().cloned());
+    let verdict = child(me, dir, &eval)?;
+    let line = verdict.lines().find(|l| l.contains("laps completed")).unwrap_or("").to_string();
+    let laps = line.split_whitespace().next().and_then(|n| n.parse::<u32>().ok()).unwrap_or(0);
+    Ok((secs, stop, line, laps))
+}
+
 /// `bench races`: every race trained from pixels and evaluated under its rules.
 pub fn races(world: &str, minutes: f64, which: &[String], up: bool, seed: u64, out: &std::path::Path) -> Result<i32> {
     for w in which {
@@ -894,21 +922,7 @@ pub fn races(world: &str, minutes: f64, which: &[String], up: bool, seed: u64, o
             if cmd == "up" {
                 args.extend(["--agents", "2", "--envs", "8"].map(String::from));
             }
-            let t0 = Instant::now();
-            let text = child(&me, &dir, &args)?;
-            let secs = t0.elapsed().as_secs_f64();
-            let stop = text
-                .lines()
-                .find(|l| l.starts_with("stopped after") || l.contains(": Finished") || l.contains(": Failed"))
-                .unwrap_or("")
-                .trim()
-                .to_string();
-            let mut eval =
-                vec!["evaluate".to_string(), model, "--world".into(), world.into(), "--trials".into(), "3".into()];
-            eval.extend(race.iter().cloned());
-            let verdict = child(&me, &dir, &eval)?;
-            let line = verdict.lines().find(|l| l.contains("laps completed")).unwrap_or("").to_string();
-            let laps = line.split_whitespace().next().and_then(|n| n.parse::<u32>().ok()).unwrap_or(0);
+            let (secs, stop, line, laps) = train_then_evaluate(&me, &dir, &args, model, world, &race)?;
             let crashes = line
                 .split(", ")
                 .find_map(|p| p.strip_suffix(" crashes"))
@@ -977,20 +991,8 @@ pub fn sac(
     let dir = out.canonicalize()?;
     let mut rows: Vec<SacRow> = Vec::new();
     let mut run = |label: String, args: Vec<String>, model: String| -> Result<()> {
-        let t0 = Instant::now();
-        let text = child(&me, &dir, &args)?;
-        let secs = t0.elapsed().as_secs_f64();
-        let stop = text
-            .lines()
-            .find(|l| l.starts_with("stopped after") || l.contains(": Finished") || l.contains(": Failed"))
-            .unwrap_or("")
-            .trim()
-            .to_string();
-        let eval = vec!["evaluate".to_string(), model, "--world".into(), world.into(), "--trials".into(), "3".into()];
-        let verdict = child(&me, &dir, &eval)?;
-        let line = verdict.lines().find(|l| l.contains("laps completed")).unwrap_or("").to_string();
-        let laps = line.split_whitespace().next().and_then(|n| n.parse::<u32>().ok()).unwrap_or(0);
-        rows.push(SacRow { label, secs, stop, eval: line, laps });
+        let (secs, stop, eval, laps) = train_then_evaluate(&me, &dir, &args, model, world, &[])?;
+        rows.push(SacRow { label, secs, stop, eval, laps });
         Ok(())
     };
     let common = |cmd: &str, folder: &str, meta: &str| -> Vec<String> {
