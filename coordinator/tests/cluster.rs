@@ -764,6 +764,39 @@ fn issue_8_learners_share_updates_drop_the_dead_take_joiners_and_take_over() {
 }
 
 #[test]
+fn issue_32_a_learner_team_shares_sac_updates_and_a_joiner_takes_the_replay_memory() {
+    let mut c = Cluster::new();
+    c.coordinator();
+    c.learner_as("learner-a", "learner-a");
+    c.agent("agent-1");
+    std::fs::write(
+        c.path("sac.json"),
+        r#"{"action_space":{"speed":{"high":2,"low":1},"steering_angle":{"high":30,"low":-30}},
+            "sensor":["STATE_VECTOR"],"neural_network":"PADDOCK_MLP","training_algorithm":"sac",
+            "action_space_type":"continuous","version":"4"}"#,
+    )
+    .unwrap();
+    // A gradient step per 20 new transitions: the state vector's small networks make each
+    // shared step a round trip more than arithmetic.
+    std::fs::write(c.path("h.json"), r#"{"sac_gradient_steps_per_transition": 0.05}"#).unwrap();
+    let id = c.start(concat!(
+        "worlds = [\"reinvent_base\"]\nout = \"run\"\nenvs_per_agent = 8\nmodel_metadata = \"sac.json\"\n",
+        "hyperparameters = \"h.json\"\n[stop]\nminutes = 5\n"
+    ));
+    // Updates alone first: the replay memory holds experience when learner-b joins.
+    c.wait(&id, 60, "SAC training alone", |s| version(s) >= 3);
+    c.learner_in("learner-b", "learner-b", "machine-b");
+    let s = c.wait(&id, 90, "a team of two making SAC's updates", |s| learners(s).len() == 2 && team_updates(s) >= 3);
+    assert_eq!(learners(&s), ["learner-a", "learner-b"]);
+    let log = std::fs::read_to_string(c.path("learner-b.log")).unwrap();
+    assert!(log.contains("took over the leader's weights and optimiser state and its replay memory"), "{log}");
+    assert!(log.contains("team update") && !log.contains("does not fit"), "{log}");
+    let lead = std::fs::read_to_string(c.path("learner-a.log")).unwrap();
+    assert!(lead.contains("sent the replay memory to the team's joiners"), "{lead}");
+    assert!(!lead.contains("made by the team's leader alone") && !lead.contains("making the update again"), "{lead}");
+}
+
+#[test]
 fn issue_9_the_learner_signs_what_it_publishes_and_a_person_promotes_the_version_cars_drive() {
     use policy::signature::TrustedKeys;
     use protocol::net::{self, DropCounters, NetArgs};

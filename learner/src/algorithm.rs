@@ -3,11 +3,101 @@
 //! is here: how an iteration's episodes become a new policy version, whether experience from
 //! an older version is still usable (PPO: within `max_policy_lag`; SAC: always, it is
 //! off-policy), and what a checkpoint keeps beyond the model (SAC's critics and replay memory).
+//!
+//! [`Shared`] is what a learner team needs of an algorithm to share its updates: every member
+//! makes the update from the leader's plan (the iteration's episodes and a seed) as one
+//! member of a [`Reducer`] group, and a joiner first takes over the leader's
+//! [`LearnerState`] (and SAC's replay memory, as bytes).
 
-use crate::ppo::{Ppo, Refused, UpdateStats};
+use crate::ppo::{Alone, Ppo, Reducer, Refused, StateMismatch, UpdateStats};
 use crate::run::Team;
 use policy::{ActorCritic, Trajectory};
 use std::path::Path;
+
+/// Everything that makes a learner's next update what it will be, but a replay memory: the
+/// version, the weights and the optimisers' moments, as named tensors (`pi`, `v`,
+/// `adam.pi.m`, …; a step count as one number). A learner joining a team takes it over before
+/// its first update, so the team's members stay identical bit for bit.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LearnerState {
+    /// Policy version.
+    pub version: u64,
+    /// Named tensors.
+    pub tensors: Vec<(String, Vec<f32>)>,
+}
+
+/// An algorithm whose updates a learner team shares ([`Team`]).
+pub trait Shared {
+    /// The policy version the next update starts from.
+    fn version(&self) -> u64;
+    /// The learning rate the next update uses.
+    fn lr(&self) -> f64;
+    /// Set it (a member takes the plan's).
+    fn set_lr(&mut self, lr: f64);
+    /// The seed of the next update (the leader draws it and sends it in the plan).
+    fn draw_seed(&mut self) -> u64;
+    /// The update every member makes from a plan: `trajs` and `seed`, as one member of
+    /// `group`. A refused update leaves the weights and optimisers as they were.
+    fn update_planned(
+        &mut self,
+        trajs: &[Trajectory],
+        seed: u64,
+        group: &mut dyn Reducer,
+    ) -> Result<UpdateStats, Refused>;
+    /// The update made by a learner alone.
+    fn update_alone(&mut self, trajs: &[Trajectory]) -> Result<UpdateStats, Refused> {
+        let seed = self.draw_seed();
+        self.update_planned(trajs, seed, &mut Alone)
+    }
+    /// The leader makes alone the update its team's attempt failed at (a member lost midway).
+    fn update_again(&mut self, trajs: &[Trajectory]) -> Result<UpdateStats, Refused> {
+        self.update_alone(trajs)
+    }
+    /// What a joiner takes over.
+    fn state(&self) -> LearnerState;
+    /// What a joiner takes over beyond [`Shared::state`], as bytes: SAC's replay memory
+    /// (`None`: nothing).
+    fn memory(&self) -> Option<Vec<u8>> {
+        None
+    }
+    /// Take over a member's state and memory. Refused, with nothing changed, unless both fit.
+    fn restore(&mut self, state: LearnerState, memory: Option<&[u8]>) -> Result<(), StateMismatch>;
+}
+
+impl Shared for Ppo {
+    fn version(&self) -> u64 {
+        self.version
+    }
+    fn lr(&self) -> f64 {
+        Ppo::lr(self)
+    }
+    fn set_lr(&mut self, lr: f64) {
+        Ppo::set_lr(self, lr)
+    }
+    fn draw_seed(&mut self) -> u64 {
+        Ppo::draw_seed(self)
+    }
+    fn update_planned(
+        &mut self,
+        trajs: &[Trajectory],
+        seed: u64,
+        group: &mut dyn Reducer,
+    ) -> Result<UpdateStats, Refused> {
+        Ppo::update_planned(self, trajs, seed, group)
+    }
+    fn update_alone(&mut self, trajs: &[Trajectory]) -> Result<UpdateStats, Refused> {
+        Ppo::update(self, trajs)
+    }
+    fn state(&self) -> LearnerState {
+        Ppo::state(self)
+    }
+    fn restore(&mut self, state: LearnerState, memory: Option<&[u8]>) -> Result<(), StateMismatch> {
+        if memory.is_some() {
+            return Err(StateMismatch("PPO keeps no replay memory, and this state comes with one".into()));
+        }
+        Ppo::restore(self, state)
+    }
+}
 
 /// What a training run needs of its algorithm.
 pub trait Algorithm {

@@ -45,6 +45,9 @@ struct MemberCli {
     /// The bench's epochs per update.
     #[arg(long)]
     epochs: usize,
+    /// The bench's algorithm is SAC.
+    #[arg(long)]
+    sac: bool,
 }
 
 #[derive(clap::Args)]
@@ -93,6 +96,10 @@ struct BenchCli {
     /// experience, which the leader sends the team once per update); default: training's.
     #[arg(long, default_value_t = learner::Hyperparameters::default().num_epochs)]
     epochs: usize,
+    /// With --learners: the team shares SAC's updates (DeepRacer's continuous SAC networks,
+    /// 8 gradient steps of 64 transitions an update) instead of PPO's.
+    #[arg(long)]
+    sac: bool,
 }
 
 fn main() {
@@ -104,13 +111,19 @@ fn main() {
                 bench(&b.network, b.seconds, threads)?;
             }
             if b.learners > 1 {
-                team_bench::run(&b.network, b.seconds, b.learners, b.epochs, b.check)?;
+                team_bench::run(&b.network, b.seconds, b.learners, b.epochs, b.check, b.sac)?;
             }
             Ok(())
         })(),
         Command::BenchMember(m) => {
             learner::use_threads(Some(1));
-            team_bench::member(&m.network, m.epochs, m.net.args(true).as_role(protocol::secure::Role::Learner), &m.id)
+            team_bench::member(
+                &m.network,
+                m.epochs,
+                m.sac,
+                m.net.args(true).as_role(protocol::secure::Role::Learner),
+                &m.id,
+            )
         }
         Command::Serve(a) => serve::serve(serve::ServeArgs {
             net: protocol::net::NetArgs::from(a.net).as_role(protocol::secure::Role::Learner),

@@ -12,6 +12,7 @@ use crate::team::{self, FollowEnd, TeamLead};
 use anyhow::{Context, Result};
 use faer::Par;
 use learner::Hyperparameters;
+use learner::algorithm::{LearnerState, Shared};
 use learner::run::{Inbound, Link, LinkError, Quiet, RunSpec, Start, StopRules, TargetLaps, Team, run};
 use policy::ModelMetadata;
 use policy::exchange::{Credit, EvalRequest, PolicyVersion};
@@ -58,7 +59,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
     tracing::info!(learner = %id, "learner up; waiting for a job");
     let mut finished: BTreeSet<String> = BTreeSet::new();
     let mut docs: std::collections::HashMap<String, Job> = Default::default();
-    let mut adopt: Option<(String, learner::ppo::PpoState)> = None;
+    let mut adopt: Option<(String, Adopted)> = None;
     let mut standby_note: Option<String> = None;
     loop {
         let Some((_, table)) = try_next::<AssignmentTable>(&jobs, &drops) else {
@@ -138,6 +139,10 @@ pub fn serve(args: ServeArgs) -> Result<()> {
     }
 }
 
+/// A team's state a follower keeps when its leader goes: the weights and optimisers, and
+/// SAC's replay memory as bytes.
+type Adopted = (LearnerState, Option<Vec<u8>>);
+
 /// Share `doc`'s updates as a member of its leader's team, until the job stops or the
 /// leader goes.
 fn follow_job(
@@ -147,11 +152,18 @@ fn follow_job(
     args: &ServeArgs,
     jobs: &Sub,
     drops: Arc<DropCounters>,
-) -> Result<(FollowEnd, Option<learner::ppo::PpoState>)> {
+) -> Result<(FollowEnd, Option<Adopted>)> {
     let spec = spec_of(doc, args)?;
     let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(spec.seed);
     let model = policy::ActorCritic::new(&spec.metadata, spec.obs_size, &mut rng);
-    let mut ppo = learner::Ppo::new(model, spec.hyper.clone(), 0, spec.seed, spec.par);
+    let mut algo: Box<dyn Shared> = if spec.metadata.training_algorithm == policy::TrainingAlgorithm::Sac {
+        Box::new(
+            learner::sac::SacTrainer::new(model, &spec.metadata, spec.obs_size, &spec.hyper, 0, spec.seed, spec.par)
+                .map_err(anyhow::Error::msg)?,
+        )
+    } else {
+        Box::new(learner::Ppo::new(model, spec.hyper.clone(), 0, spec.seed, spec.par))
+    };
     let view = JobView {
         job_id: &doc.id,
         obs_size: spec.obs_size,
@@ -172,18 +184,19 @@ fn follow_job(
         running && seen.elapsed() < Duration::from_secs(15)
     };
     let mut updates = 0u64;
-    let mut on_update = |ppo: &learner::Ppo, result: &Result<learner::UpdateStats, learner::Refused>| {
+    let mut on_update = |algo: &dyn Shared, result: &Result<learner::UpdateStats, learner::Refused>| {
         updates += 1;
         match result {
             Ok(stats) => {
-                tracing::info!(job = %doc.id, version = ppo.version, samples = stats.samples, updates, "team update")
+                tracing::info!(job = %doc.id, version = algo.version(), samples = stats.samples, updates, "team update")
             }
-            Err(why) => tracing::warn!(job = %doc.id, version = ppo.version, updates, "team update refused: {why}"),
+            Err(why) => tracing::warn!(job = %doc.id, version = algo.version(), updates, "team update refused: {why}"),
         }
     };
-    let end = team::follow(session, id, &view, &mut ppo, drops, &mut keep_going, &mut on_update)?;
+    let limit = learner::sac::trainer::memory_limit();
+    let end = team::follow(session, id, &view, algo.as_mut(), limit, drops, &mut keep_going, &mut on_update)?;
     // The team's state, if this learner took part at all.
-    Ok((end, (updates > 0).then(|| ppo.state())))
+    Ok((end, (updates > 0).then(|| (algo.state(), algo.memory()))))
 }
 
 /// The stop rules a job's `[stop]` table asks for.

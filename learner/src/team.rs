@@ -1,5 +1,6 @@
 //! Learners on several machines: synchronous PPO over Zenoh, each tower trained by its own
-//! members, and each tower's members splitting every minibatch as DD-PPO does.
+//! members, and each tower's members splitting every minibatch as DD-PPO does; SAC's
+//! gradient steps split the same way, every member holding a copy of the replay memory.
 //!
 //! The learner that runs the job (the lowest live id) leads; every other learner that serves
 //! the job follows. Per update the leader publishes a plan (the trajectories, the shuffle
@@ -13,14 +14,21 @@
 //! or stops answering makes the attempt fail: the leader makes that update again with
 //! whoever is left, and the lost member gets the state again when it comes back. A follower
 //! whose leader goes becomes the leader (the serve loop's lowest-id rule).
+//!
+//! SAC ([`learner::algorithm::Shared`] says what differs): a plan's episodes go into every
+//! member's replay memory, in the plan's order, and its seed draws every member's batches and
+//! noise, so each gradient step is shared as one learner's ([`learner::sac::Sac::step_in`]).
+//! A joiner's state includes the leader's replay memory, sent in parts of at most 32 MB
+//! ([`wire::MEMORY_PART`]) on the team's memory key just before the plan that carries the
+//! state.
 
-use learner::ppo::PpoState;
+use learner::algorithm::{LearnerState, Shared};
 use learner::run::Team;
-use learner::{GroupError, Ppo, Reducer, Refused, UpdateStats};
+use learner::{GroupError, Reducer, Refused, UpdateStats};
 use policy::Trajectory;
-use protocol::exchange::{self as wire, JobView, TeamPlan, TeamState};
+use protocol::exchange::{self as wire, JobView, MemoryParts, TeamPlan, TeamState};
 use protocol::net::{self, DropCounters, Sub, try_next, zenoh};
-use protocol::{DecodeError, GradShare, PROTOCOL_VERSION, TeamJoin, keys};
+use protocol::{DecodeError, GradShare, PROTOCOL_VERSION, TeamJoin, TeamMemory, keys};
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
@@ -230,8 +238,8 @@ impl Reducer for Group<'_> {
     }
 }
 
-fn to_wire_state(s: PpoState) -> TeamState {
-    TeamState { policy_version: s.version, tensors: s.tensors }
+fn to_wire_state(s: LearnerState, memory: Option<&[u8]>) -> TeamState {
+    TeamState { policy_version: s.version, tensors: s.tensors, memory_bytes: memory.map_or(0, |m| m.len() as u64) }
 }
 
 struct Member {
@@ -338,40 +346,54 @@ impl Team for TeamLead<'_> {
         self.members.len()
     }
 
-    fn update(&mut self, ppo: &mut Ppo, trajs: &[Trajectory]) -> Result<UpdateStats, Refused> {
+    fn update(&mut self, algo: &mut dyn Shared, trajs: &[Trajectory]) -> Result<UpdateStats, Refused> {
         self.hear();
         self.plan += 1;
         if self.members.is_empty() {
-            let result = ppo.update(trajs);
+            let result = algo.update_alone(trajs);
             if result.is_ok() {
                 self.good = self.plan;
             }
             return result;
         }
         let members: Vec<String> = std::iter::once(self.me.clone()).chain(self.members.keys().cloned()).collect();
-        let state = self.members.values().any(|m| !m.in_sync).then(|| to_wire_state(ppo.state()));
+        let joiners = self.members.values().any(|m| !m.in_sync);
+        let memory = if joiners { algo.memory() } else { None };
+        let state = joiners.then(|| to_wire_state(algo.state(), memory.as_deref()));
         if state.is_some() {
             for m in self.members.values_mut().filter(|m| !m.in_sync) {
                 m.state_base = self.good;
             }
         }
-        let seed = ppo.draw_seed();
+        let seed = algo.draw_seed();
         let plan = TeamPlan {
             leader: self.me.clone(),
             plan: self.plan,
             base: self.good,
-            policy_version: ppo.version,
+            policy_version: algo.version(),
             members: members.clone(),
             seed,
-            lr: ppo.lr(),
+            lr: algo.lr(),
             trajectories: trajs.to_vec(),
             state,
         };
-        let sent = net::put(
-            self.session,
-            &keys::team_plan(&self.job),
-            &wire::team_plan_to_wire(&self.job, &plan, self.obs_size),
-        );
+        // The memory first: a joiner holds the plan until the memory it completes has come.
+        let mut sent = Ok(());
+        if let Some(m) = &memory {
+            let t = Instant::now();
+            for part in wire::memory_to_wire(&self.job, &self.me, self.good, m) {
+                sent = sent.and_then(|_| net::put(self.session, &keys::team_memory(&self.job), &part));
+            }
+            tracing::info!(job = %self.job, bytes = m.len(), seconds = t.elapsed().as_secs_f64(), "sent the replay memory to the team's joiners");
+        }
+        drop(memory);
+        let sent = sent.and_then(|_| {
+            net::put(
+                self.session,
+                &keys::team_plan(&self.job),
+                &wire::team_plan_to_wire(&self.job, &plan, self.obs_size),
+            )
+        });
         let (result, lost) = match sent {
             Ok(()) => {
                 let mut group = Group {
@@ -384,12 +406,13 @@ impl Team for TeamLead<'_> {
                     roster: &self.roster,
                     lost: None,
                 };
-                let result = ppo.update_planned(trajs, seed, &mut group);
+                let result = algo.update_planned(trajs, seed, &mut group);
                 (result, group.lost)
             }
             Err(e) => {
                 tracing::warn!(job = %self.job, "could not send the team's plan: {e}");
-                (Err(Refused::Group { error: GroupError(e.to_string()), version: ppo.version }), None)
+                // Nothing of the update was made: the leader makes it alone.
+                (Err(Refused::Group { error: GroupError(e.to_string()), version: algo.version() }), None)
             }
         };
         let failed = match &result {
@@ -417,7 +440,7 @@ impl Team for TeamLead<'_> {
             m.state_base = 0;
         }
         self.plan += 1;
-        let result = ppo.update(trajs);
+        let result = algo.update_again(trajs);
         if result.is_ok() {
             self.good = self.plan;
         }
@@ -434,19 +457,27 @@ pub enum FollowEnd {
     Stopped,
 }
 
+/// What a follower hears about each update it made.
+pub type OnUpdate<'a> = dyn FnMut(&dyn Shared, &Result<UpdateStats, Refused>) + 'a;
+
 /// Take part in `job`'s updates as `me` until the leader goes or `keep_going` says stop.
-/// `ppo` is this learner's model (its state is replaced by the leader's before the first
-/// update); `on_update` hears about every update made.
+/// `algo` is this learner's (its state, and memory, are replaced by the leader's before the
+/// first update); `on_update` hears about every update made. A replay memory larger than
+/// `memory_limit` bytes is refused.
+#[allow(clippy::too_many_arguments)]
 pub fn follow(
     session: &zenoh::Session,
     me: &str,
     view: &JobView<'_>,
-    ppo: &mut Ppo,
+    algo: &mut dyn Shared,
+    memory_limit: u64,
     drops: Arc<DropCounters>,
     keep_going: &mut dyn FnMut() -> bool,
-    on_update: &mut dyn FnMut(&Ppo, &Result<UpdateStats, Refused>),
+    on_update: &mut OnUpdate<'_>,
 ) -> anyhow::Result<FollowEnd> {
     let plans = net::subscribe(session, &keys::team_plan(view.job_id))?;
+    let memories = net::subscribe(session, &keys::team_memory(view.job_id))?;
+    let mut parts = MemoryParts::new(memory_limit);
     let mut shares = Shares::new(session, view.job_id, drops.clone())?;
     let roster = Roster::new(session)?;
     // The wish to take part, every half second from a thread of its own (an update of
@@ -475,7 +506,7 @@ pub fn follow(
     let mut last = 0u64;
     tracing::info!(job = %view.job_id, learner = %me, "following the job's leader: asking to join its team");
     // The job's rate: its schedule never goes above it.
-    let job_lr = ppo.lr();
+    let job_lr = algo.lr();
     let started = Instant::now();
     let end = loop {
         if !keep_going() {
@@ -485,6 +516,7 @@ pub fn follow(
         if started.elapsed() > Duration::from_secs(2) && !roster.ids().iter().any(|id| id.as_str() < me) {
             break FollowEnd::LeaderGone;
         }
+        pump_memory(&memories, &mut parts, view.job_id, &drops);
         let Some((_, w)) = try_next::<protocol::TeamPlan>(&plans, &drops) else {
             std::thread::sleep(Duration::from_millis(2));
             continue;
@@ -506,21 +538,44 @@ pub fn follow(
         if last != plan.base
             && let Some(state) = plan.state.clone()
         {
-            match ppo.restore(PpoState { version: state.policy_version, tensors: state.tensors }) {
-                Ok(()) => {
-                    last = plan.base;
-                    tracing::info!(job = %view.job_id, version = ppo.version, "took over the leader's weights and optimiser state");
+            // The replay memory that completes the state, sent just before the plan.
+            let memory = if state.memory_bytes > 0 {
+                let waited = Instant::now();
+                loop {
+                    pump_memory(&memories, &mut parts, view.job_id, &drops);
+                    if let Some(m) = parts.take(&plan.leader, plan.base, state.memory_bytes) {
+                        break Some(m);
+                    }
+                    if waited.elapsed() > FIRST_SHARE_TIMEOUT || !roster.contains(&plan.leader) {
+                        tracing::warn!(job = %view.job_id, "the replay memory of the leader's state did not all come");
+                        break None;
+                    }
+                    std::thread::sleep(Duration::from_millis(2));
                 }
-                Err(e) => tracing::warn!(job = %view.job_id, "the leader's state does not fit this learner: {e}"),
+            } else {
+                None
+            };
+            let state_of = LearnerState { version: state.policy_version, tensors: state.tensors };
+            match (state.memory_bytes > 0, memory) {
+                (true, None) => {}
+                (_, memory) => match algo.restore(state_of, memory.as_deref()) {
+                    Ok(()) => {
+                        last = plan.base;
+                        let with =
+                            memory.map_or(String::new(), |m| format!(" and its replay memory ({} bytes)", m.len()));
+                        tracing::info!(job = %view.job_id, version = algo.version(), "took over the leader's weights and optimiser state{with}");
+                    }
+                    Err(e) => tracing::warn!(job = %view.job_id, "the leader's state does not fit this learner: {e}"),
+                },
             }
         }
-        if last != plan.base || ppo.version != plan.policy_version {
+        if last != plan.base || algo.version() != plan.policy_version {
             set(last, true);
             continue;
         }
         set(last, false);
         // The leader's learning rate (the job's schedule), so every member steps alike.
-        ppo.set_lr(plan.lr);
+        algo.set_lr(plan.lr);
         let mut group = Group {
             session,
             job: view.job_id,
@@ -531,7 +586,7 @@ pub fn follow(
             roster: &roster,
             lost: None,
         };
-        let result = ppo.update_planned(&plan.trajectories, plan.seed, &mut group);
+        let result = algo.update_planned(&plan.trajectories, plan.seed, &mut group);
         match &result {
             Err(why) if why.is_group() => {
                 tracing::warn!(job = %view.job_id, "{why}");
@@ -542,13 +597,23 @@ pub fn follow(
                     last = plan.plan;
                 }
                 set(last, false);
-                on_update(ppo, &result);
+                on_update(&*algo, &result);
             }
         }
     };
     stop.store(true, Ordering::Relaxed);
     let _ = beat.join();
     Ok(end)
+}
+
+/// Take the replay memory parts that arrived (between plans too: a memory's parts must not
+/// wait in Zenoh's queue behind the plan they complete).
+fn pump_memory(sub: &Sub, parts: &mut MemoryParts, job: &str, drops: &DropCounters) {
+    while let Some((_, m)) = try_next::<TeamMemory>(sub, drops) {
+        if let Err(e) = parts.insert(m, job) {
+            drops.refuse("a replay memory part", &e);
+        }
+    }
 }
 
 /// A plan's learning rate must be one the job can give: its schedule never goes above the

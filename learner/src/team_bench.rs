@@ -1,16 +1,21 @@
 //! `learner bench --learners N`: whole PPO updates (batch, forward, backward, all-reduce and
-//! Adam) shared by N learner processes of one thread each, a team over Zenoh on loopback,
-//! against one learner of one thread making the same updates in the same run. With
+//! Adam), or SAC's with `--sac`, shared by N learner processes of one thread each, a team over
+//! Zenoh on loopback, against one learner of one thread making the same updates in the same
+//! run. The leader makes one update alone before the team's first, so the members join a
+//! learner with a history (SAC's: a replay memory, which travels with the state). With
 //! `--check` it also replays the team's updates on one learner and fails unless the weights
-//! agree to float rounding, and unless every member ends with the leader's weights bit for bit.
+//! agree to float rounding, and unless every member ends with the leader's state (weights,
+//! optimisers) bit for bit.
 
 use crate::bench_metadata;
 use crate::team::{FollowEnd, TeamLead, follow};
 use anyhow::{Context, Result, bail};
 use faer::Par;
+use learner::algorithm::Shared;
 use learner::run::Team;
+use learner::sac::SacTrainer;
 use learner::{Hyperparameters, Ppo};
-use policy::{ActorCritic, Trajectory};
+use policy::{ActorCritic, ModelMetadata, Trajectory};
 use protocol::exchange::JobView;
 use protocol::keys;
 use protocol::net::zenoh::Wait;
@@ -30,15 +35,47 @@ const WORLD: &str = "bench";
 const EPISODES: usize = 8;
 const STEPS: usize = 64;
 
-fn model_of(network: &str, epochs: usize) -> Result<(ActorCritic, Hyperparameters)> {
-    let (_, _, meta) = bench_metadata(network)?;
+/// The bench's learner: PPO's, or SAC's with `sac`, from fixed seeds (two calls give two
+/// learners in the same state), its learning rate half the hyperparameters' as a job's
+/// `lr_schedule` makes it (the members start from the hyperparameters' and must step with
+/// the rate each plan carries); and its model.
+fn learner_of(network: &str, epochs: usize, sac: bool) -> Result<(Box<dyn Shared>, ActorCritic)> {
+    let meta = metadata(network, sac)?;
     let model = ActorCritic::new(&meta, 27, &mut ChaCha8Rng::seed_from_u64(1));
     if epochs == 0 {
         bail!("--epochs: expected at least 1");
     }
-    // Every epoch of every update runs (no `target_kl` stop): the rate counts them all.
-    let hyper = Hyperparameters { num_epochs: epochs, batch_size: 64, target_kl: None, ..Hyperparameters::default() };
-    Ok((model, hyper))
+    // Every epoch of every update runs (no `target_kl` stop): the rate counts them all. SAC:
+    // 8 gradient steps an update (one per 64 of its 512 new transitions).
+    let hyper = Hyperparameters {
+        num_epochs: epochs,
+        batch_size: 64,
+        target_kl: None,
+        sac_gradient_steps_per_transition: 1.0 / 64.0,
+        ..Hyperparameters::default()
+    };
+    let mut algo: Box<dyn Shared> = if sac {
+        Box::new(SacTrainer::new(model.clone(), &meta, 27, &hyper, 0, 7, Par::Seq).map_err(anyhow::Error::msg)?)
+    } else {
+        Box::new(Ppo::new(model.clone(), hyper.clone(), 0, 7, Par::Seq))
+    };
+    algo.set_lr(hyper.lr * 0.5);
+    Ok((algo, model))
+}
+
+/// The bench's model description: [`bench_metadata`]'s, or with `sac` DeepRacer's
+/// continuous SAC on the same network.
+fn metadata(network: &str, sac: bool) -> Result<ModelMetadata> {
+    let (name, sensor, meta) = bench_metadata(network)?;
+    if !sac {
+        return Ok(meta);
+    }
+    Ok(ModelMetadata::parse(
+        &format!(
+            r#"{{"action_space":{{"speed":{{"high":2,"low":1}},"steering_angle":{{"high":30,"low":-30}}}},"sensor":["{sensor}"],"neural_network":"{name}","training_algorithm":"sac","action_space_type":"continuous","version":"5"}}"#
+        ),
+        "bench",
+    )?)
 }
 
 fn episodes(model: &ActorCritic, camera: bool, seed: u64) -> Vec<Trajectory> {
@@ -64,50 +101,74 @@ fn episodes(model: &ActorCritic, camera: bool, seed: u64) -> Vec<Trajectory> {
         .collect()
 }
 
-fn digest(ppo: &Ppo) -> u64 {
+/// A learner's whole state (every weight and moment, bit for bit) and its memory, hashed.
+fn digest(algo: &dyn Shared) -> u64 {
     let mut h = std::collections::hash_map::DefaultHasher::new();
-    ppo.version.hash(&mut h);
-    for x in ppo.model.pi.params.iter().chain(&ppo.model.v.params) {
-        x.to_bits().hash(&mut h);
+    let state = algo.state();
+    state.version.hash(&mut h);
+    for (name, values) in &state.tensors {
+        name.hash(&mut h);
+        for x in values {
+            x.to_bits().hash(&mut h);
+        }
+    }
+    // The memory's tensors and header, in name order (the header's own order is not fixed).
+    if let Some(bytes) = algo.memory() {
+        let st = safetensors::SafeTensors::deserialize(&bytes).expect("a memory's bytes");
+        let mut names = st.names();
+        names.sort();
+        for n in names {
+            n.hash(&mut h);
+            st.tensor(n).expect("named").data().hash(&mut h);
+        }
+        let (_, meta) = safetensors::SafeTensors::read_metadata(&bytes).expect("a memory's bytes");
+        let info: std::collections::BTreeMap<_, _> = meta.metadata().clone().unwrap_or_default().into_iter().collect();
+        info.hash(&mut h);
     }
     h.finish()
+}
+
+/// A learner's weights, flat (its state but the optimisers).
+fn weights(algo: &dyn Shared) -> Vec<f32> {
+    let state = algo.state();
+    state.tensors.into_iter().filter(|(n, _)| !n.starts_with("adam.") && n != "carry").flat_map(|(_, v)| v).collect()
 }
 
 fn free_port() -> Result<u16> {
     Ok(std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?.port())
 }
 
-/// Updates for at least `seconds` (and at least two); sample-gradients per second (every
-/// sample of an update once per epoch).
-fn rate(seconds: f64, epochs: usize, mut update: impl FnMut() -> Result<()>) -> Result<(f64, usize)> {
+/// Updates for at least `seconds` (and at least two); sample-gradients per second (each
+/// update says how many it made).
+fn rate(seconds: f64, mut update: impl FnMut() -> Result<usize>) -> Result<(f64, usize)> {
     let t = Instant::now();
-    let mut k = 0;
+    let (mut k, mut samples) = (0, 0);
     while t.elapsed().as_secs_f64() < seconds || k < 2 {
-        update()?;
+        samples += update()?;
         k += 1;
     }
-    Ok(((k * EPISODES * STEPS * epochs) as f64 / t.elapsed().as_secs_f64(), k))
+    Ok((samples as f64 / t.elapsed().as_secs_f64(), k))
+}
+
+/// The sample-gradients an update made: PPO's every sample once an epoch, SAC's its batches.
+fn sample_gradients(stats: &learner::UpdateStats, epochs: usize) -> usize {
+    if stats.sac.is_some() { stats.samples } else { stats.samples * epochs }
 }
 
 /// The bench's leader: rows for 1 learner and for a team of `learners`.
-pub fn run(network: &str, seconds: f64, learners: usize, epochs: usize, check: bool) -> Result<()> {
-    if check && epochs > 3 {
+pub fn run(network: &str, seconds: f64, learners: usize, epochs: usize, check: bool, sac: bool) -> Result<()> {
+    if check && epochs > 3 && !sac {
         bail!(
             "--check compares the team with one learner after about 24 minibatch steps, where rounding has not yet grown: give --epochs 3 or fewer (this run: {epochs})"
         );
     }
-    let (model, hyper) = model_of(network, epochs)?;
+    let (mut alone, model) = learner_of(network, epochs, sac)?;
     let camera = !network.eq_ignore_ascii_case("MLP");
     let trajs = episodes(&model, camera, 2);
     let os = model.obs_size();
 
-    let mut alone = Ppo::new(model.clone(), hyper.clone(), 0, 7, Par::Seq);
-    alone.update(&trajs)?;
-    let (one, _) = rate(seconds, epochs, || {
-        alone.update(&trajs)?;
-        Ok(())
-    })?;
-
+    alone.update_alone(&trajs)?;
+    let (one, _) = rate(seconds, || Ok(sample_gradients(&alone.update_alone(&trajs)?, epochs)))?;
     let port = free_port()?;
     let endpoint = format!("tcp/127.0.0.1:{port}");
     let session = net::open(&NetArgs { listen: vec![endpoint.clone()], ..Default::default() })?;
@@ -130,6 +191,7 @@ pub fn run(network: &str, seconds: f64, learners: usize, epochs: usize, check: b
                     "--epochs",
                     &epochs.to_string(),
                 ])
+                .args(sac.then_some("--sac"))
                 .env("RUST_LOG", std::env::var("RUST_LOG").unwrap_or_else(|_| "warn".into()))
                 .stdout(Stdio::piped())
                 .spawn()
@@ -145,47 +207,48 @@ pub fn run(network: &str, seconds: f64, learners: usize, epochs: usize, check: b
         }
         std::thread::sleep(Duration::from_millis(100));
     }
-    let mut ppo = Ppo::new(model.clone(), hyper.clone(), 0, 7, Par::Seq);
-    // As a job's `lr_schedule` does: the leader's rate is not the hyperparameters'. The
-    // members start from the hyperparameters' and must step with the rate each plan carries.
-    ppo.set_lr(hyper.lr * 0.5);
-    let mut replay = ppo.clone();
-    let start = ppo.clone();
+    // The leader and the one learner the team is checked against start alike, and each makes
+    // one update alone first: the members join a learner with a history.
+    let (mut algo, _) = learner_of(network, epochs, sac)?;
+    let (mut replay, _) = learner_of(network, epochs, sac)?;
+    let start = weights(algo.as_ref());
+    algo.update_alone(&trajs)?;
+    replay.update_alone(&trajs)?;
     // The first update carries the state to the members: not timed.
     let t0 = Instant::now();
-    lead.update(&mut ppo, &trajs)?;
+    lead.update(algo.as_mut(), &trajs)?;
     let first_s = t0.elapsed().as_secs_f64();
     // Rounding differences grow with every step of a chaotic optimisation: the comparison
-    // with one learner is made after about 24 minibatch steps (at least one update).
-    let checked = (3 / epochs).max(1);
+    // with one learner is made after about 24 gradient steps (at least one update).
+    let checked = if sac { 3 } else { (3 / epochs).max(1) };
     let mut against_one = None;
     if check {
         for _ in 1..checked {
-            lead.update(&mut ppo, &trajs)?;
+            lead.update(algo.as_mut(), &trajs)?;
         }
         for _ in 0..checked {
-            replay.update(&trajs)?;
+            replay.update_alone(&trajs)?;
         }
         // How far the team is from one learner, against how far the updates moved the
         // weights. Adam divides every gradient by its running scale, so for weights whose
         // gradients are nearly zero rounding differences become whole steps: a few per cent
         // of the movement for the camera network after 24 steps (1e-6 for the MLP); a lost
         // or doubled share changes the direction of every step, tens of per cent.
-        let flat = |p: &Ppo| p.model.pi.params.iter().chain(&p.model.v.params).copied().collect::<Vec<f32>>();
-        let (start, one, team) = (flat(&start), flat(&replay), flat(&ppo));
+        let (one, team) = (weights(replay.as_ref()), weights(algo.as_ref()));
         let norm = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| ((x - y) as f64).powi(2)).sum::<f64>().sqrt();
         let (apart, moved) = (norm(&team, &one), norm(&one, &start));
-        let ok = moved > 0.0 && apart <= 5e-2 * moved && replay.version == ppo.version;
+        let ok = moved > 0.0 && apart <= 5e-2 * moved && replay.version() == algo.version();
         against_one = Some((apart, moved, ok));
     }
-    let (team, timed) = rate(seconds, epochs, || {
-        if let Err(why) = lead.update(&mut ppo, &trajs) {
-            bail!("the team's update was refused during the bench: {why}");
-        }
+    let (team, timed) = rate(seconds, || {
+        let stats = match lead.update(algo.as_mut(), &trajs) {
+            Ok(stats) => stats,
+            Err(why) => bail!("the team's update was refused during the bench: {why}"),
+        };
         if lead.failures > 0 {
             bail!("the team failed during the bench ({} failures)", lead.failures);
         }
-        Ok(())
+        Ok(sample_gradients(&stats, epochs))
     })?;
     let made = timed + if check { checked } else { 1 };
     if lead.team_updates != made as u64 {
@@ -207,9 +270,15 @@ pub fn run(network: &str, seconds: f64, learners: usize, epochs: usize, check: b
     }
 
     println!();
-    println!(
-        "# learner bench: whole updates ({EPISODES} × {STEPS} samples, minibatch 64, {epochs} epoch(s) an update), {network}"
-    );
+    if sac {
+        println!(
+            "# learner bench: whole SAC updates ({EPISODES} × {STEPS} new transitions, 8 gradient steps of 64 an update), {network}"
+        );
+    } else {
+        println!(
+            "# learner bench: whole updates ({EPISODES} × {STEPS} samples, minibatch 64, {epochs} epoch(s) an update), {network}"
+        );
+    }
     println!();
     println!("| measurement | sample-gradients/s | ratio to 1 × 1 |");
     println!("|---|---|---|");
@@ -218,14 +287,15 @@ pub fn run(network: &str, seconds: f64, learners: usize, epochs: usize, check: b
         "| {learners} learner processes × 1 thread, a team over Zenoh on loopback | {team:.0} | {:.2} |",
         team / one
     );
-    println!("(the team's first update, which carries the weights and optimiser state to the members: {first_s:.2} s)");
+    let what = if sac { "the weights, optimiser state and replay memory" } else { "the weights and optimiser state" };
+    println!("(the team's first update, which carries {what} to the members: {first_s:.2} s)");
 
     if let Some((apart, moved, ok_one)) = against_one {
         println!(
             "check: after {checked} updates the team's weights are {apart:.3e} from one learner's, which moved {moved:.3e} from the start ({:.2e} of it)",
             apart / moved.max(f64::MIN_POSITIVE)
         );
-        let want = format!("digest {:016x} version {}", digest(&ppo), ppo.version);
+        let want = format!("digest {:016x} version {}", digest(algo.as_ref()), algo.version());
         let ok_members = member_digests.iter().all(|d| d.ends_with(&want));
         for d in &member_digests {
             println!("check: {d} (leader: {want})");
@@ -240,24 +310,25 @@ pub fn run(network: &str, seconds: f64, learners: usize, epochs: usize, check: b
     Ok(())
 }
 
-/// A bench team member: follows the bench's leader, then prints its weights' digest.
-pub fn member(network: &str, epochs: usize, net_args: NetArgs, id: &str) -> Result<()> {
+/// A bench team member: follows the bench's leader, then prints its state's digest.
+pub fn member(network: &str, epochs: usize, sac: bool, net_args: NetArgs, id: &str) -> Result<()> {
     let session = net::open_retrying(&net_args)?;
     let _token =
         session.liveliness().declare_token(keys::learner_alive(id)).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
-    let (model, hyper) = model_of(network, epochs)?;
+    let (mut algo, model) = learner_of(network, epochs, sac)?;
+    // A member starts at the hyperparameters' rate and version 0: it must take the leader's
+    // state over, and step at the rate each plan carries.
+    algo.set_lr(Hyperparameters::default().lr);
     let os = model.obs_size();
-    let mut ppo = Ppo::new(model, hyper, 0, 0, Par::Seq);
     let worlds = [WORLD.to_string()];
-    let actions = protocol::Actions::of(&bench_metadata(network)?.2.action_space);
+    let actions = protocol::Actions::of(&metadata(network, sac)?.action_space);
     let view = JobView { job_id: JOB, obs_size: os, worlds: &worlds, actions };
     let mut updates = 0u64;
-    let end = follow(&session, id, &view, &mut ppo, Arc::new(DropCounters::default()), &mut || true, &mut |_, _| {
-        updates += 1
-    })?;
+    let drops = Arc::new(DropCounters::default());
+    let end = follow(&session, id, &view, algo.as_mut(), u64::MAX, drops, &mut || true, &mut |_, _| updates += 1)?;
     if end != FollowEnd::LeaderGone {
         bail!("the member stopped: {end:?}");
     }
-    println!("member {id}: {updates} updates, digest {:016x} version {}", digest(&ppo), ppo.version);
+    println!("member {id}: {updates} updates, digest {:016x} version {}", digest(algo.as_ref()), algo.version());
     Ok(())
 }

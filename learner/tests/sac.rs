@@ -352,3 +352,57 @@ fn issue_32_a_team_of_learners_makes_one_learners_sac_steps() {
         assert!((members[0].log_alpha - alone.log_alpha).abs() < 1e-5, "size {size}");
     }
 }
+
+/// A learner team's joiner takes over a SAC learner's networks, optimisers and replay memory
+/// (a ring that has wrapped round), and from then on makes the leader's updates bit for bit;
+/// a state without its memory, or with a tensor missing, is refused with nothing changed.
+#[test]
+fn issue_32_a_joiner_takes_over_a_sac_learner_and_its_memory_and_updates_as_it_does() {
+    use learner::algorithm::Shared;
+    use learner::sac::SacTrainer;
+    let (m, obs) = meta(6);
+    let h =
+        learner::Hyperparameters { sac_replay_size: 300, sac_gradient_steps_per_transition: 0.1, ..Default::default() };
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    let model = policy::ActorCritic::new(&m, obs, &mut rng);
+    let episodes = |rng: &mut ChaCha8Rng| -> Vec<policy::Trajectory> {
+        (0..3)
+            .map(|_| {
+                let n = 70;
+                let a = |rng: &mut ChaCha8Rng| rng.random_range(-0.9..0.9);
+                policy::Trajectory {
+                    world: "w".into(),
+                    obs: (0..n * obs).map(|_| rng.random_range(-1.0..1.0)).collect(),
+                    choices: (0..n).map(|_| policy::Choice::Continuous([a(rng), a(rng)])).collect(),
+                    rewards: (0..n).map(|_| rng.random_range(-1.0..1.0)).collect(),
+                    done: true,
+                    ..Default::default()
+                }
+            })
+            .collect()
+    };
+    let mut leader = SacTrainer::new(model.clone(), &m, obs, &h, 0, 1, Par::Seq).unwrap();
+    for _ in 0..2 {
+        leader.update_alone(&episodes(&mut rng)).unwrap();
+    }
+    assert!(leader.replay().added() > 300, "the ring has wrapped round");
+    let mut joiner = SacTrainer::new(model, &m, obs, &h, 0, 2, Par::Seq).unwrap();
+    let before = joiner.state();
+    let e = joiner.restore(leader.state(), None).unwrap_err().to_string();
+    assert!(e.contains("replay memory"), "{e}");
+    let mut torn = leader.state();
+    torn.tensors.retain(|(n, _)| n != "adam.q1.v");
+    let e = joiner.restore(torn, leader.memory().as_deref()).unwrap_err().to_string();
+    assert!(e.contains("adam.q1.v"), "{e}");
+    assert_eq!(joiner.state(), before, "a refused state changes nothing");
+    joiner.restore(leader.state(), leader.memory().as_deref()).unwrap();
+    assert!(joiner.replay() == leader.replay(), "the memory as it lay in the leader's ring");
+    for k in 0..2 {
+        let trajs = episodes(&mut rng);
+        let a = leader.update_planned(&trajs, 40 + k, &mut learner::Alone).unwrap();
+        let b = joiner.update_planned(&trajs, 40 + k, &mut learner::Alone).unwrap();
+        assert!(a.gradient_steps > 0 && a == b, "update {k}");
+        assert_eq!(joiner.state(), leader.state(), "update {k}");
+        assert!(joiner.replay() == leader.replay(), "update {k}");
+    }
+}

@@ -400,6 +400,112 @@ pub struct TeamState {
     pub policy_version: u64,
     /// Named tensors.
     pub tensors: Vec<(String, Vec<f32>)>,
+    /// The size of the replay memory (SAC's) that completes the state, sent in
+    /// [`crate::TeamMemory`] parts before the plan; 0: none.
+    pub memory_bytes: u64,
+}
+
+/// The most bytes of a replay memory one [`crate::TeamMemory`] carries.
+pub const MEMORY_PART: usize = 32 << 20;
+/// The most parts of one replay memory (a 64 GB memory).
+pub const MEMORY_PARTS: u32 = 2048;
+
+/// A replay memory of `bytes` for the plan based on `base`, in parts.
+pub fn memory_to_wire(job: &str, leader: &str, base: u64, bytes: &[u8]) -> Vec<crate::TeamMemory> {
+    let parts = bytes.len().div_ceil(MEMORY_PART).max(1);
+    (0..parts)
+        .map(|i| crate::TeamMemory {
+            protocol_version: crate::PROTOCOL_VERSION,
+            job_id: job.into(),
+            leader: leader.into(),
+            base,
+            part: i as u32,
+            parts: parts as u32,
+            total: bytes.len() as u64,
+            data: bytes[(i * MEMORY_PART).min(bytes.len())..((i + 1) * MEMORY_PART).min(bytes.len())].to_vec(),
+        })
+        .collect()
+}
+
+/// A replay memory's parts as they arrive, put together per (leader, base). A part that does
+/// not fit the others of its memory, or the size a learner accepts, is refused; only the
+/// newest memory is kept.
+#[derive(Debug)]
+pub struct MemoryParts {
+    limit: u64,
+    key: Option<(String, u64)>,
+    total: u64,
+    parts: Vec<Option<Vec<u8>>>,
+}
+
+impl MemoryParts {
+    /// Parts of memories of at most `limit` bytes.
+    pub fn new(limit: u64) -> MemoryParts {
+        MemoryParts { limit, key: None, total: 0, parts: Vec::new() }
+    }
+
+    /// Take a part received on `job`'s key.
+    pub fn insert(&mut self, w: crate::TeamMemory, job: &str) -> Result<(), DecodeError> {
+        same_job(&w.job_id, job)?;
+        if !keys::is_valid_name(&w.leader) {
+            return invalid(format!("replay memory part from {:?}: not a learner's name", w.leader));
+        }
+        if w.parts == 0 || w.parts > MEMORY_PARTS || w.part >= w.parts {
+            return invalid(format!("replay memory part {} of {} (at most {MEMORY_PARTS} parts)", w.part, w.parts));
+        }
+        if w.total > self.limit || w.total > w.parts as u64 * MEMORY_PART as u64 {
+            return invalid(format!(
+                "a replay memory of {} bytes in {} parts (this learner takes at most {} bytes)",
+                w.total, w.parts, self.limit
+            ));
+        }
+        let (start, end) =
+            (w.part as u64 * MEMORY_PART as u64, ((w.part as u64 + 1) * MEMORY_PART as u64).min(w.total));
+        if w.data.len() as u64 != end.saturating_sub(start) {
+            return invalid(format!(
+                "replay memory part {} of {} holds {} bytes, expected {}",
+                w.part,
+                w.parts,
+                w.data.len(),
+                end.saturating_sub(start)
+            ));
+        }
+        let key = (w.leader, w.base);
+        if self.key.as_ref() != Some(&key) {
+            if self.key.as_ref().is_some_and(|k| k.0 == key.0 && k.1 > key.1) {
+                return Ok(());
+            }
+            self.key = Some(key);
+            self.total = w.total;
+            self.parts = vec![None; w.parts as usize];
+        } else if self.total != w.total || self.parts.len() != w.parts as usize {
+            return invalid(format!(
+                "replay memory part {} says {} bytes in {} parts, its other parts {} in {}",
+                w.part,
+                w.total,
+                w.parts,
+                self.total,
+                self.parts.len()
+            ));
+        }
+        self.parts[w.part as usize] = Some(w.data);
+        Ok(())
+    }
+
+    /// The whole memory of `leader`'s plan based on `base` of `total` bytes, once every part
+    /// came (the parts are then let go).
+    pub fn take(&mut self, leader: &str, base: u64, total: u64) -> Option<Vec<u8>> {
+        let ours = self.key.as_ref().is_some_and(|(l, b)| l == leader && *b == base) && self.total == total;
+        if !ours || self.parts.iter().any(|p| p.is_none()) {
+            return None;
+        }
+        self.key = None;
+        let mut out = Vec::with_capacity(total as usize);
+        for p in self.parts.drain(..) {
+            out.extend_from_slice(&p.expect("every part came"));
+        }
+        Some(out)
+    }
 }
 
 /// Little-endian bytes of `values`.
@@ -512,6 +618,7 @@ pub fn team_plan_to_wire(job: &str, p: &TeamPlan, obs_size: usize) -> crate::Tea
         state: p.state.as_ref().map(|s| crate::TeamState {
             policy_version: s.policy_version,
             tensors: s.tensors.iter().map(|(n, v)| crate::Tensor { name: n.clone(), data: f32_bytes(v) }).collect(),
+            memory_bytes: s.memory_bytes,
         }),
     }
 }
@@ -558,7 +665,7 @@ pub fn team_plan_from_wire(w: crate::TeamPlan, job: &JobView<'_>) -> Result<Team
                 .into_iter()
                 .map(|t| Ok((t.name, f32_values(&t.data)?)))
                 .collect::<Result<Vec<_>, DecodeError>>()?;
-            Some(TeamState { policy_version: s.policy_version, tensors })
+            Some(TeamState { policy_version: s.policy_version, tensors, memory_bytes: s.memory_bytes })
         }
     };
     Ok(TeamPlan {
@@ -631,6 +738,43 @@ mod tests {
     }
 
     #[test]
+    fn issue_32_a_replay_memory_travels_to_a_joiner_in_parts_and_a_part_that_does_not_fit_is_refused() {
+        let memory: Vec<u8> = (0..2 * MEMORY_PART + 5).map(|i| (i * 7 % 251) as u8).collect();
+        let parts = memory_to_wire("job1", "l0", 8, &memory);
+        assert_eq!(parts.len(), 3);
+        assert!(parts.iter().all(|p| p.data.len() <= MEMORY_PART && p.total == memory.len() as u64));
+        // Through the encoding, out of order: whole once the last part came, and only then.
+        let mut got = MemoryParts::new(1 << 40);
+        for i in [2, 0] {
+            let w: crate::TeamMemory = crate::decode(&crate::encode(&parts[i])).unwrap();
+            got.insert(w, "job1").unwrap();
+            assert_eq!(got.take("l0", 8, memory.len() as u64), None, "part 1 is missing");
+        }
+        got.insert(parts[1].clone(), "job1").unwrap();
+        assert_eq!(got.take("l0", 9, memory.len() as u64), None, "another plan's memory");
+        assert!(got.take("l0", 8, memory.len() as u64) == Some(memory.clone()), "the memory, byte for byte");
+        // An empty memory is one empty part.
+        let empty = memory_to_wire("job1", "l0", 3, &[]);
+        assert_eq!(empty.len(), 1);
+        got.insert(empty[0].clone(), "job1").unwrap();
+        assert_eq!(got.take("l0", 3, 0), Some(Vec::new()));
+        // Refused, naming what is wrong: another job's, a torn part, a part past the count,
+        // a memory larger than the learner takes, a part that disagrees with the others.
+        let p = parts[0].clone();
+        let refused = |w: crate::TeamMemory, got: &mut MemoryParts| got.insert(w, "job1").unwrap_err().to_string();
+        let mut got = MemoryParts::new(1 << 40);
+        assert!(refused(crate::TeamMemory { job_id: "job2".into(), ..p.clone() }, &mut got).contains("job2"));
+        let mut torn = p.clone();
+        torn.data.pop();
+        assert!(refused(torn, &mut got).contains("holds 33554431 bytes, expected 33554432"));
+        assert!(refused(crate::TeamMemory { part: 3, ..p.clone() }, &mut got).contains("part 3 of 3"));
+        assert!(refused(p.clone(), &mut MemoryParts::new(1000)).contains("at most 1000 bytes"));
+        got.insert(p.clone(), "job1").unwrap();
+        let other = crate::TeamMemory { total: p.total - 1, part: 2, data: vec![0; 4], ..p.clone() };
+        assert!(refused(other, &mut got).contains("its other parts"));
+    }
+
+    #[test]
     fn issue_8_team_messages_round_trip_and_refuse_what_does_not_fit() {
         let (id, worlds) = job();
         let view = JobView { job_id: &id, obs_size: 3, worlds: &worlds, actions: crate::Actions::Discrete(5) };
@@ -656,6 +800,7 @@ mod tests {
             state: Some(TeamState {
                 policy_version: 3,
                 tensors: vec![("pi".into(), vec![1.5, -2.0, f32::MIN_POSITIVE])],
+                memory_bytes: 5,
             }),
         };
         let wire = team_plan_to_wire(&id, &plan, 3);

@@ -35,6 +35,7 @@
 //! | `team_plan` | `job/{job}/team/plan` | [`TeamPlan`] (one per update) | a learner team's leader |
 //! | `team_share`, `team_shares` | `job/{job}/team/share/{learner}` | [`GradShare`] | every team member |
 //! | `team_join`, `team_joins` | `job/{job}/team/join/{learner}` | [`TeamJoin`] (every 500 ms) | a learner that follows |
+//! | `team_memory` | `job/{job}/team/memory` | [`TeamMemory`] (SAC's replay memory in parts, for a joiner) | a learner team's leader |
 //! | `car_status`, `ALL_CAR_STATUS` | `car/{car}/status` | [`CarStatus`] (once a second) | on-car agent |
 //! | `car_control` | `car/{car}/control` | [`CarControl`] (the e-stop) | a person (`coordinator cars`) |
 //!
@@ -174,6 +175,10 @@ pub mod keys {
     pub fn team_plan(job: &str) -> String {
         format!("{ROOT}/job/{job}/team/plan")
     }
+    /// A job's team memory parts (learner leader to joiners).
+    pub fn team_memory(job: &str) -> String {
+        format!("{ROOT}/job/{job}/team/memory")
+    }
     /// One learner's gradient shares for a job.
     pub fn team_share(job: &str, learner: &str) -> String {
         format!("{ROOT}/job/{job}/team/share/{learner}")
@@ -263,6 +268,7 @@ versioned!(
     TeamPlan,
     GradShare,
     TeamJoin,
+    TeamMemory,
     Job,
     CarStatus,
     CarControl,

@@ -19,6 +19,7 @@ mod team;
 pub use team::{Alone, GroupError, Reducer};
 use team::{Part, Role};
 
+use crate::algorithm::LearnerState;
 use crate::hyperparams::{Hyperparameters, LossType};
 use faer::Par;
 use policy::model::{LOG_STD_RANGE, clip_log_std, gaussian_entropy, gaussian_logp, log_softmax};
@@ -471,18 +472,6 @@ pub struct UpdateStats {
     pub sac: Option<crate::sac::SacStats>,
 }
 
-/// Everything that makes a learner's next update what it will be: the version, the weights
-/// and the optimisers' moments. A learner joining a group takes it over before its first
-/// update, so the group's members stay identical bit for bit.
-#[derive(Clone, Debug, PartialEq)]
-pub struct PpoState {
-    /// Policy version.
-    pub version: u64,
-    /// Named tensors: `pi`, `v`, `log_std`, and `m`/`v`/`t` of each optimiser (`adam.pi.m`, …;
-    /// the step count as one number).
-    pub tensors: Vec<(String, Vec<f32>)>,
-}
-
 /// A state that does not fit this learner's model and optimisers (nothing was changed).
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[error("{0}")]
@@ -741,7 +730,7 @@ impl Ppo {
     }
 
     /// The state a joining member takes over.
-    pub fn state(&self) -> PpoState {
+    pub fn state(&self) -> LearnerState {
         let mut tensors =
             vec![("pi".to_string(), self.model.pi.params.clone()), ("v".into(), self.model.v.params.clone())];
         if let Head::Gaussian { log_std } = &self.model.head {
@@ -753,12 +742,12 @@ impl Ppo {
             tensors.push((format!("adam.{name}.v"), v.to_vec()));
             tensors.push((format!("adam.{name}.t"), vec![t as f32]));
         }
-        PpoState { version: self.version, tensors }
+        LearnerState { version: self.version, tensors }
     }
 
     /// Take over another member's state. Refused, with nothing changed, unless every tensor
     /// is there with the size this learner's model has.
-    pub fn restore(&mut self, state: PpoState) -> Result<(), StateMismatch> {
+    pub fn restore(&mut self, state: LearnerState) -> Result<(), StateMismatch> {
         let mut next = self.clone();
         let mut tensors: std::collections::BTreeMap<String, Vec<f32>> = state.tensors.into_iter().collect();
         let mut take = |name: &str, len: usize| -> Result<Vec<f32>, StateMismatch> {

@@ -35,9 +35,10 @@ mod stop;
 pub use stop::{Standing, StopRules, TargetLaps};
 
 use crate::algorithm::Algorithm;
+use crate::algorithm::{LearnerState, Shared};
 use crate::checkpoints::{CheckpointRecord, OpenMode, RunDir, RunError};
 use crate::hyperparams::Hyperparameters;
-use crate::ppo::{Ppo, PpoState, Refused, UpdateStats};
+use crate::ppo::{Ppo, Refused, UpdateStats};
 use crate::record::Recorder;
 use crate::sac::SacTrainer;
 use crate::trend::{Trend, TrendRules, Verdict};
@@ -134,7 +135,7 @@ pub trait Link {
 /// the team's attempt fail, and the leader makes that update again with whoever is left.
 pub trait Team {
     /// This iteration's update, made with the members there are (alone when there are none).
-    fn update(&mut self, ppo: &mut Ppo, trajs: &[Trajectory]) -> Result<UpdateStats, Refused>;
+    fn update(&mut self, algo: &mut dyn Shared, trajs: &[Trajectory]) -> Result<UpdateStats, Refused>;
     /// Learners in the team besides its leader.
     fn members(&mut self) -> usize {
         0
@@ -207,8 +208,9 @@ pub struct RunSpec {
     /// Cores for the update (the camera networks split over them; the MLP does not).
     pub par: Par,
     /// A learner team member taking the run over from a leader that went away: its state
-    /// (the team's, as of the last update), used when it is newer than the run folder's.
-    pub adopt: Option<PpoState>,
+    /// (the team's, as of the last update, and SAC's replay memory as bytes), used when it is
+    /// newer than the run folder's.
+    pub adopt: Option<(LearnerState, Option<Vec<u8>>)>,
     /// The key that signs every published model and model folder (PKCS#8 PEM); `None`: the
     /// run folder's `signing.key`, made on first use (its `signing.pub` is what cars trust).
     pub signing_key: Option<PathBuf>,
@@ -1138,19 +1140,24 @@ fn algorithm(
                 Err(e) => tracing::warn!(run = %spec.name, "SAC: the replay memory starts empty: {e}"),
             }
         }
+        adopt(spec, &mut sac);
         return Ok(Box::new(sac));
     }
     let mut ppo = Ppo::new(model, spec.hyper.clone(), version, spec.seed, spec.par);
-    if let Some(state) = spec.adopt.clone().filter(|s| s.version > ppo.version) {
-        let v = state.version;
-        match ppo.restore(state) {
-            Ok(()) => {
-                tracing::info!(run = %spec.name, version = v, "taking over from the team's state (newer than the run folder's)")
-            }
-            Err(e) => tracing::warn!(run = %spec.name, "the team's state does not fit this run: {e}"),
-        }
-    }
+    adopt(spec, &mut ppo);
     Ok(Box::new(ppo))
+}
+
+/// Take over the team's state the spec carries, when it is newer than the run folder's.
+fn adopt(spec: &RunSpec, algo: &mut dyn Shared) {
+    let Some((state, memory)) = spec.adopt.as_ref().filter(|(s, _)| s.version > algo.version()) else { return };
+    let v = state.version;
+    match algo.restore(state.clone(), memory.as_deref()) {
+        Ok(()) => {
+            tracing::info!(run = %spec.name, version = v, "taking over from the team's state (newer than the run folder's)")
+        }
+        Err(e) => tracing::warn!(run = %spec.name, "the team's state does not fit this run: {e}"),
+    }
 }
 
 /// Open the run folder and the model.

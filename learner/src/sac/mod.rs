@@ -19,7 +19,7 @@
 pub mod replay;
 pub mod trainer;
 
-use crate::ppo::{Alone, GroupError, Reducer};
+use crate::ppo::{Alone, GroupError, Reducer, StateMismatch};
 use faer::Par;
 use policy::model::{SAC_LOG_STD_RANGE, Squashed, sac_policy, sac_q_embedder, sac_q_head, sac_value, squashed};
 use policy::nn::{Adam, Net, Tape};
@@ -493,6 +493,114 @@ impl Sac {
             self.log_alpha = la[0];
         }
         self.steps += 1;
+    }
+
+    /// Draw the next gradient steps' noise from `seed` (every member of a team from the
+    /// plan's).
+    pub fn reseed(&mut self, seed: u64) {
+        self.rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5ac);
+    }
+
+    /// The networks' weights, their optimisers' moments and log α, as named tensors (`policy`,
+    /// `q_embed`, `q1`, `q2`, `v`, `v_target`, `log_alpha`; `adam.policy.m`, `.v` and `.t`, …).
+    pub fn tensors(&self) -> Vec<(String, Vec<f32>)> {
+        let mut out: Vec<(String, Vec<f32>)> = Vec::new();
+        for (name, net) in self.nets_named() {
+            out.push((name.into(), net.to_vec()));
+        }
+        out.push(("log_alpha".into(), vec![self.log_alpha]));
+        for (name, opt) in self.adams() {
+            let (m, v, t) = opt.moments();
+            out.push((format!("adam.{name}.m"), m.to_vec()));
+            out.push((format!("adam.{name}.v"), v.to_vec()));
+            out.push((format!("adam.{name}.t"), vec![t as f32]));
+        }
+        out
+    }
+
+    /// Take back what [`Sac::tensors`] gave. Refused, with nothing changed, unless every tensor
+    /// is there with this learner's sizes and no other.
+    pub fn set_tensors(&mut self, tensors: Vec<(String, Vec<f32>)>) -> Result<(), StateMismatch> {
+        let mut next = self.clone();
+        let mut named: std::collections::BTreeMap<String, Vec<f32>> = tensors.into_iter().collect();
+        let mut take = |name: &str, len: usize| -> Result<Vec<f32>, StateMismatch> {
+            let t = named.remove(name).ok_or_else(|| StateMismatch(format!("the state has no tensor `{name}`")))?;
+            if t.len() != len {
+                return Err(StateMismatch(format!("tensor `{name}` has {} values where {len} were expected", t.len())));
+            }
+            if let Some(i) = t.iter().position(|x| !x.is_finite()) {
+                return Err(StateMismatch(format!("tensor `{name}` holds {} at position {i}", t[i])));
+            }
+            Ok(t)
+        };
+        let n = &mut next.nets;
+        let mut nets: Vec<(&str, &mut Vec<f32>)> = vec![("policy", &mut n.policy.params)];
+        if let Some(e) = n.q.embed.as_mut() {
+            nets.push(("q_embed", &mut e.params));
+        }
+        nets.extend([
+            ("q1", &mut n.q.q1.params),
+            ("q2", &mut n.q.q2.params),
+            ("v", &mut n.v.params),
+            ("v_target", &mut n.v_target.params),
+        ]);
+        for (name, params) in nets {
+            *params = take(name, params.len())?;
+        }
+        next.log_alpha = take("log_alpha", 1)?[0];
+        for (name, opt) in [
+            ("policy", &mut next.adam_policy),
+            ("q_embed", &mut next.adam_embed),
+            ("q1", &mut next.adam_q1),
+            ("q2", &mut next.adam_q2),
+            ("v", &mut next.adam_v),
+            ("alpha", &mut next.adam_alpha),
+        ] {
+            let len = opt.moments().0.len();
+            let m = take(&format!("adam.{name}.m"), len)?;
+            let v = take(&format!("adam.{name}.v"), len)?;
+            let t = take(&format!("adam.{name}.t"), 1)?[0];
+            if !(t >= 0.0 && t.fract() == 0.0 && t < u32::MAX as f32) {
+                return Err(StateMismatch(format!("optimiser step count {t} is not a count")));
+            }
+            if let Some(i) = v.iter().position(|x| *x < 0.0) {
+                return Err(StateMismatch(format!("adam.{name}.v is negative at position {i}")));
+            }
+            opt.set_moments(m, v, t as u32).map_err(|e| StateMismatch(e.to_string()))?;
+        }
+        if let Some(extra) = named.keys().next() {
+            return Err(StateMismatch(format!("the state has an unknown tensor `{extra}`")));
+        }
+        *self = next;
+        Ok(())
+    }
+
+    /// The networks' parameters by name ([`Sac::tensors`]'s order).
+    fn nets_named(&self) -> Vec<(&'static str, &[f32])> {
+        let n = &self.nets;
+        let mut out: Vec<(&'static str, &[f32])> = vec![("policy", &n.policy.params)];
+        if let Some(e) = &n.q.embed {
+            out.push(("q_embed", &e.params));
+        }
+        out.extend([
+            ("q1", &n.q.q1.params[..]),
+            ("q2", &n.q.q2.params[..]),
+            ("v", &n.v.params[..]),
+            ("v_target", &n.v_target.params[..]),
+        ]);
+        out
+    }
+
+    /// The optimisers by name.
+    fn adams(&self) -> [(&'static str, &Adam); 6] {
+        [
+            ("policy", &self.adam_policy),
+            ("q_embed", &self.adam_embed),
+            ("q1", &self.adam_q1),
+            ("q2", &self.adam_q2),
+            ("v", &self.adam_v),
+            ("alpha", &self.adam_alpha),
+        ]
     }
 
     /// Move V's target copy towards V by `tau` (1: copy it).

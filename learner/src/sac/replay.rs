@@ -187,19 +187,39 @@ impl Replay {
     /// its buffers as they lie in the ring, the pixels without a copy, and where the oldest
     /// transition is.
     pub fn save(&self, path: &std::path::Path) -> Result<(), String> {
+        let tmp = path.with_extension("tmp");
+        self.with_views(|views, info| safetensors::serialize_to_file(views, Some(info), &tmp))
+            .map_err(|e| e.to_string())
+            .and_then(|_| std::fs::rename(&tmp, path).map_err(|e| e.to_string()))
+            .map_err(|e| format!("{}: {e}", path.display()))
+    }
+
+    /// The memory as [`Replay::save`] writes it, in memory (what a learner team's joiner
+    /// receives).
+    pub fn to_bytes(&self) -> Vec<u8> {
+        self.with_views(|views, info| safetensors::serialize(views, Some(info))).expect("a memory's tensors serialise")
+    }
+
+    fn with_views<T>(
+        &self,
+        write: impl FnOnce(
+            Vec<(&str, safetensors::tensor::TensorView<'_>)>,
+            std::collections::HashMap<String, String>,
+        ) -> Result<T, safetensors::SafeTensorError>,
+    ) -> Result<T, safetensors::SafeTensorError> {
         use safetensors::{Dtype, tensor::TensorView};
         let le = |v: &mut dyn Iterator<Item = f32>| -> Vec<u8> { v.flat_map(|x| x.to_le_bytes()).collect() };
         let floats = le(&mut self.floats.iter().copied());
         let action = le(&mut self.action.iter().flatten().copied());
         let reward = le(&mut self.reward.iter().copied());
-        let oldest = if self.len < self.capacity { 0 } else { self.head };
         let ranges: Vec<String> = self.bytes.iter().map(|r| format!("{}-{}", r.start, r.end)).collect();
         let info = std::collections::HashMap::from([
             ("format".to_string(), "paddock-replay-1".to_string()),
             ("per".to_string(), self.per.to_string()),
             ("bytes".to_string(), ranges.join(",")),
             ("added".to_string(), self.added.to_string()),
-            ("oldest".to_string(), oldest.to_string()),
+            ("oldest".to_string(), self.oldest().to_string()),
+            ("capacity".to_string(), self.capacity.to_string()),
         ]);
         let named: [(&str, &[u8], Dtype); 5] = [
             ("pixels", &self.pixels, Dtype::U8),
@@ -212,11 +232,22 @@ impl Replay {
             .iter()
             .map(|(n, b, d)| (*n, TensorView::new(*d, vec![b.len() * 8 / d.bitsize()], b).expect("sizes agree")))
             .collect();
-        let tmp = path.with_extension("tmp");
-        safetensors::serialize_to_file(views, Some(info), &tmp)
-            .map_err(|e| e.to_string())
-            .and_then(|_| std::fs::rename(&tmp, path).map_err(|e| e.to_string()))
-            .map_err(|e| format!("{}: {e}", path.display()))
+        write(views, info)
+    }
+
+    /// The slot of the oldest transition.
+    fn oldest(&self) -> usize {
+        if self.len < self.capacity { 0 } else { self.head }
+    }
+
+    /// The capacity a memory's bytes were written with (`None`: not said, an older file).
+    pub fn capacity_of(bytes: &[u8]) -> Result<Option<usize>, String> {
+        let (_, meta) =
+            safetensors::SafeTensors::read_metadata(bytes).map_err(|e| format!("not a safetensors file: {e}"))?;
+        match meta.metadata().as_ref().and_then(|m| m.get("capacity")) {
+            None => Ok(None),
+            Some(c) => c.parse().map(Some).map_err(|_| format!("'capacity' is {c:?}, not a number")),
+        }
     }
 
     /// A memory of `capacity` transitions holding what [`Replay::save`] wrote (the newest
@@ -266,7 +297,20 @@ impl Replay {
         if n > 0 && oldest >= n {
             return Err(format!("'oldest' is {oldest}, past the {n} transitions held"));
         }
-        // Oldest first; the newest `capacity` of them when they do not all fit.
+        if n == r.capacity && oldest > 0 {
+            // A full ring into one of its size: as it lay, so that it writes the same bytes
+            // again and draws the same batches (a learner team's joiner holds the leader's).
+            r.pixels = pixels.to_vec();
+            r.floats = (0..n * fl).map(|i| f(floats, i)).collect();
+            r.action = (0..n).map(|i| [f(action, 2 * i), f(action, 2 * i + 1)]).collect();
+            r.reward = (0..n).map(|i| f(reward, i)).collect();
+            r.end = end.to_vec();
+            (r.len, r.head) = (n, oldest);
+            r.added = field("added")?.parse().unwrap_or(n as u64).max(n as u64);
+            return Ok(r);
+        }
+        // Oldest first (as the ring lay, when it was not full); the newest `capacity` of them
+        // when they do not all fit.
         for i in (0..n).map(|k| (oldest + k) % n.max(1)).skip(n.saturating_sub(r.capacity)) {
             let e = end[i];
             let (mut pb, mut pf, mut at) = (i * r.byte_len, i * fl, 0);
@@ -302,8 +346,11 @@ impl Replay {
             return None;
         }
         let mut b = Batch::default();
+        // Drawn by age (0: the oldest), so that two memories holding the same transitions
+        // give the same batch from the same seed however their rings lie.
+        let oldest = self.oldest();
         while b.len() < n {
-            let slot = rng.random_range(0..self.len);
+            let slot = (oldest + rng.random_range(0..self.len)) % self.capacity;
             let end = self.end[slot];
             if end == 2 {
                 continue;

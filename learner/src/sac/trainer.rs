@@ -9,17 +9,23 @@
 //! A checkpoint keeps the critics (`sac.safetensors` beside the model); the replay memory is
 //! written to the run folder (`replay.safetensors`) when the run ends, and a resumed run
 //! continues with both, or says which it starts without.
+//!
+//! In a learner team ([`Shared`]) every member holds a copy of the replay memory: each plan
+//! brings the iteration's episodes, which every member stores in the same order, and its
+//! seed, from which every member draws the same batches and noise; each gradient step is then
+//! shared as [`Sac::step_in`] shares it. A joiner takes over the networks, their optimisers
+//! and the memory.
 
 use super::{Losses, Replay, Sac, SacNets, SacSettings, Tapes};
-use crate::algorithm::Algorithm;
+use crate::algorithm::{Algorithm, LearnerState, Shared};
 use crate::hyperparams::{Hyperparameters, LossType};
-use crate::ppo::{Refused, UpdateStats};
+use crate::ppo::{Reducer, Refused, StateMismatch, UpdateStats};
 use crate::run::Team;
 use faer::Par;
 use policy::model::Head;
 use policy::nn::InputShape;
 use policy::{ActorCritic, Choice, ModelMetadata, Trajectory};
-use rand::SeedableRng;
+use rand::{RngCore, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use safetensors::{Dtype, SafeTensors, tensor::TensorView};
 use std::collections::HashMap;
@@ -53,13 +59,17 @@ pub struct SacTrainer {
     replay: Replay,
     model: ActorCritic,
     version: u64,
-    rng: ChaCha8Rng,
+    /// Draws each update's seed (a team's leader sends it in the plan).
+    seeds: ChaCha8Rng,
     tapes: Tapes,
     par: Par,
     ratio: f64,
-    /// Fractional gradient steps carried to the next iteration.
-    carry: f64,
-    warned_team: bool,
+    /// Fractional gradient steps carried to the next iteration (f32: it travels to a team's
+    /// joiners as it is).
+    carry: f32,
+    /// The last episodes stored whose gradient steps are still to make: (new transitions,
+    /// episodes refused).
+    pending: Option<(usize, usize)>,
 }
 
 /// The settings `hyperparameters.json` gives SAC for `model`'s action space.
@@ -103,8 +113,8 @@ impl SacTrainer {
         par: Par,
     ) -> Result<SacTrainer, String> {
         let s = settings(h, &model).ok_or("SAC needs SAC's policy head (a continuous action space)")?;
-        let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x0c1);
-        let mut nets = SacNets::new(meta, obs_size, &mut rng);
+        let mut seeds = ChaCha8Rng::seed_from_u64(seed ^ 0x0c1);
+        let mut nets = SacNets::new(meta, obs_size, &mut seeds);
         nets.policy = model.pi.clone();
         nets.v = model.v.clone();
         nets.v_target = model.v.clone();
@@ -116,12 +126,12 @@ impl SacTrainer {
             replay,
             model,
             version,
-            rng,
+            seeds,
             tapes: Tapes::default(),
             par,
             ratio: h.sac_gradient_steps_per_transition,
             carry: 0.0,
-            warned_team: false,
+            pending: None,
         })
     }
 
@@ -212,6 +222,12 @@ impl SacTrainer {
         }
         (new, refused)
     }
+}
+
+/// The largest replay memory, in bytes, this machine takes from a learner team's leader: a
+/// quarter of its memory, as [`replay_capacity`] caps its own (unbounded when unknown).
+pub fn memory_limit() -> u64 {
+    total_memory().map_or(u64::MAX, |m| m / 4)
 }
 
 /// The machine's memory in bytes (Linux's `/proc/meminfo`), if known.
@@ -305,64 +321,10 @@ impl Algorithm for SacTrainer {
     }
 
     fn update(&mut self, trajs: &[Trajectory], team: Option<&mut dyn Team>) -> Result<UpdateStats, Refused> {
-        if team.is_some_and(|t| t.members() > 0) && !std::mem::replace(&mut self.warned_team, true) {
-            tracing::warn!("SAC's updates are made by the team's leader alone: the other learners wait");
+        match team {
+            Some(team) => team.update(self, trajs),
+            None => self.update_alone(trajs),
         }
-        let (new, refused_episodes) = self.store(trajs);
-        let wanted = new as f64 * self.ratio + self.carry;
-        let steps = wanted.floor() as usize;
-        self.carry = wanted - steps as f64;
-        let batch_size = if self.replay.len() > self.sac.settings.batch_size {
-            self.sac.settings.batch_size
-        } else {
-            // DeepRacer's trainer before the memory holds a batch: the largest power of two
-            // not above the new steps.
-            1usize << (usize::BITS - 1 - new.max(1).leading_zeros())
-        };
-        let before = self.sac.clone();
-        let mut sum = Losses::default();
-        for i in 0..steps {
-            let Some(batch) = self.replay.sample(batch_size, &mut self.rng) else { break };
-            let l = self.sac.step(&batch, self.par, &mut self.tapes);
-            if ![l.policy, l.q, l.v].iter().all(|x| x.is_finite()) {
-                let loss = [l.policy, l.q, l.v].into_iter().find(|x| !x.is_finite()).unwrap_or(f64::NAN);
-                self.sac = before;
-                return Err(Refused::NonFinite { step: i, loss, version: self.version });
-            }
-            if i == 0 {
-                self.sac.update_target();
-            }
-            for (s, x) in [
-                (&mut sum.policy, l.policy),
-                (&mut sum.q, l.q),
-                (&mut sum.v, l.v),
-                (&mut sum.entropy, l.entropy),
-                (&mut sum.q_mean, l.q_mean),
-            ] {
-                *s += x;
-            }
-        }
-        let n = steps.max(1) as f64;
-        self.version += 1;
-        self.model.pi.params.clone_from(&self.sac.nets.policy.params);
-        self.model.v.params.clone_from(&self.sac.nets.v.params);
-        Ok(UpdateStats {
-            samples: steps * batch_size,
-            policy_loss: sum.policy / n,
-            value_loss: sum.v / n,
-            entropy: sum.entropy / n,
-            gradient_steps: steps,
-            policy_version: self.version,
-            sac: Some(SacStats {
-                q_loss: sum.q / n,
-                q_mean: sum.q_mean / n,
-                alpha: self.sac.alpha() as f64,
-                replay: self.replay.len(),
-                new_transitions: new,
-                refused_episodes,
-            }),
-            ..UpdateStats::default()
-        })
     }
 
     fn save_state(&self, dir: &Path) -> Result<(), String> {
@@ -385,5 +347,196 @@ impl Algorithm for SacTrainer {
 
     fn save_memory(&self, root: &Path) -> Result<(), String> {
         self.replay.save(&root.join(REPLAY_FILE))
+    }
+}
+
+/// The gradient steps owed for `new` transitions at `ratio` steps each, with `carry` steps
+/// owed from before, and the fraction of a step carried on (in [0, 1)).
+fn steps_and_carry(new: usize, ratio: f64, carry: f32) -> (usize, f32) {
+    let wanted = new as f64 * ratio + carry as f64;
+    let steps = wanted.floor() as usize;
+    let carry = (wanted - steps as f64) as f32;
+    // A fraction just below one rounds to one in f32: that step is made now.
+    if carry >= 1.0 { (steps + 1, 0.0) } else { (steps, carry) }
+}
+
+impl SacTrainer {
+    /// The gradient steps of an iteration that stored `stored` (new transitions, episodes
+    /// refused), their batches and noise drawn from `seed`, each step shared with `group`;
+    /// then the new version. A refused iteration leaves the networks as they were (the
+    /// episodes stay in the memory).
+    fn iterate(&mut self, stored: (usize, usize), seed: u64, group: &mut dyn Reducer) -> Result<UpdateStats, Refused> {
+        let (new, refused_episodes) = stored;
+        let (steps, carry) = steps_and_carry(new, self.ratio, self.carry);
+        let batch_size = if self.replay.len() > self.sac.settings.batch_size {
+            self.sac.settings.batch_size
+        } else {
+            // DeepRacer's trainer before the memory holds a batch: the largest power of two
+            // not above the new steps.
+            1usize << (usize::BITS - 1 - new.max(1).leading_zeros())
+        };
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        self.sac.reseed(seed);
+        let before = self.sac.clone();
+        let mut sum = Losses::default();
+        for i in 0..steps {
+            let Some(batch) = self.replay.sample(batch_size, &mut rng) else { break };
+            let l = match self.sac.step_in(&batch, group, i as u64, self.par, &mut self.tapes) {
+                Ok(l) => l,
+                Err(error) => {
+                    self.sac = before;
+                    return Err(Refused::Group { error, version: self.version });
+                }
+            };
+            if ![l.policy, l.q, l.v].iter().all(|x| x.is_finite()) {
+                let loss = [l.policy, l.q, l.v].into_iter().find(|x| !x.is_finite()).unwrap_or(f64::NAN);
+                self.sac = before;
+                return Err(Refused::NonFinite { step: i, loss, version: self.version });
+            }
+            if i == 0 {
+                self.sac.update_target();
+            }
+            for (s, x) in [
+                (&mut sum.policy, l.policy),
+                (&mut sum.q, l.q),
+                (&mut sum.v, l.v),
+                (&mut sum.entropy, l.entropy),
+                (&mut sum.q_mean, l.q_mean),
+            ] {
+                *s += x;
+            }
+        }
+        self.carry = carry;
+        self.pending = None;
+        let n = steps.max(1) as f64;
+        self.version += 1;
+        self.sync_model();
+        Ok(UpdateStats {
+            samples: steps * batch_size,
+            policy_loss: sum.policy / n,
+            value_loss: sum.v / n,
+            entropy: sum.entropy / n,
+            gradient_steps: steps,
+            policy_version: self.version,
+            sac: Some(SacStats {
+                q_loss: sum.q / n,
+                q_mean: sum.q_mean / n,
+                alpha: self.sac.alpha() as f64,
+                replay: self.replay.len(),
+                new_transitions: new,
+                refused_episodes,
+            }),
+            ..UpdateStats::default()
+        })
+    }
+
+    /// The published model takes the policy's and V's weights.
+    fn sync_model(&mut self) {
+        self.model.pi.params.clone_from(&self.sac.nets.policy.params);
+        self.model.v.params.clone_from(&self.sac.nets.v.params);
+    }
+}
+
+impl Shared for SacTrainer {
+    fn version(&self) -> u64 {
+        self.version
+    }
+
+    fn lr(&self) -> f64 {
+        self.sac.settings.lr as f64
+    }
+
+    fn set_lr(&mut self, lr: f64) {
+        self.sac.set_lr(lr as f32);
+    }
+
+    fn draw_seed(&mut self) -> u64 {
+        self.seeds.next_u64()
+    }
+
+    fn update_planned(
+        &mut self,
+        trajs: &[Trajectory],
+        seed: u64,
+        group: &mut dyn Reducer,
+    ) -> Result<UpdateStats, Refused> {
+        let stored = self.store(trajs);
+        self.pending = Some(stored);
+        self.iterate(stored, seed, group)
+    }
+
+    /// The episodes of the failed attempt are in the memory already: only its steps are made.
+    fn update_again(&mut self, trajs: &[Trajectory]) -> Result<UpdateStats, Refused> {
+        let stored = match self.pending {
+            Some(stored) => stored,
+            None => self.store(trajs),
+        };
+        let seed = self.draw_seed();
+        self.iterate(stored, seed, &mut crate::ppo::Alone)
+    }
+
+    fn state(&self) -> LearnerState {
+        let mut tensors = self.sac.tensors();
+        tensors.push(("carry".into(), vec![self.carry]));
+        LearnerState { version: self.version, tensors }
+    }
+
+    fn memory(&self) -> Option<Vec<u8>> {
+        Some(self.replay.to_bytes())
+    }
+
+    fn restore(&mut self, state: LearnerState, memory: Option<&[u8]>) -> Result<(), StateMismatch> {
+        let Some(bytes) = memory else {
+            return Err(StateMismatch(
+                "a SAC learner's state comes with its replay memory, and this one has none".into(),
+            ));
+        };
+        let mut tensors = state.tensors;
+        let carry = match tensors.iter().position(|(n, _)| n == "carry") {
+            Some(i) => tensors.remove(i).1,
+            None => return Err(StateMismatch("the state has no tensor `carry`".into())),
+        };
+        if carry.len() != 1 || !(0.0..1.0).contains(&carry[0]) {
+            return Err(StateMismatch(format!("tensor `carry` is {carry:?}, expected one number in [0, 1)")));
+        }
+        let capacity = Replay::capacity_of(bytes).map_err(StateMismatch)?.unwrap_or(self.replay.capacity());
+        let replay =
+            Replay::from_bytes(bytes, capacity).map_err(|e| StateMismatch(format!("the replay memory: {e}")))?;
+        if replay.per() != self.replay.per() {
+            return Err(StateMismatch(format!(
+                "the replay memory holds transitions of {} values, this learner's observation has {}",
+                replay.per(),
+                self.replay.per()
+            )));
+        }
+        let mut sac = self.sac.clone();
+        sac.set_tensors(tensors)?;
+        self.sac = sac;
+        self.replay = replay;
+        self.carry = carry[0];
+        self.version = state.version;
+        self.pending = None;
+        self.sync_model();
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn issue_32_the_carried_fraction_of_a_step_stays_below_one() {
+        for (new, ratio, carry, want) in [
+            (10, 1.0, 0.0, (10, 0.0)),
+            (3, 0.5, 0.0, (1, 0.5)),
+            (3, 0.5, 0.5, (2, 0.0)),
+            (1, 0.999_999_999_9, 0.0, (1, 0.0)),
+            (0, 0.05, 0.25, (0, 0.25)),
+        ] {
+            let got = steps_and_carry(new, ratio, carry);
+            assert_eq!(got, want, "{new} × {ratio} + {carry}");
+            assert!((0.0..1.0).contains(&got.1));
+        }
     }
 }
