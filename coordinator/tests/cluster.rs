@@ -793,7 +793,16 @@ fn issue_32_a_learner_team_shares_sac_updates_and_a_joiner_takes_the_replay_memo
     assert!(log.contains("team update") && !log.contains("does not fit"), "{log}");
     let lead = std::fs::read_to_string(c.path("learner-a.log")).unwrap();
     assert!(lead.contains("sent the replay memory to the team's joiners"), "{lead}");
-    assert!(!lead.contains("made by the team's leader alone") && !lead.contains("making the update again"), "{lead}");
+    assert!(!lead.contains("making the update again"), "{lead}");
+    // The leader dies: learner-b takes the job over from the team's state, its replay memory
+    // included (its own folder holds no run).
+    c.procs.kill("learner-a");
+    let s = c.wait(&id, 60, "learner-b took over", |s| s["learner"]["learner_id"] == "learner-b");
+    let v = version(&s);
+    c.wait(&id, 60, "training goes on under learner-b", |s| version(s) > v + 1);
+    let log = std::fs::read_to_string(c.path("learner-b.log")).unwrap();
+    assert!(log.contains("taking over from the team's state"), "{log}");
+    assert!(!log.contains("replay memory starts empty") && !log.contains("does not fit"), "{log}");
 }
 
 #[test]
