@@ -282,11 +282,19 @@ fn issue_32_a_replay_memory_larger_than_a_quarter_of_the_machine_is_capped() {
 
 /// Two and three learners, each with a share of every batch, make one learner's steps: the
 /// members end each step with the same state, bit for bit, and that state is one learner's
-/// on the whole batch (to the rounding of the sums' order).
+/// on the whole batch (to the rounding of the sums' order). With 300 inputs and batches of 8
+/// every network's dense layers are big enough to travel as their factors (inputs and output
+/// gradients), which every member multiplies out in rank order.
 #[test]
 fn issue_32_a_team_of_learners_makes_one_learners_sac_steps() {
+    for (inputs, batch) in [(6, 64), (300, 8)] {
+        team_makes_one_learners_steps(inputs, batch);
+    }
+}
+
+fn team_makes_one_learners_steps(inputs: usize, batch: usize) {
     let mut rng = ChaCha8Rng::seed_from_u64(8);
-    let (m, obs) = meta(6);
+    let (m, obs) = meta(inputs);
     let s = SacSettings { target_entropy: Some(-2.0), ..SacSettings::for_space(&m.action_space).unwrap() };
     let start = Sac::new(SacNets::new(&m, obs, &mut rng), s, 8);
     let mut replay = Replay::new(500, obs, vec![]);
@@ -297,7 +305,10 @@ fn issue_32_a_team_of_learners_makes_one_learners_sac_steps() {
         let r: Vec<f32> = (0..n).map(|_| rng.random_range(-1.0..1.0)).collect();
         replay.push_episode(&x, &a, &r, true).unwrap();
     }
-    let batches: Vec<Batch> = (0..3).map(|_| replay.sample(64, &mut rng).unwrap()).collect();
+    let batches: Vec<Batch> = (0..3).map(|_| replay.sample(batch, &mut rng).unwrap()).collect();
+    let defer = learner::sac::Defer::for_batch(&start.nets, batch);
+    let factored = [&defer.policy, &defer.q1, &defer.q2, &defer.v].iter().all(|d| !d.is_empty());
+    assert_eq!(factored, inputs == 300, "{defer:?}");
     let mut alone = start.clone();
     let want: Vec<Losses> = batches.iter().map(|b| alone.step(b, Par::Seq, &mut Tapes::default())).collect();
     for size in [2, 3] {
@@ -405,4 +416,45 @@ fn issue_32_a_joiner_takes_over_a_sac_learner_and_its_memory_and_updates_as_it_d
         assert_eq!(joiner.state(), leader.state(), "update {k}");
         assert!(joiner.replay() == leader.replay(), "update {k}");
     }
+}
+
+/// The big dense layers' weight gradients a SAC step leaves as factors (what a learner team
+/// sends, and what Adam multiplies out) are the full gradients, `dW = dᵀ·x`; the losses and
+/// every other gradient value are the same.
+#[test]
+fn issue_32_sac_gradients_left_as_factors_multiply_out_to_the_full_ones() {
+    use learner::sac::{Defer, losses_and_grads_share};
+    let mut rng = ChaCha8Rng::seed_from_u64(4);
+    let (m, obs) = meta(300);
+    let s = SacSettings::for_space(&m.action_space).unwrap();
+    let mut nets = SacNets::new(&m, obs, &mut rng);
+    jitter(&mut nets, &mut rng);
+    let batch = random_batch(&nets, 8, false, &mut rng);
+    let eps: Vec<f32> = (0..16).map(|_| rng.random_range(-1.5..1.5)).collect();
+    let defer = Defer::for_batch(&nets, 8);
+    let (l_full, full) = losses_and_grads(&nets, &s, 0.3, &batch, &eps, Par::Seq, &mut Tapes::default());
+    let mut t = Tapes::default();
+    let (l_def, def) = losses_and_grads_share(&nets, &s, 0.3, &batch, &eps, 1.0 / 8.0, &defer, Par::Seq, &mut t);
+    assert_eq!(l_full, l_def);
+    let f = &def.factors;
+    for (name, full, part, factors) in [
+        ("policy", &full.policy, &def.policy, &f.policy),
+        ("q1", &full.q1, &def.q1, &f.q1),
+        ("q2", &full.q2, &def.q2, &f.q2),
+        ("v", &full.v, &def.v, &f.v),
+    ] {
+        assert!(!factors.is_empty(), "{name}: no layer deferred");
+        let mut got = part.clone();
+        for fa in factors {
+            for o in 0..fa.n_out {
+                for i in 0..fa.n_in {
+                    let dw: f32 = (0..fa.batch).map(|b| fa.d[b * fa.n_out + o] * fa.x[b * fa.n_in + i]).sum();
+                    got[fa.offset + o * fa.n_in + i] = dw;
+                }
+            }
+        }
+        let worst = got.iter().zip(full.iter()).map(|(a, b)| (a - b).abs() / b.abs().max(1e-3)).fold(0.0f32, f32::max);
+        assert!(worst < 1e-3, "{name}: the multiplied-out factors differ from the full gradient by {worst}");
+    }
+    assert_eq!(full.q_embed, def.q_embed);
 }

@@ -477,10 +477,26 @@ impl Net {
     /// in`, a sample's inputs in their order): what a loss that flows through this network
     /// into something upstream needs (SAC's policy loss through the Q network's action).
     pub fn backward_input(&self, tape: &mut Tape, d_out: &[f32], grad: &mut [f32], par: Par, d_in: &mut Vec<f32>) {
+        self.backward_input_factored(tape, d_out, grad, par, &[], &mut Vec::new(), d_in);
+    }
+
+    /// [`Net::backward_input`], leaving the weight gradient of the dense layers `defer` as
+    /// their factors, as [`Net::backward_factored`] does.
+    #[allow(clippy::too_many_arguments)]
+    pub fn backward_input_factored(
+        &self,
+        tape: &mut Tape,
+        d_out: &[f32],
+        grad: &mut [f32],
+        par: Par,
+        defer: &[usize],
+        factors: &mut Vec<Factors>,
+        d_in: &mut Vec<f32>,
+    ) {
         let batch = tape.batch;
         d_in.clear();
         d_in.resize(batch * self.in_size(), 0.0);
-        self.backward_pass(tape, d_out, grad, par, &[], &mut Vec::new(), Some(d_in));
+        self.backward_pass(tape, d_out, grad, par, defer, factors, Some(d_in));
     }
 
     /// The dense layers whose weight gradient for `batch` samples is at least four times

@@ -18,6 +18,7 @@ mod team;
 
 pub use team::{Alone, GroupError, Reducer};
 use team::{Part, Role};
+pub(crate) use team::{kept, skipped};
 
 use crate::algorithm::LearnerState;
 use crate::hyperparams::{Hyperparameters, LossType};
@@ -422,7 +423,10 @@ fn deferred_ranges(net: &policy::nn::Net, defer: &[usize]) -> Vec<(usize, usize)
 /// A tower's factored layers' weight gradients as the optimiser takes them: this learner's
 /// own `factors`, or every team member's shares of the tower in rank order (`every`, as
 /// [`Reducer::all_reduce`] returned them: per member, layer by layer, `x` then `d`).
-fn factored_grads<'a>(factors: &'a [Factors], every: Option<(&'a [Vec<f32>], &[usize])>) -> Vec<FactoredGrad<'a>> {
+pub(crate) fn factored_grads<'a>(
+    factors: &'a [Factors],
+    every: Option<(&[&'a [f32]], &[usize])>,
+) -> Vec<FactoredGrad<'a>> {
     let mut all: Vec<FactoredGrad<'a>> = factors
         .iter()
         .map(|f| FactoredGrad {

@@ -193,6 +193,7 @@ impl Ppo {
         } else {
             None
         };
+        let every: Option<Vec<&[f32]>> = every.as_ref().map(|e| e.iter().map(|v| &v[..]).collect());
         let factored = factored_grads(part.of(lg).1, every.as_deref().map(|e| (e, shares)));
         let finite = match part {
             Part::Policy if self.holds_policy() => lg.grad_log_std.iter().all(|g| g.is_finite()),
@@ -329,14 +330,14 @@ impl Ppo {
 }
 
 /// The parameter ranges a tower's factored layers leave out of its gradient vector.
-fn skipped(factors: &[Factors]) -> Vec<(usize, usize)> {
+pub(crate) fn skipped(factors: &[Factors]) -> Vec<(usize, usize)> {
     let mut r: Vec<(usize, usize)> = factors.iter().map(|f| (f.offset, f.offset + f.n_in * f.n_out)).collect();
     r.sort_unstable();
     r
 }
 
 /// The parts of `grad` outside `skip`, in order.
-fn kept<'a>(grad: &'a [f32], skip: &'a [(usize, usize)]) -> impl Iterator<Item = &'a [f32]> + 'a {
+pub(crate) fn kept<'a>(grad: &'a [f32], skip: &'a [(usize, usize)]) -> impl Iterator<Item = &'a [f32]> + 'a {
     let mut at = 0;
     let mut out = Vec::with_capacity(skip.len() + 1);
     for &(a, b) in skip {

@@ -19,10 +19,10 @@
 pub mod replay;
 pub mod trainer;
 
-use crate::ppo::{Alone, GroupError, Reducer, StateMismatch};
+use crate::ppo::{Alone, GroupError, Reducer, StateMismatch, factored_grads, kept, skipped};
 use faer::Par;
 use policy::model::{SAC_LOG_STD_RANGE, Squashed, sac_policy, sac_q_embedder, sac_q_head, sac_value, squashed};
-use policy::nn::{Adam, Net, Tape};
+use policy::nn::{Adam, Factors, Net, Tape};
 use policy::{ActionSpace, ModelMetadata};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -169,6 +169,60 @@ pub struct Losses {
     pub alpha: f64,
 }
 
+/// The dense layers of each network whose weight gradient is left as its factors (inputs and
+/// output gradients) until Adam multiplies it out: for a camera network's big layers the
+/// factors of a batch are a fraction of the product, and they are what a learner team's
+/// members exchange. Empty: every gradient in full.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Defer {
+    /// The policy's layers.
+    pub policy: Vec<usize>,
+    /// `q1`'s.
+    pub q1: Vec<usize>,
+    /// `q2`'s.
+    pub q2: Vec<usize>,
+    /// V's.
+    pub v: Vec<usize>,
+}
+
+impl Defer {
+    /// The layers worth factoring for batches of `batch` transitions
+    /// ([`Net::factorable`]); the Q embedder has none (convolutions only).
+    pub fn for_batch(nets: &SacNets, batch: usize) -> Defer {
+        Defer {
+            policy: nets.policy.factorable(batch),
+            q1: nets.q.q1.factorable(batch),
+            q2: nets.q.q2.factorable(batch),
+            v: nets.v.factorable(batch),
+        }
+    }
+
+    /// Nothing deferred.
+    pub fn none() -> Defer {
+        Defer::default()
+    }
+}
+
+/// The deferred layers' factors, per network (last layer first, as a backward pass pushes
+/// them).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Deferred {
+    /// The policy's.
+    pub policy: Vec<Factors>,
+    /// `q1`'s.
+    pub q1: Vec<Factors>,
+    /// `q2`'s.
+    pub q2: Vec<Factors>,
+    /// V's.
+    pub v: Vec<Factors>,
+}
+
+impl Deferred {
+    fn parts(&self) -> [&Vec<Factors>; 4] {
+        [&self.policy, &self.q1, &self.q2, &self.v]
+    }
+}
+
 /// Parameter gradients of the three losses (and the temperature's).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Grads {
@@ -184,6 +238,30 @@ pub struct Grads {
     pub v: Vec<f32>,
     /// Of the temperature's loss wrt log α (0 when the temperature is fixed).
     pub log_alpha: f32,
+    /// The deferred layers' weight gradients, as factors (their places in the vectors above
+    /// hold zeros).
+    pub factors: Deferred,
+}
+
+impl Grads {
+    /// Each network's gradient with its deferred layers' factors, in exchange order: the
+    /// policy, the Q embedder (none deferred), `q1`, `q2`, V.
+    fn parts(&self) -> [(&Vec<f32>, &[Factors]); 5] {
+        let f = &self.factors;
+        [(&self.policy, &f.policy), (&self.q_embed, &[]), (&self.q1, &f.q1), (&self.q2, &f.q2), (&self.v, &f.v)]
+    }
+
+    /// [`Grads::parts`], the gradients to write.
+    fn parts_mut(&mut self) -> [(&mut Vec<f32>, &[Factors]); 5] {
+        let f = &self.factors;
+        [
+            (&mut self.policy, &f.policy),
+            (&mut self.q_embed, &[]),
+            (&mut self.q1, &f.q1),
+            (&mut self.q2, &f.q2),
+            (&mut self.v, &f.v),
+        ]
+    }
 }
 
 /// Buffers kept between gradient steps.
@@ -214,11 +292,12 @@ pub fn losses_and_grads(
     par: Par,
     t: &mut Tapes,
 ) -> (Losses, Grads) {
-    losses_and_grads_share(nets, s, alpha, batch, eps, 1.0 / batch.len().max(1) as f32, par, t)
+    losses_and_grads_share(nets, s, alpha, batch, eps, 1.0 / batch.len().max(1) as f32, &Defer::none(), par, t)
 }
 
 /// [`losses_and_grads`] of a share of a batch, each transition weighted by `weight` (one
-/// over the whole batch's size): the shares' losses and gradients add up to the batch's.
+/// over the whole batch's size): the shares' losses and gradients add up to the batch's. The
+/// weight gradients of the layers `defer` are left as their factors.
 #[allow(clippy::too_many_arguments)]
 pub fn losses_and_grads_share(
     nets: &SacNets,
@@ -227,6 +306,7 @@ pub fn losses_and_grads_share(
     batch: &Batch,
     eps: &[f32],
     weight: f32,
+    defer: &Defer,
     par: Par,
     t: &mut Tapes,
 ) -> (Losses, Grads) {
@@ -240,6 +320,7 @@ pub fn losses_and_grads_share(
         q2: vec![0.0; nets.q.q2.params.len()],
         v: vec![0.0; nets.v.params.len()],
         log_alpha: 0.0,
+        factors: Deferred::default(),
     };
     if b == 0 {
         return (Losses { alpha: alpha as f64, ..Losses::default() }, g);
@@ -280,8 +361,8 @@ pub fn losses_and_grads_share(
         d1[i] = e1 * inv;
         d2[i] = e2 * inv;
     }
-    nets.q.q1.backward_input(&mut t.q1, &d1, &mut g.q1, par, &mut t.dx1);
-    nets.q.q2.backward_input(&mut t.q2, &d2, &mut g.q2, par, &mut t.dx2);
+    nets.q.q1.backward_input_factored(&mut t.q1, &d1, &mut g.q1, par, &defer.q1, &mut g.factors.q1, &mut t.dx1);
+    nets.q.q2.backward_input_factored(&mut t.q2, &d2, &mut g.q2, par, &defer.q2, &mut g.factors.q2, &mut t.dx2);
     if let Some(e) = &nets.q.embed {
         let d_emb: Vec<f32> = (t.dx1.chunks_exact(width + 2).zip(t.dx2.chunks_exact(width + 2)))
             .flat_map(|(r1, r2)| r1[..width].iter().zip(&r2[..width]).map(|(x, y)| x + y).collect::<Vec<_>>())
@@ -323,7 +404,7 @@ pub fn losses_and_grads_share(
             }
         }
     }
-    nets.policy.backward(&mut t.policy, &d_out, &mut g.policy, par);
+    nets.policy.backward_factored(&mut t.policy, &d_out, &mut g.policy, par, &defer.policy, &mut g.factors.policy);
     // V against min q − α·log π of the same draws.
     nets.v.forward(&batch.obs, b, &mut t.v, par);
     let mut dv = vec![0.0f32; b];
@@ -338,7 +419,7 @@ pub fn losses_and_grads_share(
             dv[i] = 2.0 * e * inv;
         }
     }
-    nets.v.backward(&mut t.v, &dv, &mut g.v, par);
+    nets.v.backward_factored(&mut t.v, &dv, &mut g.v, par, &defer.v, &mut g.factors.v);
     if let Some(h) = s.target_entropy {
         // SAC's temperature loss −log α·(log π + H̄), as Stable-Baselines3 writes it.
         g.log_alpha = -draws.iter().map(|d| d.logp + h).sum::<f32>() * inv;
@@ -440,28 +521,56 @@ impl Sac {
         let (lo, hi) = (b * rank / size.max(1), b * (rank + 1) / size.max(1));
         let weight = 1.0 / b.max(1) as f32;
         let alpha = self.alpha();
+        // The big dense layers, chosen for the whole batch: every member defers the same.
+        let defer = Defer::for_batch(&self.nets, b);
         let (mut losses, mut g) = if size > 1 {
             let share = batch.rows(lo..hi);
-            losses_and_grads_share(&self.nets, &self.settings, alpha, &share, &eps[2 * lo..2 * hi], weight, par, tapes)
+            let e = &eps[2 * lo..2 * hi];
+            losses_and_grads_share(&self.nets, &self.settings, alpha, &share, e, weight, &defer, par, tapes)
         } else {
-            losses_and_grads_share(&self.nets, &self.settings, alpha, batch, &eps, weight, par, tapes)
+            losses_and_grads_share(&self.nets, &self.settings, alpha, batch, &eps, weight, &defer, par, tapes)
         };
+        let shares: Vec<usize> = (0..size).map(|r| b * (r + 1) / size - b * r / size).collect();
+        let mut every = None;
         if size > 1 {
-            // One exchange: the gradients, the temperature's, and the losses' shares.
-            let parts = [g.policy.len(), g.q_embed.len(), g.q1.len(), g.q2.len(), g.v.len()];
-            let mut flat: Vec<f32> = Vec::with_capacity(parts.iter().sum::<usize>() + 6);
-            for part in [&g.policy, &g.q_embed, &g.q1, &g.q2, &g.v] {
-                flat.extend_from_slice(part);
+            // One exchange: the gradients but the deferred layers' weights, the temperature's,
+            // and the losses' shares summed; the deferred layers' factors gathered.
+            let mut flat: Vec<f32> = Vec::new();
+            for (grad, factors) in g.parts() {
+                let skip = skipped(factors);
+                for run in kept(grad, &skip) {
+                    flat.extend_from_slice(run);
+                }
             }
             let l = &losses;
             flat.extend([g.log_alpha, l.policy as f32, l.q as f32, l.v as f32, l.entropy as f32, l.q_mean as f32]);
+            let mut mine = Vec::new();
+            for f in g.factors.parts().into_iter().flatten() {
+                mine.extend_from_slice(&f.x);
+                mine.extend_from_slice(&f.d);
+            }
             let ranks: Vec<usize> = (0..size).collect();
-            group.all_reduce(exchange, &ranks, &mut flat, Vec::new())?;
+            let theirs = group.all_reduce(exchange, &ranks, &mut flat, mine)?;
+            let per_sample: usize = g.factors.parts().into_iter().flatten().map(|f| f.n_in + f.n_out).sum();
+            for (r, f) in theirs.iter().enumerate() {
+                if f.len() != shares[r] * per_sample {
+                    return Err(GroupError(format!(
+                        "member {r}'s factors hold {} numbers where {} were expected",
+                        f.len(),
+                        shares[r] * per_sample
+                    )));
+                }
+            }
             let mut at = 0;
-            for part in [&mut g.policy, &mut g.q_embed, &mut g.q1, &mut g.q2, &mut g.v] {
-                let n = part.len();
-                part.copy_from_slice(&flat[at..at + n]);
-                at += n;
+            for (grad, factors) in g.parts_mut() {
+                let skip = skipped(factors);
+                let mut from = 0;
+                for &(a, end) in skip.iter().chain(std::iter::once(&(grad.len(), grad.len()))) {
+                    let n = a - from;
+                    grad[from..a].copy_from_slice(&flat[at..at + n]);
+                    at += n;
+                    from = end;
+                }
             }
             let tail = &flat[at..];
             g.log_alpha = tail[0];
@@ -473,20 +582,43 @@ impl Sac {
                 q_mean: tail[5] as f64,
                 alpha: alpha as f64,
             };
+            every = Some(theirs);
         }
-        self.apply(&g, par);
+        self.apply(&g, every.as_deref().map(|e| (e, &shares[..])), par);
+        let Deferred { policy, q1, q2, v } = g.factors;
+        tapes.policy.take_back(policy);
+        tapes.q1.take_back(q1);
+        tapes.q2.take_back(q2);
+        tapes.v.take_back(v);
         Ok(losses)
     }
 
-    /// Each network's Adam step on `g` (and the temperature's, when it is tuned).
-    fn apply(&mut self, g: &Grads, par: Par) {
-        self.adam_policy.step_with(&mut self.nets.policy.params, &g.policy, par);
+    /// Each network's Adam step on `g` (and the temperature's, when it is tuned): the
+    /// deferred layers' weight gradients multiplied out from this learner's factors, or from
+    /// every member's (`every`, with each member's share of the batch) in rank order.
+    fn apply(&mut self, g: &Grads, every: Option<(&[Vec<f32>], &[usize])>, par: Par) {
+        // Each member's factors, cut per network (the networks' layers follow one another).
+        let parts = g.factors.parts();
+        let mut cuts: Vec<Vec<&[f32]>> = vec![Vec::new(); parts.len()];
+        if let Some((every, shares)) = every {
+            for (fr, &b) in every.iter().zip(shares) {
+                let mut at = 0;
+                for (k, fs) in parts.iter().enumerate() {
+                    let n = b * fs.iter().map(|f| f.n_in + f.n_out).sum::<usize>();
+                    cuts[k].push(&fr[at..at + n]);
+                    at += n;
+                }
+            }
+        }
+        let fg = |k: usize| factored_grads(parts[k], every.map(|(_, shares)| (&cuts[k][..], shares)));
+        let (policy, q1, q2, v) = (fg(0), fg(1), fg(2), fg(3));
+        self.adam_policy.step_factored(&mut self.nets.policy.params, &g.policy, &policy, par);
         if let Some(e) = self.nets.q.embed.as_mut() {
             self.adam_embed.step_with(&mut e.params, &g.q_embed, par);
         }
-        self.adam_q1.step_with(&mut self.nets.q.q1.params, &g.q1, par);
-        self.adam_q2.step_with(&mut self.nets.q.q2.params, &g.q2, par);
-        self.adam_v.step_with(&mut self.nets.v.params, &g.v, par);
+        self.adam_q1.step_factored(&mut self.nets.q.q1.params, &g.q1, &q1, par);
+        self.adam_q2.step_factored(&mut self.nets.q.q2.params, &g.q2, &q2, par);
+        self.adam_v.step_factored(&mut self.nets.v.params, &g.v, &v, par);
         if self.settings.target_entropy.is_some() {
             let mut la = [self.log_alpha];
             self.adam_alpha.step(&mut la, &[g.log_alpha]);
