@@ -195,7 +195,8 @@ fn issue_32_sac_trains_to_laps_and_a_resumed_run_goes_on_with_its_critics_and_me
     let files = ["--model-metadata", "model_metadata_sac.json", "--hyperparameters", "hyperparameters.json"];
     let o = coordinator(
         d,
-        &[&["train"][..], &files[..], &["--target-laps", "3", "--minutes", "3", "--out", "run"]].concat(),
+        &[&["train"][..], &files[..], &["--target-laps", "3", "--target-evals", "1", "--minutes", "3", "--out", "run"]]
+            .concat(),
     );
     let out = text(&o);
     assert!(o.status.success() && out.contains("target laps reached"), "{out}");

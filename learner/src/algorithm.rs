@@ -123,6 +123,11 @@ pub trait Algorithm {
     fn save_memory(&self, _root: &Path) -> Result<(), String> {
         Ok(())
     }
+    /// Write into the run folder `root`, at a checkpoint, what a run resumed after a crash
+    /// needs beyond the checkpoint (SAC: the transitions stored since the last one).
+    fn save_memory_part(&mut self, _root: &Path) -> Result<(), String> {
+        Ok(())
+    }
 }
 
 impl Algorithm for Ppo {

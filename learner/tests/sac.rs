@@ -228,6 +228,61 @@ fn issue_32_sac_learns_a_task_whose_answer_is_known() {
     assert!(after < 0.15 && after < before / 3.0, "largest action error {before:.3} → {after:.3}");
 }
 
+/// The same bandit from pixels: the two values are the brightness of an 8 × 10 image's left
+/// and right halves, stored as bytes in the replay memory, and every network sees them through
+/// its convolutions (the Q heads through their shared embedder). SAC must find the answer
+/// from the image alone (a wrong gradient through a convolution, the embedder or the pixels'
+/// scale fails it).
+#[test]
+fn issue_32_sac_learns_the_bandit_from_pixels() {
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let (m, _) = meta(80);
+    let nets = small_camera_nets(&mut rng);
+    let settings = SacSettings { alpha: 0.01, lr: 1e-3, ..SacSettings::for_space(&m.action_space).unwrap() };
+    let mut sac = Sac::new(nets, settings, 5);
+    let pixels = std::ops::Range { start: 0, end: 80 };
+    let mut replay = Replay::new(10_000, 80, vec![pixels]);
+    let mut tapes = Tapes::default();
+    let mut act_rng = ChaCha8Rng::seed_from_u64(6);
+    let image = |x: [f32; 2]| -> Vec<f32> {
+        (0..80)
+            .map(|i| if i % 10 < 5 { ((x[0] + 1.0) * 127.0).round() } else { ((x[1] + 1.0) * 127.0).round() })
+            .collect()
+    };
+    let seen = |img: &[f32]| [img[0] / 127.0 - 1.0, img[9] / 127.0 - 1.0];
+    let best = |x: [f32; 2]| [x[0] * 0.8, -x[1] * 0.4];
+    let error = |sac: &Sac, rng: &mut ChaCha8Rng| {
+        let mut worst = 0.0f32;
+        let mut tape = policy::nn::Tape::default();
+        for _ in 0..50 {
+            let img = image([rng.random_range(-1.0..1.0f32), rng.random_range(-1.0..1.0f32)]);
+            sac.nets.policy.forward(&img, 1, &mut tape, Par::Seq);
+            let a = policy::model::squashed(tape.output(), [0.0; 2], sac.settings.scale).a;
+            let b = best(seen(&img));
+            worst = worst.max((a[0] - b[0]).abs()).max((a[1] - b[1]).abs());
+        }
+        worst
+    };
+    let before = error(&sac, &mut act_rng);
+    let mut tape = policy::nn::Tape::default();
+    for step in 0..3000 {
+        let img = image([act_rng.random_range(-1.0..1.0f32), act_rng.random_range(-1.0..1.0f32)]);
+        sac.nets.policy.forward(&img, 1, &mut tape, Par::Seq);
+        let eps = [act_rng.random::<f32>() * 2.0 - 1.0, act_rng.random::<f32>() * 2.0 - 1.0];
+        let a = policy::model::squashed(tape.output(), eps, sac.settings.scale).a;
+        let b = best(seen(&img));
+        let reward = -((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2));
+        replay.push_episode(&img, &[a], &[reward], true).unwrap();
+        if step >= 64 {
+            let batch = replay.sample(64, &mut rng).unwrap();
+            sac.step(&batch, Par::Seq, &mut tapes);
+            sac.update_target();
+        }
+    }
+    let after = error(&sac, &mut act_rng);
+    assert!(after < 0.2 && after < before / 3.0, "largest action error {before:.3} → {after:.3}");
+}
+
 #[test]
 fn issue_32_the_replay_memory_survives_a_save_and_a_smaller_capacity_keeps_the_newest() {
     let dir = tempfile::tempdir().unwrap();
@@ -457,4 +512,88 @@ fn issue_32_sac_gradients_left_as_factors_multiply_out_to_the_full_ones() {
         assert!(worst < 1e-3, "{name}: the multiplied-out factors differ from the full gradient by {worst}");
     }
     assert_eq!(full.q_embed, def.q_embed);
+}
+
+/// A SAC run keeps its replay memory at every checkpoint: the first writes it whole, each
+/// later one the transitions stored since as a part, and parts grown as large as the memory
+/// become the whole memory again; a run that crashed after a checkpoint resumes with the
+/// memory as it was then (the ring's oldest gone as they were). A part that does not fit is
+/// refused, naming its file.
+#[test]
+fn issue_32_the_replay_memory_is_kept_at_every_checkpoint_and_survives_a_crash() {
+    use learner::algorithm::{Algorithm, Shared};
+    use learner::sac::SacTrainer;
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    let (m, obs) = meta(6);
+    let h = learner::Hyperparameters {
+        sac_replay_size: 500,
+        sac_gradient_steps_per_transition: 0.05,
+        ..Default::default()
+    };
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    let model = policy::ActorCritic::new(&m, obs, &mut rng);
+    let episodes = |rng: &mut ChaCha8Rng| -> Vec<policy::Trajectory> {
+        (0..3)
+            .map(|k| policy::Trajectory {
+                world: "w".into(),
+                obs: (0..70 * obs).map(|_| rng.random_range(-1.0..1.0)).collect(),
+                choices: (0..70).map(|_| policy::Choice::Continuous([0.5, -0.25])).collect(),
+                rewards: (0..70).map(|_| rng.random_range(-1.0..1.0)).collect(),
+                done: k != 1,
+                ..Default::default()
+            })
+            .collect()
+    };
+    let same = |a: &Replay, b: &Replay| {
+        let draw = |r: &Replay| r.sample(300, &mut ChaCha8Rng::seed_from_u64(1)).unwrap();
+        a.len() == b.len() && a.added() == b.added() && draw(a) == draw(b)
+    };
+    let parts = |root: &std::path::Path| std::fs::read_dir(root.join("replay")).map_or(0, |d| d.count());
+    let mut t = SacTrainer::new(model.clone(), &m, obs, &h, 0, 1, Par::Seq).unwrap();
+    t.update_alone(&episodes(&mut rng)).unwrap();
+    t.save_memory_part(root).unwrap();
+    assert!(root.join("replay.safetensors").exists() && parts(root) == 0, "the first checkpoint: the whole memory");
+    for want in [1, 2] {
+        t.update_alone(&episodes(&mut rng)).unwrap();
+        t.save_memory_part(root).unwrap();
+        assert_eq!(parts(root), want, "a part of 210 transitions a checkpoint");
+    }
+    assert_eq!((t.replay().added(), t.replay().len()), (630, 500), "the ring went round");
+    // A crash now: a new learner takes the memory of the last checkpoint.
+    let mut back = SacTrainer::new(model.clone(), &m, obs, &h, 0, 2, Par::Seq).unwrap();
+    assert!(back.load_memory(root).unwrap());
+    assert!(same(back.replay(), t.replay()), "the memory and its parts, in order");
+    // A third part would hold more than the memory: the whole memory again, the parts let go.
+    t.update_alone(&episodes(&mut rng)).unwrap();
+    t.save_memory_part(root).unwrap();
+    assert_eq!(parts(root), 0);
+    let mut back = SacTrainer::new(model.clone(), &m, obs, &h, 0, 2, Par::Seq).unwrap();
+    assert!(back.load_memory(root).unwrap() && same(back.replay(), t.replay()));
+    // The resumed learner's own parts follow on.
+    back.update_alone(&episodes(&mut rng)).unwrap();
+    back.save_memory_part(root).unwrap();
+    let mut again = SacTrainer::new(model.clone(), &m, obs, &h, 0, 3, Par::Seq).unwrap();
+    assert!(again.load_memory(root).unwrap() && same(again.replay(), back.replay()));
+    // A clean end: the whole memory, no parts.
+    back.save_memory(root).unwrap();
+    assert!(!root.join("replay").exists());
+    // A part of another observation is refused, naming its file.
+    let (m8, _) = meta(8);
+    let mut other = SacTrainer::new(policy::ActorCritic::new(&m8, 8, &mut rng), &m8, 8, &h, 0, 4, Par::Seq).unwrap();
+    let trajs: Vec<policy::Trajectory> = episodes(&mut rng)
+        .into_iter()
+        .map(|mut t| {
+            t.obs = (0..70 * 8).map(|i| i as f32 / 560.0).collect();
+            t
+        })
+        .collect();
+    other.update_alone(&trajs).unwrap();
+    let alien = tempfile::tempdir().unwrap();
+    other.save_memory(alien.path()).unwrap();
+    std::fs::create_dir_all(root.join("replay")).unwrap();
+    std::fs::copy(alien.path().join("replay.safetensors"), root.join("replay/99999999999999999999.safetensors"))
+        .unwrap();
+    let e = again.load_memory(root).unwrap_err();
+    assert!(e.contains("99999999999999999999.safetensors") && e.contains("transitions of 8 values"), "{e}");
 }

@@ -787,6 +787,7 @@ impl<'a> Run<'a> {
             "seconds": self.start.elapsed().as_secs_f64(), "hyperparameters": spec.hyper}));
         if self.saved_iteration != Some(self.iteration) {
             self.save_checkpoint(&name, &manifest);
+            noted(&self.dir, "the replay memory's part not kept", self.algo.save_memory_part(self.dir.root()));
             self.saved_iteration = Some(self.iteration);
         }
         self.last_eval = Some(Instant::now());
@@ -1135,7 +1136,7 @@ fn algorithm(
                     tracing::info!(run = %spec.name, transitions = sac.replay().len(), "SAC: the replay memory goes on")
                 }
                 Ok(false) => {
-                    tracing::warn!(run = %spec.name, "SAC: no replay memory kept (the run did not end cleanly): it starts empty")
+                    tracing::warn!(run = %spec.name, "SAC: the run folder holds no replay memory: it starts empty")
                 }
                 Err(e) => tracing::warn!(run = %spec.name, "SAC: the replay memory starts empty: {e}"),
             }

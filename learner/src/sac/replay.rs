@@ -253,86 +253,97 @@ impl Replay {
     /// A memory of `capacity` transitions holding what [`Replay::save`] wrote (the newest
     /// of them, when it held more).
     pub fn from_bytes(bytes: &[u8], capacity: usize) -> Result<Replay, String> {
-        let (_, meta) =
-            safetensors::SafeTensors::read_metadata(bytes).map_err(|e| format!("not a safetensors file: {e}"))?;
-        let st = safetensors::SafeTensors::deserialize(bytes).map_err(|e| format!("not a safetensors file: {e}"))?;
-        let info = meta.metadata().clone().unwrap_or_default();
-        let field = |k: &str| info.get(k).cloned().ok_or_else(|| format!("no '{k}' in its header"));
-        if field("format")? != "paddock-replay-1" {
-            return Err(format!("format '{}', expected paddock-replay-1", field("format")?));
-        }
-        let per: usize = field("per")?.parse().map_err(|_| "'per' is not a number".to_string())?;
-        let mut bytes_ranges = Vec::new();
-        for part in field("bytes")?.split(',').filter(|p| !p.is_empty()) {
-            let (a, b) = part.split_once('-').ok_or_else(|| format!("byte range '{part}'"))?;
-            let (a, b): (usize, usize) = (
-                a.parse().map_err(|_| format!("byte range '{part}'"))?,
-                b.parse().map_err(|_| format!("byte range '{part}'"))?,
-            );
-            if a > b || b > per || bytes_ranges.last().is_some_and(|r: &Range<usize>| r.end > a) {
-                return Err(format!("byte range '{part}' does not fit {per} values"));
-            }
-            bytes_ranges.push(a..b);
-        }
-        // Borrowed from `bytes`: a camera memory is not copied twice on the way in.
-        let tensor = |n: &str| st.tensor(n).map(|t| t.data()).map_err(|_| format!("has no tensor '{n}'"));
-        let (pixels, floats, action, reward, end) =
-            (tensor("pixels")?, tensor("floats")?, tensor("action")?, tensor("reward")?, tensor("end")?);
-        let mut r = Replay::new(capacity, per, bytes_ranges);
-        let n = end.len();
-        let fl = per - r.byte_len;
-        if pixels.len() != n * r.byte_len
-            || floats.len() != n * fl * 4
-            || action.len() != n * 8
-            || reward.len() != n * 4
-        {
-            return Err(format!("tensor sizes do not agree with {n} transitions of {per} values"));
-        }
-        if end.iter().any(|&e| e > 2) {
-            return Err("tensor 'end' holds values other than 0, 1 and 2".into());
-        }
-        let f = |b: &[u8], i: usize| f32::from_le_bytes([b[4 * i], b[4 * i + 1], b[4 * i + 2], b[4 * i + 3]]);
-        let mut row = vec![0.0f32; per];
-        let oldest: usize = field("oldest")?.parse().map_err(|_| "'oldest' is not a number".to_string())?;
-        if n > 0 && oldest >= n {
-            return Err(format!("'oldest' is {oldest}, past the {n} transitions held"));
-        }
-        if n == r.capacity && oldest > 0 {
+        let file = Stored::read(bytes)?;
+        let mut r = Replay::new(capacity, file.per, file.bytes.clone());
+        let n = file.end.len();
+        if n == r.capacity && file.oldest > 0 {
             // A full ring into one of its size: as it lay, so that it writes the same bytes
             // again and draws the same batches (a learner team's joiner holds the leader's).
-            r.pixels = pixels.to_vec();
-            r.floats = (0..n * fl).map(|i| f(floats, i)).collect();
-            r.action = (0..n).map(|i| [f(action, 2 * i), f(action, 2 * i + 1)]).collect();
-            r.reward = (0..n).map(|i| f(reward, i)).collect();
-            r.end = end.to_vec();
-            (r.len, r.head) = (n, oldest);
-            r.added = field("added")?.parse().unwrap_or(n as u64).max(n as u64);
+            let fl = file.per - r.byte_len;
+            r.pixels = file.pixels.to_vec();
+            r.floats = (0..n * fl).map(|i| le(file.floats, i)).collect();
+            r.action = (0..n).map(|i| [le(file.action, 2 * i), le(file.action, 2 * i + 1)]).collect();
+            r.reward = (0..n).map(|i| le(file.reward, i)).collect();
+            r.end = file.end.to_vec();
+            (r.len, r.head) = (n, file.oldest);
+            r.added = file.added.max(n as u64);
             return Ok(r);
         }
+        r.append(&file);
+        Ok(r)
+    }
+
+    /// Append what [`Replay::save`] or [`Replay::segment_since`] wrote, oldest first (the
+    /// oldest of this memory's make way when it is full); false, and nothing appended, when
+    /// this memory has stored as many transitions as it had (it holds them already). Refused,
+    /// with nothing changed, unless it holds transitions of this memory's shape.
+    pub fn extend_from_bytes(&mut self, bytes: &[u8]) -> Result<bool, String> {
+        let file = Stored::read(bytes)?;
+        if file.per != self.per || file.bytes != self.bytes {
+            return Err(format!(
+                "transitions of {} values (bytes at {:?}), this run's have {} (bytes at {:?})",
+                file.per, file.bytes, self.per, self.bytes
+            ));
+        }
+        if file.added <= self.added {
+            return Ok(false);
+        }
+        self.append(&file);
+        Ok(true)
+    }
+
+    /// The parts of an observation held as bytes.
+    pub fn byte_ranges(&self) -> &[Range<usize>] {
+        &self.bytes
+    }
+
+    fn append(&mut self, file: &Stored<'_>) {
+        let n = file.end.len();
+        let fl = self.per - self.byte_len;
+        let mut row = vec![0.0f32; self.per];
         // Oldest first (as the ring lay, when it was not full); the newest `capacity` of them
         // when they do not all fit.
-        for i in (0..n).map(|k| (oldest + k) % n.max(1)).skip(n.saturating_sub(r.capacity)) {
-            let e = end[i];
-            let (mut pb, mut pf, mut at) = (i * r.byte_len, i * fl, 0);
-            for range in r.bytes.clone() {
+        for i in (0..n).map(|k| (file.oldest + k) % n.max(1)).skip(n.saturating_sub(self.capacity)) {
+            let (mut pb, mut pf, mut at) = (i * self.byte_len, i * fl, 0);
+            for range in self.bytes.clone() {
                 for v in &mut row[at..range.start] {
-                    *v = f(floats, pf);
+                    *v = le(file.floats, pf);
                     pf += 1;
                 }
                 for v in &mut row[range.clone()] {
-                    *v = pixels[pb] as f32;
+                    *v = file.pixels[pb] as f32;
                     pb += 1;
                 }
                 at = range.end;
             }
             for v in &mut row[at..] {
-                *v = f(floats, pf);
+                *v = le(file.floats, pf);
                 pf += 1;
             }
-            r.put(&row, [f(action, 2 * i), f(action, 2 * i + 1)], f(reward, i), e);
+            self.put(&row, [le(file.action, 2 * i), le(file.action, 2 * i + 1)], le(file.reward, i), file.end[i]);
         }
-        r.added = field("added")?.parse().unwrap_or(n as u64).max(r.added);
-        Ok(r)
+        self.added = self.added.max(file.added);
+    }
+
+    /// The transitions stored since `from` (a count of [`Replay::added`]) that the ring still
+    /// holds, written as [`Replay::save`] writes a memory, for [`Replay::extend_from_bytes`]
+    /// to append to the memory they followed; `None` when there are none. Written between
+    /// iterations, it holds whole episodes.
+    pub fn segment_since(&self, from: u64) -> Option<Vec<u8>> {
+        let n = (self.added.saturating_sub(from)).min(self.len as u64) as usize;
+        if n == 0 {
+            return None;
+        }
+        let mut seg = Replay::new(n, self.per, self.bytes.clone());
+        let mut row = Vec::with_capacity(self.per);
+        for k in (1..=n).rev() {
+            let slot = (self.head + self.capacity - k) % self.capacity;
+            row.clear();
+            self.obs_into(slot, &mut row);
+            seg.put(&row, self.action[slot], self.reward[slot], self.end[slot]);
+        }
+        seg.added = self.added;
+        Some(seg.to_bytes())
     }
 
     /// Transitions that can be sampled (a cut episode's last step cannot).
@@ -365,4 +376,68 @@ impl Replay {
         }
         Some(b)
     }
+}
+
+/// A memory's file, read but not copied.
+struct Stored<'a> {
+    per: usize,
+    bytes: Vec<Range<usize>>,
+    added: u64,
+    oldest: usize,
+    pixels: &'a [u8],
+    floats: &'a [u8],
+    action: &'a [u8],
+    reward: &'a [u8],
+    end: &'a [u8],
+}
+
+impl<'a> Stored<'a> {
+    fn read(bytes: &'a [u8]) -> Result<Stored<'a>, String> {
+        let (_, meta) =
+            safetensors::SafeTensors::read_metadata(bytes).map_err(|e| format!("not a safetensors file: {e}"))?;
+        let st = safetensors::SafeTensors::deserialize(bytes).map_err(|e| format!("not a safetensors file: {e}"))?;
+        let info = meta.metadata().clone().unwrap_or_default();
+        let field = |k: &str| info.get(k).cloned().ok_or_else(|| format!("no '{k}' in its header"));
+        if field("format")? != "paddock-replay-1" {
+            return Err(format!("format '{}', expected paddock-replay-1", field("format")?));
+        }
+        let per: usize = field("per")?.parse().map_err(|_| "'per' is not a number".to_string())?;
+        let mut ranges = Vec::new();
+        for part in field("bytes")?.split(',').filter(|p| !p.is_empty()) {
+            let (a, b) = part.split_once('-').ok_or_else(|| format!("byte range '{part}'"))?;
+            let (a, b): (usize, usize) = (
+                a.parse().map_err(|_| format!("byte range '{part}'"))?,
+                b.parse().map_err(|_| format!("byte range '{part}'"))?,
+            );
+            if a > b || b > per || ranges.last().is_some_and(|r: &Range<usize>| r.end > a) {
+                return Err(format!("byte range '{part}' does not fit {per} values"));
+            }
+            ranges.push(a..b);
+        }
+        // Borrowed from `bytes`: a camera memory is not copied twice on the way in.
+        let tensor = |n: &str| st.tensor(n).map(|t| t.data()).map_err(|_| format!("has no tensor '{n}'"));
+        let (pixels, floats, action, reward, end) =
+            (tensor("pixels")?, tensor("floats")?, tensor("action")?, tensor("reward")?, tensor("end")?);
+        let n = end.len();
+        let byte_len: usize = ranges.iter().map(|r| r.len()).sum();
+        let fl = per - byte_len;
+        if pixels.len() != n * byte_len || floats.len() != n * fl * 4 || action.len() != n * 8 || reward.len() != n * 4
+        {
+            return Err(format!("tensor sizes do not agree with {n} transitions of {per} values"));
+        }
+        if end.iter().any(|&e| e > 2) {
+            return Err("tensor 'end' holds values other than 0, 1 and 2".into());
+        }
+        let oldest: usize = field("oldest")?.parse().map_err(|_| "'oldest' is not a number".to_string())?;
+        if n > 0 && oldest >= n {
+            return Err(format!("'oldest' is {oldest}, past the {n} transitions held"));
+        }
+        let added = field("added")?.parse().unwrap_or(n as u64).max(n as u64);
+        Ok(Stored { per, bytes: ranges, added, oldest, pixels, floats, action, reward, end })
+    }
+}
+
+/// The little-endian f32 at `i` of `b`.
+fn le(b: &[u8], i: usize) -> f32 {
+    f32::from_le_bytes([b[4 * i], b[4 * i + 1], b[4 * i + 2], b[4 * i + 3]])
 }

@@ -6,9 +6,12 @@
 //! DeepRacer's trainer does), moves V's target once, after the iteration's first gradient
 //! step, and publishes the policy as a new version.
 //!
-//! A checkpoint keeps the critics (`sac.safetensors` beside the model); the replay memory is
-//! written to the run folder (`replay.safetensors`) when the run ends, and a resumed run
-//! continues with both, or says which it starts without.
+//! A checkpoint keeps the critics (`sac.safetensors` beside the model) and the transitions
+//! stored since the last checkpoint (a part in the run folder's `replay/`); the whole replay
+//! memory is written to the run folder (`replay.safetensors`) when the run ends, or when the
+//! parts have grown as large as the memory, and the parts are then let go. A resumed run,
+//! after a clean end or a crash, continues with the critics and the memory of its last
+//! checkpoint, or says which it starts without.
 //!
 //! In a learner team ([`Shared`]) every member holds a copy of the replay memory: each plan
 //! brings the iteration's episodes, which every member stores in the same order, and its
@@ -35,6 +38,23 @@ use std::path::Path;
 pub const CRITICS_FILE: &str = "sac.safetensors";
 /// The replay memory's file in the run folder.
 pub const REPLAY_FILE: &str = "replay.safetensors";
+/// The folder of the parts of the replay memory written at each checkpoint since
+/// [`REPLAY_FILE`] (`{count}.safetensors`, the transitions stored until then).
+pub const REPLAY_PARTS: &str = "replay";
+
+/// The parts in the run folder `root`, in the order they were written.
+fn memory_parts(root: &Path) -> std::io::Result<Vec<std::path::PathBuf>> {
+    let mut parts: Vec<_> = match std::fs::read_dir(root.join(REPLAY_PARTS)) {
+        Ok(d) => d
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.extension().is_some_and(|x| x == "safetensors"))
+            .collect(),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Vec::new(),
+        Err(e) => return Err(e),
+    };
+    parts.sort();
+    Ok(parts)
+}
 
 /// What an iteration's update reports beyond PPO's figures.
 #[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
@@ -70,6 +90,10 @@ pub struct SacTrainer {
     /// The last episodes stored whose gradient steps are still to make: (new transitions,
     /// episodes refused).
     pending: Option<(usize, usize)>,
+    /// Transitions stored (a count of [`Replay::added`]) that the run folder holds.
+    on_disk: u64,
+    /// Transitions in the parts written since the whole memory was.
+    in_parts: usize,
 }
 
 /// The settings `hyperparameters.json` gives SAC for `model`'s action space.
@@ -132,6 +156,10 @@ impl SacTrainer {
             ratio: h.sac_gradient_steps_per_transition,
             carry: 0.0,
             pending: None,
+            on_disk: 0,
+            // The first checkpoint writes the whole memory (and clears any parts a run of the
+            // same folder left).
+            in_parts: usize::MAX,
         })
     }
 
@@ -173,28 +201,34 @@ impl SacTrainer {
         Ok(true)
     }
 
-    /// Take the replay memory the run folder `root` kept; false when it holds none (or one
-    /// for other observations, which is said).
+    /// Take the replay memory the run folder `root` kept: the whole memory written when a run
+    /// ended (or when its parts grew as large as the memory), then the parts written at each
+    /// checkpoint since, in order. False when it holds none. Refused, naming the file, when
+    /// one does not fit this run (its memory then starts empty).
     pub fn load_memory(&mut self, root: &Path) -> Result<bool, String> {
+        let mut found = false;
+        let mut memory = Replay::new(self.replay.capacity(), self.replay.per(), self.replay.byte_ranges().to_vec());
         let path = root.join(REPLAY_FILE);
         match std::fs::read(&path) {
             Ok(bytes) => {
-                let r = Replay::from_bytes(&bytes, self.replay.capacity())
-                    .map_err(|e| format!("{}: {e}", path.display()))?;
-                if r.per() != self.replay.per() {
-                    return Err(format!(
-                        "{}: transitions of {} values, this run's observation has {}",
-                        path.display(),
-                        r.per(),
-                        self.replay.per()
-                    ));
-                }
-                self.replay = r;
-                Ok(true)
+                memory.extend_from_bytes(&bytes).map_err(|e| format!("{}: {e}", path.display()))?;
+                found = true;
             }
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(false),
-            Err(e) => Err(format!("{}: {e}", path.display())),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+            Err(e) => return Err(format!("{}: {e}", path.display())),
         }
+        let mut parts = 0;
+        for part in memory_parts(root).map_err(|e| format!("{}: {e}", root.join(REPLAY_PARTS).display()))? {
+            let bytes = std::fs::read(&part).map_err(|e| format!("{}: {e}", part.display()))?;
+            let before = memory.added();
+            if memory.extend_from_bytes(&bytes).map_err(|e| format!("{}: {e}", part.display()))? {
+                parts += (memory.added() - before) as usize;
+                found = true;
+            }
+        }
+        self.replay = memory;
+        (self.on_disk, self.in_parts) = (self.replay.added(), parts);
+        Ok(found)
     }
 
     /// Store the episodes; returns (new transitions, episodes refused).
@@ -346,7 +380,37 @@ impl Algorithm for SacTrainer {
     }
 
     fn save_memory(&self, root: &Path) -> Result<(), String> {
-        self.replay.save(&root.join(REPLAY_FILE))
+        self.replay.save(&root.join(REPLAY_FILE))?;
+        // The parts are in the whole memory now.
+        match std::fs::remove_dir_all(root.join(REPLAY_PARTS)) {
+            Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                Err(format!("{}: {e}", root.join(REPLAY_PARTS).display()))
+            }
+            _ => Ok(()),
+        }
+    }
+
+    fn save_memory_part(&mut self, root: &Path) -> Result<(), String> {
+        let new = (self.replay.added() - self.on_disk).min(self.replay.len() as u64) as usize;
+        if new == 0 {
+            return Ok(());
+        }
+        if self.in_parts.saturating_add(new) > self.replay.capacity() {
+            // As many transitions in parts as the memory holds: the whole memory instead.
+            self.save_memory(root)?;
+            (self.on_disk, self.in_parts) = (self.replay.added(), 0);
+            return Ok(());
+        }
+        let Some(bytes) = self.replay.segment_since(self.on_disk) else { return Ok(()) };
+        let dir = root.join(REPLAY_PARTS);
+        let path = dir.join(format!("{:020}.safetensors", self.replay.added()));
+        let tmp = path.with_extension("tmp");
+        std::fs::create_dir_all(&dir)
+            .and_then(|_| std::fs::write(&tmp, bytes))
+            .and_then(|_| std::fs::rename(&tmp, &path))
+            .map_err(|e| format!("{}: {e}", path.display()))?;
+        (self.on_disk, self.in_parts) = (self.replay.added(), self.in_parts + new);
+        Ok(())
     }
 }
 
@@ -516,6 +580,8 @@ impl Shared for SacTrainer {
         self.carry = carry[0];
         self.version = state.version;
         self.pending = None;
+        // Another learner's memory: the next checkpoint writes it whole.
+        (self.on_disk, self.in_parts) = (0, usize::MAX);
         self.sync_model();
         Ok(())
     }
