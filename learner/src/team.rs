@@ -1,6 +1,7 @@
 //! Learners on several machines: synchronous PPO over Zenoh, each tower trained by its own
 //! members, and each tower's members splitting every minibatch as DD-PPO does; SAC's
-//! gradient steps split the same way, every member holding a copy of the replay memory.
+//! gradient steps split between all the members, every member holding a copy of the replay
+//! memory.
 //!
 //! The learner that runs the job (the lowest live id) leads; every other learner that serves
 //! the job follows. Per update the leader publishes a plan (the trajectories, the shuffle
@@ -17,7 +18,8 @@
 //!
 //! SAC ([`learner::algorithm::Shared`] says what differs): a plan's episodes go into every
 //! member's replay memory, in the plan's order, and its seed draws every member's batches and
-//! noise, so each gradient step is shared as one learner's ([`learner::sac::Sac::step_in`]).
+//! noise, so each gradient step is shared as one learner's ([`learner::sac::Sac::step_in`]:
+//! every member its share of the batch, the big dense layers' gradients as factors).
 //! A joiner's state includes the leader's replay memory, sent in parts of at most 32 MB
 //! ([`wire::MEMORY_PART`]) on the team's memory key just before the plan that carries the
 //! state.

@@ -1,7 +1,8 @@
 //! The sim worker: the learner's peer. It drives a vector of environments with the policy
 //! versions the learner publishes, starts only the episodes the learner granted
 //! ([`Credit`]), delivers them as [`Experience`], and runs the evaluation trials the learner
-//! asks for ([`EvalRequest`]) when it has no grant to spend.
+//! asks for ([`EvalRequest`]) when it has no grant to spend, or before its next round of
+//! episodes once an evaluation has waited through one.
 //!
 //! [`Worker::drive`] is the worker's one loop. It reads and writes through a
 //! [`WorkerLink`]: `coordinator train` passes in-process channels, `sim-agent serve` passes
@@ -104,7 +105,9 @@ pub struct Worker {
     versions: VecDeque<PolicyVersion>,
     /// (version, round) of the newest grant seen, and the episodes left to start in it.
     grant: Option<(u64, u64, u64)>,
-    evals: VecDeque<EvalRequest>,
+    /// Evaluation requests, each with whether the worker collected a round of episodes while
+    /// it waited (it then runs before the next round).
+    evals: VecDeque<(EvalRequest, bool)>,
     /// The last reports sent, answered again when their request is repeated.
     reports: VecDeque<EvalReport>,
     /// A report to send again.
@@ -179,13 +182,13 @@ impl Worker {
                 }
             }
             WorkerInbound::Eval(r) => {
-                if r.worker != self.id || self.evals.iter().any(|e| e.id == r.id) {
+                if r.worker != self.id || self.evals.iter().any(|(e, _)| e.id == r.id) {
                     return;
                 }
                 tracing::debug!(id = r.id, version = r.version, world = %r.world, "evaluation requested");
                 match self.reports.iter().find(|d| d.id == r.id && d.version == r.version) {
                     Some(done) => self.resend = Some(done.clone()),
-                    None => self.evals.push_back(r),
+                    None => self.evals.push_back((r, false)),
                 }
             }
             WorkerInbound::End => {}
@@ -195,7 +198,16 @@ impl Worker {
     /// Do one piece of work: collect the granted episodes, or run one evaluation. `None`
     /// when there is nothing to do until the next message.
     pub fn work(&mut self) -> Result<Option<WorkerOutbound>, WorkerError> {
-        // Granted episodes first: the learner is waiting for them.
+        if let Some(r) = self.resend.take() {
+            return Ok(Some(WorkerOutbound::Eval(r)));
+        }
+        // An evaluation that waited through a round of episodes goes first: an off-policy
+        // learner grants the next round while it updates, so a worker always holding a grant
+        // would never evaluate.
+        if let Some(report) = self.evaluate_ready(true) {
+            return Ok(Some(WorkerOutbound::Eval(report)));
+        }
+        // Granted episodes next: the learner is waiting for them.
         if let Some((version, round, left)) = self.grant.filter(|g| g.2 > 0) {
             if let Some(p) = self.versions.iter().rev().find(|p| p.version == version).cloned() {
                 let t0 = Instant::now();
@@ -209,6 +221,9 @@ impl Worker {
                     "collected"
                 );
                 self.grant = Some((version, round, 0));
+                for (_, waited) in self.evals.iter_mut() {
+                    *waited = true;
+                }
                 self.seq += 1;
                 let env_steps = self.collector.env_steps - self.steps_reported;
                 self.steps_reported = self.collector.env_steps;
@@ -227,27 +242,26 @@ impl Worker {
                 self.grant = Some((version, round, 0)); // a grant for a version we moved past
             }
         }
-        if let Some(r) = self.resend.take() {
-            return Ok(Some(WorkerOutbound::Eval(r)));
-        }
-        // Evaluations whose version we hold (or can no longer hold).
+        Ok(self.evaluate_ready(false).map(WorkerOutbound::Eval))
+    }
+
+    /// Run the first evaluation whose version we hold (or can no longer hold), of those that
+    /// waited through a round of episodes when `waited_only`.
+    fn evaluate_ready(&mut self, waited_only: bool) -> Option<EvalReport> {
         let newest = self.version();
-        let ready = self.evals.iter().position(|r| newest.is_some_and(|v| r.version <= v));
-        if let Some(i) = ready {
-            let r = self.evals.remove(i).expect("found");
-            tracing::debug!(id = r.id, version = r.version, world = %r.world, "evaluating");
-            let trials = match self.versions.iter().find(|p| p.version == r.version).cloned() {
-                Some(p) => self.evaluate(&p, &r).map_err(|e| format!("{e:#}")),
-                None => Err(format!("policy v{} is no longer held by {}", r.version, self.id)),
-            };
-            let report = EvalReport { id: r.id, worker: self.id.clone(), version: r.version, world: r.world, trials };
-            self.reports.push_back(report.clone());
-            while self.reports.len() > KEEP_REPORTS {
-                self.reports.pop_front();
-            }
-            return Ok(Some(WorkerOutbound::Eval(report)));
+        let ready = self.evals.iter().position(|(r, w)| (*w || !waited_only) && newest.is_some_and(|v| r.version <= v));
+        let (r, _) = self.evals.remove(ready?).expect("found");
+        tracing::debug!(id = r.id, version = r.version, world = %r.world, "evaluating");
+        let trials = match self.versions.iter().find(|p| p.version == r.version).cloned() {
+            Some(p) => self.evaluate(&p, &r).map_err(|e| format!("{e:#}")),
+            None => Err(format!("policy v{} is no longer held by {}", r.version, self.id)),
+        };
+        let report = EvalReport { id: r.id, worker: self.id.clone(), version: r.version, world: r.world, trials };
+        self.reports.push_back(report.clone());
+        while self.reports.len() > KEEP_REPORTS {
+            self.reports.pop_front();
         }
-        Ok(None)
+        Some(report)
     }
 
     /// What environment 0's camera sees now, at most once a second (camera jobs only).

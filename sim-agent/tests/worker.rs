@@ -112,3 +112,30 @@ fn issue_8_a_worker_evaluates_when_asked_and_follows_a_restarted_learner() {
     let Some(WorkerOutbound::Experience(e)) = w.work().unwrap() else { panic!("experience expected") };
     assert_eq!(e.credit, (0, 1));
 }
+
+/// An off-policy learner (SAC) grants the next round while it updates, so a worker always
+/// holds a grant: an evaluation request waits through one round of episodes at most, then
+/// runs before the next round (it once waited for minutes, and runs ended without one).
+#[test]
+fn issue_32_an_evaluation_waits_through_one_round_of_episodes_at_most() {
+    let mut w = worker(2, &["reinvent_base"]);
+    w.take(policy(1));
+    w.take(credit(1, 1, 2));
+    w.take(WorkerInbound::Eval(EvalRequest {
+        id: 3,
+        worker: "w1".into(),
+        version: 1,
+        world: "reinvent_base".into(),
+        trials: 1,
+        seed: 1,
+    }));
+    // The round in hand first: the learner is waiting for it.
+    let Some(WorkerOutbound::Experience(e)) = w.work().unwrap() else { panic!("experience expected") };
+    assert_eq!(e.credit, (1, 1));
+    // The next round was granted meanwhile: the evaluation, which waited through a round, goes first.
+    w.take(credit(1, 2, 2));
+    let Some(WorkerOutbound::Eval(r)) = w.work().unwrap() else { panic!("the evaluation expected first") };
+    assert_eq!((r.id, r.version), (3, 1));
+    let Some(WorkerOutbound::Experience(e)) = w.work().unwrap() else { panic!("experience expected") };
+    assert_eq!(e.credit, (1, 2));
+}
