@@ -425,14 +425,12 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
             // Everything else already waiting, before an update holds the loop: an
             // evaluation report behind a round of experience would otherwise wait a whole
             // update, and a long one (SAC from pixels) makes it look lost.
-            for _ in 0..MAX_DRAIN {
-                match r.link.next(Duration::ZERO)? {
-                    Some(m) => r.receive(m)?,
-                    None => break,
-                }
-            }
+            r.drain()?;
         }
-        r.update_if_ready()?;
+        if r.update_if_ready()? {
+            // And what arrived during the update, before an evaluation is judged lost.
+            r.drain()?;
+        }
         let workers = r.link.workers();
         r.grant(&workers)?;
         r.checkpoint_if_due(&workers)?;
@@ -657,9 +655,21 @@ impl<'a> Run<'a> {
 
     /// Update once the episodes are in: exactly the episodes an iteration takes, the first to
     /// arrive (the rest wait for the next update); publish the new version and record it.
-    fn update_if_ready(&mut self) -> Result<(), RunFailure> {
+    /// Take every message already waiting (at most [`MAX_DRAIN`]).
+    fn drain(&mut self) -> Result<(), RunFailure> {
+        for _ in 0..MAX_DRAIN {
+            match self.link.next(Duration::ZERO)? {
+                Some(m) => self.receive(m)?,
+                None => break,
+            }
+        }
+        Ok(())
+    }
+
+    /// Make the update when one is due; true when one was made (or refused).
+    fn update_if_ready(&mut self) -> Result<bool, RunFailure> {
         if !self.update_ready() {
-            return Ok(());
+            return Ok(false);
         }
         let spec = self.spec;
         let off_policy = self.algo.off_policy();
@@ -749,7 +759,7 @@ impl<'a> Run<'a> {
         }
         self.observer.iteration(&rec);
         self.last_status = None;
-        Ok(())
+        Ok(true)
     }
 
     /// Flow control: grant what the next update still needs (see [`grants`]).
