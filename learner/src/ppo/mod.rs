@@ -18,7 +18,7 @@ mod team;
 
 pub use team::{Alone, GroupError, Reducer};
 use team::{Part, Role};
-pub(crate) use team::{kept, skipped};
+pub(crate) use team::{check_factors, kept, skipped};
 
 use crate::algorithm::LearnerState;
 use crate::hyperparams::{Hyperparameters, LossType};

@@ -187,7 +187,7 @@ impl Ppo {
         let every = if role.ranks.len() > 1 {
             let (mut values, factors) = share_of(lg, part, shares, role.index);
             let every = group.all_reduce(2 * step + 1, &role.ranks, &mut values, factors)?;
-            check_factors(&every, part.of(lg).1, shares)?;
+            check_factors(&every, part.of(lg).1.iter().map(|f| f.n_in + f.n_out).sum(), shares)?;
             take_sum(lg, part, &values);
             Some(every)
         } else {
@@ -402,9 +402,9 @@ fn take_sum(lg: &mut LossGrad, part: Part, values: &[f32]) {
     }
 }
 
-/// Every member's factors for a tower's factored `layers` must hold its share's samples.
-fn check_factors(every: &[Vec<f32>], layers: &[Factors], shares: &[usize]) -> Result<(), GroupError> {
-    let per_sample: usize = layers.iter().map(|f| f.n_in + f.n_out).sum();
+/// Every member's factors must hold its share's samples, `per_sample` numbers each (the
+/// factored layers' inputs and outputs).
+pub(crate) fn check_factors(every: &[Vec<f32>], per_sample: usize, shares: &[usize]) -> Result<(), GroupError> {
     if every.len() != shares.len() {
         return Err(GroupError(format!("{} members' factors for a group of {}", every.len(), shares.len())));
     }

@@ -19,7 +19,7 @@
 pub mod replay;
 pub mod trainer;
 
-use crate::ppo::{Alone, GroupError, Reducer, StateMismatch, factored_grads, kept, skipped};
+use crate::ppo::{Alone, GroupError, Reducer, StateMismatch, check_factors, factored_grads, kept, skipped};
 use faer::Par;
 use policy::model::{SAC_LOG_STD_RANGE, Squashed, sac_policy, sac_q_embedder, sac_q_head, sac_value, squashed};
 use policy::nn::{Adam, Factors, Net, Tape};
@@ -552,15 +552,7 @@ impl Sac {
             let ranks: Vec<usize> = (0..size).collect();
             let theirs = group.all_reduce(exchange, &ranks, &mut flat, mine)?;
             let per_sample: usize = g.factors.parts().into_iter().flatten().map(|f| f.n_in + f.n_out).sum();
-            for (r, f) in theirs.iter().enumerate() {
-                if f.len() != shares[r] * per_sample {
-                    return Err(GroupError(format!(
-                        "member {r}'s factors hold {} numbers where {} were expected",
-                        f.len(),
-                        shares[r] * per_sample
-                    )));
-                }
-            }
+            check_factors(&theirs, per_sample, &shares)?;
             let mut at = 0;
             for (grad, factors) in g.parts_mut() {
                 let skip = skipped(factors);
