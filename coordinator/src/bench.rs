@@ -371,6 +371,39 @@ fn iteration_times(run: &std::path::Path) -> Result<Vec<f64>> {
         .collect()
 }
 
+/// How a run's evaluations went after its first that lapped every trial on every world:
+/// (iteration of that one, evaluations after it, of those the ones that lapped everywhere).
+/// Verifications are not counted: they are the same checkpoint again.
+fn after_first_lap(run: &std::path::Path) -> Result<Option<(u64, usize, usize)>> {
+    let path = run.join("evaluations.jsonl");
+    let text = std::fs::read_to_string(&path).with_context(|| format!("{}", path.display()))?;
+    let mut first = None;
+    let (mut after, mut held) = (0, 0);
+    for line in text.lines() {
+        let e: serde_json::Value = serde_json::from_str(line).with_context(|| format!("{}", path.display()))?;
+        if e["verification"].as_bool() == Some(true) {
+            continue;
+        }
+        let everywhere = e["min_laps"].as_u64().unwrap_or(0) >= e["trials"].as_u64().unwrap_or(u64::MAX);
+        if first.is_some() {
+            after += 1;
+            held += usize::from(everywhere);
+        } else if everywhere {
+            first = e["iteration"].as_u64();
+        }
+    }
+    Ok(first.map(|f| (f, after, held)))
+}
+
+/// "v of n (p %)" for evaluations after the first that lapped everywhere.
+fn held_share(a: Option<(u64, usize, usize)>) -> String {
+    match a {
+        None => "never lapped everywhere".into(),
+        Some((it, 0, _)) => format!("first at iteration {it}; none after"),
+        Some((it, n, h)) => format!("first at iteration {it}; then {h} of {n} ({:.0} %)", 100.0 * h as f64 / n as f64),
+    }
+}
+
 /// One seed's two runs.
 struct PixelsRun {
     seed: u64,
@@ -384,14 +417,23 @@ struct PixelsRun {
     /// Each iteration's wall-clock in each.
     train_times: Vec<f64>,
     up_times: Vec<f64>,
+    /// [`after_first_lap`] of each.
+    train_after: Option<(u64, usize, usize)>,
+    up_after: Option<(u64, usize, usize)>,
 }
 
+/// `bench pixels`: `train` and `up` from pixels on several worlds, per seed, to the verified
+/// model (or, with `keep_training`, for the whole time, to see whether a policy that lapped
+/// everywhere stays good), then both models on those worlds and on unseen ones.
+#[allow(clippy::too_many_arguments)]
 pub fn pixels(
     worlds: &[String],
     unseen: &[String],
     minutes: f64,
     envs: usize,
     evals: u32,
+    verify_trials: u32,
+    keep_training: bool,
     seeds: &[u64],
     out: &std::path::Path,
 ) -> Result<()> {
@@ -408,19 +450,11 @@ pub fn pixels(
             v.extend(["--world".into(), w.clone()]);
         }
         v.extend(
-            [
-                "--sensor",
-                "camera",
-                "--set",
-                "camera.randomize=true",
-                "--target-laps",
-                "3",
-                "--checkpoint-seconds",
-                "20",
-            ]
-            .map(String::from),
+            ["--sensor", "camera", "--set", "camera.randomize=true", "--checkpoint-seconds", "20"].map(String::from),
         );
-        v.extend(["--minutes".into(), minutes.to_string(), "--target-evals".into(), evals.to_string()]);
+        let laps = if keep_training { "0" } else { "3" };
+        v.extend(["--target-laps".into(), laps.into(), "--target-evals".into(), evals.to_string()]);
+        v.extend(["--verify-trials".into(), verify_trials.to_string(), "--minutes".into(), minutes.to_string()]);
         v.extend(["--seed".into(), seed.to_string()]);
         v
     };
@@ -453,6 +487,8 @@ pub fn pixels(
             up: (uu, us),
             train_times: iteration_times(&here.join("train"))?,
             up_times: iteration_times(&here.join("up/run"))?,
+            train_after: after_first_lap(&here.join("train"))?,
+            up_after: after_first_lap(&here.join("up/run"))?,
         });
     }
     println!(
@@ -461,17 +497,39 @@ pub fn pixels(
     );
     println!();
     println!(
-        "| seed | setup | wall-clock s (process start to model) | updates | samples trained on | how it stopped |"
+        "| seed | setup | wall-clock s (process start to model) | updates | samples trained on | how it stopped | evaluations after the first that lapped everywhere, lapping everywhere |"
     );
-    println!("|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|");
     for r in &runs {
         println!(
-            "| {} | `train` in one process | {:.0} | {} | {:.0} | {} |",
-            r.seed, r.train_s, r.train.0, r.train.1, r.train_reason
+            "| {} | `train` in one process | {:.0} | {} | {:.0} | {} | {} |",
+            r.seed,
+            r.train_s,
+            r.train.0,
+            r.train.1,
+            r.train_reason,
+            held_share(r.train_after)
         );
         println!(
-            "| {} | `up`, 2 agents × {agent_envs} envs (+ coordinator + learner) | {:.0} | {} | {:.0} | {} |",
-            r.seed, r.up_s, r.up.0, r.up.1, r.up_reason
+            "| {} | `up`, 2 agents × {agent_envs} envs (+ coordinator + learner) | {:.0} | {} | {:.0} | {} | {} |",
+            r.seed,
+            r.up_s,
+            r.up.0,
+            r.up.1,
+            r.up_reason,
+            held_share(r.up_after)
+        );
+    }
+    let (n, h) = runs
+        .iter()
+        .flat_map(|r| [r.train_after, r.up_after])
+        .flatten()
+        .fold((0, 0), |(n, h), (_, a, b)| (n + a, h + b));
+    if n > 0 {
+        println!();
+        println!(
+            "After their first evaluation that lapped everywhere, {h} of the runs' {n} later evaluations lapped everywhere ({:.0} %).",
+            100.0 * h as f64 / n as f64
         );
     }
     println!();

@@ -281,9 +281,17 @@ pub enum BenchCommand {
         /// Environments in total (split over the agents for `up`).
         #[arg(long, default_value_t = 16)]
         envs: usize,
-        /// Consecutive 3/3 evaluations (on every world) that end a training.
-        #[arg(long, default_value_t = 2)]
+        /// Consecutive 3/3 evaluations (on every world) before the checkpoint is verified.
+        #[arg(long, default_value_t = 1)]
         evals: u32,
+        /// Trials per world of the verification that ends a training (0: none; the streak
+        /// of --evals ends it).
+        #[arg(long, default_value_t = learner::run::VERIFY_TRIALS as u32)]
+        verify_trials: u32,
+        /// Train for the whole --minutes (no lap target), to see whether a policy that lapped
+        /// everywhere stays good.
+        #[arg(long)]
+        keep_training: bool,
         /// Seeds: both setups are run once per seed (`train --seed S`, `up --seed S`) and
         /// compared seed by seed and by their medians.
         #[arg(long, default_value = "1", value_delimiter = ',')]
@@ -515,7 +523,7 @@ pub struct UpArgs {
     #[arg(long, value_name = "JOB.toml", conflicts_with_all = [
         "world", "reward", "sensor", "hyperparameters", "model_metadata", "clone_from", "minutes",
         "max_episodes", "env_steps", "target_progress", "target_reward", "window", "target_laps",
-        "target_evals", "stop_on_plateau", "stop_on_collapse", "sets", "seed", "race", "obstacles", "bots",
+        "target_evals", "verify_trials", "stop_on_plateau", "stop_on_collapse", "sets", "seed", "race", "obstacles", "bots",
         "bot_speed", "run_env",
     ])]
     pub job: Option<PathBuf>,
@@ -558,9 +566,13 @@ pub struct UpArgs {
     /// Stop early once an evaluation completes this many laps on every world...
     #[arg(long)]
     pub target_laps: Option<u32>,
-    /// ...in this many consecutive evaluations.
+    /// ...in this many consecutive evaluations...
     #[arg(long, default_value_t = 1)]
     pub target_evals: u32,
+    /// ...and the last one's checkpoint, evaluated again with this many trials per world
+    /// (fresh noise), laps as often: that checkpoint is the model (0: no verification).
+    #[arg(long, default_value_t = learner::run::VERIFY_TRIALS as u32)]
+    pub verify_trials: u32,
     /// Stop at a plateau: this many evaluations in a row without improving the best mean
     /// progress by a point (plateaus are reported after 5 either way).
     #[arg(long)]
@@ -646,9 +658,14 @@ pub struct TrainArgs {
     /// Evaluation trials per checkpoint.
     #[arg(long, default_value_t = 3)]
     pub trials: usize,
-    /// Consecutive evaluations that must reach --target-laps before training stops.
-    #[arg(long, default_value_t = 2)]
+    /// Consecutive evaluations that must reach --target-laps...
+    #[arg(long, default_value_t = 1)]
     pub target_evals: usize,
+    /// ...before the last one's checkpoint is evaluated again with this many trials per world
+    /// (fresh noise); training stops if it laps as often, with that checkpoint as the model
+    /// (0: no verification; training stops at the streak of --target-evals).
+    #[arg(long, default_value_t = learner::run::VERIFY_TRIALS)]
+    pub verify_trials: usize,
     /// Stop at a plateau: this many evaluations in a row without improving the best mean
     /// progress by a point (plateaus are reported after 5 either way).
     #[arg(long)]

@@ -192,7 +192,7 @@ mod tests {
         let dir = std::env::temp_dir();
         let text = "worlds = [\"reinvent_base\"]\n[stop]\nminutes = 0.1\nmax_episodes = 60\nenv_steps_budget = 15000\n\
                     target_progress = 25\ntarget_reward = 15\nwindow = 7\ntarget_laps = 3\ntarget_evals = 2\n\
-                    plateau_evals = 4\nstop_on_collapse = true\n";
+                    plateau_evals = 4\nstop_on_collapse = true\nverify_trials = 5\n";
         let doc = parse(text, &dir, "job.toml", "j").unwrap();
         let want = JobStop {
             minutes: 0.1,
@@ -205,6 +205,7 @@ mod tests {
             target_evals: 2,
             plateau_evals: 4,
             stop_on_collapse: true,
+            verify_trials: 5,
         };
         assert_eq!(doc.stop, Some(want));
     }

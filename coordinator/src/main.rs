@@ -89,8 +89,9 @@ fn main() {
             }
             cli::BenchCommand::Record { seconds, rounds } => bench::record(seconds, rounds).map(|()| 0),
             cli::BenchCommand::Wire { seconds, rounds, up_seconds } => bench::wire(seconds, rounds, up_seconds).map(|()| 0),
-            cli::BenchCommand::Pixels { worlds, unseen, minutes, envs, evals, seeds, out } => {
-                bench::pixels(&worlds, &unseen, minutes, envs, evals, &seeds, &out).map(|()| 0)
+            cli::BenchCommand::Pixels { worlds, unseen, minutes, envs, evals, verify_trials, keep_training, seeds, out } => {
+                bench::pixels(&worlds, &unseen, minutes, envs, evals, verify_trials, keep_training, &seeds, &out)
+                    .map(|()| 0)
             }
         },
     };

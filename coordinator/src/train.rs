@@ -111,7 +111,8 @@ impl Observer for Terminal {
             .collect();
         self.bar.suspend(|| {
             println!(
-                "     eval v{}: {}{} {}",
+                "     {} v{}: {}{} {}",
+                if e.verification { "verify" } else { "eval" },
                 e.policy_version,
                 worlds.join(" | "),
                 if e.crashes > 0 { format!(" | {} crashes", e.crashes) } else { String::new() },
@@ -133,8 +134,11 @@ fn stop_rules(args: &TrainArgs) -> StopRules {
         target_reward: args.target_reward,
         window: args.window.max(1),
         env_steps_budget: args.env_steps,
-        target_laps: (args.target_laps > 0)
-            .then(|| TargetLaps { laps: args.target_laps, evaluations: args.target_evals.max(1) }),
+        target_laps: (args.target_laps > 0).then(|| TargetLaps {
+            laps: args.target_laps,
+            evaluations: args.target_evals.max(1),
+            verify_trials: args.verify_trials,
+        }),
         plateau_evals: args.stop_on_plateau,
         stop_on_collapse: args.stop_on_collapse,
     }
@@ -434,7 +438,7 @@ mod tests {
         // The run's stop rules are tested through a whole run in learner/tests/run_scripted.rs;
         // here, that each flag of `train` reaches its rule.
         let base = rules(&[]);
-        assert_eq!(base.target_laps, Some(TargetLaps { laps: 3, evaluations: 2 }), "{base:?}");
+        assert_eq!(base.target_laps, Some(TargetLaps { laps: 3, evaluations: 1, verify_trials: 10 }), "{base:?}");
         let table: Vec<(&[&str], StopRules)> = vec![
             (&["--max-episodes", "60"], StopRules { max_episodes: Some(60), ..base.clone() }),
             (&["--env-steps", "15000"], StopRules { env_steps_budget: Some(15000), ..base.clone() }),
@@ -445,7 +449,17 @@ mod tests {
             (&["--target-laps", "0"], StopRules { target_laps: None, ..base.clone() }),
             (
                 &["--target-laps", "2", "--target-evals", "4"],
-                StopRules { target_laps: Some(TargetLaps { laps: 2, evaluations: 4 }), ..base.clone() },
+                StopRules {
+                    target_laps: Some(TargetLaps { laps: 2, evaluations: 4, verify_trials: 10 }),
+                    ..base.clone()
+                },
+            ),
+            (
+                &["--verify-trials", "0", "--target-evals", "2"],
+                StopRules {
+                    target_laps: Some(TargetLaps { laps: 3, evaluations: 2, verify_trials: 0 }),
+                    ..base.clone()
+                },
             ),
             (&["--stop-on-plateau", "2"], StopRules { plateau_evals: Some(2), ..base.clone() }),
             (&["--stop-on-collapse"], StopRules { stop_on_collapse: true, ..base.clone() }),

@@ -370,6 +370,7 @@ fn job_spec(args: &UpArgs, out: &Path) -> Result<String> {
         ("window", Some(int(args.window))),
         ("target_laps", args.target_laps.map(|l| int(l.into()))),
         ("target_evals", args.target_laps.map(|_| int(args.target_evals.max(1).into()))),
+        ("verify_trials", args.target_laps.map(|_| int(args.verify_trials.into()))),
         ("plateau_evals", args.stop_on_plateau.map(|p| int(p.into()))),
         ("stop_on_collapse", args.stop_on_collapse.then_some(Value::Boolean(true))),
     ] {
@@ -460,6 +461,7 @@ mod tests {
             target_evals: 2,
             plateau_evals: 4,
             stop_on_collapse: true,
+            verify_trials: 10,
         };
         assert_eq!(job.stop, Some(want));
         assert_eq!((job.seed, job.envs_per_agent), (9, 3));

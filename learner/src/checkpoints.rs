@@ -205,6 +205,21 @@ impl RunDir {
         Ok(best)
     }
 
+    /// Make a written checkpoint the best whatever its figures (the one that held its
+    /// verification: the run's model), and record its figures.
+    pub fn record_best(&self, rec: CheckpointRecord) -> Result<(), RunError> {
+        let mut index = self.index()?;
+        if !self.checkpoint_dir(&rec.name).join("manifest.json").exists() {
+            return Err(RunError::Invalid {
+                path: self.checkpoint_dir(&rec.name).display().to_string(),
+                msg: "the verified checkpoint's folder is missing".into(),
+            });
+        }
+        index.best_checkpoint = Some(rec);
+        write_atomic(&self.index_path(), serde_json::to_string_pretty(&index).expect("JSON").as_bytes())?;
+        self.prune(&index)
+    }
+
     fn prune(&self, index: &CheckpointIndex) -> Result<(), RunError> {
         let dir = self.root.join("checkpoints");
         let mut names: Vec<String> = std::fs::read_dir(&dir)

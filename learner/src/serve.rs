@@ -208,9 +208,11 @@ fn stop_rules(s: &JobStop) -> StopRules {
         target_reward: s.target_reward,
         window: s.window,
         env_steps_budget: s.env_steps_budget,
-        target_laps: s
-            .target_laps
-            .map(|l| TargetLaps { laps: l as usize, evaluations: s.target_evals.max(1) as usize }),
+        target_laps: s.target_laps.map(|l| TargetLaps {
+            laps: l as usize,
+            evaluations: s.target_evals.max(1) as usize,
+            verify_trials: s.verify_trials as usize,
+        }),
         plateau_evals: (s.plateau_evals > 0).then_some(s.plateau_evals as usize),
         stop_on_collapse: s.stop_on_collapse,
     }
@@ -626,7 +628,15 @@ mod tests {
             (
                 JobStop { target_laps: Some(3), target_evals: 2, ..base },
                 StopRules {
-                    target_laps: Some(TargetLaps { laps: 3, evaluations: 2 }),
+                    target_laps: Some(TargetLaps { laps: 3, evaluations: 2, verify_trials: 10 }),
+                    max_episodes: Some(1_000_000),
+                    ..StopRules::default()
+                },
+            ),
+            (
+                JobStop { target_laps: Some(3), verify_trials: 0, ..base },
+                StopRules {
+                    target_laps: Some(TargetLaps { laps: 3, evaluations: 1, verify_trials: 0 }),
                     max_episodes: Some(1_000_000),
                     ..StopRules::default()
                 },

@@ -32,6 +32,8 @@ struct Script {
     progress: f64,
     /// Progress of evaluation `n` (from 0): trials of 100 % lap.
     eval: fn(u64) -> f64,
+    /// Trials of verification `n` (from 0) that lap (the rest end at 60 %).
+    verify: fn(u64) -> u32,
 }
 
 /// A worker that does at once whatever it is granted or asked.
@@ -44,6 +46,9 @@ struct Scripted {
     inbox: VecDeque<Inbound>,
     seq: u64,
     evals: u64,
+    verifications: u64,
+    /// Every evaluation request, in order.
+    asked: Vec<EvalRequest>,
 }
 
 impl Scripted {
@@ -56,6 +61,8 @@ impl Scripted {
             inbox: VecDeque::new(),
             seq: 0,
             evals: 0,
+            verifications: 0,
+            asked: Vec::new(),
         }
     }
 
@@ -113,15 +120,30 @@ impl Link for Scripted {
     }
 
     fn request_eval(&mut self, req: &EvalRequest) -> Result<(), LinkError> {
-        let progress = (self.script.eval)(self.evals);
-        self.evals += 1;
-        let trial = |_| Trial {
-            progress,
-            lap_time: (progress >= 100.0).then_some(12.0),
-            steps: 100,
-            status: if progress >= 100.0 { "lap_complete" } else { "off_track" }.into(),
-            track_len: 17.7,
-            ..Default::default()
+        self.asked.push(req.clone());
+        // A checkpoint's evaluation has the spec's 3 trials; its verification more.
+        let lapping = if req.trials == 3 {
+            self.evals += 1;
+            if (self.script.eval)(self.evals - 1) >= 100.0 { 3 } else { 0 }
+        } else {
+            self.verifications += 1;
+            (self.script.verify)(self.verifications - 1)
+        };
+        let progress_of = |i: u32| match req.trials {
+            3 => (self.script.eval)(self.evals - 1),
+            _ if i < lapping => 100.0,
+            _ => 60.0,
+        };
+        let trial = |i| {
+            let progress = progress_of(i);
+            Trial {
+                progress,
+                lap_time: (progress >= 100.0).then_some(12.0),
+                steps: 100,
+                status: if progress >= 100.0 { "lap_complete" } else { "off_track" }.into(),
+                track_len: 17.7,
+                ..Default::default()
+            }
         };
         self.inbox.push_back(Inbound::Eval(EvalReport {
             id: req.id,
@@ -186,9 +208,22 @@ fn never() -> StopRules {
 }
 
 fn run_with(dir: &Path, name: &str, stop: StopRules, hyper: Hyperparameters, script: Script) -> Summary {
+    run_asked(dir, name, stop, hyper, script).0
+}
+
+/// A run, and the evaluation requests it made.
+fn run_asked(
+    dir: &Path,
+    name: &str,
+    stop: StopRules,
+    hyper: Hyperparameters,
+    script: Script,
+) -> (Summary, Vec<EvalRequest>) {
     let out = dir.join(name);
     let mut link = Scripted::new(script);
-    learner::run::run(&spec(&out, stop, hyper), &mut link, &mut Quiet).unwrap_or_else(|e| panic!("{name}: {e:#}"))
+    let s =
+        learner::run::run(&spec(&out, stop, hyper), &mut link, &mut Quiet).unwrap_or_else(|e| panic!("{name}: {e:#}"));
+    (s, link.asked)
 }
 
 fn lines(path: &Path) -> Vec<serde_json::Value> {
@@ -199,7 +234,7 @@ fn lines(path: &Path) -> Vec<serde_json::Value> {
         .collect()
 }
 
-const HALFWAY: Script = Script { steps: 20, progress: 30.0, eval: |_| 50.0 };
+const HALFWAY: Script = Script { steps: 20, progress: 30.0, eval: |_| 50.0, verify: |_| 10 };
 
 #[test]
 fn issue_29_every_stop_condition_ends_the_run_with_its_reason_an_evaluation_and_a_model() {
@@ -246,10 +281,17 @@ fn issue_29_every_stop_condition_ends_the_run_with_its_reason_an_evaluation_and_
         ),
         (
             "laps",
-            StopRules { target_laps: Some(TargetLaps { laps: 3, evaluations: 2 }), ..never() },
+            StopRules { target_laps: Some(TargetLaps { laps: 3, evaluations: 2, verify_trials: 0 }), ..never() },
             h.clone(),
             Script { eval: |n| if n >= 2 { 100.0 } else { 40.0 }, ..HALFWAY },
             "target laps reached: 3 laps in 2 consecutive evaluations",
+        ),
+        (
+            "verified",
+            StopRules { target_laps: Some(TargetLaps { laps: 3, evaluations: 1, verify_trials: 10 }), ..never() },
+            h.clone(),
+            Script { eval: |n| if n >= 2 { 100.0 } else { 40.0 }, ..HALFWAY },
+            "target laps reached and verified",
         ),
         (
             "plateau",
@@ -292,7 +334,7 @@ fn issue_29_a_run_with_nothing_to_stop_it_goes_on() {
         max_episodes: Some(250),
         target_progress: Some(99.0),
         target_reward: Some(1000.0),
-        target_laps: Some(TargetLaps { laps: 3, evaluations: 2 }),
+        target_laps: Some(TargetLaps { laps: 3, evaluations: 2, verify_trials: 10 }),
         ..never()
     };
     let s = run_with(dir.path(), "long", stop, quick(), HALFWAY);
@@ -325,6 +367,71 @@ fn issue_29_the_learning_rate_cools_down_over_the_second_half_of_the_budget_unle
         assert_eq!(lrs.len(), want.len(), "{row}: {lrs:?}");
         for (got, want) in lrs.iter().zip(want) {
             assert!((got - want).abs() < 1e-9, "{row}: {lrs:?}");
+        }
+    }
+}
+
+#[test]
+fn issue_33_the_run_stops_at_the_first_checkpoint_that_holds_its_verification_and_that_is_the_model() {
+    // Evaluations lap from the second on. The first lapping checkpoint's verification laps 9
+    // of 10 trials: not held, training goes on. The next lapping checkpoint's laps 10 of 10:
+    // the run stops there, that checkpoint is the model, and no later version is evaluated.
+    let dir = tempfile::tempdir().unwrap();
+    let stop = StopRules { target_laps: Some(TargetLaps { laps: 3, evaluations: 1, verify_trials: 10 }), ..never() };
+    let script =
+        Script { eval: |n| if n >= 1 { 100.0 } else { 40.0 }, verify: |k| if k == 0 { 9 } else { 10 }, ..HALFWAY };
+    let (s, asked) = run_asked(dir.path(), "verify", stop, quick(), script);
+    assert!(s.stop_reason.contains("target laps reached and verified"), "{}", s.stop_reason);
+    // Asked, in order: evaluation, evaluation, its verification, evaluation, its verification.
+    let trials: Vec<u32> = asked.iter().map(|r| r.trials).collect();
+    assert_eq!(trials, [3, 3, 10, 3, 10], "{asked:?}");
+    for (eval, verify) in [(&asked[1], &asked[2]), (&asked[3], &asked[4])] {
+        assert_eq!(verify.version, eval.version, "the same checkpoint is verified");
+        assert_eq!(verify.worker, eval.worker, "by the worker that evaluated it");
+        assert_ne!(verify.seed, eval.seed, "with fresh noise");
+    }
+    assert!(asked[3].version > asked[1].version);
+    let verified = asked[4].version;
+    let out = dir.path().join("verify");
+    let evals = lines(&out.join("evaluations.jsonl"));
+    let flags: Vec<bool> = evals.iter().map(|e| e["verification"].as_bool().unwrap()).collect();
+    assert_eq!(flags, [false, false, true, false, true]);
+    assert_eq!(evals[2]["min_laps"], 9);
+    assert_eq!(evals[4]["min_laps"], 10);
+    // The model, the best checkpoint and the summary are the verified checkpoint.
+    let manifest: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("model/manifest.json")).unwrap()).unwrap();
+    assert_eq!(manifest["policy_version"], verified, "{manifest}");
+    assert_eq!(manifest["training"]["verified_trials"], 10, "{manifest}");
+    assert_eq!(s.best.as_ref().map(|b| b.policy_version), Some(verified));
+    assert!(s.verified.as_deref().is_some_and(|v| v.contains("lapped 10 of 10")), "{:?}", s.verified);
+    let index: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("checkpoints/deepracer_checkpoints.json")).unwrap())
+            .unwrap();
+    assert_eq!(index["best_checkpoint"]["policy_version"], verified, "{index}");
+    assert!(s.policy_version >= verified);
+}
+
+#[test]
+fn issue_33_the_step_size_halves_after_each_evaluation_that_laps_everywhere_and_comes_back_after_one_that_does_not() {
+    // Evaluations lap everywhere three times, then stop lapping. The rate the updates use
+    // falls to an eighth of `lr`, then climbs back to `lr`; with `lr_after_laps` 1 it never moves.
+    let dir = tempfile::tempdir().unwrap();
+    // A target never reached keeps the budget from cooling the rate.
+    let stop = StopRules { max_episodes: Some(200), target_reward: Some(1e6), ..never() };
+    let script = Script { eval: |n| if n < 3 { 100.0 } else { 40.0 }, ..HALFWAY };
+    for (row, after, lowest) in [("follow", 0.5, 3e-4 / 8.0), ("off", 1.0, 3e-4)] {
+        let hyper = Hyperparameters { lr_after_laps: after, ..quick() };
+        run_with(dir.path(), row, stop.clone(), hyper, script);
+        let lrs: Vec<f64> =
+            lines(&dir.path().join(row).join("metrics.jsonl")).iter().map(|m| m["lr"].as_f64().unwrap()).collect();
+        let min = lrs.iter().copied().fold(f64::INFINITY, f64::min);
+        assert!((min - lowest).abs() < 1e-12, "{row}: {lrs:?}");
+        assert!((lrs[0] - 3e-4).abs() < 1e-12 && (lrs[lrs.len() - 1] - 3e-4).abs() < 1e-12, "{row}: {lrs:?}");
+        // Each update's rate is its predecessor's, halved or doubled.
+        for w in lrs.windows(2) {
+            let r = w[1] / w[0];
+            assert!([1.0, 2.0, after].iter().any(|x| (r - x).abs() < 1e-9), "{row}: {lrs:?}");
         }
     }
 }

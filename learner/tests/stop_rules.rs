@@ -14,7 +14,7 @@ fn issue_8_each_stop_rule_fires_on_its_own_figure_and_not_before() {
         target_reward: Some(300.0),
         window: 20,
         env_steps_budget: Some(1_000_000),
-        target_laps: Some(TargetLaps { laps: 3, evaluations: 2 }),
+        target_laps: Some(TargetLaps { laps: 3, evaluations: 2, verify_trials: 0 }),
         plateau_evals: Some(5),
         stop_on_collapse: true,
     };
@@ -25,6 +25,7 @@ fn issue_8_each_stop_rule_fires_on_its_own_figure_and_not_before() {
         env_steps: 5_000,
         window: Some((50.0, 100.0)),
         lap_streak: 0,
+        verified: None,
         verdict: Verdict::Improving,
     };
     let plateau = Verdict::Plateau { best: 80.0, best_iteration: 12, evals: 5 };
@@ -52,6 +53,14 @@ fn issue_8_each_stop_rule_fires_on_its_own_figure_and_not_before() {
             Some(w) => assert!(got.as_deref().is_some_and(|g| g.contains(w)), "{standing:?}: {got:?}, want {w:?}"),
         }
     }
+    // With a verification (the default), the streak alone never stops the run: the verified
+    // checkpoint does.
+    let verifying =
+        StopRules { target_laps: Some(TargetLaps { laps: 3, evaluations: 1, verify_trials: 10 }), ..rules.clone() };
+    assert_eq!(verifying.check(&hyper, &Standing { lap_streak: 5, ..quiet.clone() }), None);
+    let held = Standing { lap_streak: 1, verified: Some("ckpt_000004 (v4) lapped 10 of 10".into()), ..quiet.clone() };
+    let r = verifying.check(&hyper, &held);
+    assert!(r.as_deref().is_some_and(|r| r.contains("target laps reached and verified: ckpt_000004")), "{r:?}");
     // DeepRacer's own conditions, from hyperparameters.json.
     let loose = StopRules { max_episodes: None, target_reward: None, ..rules.clone() };
     let r = loose.check(&hyper, &Standing { episodes: 800, ..quiet.clone() });
@@ -62,4 +71,15 @@ fn issue_8_each_stop_rule_fires_on_its_own_figure_and_not_before() {
     let told = StopRules { plateau_evals: None, stop_on_collapse: false, ..rules.clone() };
     assert_eq!(told.check(&hyper, &Standing { verdict: plateau, ..quiet.clone() }), None);
     assert_eq!(told.check(&hyper, &Standing { verdict: collapse, ..quiet.clone() }), None);
+}
+
+#[test]
+fn issue_33_a_verification_needs_the_targets_share_of_its_trials() {
+    // (laps of the evaluation's trials, trials per evaluation, verification trials, laps needed)
+    let table =
+        [(3, 3, 10, 10), (2, 3, 10, 7), (1, 3, 10, 4), (3, 3, 3, 3), (5, 3, 10, 10), (1, 1, 10, 10), (3, 3, 1, 1)];
+    for (laps, eval_trials, trials, want) in table {
+        let t = TargetLaps { laps, evaluations: 1, verify_trials: trials };
+        assert_eq!(t.needed(eval_trials, trials), want, "{laps} of {eval_trials}, verified with {trials}");
+    }
 }

@@ -24,6 +24,7 @@ pub fn default_stop() -> JobStop {
         target_evals: 1,
         plateau_evals: 0,
         stop_on_collapse: false,
+        verify_trials: 10,
     }
 }
 

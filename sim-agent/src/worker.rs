@@ -94,6 +94,9 @@ pub struct WorkerSetup {
 const KEEP_VERSIONS: usize = 4;
 /// Evaluation reports kept to answer repeated requests.
 const KEEP_REPORTS: usize = 16;
+/// Versions kept after evaluating them: a checkpoint that met the lap target is verified next,
+/// by the worker that evaluated it, however far training has moved on.
+const KEEP_EVALUATED: usize = 2;
 
 /// A worker: environments, the policy versions it holds, its grant, its evaluation queue.
 pub struct Worker {
@@ -103,6 +106,8 @@ pub struct Worker {
     worlds: Vec<EnvSpec>,
     threads: usize,
     versions: VecDeque<PolicyVersion>,
+    /// The versions evaluated last.
+    evaluated: VecDeque<PolicyVersion>,
     /// (version, round) of the newest grant seen, and the episodes left to start in it.
     grant: Option<(u64, u64, u64)>,
     /// Evaluation requests, each with whether the worker collected a round of episodes while
@@ -133,6 +138,7 @@ impl Worker {
             worlds: s.worlds,
             threads: s.threads,
             versions: VecDeque::new(),
+            evaluated: VecDeque::new(),
             grant: None,
             evals: VecDeque::new(),
             reports: VecDeque::new(),
@@ -252,8 +258,18 @@ impl Worker {
         let ready = self.evals.iter().position(|(r, w)| (*w || !waited_only) && newest.is_some_and(|v| r.version <= v));
         let (r, _) = self.evals.remove(ready?).expect("found");
         tracing::debug!(id = r.id, version = r.version, world = %r.world, "evaluating");
-        let trials = match self.versions.iter().find(|p| p.version == r.version).cloned() {
-            Some(p) => self.evaluate(&p, &r).map_err(|e| format!("{e:#}")),
+        let held = self.versions.iter().chain(&self.evaluated).find(|p| p.version == r.version).cloned();
+        let trials = match held {
+            Some(p) => {
+                let trials = self.evaluate(&p, &r).map_err(|e| format!("{e:#}"));
+                if !self.evaluated.iter().any(|e| e.version == p.version) {
+                    self.evaluated.push_back(p);
+                    while self.evaluated.len() > KEEP_EVALUATED {
+                        self.evaluated.pop_front();
+                    }
+                }
+                trials
+            }
             None => Err(format!("policy v{} is no longer held by {}", r.version, self.id)),
         };
         let report = EvalReport { id: r.id, worker: self.id.clone(), version: r.version, world: r.world, trials };

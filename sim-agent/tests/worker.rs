@@ -139,3 +139,36 @@ fn issue_32_an_evaluation_waits_through_one_round_of_episodes_at_most() {
     let Some(WorkerOutbound::Experience(e)) = w.work().unwrap() else { panic!("experience expected") };
     assert_eq!(e.credit, (1, 2));
 }
+
+/// A checkpoint that met the lap target is verified by the worker that evaluated it, however
+/// many versions training has published since (a worker keeps only the newest few).
+#[test]
+fn issue_33_a_worker_keeps_the_version_it_evaluated_for_its_verification() {
+    let mut w = worker(1, &["reinvent_base"]);
+    w.take(policy(1));
+    let ask = |id, version, trials, seed| {
+        WorkerInbound::Eval(EvalRequest {
+            id,
+            worker: "w1".into(),
+            version,
+            world: "reinvent_base".into(),
+            trials,
+            seed,
+        })
+    };
+    w.take(ask(1, 1, 1, 1));
+    let Some(WorkerOutbound::Eval(r)) = w.work().unwrap() else { panic!("report expected") };
+    assert!(r.trials.is_ok(), "{r:?}");
+    for v in 2..=8 {
+        w.take(policy(v));
+    }
+    // v1 is long out of the newest versions, and still verified.
+    w.take(ask(2, 1, 4, 99));
+    let Some(WorkerOutbound::Eval(r)) = w.work().unwrap() else { panic!("report expected") };
+    assert_eq!((r.id, r.version), (2, 1));
+    assert_eq!(r.trials.as_ref().map(Vec::len), Ok(4), "{r:?}");
+    // A version it never evaluated and no longer holds is refused, saying so.
+    w.take(ask(3, 2, 1, 1));
+    let Some(WorkerOutbound::Eval(r)) = w.work().unwrap() else { panic!("report expected") };
+    assert!(r.trials.as_ref().is_err_and(|e| e.contains("no longer held")), "{r:?}");
+}

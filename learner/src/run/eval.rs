@@ -1,5 +1,7 @@
 //! Evaluations under way: one request per world of a checkpoint, asked of the workers in
-//! turn, repeated while unanswered and moved to another worker when one goes away.
+//! turn, repeated while unanswered and moved to another worker when one goes away. A
+//! verification is the same checkpoint evaluated again with more trials and fresh noise, asked
+//! of the worker that evaluated each world (it keeps the versions it evaluated).
 
 use super::{Link, LinkError, RunSpec};
 use policy::ActorCritic;
@@ -22,18 +24,70 @@ pub(super) struct PendingEval {
     pub(super) name: String,
     pub(super) asked: BTreeMap<u64, (String, String, Instant, u32)>, // id -> (world, worker, when, attempts)
     pub(super) done: BTreeMap<String, Vec<Trial>>,
+    /// Per world, the worker whose trials are in `done`.
+    pub(super) by: BTreeMap<String, String>,
+    /// Trials per world.
+    pub(super) trials: u32,
+    /// The evaluation's noise.
+    pub(super) seed: u64,
+    /// This is the verification of a checkpoint that met the lap target.
+    pub(super) verifying: bool,
 }
 
+/// What makes a verification's noise differ from its checkpoint's first evaluation.
+const VERIFY_SEED: u64 = 0x5eed_0f7e_51f1_ed00;
+
 impl PendingEval {
+    /// A checkpoint's evaluation.
+    pub(super) fn new(
+        spec: &RunSpec,
+        iteration: u64,
+        version: u64,
+        model: ActorCritic,
+        manifest: Manifest,
+        name: String,
+    ) -> Self {
+        PendingEval {
+            iteration,
+            version,
+            model,
+            manifest,
+            name,
+            asked: BTreeMap::new(),
+            done: BTreeMap::new(),
+            by: BTreeMap::new(),
+            trials: spec.eval_trials,
+            seed: spec.seed ^ iteration,
+            verifying: false,
+        }
+    }
+
+    /// The verification of this (finished) evaluation's checkpoint: `trials` trials per world.
+    pub(super) fn verification(&self, trials: u32) -> Self {
+        PendingEval {
+            iteration: self.iteration,
+            version: self.version,
+            model: self.model.clone(),
+            manifest: self.manifest.clone(),
+            name: self.name.clone(),
+            asked: BTreeMap::new(),
+            done: BTreeMap::new(),
+            by: BTreeMap::new(),
+            trials,
+            seed: self.seed ^ VERIFY_SEED,
+            verifying: true,
+        }
+    }
+
     /// The request for `world`'s trials of this checkpoint, as request `id` to `worker`.
-    pub(super) fn request(&self, spec: &RunSpec, id: u64, worker: &str, world: &str) -> EvalRequest {
+    pub(super) fn request(&self, id: u64, worker: &str, world: &str) -> EvalRequest {
         EvalRequest {
             id,
             worker: worker.into(),
             version: self.version,
             world: world.into(),
-            trials: spec.eval_trials,
-            seed: spec.seed ^ self.iteration,
+            trials: self.trials,
+            seed: self.seed,
         }
     }
 }
@@ -51,16 +105,27 @@ impl EvalTurns {
         &mut self,
         p: &mut PendingEval,
         link: &mut dyn Link,
-        spec: &RunSpec,
         workers: &[String],
         world: String,
         attempts: u32,
     ) -> Result<(), LinkError> {
         let w = workers[self.turn % workers.len()].clone();
         self.turn += 1;
+        self.ask_of(p, link, w, world, attempts)
+    }
+
+    /// Ask `worker` for `world`'s trials (this is attempt `attempts`).
+    pub(super) fn ask_of(
+        &mut self,
+        p: &mut PendingEval,
+        link: &mut dyn Link,
+        worker: String,
+        world: String,
+        attempts: u32,
+    ) -> Result<(), LinkError> {
         self.ids += 1;
-        link.request_eval(&p.request(spec, self.ids, &w, &world))?;
-        p.asked.insert(self.ids, (world, w, Instant::now(), attempts));
+        link.request_eval(&p.request(self.ids, &worker, &world))?;
+        p.asked.insert(self.ids, (world, worker, Instant::now(), attempts));
         Ok(())
     }
 
@@ -70,7 +135,6 @@ impl EvalTurns {
         &mut self,
         p: &mut PendingEval,
         link: &mut dyn Link,
-        spec: &RunSpec,
         workers: &[String],
         world: String,
         attempts: u32,
@@ -79,7 +143,7 @@ impl EvalTurns {
             p.done.insert(world, Vec::new());
             Ok(())
         } else {
-            self.ask(p, link, spec, workers, world, attempts + 1)
+            self.ask(p, link, workers, world, attempts + 1)
         }
     }
 }

@@ -32,12 +32,12 @@ mod eval;
 mod grants;
 mod stop;
 
-pub use stop::{Standing, StopRules, TargetLaps};
+pub use stop::{Standing, StopRules, TargetLaps, VERIFY_TRIALS};
 
 use crate::algorithm::Algorithm;
 use crate::algorithm::{LearnerState, Shared};
 use crate::checkpoints::{CheckpointRecord, OpenMode, RunDir, RunError};
-use crate::hyperparams::Hyperparameters;
+use crate::hyperparams::{Hyperparameters, LrSchedule};
 use crate::ppo::{Ppo, Refused, UpdateStats};
 use crate::record::Recorder;
 use crate::sac::SacTrainer;
@@ -306,6 +306,9 @@ pub struct EvalRecord {
     pub trend: String,
     /// Crashes in all its trials (obstacles, bots).
     pub crashes: u32,
+    /// This is the verification of a checkpoint that met the lap target (its own trials, with
+    /// fresh noise), not a new checkpoint's evaluation.
+    pub verification: bool,
 }
 
 /// Per-world figures over the last 10 s.
@@ -391,8 +394,10 @@ pub struct Summary {
     pub env_steps: u64,
     /// Seconds.
     pub seconds: f64,
-    /// The best checkpoint.
+    /// The best checkpoint (the verified one when a verification held).
     pub best: Option<CheckpointRecord>,
+    /// The checkpoint that held its verification, and what it did.
+    pub verified: Option<String>,
     /// The final policy version.
     pub policy_version: u64,
     /// The run folder.
@@ -413,6 +418,8 @@ struct WorldWindow {
 
 /// Messages taken in one turn of the loop at most (a flood cannot hold it).
 const MAX_DRAIN: usize = 1000;
+/// The smallest factor the evaluations bring the step size to (`lr_after_laps`).
+const LR_FLOOR: f64 = 1.0 / 16.0;
 
 /// Train until a stop rule, a stop message or a failure. Returns how it ended; the final
 /// checkpoint and the best model are in the run folder.
@@ -480,6 +487,11 @@ struct Run<'a> {
     /// Mean progress and weakest world's laps of the last evaluation.
     last_eval_figures: (f64, u64),
     lap_streak: usize,
+    /// The checkpoint that held its verification, and what it did.
+    verified: Option<String>,
+    /// The step size's factor from the evaluations (`cooldown` only): halved by each that laps
+    /// everywhere, doubled back by each that does not (see [`LR_FLOOR`]).
+    lr_scale: f64,
     pending: Option<PendingEval>,
     turns: EvalTurns,
     last_eval_ask: Instant,
@@ -552,6 +564,8 @@ impl<'a> Run<'a> {
             evaluated_version: None,
             last_eval_figures: (0.0, 0),
             lap_streak: 0,
+            verified: None,
+            lr_scale: 1.0,
             pending: None,
             turns: EvalTurns::default(),
             last_eval_ask: Instant::now(),
@@ -642,12 +656,13 @@ impl<'a> Run<'a> {
         let (world, worker, _, attempts) = p.asked.remove(&r.id).expect("checked");
         match r.trials {
             Ok(trials) => {
+                p.by.insert(world.clone(), worker);
                 p.done.insert(world, trials);
             }
             Err(why) => {
                 tracing::warn!(run = %self.spec.name, worker = %worker, world = %world, "evaluation failed: {why}");
                 let workers = self.link.workers();
-                self.turns.retry(p, &mut *self.link, self.spec, &workers, world, attempts)?;
+                self.turns.retry(p, &mut *self.link, &workers, world, attempts)?;
             }
         }
         Ok(())
@@ -684,7 +699,8 @@ impl<'a> Run<'a> {
         let lag = trajs.iter().map(|t| self.algo.version() - t.policy_version).max().unwrap_or(0);
         self.max_lag = self.max_lag.max(lag);
         let wait_s = self.wait_since.elapsed().as_secs_f64();
-        let lr = spec.stop.lr(&spec.hyper, self.start.elapsed().as_secs_f64(), self.episodes, self.env_steps);
+        let lr = self.lr_scale
+            * spec.stop.lr(&spec.hyper, self.start.elapsed().as_secs_f64(), self.episodes, self.env_steps);
         self.algo.set_lr(lr);
         let t1 = Instant::now();
         let result = self.algo.update(&trajs, self.link.team());
@@ -802,17 +818,10 @@ impl<'a> Run<'a> {
         }
         self.last_eval = Some(Instant::now());
         if self.pending.is_none() && !workers.is_empty() {
-            let mut p = PendingEval {
-                iteration: self.iteration,
-                version: self.algo.version(),
-                model: self.algo.model().clone(),
-                manifest,
-                name,
-                asked: BTreeMap::new(),
-                done: BTreeMap::new(),
-            };
+            let mut p =
+                PendingEval::new(spec, self.iteration, self.algo.version(), self.algo.model().clone(), manifest, name);
             for world in &spec.worlds {
-                self.turns.ask(&mut p, &mut *self.link, spec, workers, world.clone(), 1)?;
+                self.turns.ask(&mut p, &mut *self.link, workers, world.clone(), 1)?;
             }
             self.pending = Some(p);
         }
@@ -858,7 +867,7 @@ impl<'a> Run<'a> {
         if self.last_eval_ask.elapsed() >= EVAL_REPEAT {
             self.last_eval_ask = Instant::now();
             for (id, (world, w, _, _)) in &p.asked {
-                self.link.request_eval(&p.request(self.spec, *id, w, world))?;
+                self.link.request_eval(&p.request(*id, w, world))?;
             }
         }
         let lost: Vec<u64> = p
@@ -869,7 +878,7 @@ impl<'a> Run<'a> {
             .collect();
         for id in lost {
             let (world, _, _, attempts) = p.asked.remove(&id).expect("listed");
-            self.turns.retry(p, &mut *self.link, self.spec, workers, world, attempts)?;
+            self.turns.retry(p, &mut *self.link, workers, world, attempts)?;
         }
         Ok(())
     }
@@ -908,9 +917,37 @@ impl<'a> Run<'a> {
             obj.insert("eval_progress".into(), progress.into());
             obj.insert("eval_lap_time".into(), serde_json::json!(lap_time));
             obj.insert("eval_worlds".into(), serde_json::to_value(&per_world).expect("JSON"));
+            if p.verifying {
+                obj.insert("verified_trials".into(), p.trials.into());
+            }
         }
-        let is_best =
-            noted(&self.dir, "the checkpoint index not written", self.dir.record(rec.clone())).unwrap_or(false);
+        let target = spec.stop.target_laps.filter(|t| t.laps > 0);
+        let is_best = if p.verifying {
+            // The checkpoint that holds its verification is the run's model, whatever an
+            // earlier evaluation's figures were; one that does not hold changes nothing.
+            let held = target.is_some_and(|t| {
+                let needed = t.needed(spec.eval_trials as usize, p.trials as usize);
+                let held = per_world.iter().all(|w| w.3 >= needed && w.4 == p.trials as usize);
+                let what = format!(
+                    "{} (v{}) lapped {min_laps} of {} trials on every world in its verification ({needed} needed)",
+                    p.name, p.version, p.trials
+                );
+                if held {
+                    tracing::info!(run = %spec.name, "verified: {what}");
+                    self.verified = Some(what);
+                } else {
+                    tracing::warn!(run = %spec.name, "not verified, training goes on: {what}");
+                    self.lap_streak = 0;
+                }
+                held
+            });
+            if held {
+                noted(&self.dir, "the checkpoint index not written", self.dir.record_best(rec.clone()));
+            }
+            held
+        } else {
+            noted(&self.dir, "the checkpoint index not written", self.dir.record(rec.clone())).unwrap_or(false)
+        };
         self.evaluated_version = Some(p.version);
         if is_best || !self.dir.model_dir().join("manifest.json").exists() {
             noted(
@@ -925,19 +962,33 @@ impl<'a> Run<'a> {
             self.link.best(&best, &manifest, &self.signer)?;
             self.best = Some(rec);
         }
-        if let Some(t) = spec.stop.target_laps {
-            let met = t.laps > 0 && min_laps >= t.laps.min(spec.eval_trials as usize);
+        let mut verify = None;
+        if let (Some(t), false) = (target, p.verifying) {
+            let met = min_laps >= t.needed(spec.eval_trials as usize, spec.eval_trials as usize);
             self.lap_streak = if met { self.lap_streak + 1 } else { 0 };
-        }
-        self.last_eval_figures = (progress, min_laps as u64);
-        let now = self.trend.push(p.iteration, progress);
-        if std::mem::discriminant(&now) != std::mem::discriminant(&self.verdict) {
-            match &now {
-                Verdict::Improving => tracing::info!(run = %spec.name, "evaluation progress improving again"),
-                v => tracing::warn!(run = %spec.name, "{}", v.describe()),
+            if met && t.verify_trials > 0 && self.lap_streak >= t.evaluations.max(1) && self.stop_reason.is_none() {
+                verify = Some(p.verification(t.verify_trials as u32));
             }
         }
-        self.verdict = now;
+        if !p.verifying {
+            // A policy that laps every trial everywhere is protected by smaller steps; one that
+            // does not learns at the full rate again.
+            if spec.hyper.lr_schedule == LrSchedule::Cooldown {
+                let everywhere = min_laps >= p.trials as usize && p.trials > 0;
+                let f = spec.hyper.lr_after_laps;
+                self.lr_scale =
+                    if everywhere { (self.lr_scale * f).max(LR_FLOOR) } else { (self.lr_scale / f).min(1.0) };
+            }
+            self.last_eval_figures = (progress, min_laps as u64);
+            let now = self.trend.push(p.iteration, progress);
+            if std::mem::discriminant(&now) != std::mem::discriminant(&self.verdict) {
+                match &now {
+                    Verdict::Improving => tracing::info!(run = %spec.name, "evaluation progress improving again"),
+                    v => tracing::warn!(run = %spec.name, "{}", v.describe()),
+                }
+            }
+            self.verdict = now;
+        }
         let mut e = EvalRecord {
             iteration: p.iteration,
             policy_version: p.version,
@@ -945,11 +996,12 @@ impl<'a> Run<'a> {
             progress,
             lap_time,
             min_laps,
-            trials: spec.eval_trials as usize,
+            trials: p.trials as usize,
             best: is_best,
             simtrace: Vec::new(),
             trend: self.verdict.describe(),
             crashes: all.iter().map(|t| t.crashes).sum(),
+            verification: p.verifying,
         };
         if let Some(r) = self.recorder.as_mut() {
             e.simtrace = noted(
@@ -965,6 +1017,23 @@ impl<'a> Run<'a> {
             self.dir.append_evaluation(&serde_json::to_value(&e).expect("JSON")),
         );
         self.observer.evaluation(&e);
+        // A checkpoint that met the target is verified at once, each world by the worker that
+        // evaluated it (it keeps that version).
+        if let Some(mut v) = verify {
+            let workers = self.link.workers();
+            if !workers.is_empty() {
+                tracing::info!(run = %spec.name, checkpoint = %v.name, trials = v.trials, "verifying the checkpoint that met the lap target");
+                for world in &spec.worlds {
+                    match p.by.get(world).filter(|w| workers.contains(w)) {
+                        Some(w) => self.turns.ask_of(&mut v, &mut *self.link, w.clone(), world.clone(), 1)?,
+                        None => self.turns.ask(&mut v, &mut *self.link, &workers, world.clone(), 1)?,
+                    }
+                }
+                self.last_eval_ask = Instant::now();
+                self.pending = Some(v);
+                return Ok(false);
+            }
+        }
         // The final evaluation (of the last version) closes a stopping run.
         Ok(self.stop_reason.is_some() && p.version == self.algo.version())
     }
@@ -980,6 +1049,7 @@ impl<'a> Run<'a> {
                 env_steps: self.env_steps,
                 window: full.then(|| (mean(self.recent.iter().map(|r| r.0)), mean(self.recent.iter().map(|r| r.1)))),
                 lap_streak: self.lap_streak,
+                verified: self.verified.clone(),
                 verdict: self.verdict.clone(),
             };
             if let Some(why) = self.spec.stop.check(&self.spec.hyper, &standing) {
@@ -990,6 +1060,10 @@ impl<'a> Run<'a> {
         }
         if self.stop_reason.is_none() {
             return false;
+        }
+        // A verified checkpoint is the run's model: no later version is evaluated.
+        if self.verified.is_some() && self.pending.is_none() {
+            return true;
         }
         if self.iterations_here == 0 || (self.pending.is_none() && self.evaluated_version == Some(self.algo.version()))
         {
@@ -1098,7 +1172,7 @@ impl<'a> Run<'a> {
                 "episodes_received": self.buffer.received, "dropped_stale": self.buffer.stale,
                 "env_steps": self.env_steps, "seconds": seconds, "stop_reason": reason, "best": self.best,
                 "policy_version": self.algo.version(), "write_failures": write_failures, "write_error": write_error,
-                "trend": self.verdict.describe(),
+                "trend": self.verdict.describe(), "verified": self.verified,
             }))
             .expect("JSON")
             .as_bytes(),
@@ -1114,6 +1188,7 @@ impl<'a> Run<'a> {
             env_steps: self.env_steps,
             seconds,
             best: self.best,
+            verified: self.verified.clone(),
             policy_version: self.algo.version(),
             run_dir: spec.out.clone(),
             write_failures: self.dir.failures(),

@@ -7,13 +7,32 @@ use crate::hyperparams::Hyperparameters;
 use crate::trend::Verdict;
 use serde::{Deserialize, Serialize};
 
-/// Consecutive evaluations that must complete laps before the run stops.
+/// The lap target: consecutive evaluations that must complete laps, then (unless
+/// `verify_trials` is 0) a verification of the last one's checkpoint before the run stops.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct TargetLaps {
     /// Laps (of the evaluation's trials, on every world).
     pub laps: usize,
     /// Consecutive evaluations.
     pub evaluations: usize,
+    /// Trials per world of the verification: the checkpoint that met the target is evaluated
+    /// again with this many trials (fresh noise) and the run stops, with that checkpoint as
+    /// its model, if the same share of them lap on every world. 0: no verification, the run
+    /// stops at the streak of `evaluations`.
+    #[serde(default)]
+    pub verify_trials: usize,
+}
+
+/// Trials per world that verify a checkpoint by default.
+pub const VERIFY_TRIALS: usize = 10;
+
+impl TargetLaps {
+    /// Laps an evaluation of `trials` trials needs on every world: the target's share of
+    /// them (3 of 3 trials → every trial; 2 of 3 → 7 of 10), and never more than there are.
+    pub fn needed(&self, eval_trials: usize, trials: usize) -> usize {
+        let share = self.laps.min(eval_trials) as f64 / eval_trials.max(1) as f64;
+        ((share * trials as f64) - 1e-9).ceil().clamp(0.0, trials as f64) as usize
+    }
 }
 
 /// When a run stops (whichever comes first). DeepRacer's `term_cond_max_episodes` and
@@ -72,6 +91,8 @@ pub struct Standing {
     pub window: Option<(f64, f64)>,
     /// Consecutive evaluations that met the lap target.
     pub lap_streak: usize,
+    /// A checkpoint that met the lap target and held it in its verification: what it did.
+    pub verified: Option<String>,
     /// How the evaluations are going.
     pub verdict: Verdict,
 }
@@ -138,12 +159,18 @@ impl StopRules {
         if let Some(b) = self.env_steps_budget.filter(|b| s.env_steps >= *b) {
             return Some(format!("compute budget of {b} env steps spent"));
         }
-        if let Some(t) = self.target_laps.filter(|t| t.laps > 0 && s.lap_streak >= t.evaluations.max(1)) {
-            return Some(format!(
-                "target laps reached: {} laps in {} consecutive evaluations",
-                t.laps,
-                t.evaluations.max(1)
-            ));
+        if let Some(t) = self.target_laps.filter(|t| t.laps > 0) {
+            if t.verify_trials > 0 {
+                if let Some(v) = &s.verified {
+                    return Some(format!("target laps reached and verified: {v}"));
+                }
+            } else if s.lap_streak >= t.evaluations.max(1) {
+                return Some(format!(
+                    "target laps reached: {} laps in {} consecutive evaluations",
+                    t.laps,
+                    t.evaluations.max(1)
+                ));
+            }
         }
         match &s.verdict {
             Verdict::Plateau { .. } if self.plateau_evals.is_some() => return Some(s.verdict.describe()),
