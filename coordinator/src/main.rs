@@ -28,6 +28,8 @@ fn main() {
     // RUST_LOG asks for them.
     protocol::secure::init_logging("warn,zenoh=error,coordinator=info,sim_agent=info");
     let cli = cli::Cli::parse();
+    // The camera on a headless NVIDIA server (sim_agent::icd), before any thread starts.
+    sim_agent::icd::headless_nvidia();
     let result = match cli.command {
         cli::Command::Tracks { command } => tracks_cmd::run(command),
         cli::Command::Reward { command } => match command {

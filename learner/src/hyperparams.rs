@@ -83,11 +83,6 @@ pub struct Hyperparameters {
     /// it down linearly to zero at the end (not in a job that stops at a target);
     /// `"constant"` keeps `lr` throughout, as in DeepRacer.
     pub lr_schedule: LrSchedule,
-    /// Paddock's addition (DeepRacer has no such key; default 0.5), with the `cooldown`
-    /// schedule only: each evaluation that laps every trial on every world multiplies the step
-    /// size by this (down to 1/16 of `lr`), each that does not divides it back (up to `lr`).
-    /// A policy that laps everywhere then moves in smaller steps and stays good; 1: off.
-    pub lr_after_laps: f64,
     /// Paddock's addition (DeepRacer has no such key; default 0): the updates from policy
     /// version 0 up to this one train the value tower alone, the policy held as it is. A
     /// model imported from DeepRacer's graph starts at version 0 with a new value tower, and
@@ -126,7 +121,6 @@ impl Default for Hyperparameters {
             term_cond_avg_score: 100_000.0,
             target_kl: Some(DEFAULT_TARGET_KL),
             lr_schedule: LrSchedule::Cooldown,
-            lr_after_laps: 0.5,
             value_warmup_updates: 0,
             sac_alpha: 0.2,
             sac_target_entropy: None,
@@ -273,12 +267,6 @@ impl Hyperparameters {
                         }
                     }
                 }
-                "lr_after_laps" => {
-                    h.lr_after_laps = float(k, v)?;
-                    if !(h.lr_after_laps > 0.0 && h.lr_after_laps <= 1.0) {
-                        return Err(err(format!("key 'lr_after_laps' is {v}, expected a value in (0, 1]")));
-                    }
-                }
                 "value_warmup_updates" => h.value_warmup_updates = int(k, v)?,
                 "stack_size" => {
                     int(k, v)?;
@@ -347,7 +335,6 @@ impl Hyperparameters {
             "loss_type": match self.loss_type { LossType::Huber => "huber", LossType::MeanSquaredError => "mean squared error" },
             "lr": self.lr,
             "lr_schedule": self.lr_schedule,
-            "lr_after_laps": self.lr_after_laps,
             "num_episodes_between_training": self.num_episodes_between_training,
             "num_epochs": self.num_epochs,
             "stack_size": 1,
@@ -415,7 +402,6 @@ mod tests {
             ("{}", LrSchedule::Cooldown),
             (r#"{"lr_schedule": "constant"}"#, LrSchedule::Constant),
             (r#"{"lr_schedule": "cooldown"}"#, LrSchedule::Cooldown),
-            (r#"{"lr_schedule": "cooldown", "lr_after_laps": 0.25}"#, LrSchedule::Cooldown),
         ] {
             let h = Hyperparameters::parse(text, "h.json").unwrap().hyperparameters;
             assert_eq!(h.lr_schedule, want, "{text}");
@@ -454,8 +440,6 @@ mod tests {
             (r#"{"target_kl": 0}"#, "key 'target_kl' is 0, expected a positive number or null"),
             (r#"{"target_kl": "far"}"#, "key 'target_kl'"),
             (r#"{"lr_schedule": "cosine"}"#, "key 'lr_schedule' is \"cosine\", expected \"cooldown\" or \"constant\""),
-            (r#"{"lr_after_laps": 0}"#, "key 'lr_after_laps' is 0, expected a value in (0, 1]"),
-            (r#"{"lr_after_laps": 1.5}"#, "key 'lr_after_laps' is 1.5, expected a value in (0, 1]"),
             ("[]", "expected a JSON object"),
         ] {
             let e = Hyperparameters::parse(text, "h.json").unwrap_err().to_string();

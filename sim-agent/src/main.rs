@@ -91,6 +91,8 @@ fn handling(config: Option<PathBuf>) -> Result<()> {
 fn main() {
     protocol::secure::init_logging("info");
     let cli = Cli::parse();
+    // The camera on a headless NVIDIA server (sim_agent::icd), before any thread starts.
+    sim_agent::icd::headless_nvidia();
     let result = match cli.command {
         Command::Bench(args) => bench(args),
         Command::Car(args) => hil::run(args),

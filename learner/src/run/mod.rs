@@ -37,7 +37,7 @@ pub use stop::{Standing, StopRules, TargetLaps, VERIFY_TRIALS};
 use crate::algorithm::Algorithm;
 use crate::algorithm::{LearnerState, Shared};
 use crate::checkpoints::{CheckpointRecord, OpenMode, RunDir, RunError};
-use crate::hyperparams::{Hyperparameters, LrSchedule};
+use crate::hyperparams::Hyperparameters;
 use crate::ppo::{Ppo, Refused, UpdateStats};
 use crate::record::Recorder;
 use crate::sac::SacTrainer;
@@ -418,8 +418,6 @@ struct WorldWindow {
 
 /// Messages taken in one turn of the loop at most (a flood cannot hold it).
 const MAX_DRAIN: usize = 1000;
-/// The smallest factor the evaluations bring the step size to (`lr_after_laps`).
-const LR_FLOOR: f64 = 1.0 / 16.0;
 
 /// Train until a stop rule, a stop message or a failure. Returns how it ended; the final
 /// checkpoint and the best model are in the run folder.
@@ -489,9 +487,6 @@ struct Run<'a> {
     lap_streak: usize,
     /// The checkpoint that held its verification, and what it did.
     verified: Option<String>,
-    /// The step size's factor from the evaluations (`cooldown` only): halved by each that laps
-    /// everywhere, doubled back by each that does not (see [`LR_FLOOR`]).
-    lr_scale: f64,
     pending: Option<PendingEval>,
     turns: EvalTurns,
     last_eval_ask: Instant,
@@ -565,7 +560,6 @@ impl<'a> Run<'a> {
             last_eval_figures: (0.0, 0),
             lap_streak: 0,
             verified: None,
-            lr_scale: 1.0,
             pending: None,
             turns: EvalTurns::default(),
             last_eval_ask: Instant::now(),
@@ -699,8 +693,7 @@ impl<'a> Run<'a> {
         let lag = trajs.iter().map(|t| self.algo.version() - t.policy_version).max().unwrap_or(0);
         self.max_lag = self.max_lag.max(lag);
         let wait_s = self.wait_since.elapsed().as_secs_f64();
-        let lr = self.lr_scale
-            * spec.stop.lr(&spec.hyper, self.start.elapsed().as_secs_f64(), self.episodes, self.env_steps);
+        let lr = spec.stop.lr(&spec.hyper, self.start.elapsed().as_secs_f64(), self.episodes, self.env_steps);
         self.algo.set_lr(lr);
         let t1 = Instant::now();
         let result = self.algo.update(&trajs, self.link.team());
@@ -971,14 +964,6 @@ impl<'a> Run<'a> {
             }
         }
         if !p.verifying {
-            // A policy that laps every trial everywhere is protected by smaller steps; one that
-            // does not learns at the full rate again.
-            if spec.hyper.lr_schedule == LrSchedule::Cooldown {
-                let everywhere = min_laps >= p.trials as usize && p.trials > 0;
-                let f = spec.hyper.lr_after_laps;
-                self.lr_scale =
-                    if everywhere { (self.lr_scale * f).max(LR_FLOOR) } else { (self.lr_scale / f).min(1.0) };
-            }
             self.last_eval_figures = (progress, min_laps as u64);
             let now = self.trend.push(p.iteration, progress);
             if std::mem::discriminant(&now) != std::mem::discriminant(&self.verdict) {
