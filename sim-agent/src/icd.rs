@@ -165,7 +165,8 @@ mod tests {
         let lvp = vec![PathBuf::from("/usr/share/vulkan/icd.d/lvp_icd.x86_64.json")];
         let set = || Some(OsString::from("/tmp/x.json"));
         // (the user's ICD variable, retried, the EGL library, a GPU shown, what to do)
-        let table: Vec<(Option<OsString>, bool, Option<&Path>, bool, Plan)> = vec![
+        type Row<'a> = (Option<OsString>, bool, Option<&'a Path>, bool, Plan);
+        let table: Vec<Row> = vec![
             (None, false, Some(egl), false, Plan::Retry { egl: egl.into(), files: lvp.clone() }),
             (None, false, Some(egl), true, Plan::Keep),
             (None, false, None, false, Plan::Keep),
