@@ -45,7 +45,9 @@ fn train_then_evaluate_then_clone_and_resume() {
     let o = coordinator(d, &["train", "--world", "reinvent_base", "--minutes", "2", "--out", "run1"]);
     assert!(o.status.success(), "{}", text(&o));
     let out = text(&o);
-    assert!(out.contains("target laps reached"), "{out}");
+    // The default stop: 3/3 in an evaluation, then 10 of 10 in its checkpoint's verification.
+    assert!(out.contains("target laps reached and verified"), "{out}");
+    assert!(out.contains("verify v") && out.contains("10/10"), "{out}");
     assert!(out.contains("evaluation progress 100.0 %"), "{out}");
     for f in [
         "model/model.safetensors",
@@ -298,10 +300,11 @@ fn issue_31_a_deepracer_for_cloud_run_env_trains_its_race_with_its_custom_files(
 #[test]
 fn issue_5_a_camera_model_learns_to_lap_from_pixels() {
     // DeepRacer's SHALLOW network on 160x120 grayscale frames rendered on lavapipe, DeepRacer's
-    // default hyperparameters; training stops after two consecutive 3/3 evaluations. The run
-    // is the one the car-in-the-loop test drives with (support::camera_run).
+    // default hyperparameters; training stops after two consecutive 3/3 evaluations (the
+    // streak rule, without a verification). The run is the one the car-in-the-loop test drives
+    // with (support::camera_run).
     let (run, log) = support::camera_run();
-    assert!(log.contains("target laps reached"), "{log}");
+    assert!(log.contains("target laps reached: 3 laps in 2 consecutive evaluations"), "{log}");
     let meta = std::fs::read_to_string(run.join("model/model_metadata.json")).unwrap();
     assert!(meta.contains("FRONT_FACING_CAMERA") && meta.contains("DEEP_CONVOLUTIONAL_NETWORK_SHALLOW"), "{meta}");
     let dir = tempfile::tempdir().unwrap();

@@ -66,7 +66,10 @@ pub fn camera_run() -> (PathBuf, String) {
         std::fs::create_dir_all(&work).unwrap();
         let o = Command::new(&coordinator)
             .args(["train", "--sensor", "camera", "--world", "reinvent_base", "--envs", "16"])
-            .args(["--minutes", "15", "--checkpoint-seconds", "20", "--out", "run"])
+            // The streak rule, unverified: the car needs two lapping checkpoints, and a
+            // verification would add minutes of CI here (train_cli verifies a state model).
+            .args(["--minutes", "15", "--checkpoint-seconds", "20", "--target-evals", "2", "--verify-trials", "0"])
+            .args(["--out", "run"])
             .current_dir(&work)
             .output()
             .unwrap();
