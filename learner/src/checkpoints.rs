@@ -200,8 +200,7 @@ impl RunDir {
         if index.last_checkpoint.as_ref().is_none_or(|l| l.iteration <= rec.iteration) {
             index.last_checkpoint = Some(rec);
         }
-        write_atomic(&self.index_path(), serde_json::to_string_pretty(&index).expect("JSON").as_bytes())?;
-        self.prune(&index)?;
+        self.write_index(&index)?;
         Ok(best)
     }
 
@@ -216,8 +215,13 @@ impl RunDir {
             });
         }
         index.best_checkpoint = Some(rec);
-        write_atomic(&self.index_path(), serde_json::to_string_pretty(&index).expect("JSON").as_bytes())?;
-        self.prune(&index)
+        self.write_index(&index)
+    }
+
+    /// Write the index, then remove the checkpoints it no longer keeps.
+    fn write_index(&self, index: &CheckpointIndex) -> Result<(), RunError> {
+        write_atomic(&self.index_path(), serde_json::to_string_pretty(index).expect("JSON").as_bytes())?;
+        self.prune(index)
     }
 
     fn prune(&self, index: &CheckpointIndex) -> Result<(), RunError> {

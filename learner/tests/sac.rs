@@ -183,8 +183,52 @@ fn issue_32_the_replay_memory_keeps_episodes_in_order_and_pixels_as_bytes() {
     assert_eq!(r.added(), 6);
 }
 
-/// A bandit whose best action is known: a = (x₀, −x₁/2) for the observation x. SAC must find it
-/// (a wrong sign in the policy's gradient through Q, or a wrong target, fails it).
+/// A bandit whose best action is known: each step draws x uniformly in [-1, 1]², shows the
+/// policy `observe(x)`, and rewards the action by its squared distance to `answer(observation)`.
+struct Bandit {
+    observe: fn([f32; 2]) -> Vec<f32>,
+    answer: fn(&[f32]) -> [f32; 2],
+}
+
+impl Bandit {
+    /// The largest error of the mean action over 50 draws.
+    fn worst_error(&self, sac: &Sac, rng: &mut ChaCha8Rng) -> f32 {
+        let mut worst = 0.0f32;
+        let mut tape = policy::nn::Tape::default();
+        for _ in 0..50 {
+            let obs = (self.observe)([rng.random_range(-1.0..1.0f32), rng.random_range(-1.0..1.0f32)]);
+            sac.nets.policy.forward(&obs, 1, &mut tape, Par::Seq);
+            let a = policy::model::squashed(tape.output(), [0.0; 2], sac.settings.scale).a;
+            let b = (self.answer)(&obs);
+            worst = worst.max((a[0] - b[0]).abs()).max((a[1] - b[1]).abs());
+        }
+        worst
+    }
+
+    /// 3,000 one-step episodes into the replay memory, a gradient step (and V's target
+    /// copied) after each from the 64th on.
+    fn train(&self, sac: &mut Sac, replay: &mut Replay, rng: &mut ChaCha8Rng, act_rng: &mut ChaCha8Rng) {
+        let mut tapes = Tapes::default();
+        let mut tape = policy::nn::Tape::default();
+        for step in 0..3000 {
+            let obs = (self.observe)([act_rng.random_range(-1.0..1.0f32), act_rng.random_range(-1.0..1.0f32)]);
+            sac.nets.policy.forward(&obs, 1, &mut tape, Par::Seq);
+            let eps = [act_rng.random::<f32>() * 2.0 - 1.0, act_rng.random::<f32>() * 2.0 - 1.0];
+            let a = policy::model::squashed(tape.output(), eps, sac.settings.scale).a;
+            let b = (self.answer)(&obs);
+            let reward = -((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2));
+            replay.push_episode(&obs, &[a], &[reward], true).unwrap();
+            if step >= 64 {
+                let batch = replay.sample(64, rng).unwrap();
+                sac.step(&batch, Par::Seq, &mut tapes);
+                sac.update_target();
+            }
+        }
+    }
+}
+
+/// The bandit with a = (0.8 x₀, −0.4 x₁) for the observation x. SAC must find it (a wrong sign
+/// in the policy's gradient through Q, or a wrong target, fails it).
 #[test]
 fn issue_32_sac_learns_a_task_whose_answer_is_known() {
     let mut rng = ChaCha8Rng::seed_from_u64(5);
@@ -193,38 +237,11 @@ fn issue_32_sac_learns_a_task_whose_answer_is_known() {
     let settings = SacSettings { alpha: 0.01, lr: 1e-3, ..SacSettings::for_space(&m.action_space).unwrap() };
     let mut sac = Sac::new(nets, settings, 5);
     let mut replay = Replay::new(10_000, 2, vec![]);
-    let mut tapes = Tapes::default();
     let mut act_rng = ChaCha8Rng::seed_from_u64(6);
-    let best = |x: &[f32]| [x[0] * 0.8, -x[1] * 0.4];
-    let error = |sac: &Sac, rng: &mut ChaCha8Rng| {
-        let mut worst = 0.0f32;
-        let mut tape = policy::nn::Tape::default();
-        for _ in 0..50 {
-            let x = [rng.random_range(-1.0..1.0f32), rng.random_range(-1.0..1.0f32)];
-            sac.nets.policy.forward(&x, 1, &mut tape, Par::Seq);
-            let a = policy::model::squashed(tape.output(), [0.0; 2], sac.settings.scale).a;
-            let b = best(&x);
-            worst = worst.max((a[0] - b[0]).abs()).max((a[1] - b[1]).abs());
-        }
-        worst
-    };
-    let before = error(&sac, &mut act_rng);
-    let mut tape = policy::nn::Tape::default();
-    for step in 0..3000 {
-        let x = [act_rng.random_range(-1.0..1.0f32), act_rng.random_range(-1.0..1.0f32)];
-        sac.nets.policy.forward(&x, 1, &mut tape, Par::Seq);
-        let eps = [act_rng.random::<f32>() * 2.0 - 1.0, act_rng.random::<f32>() * 2.0 - 1.0];
-        let a = policy::model::squashed(tape.output(), eps, sac.settings.scale).a;
-        let b = best(&x);
-        let reward = -((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2));
-        replay.push_episode(&x, &[a], &[reward], true).unwrap();
-        if step >= 64 {
-            let batch = replay.sample(64, &mut rng).unwrap();
-            sac.step(&batch, Par::Seq, &mut tapes);
-            sac.update_target();
-        }
-    }
-    let after = error(&sac, &mut act_rng);
+    let bandit = Bandit { observe: |x| x.to_vec(), answer: |x| [x[0] * 0.8, -x[1] * 0.4] };
+    let before = bandit.worst_error(&sac, &mut act_rng);
+    bandit.train(&mut sac, &mut replay, &mut rng, &mut act_rng);
+    let after = bandit.worst_error(&sac, &mut act_rng);
     assert!(after < 0.15 && after < before / 3.0, "largest action error {before:.3} → {after:.3}");
 }
 
@@ -242,44 +259,22 @@ fn issue_32_sac_learns_the_bandit_from_pixels() {
     let mut sac = Sac::new(nets, settings, 5);
     let pixels = std::ops::Range { start: 0, end: 80 };
     let mut replay = Replay::new(10_000, 80, vec![pixels]);
-    let mut tapes = Tapes::default();
     let mut act_rng = ChaCha8Rng::seed_from_u64(6);
-    let image = |x: [f32; 2]| -> Vec<f32> {
-        (0..80)
-            .map(|i| if i % 10 < 5 { ((x[0] + 1.0) * 127.0).round() } else { ((x[1] + 1.0) * 127.0).round() })
-            .collect()
+    let bandit = Bandit {
+        observe: |x| {
+            (0..80)
+                .map(|i| if i % 10 < 5 { ((x[0] + 1.0) * 127.0).round() } else { ((x[1] + 1.0) * 127.0).round() })
+                .collect()
+        },
+        // What the image shows, then the answer to it.
+        answer: |img| {
+            let seen = [img[0] / 127.0 - 1.0, img[9] / 127.0 - 1.0];
+            [seen[0] * 0.8, -seen[1] * 0.4]
+        },
     };
-    let seen = |img: &[f32]| [img[0] / 127.0 - 1.0, img[9] / 127.0 - 1.0];
-    let best = |x: [f32; 2]| [x[0] * 0.8, -x[1] * 0.4];
-    let error = |sac: &Sac, rng: &mut ChaCha8Rng| {
-        let mut worst = 0.0f32;
-        let mut tape = policy::nn::Tape::default();
-        for _ in 0..50 {
-            let img = image([rng.random_range(-1.0..1.0f32), rng.random_range(-1.0..1.0f32)]);
-            sac.nets.policy.forward(&img, 1, &mut tape, Par::Seq);
-            let a = policy::model::squashed(tape.output(), [0.0; 2], sac.settings.scale).a;
-            let b = best(seen(&img));
-            worst = worst.max((a[0] - b[0]).abs()).max((a[1] - b[1]).abs());
-        }
-        worst
-    };
-    let before = error(&sac, &mut act_rng);
-    let mut tape = policy::nn::Tape::default();
-    for step in 0..3000 {
-        let img = image([act_rng.random_range(-1.0..1.0f32), act_rng.random_range(-1.0..1.0f32)]);
-        sac.nets.policy.forward(&img, 1, &mut tape, Par::Seq);
-        let eps = [act_rng.random::<f32>() * 2.0 - 1.0, act_rng.random::<f32>() * 2.0 - 1.0];
-        let a = policy::model::squashed(tape.output(), eps, sac.settings.scale).a;
-        let b = best(seen(&img));
-        let reward = -((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2));
-        replay.push_episode(&img, &[a], &[reward], true).unwrap();
-        if step >= 64 {
-            let batch = replay.sample(64, &mut rng).unwrap();
-            sac.step(&batch, Par::Seq, &mut tapes);
-            sac.update_target();
-        }
-    }
-    let after = error(&sac, &mut act_rng);
+    let before = bandit.worst_error(&sac, &mut act_rng);
+    bandit.train(&mut sac, &mut replay, &mut rng, &mut act_rng);
+    let after = bandit.worst_error(&sac, &mut act_rng);
     assert!(after < 0.2 && after < before / 3.0, "largest action error {before:.3} → {after:.3}");
 }
 

@@ -35,6 +35,11 @@ fn policy(version: u64) -> WorkerInbound {
     WorkerInbound::Policy(PolicyVersion { version, model: Arc::new(model), metadata: Arc::new(meta) })
 }
 
+/// Request `id`: `trials` evaluation trials of `version` on `world`, with noise `seed`.
+fn eval(id: u64, version: u64, world: &str, trials: u32, seed: u64) -> WorkerInbound {
+    WorkerInbound::Eval(EvalRequest { id, worker: "w1".into(), version, world: world.into(), trials, seed })
+}
+
 fn credit(version: u64, round: u64, episodes: u64) -> WorkerInbound {
     WorkerInbound::Credit(Credit { version, round, episodes: [("w1".to_string(), episodes)].into() })
 }
@@ -81,27 +86,13 @@ fn issue_8_a_worker_evaluates_when_asked_and_follows_a_restarted_learner() {
     let worlds: std::collections::BTreeSet<&str> = e.trajectories.iter().map(|t| t.world.as_str()).collect();
     assert!(worlds.len() == 2 || e.trajectories.len() < 2, "{worlds:?}");
     // An evaluation request of a version held: trials come back.
-    w.take(WorkerInbound::Eval(EvalRequest {
-        id: 9,
-        worker: "w1".into(),
-        version: 0,
-        world: "reinvent_wood".into(),
-        trials: 2,
-        seed: 1,
-    }));
+    w.take(eval(9, 0, "reinvent_wood", 2, 1));
     let Some(WorkerOutbound::Eval(r)) = w.work().unwrap() else { panic!("report expected") };
     assert_eq!((r.id, r.version, r.world.as_str()), (9, 0, "reinvent_wood"));
     assert_eq!(r.trials.as_ref().unwrap().len(), 2);
     // A repeated request (the report was lost on the way) is answered again without driving.
     let steps = w.env_steps();
-    w.take(WorkerInbound::Eval(EvalRequest {
-        id: 9,
-        worker: "w1".into(),
-        version: 0,
-        world: "reinvent_wood".into(),
-        trials: 2,
-        seed: 1,
-    }));
+    w.take(eval(9, 0, "reinvent_wood", 2, 1));
     let Some(WorkerOutbound::Eval(again)) = w.work().unwrap() else { panic!("report expected") };
     assert_eq!(again, r);
     assert_eq!(w.env_steps(), steps);
@@ -121,14 +112,7 @@ fn issue_32_an_evaluation_waits_through_one_round_of_episodes_at_most() {
     let mut w = worker(2, &["reinvent_base"]);
     w.take(policy(1));
     w.take(credit(1, 1, 2));
-    w.take(WorkerInbound::Eval(EvalRequest {
-        id: 3,
-        worker: "w1".into(),
-        version: 1,
-        world: "reinvent_base".into(),
-        trials: 1,
-        seed: 1,
-    }));
+    w.take(eval(3, 1, "reinvent_base", 1, 1));
     // The round in hand first: the learner is waiting for it.
     let Some(WorkerOutbound::Experience(e)) = w.work().unwrap() else { panic!("experience expected") };
     assert_eq!(e.credit, (1, 1));
@@ -146,29 +130,19 @@ fn issue_32_an_evaluation_waits_through_one_round_of_episodes_at_most() {
 fn issue_33_a_worker_keeps_the_version_it_evaluated_for_its_verification() {
     let mut w = worker(1, &["reinvent_base"]);
     w.take(policy(1));
-    let ask = |id, version, trials, seed| {
-        WorkerInbound::Eval(EvalRequest {
-            id,
-            worker: "w1".into(),
-            version,
-            world: "reinvent_base".into(),
-            trials,
-            seed,
-        })
-    };
-    w.take(ask(1, 1, 1, 1));
+    w.take(eval(1, 1, "reinvent_base", 1, 1));
     let Some(WorkerOutbound::Eval(r)) = w.work().unwrap() else { panic!("report expected") };
     assert!(r.trials.is_ok(), "{r:?}");
     for v in 2..=8 {
         w.take(policy(v));
     }
     // v1 is long out of the newest versions, and still verified.
-    w.take(ask(2, 1, 4, 99));
+    w.take(eval(2, 1, "reinvent_base", 4, 99));
     let Some(WorkerOutbound::Eval(r)) = w.work().unwrap() else { panic!("report expected") };
     assert_eq!((r.id, r.version), (2, 1));
     assert_eq!(r.trials.as_ref().map(Vec::len), Ok(4), "{r:?}");
     // A version it never evaluated and no longer holds is refused, saying so.
-    w.take(ask(3, 2, 1, 1));
+    w.take(eval(3, 2, "reinvent_base", 1, 1));
     let Some(WorkerOutbound::Eval(r)) = w.work().unwrap() else { panic!("report expected") };
     assert!(r.trials.as_ref().is_err_and(|e| e.contains("no longer held")), "{r:?}");
 }

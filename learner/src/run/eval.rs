@@ -63,19 +63,15 @@ impl PendingEval {
     }
 
     /// The verification of this (finished) evaluation's checkpoint: `trials` trials per world.
-    pub(super) fn verification(&self, trials: u32) -> Self {
+    pub(super) fn verification(self, trials: u32) -> Self {
         PendingEval {
-            iteration: self.iteration,
-            version: self.version,
-            model: self.model.clone(),
-            manifest: self.manifest.clone(),
-            name: self.name.clone(),
             asked: BTreeMap::new(),
             done: BTreeMap::new(),
             by: BTreeMap::new(),
             trials,
             seed: self.seed ^ VERIFY_SEED,
             verifying: true,
+            ..self
         }
     }
 

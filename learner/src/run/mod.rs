@@ -884,7 +884,7 @@ impl<'a> Run<'a> {
             return Ok(false);
         }
         let spec = self.spec;
-        let p = self.pending.take().expect("checked");
+        let mut p = self.pending.take().expect("checked");
         let all: Vec<Trial> = p.done.values().flatten().cloned().collect();
         let (progress, lap_time, _) = summarise(&all);
         let per_world: Vec<(String, f64, Option<f64>, usize, usize)> = spec
@@ -918,22 +918,7 @@ impl<'a> Run<'a> {
         let is_best = if p.verifying {
             // The checkpoint that holds its verification is the run's model, whatever an
             // earlier evaluation's figures were; one that does not hold changes nothing.
-            let held = target.is_some_and(|t| {
-                let needed = t.needed(spec.eval_trials as usize, p.trials as usize);
-                let held = per_world.iter().all(|w| w.3 >= needed && w.4 == p.trials as usize);
-                let what = format!(
-                    "{} (v{}) lapped {min_laps} of {} trials on every world in its verification ({needed} needed)",
-                    p.name, p.version, p.trials
-                );
-                if held {
-                    tracing::info!(run = %spec.name, "verified: {what}");
-                    self.verified = Some(what);
-                } else {
-                    tracing::warn!(run = %spec.name, "not verified, training goes on: {what}");
-                    self.lap_streak = 0;
-                }
-                held
-            });
+            let held = target.is_some_and(|t| self.verification_held(&p, &t, &per_world));
             if held {
                 noted(&self.dir, "the checkpoint index not written", self.dir.record_best(rec.clone()));
             }
@@ -960,7 +945,7 @@ impl<'a> Run<'a> {
             let met = min_laps >= t.needed(spec.eval_trials as usize, spec.eval_trials as usize);
             self.lap_streak = if met { self.lap_streak + 1 } else { 0 };
             if met && t.verify_trials > 0 && self.lap_streak >= t.evaluations.max(1) && self.stop_reason.is_none() {
-                verify = Some(p.verification(t.verify_trials as u32));
+                verify = Some(t.verify_trials as u32);
             }
         }
         if !p.verifying {
@@ -1004,23 +989,48 @@ impl<'a> Run<'a> {
         self.observer.evaluation(&e);
         // A checkpoint that met the target is verified at once, each world by the worker that
         // evaluated it (it keeps that version).
-        if let Some(mut v) = verify {
-            let workers = self.link.workers();
-            if !workers.is_empty() {
-                tracing::info!(run = %spec.name, checkpoint = %v.name, trials = v.trials, "verifying the checkpoint that met the lap target");
-                for world in &spec.worlds {
-                    match p.by.get(world).filter(|w| workers.contains(w)) {
-                        Some(w) => self.turns.ask_of(&mut v, &mut *self.link, w.clone(), world.clone(), 1)?,
-                        None => self.turns.ask(&mut v, &mut *self.link, &workers, world.clone(), 1)?,
-                    }
+        let workers = self.link.workers();
+        if let (Some(trials), false) = (verify, workers.is_empty()) {
+            let by = std::mem::take(&mut p.by);
+            let mut v = p.verification(trials);
+            tracing::info!(run = %spec.name, checkpoint = %v.name, trials, "verifying the checkpoint that met the lap target");
+            for world in &spec.worlds {
+                match by.get(world).filter(|w| workers.contains(w)) {
+                    Some(w) => self.turns.ask_of(&mut v, &mut *self.link, w.clone(), world.clone(), 1)?,
+                    None => self.turns.ask(&mut v, &mut *self.link, &workers, world.clone(), 1)?,
                 }
-                self.last_eval_ask = Instant::now();
-                self.pending = Some(v);
-                return Ok(false);
             }
+            self.last_eval_ask = Instant::now();
+            self.pending = Some(v);
+            return Ok(false);
         }
         // The final evaluation (of the last version) closes a stopping run.
         Ok(self.stop_reason.is_some() && p.version == self.algo.version())
+    }
+
+    /// Whether a verification's trials lap the target's share on every world; one that holds
+    /// becomes [`Run::verified`], one that does not ends the lap streak.
+    fn verification_held(
+        &mut self,
+        p: &PendingEval,
+        t: &TargetLaps,
+        per_world: &[(String, f64, Option<f64>, usize, usize)],
+    ) -> bool {
+        let needed = t.needed(self.spec.eval_trials as usize, p.trials as usize);
+        let held = per_world.iter().all(|w| w.3 >= needed && w.4 == p.trials as usize);
+        let min_laps = per_world.iter().map(|w| w.3).min().unwrap_or(0);
+        let what = format!(
+            "{} (v{}) lapped {min_laps} of {} trials on every world in its verification ({needed} needed)",
+            p.name, p.version, p.trials
+        );
+        if held {
+            tracing::info!(run = %self.spec.name, "verified: {what}");
+            self.verified = Some(what);
+        } else {
+            tracing::warn!(run = %self.spec.name, "not verified, training goes on: {what}");
+            self.lap_streak = 0;
+        }
+        held
     }
 
     /// Check the stop rules; true when the run is over: stopping, and the last version's
