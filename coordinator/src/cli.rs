@@ -286,7 +286,7 @@ pub enum BenchCommand {
         evals: u32,
         /// Trials per world of the verification that ends a training (0: none; the streak
         /// of --evals ends it).
-        #[arg(long, default_value_t = learner::run::VERIFY_TRIALS as u32)]
+        #[arg(long, default_value_t = learner::run::VERIFY_TRIALS as u32, value_parser = clap::value_parser!(u32).range(0..=MAX_VERIFY_TRIALS))]
         verify_trials: u32,
         /// Train for the whole --minutes (no lap target), to see whether a policy that lapped
         /// everywhere stays good.
@@ -303,6 +303,9 @@ pub enum BenchCommand {
 }
 
 pub use protocol::net::NetCli;
+
+/// The most verification trials per world a command takes (an agent refuses more).
+const MAX_VERIFY_TRIALS: i64 = protocol::exchange::SANITY_LIMIT as i64;
 
 #[derive(Args)]
 pub struct ServeCli {
@@ -571,7 +574,7 @@ pub struct UpArgs {
     pub target_evals: u32,
     /// ...and the last one's checkpoint, evaluated again with this many trials per world
     /// (fresh noise), laps as often: that checkpoint is the model (0: no verification).
-    #[arg(long, default_value_t = learner::run::VERIFY_TRIALS as u32)]
+    #[arg(long, default_value_t = learner::run::VERIFY_TRIALS as u32, value_parser = clap::value_parser!(u32).range(0..=MAX_VERIFY_TRIALS))]
     pub verify_trials: u32,
     /// Stop at a plateau: this many evaluations in a row without improving the best mean
     /// progress by a point (plateaus are reported after 5 either way).
@@ -664,7 +667,7 @@ pub struct TrainArgs {
     /// ...before the last one's checkpoint is evaluated again with this many trials per world
     /// (fresh noise); training stops if it laps as often, with that checkpoint as the model
     /// (0: no verification; training stops at the streak of --target-evals).
-    #[arg(long, default_value_t = learner::run::VERIFY_TRIALS)]
+    #[arg(long, default_value_t = learner::run::VERIFY_TRIALS, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(0..=MAX_VERIFY_TRIALS as u64))]
     pub verify_trials: usize,
     /// Stop at a plateau: this many evaluations in a row without improving the best mean
     /// progress by a point (plateaus are reported after 5 either way).

@@ -467,5 +467,8 @@ mod tests {
         for (flags, want) in table {
             assert_eq!(rules(flags), want, "{flags:?}");
         }
+        // More verification trials than an agent takes: refused by name.
+        let e = Cli::try_parse_from(["coordinator", "train", "--verify-trials", "1000000"]).err().unwrap().to_string();
+        assert!(e.contains("--verify-trials"), "{e}");
     }
 }

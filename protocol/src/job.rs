@@ -84,6 +84,9 @@ pub fn check(j: &Job, id: &str) -> Result<(), crate::DecodeError> {
     if !(s.minutes.is_finite() && s.minutes > 0.0) {
         return bad(format!("job {id}: stop after {} minutes", s.minutes));
     }
+    if u64::from(s.verify_trials) > crate::exchange::SANITY_LIMIT {
+        return bad(format!("job {id}: {} verification trials per world", s.verify_trials));
+    }
     for (i, t) in j.tracks.iter().enumerate() {
         let lines = [&t.centre, &t.inner, &t.outer];
         let fits = j.worlds.contains(&t.world)
@@ -244,6 +247,7 @@ mod tests {
             |j: &mut Job| j.obs_size = 0,
             |j: &mut Job| j.stop = None,
             |j: &mut Job| j.stop.as_mut().unwrap().minutes = f64::NAN,
+            |j: &mut Job| j.stop.as_mut().unwrap().verify_trials = u32::MAX,
             |j: &mut Job| j.worlds.push("../etc".into()),
             |j: &mut Job| j.tracks[0].world = "reinvent_base".into(),
             |j: &mut Job| j.tracks.push(j.tracks[0].clone()),
