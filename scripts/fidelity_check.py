@@ -4,7 +4,7 @@
 An independent implementation: nothing here comes from Paddock's Rust code. It reads a
 DeepRacer track file (.npy) and the `params` a reward function received while a car drove on
 it (one JSON object per line, written by the reward function in
-coordinator/tests/fidelity.rs), rebuilds the track the way the simapp's `TrackData` does
+coordinator/tests/it/fidelity.rs), rebuilds the track the way the simapp's `TrackData` does
 (shapely LinearRing/LineString, road polygon, consecutive duplicate rows dropped), and
 recomputes from each step's `x`, `y` and `heading`:
 

@@ -435,7 +435,7 @@ mod tests {
 
     #[test]
     fn issue_29_each_stop_flag_sets_its_rule_and_only_that() {
-        // The run's stop rules are tested through a whole run in learner/tests/run_scripted.rs;
+        // The run's stop rules are tested through a whole run in learner/tests/it/run_scripted.rs;
         // here, that each flag of `train` reaches its rule.
         let base = rules(&[]);
         assert_eq!(base.target_laps, Some(TargetLaps { laps: 3, evaluations: 1, verify_trials: 10 }), "{base:?}");

@@ -598,7 +598,7 @@ mod tests {
 
     #[test]
     fn issue_29_each_field_of_a_jobs_stop_table_reaches_its_rule_across_the_wire() {
-        // The rules themselves are tested through a whole run (learner/tests/run_scripted.rs);
+        // The rules themselves are tested through a whole run (learner/tests/it/run_scripted.rs);
         // here, that a job's `[stop]` table, sent as the `Job` message, asks for the same.
         let base = protocol::job::default_stop();
         let table: Vec<(JobStop, StopRules)> = vec![

@@ -1,7 +1,7 @@
 //! When a run stops: the rules (time, episodes, targets, budgets, laps, plateaus), the
 //! figures they look at, and the learning rate over the job's budget. Pure functions of a
-//! [`Standing`], tested on tables (learner/tests/stop_rules.rs) and through whole runs
-//! (learner/tests/run_scripted.rs).
+//! [`Standing`], tested on tables (learner/tests/it/stop_rules.rs) and through whole runs
+//! (learner/tests/it/run_scripted.rs).
 
 use crate::hyperparams::Hyperparameters;
 use crate::trend::Verdict;

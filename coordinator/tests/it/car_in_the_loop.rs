@@ -13,8 +13,8 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use zenoh::Wait;
 
-mod support;
-use support::{bin, free_port};
+use crate::support;
+use crate::support::{bin, free_port};
 
 /// Processes killed when dropped.
 struct Procs(Vec<Child>);

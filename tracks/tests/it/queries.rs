@@ -1,8 +1,7 @@
 //! DeepRacer's geometric queries: a hand-derived table on a rectangle, and agreement with
 //! the plain full-scan implementation on every built-in track in both directions.
 
-mod common;
-use common::{f8_rows, rectangle_rows};
+use crate::common::{f8_rows, rectangle_rows};
 use rand::{Rng, SeedableRng};
 use tracks::{Direction, P2, Track, compute_progress, parse_track_npy, world_names};
 

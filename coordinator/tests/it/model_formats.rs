@@ -7,8 +7,7 @@ use policy::{ActorCritic, Manifest, ModelMetadata, ModelParts};
 use rand::{Rng, SeedableRng};
 use std::process::Command;
 
-mod support;
-use support::python;
+use crate::support::python;
 
 const RUN: &str = r#"
 import sys, numpy as np, onnx, onnxruntime as ort
@@ -251,9 +250,6 @@ fn coordinator(args: &[&std::ffi::OsStr], dir: &std::path::Path) -> String {
 fn issue_30_the_car_archive_runs_in_tensorflow_tflite_and_openvino_as_paddock_does_and_comes_back_whole() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let continuous = r#"{"action_space": {"steering_angle": {"low": -30, "high": 30}, "speed": {"low": 0.5, "high": 3}},
-        "sensor": ["FRONT_FACING_CAMERA"], "neural_network": "DEEP_CONVOLUTIONAL_NETWORK", "training_algorithm": "clipped_ppo",
-        "action_space_type": "continuous", "version": "5"}"#;
     let stereo = r#"{"action_space": [{"steering_angle": -20, "speed": 1}, {"steering_angle": 0, "speed": 2},
         {"steering_angle": 20, "speed": 1}, {"steering_angle": 0, "speed": 1}],
         "sensor": ["STEREO_CAMERAS"], "neural_network": "DEEP_CONVOLUTIONAL_NETWORK_DEEP", "training_algorithm": "clipped_ppo",
@@ -269,7 +265,7 @@ fn issue_30_the_car_archive_runs_in_tensorflow_tflite_and_openvino_as_paddock_do
         "action_space_type": "continuous", "version": "4"}"#;
     let cases = [
         ("shallow", ModelMetadata::default_camera()),
-        ("deep", ModelMetadata::parse(continuous, "deep").unwrap()),
+        // DEEP, continuous, with stereo cameras and a LiDAR below; DEEPER, discrete, stereo here.
         ("deeper", ModelMetadata::parse(stereo, "deeper").unwrap()),
         // Camera + LiDAR (issue 31): a placeholder per sensor, the embeddings merged.
         ("lidar", ModelMetadata::parse(lidar, "lidar").unwrap()),

@@ -8,8 +8,7 @@ use policy::nn::{InputShape, LayerSpec, Net};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-mod support;
-use support::Threads;
+use crate::support::Threads;
 
 fn meta(obs: usize) -> (ModelMetadata, usize) {
     let text = r#"{"action_space":{"steering_angle":{"low":-30,"high":30},"speed":{"low":1,"high":2}},

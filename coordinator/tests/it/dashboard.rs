@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-mod support;
+use crate::support;
 
 fn chromium() -> PathBuf {
     ["/usr/bin/chromium-headless-shell", "/usr/bin/chromium"]

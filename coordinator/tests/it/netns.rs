@@ -8,8 +8,7 @@ use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-mod support;
-use support::{bin, need_root};
+use crate::support::{bin, need_root};
 
 fn ip(args: &[&str]) {
     let o = Command::new("ip").args(args).output().expect("the ip command (iproute2)");

@@ -4,8 +4,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
-mod support;
-use support::{bin, free_port};
+use crate::support::{bin, free_port};
 
 /// One cluster at a time: each test starts several processes that want both cores, and
 /// timings (flow control, updates to the end of a job) mean something only on a quiet machine.
@@ -575,7 +574,7 @@ fn issue_4_the_same_job_through_a_router() {
 
 #[test]
 fn issue_8_a_stop_condition_through_the_cluster() {
-    // Each rule is tested through a whole run in learner/tests/run_scripted.rs and each
+    // Each rule is tested through a whole run in learner/tests/it/run_scripted.rs and each
     // `[stop]` key across the wire in the learner's unit tests; here one of them end to end,
     // from DeepRacer's hyperparameters.json: the job finishes with the reason in its status
     // and its final model saved.

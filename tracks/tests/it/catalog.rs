@@ -4,7 +4,7 @@ use tracks::{Direction, Surface, TrackSummary, world, world_names};
 
 /// (file, centre length, min width, mean width, max width, direction) from STATS.md.
 fn stats() -> Vec<(String, f64, f64, f64, f64, String)> {
-    let text = include_str!("../data/STATS.md");
+    let text = include_str!("../../data/STATS.md");
     text.lines()
         .filter(|l| l.contains(".npy"))
         .map(|l| {

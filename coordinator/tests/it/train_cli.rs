@@ -3,8 +3,8 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-mod support;
-use support::need_root;
+use crate::support;
+use crate::support::need_root;
 
 fn coordinator(dir: &Path, args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_coordinator")).args(args).current_dir(dir).output().expect("runs")
@@ -21,7 +21,7 @@ fn repo(rel: &str) -> String {
 
 #[test]
 fn issue_8_a_stop_condition_in_one_process() {
-    // Each rule is tested through a whole run in learner/tests/run_scripted.rs and each flag
+    // Each rule is tested through a whole run in learner/tests/it/run_scripted.rs and each flag
     // against its rule in `train`'s unit tests; here one of them end to end: the reason is
     // printed and kept in summary.json, and the final model is evaluated and saved.
     let dir = tempfile::tempdir().unwrap();

@@ -10,8 +10,7 @@ use policy::{ActorCritic, ModelMetadata, Trajectory};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-mod support;
-use support::Threads;
+use crate::support::Threads;
 
 /// Each member's `update_in` on its own thread, each with its reducer; their stats in rank order.
 fn run_team<R: Reducer + Send>(

@@ -8,8 +8,6 @@
 //! under a lock file and renamed into place whole, so a test that died half-way leaves nothing
 //! another would take for a model.
 
-#![allow(dead_code)] // each test binary uses its own few of these
-
 use std::path::PathBuf;
 use std::process::Command;
 

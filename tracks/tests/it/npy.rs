@@ -1,7 +1,6 @@
 //! Reading DeepRacer `.npy` files: good files load, bad ones are refused with the reason.
 
-mod common;
-use common::{f8_rows, npy_bytes, npy_bytes_ordered, rectangle_rows};
+use crate::common::{f8_rows, npy_bytes, npy_bytes_ordered, rectangle_rows};
 use tracks::{TrackSummary, parse_track_npy};
 
 #[test]

@@ -1,6 +1,6 @@
 //! A learner told to use N threads runs its network maths on N threads, not on every
-//! core (`Par::rayon(n)` splits work n ways but runs it on rayon's global pool). Its own test
-//! binary: the pool is one per process.
+//! core (`Par::rayon(n)` splits work n ways but runs it on rayon's global pool). The pool is
+//! one per process, and the runner (cargo-nextest) runs every test in a process of its own.
 
 use std::collections::HashSet;
 use std::sync::Mutex;

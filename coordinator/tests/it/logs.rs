@@ -7,8 +7,7 @@
 use std::path::Path;
 use std::process::Command;
 
-mod support;
-use support::python;
+use crate::support::python;
 
 const READ: &str = r#"
 import json, sys, os, collections

@@ -1,0 +1,12 @@
+//! The simulator's integration tests, one test binary: the camera, the car's physics, the
+//! configuration, DeepRacer's episode rules, Python reward files, races, the vectorised
+//! environments and the worker.
+
+mod camera;
+mod car_physics;
+mod config;
+mod env_rules;
+mod python_reward;
+mod races;
+mod vec_env;
+mod worker;
