@@ -13,8 +13,14 @@
 //! The update is written once for a learner alone and for a team: a [`Reducer`] says which
 //! part of each minibatch this learner computes and sums the members' shares (`team.rs`);
 //! alone ([`Alone`]), it computes everything and sums nothing.
+//!
+//! With a GPU ([`Ppo::with_gpu`]) a learner alone makes the same update with the network
+//! maths on it (`on_gpu.rs`); a team's members make theirs on faer.
 
+mod on_gpu;
 mod team;
+
+pub use on_gpu::GpuTrainer;
 
 pub use team::{Alone, GroupError, Reducer};
 use team::{Part, Role};
@@ -504,6 +510,14 @@ pub enum Refused {
         /// The version kept.
         version: u64,
     },
+    /// The GPU failed (the device was lost, a buffer too big for it).
+    #[error("the GPU failed: {error}; weights kept at version {version}")]
+    Device {
+        /// What failed.
+        error: String,
+        /// The version kept.
+        version: u64,
+    },
     /// The learner group failed (a member lost, a share that does not fit).
     #[error("the learner group failed: {error}; weights kept at version {version}")]
     Group {
@@ -536,6 +550,7 @@ pub struct Ppo {
     rng: ChaCha8Rng,
     par: Par,
     ws: Workspace,
+    gpu: Option<GpuTrainer>,
 }
 
 impl Ppo {
@@ -552,7 +567,19 @@ impl Ppo {
             rng: ChaCha8Rng::seed_from_u64(seed),
             par,
             ws: Default::default(),
+            gpu: None,
         }
+    }
+
+    /// Make this learner's updates with the network maths on `gpu` when it trains alone.
+    pub fn with_gpu(mut self, gpu: std::sync::Arc<gpu::Gpu>) -> Ppo {
+        self.gpu = Some(GpuTrainer::new(gpu));
+        self
+    }
+
+    /// The GPU the maths run on, if any (its adapter).
+    pub fn device(&self) -> Option<&str> {
+        self.gpu.as_ref().map(|g| g.adapter())
     }
 
     /// Train on a set of trajectories (one iteration).
@@ -607,6 +634,13 @@ impl Ppo {
         let mut stats =
             UpdateStats { samples: n, explained_variance: explained_variance(&batch), ..Default::default() };
         let mut shuffle = ChaCha8Rng::seed_from_u64(seed);
+        if let (Some(g), 1) = (&mut self.gpu, group.shard().1) {
+            let hold = self.version < self.hyper.value_warmup_updates;
+            let opts = [&mut self.opt_pi, &mut self.opt_v, &mut self.opt_log_std];
+            let order = |o: &mut Vec<usize>| o.shuffle(&mut shuffle);
+            g.train(&mut self.model, opts, &self.hyper, &batch, bs, order, hold, version, &mut stats)?;
+            return Ok(self.finish(stats));
+        }
         let mut order: Vec<usize> = (0..n).collect();
         // The big dense layers' weight gradients stay factors until the optimiser multiplies
         // them out (alone or in a team: one path).
@@ -637,6 +671,11 @@ impl Ppo {
         if let Some(role) = &role {
             self.swap_towers(group, 2 * stats.gradient_steps as u64 + 1, role.part, rank).map_err(group_failed)?;
         }
+        Ok(self.finish(stats))
+    }
+
+    /// An accepted update's figures (averaged over its gradient steps) and the next version.
+    fn finish(&mut self, mut stats: UpdateStats) -> UpdateStats {
         let k = stats.gradient_steps as f64;
         stats.policy_loss /= k;
         stats.value_loss /= k;
@@ -645,7 +684,7 @@ impl Ppo {
         stats.clip_fraction /= k;
         self.version += 1;
         stats.policy_version = self.version;
-        Ok(stats)
+        stats
     }
 
     /// Gradient step `step` on the minibatch `mb`: the loss and its gradient (in a team, of
@@ -740,13 +779,31 @@ impl Ppo {
         if let Head::Gaussian { log_std } = &self.model.head {
             tensors.push(("log_std".into(), log_std.to_vec()));
         }
-        for (name, opt) in [("pi", &self.opt_pi), ("v", &self.opt_v), ("log_std", &self.opt_log_std)] {
+        let (opt_pi, opt_v) = self.optimisers();
+        for (name, opt) in [("pi", &opt_pi), ("v", &opt_v), ("log_std", &self.opt_log_std)] {
             let (m, v, t) = opt.moments();
             tensors.push((format!("adam.{name}.m"), m.to_vec()));
             tensors.push((format!("adam.{name}.v"), v.to_vec()));
             tensors.push((format!("adam.{name}.t"), vec![t as f32]));
         }
         LearnerState { version: self.version, tensors }
+    }
+
+    /// The towers' optimisers as they stand: the CPU's, or, while the model's state is on the
+    /// GPU, its moments read back. A GPU that cannot be read is fatal here: the state a
+    /// checkpoint or a joiner takes must not be silently stale.
+    fn optimisers(&self) -> (Adam, Adam) {
+        let (mut pi, mut v) = (self.opt_pi.clone(), self.opt_v.clone());
+        let read = self.gpu.as_ref().map(|g| g.moments()).transpose();
+        match read {
+            Ok(Some(Some([(pm, pv, pt), (vm, vv, vt)]))) => {
+                pi.set_moments(pm, pv, pt).expect("the GPU holds this model's moments");
+                v.set_moments(vm, vv, vt).expect("the GPU holds this model's moments");
+            }
+            Ok(_) => {}
+            Err(e) => panic!("reading Adam's moments back from the GPU: {e}"),
+        }
+        (pi, v)
     }
 
     /// Take over another member's state. Refused, with nothing changed, unless every tensor
@@ -781,6 +838,10 @@ impl Ppo {
             return Err(StateMismatch(format!("the state has an unknown tensor `{extra}`")));
         }
         next.version = state.version;
+        // The GPU takes the restored state at the next update.
+        if let Some(g) = &mut next.gpu {
+            g.evict();
+        }
         *self = next;
         Ok(())
     }

@@ -5,6 +5,7 @@ mod support;
 
 mod bench_cli;
 mod data_parallel;
+mod on_gpu;
 mod ppo;
 mod run_scripted;
 mod sac;

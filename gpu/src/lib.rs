@@ -1,0 +1,51 @@
+//! The network maths on a GPU, through wgpu compute: what `policy::nn` does with faer on the
+//! CPU (dense and conv2d layers forward and backward, ReLU, input scaling), Adam, and PPO's
+//! two losses with their gradients, in hand-written WGSL (docs/benchmarks.md says why no
+//! kernel library). faer stays the reference: every kernel is checked against it.
+//!
+//! - `device`: which adapter (`--device auto|cpu|gpu`), opened once per process.
+//! - `kernels`: the compiled pipelines and one function per dispatch (GEMM, split over K when
+//!   the output is small; the element-wise kernels; unfold and fold; Adam; the losses).
+//! - `net`: a `policy::nn::Net` resident on the GPU (parameters, gradient, Adam's moments,
+//!   activations), its forward and backward passes recorded into one command encoder.
+//!
+//! Tensors are `f32` storage buffers; integers ride in them as their bits.
+
+pub mod device;
+pub mod kernels;
+pub mod net;
+
+pub use device::{DeviceChoice, Gpu};
+pub use net::GpuNet;
+
+/// What can go wrong on the GPU path.
+#[derive(Debug, thiserror::Error)]
+pub enum GpuError {
+    /// `--device gpu` and no adapter with compute.
+    #[error("no GPU adapter with compute shaders was found ({0}); `--device cpu` trains on the CPU")]
+    NoAdapter(String),
+    /// The adapter would not give a device.
+    #[error("the GPU adapter {adapter} refused a device: {error}")]
+    Device {
+        /// The adapter.
+        adapter: String,
+        /// wgpu's error.
+        error: String,
+    },
+    /// A network the GPU path does not run.
+    #[error("the GPU path does not run {0}; `--device cpu` does")]
+    Unsupported(String),
+    /// A buffer larger than the device allows in one binding.
+    #[error("{what} needs {bytes} bytes in one buffer; this GPU binds at most {limit}")]
+    TooLarge {
+        /// Which buffer.
+        what: String,
+        /// Its size.
+        bytes: u64,
+        /// The device's limit.
+        limit: u64,
+    },
+    /// Reading a result back failed (the device was lost).
+    #[error("reading back from the GPU failed: {0}")]
+    Readback(String),
+}

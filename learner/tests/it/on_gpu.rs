@@ -1,0 +1,153 @@
+//! PPO's update with the network maths on the GPU, against the same update on faer from the
+//! same state: weights, Adam's moments and the update's figures agree to float tolerance,
+//! for a discrete and a continuous head and a small camera network (conv layers); a refused update leaves the
+//! GPU's state as it was; a restored state is what the GPU trains from next. On lavapipe in
+//! the suite (`--device gpu` takes a software adapter), so no test needs a GPU.
+
+use faer::Par;
+use learner::ppo::Alone;
+use learner::{Hyperparameters, LossType, Ppo};
+use policy::{ActorCritic, ModelMetadata, Trajectory};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use std::sync::Arc;
+
+fn gpu() -> Arc<gpu::Gpu> {
+    Arc::new(gpu::Gpu::open(gpu::DeviceChoice::Gpu).expect("an adapter (lavapipe)").expect("`gpu` opens one"))
+}
+
+fn state_meta(continuous: bool) -> ModelMetadata {
+    let text = if continuous {
+        r#"{"action_space":{"steering_angle":{"low":-30,"high":30},"speed":{"low":0.5,"high":2}},"action_space_type":"continuous","sensor":["STATE_VECTOR"],"neural_network":"PADDOCK_MLP","version":"5"}"#
+    } else {
+        r#"{"action_space":[{"steering_angle":-30,"speed":1},{"steering_angle":0,"speed":1},{"steering_angle":30,"speed":1}],"sensor":["STATE_VECTOR"],"neural_network":"PADDOCK_MLP","version":"5"}"#
+    };
+    ModelMetadata::parse(text, "meta").unwrap()
+}
+
+/// Episodes of `len` steps acted by `model` on random observations, with random rewards.
+fn episodes(model: &ActorCritic, version: u64, count: usize, len: usize, rng: &mut ChaCha8Rng) -> Vec<Trajectory> {
+    let os = model.obs_size();
+    (0..count)
+        .map(|_| {
+            let obs: Vec<f32> = (0..len * os).map(|_| rng.random_range(0.0..255.0)).collect();
+            let acts = model.act(&obs, len, false, rng, Par::Seq);
+            Trajectory {
+                obs,
+                choices: acts.iter().map(|a| a.choice).collect(),
+                logp: acts.iter().map(|a| a.logp).collect(),
+                values: acts.iter().map(|a| a.value).collect(),
+                rewards: (0..len).map(|_| rng.random_range(-1.0..2.0)).collect(),
+                done: true,
+                policy_version: version,
+                ..Default::default()
+            }
+        })
+        .collect()
+}
+
+fn close(what: &str, a: &[f32], b: &[f32], tol: f32) {
+    assert_eq!(a.len(), b.len(), "{what}");
+    let scale = b.iter().fold(0.0f32, |m, v| m.max(v.abs())).max(1e-6);
+    let worst = a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+    assert!(worst <= tol * scale, "{what}: GPU and faer differ by {worst} (scale {scale})");
+}
+
+fn same_learner(what: &str, g: &Ppo, c: &Ppo) {
+    assert_eq!(g.version, c.version, "{what}");
+    close(&format!("{what}: policy tower"), &g.model.pi.params, &c.model.pi.params, 1e-4);
+    close(&format!("{what}: value tower"), &g.model.v.params, &c.model.v.params, 1e-4);
+    assert_eq!(g.model.pi.params.len(), c.model.pi.params.len());
+    let (sg, sc) = (g.state(), c.state());
+    for ((name, a), (_, b)) in sg.tensors.iter().zip(&sc.tensors) {
+        // Adam's second moments are squares of gradients: compared on their own scale.
+        close(&format!("{what}: {name}"), a, b, 1e-3);
+    }
+}
+
+#[test]
+fn issue_33_a_ppo_update_on_the_gpu_matches_faer() {
+    let gpu = gpu();
+    let mut rng = ChaCha8Rng::seed_from_u64(33);
+    let cases = [
+        ("discrete state", state_meta(false), 13, 96, 32, LossType::Huber),
+        ("continuous state", state_meta(true), 13, 96, 32, LossType::MeanSquaredError),
+        // A camera network, DeepRacer's layer kinds at a size lavapipe runs in moments.
+        ("camera", state_meta(false), 30 * 40, 48, 16, LossType::Huber),
+    ];
+    for (name, meta, obs, samples, batch_size, loss_type) in cases {
+        let mut model = ActorCritic::new(&meta, obs, &mut rng);
+        if name == "camera" {
+            use policy::nn::{InputShape::Image, LayerSpec::*, Net};
+            let tower = [Scale(1.0 / 255.0), Conv(8, 6, 3), Relu, Conv(12, 3, 2), Relu, Dense(24), Relu];
+            let head = |n: usize| [&tower[..], &[Dense(n)]].concat();
+            model.pi = Net::new(Image(30, 40, 1), &head(3), Some(0.01), &mut rng);
+            model.v = Net::new(Image(30, 40, 1), &head(1), None, &mut rng);
+        }
+        let h = Hyperparameters {
+            lr: 1e-3,
+            num_epochs: 2,
+            batch_size,
+            loss_type,
+            target_kl: None,
+            value_warmup_updates: 1,
+            ..Hyperparameters::default()
+        };
+        let mut cpu = Ppo::new(model.clone(), h.clone(), 0, 9, Par::Seq);
+        let mut on_gpu = Ppo::new(model.clone(), h, 0, 9, Par::Seq).with_gpu(gpu.clone());
+        assert!(on_gpu.device().is_some());
+        // The first update holds the policy (the value tower's warm-up); two more train both.
+        for u in 0..3 {
+            let trajs = episodes(&cpu.model, cpu.version, samples / 8, 8, &mut rng);
+            let (a, b) = (cpu.update(&trajs).unwrap(), on_gpu.update(&trajs).unwrap());
+            assert_eq!((a.gradient_steps, a.samples), (b.gradient_steps, b.samples), "{name} {u}");
+            for (x, y, f) in [
+                (a.policy_loss, b.policy_loss, "policy loss"),
+                (a.value_loss, b.value_loss, "value loss"),
+                (a.entropy, b.entropy, "entropy"),
+                (a.approx_kl, b.approx_kl, "KL"),
+            ] {
+                assert!((x - y).abs() <= 1e-4 * x.abs().max(1e-2), "{name} update {u} {f}: faer {x}, GPU {y}");
+            }
+            same_learner(&format!("{name} update {u}"), &on_gpu, &cpu);
+            if u == 0 {
+                assert_eq!(on_gpu.model.pi.params, model.pi.params, "{name}: the warm-up holds the policy");
+            }
+        }
+    }
+}
+
+#[test]
+fn issue_33_a_refused_update_leaves_the_gpu_state_and_a_restored_one_is_trained_from() {
+    let gpu = gpu();
+    let mut rng = ChaCha8Rng::seed_from_u64(34);
+    let model = ActorCritic::new(&state_meta(false), 13, &mut rng);
+    let h = Hyperparameters { batch_size: 16, num_epochs: 2, target_kl: None, ..Hyperparameters::default() };
+    let mut cpu = Ppo::new(model.clone(), h.clone(), 0, 3, Par::Seq);
+    let mut on_gpu = Ppo::new(model.clone(), h, 0, 3, Par::Seq).with_gpu(gpu.clone());
+    let trajs = episodes(&model, 0, 8, 8, &mut rng);
+    cpu.update(&trajs).unwrap();
+    on_gpu.update(&trajs).unwrap();
+    // A NaN reward: refused, nothing changed on either side.
+    let mut bad = episodes(&cpu.model, 1, 8, 8, &mut rng);
+    bad[3].rewards[2] = f32::NAN;
+    let before = on_gpu.state();
+    let refused = on_gpu.update(&bad).unwrap_err();
+    assert!(refused.to_string().contains("non-finite"), "{refused}");
+    assert_eq!(on_gpu.state(), before, "the GPU's weights and moments are as they were");
+    assert!(cpu.update(&bad).is_err());
+    // Training goes on from there, as on faer.
+    let good = episodes(&cpu.model, 1, 8, 8, &mut rng);
+    cpu.update(&good).unwrap();
+    on_gpu.update(&good).unwrap();
+    same_learner("after a refusal", &on_gpu, &cpu);
+    // A restored state (a joiner's, a resumed run's) is what the next GPU update starts from.
+    let h = Hyperparameters { batch_size: 16, num_epochs: 2, target_kl: None, ..Hyperparameters::default() };
+    let mut other = Ppo::new(ActorCritic::new(&state_meta(false), 13, &mut rng), h, 0, 3, Par::Seq).with_gpu(gpu);
+    other.update(&good).unwrap();
+    other.restore(cpu.state()).unwrap();
+    let next = episodes(&cpu.model, cpu.version, 8, 8, &mut rng);
+    cpu.update_planned(&next, 42, &mut Alone).unwrap();
+    other.update_planned(&next, 42, &mut Alone).unwrap();
+    same_learner("after a restore", &other, &cpu);
+}
