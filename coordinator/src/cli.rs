@@ -604,6 +604,10 @@ pub struct UpArgs {
     /// `coordinator keys new NAME`); default: the run folder's `signing.key`, made on first use.
     #[arg(long)]
     pub signing_key: Option<PathBuf>,
+    /// Where the learner's network maths run: auto (a hardware GPU when there is one, else
+    /// the CPU), cpu (faer) or gpu (the GPU, a software one included, or an error).
+    #[arg(long, default_value = "auto")]
+    pub device: learner::DeviceChoice,
     /// The cluster's credentials (`certs new DIR`): every role on mutual TLS under the access
     /// rules, as across machines. Plain TCP on loopback without.
     #[arg(long, value_name = "DIR")]
@@ -701,6 +705,10 @@ pub struct TrainArgs {
     /// Parallel environments.
     #[arg(long, default_value_t = 32)]
     pub envs: usize,
+    /// Where the learner's network maths run: auto (a hardware GPU when there is one, else
+    /// the CPU), cpu (faer) or gpu (the GPU, a software one included, or an error).
+    #[arg(long, default_value = "auto")]
+    pub device: learner::DeviceChoice,
     /// Threads for the environments and for the update (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,

@@ -192,6 +192,8 @@ pub fn up(mut args: UpArgs) -> Result<i32> {
             "learner-1".into(),
             "--checkpoint-seconds".into(),
             args.checkpoint_seconds.to_string(),
+            "--device".into(),
+            args.device.to_string(),
         ]
         .into_iter()
         .chain(args.signing_key.iter().flat_map(|k| ["--signing-key".into(), k.display().to_string()]))

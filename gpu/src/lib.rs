@@ -4,6 +4,8 @@
 //! kernel library). faer stays the reference: every kernel is checked against it.
 //!
 //! - `device`: which adapter (`--device auto|cpu|gpu`), opened once per process.
+//! - `icd`: a headless NVIDIA server's Vulkan driver (its EGL library), found before any
+//!   role opens an adapter, for the camera and the maths alike.
 //! - `kernels`: the compiled pipelines and one function per dispatch (GEMM, split over K when
 //!   the output is small; the element-wise kernels; unfold and fold; Adam; the losses).
 //! - `net`: a `policy::nn::Net` resident on the GPU (parameters, gradient, Adam's moments,
@@ -12,6 +14,7 @@
 //! Tensors are `f32` storage buffers; integers ride in them as their bits.
 
 pub mod device;
+pub mod icd;
 pub mod kernels;
 pub mod net;
 

@@ -4,6 +4,7 @@
 //! - [`hyperparams`]: `hyperparameters.json`, read unchanged.
 //! - [`ppo`]: GAE, the clipped surrogate, the value loss, their gradients, the update.
 //! - [`checkpoints`]: run folders, atomic checkpoints, best/last records.
+//! - [`device`]: `--device auto|cpu|gpu`, and what the GPU path (the `gpu` crate) trains.
 //! - [`record`]: the run's logs: DeepRacer's sim-trace and metrics JSON (DRfC's layout), MCAP.
 //! - [`run`]: one training run (flow control, updates, evaluations on the workers,
 //!   checkpoints, stop rules) over any [`run::Link`]: in-process channels or Zenoh.
@@ -16,6 +17,7 @@
 
 pub mod algorithm;
 pub mod checkpoints;
+pub mod device;
 pub mod hyperparams;
 pub mod ppo;
 pub mod record;
@@ -23,6 +25,7 @@ pub mod run;
 pub mod sac;
 pub mod trend;
 
+pub use gpu::DeviceChoice;
 pub use hyperparams::{Hyperparameters, LossType, LrSchedule};
 pub use ppo::{Alone, GroupError, Ppo, Reducer, Refused, StateMismatch, UpdateStats};
 

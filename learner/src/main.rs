@@ -5,6 +5,7 @@ mod serve;
 mod team;
 mod team_bench;
 
+use anyhow::Context;
 use faer::Par;
 use learner::Hyperparameters;
 use learner::ppo::{Batch, Workspace, loss_and_grad_factored};
@@ -67,6 +68,10 @@ struct ServeCli {
     /// Threads for the update (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
+    /// Where the network maths run: auto (a hardware GPU when there is one, else the CPU),
+    /// cpu (faer) or gpu (the GPU, a software one included, or an error).
+    #[arg(long, default_value = "auto")]
+    device: learner::DeviceChoice,
 }
 
 #[derive(clap::Args)]
@@ -80,6 +85,10 @@ struct BenchCli {
     /// Threads for the threaded row (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
+    /// Also time whole updates with the maths on the GPU (auto: a hardware GPU if there is
+    /// one; gpu: any adapter, lavapipe included), against the same updates on faer.
+    #[arg(long, default_value = "auto")]
+    device: learner::DeviceChoice,
     /// Also measure whole updates shared by this many learner processes of one thread each
     /// (a team over Zenoh on loopback), against one learner in the same run.
     #[arg(long, default_value_t = 1)]
@@ -104,11 +113,13 @@ struct BenchCli {
 
 fn main() {
     protocol::secure::init_logging("info");
+    // The maths on a headless NVIDIA server (gpu::icd), before any thread starts.
+    gpu::icd::headless_nvidia();
     let result = match Cli::parse().command {
         Command::Bench(b) => (|| {
             let threads = learner::use_threads(b.threads);
             if !b.team_only {
-                bench(&b.network, b.seconds, threads)?;
+                bench(&b.network, b.seconds, threads, b.device)?;
             }
             if b.learners > 1 {
                 team_bench::run(&b.network, b.seconds, b.learners, b.epochs, b.check, b.sac)?;
@@ -131,6 +142,7 @@ fn main() {
             threads: learner::use_threads(a.threads),
             checkpoint_seconds: a.checkpoint_seconds,
             signing_key: a.signing_key,
+            device: a.device,
         }),
     };
     protocol::exit::exit(result.map(|()| protocol::exit::SUCCESS))
@@ -154,7 +166,7 @@ pub(crate) fn bench_metadata(network: &str) -> anyhow::Result<(&'static str, &'s
     Ok((name, sensor, meta))
 }
 
-fn bench(network: &str, seconds: f64, threads: usize) -> anyhow::Result<()> {
+fn bench(network: &str, seconds: f64, threads: usize, device: learner::DeviceChoice) -> anyhow::Result<()> {
     let (name, sensor, meta) = bench_metadata(network)?;
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
     let model = ActorCritic::new(&meta, 27, &mut rng);
@@ -304,6 +316,9 @@ fn bench(network: &str, seconds: f64, threads: usize) -> anyhow::Result<()> {
             100.0 * best / ceiling
         );
     }
+    if let Some(gpu) = learner::device::open(device, &meta).context("--device")? {
+        gpu_rows(&model, gpu, threads, seconds, &mut rng, &frame)?;
+    }
     let single: Vec<f32> = batch.obs[..os].to_vec();
     // Milliseconds a call of `work` takes, over up to 3 s (at least 10 calls).
     let ms_per_call = |work: &mut dyn FnMut()| {
@@ -334,6 +349,72 @@ fn bench(network: &str, seconds: f64, threads: usize) -> anyhow::Result<()> {
         std::hint::black_box(tape.output()[0]);
     });
     println!("| inference at batch 1 (policy tower only, as on the car), 1 thread | {ms_pi:.3} ms |");
+    Ok(())
+}
+
+/// Whole updates (one epoch of 16 minibatches of 64 on a batch already made: PPO's
+/// minibatches, Adam, and on the GPU the batch's upload and the weights' readback) on the
+/// GPU and on faer with `threads` threads, in turn.
+fn gpu_rows(
+    model: &ActorCritic,
+    gpu: std::sync::Arc<gpu::Gpu>,
+    threads: usize,
+    seconds: f64,
+    rng: &mut rand_chacha::ChaCha8Rng,
+    frame: &dyn Fn(&mut rand_chacha::ChaCha8Rng) -> f32,
+) -> anyhow::Result<()> {
+    let adapter = gpu.adapter.clone();
+    let (mb, k) = (64, 16);
+    let n = mb * k;
+    let os = model.obs_size();
+    let obs: Vec<f32> = (0..n * os).map(|_| frame(rng)).collect();
+    let acts = model.act(&obs, n, false, rng, Par::Seq);
+    let batch = Batch {
+        obs_size: os,
+        obs,
+        choices: acts.iter().map(|a| a.choice).collect(),
+        logp_old: acts.iter().map(|a| a.logp).collect(),
+        adv: (0..n).map(|_| rng.random_range(-1.0..1.0)).collect(),
+        returns: (0..n).map(|_| rng.random_range(-1.0..1.0)).collect(),
+        values_old: acts.iter().map(|a| a.value).collect(),
+    };
+    let h = Hyperparameters {
+        num_epochs: 1,
+        batch_size: mb,
+        target_kl: None,
+        value_warmup_updates: 0,
+        lr: 1e-6,
+        ..Hyperparameters::default()
+    };
+    let mut on_gpu = learner::ppo::Ppo::new(model.clone(), h.clone(), 0, 1, Par::Seq).with_gpu(gpu);
+    let mut on_cpu = learner::ppo::Ppo::new(model.clone(), h, 0, 1, Par::rayon(threads));
+    let mut seed = 0;
+    let mut update = |p: &mut learner::ppo::Ppo| -> anyhow::Result<()> {
+        seed += 1;
+        p.update_on_batch(&batch, seed).map_err(|e| anyhow::anyhow!("{e}"))?;
+        Ok(())
+    };
+    // Once each untimed (the GPU's buffers and pipelines are made then), then in turn.
+    update(&mut on_gpu)?;
+    update(&mut on_cpu)?;
+    let (mut g, mut c) = (Vec::new(), Vec::new());
+    for _ in 0..ROUNDS {
+        for (p, out) in [(&mut on_gpu, &mut g), (&mut on_cpu, &mut c)] {
+            let t = Instant::now();
+            let mut k = 0;
+            while t.elapsed().as_secs_f64() < seconds / ROUNDS as f64 || k < 1 {
+                update(p)?;
+                k += 1;
+            }
+            out.push((k * n) as f64 / t.elapsed().as_secs_f64());
+        }
+    }
+    let ratios: Vec<f64> = g.iter().zip(&c).map(|(a, b)| a / b).collect();
+    let (g, c, r) = (median(g), median(c), median(ratios));
+    println!(
+        "| whole updates on the GPU, {adapter} (16 minibatches of 64, Adam, upload and readback) | {g:.0} ({r:.2}× faer's, the median of the rounds' ratios) |"
+    );
+    println!("| the same updates on faer, {threads} thread(s) | {c:.0} |");
     Ok(())
 }
 

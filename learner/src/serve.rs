@@ -41,6 +41,8 @@ pub struct ServeArgs {
     pub checkpoint_seconds: f64,
     /// The signing key (default: the run folder's).
     pub signing_key: Option<PathBuf>,
+    /// Where the network maths run.
+    pub device: learner::DeviceChoice,
 }
 
 /// Run the learner until the process is stopped.
@@ -234,6 +236,7 @@ fn spec_of(doc: &Job, args: &ServeArgs) -> Result<RunSpec> {
     let metadata = ModelMetadata::parse(&doc.model_metadata_json, "job model_metadata.json")?;
     let hyper = Hyperparameters::parse(&doc.hyperparameters_json, "job hyperparameters.json")?.hyperparameters;
     let camera = !metadata.sensor.contains(&policy::Sensor::StateVector);
+    let gpu = learner::device::open(args.device, &metadata).context("--device")?;
     Ok(RunSpec {
         name: doc.id.clone(),
         metadata,
@@ -250,6 +253,7 @@ fn spec_of(doc: &Job, args: &ServeArgs) -> Result<RunSpec> {
         eval_seconds: args.checkpoint_seconds,
         stop: stop_rules(&doc.stop()),
         par: if camera { Par::rayon(args.threads) } else { Par::Seq },
+        gpu,
         adopt: None,
         signing_key: args.signing_key.clone(),
         tracks: doc.track_lines(),

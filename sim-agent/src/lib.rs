@@ -27,7 +27,7 @@ pub mod config;
 pub mod driver;
 pub mod env;
 pub mod handling;
-pub mod icd;
+pub use gpu::icd;
 pub mod lidar;
 pub mod objects;
 pub mod obs;

@@ -626,19 +626,37 @@ impl Ppo {
         let version = self.version;
         let group_failed = |error| Refused::Group { error, version };
         let batch = self.batch_in(trajs, group).map_err(group_failed)?;
+        self.epochs(&batch, seed, group)
+    }
+
+    /// The epochs of an update on a batch already made, as a learner alone: what `learner
+    /// bench` times (on faer and on the GPU), without GAE's forward pass over the batch. A
+    /// refused update leaves the weights and optimisers as they were.
+    pub fn update_on_batch(&mut self, batch: &Batch, seed: u64) -> Result<UpdateStats, Refused> {
+        let saved = (self.model.clone(), self.opt_pi.clone(), self.opt_v.clone(), self.opt_log_std.clone());
+        let result = self.epochs(batch, seed, &mut Alone);
+        if result.is_err() {
+            (self.model, self.opt_pi, self.opt_v, self.opt_log_std) = saved;
+        }
+        result
+    }
+
+    /// `num_epochs` epochs of shuffled minibatches of `batch` (see [`Ppo::train`]).
+    fn epochs(&mut self, batch: &Batch, seed: u64, group: &mut dyn Reducer) -> Result<UpdateStats, Refused> {
+        let version = self.version;
+        let group_failed = |error| Refused::Group { error, version };
         let n = batch.len();
         let bs = self.hyper.batch_size.min(n.max(1));
         if n / bs == 0 {
             return Err(Refused::TooFewSamples { samples: n, batch: bs });
         }
-        let mut stats =
-            UpdateStats { samples: n, explained_variance: explained_variance(&batch), ..Default::default() };
+        let mut stats = UpdateStats { samples: n, explained_variance: explained_variance(batch), ..Default::default() };
         let mut shuffle = ChaCha8Rng::seed_from_u64(seed);
         if let (Some(g), 1) = (&mut self.gpu, group.shard().1) {
             let hold = self.version < self.hyper.value_warmup_updates;
             let opts = [&mut self.opt_pi, &mut self.opt_v, &mut self.opt_log_std];
             let order = |o: &mut Vec<usize>| o.shuffle(&mut shuffle);
-            g.train(&mut self.model, opts, &self.hyper, &batch, bs, order, hold, version, &mut stats)?;
+            g.train(&mut self.model, opts, &self.hyper, batch, bs, order, hold, version, &mut stats)?;
             return Ok(self.finish(stats));
         }
         let mut order: Vec<usize> = (0..n).collect();
@@ -650,8 +668,7 @@ impl Ppo {
         'epochs: for _ in 0..self.hyper.num_epochs {
             order.shuffle(&mut shuffle);
             for mb in order.chunks_exact(bs) {
-                let lg =
-                    self.minibatch(&batch, mb, (&defer.0, &defer.1), group, role.as_ref(), stats.gradient_steps)?;
+                let lg = self.minibatch(batch, mb, (&defer.0, &defer.1), group, role.as_ref(), stats.gradient_steps)?;
                 stats.policy_loss += lg.policy_loss;
                 stats.value_loss += lg.value_loss;
                 stats.entropy += lg.entropy;

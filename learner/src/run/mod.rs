@@ -207,6 +207,9 @@ pub struct RunSpec {
     pub stop: StopRules,
     /// Cores for the update (the camera networks split over them; the MLP does not).
     pub par: Par,
+    /// The GPU PPO's update runs on, when it trains alone (`crate::device::open`); `None`:
+    /// faer on the CPU.
+    pub gpu: Option<std::sync::Arc<gpu::Gpu>>,
     /// A learner team member taking the run over from a leader that went away: its state
     /// (the team's, as of the last update, and SAC's replay memory as bytes), used when it is
     /// newer than the run folder's.
@@ -1225,6 +1228,9 @@ fn algorithm(
         return Ok(Box::new(sac));
     }
     let mut ppo = Ppo::new(model, spec.hyper.clone(), version, spec.seed, spec.par);
+    if let Some(g) = &spec.gpu {
+        ppo = ppo.with_gpu(g.clone());
+    }
     adopt(spec, &mut ppo);
     Ok(Box::new(ppo))
 }

@@ -191,6 +191,7 @@ fn spec(out: &Path, stop: StopRules, hyper: Hyperparameters) -> RunSpec {
         eval_seconds: 0.0,
         stop,
         par: Par::Seq,
+        gpu: None,
         adopt: None,
         signing_key: None,
         tracks: vec![],
