@@ -215,7 +215,7 @@ pub fn train(mut args: TrainArgs) -> Result<i32> {
         stop: stop_rules(&args),
         // The camera networks are big enough to split over the cores; the MLP is not.
         par: if camera { Par::rayon(threads) } else { Par::Seq },
-        gpu: learner::device::open(args.device, &meta).context("--device")?,
+        gpu: learner::device::Device::new(args.device).for_model(&meta).context("--device")?,
         adopt: None,
         signing_key: args.signing_key.clone(),
         tracks: worlds.iter().map(sim_agent::track_lines).collect(),

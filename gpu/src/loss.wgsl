@@ -50,6 +50,9 @@ fn policy_loss(@builtin(global_invocation_id) gid: vec3<u32>) {
     let row = k * q.dim;
     var logp: f32;
     var entropy: f32;
+    // Categorical: log Σ exp of the logits (log p_j = z_j − lse).
+    var lse = 0.0;
+    var c = 0u;
     if (q.kind == 0u) {
         var mx = -3.4028235e38;
         for (var j = 0u; j < q.dim; j++) {
@@ -59,14 +62,14 @@ fn policy_loss(@builtin(global_invocation_id) gid: vec3<u32>) {
         for (var j = 0u; j < q.dim; j++) {
             s += exp(out[row + j] - mx);
         }
-        let lse = mx + log(s);
+        lse = mx + log(s);
         var h = 0.0;
         for (var j = 0u; j < q.dim; j++) {
             let lp = out[row + j] - lse;
             h += exp(lp) * lp;
         }
         entropy = -h;
-        let c = bitcast<u32>(samples[i * SAMPLE + 3u]);
+        c = bitcast<u32>(samples[i * SAMPLE + 3u]);
         logp = out[row + c] - lse;
     } else {
         let ls0 = clamp(q.log_std0, LOG_STD_LO, LOG_STD_HI);
@@ -92,16 +95,6 @@ fn policy_loss(@builtin(global_invocation_id) gid: vec3<u32>) {
         g_logp = -a * ratio * q.inv_n;
     }
     if (q.kind == 0u) {
-        var mx = -3.4028235e38;
-        for (var j = 0u; j < q.dim; j++) {
-            mx = max(mx, out[row + j]);
-        }
-        var s = 0.0;
-        for (var j = 0u; j < q.dim; j++) {
-            s += exp(out[row + j] - mx);
-        }
-        let lse = mx + log(s);
-        let c = bitcast<u32>(samples[i * SAMPLE + 3u]);
         for (var j = 0u; j < q.dim; j++) {
             let lp = out[row + j] - lse;
             let pj = exp(lp);

@@ -5,7 +5,7 @@
 
 use gpu::{DeviceChoice, Gpu};
 use policy::{ModelMetadata, TrainingAlgorithm};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 /// Why `--device gpu` cannot be had.
 #[derive(Debug, thiserror::Error)]
@@ -27,17 +27,38 @@ pub fn unsupported(meta: &ModelMetadata) -> Option<String> {
     (inputs.len() > 1).then(|| format!("networks of several inputs ({} sensors)", inputs.len()))
 }
 
-/// Open the device `choice` asks for the model `meta` describes: `None` is the CPU.
-pub fn open(choice: DeviceChoice, meta: &ModelMetadata) -> Result<Option<Arc<Gpu>>, DeviceError> {
-    if choice == DeviceChoice::Cpu {
-        return Ok(None);
+/// A process's `--device`: the GPU is opened once, the first time a model can use it, and
+/// shared by every run the process makes after (a learner serves one job after another).
+#[derive(Debug)]
+pub struct Device {
+    choice: DeviceChoice,
+    opened: Mutex<Option<Option<Arc<Gpu>>>>,
+}
+
+impl Device {
+    /// Nothing opened yet.
+    pub fn new(choice: DeviceChoice) -> Device {
+        Device { choice, opened: Mutex::new(None) }
     }
-    if let Some(what) = unsupported(meta) {
-        if choice == DeviceChoice::Gpu {
-            return Err(DeviceError::Unsupported(what));
+
+    /// The GPU for the model `meta` describes: `None` is the CPU.
+    pub fn for_model(&self, meta: &ModelMetadata) -> Result<Option<Arc<Gpu>>, DeviceError> {
+        if self.choice == DeviceChoice::Cpu {
+            return Ok(None);
         }
-        tracing::info!("device auto: {what} train on the CPU");
-        return Ok(None);
+        if let Some(what) = unsupported(meta) {
+            if self.choice == DeviceChoice::Gpu {
+                return Err(DeviceError::Unsupported(what));
+            }
+            tracing::info!("device auto: {what} train on the CPU");
+            return Ok(None);
+        }
+        let mut opened = self.opened.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(gpu) = &*opened {
+            return Ok(gpu.clone());
+        }
+        let gpu = Gpu::open(self.choice)?.map(Arc::new);
+        *opened = Some(gpu.clone());
+        Ok(gpu)
     }
-    Ok(Gpu::open(choice)?.map(Arc::new))
 }

@@ -179,17 +179,7 @@ fn bench(network: &str, seconds: f64, threads: usize, device: learner::DeviceCho
         if sensor == "STATE_VECTOR" { rng.random_range(-1.0..1.0) } else { rng.random_range(0..=255u8) as f32 }
     };
     let n = 64;
-    let obs: Vec<f32> = (0..n * os).map(|_| frame(&mut rng)).collect();
-    let acts = model.act(&obs, n, false, &mut rng, Par::Seq);
-    let batch = Batch {
-        obs_size: os,
-        obs,
-        choices: acts.iter().map(|a| a.choice).collect(),
-        logp_old: acts.iter().map(|a| a.logp).collect(),
-        adv: (0..n).map(|_| rng.random_range(-1.0..1.0)).collect(),
-        returns: (0..n).map(|_| rng.random_range(-1.0..1.0)).collect(),
-        values_old: acts.iter().map(|a| a.value).collect(),
-    };
+    let batch = random_batch(&model, n, &mut rng, &frame);
     let idx: Vec<usize> = (0..n).collect();
     let h = Hyperparameters::default();
     // What one minibatch costs in training: forward + backward of both towers (the big dense
@@ -316,7 +306,7 @@ fn bench(network: &str, seconds: f64, threads: usize, device: learner::DeviceCho
             100.0 * best / ceiling
         );
     }
-    if let Some(gpu) = learner::device::open(device, &meta).context("--device")? {
+    if let Some(gpu) = learner::device::Device::new(device).for_model(&meta).context("--device")? {
         gpu_rows(&model, gpu, threads, seconds, &mut rng, &frame)?;
     }
     let single: Vec<f32> = batch.obs[..os].to_vec();
@@ -352,6 +342,26 @@ fn bench(network: &str, seconds: f64, threads: usize, device: learner::DeviceCho
     Ok(())
 }
 
+/// `n` samples of `frame`s acted by `model`, with random advantages and returns.
+fn random_batch(
+    model: &ActorCritic,
+    n: usize,
+    rng: &mut rand_chacha::ChaCha8Rng,
+    frame: &dyn Fn(&mut rand_chacha::ChaCha8Rng) -> f32,
+) -> Batch {
+    let obs: Vec<f32> = (0..n * model.obs_size()).map(|_| frame(rng)).collect();
+    let acts = model.act(&obs, n, false, rng, Par::Seq);
+    Batch {
+        obs_size: model.obs_size(),
+        obs,
+        choices: acts.iter().map(|a| a.choice).collect(),
+        logp_old: acts.iter().map(|a| a.logp).collect(),
+        adv: (0..n).map(|_| rng.random_range(-1.0..1.0)).collect(),
+        returns: (0..n).map(|_| rng.random_range(-1.0..1.0)).collect(),
+        values_old: acts.iter().map(|a| a.value).collect(),
+    }
+}
+
 /// Whole updates (one epoch of 16 minibatches of 64 on a batch already made: PPO's
 /// minibatches, Adam, and on the GPU the batch's upload and the weights' readback) on the
 /// GPU and on faer with `threads` threads, in turn.
@@ -366,18 +376,7 @@ fn gpu_rows(
     let adapter = gpu.adapter.clone();
     let (mb, k) = (64, 16);
     let n = mb * k;
-    let os = model.obs_size();
-    let obs: Vec<f32> = (0..n * os).map(|_| frame(rng)).collect();
-    let acts = model.act(&obs, n, false, rng, Par::Seq);
-    let batch = Batch {
-        obs_size: os,
-        obs,
-        choices: acts.iter().map(|a| a.choice).collect(),
-        logp_old: acts.iter().map(|a| a.logp).collect(),
-        adv: (0..n).map(|_| rng.random_range(-1.0..1.0)).collect(),
-        returns: (0..n).map(|_| rng.random_range(-1.0..1.0)).collect(),
-        values_old: acts.iter().map(|a| a.value).collect(),
-    };
+    let batch = random_batch(model, n, rng, frame);
     let h = Hyperparameters {
         num_epochs: 1,
         batch_size: mb,

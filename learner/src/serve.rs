@@ -13,6 +13,7 @@ use anyhow::{Context, Result};
 use faer::Par;
 use learner::Hyperparameters;
 use learner::algorithm::{LearnerState, Shared};
+use learner::device::Device;
 use learner::run::{Inbound, Link, LinkError, Quiet, RunSpec, Start, StopRules, TargetLaps, Team, run};
 use policy::ModelMetadata;
 use policy::exchange::{Credit, EvalRequest, PolicyVersion};
@@ -53,6 +54,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         session.liveliness().declare_token(keys::learner_alive(&id)).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
     let jobs = net::subscribe(&session, keys::JOBS)?;
     let drops = Arc::new(DropCounters::default());
+    let device = Device::new(args.device);
     // Who else serves: the other learners' tokens reach a new session over a few hundred
     // milliseconds; no job is led before they had the time to (two leaders would split it).
     let roster = team::Roster::new(&session)?;
@@ -100,7 +102,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
                     tracing::info!(job = %doc.id, learners = ?ids, "another learner leads this job; joining its team");
                     standby_note = Some(doc.id.clone());
                 }
-                match follow_job(&session, &id, &doc, &args, &jobs, drops.clone()) {
+                match follow_job(&session, &id, &doc, (&args, &device), &jobs, drops.clone()) {
                     Ok((FollowEnd::Stopped, _)) => {
                         finished.insert(doc.id.clone());
                     }
@@ -120,7 +122,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         }
         finished.insert(doc.id.clone());
         let result = (|| -> Result<()> {
-            let mut spec = spec_of(&doc, &args)?;
+            let mut spec = spec_of(&doc, &args, &device)?;
             spec.adopt = adopt.take().filter(|(job, _)| *job == doc.id).map(|(_, s)| s);
             let mut link = ZenohLink::new(&session, &id, &doc, &jobs, drops.clone(), table)?;
             run(&spec, &mut link, &mut Quiet)?;
@@ -151,11 +153,11 @@ fn follow_job(
     session: &zenoh::Session,
     id: &str,
     doc: &Job,
-    args: &ServeArgs,
+    (args, device): (&ServeArgs, &Device),
     jobs: &Sub,
     drops: Arc<DropCounters>,
 ) -> Result<(FollowEnd, Option<Adopted>)> {
-    let spec = spec_of(doc, args)?;
+    let spec = spec_of(doc, args, device)?;
     let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(spec.seed);
     let model = policy::ActorCritic::new(&spec.metadata, spec.obs_size, &mut rng);
     let mut algo: Box<dyn Shared> = if spec.metadata.training_algorithm == policy::TrainingAlgorithm::Sac {
@@ -232,11 +234,11 @@ fn observation_of(sim_config_toml: &str) -> Result<serde_json::Value> {
 }
 
 /// The run a job describes.
-fn spec_of(doc: &Job, args: &ServeArgs) -> Result<RunSpec> {
+fn spec_of(doc: &Job, args: &ServeArgs, device: &Device) -> Result<RunSpec> {
     let metadata = ModelMetadata::parse(&doc.model_metadata_json, "job model_metadata.json")?;
     let hyper = Hyperparameters::parse(&doc.hyperparameters_json, "job hyperparameters.json")?.hyperparameters;
     let camera = !metadata.sensor.contains(&policy::Sensor::StateVector);
-    let gpu = learner::device::open(args.device, &metadata).context("--device")?;
+    let gpu = device.for_model(&metadata).context("--device")?;
     Ok(RunSpec {
         name: doc.id.clone(),
         metadata,

@@ -609,8 +609,16 @@ impl Ppo {
         seed: u64,
         group: &mut dyn Reducer,
     ) -> Result<UpdateStats, Refused> {
+        self.refusable(|p| p.train(trajs, seed, group))
+    }
+
+    /// Make an update with `update`; if it is refused, put the weights and optimisers back.
+    fn refusable(
+        &mut self,
+        update: impl FnOnce(&mut Ppo) -> Result<UpdateStats, Refused>,
+    ) -> Result<UpdateStats, Refused> {
         let saved = (self.model.clone(), self.opt_pi.clone(), self.opt_v.clone(), self.opt_log_std.clone());
-        let result = self.train(trajs, seed, group);
+        let result = update(self);
         if result.is_err() {
             (self.model, self.opt_pi, self.opt_v, self.opt_log_std) = saved;
         }
@@ -633,12 +641,7 @@ impl Ppo {
     /// bench` times (on faer and on the GPU), without GAE's forward pass over the batch. A
     /// refused update leaves the weights and optimisers as they were.
     pub fn update_on_batch(&mut self, batch: &Batch, seed: u64) -> Result<UpdateStats, Refused> {
-        let saved = (self.model.clone(), self.opt_pi.clone(), self.opt_v.clone(), self.opt_log_std.clone());
-        let result = self.epochs(batch, seed, &mut Alone);
-        if result.is_err() {
-            (self.model, self.opt_pi, self.opt_v, self.opt_log_std) = saved;
-        }
-        result
+        self.refusable(|p| p.epochs(batch, seed, &mut Alone))
     }
 
     /// `num_epochs` epochs of shuffled minibatches of `batch` (see [`Ppo::train`]).

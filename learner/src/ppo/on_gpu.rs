@@ -181,7 +181,9 @@ impl GpuTrainer {
                         Head::Gaussian { log_std } => log_std,
                         _ => [0.0; 2],
                     };
-                    let f = r.minibatch(&gpu, model, hyper, (mb * bs, bs), log_std, hold_policy, [opt_pi, opt_v])?;
+                    let f = r
+                        .minibatch(&gpu, model, hyper, (mb * bs, bs), log_std, hold_policy, [opt_pi, opt_v])
+                        .map_err(lost)?;
                     let mut g_log_std = f.grad_log_std;
                     if let Head::Gaussian { log_std } = &mut model.head {
                         for j in 0..2 {
@@ -290,7 +292,7 @@ impl Resident {
         log_std: [f32; 2],
         hold_policy: bool,
         opts: [&mut Adam; 2],
-    ) -> Result<Figures, Refused> {
+    ) -> Result<Figures, GpuError> {
         let os = model.pi.in_size() as u32;
         let inv_n = 1.0 / len as f32;
         let mut enc = gpu.device.create_command_encoder(&Default::default());
@@ -347,9 +349,7 @@ impl Resident {
         enc.copy_buffer_to_buffer(&self.stats_v, 0, &self.staging, (n * 4) as u64, (n * 4) as u64);
         enc.copy_buffer_to_buffer(&self.flag, 0, &self.staging, (2 * n * 4) as u64, 4);
         gpu.queue.submit([enc.finish()]);
-        let out = gpu
-            .read_staging(&self.staging, 2 * n + 1)
-            .map_err(|e| Refused::Device { error: e.to_string(), version: 0 })?;
+        let out = gpu.read_staging(&self.staging, 2 * n + 1)?;
         let nf = len as f64;
         let col = |part: &[f32], c: usize| part.chunks_exact(STATS).map(|s| s[c] as f64).sum::<f64>();
         let (p, v) = out[..2 * n].split_at(n);
