@@ -198,6 +198,8 @@ pub fn train(mut args: TrainArgs) -> Result<i32> {
     let obs_size = obs_dim(&cfg.observation);
     let threads = learner::use_threads(args.threads);
     let camera = cfg.observation.kind.is_camera();
+    // One GPU for the learner's update and the worker's acting.
+    let gpu = learner::device::Device::new(args.device).for_model(&meta).context("--device")?;
     let spec = RunSpec {
         name: worlds.iter().map(|w| w.name.clone()).collect::<Vec<_>>().join("+"),
         metadata: meta.clone(),
@@ -215,7 +217,7 @@ pub fn train(mut args: TrainArgs) -> Result<i32> {
         stop: stop_rules(&args),
         // The camera networks are big enough to split over the cores; the MLP is not.
         par: if camera { Par::rayon(threads) } else { Par::Seq },
-        gpu: learner::device::Device::new(args.device).for_model(&meta).context("--device")?,
+        gpu: gpu.clone(),
         adopt: None,
         signing_key: args.signing_key.clone(),
         tracks: worlds.iter().map(sim_agent::track_lines).collect(),
@@ -231,6 +233,7 @@ pub fn train(mut args: TrainArgs) -> Result<i32> {
         space: meta.action_space.clone(),
         seed: args.seed,
         first_seq: 0,
+        gpu,
     })?;
     println!(
         "training on {} for up to {:.1} min, {} envs, reward {}, run folder {}",

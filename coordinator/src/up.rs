@@ -217,6 +217,8 @@ pub fn up(mut args: UpArgs) -> Result<i32> {
                 args.envs.to_string(),
                 "--threads".into(),
                 threads.to_string(),
+                "--device".into(),
+                args.device.to_string(),
             ],
             &common,
             &logs.join(format!("agent-{i}.log")),

@@ -10,14 +10,17 @@
 //!   the output is small; the element-wise kernels; unfold and fold; Adam; the losses).
 //! - `net`: a `policy::nn::Net` resident on the GPU (parameters, gradient, Adam's moments,
 //!   activations), its forward and backward passes recorded into one command encoder.
+//! - `acting`: a sim agent's policy over its environments, both towers in one submission.
 //!
 //! Tensors are `f32` storage buffers; integers ride in them as their bits.
 
+pub mod acting;
 pub mod device;
 pub mod icd;
 pub mod kernels;
 pub mod net;
 
+pub use acting::Acting;
 pub use device::{DeviceChoice, Gpu};
 pub use net::GpuNet;
 

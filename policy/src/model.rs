@@ -273,7 +273,19 @@ impl ActorCritic {
         self.pi.forward(obs, batch, &mut tape, par);
         let out = tape.output().to_vec();
         self.v.forward(obs, batch, &mut tape, par);
-        let values = tape.output();
+        self.choose(&out, tape.output(), batch, deterministic, rng)
+    }
+
+    /// [`ActorCritic::act`] from the towers' outputs over the batch, computed elsewhere (on a
+    /// GPU): the policy's `out` (`batch × pi.out_size()`) and the `values`.
+    pub fn choose(
+        &self,
+        out: &[f32],
+        values: &[f32],
+        batch: usize,
+        deterministic: bool,
+        rng: &mut impl Rng,
+    ) -> Vec<ActOutput> {
         let dim = self.pi.out_size();
         (0..batch)
             .map(|i| {

@@ -55,6 +55,10 @@ struct ServeCli {
     /// Agent id (default: HOST-PID).
     #[arg(long)]
     id: Option<String>,
+    /// Where the policy acts over the environments: auto (a hardware GPU when there is one,
+    /// else the CPU), cpu or gpu (the GPU, a software one included, or an error).
+    #[arg(long, default_value = "auto")]
+    device: gpu::DeviceChoice,
 }
 
 #[derive(clap::Args)]
@@ -102,6 +106,7 @@ fn main() {
             envs: a.envs,
             id: a.id,
             threads: a.threads.unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)),
+            device: a.device,
         }),
     };
     protocol::exit::exit(result.map(|()| protocol::exit::SUCCESS))

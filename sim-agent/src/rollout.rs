@@ -26,6 +26,8 @@ pub struct Collector {
     pub episodes: u64,
     /// Keep each step's sim-trace fields in the trajectories (`SimConfig::record_trace`).
     pub record: bool,
+    /// The GPU the policy acts on (`None`: faer on this thread).
+    gpu: Option<gpu::Acting>,
 }
 
 impl Collector {
@@ -51,7 +53,30 @@ impl Collector {
             rng: ChaCha8Rng::seed_from_u64(seed ^ 0xC011_EC70),
             env_steps: 0,
             episodes: 0,
+            gpu: None,
         }
+    }
+
+    /// Act with the policy's forward passes on `gpu`.
+    pub fn with_gpu(mut self, gpu: Arc<gpu::Gpu>) -> Collector {
+        self.gpu = Some(gpu::Acting::new(gpu));
+        self
+    }
+
+    /// `model`'s actions on `batch` observations `x`: on the GPU when there is one; a model it
+    /// does not run (several inputs), or a GPU that failed, acts on the CPU from then on, and
+    /// the log says so.
+    fn act(&mut self, model: &Arc<ActorCritic>, x: &[f32], batch: usize) -> Vec<policy::ActOutput> {
+        if let Some(g) = &mut self.gpu {
+            match g.outputs(model, x, batch) {
+                Ok((out, values)) => return model.choose(&out, &values, batch, false, &mut self.rng),
+                Err(e) => {
+                    tracing::warn!("the policy acts on the CPU from now on: {e}");
+                    self.gpu = None;
+                }
+            }
+        }
+        model.act(x, batch, false, &mut self.rng, Par::Seq)
     }
 
     /// The environments.
@@ -90,7 +115,7 @@ impl Collector {
                 for &i in &rows {
                     x.extend_from_slice(&obs[i * dim..(i + 1) * dim]);
                 }
-                for (a, &i) in m.act(&x, rows.len(), false, &mut self.rng, Par::Seq).into_iter().zip(&rows) {
+                for (a, &i) in self.act(&m, &x, rows.len()).into_iter().zip(&rows) {
                     acts[i] = Some(a);
                 }
             }

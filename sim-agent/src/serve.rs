@@ -34,6 +34,8 @@ pub struct ServeArgs {
     pub id: Option<String>,
     /// Threads for the environments.
     pub threads: usize,
+    /// Where the policy acts: a GPU (`gpu::Gpu::open`'s rules) or the CPU.
+    pub device: gpu::DeviceChoice,
 }
 
 fn host() -> String {
@@ -46,6 +48,8 @@ fn host() -> String {
 
 /// Run the agent until the process is stopped.
 pub fn serve(args: ServeArgs) -> Result<()> {
+    // One device for every assignment this agent takes.
+    let gpu = gpu::Gpu::open(args.device).context("--device")?.map(Arc::new);
     let session = net::open_retrying(&args.net)?;
     let id = args.id.clone().unwrap_or_else(|| format!("{}-{}", host(), std::process::id()));
     anyhow::ensure!(keys::is_valid_name(&id), "agent id '{id}' may hold only letters, digits, '-', '_' and '.'");
@@ -116,7 +120,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
                 continue;
             }
         };
-        let result = start(&args, &id, &a, &doc, seq).and_then(|mut w| {
+        let result = start(&args, &id, &a, &doc, seq, gpu.clone()).and_then(|mut w| {
             tracing::info!(job = %a.job_id, worlds = ?w_names(&a), generation = a.generation, "assignment taken");
             let r = w.drive(&mut link).map_err(anyhow::Error::from);
             seq = w.seq();
@@ -157,7 +161,14 @@ fn job_config(doc: &Job) -> Result<SimConfig> {
     Ok(cfg)
 }
 
-fn start(args: &ServeArgs, id: &str, a: &Assignment, doc: &Job, first_seq: u64) -> Result<Worker> {
+fn start(
+    args: &ServeArgs,
+    id: &str,
+    a: &Assignment,
+    doc: &Job,
+    first_seq: u64,
+    gpu: Option<Arc<gpu::Gpu>>,
+) -> Result<Worker> {
     anyhow::ensure!(!a.worlds.is_empty(), "assignment without a world");
     let cfg = job_config(doc)?;
     let meta = policy::ModelMetadata::parse(&doc.model_metadata_json, "the job's model_metadata.json")?;
@@ -189,6 +200,7 @@ fn start(args: &ServeArgs, id: &str, a: &Assignment, doc: &Job, first_seq: u64) 
         space: meta.action_space.clone(),
         seed: a.seed,
         first_seq,
+        gpu,
     })?)
 }
 

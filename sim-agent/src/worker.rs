@@ -88,6 +88,8 @@ pub struct WorkerSetup {
     /// Sequence number of the first experience batch (carry it over from a previous worker
     /// of the same process so the learner's duplicate check holds).
     pub first_seq: u64,
+    /// The GPU the policy acts on over the environments (`None`: faer).
+    pub gpu: Option<Arc<gpu::Gpu>>,
 }
 
 /// Policy versions kept for evaluation requests that arrive late.
@@ -133,7 +135,10 @@ impl Worker {
         let vec = VecEnv::new(specs, s.cfg.clone(), s.seed, s.reward, s.threads)?;
         Ok(Worker {
             id: s.id,
-            collector: Collector::new(vec, s.space, s.seed),
+            collector: match s.gpu {
+                Some(g) => Collector::new(vec, s.space, s.seed).with_gpu(g),
+                None => Collector::new(vec, s.space, s.seed),
+            },
             cfg: s.cfg,
             worlds: s.worlds,
             threads: s.threads,

@@ -2,6 +2,7 @@
 //! configuration, DeepRacer's episode rules, Python reward files, races, the vectorised
 //! environments and the worker.
 
+mod acting_on_gpu;
 mod camera;
 mod car_physics;
 mod config;

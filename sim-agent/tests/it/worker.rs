@@ -24,6 +24,7 @@ fn worker(envs: usize, worlds: &[&str]) -> Worker {
         space: meta.action_space.clone(),
         seed: 3,
         first_seq: 0,
+        gpu: None,
     })
     .unwrap()
 }
