@@ -160,17 +160,20 @@ pub fn logp_and_values(model: &ActorCritic, obs: &[f32], choices: &[Choice], par
     for (rows, picked) in obs.chunks(RELABEL_ROWS * os).zip(choices.chunks(RELABEL_ROWS)) {
         let n = picked.len();
         model.pi.forward(rows, n, &mut tape, par);
-        for (row, choice) in tape.output().chunks_exact(dim).zip(picked) {
-            logp.push(match (&model.head, *choice) {
-                (Head::Categorical(_), Choice::Discrete(c)) => log_softmax(row)[c],
-                (Head::Gaussian { log_std }, Choice::Continuous(x)) => gaussian_logp(row, log_std, &x),
-                _ => panic!("the batch's actions do not fit the model's head"),
-            });
-        }
+        logp.extend(tape.output().chunks_exact(dim).zip(picked).map(|(row, c)| logp_of(model, row, *c)));
         model.v.forward(rows, n, &mut tape, par);
         values.extend_from_slice(&tape.output()[..n]);
     }
     (logp, values)
+}
+
+/// log π(choice) from the policy tower's output `row`.
+fn logp_of(model: &ActorCritic, row: &[f32], choice: Choice) -> f32 {
+    match (&model.head, choice) {
+        (Head::Categorical(_), Choice::Discrete(c)) => log_softmax(row)[c],
+        (Head::Gaussian { log_std }, Choice::Continuous(x)) => gaussian_logp(row, log_std, &x),
+        _ => panic!("the batch's actions do not fit the model's head"),
+    }
 }
 
 /// Losses of one minibatch and their gradients.
@@ -633,7 +636,12 @@ impl Ppo {
     fn train(&mut self, trajs: &[Trajectory], seed: u64, group: &mut dyn Reducer) -> Result<UpdateStats, Refused> {
         let version = self.version;
         let group_failed = |error| Refused::Group { error, version };
-        let batch = self.batch_in(trajs, group).map_err(group_failed)?;
+        let batch = match (&mut self.gpu, group.shard().1) {
+            (Some(g), 1) => g
+                .make_batch(trajs, &self.model, [&self.opt_pi, &self.opt_v], &self.hyper)
+                .map_err(|e| Refused::Device { error: e.to_string(), version })?,
+            _ => self.batch_in(trajs, group).map_err(group_failed)?,
+        };
         self.epochs(&batch, seed, group)
     }
 

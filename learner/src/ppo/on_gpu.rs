@@ -5,15 +5,16 @@
 //! what crosses over per minibatch is its indices going in and its loss figures (a few
 //! hundred floats) coming out, which the KL stop and the finite check need before the next.
 //! The log-std's two parameters (Gaussian head) are stepped on the CPU from the kernel's
-//! per-sample terms. The weights are read back once an update, for publication.
+//! per-sample terms. The weights are read back once an update, for publication. The batch's
+//! old log-probabilities and GAE's values are the resident towers' forward passes too.
 
-use super::{Batch, CLIP_EPSILON, Refused, UpdateStats};
+use super::{Batch, CLIP_EPSILON, Refused, UpdateStats, batch_with, logp_of};
 use crate::hyperparams::{Hyperparameters, LossType};
 use gpu::kernels::{LossArgs, SAMPLE, STATS};
 use gpu::{Gpu, GpuError, GpuNet};
 use policy::model::LOG_STD_RANGE;
 use policy::nn::Adam;
-use policy::{ActorCritic, Choice, Head};
+use policy::{ActorCritic, Choice, Head, Trajectory};
 use std::sync::Arc;
 
 /// A learner's GPU: the device, and the model's state on it once the first update put it
@@ -130,6 +131,22 @@ impl GpuTrainer {
             r.idx = gpu.buffer("the minibatch order", r.batch_cap)?;
         }
         Ok(())
+    }
+
+    /// The update's batch, as `make_batch_for` makes it on faer: the old log-probabilities and
+    /// the values behind GAE from the towers as the update begins, their forward passes here.
+    pub(super) fn make_batch(
+        &mut self,
+        trajs: &[Trajectory],
+        model: &ActorCritic,
+        opts: [&Adam; 2],
+        hyper: &Hyperparameters,
+    ) -> Result<Batch, GpuError> {
+        let n: usize = trajs.iter().map(|t| t.len()).sum();
+        self.ensure(model, opts, hyper.batch_size.min(n.max(1)), n)?;
+        let r = self.resident.as_mut().expect("ensured");
+        let gpu = &self.gpu;
+        batch_with(trajs, model.obs_size(), hyper.discount_factor, |obs, choices| r.relabel(gpu, model, obs, choices))
     }
 
     /// PPO's update of `model` on `batch` (made on the CPU, as for faer), minibatches of `bs`
@@ -256,7 +273,8 @@ impl Resident {
             .iter()
             .map(|&len| gpu.buffer("the update's starting point", len))
             .collect::<Result<_, _>>()?;
-        let figures = 2 * bs * STATS + 1;
+        // The minibatch's figures, or a minibatch's outputs of both towers.
+        let figures = (2 * bs * STATS + 1).max(bs * (model.pi.out_size() + 1));
         Ok(Resident {
             t: [0, 0],
             batch_cap: cap,
@@ -279,6 +297,33 @@ impl Resident {
             pi,
             v,
         })
+    }
+
+    /// log π(choice) and V for every row of `obs`, a minibatch's worth at a time.
+    fn relabel(
+        &mut self,
+        gpu: &Gpu,
+        model: &ActorCritic,
+        obs: &[f32],
+        choices: &[Choice],
+    ) -> Result<(Vec<f32>, Vec<f32>), GpuError> {
+        let (os, dim, cap) = (model.obs_size(), model.pi.out_size(), self.pi.capacity());
+        let (mut logp, mut values) = (Vec::with_capacity(choices.len()), Vec::with_capacity(choices.len()));
+        for (rows, picked) in obs.chunks(cap * os).zip(choices.chunks(cap)) {
+            let k = picked.len();
+            gpu.upload(&self.mb_obs, 0, rows);
+            let mut enc = gpu.device.create_command_encoder(&Default::default());
+            self.pi.forward(gpu, &mut enc, &self.mb_obs, k);
+            self.v.forward(gpu, &mut enc, &self.mb_obs, k);
+            enc.copy_buffer_to_buffer(self.pi.output(), 0, &self.staging, 0, (k * dim * 4) as u64);
+            enc.copy_buffer_to_buffer(self.v.output(), 0, &self.staging, (k * dim * 4) as u64, (k * 4) as u64);
+            gpu.queue.submit([enc.finish()]);
+            let out = gpu.read_staging(&self.staging, k * (dim + 1))?;
+            let (pi, v) = out.split_at(k * dim);
+            logp.extend(pi.chunks_exact(dim).zip(picked).map(|(row, c)| logp_of(model, row, *c)));
+            values.extend_from_slice(v);
+        }
+        Ok((logp, values))
     }
 
     /// One gradient step on the minibatch of `len` samples at `at` in the epoch's order.

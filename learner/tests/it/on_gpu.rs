@@ -55,8 +55,11 @@ fn close(what: &str, a: &[f32], b: &[f32], tol: f32) {
 
 fn same_learner(what: &str, g: &Ppo, c: &Ppo) {
     assert_eq!(g.version, c.version, "{what}");
-    close(&format!("{what}: policy tower"), &g.model.pi.params, &c.model.pi.params, 1e-4);
-    close(&format!("{what}: value tower"), &g.model.v.params, &c.model.v.params, 1e-4);
+    // The old policy's figures and GAE's values come from each side's own forward pass (1e-6
+    // apart), so a sample at the clip range's edge can fall on either side of it: a step's
+    // worth (lr) on a few weights, not more.
+    close(&format!("{what}: policy tower"), &g.model.pi.params, &c.model.pi.params, 1e-3);
+    close(&format!("{what}: value tower"), &g.model.v.params, &c.model.v.params, 1e-3);
     assert_eq!(g.model.pi.params.len(), c.model.pi.params.len());
     let (sg, sc) = (g.state(), c.state());
     for ((name, a), (_, b)) in sg.tensors.iter().zip(&sc.tensors) {
