@@ -1102,7 +1102,7 @@ fn issue_10_chaos_up_restarts_whatever_is_killed_and_the_job_completes_with_whol
     let dir = tempfile::tempdir().unwrap();
     let log = std::fs::File::create(dir.path().join("up.out")).unwrap();
     let mut up = Command::new(bin("coordinator"))
-        .args(["up", "--agents", "2", "--envs", "8", "--minutes", "1.5", "--checkpoint-seconds", "1", "--out", "up"])
+        .args(["up", "--agents", "2", "--envs", "8", "--minutes", "1.25", "--checkpoint-seconds", "1", "--out", "up"])
         .current_dir(dir.path())
         .stdout(log.try_clone().unwrap())
         .stderr(log)
@@ -1126,9 +1126,10 @@ fn issue_10_chaos_up_restarts_whatever_is_killed_and_the_job_completes_with_whol
     }
     let pids = dir.path().join("up/logs/pids.json");
     let mut killed = Vec::new();
-    std::thread::sleep(Duration::from_secs(12));
+    // The kills end by 50 s into the 75 s job, leaving the restarted roles time to finish it.
+    std::thread::sleep(Duration::from_secs(10));
     for v in &victims {
-        std::thread::sleep(Duration::from_secs(6 + next(8)));
+        std::thread::sleep(Duration::from_secs(5 + next(6)));
         let p: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&pids).unwrap()).unwrap();
         let pid = p[v].as_u64().unwrap_or_else(|| panic!("{v} in {p}"));
         let o = Command::new("kill").args(["-9", &pid.to_string()]).output().unwrap();
