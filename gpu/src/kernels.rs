@@ -9,11 +9,82 @@ const GEMM: &str = include_str!("gemm.wgsl");
 const OPS: &str = include_str!("ops.wgsl");
 const ADAM: &str = include_str!("adam.wgsl");
 const LOSS: &str = include_str!("loss.wgsl");
+const SAC: &str = include_str!("sac.wgsl");
 
 /// A sample's record in the loss kernels' `samples` buffer (loss.wgsl's `SAMPLE`).
 pub const SAMPLE: usize = 6;
 /// A sample's figures in the loss kernels' `stats` buffer (loss.wgsl's `STATS`).
 pub const STATS: usize = 6;
+
+/// The columns of SAC's per-transition buffer (sac.wgsl's `COL_` constants): a block of the
+/// buffer's capacity each, the transition's row within it.
+pub mod sac {
+    /// The reward (uploaded).
+    pub const REWARD: usize = 0;
+    /// 1 where the episode ended (uploaded).
+    pub const DONE: usize = 1;
+    /// The policy's noise, two columns (uploaded).
+    pub const EPS: usize = 2;
+    /// The batch's actions, two columns (uploaded).
+    pub const ACTION: usize = 4;
+    /// V_target(s').
+    pub const VNEXT: usize = 6;
+    /// The heads at the batch's actions.
+    pub const Q1: usize = 7;
+    /// The second head.
+    pub const Q2: usize = 8;
+    /// The heads' errors.
+    pub const E1: usize = 9;
+    /// The second head's.
+    pub const E2: usize = 10;
+    /// Their gradients.
+    pub const D1: usize = 11;
+    /// The second head's.
+    pub const D2: usize = 12;
+    /// The policy's draws, two columns.
+    pub const A: usize = 13;
+    /// log π of the draws.
+    pub const LOGP: usize = 15;
+    /// The heads at the draws.
+    pub const Q1P: usize = 16;
+    /// The second head.
+    pub const Q2P: usize = 17;
+    /// Their minimum.
+    pub const MINQ: usize = 18;
+    /// The gradient of −min wrt the first head's output.
+    pub const DM1: usize = 19;
+    /// The second head's.
+    pub const DM2: usize = 20;
+    /// V(s).
+    pub const V: usize = 21;
+    /// V's error.
+    pub const EV: usize = 22;
+    /// Its gradient.
+    pub const DV: usize = 23;
+    /// Columns in all.
+    pub const COLS: usize = 24;
+}
+
+/// What SAC's kernels are told (sac.wgsl's `Sac`).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct SacArgs {
+    /// Transitions in the batch.
+    pub n: u32,
+    /// A column block's length.
+    pub cap: u32,
+    /// The embedding's width (the heads' input less the action).
+    pub w: u32,
+    /// V's loss is Huber's.
+    pub huber: bool,
+    /// The discount.
+    pub gamma: f32,
+    /// A transition's weight (1 / batch).
+    pub inv: f32,
+    /// The temperature.
+    pub alpha: f32,
+    /// Half of each action's range.
+    pub scale: [f32; 2],
+}
 
 /// A product's operand: its buffer, the float its matrix starts at, and whether it is
 /// stored transposed.
@@ -38,8 +109,11 @@ pub struct Kernels {
     adam: wgpu::ComputePipeline,
     policy_loss: wgpu::ComputePipeline,
     value_loss: wgpu::ComputePipeline,
+    sac: std::collections::HashMap<&'static str, wgpu::ComputePipeline>,
     /// Bound where a kernel reads nothing.
     dummy: wgpu::Buffer,
+    /// Bound where a kernel writes nothing.
+    dummy2: wgpu::Buffer,
 }
 
 #[derive(Clone, Copy)]
@@ -99,7 +173,22 @@ fn pipeline(
 }
 
 /// The element-wise kernels of ops.wgsl.
-const OPS_ENTRIES: [&str; 8] = ["fill_rows", "relu", "relu_back", "scale", "ones", "gather_rows", "im2col", "col2im"];
+const OPS_ENTRIES: [&str; 11] = [
+    "fill_rows",
+    "relu",
+    "relu_back",
+    "scale",
+    "ones",
+    "gather_rows",
+    "im2col",
+    "col2im",
+    "concat_rows",
+    "add_cols",
+    "lerp",
+];
+
+/// SAC's kernels.
+const SAC_ENTRIES: [&str; 5] = ["draws", "q_errors", "min_q", "policy_grad", "v_errors"];
 
 impl Kernels {
     /// Compile every kernel on `device`.
@@ -118,6 +207,7 @@ impl Kernels {
         let ops_m = module("ops", OPS);
         let adam_m = module("adam", ADAM);
         let loss_m = module("loss", LOSS);
+        let sac_m = module("sac", SAC);
         let ops = OPS_ENTRIES.iter().map(|&e| (e, pipeline(device, &ops_m, &four, e))).collect();
         Kernels {
             gemm: pipeline(device, &gemm_m, &four, "gemm"),
@@ -126,8 +216,15 @@ impl Kernels {
             adam: pipeline(device, &adam_m, &six_opt, "adam"),
             policy_loss: pipeline(device, &loss_m, &six_loss, "policy_loss"),
             value_loss: pipeline(device, &loss_m, &six_loss, "value_loss"),
+            sac: SAC_ENTRIES.iter().map(|&e| (e, pipeline(device, &sac_m, &six_loss, e))).collect(),
             dummy: device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("dummy"),
+                size: 16,
+                usage: wgpu::BufferUsages::STORAGE,
+                mapped_at_creation: false,
+            }),
+            dummy2: device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("dummy to write"),
                 size: 16,
                 usage: wgpu::BufferUsages::STORAGE,
                 mapped_at_creation: false,
@@ -361,5 +458,37 @@ impl Gpu {
         ]);
         let pipeline = if value { &kern.value_loss } else { &kern.policy_loss };
         self.run(enc, pipeline, &kern.six_loss, &[out, samples, idx, d, stats, &u], (args.n.div_ceil(64), 1, 1));
+    }
+
+    /// One of SAC's kernels (sac.wgsl) over a batch: the per-transition columns `cols`, and
+    /// what the kernel reads (`reads`: up to three buffers) and writes besides (`out`).
+    pub fn sac(
+        &self,
+        enc: &mut wgpu::CommandEncoder,
+        entry: &str,
+        args: SacArgs,
+        reads: &[&wgpu::Buffer],
+        out: Option<&wgpu::Buffer>,
+        cols: &wgpu::Buffer,
+    ) {
+        let kern = &self.kernels;
+        let pipeline = kern.sac.get(entry).unwrap_or_else(|| panic!("no kernel `{entry}`"));
+        let u = self.uniform(&[
+            args.n,
+            args.cap,
+            args.w,
+            args.huber as u32,
+            args.gamma.to_bits(),
+            args.inv.to_bits(),
+            args.alpha.to_bits(),
+            args.scale[0].to_bits(),
+            args.scale[1].to_bits(),
+            0,
+            0,
+            0,
+        ]);
+        let read = |k: usize| reads.get(k).copied().unwrap_or(&kern.dummy);
+        let buffers = [read(0), read(1), read(2), out.unwrap_or(&kern.dummy2), cols, &u];
+        self.run(enc, pipeline, &kern.six_loss, &buffers, (args.n.div_ceil(64), 1, 1));
     }
 }

@@ -187,11 +187,29 @@ impl GpuNet {
         d_out: &wgpu::Buffer,
         batch: usize,
     ) {
+        self.backward_with(gpu, enc, x, (d_out, 0), batch, true, None);
+    }
+
+    /// [`GpuNet::backward`] with `d_out` from float `d_out.1` of its buffer; the parameters'
+    /// gradient added into `grad` only when `params`; and the gradient wrt the input written
+    /// into `d_in` (`batch × in`) when one is given (a network upstream needs it).
+    #[allow(clippy::too_many_arguments)]
+    pub fn backward_with(
+        &mut self,
+        gpu: &Gpu,
+        enc: &mut wgpu::CommandEncoder,
+        x: &wgpu::Buffer,
+        d_out: (&wgpu::Buffer, usize),
+        batch: usize,
+        params: bool,
+        d_in: Option<&wgpu::Buffer>,
+    ) {
         let last = self.layers.last().expect("a network has layers").out_size();
-        enc.copy_buffer_to_buffer(d_out, 0, &self.d[0], 0, (batch * last * 4) as u64);
+        enc.copy_buffer_to_buffer(d_out.0, (d_out.1 * 4) as u64, &self.d[0], 0, (batch * last * 4) as u64);
+        let lowest = if d_in.is_some() { 0 } else { self.first_param };
         let mut cur = 0;
-        for i in (self.first_param..self.layers.len()).rev() {
-            let need_in = i > self.first_param;
+        for i in (lowest..self.layers.len()).rev() {
+            let need_in = i > lowest || d_in.is_some();
             let input = if i == 0 { x } else { &self.acts[i - 1] };
             let (d, d_prev) = if cur == 0 { (&self.d[0], &self.d[1]) } else { (&self.d[1], &self.d[0]) };
             match self.layers[i] {
@@ -200,24 +218,26 @@ impl GpuNet {
                     gpu.op(enc, "relu_back", batch * size, d, Some(&self.acts[i]), d_prev, [0; 7], 0.0)
                 }
                 Layer::Dense { inp, out, offset } => {
-                    gpu.gemm(
-                        enc,
-                        [out, inp, batch],
-                        Operand { buf: d, at: 0, t: true },
-                        Operand { buf: input, at: 0, t: false },
-                        (&self.grad, offset),
-                        true,
-                        &mut self.scratch,
-                    );
-                    gpu.gemm(
-                        enc,
-                        [1, out, batch],
-                        Operand { buf: &self.ones, at: 0, t: false },
-                        Operand { buf: d, at: 0, t: false },
-                        (&self.grad, offset + inp * out),
-                        true,
-                        &mut self.scratch,
-                    );
+                    if params {
+                        gpu.gemm(
+                            enc,
+                            [out, inp, batch],
+                            Operand { buf: d, at: 0, t: true },
+                            Operand { buf: input, at: 0, t: false },
+                            (&self.grad, offset),
+                            true,
+                            &mut self.scratch,
+                        );
+                        gpu.gemm(
+                            enc,
+                            [1, out, batch],
+                            Operand { buf: &self.ones, at: 0, t: false },
+                            Operand { buf: d, at: 0, t: false },
+                            (&self.grad, offset + inp * out),
+                            true,
+                            &mut self.scratch,
+                        );
+                    }
                     if need_in {
                         gpu.gemm(
                             enc,
@@ -235,24 +255,26 @@ impl GpuNet {
                     let kkc = kernel * kernel * c;
                     let rows = batch * oh * ow;
                     let cols = self.cols[i].as_ref().expect("a conv layer's columns");
-                    gpu.gemm(
-                        enc,
-                        [filters, kkc, rows],
-                        Operand { buf: d, at: 0, t: true },
-                        Operand { buf: cols, at: 0, t: false },
-                        (&self.grad, offset),
-                        true,
-                        &mut self.scratch,
-                    );
-                    gpu.gemm(
-                        enc,
-                        [1, filters, rows],
-                        Operand { buf: &self.ones, at: 0, t: false },
-                        Operand { buf: d, at: 0, t: false },
-                        (&self.grad, offset + filters * kkc),
-                        true,
-                        &mut self.scratch,
-                    );
+                    if params {
+                        gpu.gemm(
+                            enc,
+                            [filters, kkc, rows],
+                            Operand { buf: d, at: 0, t: true },
+                            Operand { buf: cols, at: 0, t: false },
+                            (&self.grad, offset),
+                            true,
+                            &mut self.scratch,
+                        );
+                        gpu.gemm(
+                            enc,
+                            [1, filters, rows],
+                            Operand { buf: &self.ones, at: 0, t: false },
+                            Operand { buf: d, at: 0, t: false },
+                            (&self.grad, offset + filters * kkc),
+                            true,
+                            &mut self.scratch,
+                        );
+                    }
                     if need_in {
                         gpu.gemm(
                             enc,
@@ -272,6 +294,10 @@ impl GpuNet {
                 break;
             }
             cur ^= 1;
+        }
+        if let Some(d_in) = d_in {
+            let size = batch * self.layers[0].in_size();
+            enc.copy_buffer_to_buffer(&self.d[cur], 0, d_in, 0, (size * 4) as u64);
         }
     }
 

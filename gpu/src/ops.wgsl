@@ -152,3 +152,39 @@ fn col2im(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nw: vec
     }
     dst[i] = sum;
 }
+
+// Rows of the twin Q heads' input: a row of src (u0 values: the embedding) then u1 values
+// read column-major from src2 (column j at u3 + j·u2, row r).
+@compute @workgroup_size(256, 1, 1)
+fn concat_rows(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nw: vec3<u32>, @builtin(local_invocation_id) l: vec3<u32>) {
+    let i = index(wg, nw, l);
+    if (i < p.n) {
+        let width = p.u0 + p.u1;
+        let r = i / width;
+        let j = i % width;
+        if (j < p.u0) {
+            dst[i] = src[r * p.u0 + j];
+        } else {
+            dst[i] = src2[p.u3 + (j - p.u0) * p.u2 + r];
+        }
+    }
+}
+
+// The first u0 values of each row (u1 values apart) of src and src2, added.
+@compute @workgroup_size(256, 1, 1)
+fn add_cols(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nw: vec3<u32>, @builtin(local_invocation_id) l: vec3<u32>) {
+    let i = index(wg, nw, l);
+    if (i < p.n) {
+        let at = (i / p.u0) * p.u1 + i % p.u0;
+        dst[i] = src[at] + src2[at];
+    }
+}
+
+// dst = x · src + (1 − x) · dst: a target network moved towards its network.
+@compute @workgroup_size(256, 1, 1)
+fn lerp(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nw: vec3<u32>, @builtin(local_invocation_id) l: vec3<u32>) {
+    let i = index(wg, nw, l);
+    if (i < p.n) {
+        dst[i] = p.x * src[i] + (1.0 - p.x) * dst[i];
+    }
+}

@@ -1,10 +1,11 @@
 //! `--device auto|cpu|gpu`: where a learner's network maths run. The GPU path is PPO's
-//! update for a learner alone on a network of one input (`ppo/on_gpu.rs`); what it does not
+//! update and SAC's gradient steps for a learner alone on networks of one input
+//! (`ppo/on_gpu.rs`, `sac/on_gpu.rs`); what it does not
 //! run is refused by name under `gpu`, and under `auto` runs on faer with a log line that
 //! says so (never a silent substitute for what was asked).
 
 use gpu::{DeviceChoice, Gpu};
-use policy::{ModelMetadata, TrainingAlgorithm};
+use policy::ModelMetadata;
 use std::sync::{Arc, Mutex};
 
 /// Why `--device gpu` cannot be had.
@@ -20,9 +21,6 @@ pub enum DeviceError {
 
 /// What of `meta`'s model the GPU path does not train, if anything.
 pub fn unsupported(meta: &ModelMetadata) -> Option<String> {
-    if meta.training_algorithm == TrainingAlgorithm::Sac {
-        return Some("SAC's networks".into());
-    }
     let inputs = policy::model::inputs(meta, 0);
     (inputs.len() > 1).then(|| format!("networks of several inputs ({} sensors)", inputs.len()))
 }

@@ -307,7 +307,7 @@ fn bench(network: &str, seconds: f64, threads: usize, device: learner::DeviceCho
         );
     }
     if let Some(gpu) = learner::device::Device::new(device).for_model(&meta).context("--device")? {
-        gpu_rows(&model, gpu, threads, seconds, &mut rng, &frame)?;
+        gpu_rows(&model, &meta, gpu, threads, seconds, &mut rng, &frame)?;
     }
     let single: Vec<f32> = batch.obs[..os].to_vec();
     // Milliseconds a call of `work` takes, over up to 3 s (at least 10 calls).
@@ -367,6 +367,7 @@ fn random_batch(
 /// GPU and on faer with `threads` threads, in turn.
 fn gpu_rows(
     model: &ActorCritic,
+    meta: &ModelMetadata,
     gpu: std::sync::Arc<gpu::Gpu>,
     threads: usize,
     seconds: f64,
@@ -385,7 +386,7 @@ fn gpu_rows(
         lr: 1e-6,
         ..Hyperparameters::default()
     };
-    let mut on_gpu = learner::ppo::Ppo::new(model.clone(), h.clone(), 0, 1, Par::Seq).with_gpu(gpu);
+    let mut on_gpu = learner::ppo::Ppo::new(model.clone(), h.clone(), 0, 1, Par::Seq).with_gpu(gpu.clone());
     let mut on_cpu = learner::ppo::Ppo::new(model.clone(), h, 0, 1, Par::rayon(threads));
     let mut seed = 0;
     let mut update = |p: &mut learner::ppo::Ppo| -> anyhow::Result<()> {
@@ -414,6 +415,84 @@ fn gpu_rows(
         "| whole updates on the GPU, {adapter} (16 minibatches of 64, Adam, upload and readback) | {g:.0} ({r:.2}× faer's, the median of the rounds' ratios) |"
     );
     println!("| the same updates on faer, {threads} thread(s) | {c:.0} |");
+    sac_gpu_rows(model, meta, &gpu, threads, seconds, rng, frame)
+}
+
+/// SAC's gradient steps (DeepRacer's SAC networks for the bench's network: the policy, the
+/// critics' embedder and twin heads, V and its target) on the GPU against the same steps on
+/// faer, in turn: an iteration of 16 steps of 64 transitions each, the GPU's including
+/// putting the networks there and reading them back.
+fn sac_gpu_rows(
+    model: &ActorCritic,
+    meta: &ModelMetadata,
+    gpu: &std::sync::Arc<gpu::Gpu>,
+    threads: usize,
+    seconds: f64,
+    rng: &mut rand_chacha::ChaCha8Rng,
+    frame: &dyn Fn(&mut rand_chacha::ChaCha8Rng) -> f32,
+) -> anyhow::Result<()> {
+    use learner::sac::{Batch as SacBatch, Sac, SacGpu, SacNets, SacSettings, Tapes};
+    let os = model.obs_size();
+    let space = policy::ActionSpace::Continuous { steering_angle: (-30.0, 30.0), speed: (0.5, 2.0) };
+    let mut meta = meta.clone();
+    meta.action_space = space.clone();
+    meta.training_algorithm = policy::TrainingAlgorithm::Sac;
+    let nets = SacNets::new(&meta, os, rng);
+    let settings = SacSettings { lr: 1e-6, ..SacSettings::for_space(&space).expect("continuous") };
+    let (mb, k) = (64, 16);
+    let batches: Vec<SacBatch> = (0..k)
+        .map(|_| SacBatch {
+            obs: (0..mb * os).map(|_| frame(rng)).collect(),
+            next_obs: (0..mb * os).map(|_| frame(rng)).collect(),
+            action: (0..2 * mb).map(|_| rng.random_range(-0.9..0.9)).collect(),
+            reward: (0..mb).map(|_| rng.random_range(-1.0..1.0)).collect(),
+            done: (0..mb).map(|i| (i % 50 == 0) as u8 as f32).collect(),
+        })
+        .collect();
+    let on = SacGpu::new(gpu.clone());
+    let mut on_gpu = Sac::new(nets.clone(), settings.clone(), 1);
+    let mut on_cpu = Sac::new(nets, settings, 1);
+    let par = Par::rayon(threads);
+    let mut tapes = Tapes::default();
+    let gpu_iteration = |s: &mut Sac| -> anyhow::Result<()> {
+        let mut session = on.begin(s, mb)?;
+        for b in &batches {
+            session.step(s, b)?;
+        }
+        session.finish(s)?;
+        Ok(())
+    };
+    let mut cpu_iteration = |s: &mut Sac| {
+        for b in &batches {
+            std::hint::black_box(s.step(b, par, &mut tapes));
+        }
+    };
+    gpu_iteration(&mut on_gpu)?;
+    cpu_iteration(&mut on_cpu);
+    let (mut g, mut c) = (Vec::new(), Vec::new());
+    for _ in 0..ROUNDS {
+        let t = Instant::now();
+        let mut n = 0;
+        while t.elapsed().as_secs_f64() < seconds / ROUNDS as f64 || n < 1 {
+            gpu_iteration(&mut on_gpu)?;
+            n += 1;
+        }
+        g.push((n * k * mb) as f64 / t.elapsed().as_secs_f64());
+        let t = Instant::now();
+        let mut n = 0;
+        while t.elapsed().as_secs_f64() < seconds / ROUNDS as f64 || n < 1 {
+            cpu_iteration(&mut on_cpu);
+            n += 1;
+        }
+        c.push((n * k * mb) as f64 / t.elapsed().as_secs_f64());
+    }
+    let ratios: Vec<f64> = g.iter().zip(&c).map(|(a, b)| a / b).collect();
+    let (g, c, r) = (median(g), median(c), median(ratios));
+    println!(
+        "| SAC: an iteration's gradient steps on the GPU, {} (16 steps of 64 transitions; the networks put there and read back) | {g:.0} transitions/s ({r:.2}× faer's, the median of the rounds' ratios) |",
+        gpu.adapter
+    );
+    println!("| SAC: the same steps on faer, {threads} thread(s) | {c:.0} transitions/s |");
     Ok(())
 }
 

@@ -18,6 +18,7 @@
 //! maths on it (`on_gpu.rs`); a team's members make theirs on faer.
 
 mod on_gpu;
+pub(crate) use on_gpu::adam as adam_on_gpu;
 mod team;
 
 pub use on_gpu::GpuTrainer;

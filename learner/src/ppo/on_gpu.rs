@@ -412,7 +412,7 @@ impl Resident {
 }
 
 /// Record Adam's step `t` of `net` with `opt`'s settings.
-fn adam(gpu: &Gpu, enc: &mut wgpu::CommandEncoder, net: &GpuNet, opt: &Adam, t: u32, flag: &wgpu::Buffer) {
+pub(crate) fn adam(gpu: &Gpu, enc: &mut wgpu::CommandEncoder, net: &GpuNet, opt: &Adam, t: u32, flag: &wgpu::Buffer) {
     let step = opt.lr / (1.0 - opt.beta1.powi(t as i32));
     let inv_c2 = 1.0 / (1.0 - opt.beta2.powi(t as i32));
     gpu.adam(

@@ -1224,6 +1224,9 @@ fn algorithm(
                 Err(e) => tracing::warn!(run = %spec.name, "SAC: the replay memory starts empty: {e}"),
             }
         }
+        if let Some(g) = &spec.gpu {
+            sac = sac.with_gpu(g.clone());
+        }
         adopt(spec, &mut sac);
         return Ok(Box::new(sac));
     }

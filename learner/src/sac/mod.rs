@@ -16,6 +16,7 @@
 //! action as the policy gives it, in [-1, 1]; DeepRacer's take it rescaled to the environment's
 //! units (degrees, m/s), a choice of input scale invisible outside the learner.
 
+mod on_gpu;
 pub mod replay;
 pub mod trainer;
 
@@ -28,6 +29,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 
+pub use on_gpu::{SacGpu, Session as SacSession};
 pub use replay::{Replay, ReplayError};
 pub use trainer::{SacStats, SacTrainer};
 
@@ -515,7 +517,7 @@ impl Sac {
         par: Par,
         tapes: &mut Tapes,
     ) -> Result<Losses, GroupError> {
-        let eps: Vec<f32> = (0..2 * batch.len()).map(|_| StandardNormal.sample(&mut self.rng)).collect();
+        let eps = self.noise(batch.len());
         let (rank, size) = group.shard();
         let b = batch.len();
         let (lo, hi) = (b * rank / size.max(1), b * (rank + 1) / size.max(1));
@@ -585,6 +587,18 @@ impl Sac {
         Ok(losses)
     }
 
+    /// The policy's noise for a step on `b` transitions (two standard-normal draws each).
+    fn noise(&mut self, b: usize) -> Vec<f32> {
+        (0..2 * b).map(|_| StandardNormal.sample(&mut self.rng)).collect()
+    }
+
+    /// The temperature's Adam step on its gradient `g`.
+    fn step_alpha(&mut self, g: f32) {
+        let mut la = [self.log_alpha];
+        self.adam_alpha.step(&mut la, &[g]);
+        self.log_alpha = la[0];
+    }
+
     /// Each network's Adam step on `g` (and the temperature's, when it is tuned): the
     /// deferred layers' weight gradients multiplied out from this learner's factors, or from
     /// every member's (`every`, with each member's share of the batch) in rank order.
@@ -612,9 +626,7 @@ impl Sac {
         self.adam_q2.step_factored(&mut self.nets.q.q2.params, &g.q2, &q2, par);
         self.adam_v.step_factored(&mut self.nets.v.params, &g.v, &v, par);
         if self.settings.target_entropy.is_some() {
-            let mut la = [self.log_alpha];
-            self.adam_alpha.step(&mut la, &[g.log_alpha]);
-            self.log_alpha = la[0];
+            self.step_alpha(g.log_alpha);
         }
         self.steps += 1;
     }

@@ -19,12 +19,13 @@
 //! shared as [`Sac::step_in`] shares it. A joiner takes over the networks, their optimisers
 //! and the memory.
 
-use super::{Losses, Replay, Sac, SacNets, SacSettings, Tapes};
+use super::{Losses, Replay, Sac, SacGpu, SacNets, SacSettings, Tapes};
 use crate::algorithm::{Algorithm, LearnerState, Shared};
 use crate::hyperparams::{Hyperparameters, LossType};
 use crate::ppo::{Reducer, Refused, StateMismatch, UpdateStats};
 use crate::run::Team;
 use faer::Par;
+use gpu::GpuError;
 use policy::model::Head;
 use policy::nn::InputShape;
 use policy::{ActorCritic, Choice, ModelMetadata, Trajectory};
@@ -94,6 +95,8 @@ pub struct SacTrainer {
     on_disk: u64,
     /// Transitions in the parts written since the whole memory was.
     in_parts: usize,
+    /// The GPU the gradient steps run on when this learner trains alone.
+    gpu: Option<SacGpu>,
 }
 
 /// The settings `hyperparameters.json` gives SAC for `model`'s action space.
@@ -160,7 +163,20 @@ impl SacTrainer {
             // The first checkpoint writes the whole memory (and clears any parts a run of the
             // same folder left).
             in_parts: usize::MAX,
+            gpu: None,
         })
+    }
+
+    /// Make this learner's gradient steps with the network maths on `gpu` when it trains
+    /// alone.
+    pub fn with_gpu(mut self, gpu: std::sync::Arc<gpu::Gpu>) -> SacTrainer {
+        self.gpu = Some(SacGpu::new(gpu));
+        self
+    }
+
+    /// The GPU the maths run on, if any (its adapter).
+    pub fn device(&self) -> Option<&str> {
+        self.gpu.as_ref().map(|g| g.adapter())
     }
 
     /// The replay memory.
@@ -442,23 +458,38 @@ impl SacTrainer {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         self.sac.reseed(seed);
         let before = self.sac.clone();
+        let version = self.version;
+        let device = |error: GpuError| Refused::Device { error: error.to_string(), version };
+        // Alone, with a GPU: the iteration's steps there (a team's members share faer's).
+        let mut session = match (&self.gpu, group.shard().1) {
+            (Some(g), 1) if steps > 0 => Some(g.begin(&self.sac, batch_size).map_err(device)?),
+            _ => None,
+        };
         let mut sum = Losses::default();
         for i in 0..steps {
             let Some(batch) = self.replay.sample(batch_size, &mut rng) else { break };
-            let l = match self.sac.step_in(&batch, group, i as u64, self.par, &mut self.tapes) {
+            let stepped = match session.as_mut() {
+                Some(s) => s.step(&mut self.sac, &batch).map_err(device),
+                None => (self.sac.step_in(&batch, group, i as u64, self.par, &mut self.tapes).map(|l| (l, true)))
+                    .map_err(|error| Refused::Group { error, version }),
+            };
+            let (l, finite_grads) = match stepped {
                 Ok(l) => l,
-                Err(error) => {
+                Err(why) => {
                     self.sac = before;
-                    return Err(Refused::Group { error, version: self.version });
+                    return Err(why);
                 }
             };
-            if ![l.policy, l.q, l.v].iter().all(|x| x.is_finite()) {
+            if ![l.policy, l.q, l.v].iter().all(|x| x.is_finite()) || !finite_grads {
                 let loss = [l.policy, l.q, l.v].into_iter().find(|x| !x.is_finite()).unwrap_or(f64::NAN);
                 self.sac = before;
-                return Err(Refused::NonFinite { step: i, loss, version: self.version });
+                return Err(Refused::NonFinite { step: i, loss, version });
             }
             if i == 0 {
-                self.sac.update_target();
+                match &session {
+                    Some(s) => s.update_target(self.sac.settings.tau),
+                    None => self.sac.update_target(),
+                }
             }
             for (s, x) in [
                 (&mut sum.policy, l.policy),
@@ -469,6 +500,10 @@ impl SacTrainer {
             ] {
                 *s += x;
             }
+        }
+        if let Some(Err(error)) = session.map(|s| s.finish(&mut self.sac)) {
+            self.sac = before;
+            return Err(device(error));
         }
         self.carry = carry;
         self.pending = None;

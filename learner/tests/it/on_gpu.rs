@@ -154,3 +154,121 @@ fn issue_33_a_refused_update_leaves_the_gpu_state_and_a_restored_one_is_trained_
     other.update_planned(&next, 42, &mut Alone).unwrap();
     same_learner("after a restore", &other, &cpu);
 }
+
+/// SAC's gradient steps on the GPU against the same steps on faer from the same state: the
+/// losses of every step, then every network, optimiser moment and the temperature, for the
+/// state vector (no embedder, squared error, the temperature tuned, V's target copied) and a
+/// small camera (a conv embedder shared by the heads, Huber, the target moved by τ = 0.25).
+#[test]
+fn issue_33_sac_steps_on_the_gpu_match_faer() {
+    use learner::sac::{Batch, Sac, SacGpu, SacNets, SacSettings, Tapes, TwinQ};
+    use policy::nn::{InputShape, LayerSpec::*, Net};
+    let gpu = gpu();
+    let mut rng = ChaCha8Rng::seed_from_u64(332);
+    let meta = ModelMetadata::parse(
+        r#"{"action_space":{"steering_angle":{"low":-30,"high":30},"speed":{"low":1,"high":2}},"action_space_type":"continuous","training_algorithm":"sac","sensor":["STATE_VECTOR"],"neural_network":"PADDOCK_MLP","version":"5"}"#,
+        "meta",
+    )
+    .unwrap();
+    let base = SacSettings { lr: 1e-3, ..SacSettings::for_space(&meta.action_space).unwrap() };
+    let camera = |rng: &mut ChaCha8Rng| {
+        let image = InputShape::Image(12, 16, 1);
+        let embed = [Scale(1.0 / 255.0), Conv(4, 3, 2), Relu];
+        let tower = |out: usize, rng: &mut ChaCha8Rng| {
+            Net::new(image, &[&embed[..], &[Dense(16), Relu, Dense(out)]].concat(), Some(0.1), rng)
+        };
+        let e = Net::new(image, &embed, None, rng);
+        let head = |rng: &mut ChaCha8Rng| {
+            Net::new(InputShape::Flat(e.out_size() + 2), &[Dense(12), Relu, Dense(1)], None, rng)
+        };
+        let (q1, q2, v) = (head(rng), head(rng), tower(1, rng));
+        SacNets { policy: tower(4, rng), q: TwinQ { embed: Some(e.clone()), q1, q2 }, v_target: v.clone(), v }
+    };
+    let cases = [
+        ("state vector", SacNets::new(&meta, 9, &mut rng), SacSettings { target_entropy: Some(-1.0), ..base.clone() }),
+        ("camera", camera(&mut rng), SacSettings { huber: true, tau: 0.25, ..base.clone() }),
+    ];
+    for (name, nets, settings) in cases {
+        let pixels = nets.q.embed.is_some();
+        let per = nets.obs_size();
+        let mut cpu = Sac::new(nets.clone(), settings.clone(), 5);
+        let mut on_gpu = Sac::new(nets, settings, 5);
+        let mut session = SacGpu::new(gpu.clone()).begin(&on_gpu, 24).unwrap();
+        let mut tapes = Tapes::default();
+        for step in 0..4 {
+            let n = if step == 3 { 17 } else { 24 };
+            let value = |rng: &mut ChaCha8Rng| {
+                if pixels { rng.random_range(0..256) as f32 } else { rng.random_range(-1.0..1.0) }
+            };
+            let batch = Batch {
+                obs: (0..n * per).map(|_| value(&mut rng)).collect(),
+                next_obs: (0..n * per).map(|_| value(&mut rng)).collect(),
+                action: (0..2 * n).map(|_| rng.random_range(-0.95..0.95)).collect(),
+                reward: (0..n).map(|_| rng.random_range(-1.0..1.0)).collect(),
+                done: (0..n).map(|i| if i % 4 == 0 { 1.0 } else { 0.0 }).collect(),
+            };
+            let a = cpu.step(&batch, Par::Seq, &mut tapes);
+            let (b, finite) = session.step(&mut on_gpu, &batch).unwrap();
+            assert!(finite, "{name} step {step}");
+            for (x, y, f) in [
+                (a.policy, b.policy, "policy loss"),
+                (a.q, b.q, "Q loss"),
+                (a.v, b.v, "V loss"),
+                (a.entropy, b.entropy, "entropy"),
+                (a.q_mean, b.q_mean, "min Q"),
+            ] {
+                assert!((x - y).abs() <= 1e-4 * x.abs().max(1e-1), "{name} step {step} {f}: faer {x}, GPU {y}");
+            }
+            if step == 0 {
+                cpu.update_target();
+                session.update_target(on_gpu.settings.tau);
+            }
+        }
+        session.finish(&mut on_gpu).unwrap();
+        assert_eq!(on_gpu.steps, cpu.steps, "{name}");
+        for ((what, g), (_, c)) in on_gpu.tensors().iter().zip(&cpu.tensors()) {
+            close(&format!("{name}: {what}"), g, c, 1e-3);
+        }
+    }
+}
+
+/// A SAC learner made with a GPU makes its iterations there, as one on faer does.
+#[test]
+fn issue_33_a_sac_learner_with_a_gpu_trains_as_one_on_faer() {
+    use learner::algorithm::{Algorithm, Shared};
+    use learner::sac::SacTrainer;
+    let meta = ModelMetadata::parse(
+        r#"{"action_space":{"steering_angle":{"low":-30,"high":30},"speed":{"low":1,"high":2}},"action_space_type":"continuous","training_algorithm":"sac","sensor":["STATE_VECTOR"],"neural_network":"PADDOCK_MLP","version":"5"}"#,
+        "meta",
+    )
+    .unwrap();
+    let h = Hyperparameters { batch_size: 32, sac_gradient_steps_per_transition: 0.05, ..Default::default() };
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    let model = ActorCritic::new(&meta, 6, &mut rng);
+    let mut cpu = SacTrainer::new(model.clone(), &meta, 6, &h, 0, 1, Par::Seq).unwrap();
+    let mut on_gpu = SacTrainer::new(model, &meta, 6, &h, 0, 1, Par::Seq).unwrap().with_gpu(gpu());
+    assert!(on_gpu.device().is_some() && cpu.device().is_none());
+    for u in 0..2 {
+        let trajs: Vec<Trajectory> = (0..3)
+            .map(|_| {
+                let n = 60;
+                let a = |rng: &mut ChaCha8Rng| rng.random_range(-0.9..0.9);
+                Trajectory {
+                    world: "w".into(),
+                    obs: (0..n * 6).map(|_| rng.random_range(-1.0..1.0)).collect(),
+                    choices: (0..n).map(|_| policy::Choice::Continuous([a(&mut rng), a(&mut rng)])).collect(),
+                    rewards: (0..n).map(|_| rng.random_range(-1.0..1.0)).collect(),
+                    done: true,
+                    ..Default::default()
+                }
+            })
+            .collect();
+        let (a, b) = (cpu.update_alone(&trajs).unwrap(), on_gpu.update_alone(&trajs).unwrap());
+        assert!(a.gradient_steps > 0 && a.gradient_steps == b.gradient_steps, "update {u}");
+        assert_eq!(Shared::version(&on_gpu), Shared::version(&cpu));
+        for ((what, g), (_, c)) in on_gpu.state().tensors.iter().zip(&cpu.state().tensors) {
+            close(&format!("update {u}: {what}"), g, c, 1e-3);
+        }
+        close("the published policy", &on_gpu.model().pi.params, &cpu.model().pi.params, 1e-3);
+    }
+}
