@@ -1,13 +1,14 @@
 //! The network maths on a GPU, through wgpu compute: what `policy::nn` does with faer on the
-//! CPU (dense and conv2d layers forward and backward, ReLU, input scaling), Adam, and PPO's
-//! two losses with their gradients, in hand-written WGSL (docs/benchmarks.md says why no
+//! CPU (dense and conv2d layers forward and backward, ReLU, input scaling), Adam, PPO's two
+//! losses with their gradients and SAC's per-transition arithmetic, in hand-written WGSL (docs/benchmarks.md says why no
 //! kernel library). faer stays the reference: every kernel is checked against it.
 //!
 //! - `device`: which adapter (`--device auto|cpu|gpu`), opened once per process.
 //! - `icd`: a headless NVIDIA server's Vulkan driver (its EGL library), found before any
 //!   role opens an adapter, for the camera and the maths alike.
 //! - `kernels`: the compiled pipelines and one function per dispatch (GEMM, split over K when
-//!   the output is small; the element-wise kernels; unfold and fold; Adam; the losses).
+//!   the output is small; the element-wise kernels; unfold and fold; Adam; PPO's losses;
+//!   SAC's draws, errors and policy gradient).
 //! - `net`: a `policy::nn::Net` resident on the GPU (parameters, gradient, Adam's moments,
 //!   activations), its forward and backward passes recorded into one command encoder.
 //! - `acting`: a sim agent's policy over its environments, both towers in one submission.
