@@ -1,7 +1,8 @@
 //! The network maths on a GPU, through wgpu compute: what `policy::nn` does with faer on the
 //! CPU (dense and conv2d layers forward and backward, ReLU, input scaling), Adam, PPO's two
-//! losses with their gradients and SAC's per-transition arithmetic, in hand-written WGSL (docs/benchmarks.md says why no
-//! kernel library). faer stays the reference: every kernel is checked against it.
+//! losses with their gradients and SAC's per-transition arithmetic, in hand-written WGSL
+//! (docs/benchmarks.md says why no kernel library). faer stays the reference: every kernel
+//! is checked against it.
 //!
 //! - `device`: which adapter (`--device auto|cpu|gpu`), opened once per process.
 //! - `icd`: a headless NVIDIA server's Vulkan driver (its EGL library), found before any
