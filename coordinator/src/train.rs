@@ -199,7 +199,7 @@ pub fn train(mut args: TrainArgs) -> Result<i32> {
     let threads = learner::use_threads(args.threads);
     let camera = cfg.observation.kind.is_camera();
     // One GPU for the learner's update and the worker's acting.
-    let gpu = learner::device::Device::new(args.device).for_model(&meta).context("--device")?;
+    let gpu = learner::device::Device::new(args.device).gpu().context("--device")?;
     let spec = RunSpec {
         name: worlds.iter().map(|w| w.name.clone()).collect::<Vec<_>>().join("+"),
         metadata: meta.clone(),

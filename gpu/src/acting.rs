@@ -31,8 +31,7 @@ impl Acting {
     }
 
     /// The towers' outputs over `batch` observations `obs` of `model`: the policy's
-    /// (`batch × pi.out_size()`) and the values. Refused for a model the GPU path does not
-    /// run (several inputs).
+    /// (`batch × pi.out_size()`) and the values, or why the GPU could not give them.
     pub fn outputs(
         &mut self,
         model: &Arc<ActorCritic>,

@@ -173,7 +173,7 @@ fn pipeline(
 }
 
 /// The element-wise kernels of ops.wgsl.
-const OPS_ENTRIES: [&str; 11] = [
+const OPS_ENTRIES: [&str; 12] = [
     "fill_rows",
     "relu",
     "relu_back",
@@ -185,6 +185,7 @@ const OPS_ENTRIES: [&str; 11] = [
     "concat_rows",
     "add_cols",
     "lerp",
+    "copy_cols",
 ];
 
 /// SAC's kernels.

@@ -40,9 +40,6 @@ pub enum GpuError {
         /// wgpu's error.
         error: String,
     },
-    /// A network the GPU path does not run.
-    #[error("the GPU path does not run {0}; `--device cpu` does")]
-    Unsupported(String),
     /// A buffer larger than the device allows in one binding.
     #[error("{what} needs {bytes} bytes in one buffer; this GPU binds at most {limit}")]
     TooLarge {

@@ -4,7 +4,8 @@
 //! Forward and backward are `policy::nn::Net`'s, layer for layer: a dense layer is a bias
 //! fill and one product; a conv layer unfolds its input (im2col), multiplies, and its
 //! backward pass folds the input gradient back (col2im); bias gradients are products with
-//! a row of ones. Sequential networks only: several inputs (camera and LiDAR) are refused.
+//! a row of ones. A network of several inputs (camera and LiDAR) takes each input's values
+//! out of the samples into its embedder and the embeddings side by side into the rest.
 
 use crate::kernels::Operand;
 use crate::{Gpu, GpuError};
@@ -30,18 +31,56 @@ pub struct GpuNet {
     d_cols: wgpu::Buffer,
     ones: wgpu::Buffer,
     scratch: Option<wgpu::Buffer>,
-    first_param: usize,
+    in_size: usize,
+    /// The layers after the embedders (all of them for a network of one input).
+    trunk: std::ops::Range<usize>,
+    /// A network of several inputs: each input's embedder.
+    inputs: Vec<Input>,
+    /// A network of several inputs: the embedders' outputs side by side.
+    merged: Option<Merged>,
+}
+
+/// The embeddings of a network of several inputs, side by side.
+struct Merged {
+    /// Their values (the rest's input, or the output when there is no rest).
+    values: wgpu::Buffer,
+    /// The gradient wrt them.
+    grad: wgpu::Buffer,
+    /// Values a sample.
+    width: usize,
+}
+
+/// One input of a network of several inputs.
+struct Input {
+    /// Where its values start in a sample, and how many there are.
+    at: usize,
+    size: usize,
+    /// Its embedder's output width.
+    out: usize,
+    /// Its embedder's layers.
+    layers: std::ops::Range<usize>,
+    /// Its values out of every sample.
+    values: wgpu::Buffer,
+}
+
+/// Record copying `n` values a row, `batch` rows, from `src` (row width, column offset) to
+/// `dst` (the same).
+fn copy_cols(
+    gpu: &Gpu,
+    enc: &mut wgpu::CommandEncoder,
+    batch: usize,
+    src: (&wgpu::Buffer, usize, usize),
+    dst: (&wgpu::Buffer, usize, usize),
+    n: usize,
+) {
+    let u = [n, dst.1, dst.2, src.1, src.2, 0, 0].map(|v| v as u32);
+    gpu.op(enc, "copy_cols", batch * n, src.0, None, dst.0, u, 0.0);
 }
 
 impl GpuNet {
     /// Upload `net` (Adam's moments zero) with room for `capacity` samples a pass.
     pub fn new(gpu: &Gpu, net: &Net, capacity: usize) -> Result<GpuNet, GpuError> {
-        if !net.inputs.is_empty() {
-            return Err(GpuError::Unsupported(format!(
-                "networks of several inputs ({})",
-                net.inputs.iter().map(|e| e.name.as_str()).collect::<Vec<_>>().join(" and ")
-            )));
-        }
+        let sections = net.sections();
         let capacity = capacity.max(1);
         let n = net.params.len();
         let params = gpu.buffer("parameters", n)?;
@@ -51,7 +90,7 @@ impl GpuNet {
         let (mut widest, mut widest_cols, mut most_rows) = (net.in_size(), 0, capacity);
         for (i, l) in net.layers.iter().enumerate() {
             acts.push(gpu.buffer(&format!("layer {i}'s output"), capacity * l.out_size())?);
-            widest = widest.max(l.out_size());
+            widest = widest.max(l.out_size()).max(l.in_size());
             cols.push(match *l {
                 Layer::Conv2d { filters, .. } => {
                     let [oh, ow] = l.conv_out();
@@ -64,6 +103,33 @@ impl GpuNet {
                 _ => None,
             });
         }
+        // Several inputs: each input's values, and the embedders' outputs side by side.
+        let mut inputs = Vec::new();
+        let mut at = 0;
+        for (e, range) in net.inputs.iter().zip(&sections) {
+            let n_in = e.shape.size();
+            let out = net.layers[range.clone()].last().map_or(n_in, |l| l.out_size());
+            inputs.push(Input {
+                at,
+                size: n_in,
+                out,
+                layers: range.clone(),
+                values: gpu.buffer(&format!("input {}", e.name), capacity * n_in)?,
+            });
+            at += n_in;
+        }
+        let merged = match sections.last() {
+            Some(trunk) if !net.inputs.is_empty() => {
+                let width = inputs.iter().map(|e| e.out).sum::<usize>();
+                debug_assert!(trunk.is_empty() || net.layers[trunk.start].in_size() == width);
+                Some(Merged {
+                    values: gpu.buffer("the embeddings side by side", capacity * width)?,
+                    grad: gpu.buffer("the gradient wrt the embeddings", capacity * width)?,
+                    width,
+                })
+            }
+            _ => None,
+        };
         let ones = gpu.buffer("ones", most_rows)?;
         let mut enc = gpu.device.create_command_encoder(&Default::default());
         gpu.fill_ones(&mut enc, &ones, most_rows);
@@ -82,7 +148,10 @@ impl GpuNet {
             d_cols: gpu.buffer("unfolded gradient", widest_cols)?,
             ones,
             scratch: None,
-            first_param: net.layers.iter().position(|l| l.param_count() > 0).unwrap_or(net.layers.len()),
+            in_size: net.in_size(),
+            trunk: sections.last().cloned().unwrap_or(0..net.layers.len()),
+            inputs,
+            merged,
         })
     }
 
@@ -101,17 +170,62 @@ impl GpuNet {
         self.capacity
     }
 
-    /// The last forward pass's output (`batch × out`).
-    pub fn output(&self) -> &wgpu::Buffer {
-        self.acts.last().expect("a network has layers")
+    /// Values a sample puts in.
+    pub fn in_size(&self) -> usize {
+        self.in_size
     }
 
-    /// Record a forward pass over `batch` samples of `x` (`batch × in`, from float 0).
+    /// The last forward pass's output (`batch × out`).
+    pub fn output(&self) -> &wgpu::Buffer {
+        match &self.merged {
+            // Several inputs and nothing after their embedders: the embeddings side by side.
+            Some(m) if self.trunk.is_empty() => &m.values,
+            _ => self.acts.last().expect("a network has layers"),
+        }
+    }
+
+    /// Values a sample's output has.
+    fn out_size(&self) -> usize {
+        match &self.merged {
+            Some(m) if self.trunk.is_empty() => m.width,
+            _ => self.layers.last().expect("a network has layers").out_size(),
+        }
+    }
+
+    /// Record a forward pass over `batch` samples of `x` (`batch × in`, from float 0). A
+    /// network of several inputs takes each input's values out of every sample into its
+    /// embedder, and their outputs side by side into the rest, as `policy::nn::Net` does.
     pub fn forward(&mut self, gpu: &Gpu, enc: &mut wgpu::CommandEncoder, x: &wgpu::Buffer, batch: usize) {
         assert!(batch <= self.capacity, "{batch} samples, room for {}", self.capacity);
-        for i in 0..self.layers.len() {
+        let Some((merged, width)) = self.merged.as_ref().map(|m| (m.values.clone(), m.width)) else {
+            self.forward_layers(gpu, enc, 0..self.layers.len(), x, batch);
+            return;
+        };
+        let mut o = 0;
+        for k in 0..self.inputs.len() {
+            let e = &self.inputs[k];
+            let (values, layers, (at, size, out)) = (e.values.clone(), e.layers.clone(), (e.at, e.size, e.out));
+            copy_cols(gpu, enc, batch, (x, self.in_size, at), (&values, size, 0), size);
+            self.forward_layers(gpu, enc, layers.clone(), &values, batch);
+            let embedded = if layers.is_empty() { values } else { self.acts[layers.end - 1].clone() };
+            copy_cols(gpu, enc, batch, (&embedded, out, 0), (&merged, width, o), out);
+            o += out;
+        }
+        self.forward_layers(gpu, enc, self.trunk.clone(), &merged, batch);
+    }
+
+    /// Forward through the layers `range`, the first of which reads `x`.
+    fn forward_layers(
+        &mut self,
+        gpu: &Gpu,
+        enc: &mut wgpu::CommandEncoder,
+        range: std::ops::Range<usize>,
+        x: &wgpu::Buffer,
+        batch: usize,
+    ) {
+        for i in range.clone() {
             let (before, after) = self.acts.split_at(i);
-            let input = if i == 0 { x } else { &before[i - 1] };
+            let input = if i == range.start { x } else { &before[i - 1] };
             let out = &after[0];
             match self.layers[i] {
                 Layer::Scale { size, factor } => gpu.op(enc, "scale", batch * size, input, None, out, [0; 7], factor),
@@ -204,13 +318,63 @@ impl GpuNet {
         params: bool,
         d_in: Option<&wgpu::Buffer>,
     ) {
-        let last = self.layers.last().expect("a network has layers").out_size();
-        enc.copy_buffer_to_buffer(d_out.0, (d_out.1 * 4) as u64, &self.d[0], 0, (batch * last * 4) as u64);
-        let lowest = if d_in.is_some() { 0 } else { self.first_param };
+        let last = self.out_size();
+        let Some((merged, d_merged, width)) = self.merged.as_ref().map(|m| (m.values.clone(), m.grad.clone(), m.width))
+        else {
+            enc.copy_buffer_to_buffer(d_out.0, (d_out.1 * 4) as u64, &self.d[0], 0, (batch * last * 4) as u64);
+            let cur = self.backward_layers(gpu, enc, 0..self.layers.len(), x, batch, params, d_in.is_some());
+            if let Some(d_in) = d_in {
+                enc.copy_buffer_to_buffer(&self.d[cur], 0, d_in, 0, (batch * self.in_size * 4) as u64);
+            }
+            return;
+        };
+        // The trunk, down to the gradient wrt the embeddings side by side.
+        let bytes = (batch * width * 4) as u64;
+        if self.trunk.is_empty() {
+            enc.copy_buffer_to_buffer(d_out.0, (d_out.1 * 4) as u64, &d_merged, 0, bytes);
+        } else {
+            enc.copy_buffer_to_buffer(d_out.0, (d_out.1 * 4) as u64, &self.d[0], 0, (batch * last * 4) as u64);
+            let cur = self.backward_layers(gpu, enc, self.trunk.clone(), &merged, batch, params, true);
+            enc.copy_buffer_to_buffer(&self.d[cur], 0, &d_merged, 0, bytes);
+        }
+        let mut o = 0;
+        for k in 0..self.inputs.len() {
+            let e = &self.inputs[k];
+            let (values, layers, (at, size, out)) = (e.values.clone(), e.layers.clone(), (e.at, e.size, e.out));
+            let trains = params && self.layers[layers.clone()].iter().any(|l| l.param_count() > 0);
+            if trains || d_in.is_some() {
+                let d0 = self.d[0].clone();
+                copy_cols(gpu, enc, batch, (&d_merged, width, o), (&d0, out, 0), out);
+                let cur = self.backward_layers(gpu, enc, layers, &values, batch, params, d_in.is_some());
+                if let Some(d_in) = d_in {
+                    copy_cols(gpu, enc, batch, (&self.d[cur].clone(), size, 0), (d_in, self.in_size, at), size);
+                }
+            }
+            o += out;
+        }
+    }
+
+    /// Backward through the layers `range` (the first of which read `x`) from the gradient
+    /// wrt their output in `d[0]`: the parameters' gradient when `params`, and the gradient
+    /// wrt `x` when `want_in` (else down to the range's first layer with parameters).
+    /// Returns which of the two gradient buffers holds the last gradient computed.
+    #[allow(clippy::too_many_arguments)]
+    fn backward_layers(
+        &mut self,
+        gpu: &Gpu,
+        enc: &mut wgpu::CommandEncoder,
+        range: std::ops::Range<usize>,
+        x: &wgpu::Buffer,
+        batch: usize,
+        params: bool,
+        want_in: bool,
+    ) -> usize {
+        let first_param = range.clone().find(|&i| self.layers[i].param_count() > 0).unwrap_or(range.end);
+        let lowest = if want_in { range.start } else { first_param };
         let mut cur = 0;
-        for i in (lowest..self.layers.len()).rev() {
-            let need_in = i > lowest || d_in.is_some();
-            let input = if i == 0 { x } else { &self.acts[i - 1] };
+        for i in (lowest..range.end).rev() {
+            let need_in = i > lowest || want_in;
+            let input = if i == range.start { x } else { &self.acts[i - 1] };
             let (d, d_prev) = if cur == 0 { (&self.d[0], &self.d[1]) } else { (&self.d[1], &self.d[0]) };
             match self.layers[i] {
                 Layer::Scale { size, factor } => gpu.op(enc, "scale", batch * size, d, None, d_prev, [0; 7], factor),
@@ -295,10 +459,7 @@ impl GpuNet {
             }
             cur ^= 1;
         }
-        if let Some(d_in) = d_in {
-            let size = batch * self.layers[0].in_size();
-            enc.copy_buffer_to_buffer(&self.d[cur], 0, d_in, 0, (size * 4) as u64);
-        }
+        cur
     }
 
     /// Replace the parameters.

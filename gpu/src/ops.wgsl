@@ -188,3 +188,15 @@ fn lerp(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nw: vec3<
         dst[i] = p.x * src[i] + (1.0 - p.x) * dst[i];
     }
 }
+
+// Columns: dst[r · u1 + u2 + c] = src[r · u3 + u4 + c] for c below u0 (an input's values out
+// of a sample, or an embedder's output into its place beside the others).
+@compute @workgroup_size(256, 1, 1)
+fn copy_cols(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nw: vec3<u32>, @builtin(local_invocation_id) l: vec3<u32>) {
+    let i = index(wg, nw, l);
+    if (i < p.n) {
+        let r = i / p.u0;
+        let c = i % p.u0;
+        dst[r * p.u1 + p.u2 + c] = src[r * p.u3 + p.u4 + c];
+    }
+}

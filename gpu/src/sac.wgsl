@@ -76,7 +76,8 @@ fn draws(@builtin(global_invocation_id) gid: vec3<u32>) {
         let ls = clamp(a[i * 4u + 2u + k], LOG_STD_LO, LOG_STD_HI);
         let e = cols[at(COL_EPS + k, i)];
         let u = a[i * 4u + k] + exp(ls) * e;
-        let act = clamp(tanh(u), -1.0, 1.0);
+        // tanh saturates to ±1 in f32 beyond 9; a driver's exp-based tanh would overflow there.
+        let act = clamp(select(tanh(u), sign(u), abs(u) > 9.0), -1.0, 1.0);
         let jac = clamp(scale(k) * (1.0 - act * act) + F32_EPSILON, 1e-10, 1.0);
         cols[at(COL_A + k, i)] = act;
         logp += -0.5 * e * e - ls - HALF_LN_2PI - log(jac);

@@ -306,7 +306,7 @@ fn bench(network: &str, seconds: f64, threads: usize, device: learner::DeviceCho
             100.0 * best / ceiling
         );
     }
-    if let Some(gpu) = learner::device::Device::new(device).for_model(&meta).context("--device")? {
+    if let Some(gpu) = learner::device::Device::new(device).gpu().context("--device")? {
         gpu_rows(&model, &meta, gpu, threads, seconds, &mut rng, &frame)?;
     }
     let single: Vec<f32> = batch.obs[..os].to_vec();

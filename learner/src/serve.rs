@@ -238,7 +238,7 @@ fn spec_of(doc: &Job, args: &ServeArgs, device: &Device) -> Result<RunSpec> {
     let metadata = ModelMetadata::parse(&doc.model_metadata_json, "job model_metadata.json")?;
     let hyper = Hyperparameters::parse(&doc.hyperparameters_json, "job hyperparameters.json")?.hyperparameters;
     let camera = !metadata.sensor.contains(&policy::Sensor::StateVector);
-    let gpu = device.for_model(&metadata).context("--device")?;
+    let gpu = device.gpu().context("--device")?;
     Ok(RunSpec {
         name: doc.id.clone(),
         metadata,

@@ -63,9 +63,9 @@ impl Collector {
         self
     }
 
-    /// `model`'s actions on `batch` observations `x`: on the GPU when there is one; a model it
-    /// does not run (several inputs), or a GPU that failed, acts on the CPU from then on, and
-    /// the log says so.
+    /// `model`'s actions on `batch` observations `x`: on the GPU when there is one; a GPU that
+    /// failed (a lost device, a buffer larger than it binds) leaves the policy acting on the
+    /// CPU from then on, and the log says so.
     fn act(&mut self, model: &Arc<ActorCritic>, x: &[f32], batch: usize) -> Vec<policy::ActOutput> {
         if let Some(g) = &mut self.gpu {
             match g.outputs(model, x, batch) {

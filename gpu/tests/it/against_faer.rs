@@ -62,10 +62,13 @@ fn issue_33_the_product_in_every_orientation_and_split_matches_faer() {
     }
 }
 
-/// The networks the GPU runs: a state-vector MLP, and a small camera network with every
-/// layer kind (scale, strided convs, ReLU after each, dense).
+/// The networks the GPU runs: a state-vector MLP, a small camera network with every layer
+/// kind (scale, strided convs, ReLU after each, dense), a camera + LiDAR network (an embedder
+/// per input, then the rest), and embedders alone (SAC's critics' embedder for camera +
+/// LiDAR, one input going through as it is).
 fn networks(rng: &mut ChaCha8Rng) -> Vec<(&'static str, Net)> {
     use LayerSpec::*;
+    let camera = [Scale(1.0 / 255.0), Conv(4, 3, 2), Relu];
     vec![
         ("mlp", Net::new(InputShape::Flat(13), &[Dense(64), Relu, Dense(64), Relu, Dense(5)], Some(0.01), rng)),
         (
@@ -73,6 +76,24 @@ fn networks(rng: &mut ChaCha8Rng) -> Vec<(&'static str, Net)> {
             Net::new(
                 InputShape::Image(23, 29, 2),
                 &[Scale(1.0 / 255.0), Conv(8, 5, 2), Relu, Conv(6, 3, 1), Relu, Dense(32), Relu, Dense(3)],
+                None,
+                rng,
+            ),
+        ),
+        (
+            "camera + lidar",
+            Net::new_multi(
+                &[("camera", InputShape::Image(12, 16, 1), &camera), ("lidar", InputShape::Flat(8), &[Dense(6), Relu])],
+                &[Dense(10), Relu, Dense(3)],
+                None,
+                rng,
+            ),
+        ),
+        (
+            "embedders alone",
+            Net::new_multi(
+                &[("camera", InputShape::Image(10, 12, 1), &camera), ("lidar", InputShape::Flat(5), &[])],
+                &[],
                 None,
                 rng,
             ),
@@ -86,28 +107,40 @@ fn issue_33_every_layer_forward_and_backward_matches_faer() {
     let mut rng = ChaCha8Rng::seed_from_u64(2);
     for (name, net) in networks(&mut rng) {
         for batch in [1, 7] {
-            let scale = if name == "conv" { 255.0 } else { 1.0 };
+            let scale = if name == "mlp" { 1.0 } else { 255.0 };
             let x: Vec<f32> = random(batch * net.in_size(), &mut rng).iter().map(|v| (v + 1.0) * 0.5 * scale).collect();
             let d_out = random(batch * net.out_size(), &mut rng);
             let mut tape = Tape::default();
             net.forward(&x, batch, &mut tape, faer::Par::Seq);
             let want_out = tape.output().to_vec();
             let mut want_grad = vec![0.0; net.params.len()];
-            net.backward(&mut tape, &d_out, &mut want_grad, faer::Par::Seq);
+            let mut want_d_in = Vec::new();
+            net.backward_input(&mut tape, &d_out, &mut want_grad, faer::Par::Seq, &mut want_d_in);
 
             let mut g = GpuNet::new(&gpu, &net, 8).unwrap();
             let xb = gpu.buffer("x", x.len()).unwrap();
             let db = gpu.buffer("d", d_out.len()).unwrap();
+            let d_in = gpu.buffer("d_in", x.len()).unwrap();
             gpu.upload(&xb, 0, &x);
             gpu.upload(&db, 0, &d_out);
             let mut enc = gpu.device.create_command_encoder(&Default::default());
             g.forward(&gpu, &mut enc, &xb, batch);
             g.zero_grad(&mut enc);
-            g.backward(&gpu, &mut enc, &xb, &db, batch);
+            g.backward_with(&gpu, &mut enc, &xb, (&db, 0), batch, true, Some(&d_in));
             gpu.queue.submit([enc.finish()]);
             let got_out = gpu.download(g.output(), 0, want_out.len()).unwrap();
             close(&format!("{name} batch {batch} output"), &got_out, &want_out, 1e-5);
             close(&format!("{name} batch {batch} gradient"), &g.read_grad(&gpu).unwrap(), &want_grad, 1e-4);
+            let got_d_in = gpu.download(&d_in, 0, x.len()).unwrap();
+            close(&format!("{name} batch {batch} input gradient"), &got_d_in, &want_d_in, 1e-4);
+            // Without the input gradient (what a loss at the network's end needs), the same
+            // parameters' gradient.
+            let mut enc = gpu.device.create_command_encoder(&Default::default());
+            g.forward(&gpu, &mut enc, &xb, batch);
+            g.zero_grad(&mut enc);
+            g.backward(&gpu, &mut enc, &xb, &db, batch);
+            gpu.queue.submit([enc.finish()]);
+            close(&format!("{name} batch {batch} gradient alone"), &g.read_grad(&gpu).unwrap(), &want_grad, 1e-4);
         }
     }
 }

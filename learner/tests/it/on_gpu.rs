@@ -1,6 +1,7 @@
-//! PPO's update with the network maths on the GPU, against the same update on faer from the
-//! same state: weights, Adam's moments and the update's figures agree to float tolerance,
-//! for a discrete and a continuous head and a small camera network (conv layers); a refused update leaves the
+//! PPO's update and SAC's steps with the network maths on the GPU, against the same on faer
+//! from the same state: weights, Adam's moments and the figures agree to float tolerance,
+//! for a discrete and a continuous head, a small camera network (conv layers) and a camera +
+//! LiDAR network (two inputs); a refused update leaves the
 //! GPU's state as it was; a restored state is what the GPU trains from next. On lavapipe in
 //! the suite (`--device gpu` takes a software adapter), so no test needs a GPU.
 
@@ -77,6 +78,8 @@ fn issue_33_a_ppo_update_on_the_gpu_matches_faer() {
         ("continuous state", state_meta(true), 13, 96, 32, LossType::MeanSquaredError),
         // A camera network, DeepRacer's layer kinds at a size lavapipe runs in moments.
         ("camera", state_meta(false), 30 * 40, 48, 16, LossType::Huber),
+        // A camera + LiDAR network: an embedder per input, then the rest.
+        ("camera + lidar", state_meta(true), 12 * 16 + 8, 48, 16, LossType::MeanSquaredError),
     ];
     for (name, meta, obs, samples, batch_size, loss_type) in cases {
         let mut model = ActorCritic::new(&meta, obs, &mut rng);
@@ -86,6 +89,17 @@ fn issue_33_a_ppo_update_on_the_gpu_matches_faer() {
             let head = |n: usize| [&tower[..], &[Dense(n)]].concat();
             model.pi = Net::new(Image(30, 40, 1), &head(3), Some(0.01), &mut rng);
             model.v = Net::new(Image(30, 40, 1), &head(1), None, &mut rng);
+        }
+        if name == "camera + lidar" {
+            use policy::nn::{InputShape::*, LayerSpec::*, Net};
+            let camera = [Scale(1.0 / 255.0), Conv(4, 3, 2), Relu];
+            let lidar = [Dense(6), Relu];
+            let tower = |n: usize, std: Option<f32>, rng: &mut ChaCha8Rng| {
+                let inputs: [(&str, _, &[_]); 2] = [("camera", Image(12, 16, 1), &camera), ("lidar", Flat(8), &lidar)];
+                Net::new_multi(&inputs, &[Dense(16), Relu, Dense(n)], std, rng)
+            };
+            model.pi = tower(2, Some(0.01), &mut rng);
+            model.v = tower(1, None, &mut rng);
         }
         let h = Hyperparameters {
             lr: 1e-3,
@@ -157,8 +171,9 @@ fn issue_33_a_refused_update_leaves_the_gpu_state_and_a_restored_one_is_trained_
 
 /// SAC's gradient steps on the GPU against the same steps on faer from the same state: the
 /// losses of every step, then every network, optimiser moment and the temperature, for the
-/// state vector (no embedder, squared error, the temperature tuned, V's target copied) and a
-/// small camera (a conv embedder shared by the heads, Huber, the target moved by τ = 0.25).
+/// state vector (no embedder, squared error, the temperature tuned, V's target copied), a
+/// small camera (a conv embedder shared by the heads, Huber, the target moved by τ = 0.25)
+/// and a camera + LiDAR (networks of two inputs).
 #[test]
 fn issue_33_sac_steps_on_the_gpu_match_faer() {
     use learner::sac::{Batch, Sac, SacGpu, SacNets, SacSettings, Tapes, TwinQ};
@@ -184,12 +199,33 @@ fn issue_33_sac_steps_on_the_gpu_match_faer() {
         let (q1, q2, v) = (head(rng), head(rng), tower(1, rng));
         SacNets { policy: tower(4, rng), q: TwinQ { embed: Some(e.clone()), q1, q2 }, v_target: v.clone(), v }
     };
+    // Camera + LiDAR: the policy and V an embedder per input and then the rest, the critics'
+    // embedder the two embedders alone (the LiDAR's values going through as they are).
+    let camera_lidar = |rng: &mut ChaCha8Rng| {
+        let (cam, lidar) = ([Scale(1.0 / 255.0), Conv(3, 3, 2), Relu], [Dense(6), Relu]);
+        let inputs: [(&str, _, &[_]); 2] =
+            [("camera", InputShape::Image(10, 12, 1), &cam), ("lidar", InputShape::Flat(5), &lidar)];
+        let tower =
+            |out: usize, rng: &mut ChaCha8Rng| Net::new_multi(&inputs, &[Dense(12), Relu, Dense(out)], Some(0.1), rng);
+        let e = Net::new_multi(&[inputs[0], ("lidar", InputShape::Flat(5), &[])], &[], None, rng);
+        let head = |rng: &mut ChaCha8Rng| {
+            Net::new(InputShape::Flat(e.out_size() + 2), &[Dense(12), Relu, Dense(1)], None, rng)
+        };
+        let (q1, q2, v) = (head(rng), head(rng), tower(1, rng));
+        SacNets { policy: tower(4, rng), q: TwinQ { embed: Some(e.clone()), q1, q2 }, v_target: v.clone(), v }
+    };
     let cases = [
         ("state vector", SacNets::new(&meta, 9, &mut rng), SacSettings { target_entropy: Some(-1.0), ..base.clone() }),
         ("camera", camera(&mut rng), SacSettings { huber: true, tau: 0.25, ..base.clone() }),
+        ("camera + lidar", camera_lidar(&mut rng), base.clone()),
     ];
     for (name, nets, settings) in cases {
-        let pixels = nets.q.embed.is_some();
+        // Grey levels for a camera's values, LiDAR distances and state values below 1.
+        let pixels = match name {
+            "camera" => nets.obs_size(),
+            "camera + lidar" => 10 * 12,
+            _ => 0,
+        };
         let per = nets.obs_size();
         let mut cpu = Sac::new(nets.clone(), settings.clone(), 5);
         let mut on_gpu = Sac::new(nets, settings, 5);
@@ -197,12 +233,12 @@ fn issue_33_sac_steps_on_the_gpu_match_faer() {
         let mut tapes = Tapes::default();
         for step in 0..4 {
             let n = if step == 3 { 17 } else { 24 };
-            let value = |rng: &mut ChaCha8Rng| {
-                if pixels { rng.random_range(0..256) as f32 } else { rng.random_range(-1.0..1.0) }
+            let value = |k: usize, rng: &mut ChaCha8Rng| {
+                if k % per < pixels { rng.random_range(0..256) as f32 } else { rng.random_range(-1.0..1.0) }
             };
             let batch = Batch {
-                obs: (0..n * per).map(|_| value(&mut rng)).collect(),
-                next_obs: (0..n * per).map(|_| value(&mut rng)).collect(),
+                obs: (0..n * per).map(|k| value(k, &mut rng)).collect(),
+                next_obs: (0..n * per).map(|k| value(k, &mut rng)).collect(),
                 action: (0..2 * n).map(|_| rng.random_range(-0.95..0.95)).collect(),
                 reward: (0..n).map(|_| rng.random_range(-1.0..1.0)).collect(),
                 done: (0..n).map(|i| if i % 4 == 0 { 1.0 } else { 0.0 }).collect(),
