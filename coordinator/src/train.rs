@@ -308,14 +308,24 @@ pub fn evaluate_cmd(args: EvaluateArgs) -> Result<i32> {
     );
     let mut table = Vec::new();
     let mut crashes = 0;
+    let model = Arc::new(f.model.clone());
     for name in &names {
         let world = resolve_world(name)?;
         let spec = EnvSpec::from_world(&world, if args.reversed { Direction::Reversed } else { Direction::Forward });
-        let trials: Vec<Trial> =
-            evaluate(&f.model, &f.metadata.action_space, &spec, &cfg, rules.clone(), args.trials, args.seed, threads)?
-                .into_iter()
-                .map(Trial::from)
-                .collect();
+        let trials: Vec<Trial> = evaluate(
+            &model,
+            &f.metadata.action_space,
+            &spec,
+            &cfg,
+            rules.clone(),
+            args.trials,
+            args.seed,
+            threads,
+            None,
+        )?
+        .into_iter()
+        .map(Trial::from)
+        .collect();
         for (i, t) in trials.iter().enumerate() {
             println!(
                 "trial {}: {:<20} {:<12} progress {:>6.1} %  lap time {:>8}  off-track {:>2}  crashes {:>2}  steps {:>5}",

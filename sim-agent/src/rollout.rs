@@ -63,6 +63,11 @@ impl Collector {
         self
     }
 
+    /// The GPU the policy acts on, if any (evaluation trials act there too).
+    pub fn gpu_mut(&mut self) -> Option<&mut gpu::Acting> {
+        self.gpu.as_mut()
+    }
+
     /// `model`'s actions on `batch` observations `x`: on the GPU when there is one; a GPU that
     /// failed (a lost device, a buffer larger than it binds) leaves the policy acting on the
     /// CPU from then on, and the log says so.
@@ -195,10 +200,11 @@ pub struct TrialLog {
 }
 
 /// Run `trials` evaluation trials in parallel from the start line, with the policy's most
-/// likely action at every step.
+/// likely action at every step; its forward passes on `gpu` when one is given (a GPU that
+/// fails leaves the rest of the trials on the CPU, and the log says so).
 #[allow(clippy::too_many_arguments)]
 pub fn evaluate(
-    model: &ActorCritic,
+    model: &Arc<ActorCritic>,
     space: &ActionSpace,
     spec: &EnvSpec,
     cfg: &Arc<SimConfig>,
@@ -206,6 +212,7 @@ pub fn evaluate(
     trials: usize,
     seed: u64,
     threads: usize,
+    mut gpu: Option<&mut gpu::Acting>,
 ) -> Result<Vec<TrialResult>, RewardError> {
     let reward = RewardFn::Builtin(crate::BuiltinReward::CenterLine);
     let mut vec =
@@ -232,7 +239,16 @@ pub fn evaluate(
                 step: steps + 1,
             });
         }
-        let acts = model.act(vec.observations(), trials, true, &mut rng, Par::Seq);
+        let obs = vec.observations();
+        let acts = match gpu.as_deref_mut().map(|g| g.outputs(model, obs, trials)) {
+            Some(Ok((out, values))) => model.choose(&out, &values, trials, true, &mut rng),
+            Some(Err(e)) => {
+                tracing::warn!("the evaluation acts on the CPU from now on: {e}");
+                gpu = None;
+                model.act(obs, trials, true, &mut rng, Par::Seq)
+            }
+            None => model.act(obs, trials, true, &mut rng, Par::Seq),
+        };
         let actions: Vec<policy::Action> = acts.iter().map(|a| a.choice.to_action(space)).collect();
         let outcomes = vec.step(&actions)?;
         let wall_clock = if cfg.record_trace { unix_now() } else { 0.0 };

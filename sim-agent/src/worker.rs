@@ -312,7 +312,7 @@ impl Worker {
         })
     }
 
-    fn evaluate(&self, p: &PolicyVersion, r: &EvalRequest) -> Result<Vec<Trial>, WorkerError> {
+    fn evaluate(&mut self, p: &PolicyVersion, r: &EvalRequest) -> Result<Vec<Trial>, WorkerError> {
         let spec = match self.worlds.iter().find(|w| w.name == r.world) {
             Some(s) => s.clone(),
             None => {
@@ -330,6 +330,7 @@ impl Worker {
             r.trials.max(1) as usize,
             r.seed,
             self.threads,
+            self.collector.gpu_mut(),
         )?;
         let track_len = spec.track.length();
         Ok(trials

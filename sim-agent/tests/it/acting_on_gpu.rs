@@ -1,6 +1,7 @@
-//! A sim agent's policy acting with its forward passes on the GPU (lavapipe in the suite)
-//! against the same collection on faer: the same seed gives the same episodes, actions
-//! for actions, their log-probabilities and values to float tolerance.
+//! A sim agent's policy acting with its forward passes on the GPU (lavapipe in the suite),
+//! collecting and in evaluation trials, against the same on faer: the same seed gives the
+//! same episodes, actions for actions, their log-probabilities and values to float
+//! tolerance, and the same trials.
 
 use policy::{ActorCritic, ModelMetadata};
 use rand::SeedableRng;
@@ -36,5 +37,27 @@ fn issue_33_a_collection_acted_on_the_gpu_is_the_one_acted_on_faer() {
         for (p, q) in x.logp.iter().zip(&y.logp).chain(x.values.iter().zip(&y.values)) {
             assert!((p - q).abs() <= 1e-4 * p.abs().max(1.0), "faer {p}, GPU {q}");
         }
+    }
+}
+
+/// Evaluation trials acted on the GPU (as a worker with `--device gpu` runs them) are the
+/// trials acted on faer: the same progress, lap times and steps.
+#[test]
+fn issue_33_evaluation_trials_on_the_gpu_are_the_ones_on_faer() {
+    use sim_agent::rollout::evaluate;
+    let gpu = Arc::new(gpu::Gpu::open(gpu::DeviceChoice::Gpu).unwrap().expect("`gpu` opens lavapipe"));
+    let meta = ModelMetadata::default_state_vector();
+    let spec = EnvSpec::from_world(&tracks::world("Oval_track").unwrap(), tracks::Direction::Forward);
+    let cfg = Arc::new(SimConfig::default());
+    let obs = collector(&meta).vec_env().obs_dim();
+    let model = Arc::new(ActorCritic::new(&meta, obs, &mut rand_chacha::ChaCha8Rng::seed_from_u64(9)));
+    let rules = sim_agent::EvalRules::default();
+    let space = &meta.action_space;
+    let cpu = evaluate(&model, space, &spec, &cfg, rules.clone(), 3, 4, 1, None).unwrap();
+    let mut acting = gpu::Acting::new(gpu);
+    let on_gpu = evaluate(&model, space, &spec, &cfg, rules, 3, 4, 1, Some(&mut acting)).unwrap();
+    assert!(cpu.iter().map(|t| t.steps).sum::<u64>() > 30);
+    for (a, b) in cpu.iter().zip(&on_gpu) {
+        assert_eq!((a.progress, a.lap_time, a.steps, a.off_track), (b.progress, b.lap_time, b.steps, b.off_track));
     }
 }
