@@ -34,3 +34,12 @@ impl Device {
         Ok(gpu)
     }
 }
+
+/// Say once a process that a learner with a GPU, in a team, makes its updates on faer (the
+/// team's exchange is the CPU path's): never a quiet substitute for `--device`.
+pub(crate) fn note_team_on_cpu() {
+    static ONCE: std::sync::Once = std::sync::Once::new();
+    ONCE.call_once(|| {
+        tracing::warn!("in a learner team the updates run on the CPU (faer); the GPU trains a learner alone")
+    });
+}

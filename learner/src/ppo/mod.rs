@@ -637,6 +637,9 @@ impl Ppo {
     fn train(&mut self, trajs: &[Trajectory], seed: u64, group: &mut dyn Reducer) -> Result<UpdateStats, Refused> {
         let version = self.version;
         let group_failed = |error| Refused::Group { error, version };
+        if self.gpu.is_some() && group.shard().1 > 1 {
+            crate::device::note_team_on_cpu();
+        }
         let batch = match (&mut self.gpu, group.shard().1) {
             (Some(g), 1) => g
                 .make_batch(trajs, &self.model, [&self.opt_pi, &self.opt_v], &self.hyper)

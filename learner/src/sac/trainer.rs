@@ -461,6 +461,9 @@ impl SacTrainer {
         let version = self.version;
         let device = |error: GpuError| Refused::Device { error: error.to_string(), version };
         // Alone, with a GPU: the iteration's steps there (a team's members share faer's).
+        if self.gpu.is_some() && group.shard().1 > 1 {
+            crate::device::note_team_on_cpu();
+        }
         let mut session = match (&self.gpu, group.shard().1) {
             (Some(g), 1) if steps > 0 => Some(g.begin(&self.sac, batch_size).map_err(device)?),
             _ => None,
