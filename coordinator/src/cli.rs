@@ -813,6 +813,25 @@ pub enum TracksCommand {
         #[arg(long)]
         png: Option<PathBuf>,
     },
+    /// Make a random closed track of a given length and width (a smooth loop the car can
+    /// drive, no part of it near another) and write it as a DeepRacer .npy file.
+    Generate {
+        /// Seed of the draw: the same seed, the same track.
+        #[arg(long)]
+        seed: u64,
+        /// Centre-line length (m).
+        #[arg(long)]
+        length: f64,
+        /// Width between the borders (m; DeepRacer's tracks are about 1.07).
+        #[arg(long, default_value_t = 1.07)]
+        width: f64,
+        /// The .npy file to write (default: generated-SEED.npy).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Draw the track top-down into this PNG file.
+        #[arg(long)]
+        png: Option<PathBuf>,
+    },
 }
 
 #[derive(Subcommand)]

@@ -1,4 +1,4 @@
-//! `coordinator tracks …`: list, show and import tracks.
+//! `coordinator tracks …`: list, show, import and generate tracks.
 
 use crate::cli::TracksCommand;
 use anyhow::{Context, Result};
@@ -64,6 +64,24 @@ pub fn run(command: TracksCommand) -> Result<i32> {
                 name.unwrap_or_else(|| file.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default());
             print_summary(&TrackSummary::of(&name, &rows));
             println!("valid: use it with --track {}", file.display());
+            if let Some(png) = png {
+                let world = World { name, rows, surface: tracks::Surface::Asphalt, lighting: Default::default() };
+                draw(&world, &png, &[], &[])?;
+            }
+            Ok(0)
+        }
+        TracksCommand::Generate { seed, length, width, out, png } => {
+            let rows = tracks::generate::generate(&tracks::generate::GenSpec { seed, length, width })?;
+            let out = out.unwrap_or_else(|| format!("generated-{seed}.npy").into());
+            std::fs::write(&out, rows.to_npy()).with_context(|| format!("writing {}", out.display()))?;
+            let name = out.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+            print_summary(&TrackSummary::of(&name, &rows));
+            println!(
+                "written      {} (use it with --world {} or --track {})",
+                out.display(),
+                out.display(),
+                out.display()
+            );
             if let Some(png) = png {
                 let world = World { name, rows, surface: tracks::Surface::Asphalt, lighting: Default::default() };
                 draw(&world, &png, &[], &[])?;

@@ -7,11 +7,13 @@
 //! - [`objects`]: obstacles on the lanes, footprints and the crash rule, as DeepRacer
 //!   places and tests them.
 //! - [`render`]: top-down PNG drawings.
+//! - [`generate`]: random closed tracks of a given length and width, as `.npy` rows.
 //!
 //! Architecture invariant: this crate knows nothing of physics, rewards, Python or the
 //! network. It is pure geometry over `nalgebra` points.
 
 pub mod catalog;
+pub mod generate;
 pub mod geometry;
 mod grid;
 pub mod npy;

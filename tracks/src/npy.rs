@@ -74,6 +74,24 @@ impl TrackRows {
         (lo, sum / n as f64, hi)
     }
 
+    /// The rows as a DeepRacer `.npy` file: float64, shape (N, 6), centre x, y, inner x, y,
+    /// outer x, y per row.
+    pub fn to_npy(&self) -> Vec<u8> {
+        use npyz::WriterBuilder;
+        let mut out = Vec::new();
+        let mut w = npyz::WriteOptions::<f64>::new()
+            .default_dtype()
+            .shape(&[self.len() as u64, 6])
+            .writer(&mut out)
+            .begin_nd()
+            .expect("writing into memory");
+        for ((c, i), o) in self.center.iter().zip(&self.inner).zip(&self.outer) {
+            w.extend([c.x, c.y, i.x, i.y, o.x, o.y]).expect("writing into memory");
+        }
+        w.finish().expect("writing into memory");
+        out
+    }
+
     /// A closed loop repeats its first row as its last, as every DeepRacer loop file does.
     pub fn is_closed(&self) -> bool {
         let n = self.len();

@@ -81,6 +81,31 @@ fn tracks_show_prints_figures_and_draws_a_png() {
 }
 
 #[test]
+fn issue_34_tracks_generate_writes_a_track_that_imports_and_drives_and_refuses_what_cannot_close() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let args = ["tracks", "generate", "--seed", "4", "--length", "24", "--out", "g.npy", "--png", "g.png"];
+    let o = coordinator(d, &args);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stdout(&o).contains("width        min 1.070 m, mean 1.070 m, max 1.070 m"), "{}", stdout(&o));
+    let bytes = std::fs::read(d.join("g.npy")).unwrap();
+    assert!(std::fs::metadata(d.join("g.png")).unwrap().len() > 1000);
+    // A valid DeepRacer file, the same bytes for the same seed, driven in both directions.
+    let i = coordinator(d, &["tracks", "import", "g.npy"]);
+    assert!(i.status.success() && stdout(&i).contains("closed       yes (loop)"), "{}{}", stdout(&i), stderr(&i));
+    assert!(coordinator(d, &args).status.success());
+    assert_eq!(std::fs::read(d.join("g.npy")).unwrap(), bytes);
+    for extra in [&[][..], &["--reversed"][..]] {
+        let drive = coordinator(d, &[&["drive", "--track", "g.npy", "--laps", "1"][..], extra].concat());
+        assert!(stdout(&drive).contains("1 of 1 laps completed"), "{extra:?}: {}{}", stdout(&drive), stderr(&drive));
+    }
+    // A loop too short for turns the car can take at that width: refused, nothing written.
+    let e = coordinator(d, &["tracks", "generate", "--seed", "1", "--length", "5", "--width", "1.5", "--out", "x.npy"]);
+    assert!(!e.status.success() && stderr(&e).contains("cannot close with turns the car can take"), "{}", stderr(&e));
+    assert!(!d.join("x.npy").exists());
+}
+
+#[test]
 fn tracks_import_measures_a_users_file_and_refuses_a_broken_one() {
     let dir = tempfile::tempdir().unwrap();
     let (r, w, n) = (2.5, 0.9, 90);
