@@ -813,6 +813,27 @@ pub enum TracksCommand {
         #[arg(long)]
         png: Option<PathBuf>,
     },
+    /// The racing line of a track: the line of least curvature inside the borders (less a
+    /// margin), the fastest speeds along it for the car on the track's surface, its lap time
+    /// against the centre line's; written as PREFIX.npy (x, y), PREFIX.py (`racing_track =
+    /// [[x, y, speed, seconds to the next point], ...]`, for a reward function) and
+    /// PREFIX.png (the line coloured by speed).
+    Raceline {
+        /// World name or path to a DeepRacer .npy file.
+        track: String,
+        /// Drive the track in reverse.
+        #[arg(long)]
+        reversed: bool,
+        /// Room kept between the car's centre and each border (m): its half-width and more.
+        #[arg(long, default_value_t = 0.15)]
+        margin: f64,
+        /// The surface (asphalt, carpet, concrete, wood; default: the world's).
+        #[arg(long)]
+        surface: Option<String>,
+        /// Where the files go: PREFIX.npy, PREFIX.py, PREFIX.png (default: TRACK-raceline).
+        #[arg(long)]
+        out: Option<String>,
+    },
     /// Make a random closed track of a given length and width (a smooth loop the car can
     /// drive, no part of it near another) and write it as a DeepRacer .npy file.
     Generate {

@@ -1,4 +1,4 @@
-//! `coordinator tracks …`: list, show, import and generate tracks.
+//! `coordinator tracks …`: list, show, import and generate tracks, and racing lines.
 
 use crate::cli::TracksCommand;
 use anyhow::{Context, Result};
@@ -70,6 +70,9 @@ pub fn run(command: TracksCommand) -> Result<i32> {
             }
             Ok(0)
         }
+        TracksCommand::Raceline { track, reversed, margin, surface, out } => {
+            raceline(&track, reversed, margin, surface.as_deref(), out)
+        }
         TracksCommand::Generate { seed, length, width, out, png } => {
             let rows = tracks::generate::generate(&tracks::generate::GenSpec { seed, length, width })?;
             let out = out.unwrap_or_else(|| format!("generated-{seed}.npy").into());
@@ -89,6 +92,73 @@ pub fn run(command: TracksCommand) -> Result<i32> {
             Ok(0)
         }
     }
+}
+
+/// `tracks raceline`: the line, its speeds and lap time against the centre line's, and its
+/// files.
+fn raceline(name: &str, reversed: bool, margin: f64, surface: Option<&str>, out: Option<String>) -> Result<i32> {
+    use tracks::raceline::{Limits, centre_line, race_line, speed_profile};
+    let world = resolve_world(name)?;
+    let surface = match surface {
+        None => world.surface,
+        Some(s) => *tracks::Surface::ALL
+            .iter()
+            .find(|x| x.name() == s)
+            .with_context(|| format!("--surface {s}: expected one of asphalt, carpet, concrete, wood"))?,
+    };
+    let direction = if reversed { Direction::Reversed } else { Direction::Forward };
+    let track = world.track(direction);
+    let top = sim_agent::SimConfig::default().car.max_speed;
+    let limits = Limits::friction_limited(top, surface.friction());
+    let line = race_line(&world.rows, margin).with_context(|| format!("{}: the racing line", world.name))?;
+    let centre = centre_line(&world.rows);
+    // The line is the same either way round; the speeds are not (braking before a turn).
+    let ordered = |pts: &[tracks::P2]| -> Vec<tracks::P2> {
+        let mut v = pts.to_vec();
+        if reversed {
+            v.reverse();
+        }
+        v
+    };
+    let (points, centre_points) = (ordered(&line.points), ordered(&centre.points));
+    let fast = speed_profile(&points, line.closed, &limits);
+    let slow = speed_profile(&centre_points, centre.closed, &limits);
+    println!(
+        "track        {} ({}, {:.3} m), {} (friction {}), the car's top speed {top} m/s",
+        world.name,
+        if track.is_ccw() { "ccw" } else { "cw" },
+        track.length(),
+        surface.name(),
+        surface.friction()
+    );
+    let (lo, hi) = fast.speed.iter().fold((f64::MAX, 0.0f64), |(a, b), v| (a.min(*v), b.max(*v)));
+    println!("racing line  {:.3} m, {:.2} s a lap, {lo:.2}–{hi:.2} m/s", fast.length, fast.lap_time);
+    println!("centre line  {:.3} m, {:.2} s a lap", slow.length, slow.lap_time);
+    println!("line/centre  {:.3} of the centre line's time", fast.lap_time / slow.lap_time);
+    let prefix = out.unwrap_or_else(|| format!("{}-raceline", world.name));
+    let npy = format!("{prefix}.npy");
+    std::fs::write(&npy, tracks::npy::points_to_npy(&points)).with_context(|| format!("writing {npy}"))?;
+    let py = format!("{prefix}.py");
+    let mut text = format!(
+        "# The racing line of {} ({}), from `coordinator tracks raceline`: x, y (m), the fastest\n\
+         # speed there on {} (m/s), and the seconds to the next point. Laps in {:.2} s, the\n\
+         # centre line in {:.2} s.\nracing_track = [\n",
+        world.name,
+        if reversed { "reversed" } else { "forward" },
+        surface.name(),
+        fast.lap_time,
+        slow.lap_time
+    );
+    for ((p, v), dt) in points.iter().zip(&fast.speed).zip(&fast.dt) {
+        text.push_str(&format!("    [{:.5}, {:.5}, {:.4}, {:.5}],\n", p.x, p.y, v, dt));
+    }
+    text.push_str("]\n");
+    std::fs::write(&py, text).with_context(|| format!("writing {py}"))?;
+    let png = format!("{prefix}.png");
+    let bytes = tracks::render::render_png_speed(&track, &points, &fast.speed).map_err(anyhow::Error::msg)?;
+    std::fs::write(&png, bytes).with_context(|| format!("writing {png}"))?;
+    println!("written      {npy} (x, y), {py} (racing_track), {png} (coloured by speed: blue slow, red fast)");
+    Ok(0)
 }
 
 fn print_summary(s: &TrackSummary) {

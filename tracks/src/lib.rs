@@ -8,6 +8,8 @@
 //!   places and tests them.
 //! - [`render`]: top-down PNG drawings.
 //! - [`generate`]: random closed tracks of a given length and width, as `.npy` rows.
+//! - [`raceline`]: the line of least curvature inside the borders, and the fastest speeds
+//!   along a line for a car's limits.
 //!
 //! Architecture invariant: this crate knows nothing of physics, rewards, Python or the
 //! network. It is pure geometry over `nalgebra` points.
@@ -18,6 +20,7 @@ pub mod geometry;
 mod grid;
 pub mod npy;
 pub mod objects;
+pub mod raceline;
 pub mod render;
 
 pub use catalog::{Lighting, Surface, World, world, world_names, worlds};

@@ -102,6 +102,24 @@ impl TrackRows {
     }
 }
 
+/// Points as a `.npy` file: float64, shape (N, 2), x and y per row (a racing line, as the
+/// community's notebooks keep them).
+pub fn points_to_npy(points: &[P2]) -> Vec<u8> {
+    use npyz::WriterBuilder;
+    let mut out = Vec::new();
+    let mut w = npyz::WriteOptions::<f64>::new()
+        .default_dtype()
+        .shape(&[points.len() as u64, 2])
+        .writer(&mut out)
+        .begin_nd()
+        .expect("writing into memory");
+    for p in points {
+        w.extend([p.x, p.y]).expect("writing into memory");
+    }
+    w.finish().expect("writing into memory");
+    out
+}
+
 /// Two rows closer than this are the same point (DeepRacer's sanitising epsilon).
 const CLOSE_EPS: f64 = 1e-9;
 

@@ -1,5 +1,6 @@
 //! Top-down drawings of a track (PNG): road, borders, centre line, start line and the
-//! direction of travel, optionally with a driven path and a race's objects on top.
+//! direction of travel, optionally with a driven path and a race's objects on top, or a
+//! racing line coloured by speed.
 
 use crate::geometry::{P2, Track};
 use tiny_skia::{Color, FillRule, Paint, PathBuilder, Pixmap, Stroke, StrokeDash, Transform};
@@ -13,6 +14,31 @@ const PAD: f64 = 0.5;
 /// `objects` (footprint corners, and whether it is a car) filled: boxes brown, cars black.
 /// Returns PNG bytes.
 pub fn render_png(track: &Track, path: &[P2], objects: &[([P2; 4], bool)]) -> Result<Vec<u8>, String> {
+    render(track, path, None, objects)
+}
+
+/// Draw `track` top-down with `line` over it, each stretch coloured by its `speed` (one a
+/// point): blue the slowest, through green and yellow, to red the fastest. Returns PNG bytes.
+pub fn render_png_speed(track: &Track, line: &[P2], speed: &[f64]) -> Result<Vec<u8>, String> {
+    if speed.len() != line.len() {
+        return Err(format!("{} speeds for {} points", speed.len(), line.len()));
+    }
+    render(track, line, Some(speed), &[])
+}
+
+/// The colour of `x` in 0..1: blue, cyan, green, yellow, red.
+fn heat(x: f64) -> (u8, u8, u8) {
+    let x = x.clamp(0.0, 1.0) * 4.0;
+    let (r, g, b) = match x as u32 {
+        0 => (0.0, x, 1.0),
+        1 => (0.0, 1.0, 2.0 - x),
+        2 => (x - 2.0, 1.0, 0.0),
+        _ => (1.0, (4.0 - x).max(0.0), 0.0),
+    };
+    ((r * 255.0) as u8, (g * 255.0) as u8, (b * 255.0) as u8)
+}
+
+fn render(track: &Track, path: &[P2], speed: Option<&[f64]>, objects: &[([P2; 4], bool)]) -> Result<Vec<u8>, String> {
     let pts = track.inner().points().iter().chain(track.outer().points());
     let (mut lo, mut hi) = (P2::new(f64::MAX, f64::MAX), P2::new(f64::MIN, f64::MIN));
     for p in pts {
@@ -101,10 +127,30 @@ pub fn render_png(track: &Track, path: &[P2], objects: &[([P2; 4], bool)]) -> Re
             pix.fill_path(&p, &fill, FillRule::Winding, id, None);
         }
     }
-    if path.len() > 1
-        && let Some(p) = line(path, false)
-    {
-        pix.stroke_path(&p, &paint(0, 200, 255), &Stroke { width: 0.02 * SCALE, ..Stroke::default() }, id, None);
+    match speed {
+        Some(speed) if path.len() > 1 => {
+            let (lo, hi) = speed.iter().fold((f64::MAX, f64::MIN), |(a, b), v| (a.min(*v), b.max(*v)));
+            let stroke = Stroke { width: 0.06 * SCALE, line_cap: tiny_skia::LineCap::Round, ..Stroke::default() };
+            for (w, v) in path.windows(2).zip(speed) {
+                let (r, g, b) = heat(if hi > lo { (v - lo) / (hi - lo) } else { 1.0 });
+                if let Some(p) = line(w, false) {
+                    pix.stroke_path(&p, &paint(r, g, b), &stroke, id, None);
+                }
+            }
+        }
+        _ => {
+            if path.len() > 1
+                && let Some(p) = line(path, false)
+            {
+                pix.stroke_path(
+                    &p,
+                    &paint(0, 200, 255),
+                    &Stroke { width: 0.02 * SCALE, ..Stroke::default() },
+                    id,
+                    None,
+                );
+            }
+        }
     }
     pix.encode_png().map_err(|e| format!("PNG encoding failed: {e}"))
 }

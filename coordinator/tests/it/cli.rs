@@ -106,6 +106,40 @@ fn issue_34_tracks_generate_writes_a_track_that_imports_and_drives_and_refuses_w
 }
 
 #[test]
+fn issue_34_tracks_raceline_laps_faster_than_the_centre_and_writes_what_numpy_and_python_read() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let lap = |out: &str, name: &str| -> f64 {
+        let line = out.lines().find(|l| l.starts_with(name)).unwrap_or_else(|| panic!("{name}: {out}"));
+        let at = line.find(" s a lap").unwrap_or_else(|| panic!("{line}"));
+        line[..at].rsplit(' ').next().unwrap().parse().unwrap()
+    };
+    // A built-in world both ways round, and on a surface of less grip.
+    let mut times = Vec::new();
+    for args in [&["reinvent_base"][..], &["reinvent_base", "--reversed"], &["reinvent_base", "--surface", "wood"]] {
+        let o = coordinator(d, &[&["tracks", "raceline"][..], args, &["--out", "rl"]].concat());
+        assert!(o.status.success(), "{args:?}: {}", stderr(&o));
+        let out = stdout(&o);
+        let (line, centre) = (lap(&out, "racing line"), lap(&out, "centre line"));
+        assert!(line < 0.95 * centre, "{args:?}: {line} s against {centre} s\n{out}");
+        times.push(line);
+    }
+    assert!(times[2] > times[0] * 1.1, "less grip, a slower lap: {times:?}");
+    // The files: numpy reads the line, CPython runs the list a reward function pastes in.
+    let py = crate::support::python("numpy");
+    let check = "import numpy as np\nxy = np.load('rl.npy')\nexec(open('rl.py').read())\n\
+                 assert xy.shape[1] == 2 and xy.shape[0] == len(racing_track) > 20, (xy.shape, len(racing_track))\n\
+                 assert all(len(p) == 4 and 0.1 < p[2] <= 4.0 for p in racing_track)\n\
+                 assert np.allclose(xy, [p[:2] for p in racing_track], atol=1e-4)\nprint('ok')";
+    let o = Command::new(py).args(["-c", check]).current_dir(d).output().unwrap();
+    assert!(stdout(&o).contains("ok"), "{}{}", stdout(&o), stderr(&o));
+    assert!(std::fs::metadata(d.join("rl.png")).unwrap().len() > 1000);
+    // A road narrower than the margins: refused with the row.
+    let e = coordinator(d, &["tracks", "raceline", "reinvent_base", "--margin", "0.5"]);
+    assert!(!e.status.success() && stderr(&e).contains("no line keeps 0.500 m from both borders"), "{}", stderr(&e));
+}
+
+#[test]
 fn tracks_import_measures_a_users_file_and_refuses_a_broken_one() {
     let dir = tempfile::tempdir().unwrap();
     let (r, w, n) = (2.5, 0.9, 90);
