@@ -814,7 +814,8 @@ pub enum TracksCommand {
         png: Option<PathBuf>,
     },
     /// The racing line of a track: the line of least curvature inside the borders (less a
-    /// margin), the fastest speeds along it for the car on the track's surface, its lap time
+    /// margin), the fastest speeds along it for the car's limits as the simulator measures
+    /// them on the track's surface, its lap time
     /// against the centre line's; written as PREFIX.npy (x, y), PREFIX.py (`racing_track =
     /// [[x, y, speed, seconds to the next point], ...]`, for a reward function) and
     /// PREFIX.png (the line coloured by speed).

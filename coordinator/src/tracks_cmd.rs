@@ -97,7 +97,7 @@ pub fn run(command: TracksCommand) -> Result<i32> {
 /// `tracks raceline`: the line, its speeds and lap time against the centre line's, and its
 /// files.
 fn raceline(name: &str, reversed: bool, margin: f64, surface: Option<&str>, out: Option<String>) -> Result<i32> {
-    use tracks::raceline::{Limits, centre_line, race_line, speed_profile};
+    use tracks::raceline::{centre_line, race_line, speed_profile};
     let world = resolve_world(name)?;
     let surface = match surface {
         None => world.surface,
@@ -108,8 +108,7 @@ fn raceline(name: &str, reversed: bool, margin: f64, surface: Option<&str>, out:
     };
     let direction = if reversed { Direction::Reversed } else { Direction::Forward };
     let track = world.track(direction);
-    let top = sim_agent::SimConfig::default().car.max_speed;
-    let limits = Limits::friction_limited(top, surface.friction());
+    let limits = measured_limits(surface);
     let line = race_line(&world.rows, margin).with_context(|| format!("{}: the racing line", world.name))?;
     let centre = centre_line(&world.rows);
     // The line is the same either way round; the speeds are not (braking before a turn).
@@ -124,12 +123,20 @@ fn raceline(name: &str, reversed: bool, margin: f64, surface: Option<&str>, out:
     let fast = speed_profile(&points, line.closed, &limits);
     let slow = speed_profile(&centre_points, centre.closed, &limits);
     println!(
-        "track        {} ({}, {:.3} m), {} (friction {}), the car's top speed {top} m/s",
+        "track        {} ({}, {:.3} m), {} (friction {})",
         world.name,
         if track.is_ccw() { "ccw" } else { "cw" },
         track.length(),
         surface.name(),
         surface.friction()
+    );
+    println!(
+        "the car      top speed {:.2} m/s, accelerating {:.1} m/s², braking {:.1} m/s², turning {:.1} m/s² (measured in the simulator on {})",
+        limits.top_speed,
+        limits.accel,
+        limits.brake,
+        limits.lateral,
+        surface.name()
     );
     let (lo, hi) = fast.speed.iter().fold((f64::MAX, 0.0f64), |(a, b), v| (a.min(*v), b.max(*v)));
     println!("racing line  {:.3} m, {:.2} s a lap, {lo:.2}–{hi:.2} m/s", fast.length, fast.lap_time);
@@ -159,6 +166,20 @@ fn raceline(name: &str, reversed: bool, margin: f64, surface: Option<&str>, out:
     std::fs::write(&png, bytes).with_context(|| format!("writing {png}"))?;
     println!("written      {npy} (x, y), {py} (racing_track), {png} (coloured by speed: blue slow, red fast)");
     Ok(0)
+}
+
+/// The car's limits on `surface`, as the simulator's own manoeuvres measure them
+/// (`sim-agent handling`): its top speed, the mean acceleration from rest to 3.9 m/s, the mean
+/// deceleration from 4 m/s to rest, and the largest sideways acceleration it held at full lock.
+fn measured_limits(surface: tracks::Surface) -> tracks::raceline::Limits {
+    let h = sim_agent::handling::measure(&sim_agent::SimConfig::default().car, surface);
+    let lateral = h.radius_full_lock.iter().map(|&(v, r, ..)| v * v / r).fold(0.0, f64::max);
+    tracks::raceline::Limits {
+        top_speed: h.top_speed,
+        accel: 3.9 / h.time_to_top,
+        brake: (4.0f64.powi(2) - 0.15f64.powi(2)) / (2.0 * h.stopping_distance),
+        lateral,
+    }
 }
 
 fn print_summary(s: &TrackSummary) {
