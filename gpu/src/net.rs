@@ -63,6 +63,36 @@ struct Input {
     values: wgpu::Buffer,
 }
 
+/// A dense or conv layer as the one product it is: `rows` (samples, or samples × output
+/// positions) by `n_in` (inputs, or the unfolded patch) times its weights to `n_out`.
+struct Product {
+    rows: usize,
+    n_in: usize,
+    n_out: usize,
+    offset: usize,
+    /// A conv layer's unfold geometry (h, w, c, kernel, stride, oh, ow).
+    geometry: Option<[u32; 7]>,
+}
+
+impl Product {
+    fn of(layer: &Layer, batch: usize) -> Product {
+        match *layer {
+            Layer::Dense { inp, out, offset } => Product { rows: batch, n_in: inp, n_out: out, offset, geometry: None },
+            Layer::Conv2d { input: [h, w, c], filters, kernel, stride, offset } => {
+                let [oh, ow] = layer.conv_out();
+                Product {
+                    rows: batch * oh * ow,
+                    n_in: kernel * kernel * c,
+                    n_out: filters,
+                    offset,
+                    geometry: Some([h, w, c, kernel, stride, oh, ow].map(|v| v as u32)),
+                }
+            }
+            _ => unreachable!("only dense and conv layers are products"),
+        }
+    }
+}
+
 /// Record copying `n` values a row, `batch` rows, from `src` (row width, column offset) to
 /// `dst` (the same).
 fn copy_cols(
@@ -230,52 +260,23 @@ impl GpuNet {
             match self.layers[i] {
                 Layer::Scale { size, factor } => gpu.op(enc, "scale", batch * size, input, None, out, [0; 7], factor),
                 Layer::Relu { size } => gpu.op(enc, "relu", batch * size, input, None, out, [0; 7], 0.0),
-                Layer::Dense { inp, out: n_out, offset } => {
-                    let bias = (offset + inp * n_out) as u32;
-                    gpu.op(
-                        enc,
-                        "fill_rows",
-                        batch * n_out,
-                        &self.params,
-                        None,
-                        out,
-                        [bias, n_out as u32, 0, 0, 0, 0, 0],
-                        0.0,
-                    );
+                Layer::Dense { .. } | Layer::Conv2d { .. } => {
+                    // A dense layer is a conv over one position a sample: the product's rows.
+                    let p = Product::of(&self.layers[i], batch);
+                    let unfolded = match (&self.cols[i], p.geometry) {
+                        (Some(cols), Some(geometry)) => {
+                            gpu.op(enc, "im2col", p.rows * p.n_in, input, None, cols, geometry, 0.0);
+                            cols
+                        }
+                        _ => input,
+                    };
+                    let bias = [(p.offset + p.n_in * p.n_out) as u32, p.n_out as u32, 0, 0, 0, 0, 0];
+                    gpu.op(enc, "fill_rows", p.rows * p.n_out, &self.params, None, out, bias, 0.0);
                     gpu.gemm(
                         enc,
-                        [batch, n_out, inp],
-                        Operand { buf: input, at: 0, t: false },
-                        Operand { buf: &self.params, at: offset, t: true },
-                        (out, 0),
-                        true,
-                        &mut self.scratch,
-                    );
-                }
-                Layer::Conv2d { input: [h, w, c], filters, kernel, stride, offset } => {
-                    let layer = &self.layers[i];
-                    let [oh, ow] = layer.conv_out();
-                    let kkc = kernel * kernel * c;
-                    let rows = batch * oh * ow;
-                    let cols = self.cols[i].as_ref().expect("a conv layer's columns");
-                    let geometry = [h, w, c, kernel, stride, oh, ow].map(|v| v as u32);
-                    gpu.op(enc, "im2col", rows * kkc, input, None, cols, geometry, 0.0);
-                    let bias = (offset + filters * kkc) as u32;
-                    gpu.op(
-                        enc,
-                        "fill_rows",
-                        rows * filters,
-                        &self.params,
-                        None,
-                        out,
-                        [bias, filters as u32, 0, 0, 0, 0, 0],
-                        0.0,
-                    );
-                    gpu.gemm(
-                        enc,
-                        [rows, filters, kkc],
-                        Operand { buf: cols, at: 0, t: false },
-                        Operand { buf: &self.params, at: offset, t: true },
+                        [p.rows, p.n_out, p.n_in],
+                        Operand { buf: unfolded, at: 0, t: false },
+                        Operand { buf: &self.params, at: p.offset, t: true },
                         (out, 0),
                         true,
                         &mut self.scratch,
@@ -381,76 +382,45 @@ impl GpuNet {
                 Layer::Relu { size } => {
                     gpu.op(enc, "relu_back", batch * size, d, Some(&self.acts[i]), d_prev, [0; 7], 0.0)
                 }
-                Layer::Dense { inp, out, offset } => {
+                Layer::Dense { .. } | Layer::Conv2d { .. } => {
+                    let p = Product::of(&self.layers[i], batch);
+                    let unfolded = self.cols[i].as_ref().unwrap_or(input);
                     if params {
                         gpu.gemm(
                             enc,
-                            [out, inp, batch],
+                            [p.n_out, p.n_in, p.rows],
                             Operand { buf: d, at: 0, t: true },
-                            Operand { buf: input, at: 0, t: false },
-                            (&self.grad, offset),
+                            Operand { buf: unfolded, at: 0, t: false },
+                            (&self.grad, p.offset),
                             true,
                             &mut self.scratch,
                         );
                         gpu.gemm(
                             enc,
-                            [1, out, batch],
+                            [1, p.n_out, p.rows],
                             Operand { buf: &self.ones, at: 0, t: false },
                             Operand { buf: d, at: 0, t: false },
-                            (&self.grad, offset + inp * out),
+                            (&self.grad, p.offset + p.n_in * p.n_out),
                             true,
                             &mut self.scratch,
                         );
                     }
                     if need_in {
+                        // A conv layer's input gradient is unfolded first, then folded back.
+                        let target = if p.geometry.is_some() { &self.d_cols } else { d_prev };
                         gpu.gemm(
                             enc,
-                            [batch, inp, out],
+                            [p.rows, p.n_in, p.n_out],
                             Operand { buf: d, at: 0, t: false },
-                            Operand { buf: &self.params, at: offset, t: false },
-                            (d_prev, 0),
+                            Operand { buf: &self.params, at: p.offset, t: false },
+                            (target, 0),
                             false,
                             &mut self.scratch,
                         );
-                    }
-                }
-                Layer::Conv2d { input: [h, w, c], filters, kernel, stride, offset } => {
-                    let [oh, ow] = self.layers[i].conv_out();
-                    let kkc = kernel * kernel * c;
-                    let rows = batch * oh * ow;
-                    let cols = self.cols[i].as_ref().expect("a conv layer's columns");
-                    if params {
-                        gpu.gemm(
-                            enc,
-                            [filters, kkc, rows],
-                            Operand { buf: d, at: 0, t: true },
-                            Operand { buf: cols, at: 0, t: false },
-                            (&self.grad, offset),
-                            true,
-                            &mut self.scratch,
-                        );
-                        gpu.gemm(
-                            enc,
-                            [1, filters, rows],
-                            Operand { buf: &self.ones, at: 0, t: false },
-                            Operand { buf: d, at: 0, t: false },
-                            (&self.grad, offset + filters * kkc),
-                            true,
-                            &mut self.scratch,
-                        );
-                    }
-                    if need_in {
-                        gpu.gemm(
-                            enc,
-                            [rows, kkc, filters],
-                            Operand { buf: d, at: 0, t: false },
-                            Operand { buf: &self.params, at: offset, t: false },
-                            (&self.d_cols, 0),
-                            false,
-                            &mut self.scratch,
-                        );
-                        let geometry = [h, w, c, kernel, stride, oh, ow].map(|v| v as u32);
-                        gpu.op(enc, "col2im", batch * h * w * c, &self.d_cols, None, d_prev, geometry, 0.0);
+                        if let Some(geometry) = p.geometry {
+                            let size = batch * self.layers[i].in_size();
+                            gpu.op(enc, "col2im", size, &self.d_cols, None, d_prev, geometry, 0.0);
+                        }
                     }
                 }
             }

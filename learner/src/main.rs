@@ -388,29 +388,16 @@ fn gpu_rows(
     };
     let mut on_gpu = learner::ppo::Ppo::new(model.clone(), h.clone(), 0, 1, Par::Seq).with_gpu(gpu.clone());
     let mut on_cpu = learner::ppo::Ppo::new(model.clone(), h, 0, 1, Par::rayon(threads));
-    let mut seed = 0;
-    let mut update = |p: &mut learner::ppo::Ppo| -> anyhow::Result<()> {
-        seed += 1;
-        p.update_on_batch(&batch, seed).map_err(|e| anyhow::anyhow!("{e}"))?;
-        Ok(())
-    };
-    // Once each untimed (the GPU's buffers and pipelines are made then), then in turn.
-    update(&mut on_gpu)?;
-    update(&mut on_cpu)?;
-    let (mut g, mut c) = (Vec::new(), Vec::new());
-    for _ in 0..ROUNDS {
-        for (p, out) in [(&mut on_gpu, &mut g), (&mut on_cpu, &mut c)] {
-            let t = Instant::now();
-            let mut k = 0;
-            while t.elapsed().as_secs_f64() < seconds / ROUNDS as f64 || k < 1 {
-                update(p)?;
-                k += 1;
-            }
-            out.push((k * n) as f64 / t.elapsed().as_secs_f64());
+    // Each learner's updates shuffle from seeds 1, 2, …
+    fn updates<'a>(p: &'a mut learner::ppo::Ppo, batch: &'a Batch) -> impl FnMut() -> anyhow::Result<()> + 'a {
+        let mut seed = 0;
+        move || {
+            seed += 1;
+            p.update_on_batch(batch, seed).map_err(|e| anyhow::anyhow!("{e}"))?;
+            Ok(())
         }
     }
-    let ratios: Vec<f64> = g.iter().zip(&c).map(|(a, b)| a / b).collect();
-    let (g, c, r) = (median(g), median(c), median(ratios));
+    let (g, c, r) = in_turn(n, seconds, &mut updates(&mut on_gpu, &batch), &mut updates(&mut on_cpu, &batch))?;
     println!(
         "| whole updates on the GPU, {adapter} (16 minibatches of 64, Adam, upload and readback) | {g:.0} ({r:.2}× faer's, the median of the rounds' ratios) |"
     );
@@ -454,46 +441,55 @@ fn sac_gpu_rows(
     let mut on_cpu = Sac::new(nets, settings, 1);
     let par = Par::rayon(threads);
     let mut tapes = Tapes::default();
-    let gpu_iteration = |s: &mut Sac| -> anyhow::Result<()> {
-        let mut session = on.begin(s, mb)?;
+    let mut gpu_iteration = || -> anyhow::Result<()> {
+        let mut session = on.begin(&on_gpu, mb)?;
         for b in &batches {
-            session.step(s, b)?;
+            session.step(&mut on_gpu, b)?;
         }
-        session.finish(s)?;
+        session.finish(&mut on_gpu)?;
         Ok(())
     };
-    let mut cpu_iteration = |s: &mut Sac| {
+    let mut cpu_iteration = || {
         for b in &batches {
-            std::hint::black_box(s.step(b, par, &mut tapes));
+            std::hint::black_box(on_cpu.step(b, par, &mut tapes));
         }
+        Ok(())
     };
-    gpu_iteration(&mut on_gpu)?;
-    cpu_iteration(&mut on_cpu);
-    let (mut g, mut c) = (Vec::new(), Vec::new());
-    for _ in 0..ROUNDS {
-        let t = Instant::now();
-        let mut n = 0;
-        while t.elapsed().as_secs_f64() < seconds / ROUNDS as f64 || n < 1 {
-            gpu_iteration(&mut on_gpu)?;
-            n += 1;
-        }
-        g.push((n * k * mb) as f64 / t.elapsed().as_secs_f64());
-        let t = Instant::now();
-        let mut n = 0;
-        while t.elapsed().as_secs_f64() < seconds / ROUNDS as f64 || n < 1 {
-            cpu_iteration(&mut on_cpu);
-            n += 1;
-        }
-        c.push((n * k * mb) as f64 / t.elapsed().as_secs_f64());
-    }
-    let ratios: Vec<f64> = g.iter().zip(&c).map(|(a, b)| a / b).collect();
-    let (g, c, r) = (median(g), median(c), median(ratios));
+    let (g, c, r) = in_turn(k * mb, seconds, &mut gpu_iteration, &mut cpu_iteration)?;
     println!(
         "| SAC: an iteration's gradient steps on the GPU, {} (16 steps of 64 transitions; the networks put there and read back) | {g:.0} transitions/s ({r:.2}× faer's, the median of the rounds' ratios) |",
         gpu.adapter
     );
     println!("| SAC: the same steps on faer, {threads} thread(s) | {c:.0} transitions/s |");
     Ok(())
+}
+
+/// Work on the GPU against the same work on faer, `n` samples a call: each once untimed (the
+/// GPU's buffers and pipelines are made then), then in turn for [`ROUNDS`] rounds of
+/// `seconds` in all. Returns the medians of the GPU's and faer's samples/s and of the rounds'
+/// ratios.
+fn in_turn<'a>(
+    n: usize,
+    seconds: f64,
+    gpu: &mut (dyn FnMut() -> anyhow::Result<()> + 'a),
+    cpu: &mut (dyn FnMut() -> anyhow::Result<()> + 'a),
+) -> anyhow::Result<(f64, f64, f64)> {
+    gpu()?;
+    cpu()?;
+    let (mut g, mut c) = (Vec::new(), Vec::new());
+    for _ in 0..ROUNDS {
+        for (work, out) in [(&mut *gpu, &mut g), (&mut *cpu, &mut c)] {
+            let t = Instant::now();
+            let mut k = 0;
+            while t.elapsed().as_secs_f64() < seconds / ROUNDS as f64 || k < 1 {
+                work()?;
+                k += 1;
+            }
+            out.push((k * n) as f64 / t.elapsed().as_secs_f64());
+        }
+    }
+    let ratios: Vec<f64> = g.iter().zip(&c).map(|(a, b)| a / b).collect();
+    Ok((median(g), median(c), median(ratios)))
 }
 
 /// Rounds `learner bench` splits each measurement of a thread count into (see [`bench`]).

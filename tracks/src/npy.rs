@@ -77,19 +77,8 @@ impl TrackRows {
     /// The rows as a DeepRacer `.npy` file: float64, shape (N, 6), centre x, y, inner x, y,
     /// outer x, y per row.
     pub fn to_npy(&self) -> Vec<u8> {
-        use npyz::WriterBuilder;
-        let mut out = Vec::new();
-        let mut w = npyz::WriteOptions::<f64>::new()
-            .default_dtype()
-            .shape(&[self.len() as u64, 6])
-            .writer(&mut out)
-            .begin_nd()
-            .expect("writing into memory");
-        for ((c, i), o) in self.center.iter().zip(&self.inner).zip(&self.outer) {
-            w.extend([c.x, c.y, i.x, i.y, o.x, o.y]).expect("writing into memory");
-        }
-        w.finish().expect("writing into memory");
-        out
+        let rows = self.center.iter().zip(&self.inner).zip(&self.outer);
+        float_rows_npy(self.len(), rows.map(|((c, i), o)| [c.x, c.y, i.x, i.y, o.x, o.y]))
     }
 
     /// A closed loop repeats its first row as its last, as every DeepRacer loop file does.
@@ -105,16 +94,21 @@ impl TrackRows {
 /// Points as a `.npy` file: float64, shape (N, 2), x and y per row (a racing line, as the
 /// community's notebooks keep them).
 pub fn points_to_npy(points: &[P2]) -> Vec<u8> {
+    float_rows_npy(points.len(), points.iter().map(|p| [p.x, p.y]))
+}
+
+/// `n` rows of `N` float64 values as a `.npy` file of shape (n, N).
+fn float_rows_npy<const N: usize>(n: usize, rows: impl Iterator<Item = [f64; N]>) -> Vec<u8> {
     use npyz::WriterBuilder;
     let mut out = Vec::new();
     let mut w = npyz::WriteOptions::<f64>::new()
         .default_dtype()
-        .shape(&[points.len() as u64, 2])
+        .shape(&[n as u64, N as u64])
         .writer(&mut out)
         .begin_nd()
         .expect("writing into memory");
-    for p in points {
-        w.extend([p.x, p.y]).expect("writing into memory");
+    for row in rows {
+        w.extend(row).expect("writing into memory");
     }
     w.finish().expect("writing into memory");
     out

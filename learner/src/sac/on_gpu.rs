@@ -159,19 +159,10 @@ impl Session {
         if let Some(e) = self.embed.as_mut() {
             e.forward(gpu, &mut enc, &self.obs, b);
         }
-        let emb = self.embed.as_ref().map_or(&self.obs, |e| e.output());
-        let concat = |enc: &mut wgpu::CommandEncoder, action_col: usize| {
-            let u = [w as u32, 2, cap as u32, (action_col * cap) as u32, 0, 0, 0];
-            gpu.op(enc, "concat_rows", b * (w + 2), emb, Some(&self.cols), &self.x, u, 0.0);
-        };
         // Q at the batch's actions against r + (1 − done)·γ·V_target(s').
         self.v_target.forward(gpu, &mut enc, &self.next_obs, b);
         enc.copy_buffer_to_buffer(self.v_target.output(), 0, &self.cols, column(col::VNEXT), (b * 4) as u64);
-        concat(&mut enc, col::ACTION);
-        self.q1.forward(gpu, &mut enc, &self.x, b);
-        self.q2.forward(gpu, &mut enc, &self.x, b);
-        enc.copy_buffer_to_buffer(self.q1.output(), 0, &self.cols, column(col::Q1), (b * 4) as u64);
-        enc.copy_buffer_to_buffer(self.q2.output(), 0, &self.cols, column(col::Q2), (b * 4) as u64);
+        self.heads_at(gpu, &mut enc, b, col::ACTION, [col::Q1, col::Q2]);
         gpu.sac(&mut enc, "q_errors", args, &[], None, &self.cols);
         for net in [&self.policy, &self.q1, &self.q2, &self.v].into_iter().chain(self.embed.as_ref()) {
             net.zero_grad(&mut enc);
@@ -184,13 +175,7 @@ impl Session {
             e.backward(gpu, &mut enc, &self.obs, &self.d_emb, b);
         }
         // The policy's draws through the heads: min(q1, q2) and its gradient wrt the action.
-        let emb = self.embed.as_ref().map_or(&self.obs, |e| e.output());
-        let u = [w as u32, 2, cap as u32, (col::A * cap) as u32, 0, 0, 0];
-        gpu.op(&mut enc, "concat_rows", b * (w + 2), emb, Some(&self.cols), &self.x, u, 0.0);
-        self.q1.forward(gpu, &mut enc, &self.x, b);
-        self.q2.forward(gpu, &mut enc, &self.x, b);
-        enc.copy_buffer_to_buffer(self.q1.output(), 0, &self.cols, column(col::Q1P), (b * 4) as u64);
-        enc.copy_buffer_to_buffer(self.q2.output(), 0, &self.cols, column(col::Q2P), (b * 4) as u64);
+        self.heads_at(gpu, &mut enc, b, col::A, [col::Q1P, col::Q2P]);
         gpu.sac(&mut enc, "min_q", args, &[], None, &self.cols);
         self.q1.backward_with(gpu, &mut enc, &self.x, (&self.cols, col::DM1 * cap), b, false, Some(&self.dx1));
         self.q2.backward_with(gpu, &mut enc, &self.x, (&self.cols, col::DM2 * cap), b, false, Some(&self.dx2));
@@ -252,6 +237,19 @@ impl Session {
             },
             finite_grads,
         ))
+    }
+
+    /// Record both critics' heads on the embedding beside the actions of column `action`
+    /// (two columns), their outputs copied into the columns `into`.
+    fn heads_at(&mut self, gpu: &Gpu, enc: &mut wgpu::CommandEncoder, b: usize, action: usize, into: [usize; 2]) {
+        let (w, cap) = (self.w, self.cap);
+        let emb = self.embed.as_ref().map_or(&self.obs, |e| e.output());
+        let u = [w as u32, 2, cap as u32, (action * cap) as u32, 0, 0, 0];
+        gpu.op(enc, "concat_rows", b * (w + 2), emb, Some(&self.cols), &self.x, u, 0.0);
+        for (head, c) in [&mut self.q1, &mut self.q2].into_iter().zip(into) {
+            head.forward(gpu, enc, &self.x, b);
+            enc.copy_buffer_to_buffer(head.output(), 0, &self.cols, (c * cap * 4) as u64, (b * 4) as u64);
+        }
     }
 
     /// Move V's target copy towards V by `tau` (1: copy it), as [`Sac::update_target`].
