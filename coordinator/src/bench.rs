@@ -1107,3 +1107,114 @@ pub fn sac(
         Ok(1)
     }
 }
+
+/// `bench race-line`: per sensor, the same training (the racing line's action space, the same
+/// seed and minutes) with the racing line's reward and with the centre line's, then the two
+/// models raced on the world (`coordinator race`, 3 trials, a lap ends at the first
+/// off-track). Passes when the racing line's model laps 3/3 within 1.15× the line's
+/// theoretical time and faster than the centre line's model.
+pub fn race_line(world: &str, minutes: f64, sensors: &[String], seed: u64, out: &std::path::Path) -> Result<i32> {
+    let sensors: Vec<&str> =
+        if sensors.is_empty() { vec!["state", "camera"] } else { sensors.iter().map(|s| s.as_str()).collect() };
+    let w = crate::tracks_cmd::resolve_world(world)?;
+    let car = sim_agent::SimConfig::default().car;
+    let plan = sim_agent::race_line::LinePlan::new(&w.track(tracks::Direction::Forward), &car, w.surface)
+        .with_context(|| format!("{}: the racing line", w.name))?;
+    let goal = 1.15 * plan.lap_time;
+    let me = std::env::current_exe()?;
+    std::fs::create_dir_all(out)?;
+    let dir = out.canonicalize()?;
+    let mut rows = Vec::new();
+    let mut failed = Vec::new();
+    for sensor in &sensors {
+        let mut models = Vec::new();
+        let mut secs = Vec::new();
+        for reward in ["race_line", "center_line"] {
+            let folder = format!("{sensor}-{reward}");
+            let args: Vec<String> = [
+                "train",
+                "--world",
+                world,
+                "--sensor",
+                sensor,
+                "--reward",
+                &format!("builtin:{reward}"),
+                "--action-space-from-line",
+                "--target-laps",
+                "0",
+                "--minutes",
+                &minutes.to_string(),
+                "--seed",
+                &seed.to_string(),
+                "--out",
+                &folder,
+                "--force",
+            ]
+            .map(String::from)
+            .to_vec();
+            let t0 = Instant::now();
+            child(&me, &dir, &args)?;
+            secs.push(t0.elapsed().as_secs_f64());
+            models.push(dir.join(&folder).join("model"));
+        }
+        let standings = crate::race_cmd::run(&crate::cli::RaceCmdArgs {
+            models,
+            world: world.to_string(),
+            reversed: false,
+            trials: 3,
+            resets: 0,
+            penalty: 2.0,
+            collision_penalty: 5.0,
+            seed,
+            out: dir.join(format!("race-{sensor}")),
+            race: Default::default(),
+        })?;
+        let of = |reward: &str| standings.iter().find(|s| s.name == format!("{sensor}-{reward}")).cloned();
+        let (Some(fast), Some(centre)) = (of("race_line"), of("center_line")) else {
+            bail!("the race of {sensor} lost a model: {standings:?}");
+        };
+        let ok = fast.laps == fast.trials
+            && fast.mean.is_some_and(|m| m <= goal)
+            && match (fast.mean, centre.mean) {
+                (Some(a), Some(b)) => a < b,
+                (Some(_), None) => true,
+                _ => false,
+            };
+        if !ok {
+            failed.push(sensor.to_string());
+        }
+        for (s, t) in [(fast, secs[0]), (centre, secs[1])] {
+            rows.push((sensor.to_string(), s, t));
+        }
+    }
+    let lap = |t: Option<f64>| t.map(|l| format!("{l:.2}")).unwrap_or_else(|| "-".into());
+    println!(
+        "# coordinator bench race-line: {}, seed {seed}, {minutes} min a training; the line's theoretical lap {:.2} s, goal ≤ {goal:.2} s",
+        w.name, plan.lap_time
+    );
+    println!();
+    println!("| sensor | reward | training s | laps | best lap s | mean lap s | mean / line's |");
+    println!("|---|---|---:|---:|---:|---:|---:|");
+    for (sensor, s, t) in &rows {
+        println!(
+            "| {sensor} | {} | {t:.0} | {}/{} | {} | {} | {} |",
+            s.name.trim_start_matches(&format!("{sensor}-")),
+            s.laps,
+            s.trials,
+            lap(s.best),
+            lap(s.mean),
+            s.mean.map(|m| format!("{:.2}", m / plan.lap_time)).unwrap_or_else(|| "-".into())
+        );
+    }
+    println!();
+    println!("pictures: {}/race-SENSOR/race.html", dir.display());
+    if failed.is_empty() {
+        println!(
+            "verdict: pass: the racing line's models lap 3/3 within 1.15× the line's time, faster than the centre line's"
+        );
+        Ok(0)
+    } else {
+        println!("verdict: FAIL: {}", failed.join(", "));
+        Ok(1)
+    }
+}

@@ -31,6 +31,10 @@ pub enum Command {
     Evaluate(EvaluateArgs),
     /// Start a new run from a model's weights (transfer learning).
     Clone(CloneArgs),
+    /// Race models on a world under DeepRacer's race rules: a leaderboard (best lap, mean,
+    /// off-tracks, crashes) and a page with each model's fastest lap drawn on the track,
+    /// coloured by speed, and its camera frames.
+    Race(RaceCmdArgs),
     /// Keep jobs, watch agents, assign worlds, enforce stop conditions (the coordinator role).
     Serve(ServeCli),
     /// Job control: start, list, status, stop, logs.
@@ -232,6 +236,28 @@ pub enum BenchCommand {
         seed: u64,
         /// Where the runs go (kept).
         #[arg(long, default_value = "runs/bench-races")]
+        out: PathBuf,
+    },
+    /// The racing line's reward against the centre line's (issue 34): per sensor, the same
+    /// training (`--action-space-from-line`, same seed and minutes) with `builtin:race_line`
+    /// and with `builtin:center_line`, the two models raced (`coordinator race`). Prints a
+    /// table and a verdict (exit 1 unless the racing line's model laps 3/3 within 1.15× the
+    /// line's theoretical time, faster than the centre line's).
+    RaceLine {
+        /// The track.
+        #[arg(long, default_value = "reinvent_base")]
+        world: String,
+        /// Minutes a training.
+        #[arg(long, default_value_t = 5.0)]
+        minutes: f64,
+        /// Observations: `state`, `camera` (repeatable; default both).
+        #[arg(long = "sensor")]
+        sensors: Vec<String>,
+        /// Random seed.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Where the runs and the races go (kept).
+        #[arg(long, default_value = "runs/bench-race-line")]
         out: PathBuf,
     },
     /// SAC against PPO from the same files (issue 32): deepracer-for-cloud's continuous
@@ -659,6 +685,10 @@ pub struct TrainArgs {
     /// Override the learning rate.
     #[arg(long)]
     pub lr: Option<f64>,
+    /// Drive with the action space the first world's racing line proposes, of N actions
+    /// (default 7; see `tracks raceline`) in place of --sensor's.
+    #[arg(long, value_name = "N", num_args = 0..=1, default_missing_value = "7")]
+    pub action_space_from_line: Option<usize>,
     /// Stop early once an evaluation completes this many of its laps (0: train the full time).
     #[arg(long, default_value_t = 3)]
     pub target_laps: usize,
@@ -750,6 +780,40 @@ pub struct EvaluateArgs {
 }
 
 #[derive(Args)]
+pub struct RaceCmdArgs {
+    /// Model folders (RUN/model) or DeepRacer model archives (.tar.gz, .tar).
+    #[arg(required = true)]
+    pub models: Vec<PathBuf>,
+    /// The world (built-in name or .npy path).
+    #[arg(long, default_value = "reinvent_base")]
+    pub world: String,
+    /// Drive the track in reverse.
+    #[arg(long)]
+    pub reversed: bool,
+    /// Trials (laps from the start line) a model.
+    #[arg(long, default_value_t = 3)]
+    pub trials: usize,
+    /// Off-tracks and crashes a trial survives, each put back on the track with its penalty
+    /// (DeepRacer's races do not end a lap at the first).
+    #[arg(long, default_value_t = 10_000)]
+    pub resets: u32,
+    /// Seconds added for each time off the track (DeepRacer's OFF_TRACK_PENALTY).
+    #[arg(long, default_value_t = 2.0)]
+    pub penalty: f64,
+    /// Seconds added for each crash (DeepRacer's COLLISION_PENALTY).
+    #[arg(long, default_value_t = 5.0)]
+    pub collision_penalty: f64,
+    /// Seed of the first trial's actuator noise (each trial the next).
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Where race.html and its pictures go.
+    #[arg(long, default_value = "race")]
+    pub out: PathBuf,
+    #[command(flatten)]
+    pub race: RaceArgs,
+}
+
+#[derive(Args)]
 pub struct CloneArgs {
     /// The model folder to start from.
     pub model_dir: PathBuf,
@@ -831,9 +895,13 @@ pub enum TracksCommand {
         /// The surface (asphalt, carpet, concrete, wood; default: the world's).
         #[arg(long)]
         surface: Option<String>,
-        /// Where the files go: PREFIX.npy, PREFIX.py, PREFIX.png (default: TRACK-raceline).
+        /// Where the files go: PREFIX.npy, PREFIX.py, PREFIX.png and
+        /// PREFIX.model_metadata.json (default: TRACK-raceline).
         #[arg(long)]
         out: Option<String>,
+        /// Actions in the proposed discrete action space (PREFIX.model_metadata.json).
+        #[arg(long, default_value_t = 7)]
+        actions: usize,
     },
     /// Make a random closed track of a given length and width (a smooth loop the car can
     /// drive, no part of it near another) and write it as a DeepRacer .npy file.
@@ -860,6 +928,18 @@ pub enum TracksCommand {
 pub enum RewardCommand {
     /// Compile a reward file and call it on states sampled along a track; exit 0 only if it passed.
     Validate(ValidateArgs),
+    /// Write a built-in reward as a DeepRacer reward file (Python) that gives the same
+    /// rewards; race_line's carries the world's racing lines, both directions.
+    Export {
+        /// The built-in: builtin:NAME (center_line, stay_inside, object_avoidance, race_line).
+        reward: String,
+        /// The world whose racing line race_line follows (built-in name or .npy path).
+        #[arg(long, default_value = "reinvent_base")]
+        world: String,
+        /// The file to write (default: reward_function.py).
+        #[arg(long, default_value = "reward_function.py")]
+        out: PathBuf,
+    },
 }
 
 #[derive(Args)]

@@ -1,4 +1,5 @@
-//! `coordinator drive` (the scripted driver) and `coordinator reward validate`.
+//! `coordinator drive` (the scripted driver), `coordinator reward validate` and
+//! `coordinator reward export`.
 
 use crate::cli::{DriveArgs, ValidateArgs};
 use crate::tracks_cmd::{draw, resolve_world};
@@ -141,7 +142,7 @@ pub fn validate(args: ValidateArgs) -> Result<i32> {
         world.name,
         if args.reversed { "reversed" } else { "forward" }
     );
-    match validate_reward(&mut reward, &track, &space, args.positions, &race.race) {
+    match validate_reward(&mut reward, &track, world.surface, &space, args.positions, &race.race) {
         Ok(report) => {
             for (kind, mean) in &report.mean_by_kind {
                 println!("  {kind:<22} mean reward {mean:.4}");
@@ -155,4 +156,37 @@ pub fn validate(args: ValidateArgs) -> Result<i32> {
             Ok(1)
         }
     }
+}
+
+/// `reward export`: a built-in as a Python reward file giving the same rewards.
+pub fn export(spec: &str, world: &str, out: &std::path::Path) -> Result<i32> {
+    let name = spec.strip_prefix("builtin:").unwrap_or(spec);
+    let Some(&(builtin, _)) = sim_agent::BuiltinReward::ALL.iter().find(|(_, n)| *n == name) else {
+        let known: Vec<String> = sim_agent::BuiltinReward::ALL.iter().map(|(_, n)| format!("builtin:{n}")).collect();
+        anyhow::bail!("{spec}: not a built-in reward; expected one of {}", known.join(", "));
+    };
+    let text = match builtin.python_source() {
+        Some(text) => text.to_string(),
+        None => {
+            use sim_agent::race_line::{LinePlan, python_source};
+            let world = resolve_world(world)?;
+            let car = SimConfig::default().car;
+            let plan = |d: Direction| {
+                LinePlan::new(&world.track(d), &car, world.surface)
+                    .with_context(|| format!("{}: the racing line", world.name))
+            };
+            let (forward, reversed) = (plan(Direction::Forward)?, plan(Direction::Reversed)?);
+            println!(
+                "{}: the racing line laps in {:.2} s forward, {:.2} s reversed ({})",
+                world.name,
+                forward.lap_time,
+                reversed.lap_time,
+                world.surface.name()
+            );
+            python_source(&world.name, world.surface, &forward, &reversed)
+        }
+    };
+    std::fs::write(out, text).with_context(|| format!("writing {}", out.display()))?;
+    println!("written {} (builtin:{name} as a DeepRacer reward function)", out.display());
+    Ok(0)
 }

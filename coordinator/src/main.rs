@@ -14,6 +14,7 @@ mod client;
 mod dashboard;
 mod drive;
 mod local;
+mod race_cmd;
 mod render_cmd;
 mod report;
 mod serve;
@@ -34,10 +35,12 @@ fn main() {
         cli::Command::Tracks { command } => tracks_cmd::run(command),
         cli::Command::Reward { command } => match command {
             cli::RewardCommand::Validate(args) => drive::validate(args),
+            cli::RewardCommand::Export { reward, world, out } => drive::export(&reward, &world, &out),
         },
         cli::Command::Drive(args) => drive::drive(args),
         cli::Command::Train(args) => train::train(args),
         cli::Command::Evaluate(args) => train::evaluate_cmd(args),
+        cli::Command::Race(args) => race_cmd::race(args),
         cli::Command::Clone(args) => train::clone_cmd(args),
         cli::Command::Serve(a) => {
             serve::serve(serve::ServeArgs { net: client::net_args(&a.net, false).as_role(protocol::secure::Role::Coordinator), db: a.db }).map(|()| 0)
@@ -85,6 +88,9 @@ fn main() {
             cli::BenchCommand::Publish { repeats } => bench::publish(repeats).map(|()| 0),
             cli::BenchCommand::Races { world, minutes, races, no_up, seed, out } => {
                 bench::races(&world, minutes, &races, !no_up, seed, &out)
+            }
+            cli::BenchCommand::RaceLine { world, minutes, sensors, seed, out } => {
+                bench::race_line(&world, minutes, &sensors, seed, &out)
             }
             cli::BenchCommand::Sac { world, minutes, sensors, agents, seed, out } => {
                 bench::sac(&world, minutes, &sensors, &agents, seed, &out)

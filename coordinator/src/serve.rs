@@ -308,8 +308,16 @@ fn validate(doc: &Job) -> std::result::Result<(), String> {
             sim_agent::RewardFn::from_source(name, &doc.reward_source)?.with_time_limit(cfg.reward_time_limit());
         let meta = policy::ModelMetadata::parse(&doc.model_metadata_json, "model_metadata.json")?;
         for w in &doc.worlds {
-            let track = tracks::world(w)?.track(tracks::Direction::Forward);
-            sim_agent::validate::validate_reward(&mut reward, &track, &meta.action_space, 20, &cfg.race)?;
+            let world = tracks::world(w)?;
+            let track = world.track(tracks::Direction::Forward);
+            sim_agent::validate::validate_reward(
+                &mut reward,
+                &track,
+                world.surface,
+                &meta.action_space,
+                20,
+                &cfg.race,
+            )?;
         }
         Ok(())
     })();

@@ -1,7 +1,7 @@
 //! `coordinator tracks …`: list, show, import and generate tracks, and racing lines.
 
 use crate::cli::TracksCommand;
-use anyhow::{Context, Result};
+use anyhow::{Context, Result, bail};
 use std::path::Path;
 use tracks::{Direction, TrackSummary, World};
 
@@ -70,8 +70,8 @@ pub fn run(command: TracksCommand) -> Result<i32> {
             }
             Ok(0)
         }
-        TracksCommand::Raceline { track, reversed, margin, surface, out } => {
-            raceline(&track, reversed, margin, surface.as_deref(), out)
+        TracksCommand::Raceline { track, reversed, margin, surface, out, actions } => {
+            raceline(&track, reversed, margin, surface.as_deref(), out, actions)
         }
         TracksCommand::Generate { seed, length, width, out, png } => {
             let rows = tracks::generate::generate(&tracks::generate::GenSpec { seed, length, width })?;
@@ -94,10 +94,20 @@ pub fn run(command: TracksCommand) -> Result<i32> {
     }
 }
 
-/// `tracks raceline`: the line, its speeds and lap time against the centre line's, and its
-/// files.
-fn raceline(name: &str, reversed: bool, margin: f64, surface: Option<&str>, out: Option<String>) -> Result<i32> {
+/// `tracks raceline`: the line, its speeds and lap time against the centre line's, the
+/// action space it proposes, and its files.
+fn raceline(
+    name: &str,
+    reversed: bool,
+    margin: f64,
+    surface: Option<&str>,
+    out: Option<String>,
+    actions: usize,
+) -> Result<i32> {
     use tracks::raceline::{centre_line, race_line, speed_profile};
+    if actions == 0 {
+        bail!("--actions 0: the action space needs at least one action");
+    }
     let world = resolve_world(name)?;
     let surface = match surface {
         None => world.surface,
@@ -164,22 +174,37 @@ fn raceline(name: &str, reversed: bool, margin: f64, surface: Option<&str>, out:
     let png = format!("{prefix}.png");
     let bytes = tracks::render::render_png_speed(&track, &points, &fast.speed).map_err(anyhow::Error::msg)?;
     std::fs::write(&png, bytes).with_context(|| format!("writing {png}"))?;
+    let meta_path = format!("{prefix}.model_metadata.json");
+    let meta = line_metadata(&points, line.closed, &limits, actions);
+    std::fs::write(&meta_path, meta.to_json()).with_context(|| format!("writing {meta_path}"))?;
+    if let policy::ActionSpace::Discrete(list) = &meta.action_space {
+        let shown: Vec<String> = list.iter().map(|a| format!("{:+.1}° {:.2} m/s", a.steering_angle, a.speed)).collect();
+        println!("actions      {}", shown.join(", "));
+    }
     println!("written      {npy} (x, y), {py} (racing_track), {png} (coloured by speed: blue slow, red fast)");
+    println!("             {meta_path} (the camera's model_metadata.json with the line's action space)");
     Ok(0)
 }
 
-/// The car's limits on `surface`, as the simulator's own manoeuvres measure them
-/// (`sim-agent handling`): its top speed, the mean acceleration from rest to 3.9 m/s, the mean
-/// deceleration from 4 m/s to rest, and the largest sideways acceleration it held at full lock.
+/// DeepRacer's camera model_metadata.json with `actions` actions proposed by the line
+/// along `points` (driving order) for a car of `limits`: its steering and speeds, weighted by
+/// the time spent on them, within the console's ±30° and 4 m/s.
+pub fn line_metadata(
+    points: &[tracks::P2],
+    closed: bool,
+    limits: &tracks::raceline::Limits,
+    actions: usize,
+) -> policy::ModelMetadata {
+    let plan = sim_agent::race_line::LinePlan::along(points, closed, limits);
+    let mut meta = policy::ModelMetadata::default_camera();
+    meta.action_space =
+        policy::ActionSpace::Discrete(plan.action_space(&sim_agent::SimConfig::default().car, actions, 30.0, 4.0));
+    meta
+}
+
+/// The car's limits on `surface`, as the simulator's own manoeuvres measure them.
 fn measured_limits(surface: tracks::Surface) -> tracks::raceline::Limits {
-    let h = sim_agent::handling::measure(&sim_agent::SimConfig::default().car, surface);
-    let lateral = h.radius_full_lock.iter().map(|&(v, r, ..)| v * v / r).fold(0.0, f64::max);
-    tracks::raceline::Limits {
-        top_speed: h.top_speed,
-        accel: 3.9 / h.time_to_top,
-        brake: (4.0f64.powi(2) - 0.15f64.powi(2)) / (2.0 * h.stopping_distance),
-        lateral,
-    }
+    sim_agent::handling::limits(&sim_agent::SimConfig::default().car, surface)
 }
 
 fn print_summary(s: &TrackSummary) {

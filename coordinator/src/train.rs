@@ -167,7 +167,7 @@ pub fn train(mut args: TrainArgs) -> Result<i32> {
     let meta_path = args.model_metadata.clone().or_else(|| from_run("model_metadata.json"));
     let hyper_path = args.hyperparameters.clone().or_else(|| from_run("hyperparameters.json"));
     let sim_path = args.config.clone().or_else(|| from_run("sim.toml"));
-    let meta = match (&meta_path, args.sensor.as_str()) {
+    let mut meta = match (&meta_path, args.sensor.as_str()) {
         (Some(p), _) => ModelMetadata::load(p)?,
         (None, name) => ModelMetadata::for_sensor(name).ok_or_else(|| {
             anyhow::anyhow!("--sensor is {name:?}, expected one of {:?}", ModelMetadata::SENSOR_NAMES)
@@ -183,12 +183,34 @@ pub fn train(mut args: TrainArgs) -> Result<i32> {
     let mut cfg: SimConfig = load_config(sim_path.as_deref(), &args.sets)?;
     check_sensors(&meta, &mut cfg)?;
     let worlds = worlds_arg.iter().map(|w| resolve_world(w)).collect::<Result<Vec<_>>>()?;
+    if let Some(n) = args.action_space_from_line {
+        if let Some(p) = &meta_path {
+            bail!(
+                "--action-space-from-line proposes the action space, and {} names one: pass one or the other",
+                p.display()
+            );
+        }
+        if n == 0 {
+            bail!("--action-space-from-line 0: the action space needs at least one action");
+        }
+        let w = &worlds[0];
+        let line = tracks::raceline::race_line(&w.track(Direction::Forward).rows(), sim_agent::race_line::MARGIN)
+            .with_context(|| format!("--action-space-from-line: {}'s racing line", w.name))?;
+        let limits = sim_agent::handling::limits(&cfg.car, w.surface);
+        let plan = sim_agent::race_line::LinePlan::along(&line.points, line.closed, &limits);
+        let actions = plan.action_space(&cfg.car, n, 30.0, 4.0);
+        let shown: Vec<String> =
+            actions.iter().map(|a| format!("{:+.1}° {:.2} m/s", a.steering_angle, a.speed)).collect();
+        println!("action space from {}'s racing line: {}", w.name, shown.join(", "));
+        meta.action_space = policy::ActionSpace::Discrete(actions);
+    }
     // Validate the reward before any training: a broken file stops here with its traceback.
     let mut reward = RewardFn::from_spec(&reward_spec)?.with_time_limit(cfg.reward_time_limit());
     for w in &worlds {
         sim_agent::validate::validate_reward(
             &mut reward,
             &w.track(Direction::Forward),
+            w.surface,
             &meta.action_space,
             20,
             &cfg.race,

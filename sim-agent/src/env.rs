@@ -28,7 +28,8 @@ use crate::car::Car;
 use crate::config::{NoiseConfig, SimConfig};
 use crate::objects::{Contact, Traffic};
 use crate::params::{EpisodeClock, Pose, RewardParams, compute_params};
-use crate::reward::{BuiltinReward, RewardError, check_reward};
+use crate::race_line::LineCell;
+use crate::reward::{BuiltinReward, RewardError};
 use policy::{Action, MAX_SPEED, MAX_STEERING_DEG, MIN_SPEED};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -170,6 +171,8 @@ pub struct Env {
     /// DeepRacer's LiDAR: its noise, and the last scan (when the observation has one).
     lidar_rng: ChaCha8Rng,
     scan: Option<[f32; crate::lidar::RAYS]>,
+    /// The track's racing line (for `builtin:race_line`), computed at its first use.
+    line: LineCell,
 }
 
 struct Pending {
@@ -226,6 +229,7 @@ impl Env {
         let dt = 1.0 / cfg.control_hz;
         let car = Car::new(&cfg.car, spec.friction, dt / cfg.physics_substeps as f64);
         let traffic = Traffic::new(&spec.track, &cfg.race, "the simulator configuration").map_err(EnvError::Config)?;
+        let line = LineCell::new(spec.track.clone(), cfg.car.clone(), spec.surface);
         let mut env = Env {
             spec,
             cfg,
@@ -253,6 +257,7 @@ impl Env {
             done: true,
             lidar_rng: ChaCha8Rng::seed_from_u64(seed ^ 0x11DA_4000),
             scan: None,
+            line,
         };
         env.reset();
         Ok(env)
@@ -540,8 +545,13 @@ impl Env {
     /// `advance` + a built-in reward + `finish`.
     pub fn step(&mut self, action: Action, reward: BuiltinReward) -> Result<StepOutcome, RewardError> {
         self.advance(action);
-        let r = if self.needs_reward() { check_reward(reward.reward(self.params()), self.params())? } else { 0.0 };
+        let r = if self.needs_reward() { reward.reward(self.params(), &self.line)? } else { 0.0 };
         Ok(self.finish(r))
+    }
+
+    /// The track's racing line, as `builtin:race_line` sees it.
+    pub fn line(&self) -> &LineCell {
+        &self.line
     }
 
     /// Whether the episode has ended (call [`Env::reset`]).

@@ -173,6 +173,20 @@ pub fn measure(params: &CarParams, surface: Surface) -> Handling {
     }
 }
 
+/// The car's limits on `surface` for a speed profile, as its own manoeuvres measure them:
+/// its top speed, the mean acceleration from rest to 3.9 m/s, the mean deceleration from
+/// 4 m/s to rest, and the largest sideways acceleration it held at full lock.
+pub fn limits(params: &CarParams, surface: Surface) -> tracks::raceline::Limits {
+    let h = measure(params, surface);
+    let lateral = h.radius_full_lock.iter().map(|&(v, r, ..)| v * v / r).fold(0.0, f64::max);
+    tracks::raceline::Limits {
+        top_speed: h.top_speed,
+        accel: 3.9 / h.time_to_top,
+        brake: (4.0f64.powi(2) - 0.15f64.powi(2)) / (2.0 * h.stopping_distance),
+        lateral,
+    }
+}
+
 /// The figures of every surface as Markdown tables.
 pub fn markdown(params: &CarParams) -> String {
     let all: Vec<Handling> = Surface::ALL.iter().map(|&s| measure(params, s)).collect();

@@ -34,6 +34,7 @@ pub mod obs;
 pub mod params;
 pub mod python;
 pub mod race;
+pub mod race_line;
 pub mod reward;
 pub mod rollout;
 pub mod simtrace;
@@ -67,7 +68,7 @@ impl Env {
             return Ok(0.0);
         }
         match reward {
-            RewardFn::Builtin(b) => reward::check_reward(b.reward(self.params()), self.params()),
+            RewardFn::Builtin(b) => b.reward(self.params(), self.line()),
             RewardFn::Python(py) => py.call(0, self.episode(), self.track(), self.params()),
         }
     }

@@ -342,7 +342,7 @@ fn breakdown(spec: &EnvSpec, cfg: &Arc<SimConfig>, python: &std::path::Path, sec
     let obs_ns = per_call(seconds, || sim_agent::obs::observe(&env, &mut obs));
     let params = compute_params(env.track(), &pose, &wheels, action, &clock);
     let builtin_ns = per_call(seconds, || {
-        std::hint::black_box(sim_agent::BuiltinReward::CenterLine.reward(&params));
+        std::hint::black_box(sim_agent::BuiltinReward::CenterLine.reward(&params, env.line()).expect("reward"));
     });
     let mut py = sim_agent::python::PythonReward::load(python)?;
     let track = env.track().clone();

@@ -7,6 +7,7 @@
 
 use crate::params::RewardParams;
 use crate::python::PythonReward;
+use crate::race_line::LineCell;
 use std::path::Path;
 
 /// DeepRacer's bound on a reward's magnitude.
@@ -26,19 +27,49 @@ pub enum BuiltinReward {
     /// reads `objects_distance[next]`, the object's distance from waypoint 0. Without
     /// objects, nothing is penalised.
     ObjectAvoidance,
+    /// Follow the racing line at its speeds, with progress ([`crate::race_line`]).
+    RaceLine,
 }
 
 impl BuiltinReward {
     /// All built-ins with their names.
-    pub const ALL: [(BuiltinReward, &'static str); 3] = [
+    pub const ALL: [(BuiltinReward, &'static str); 4] = [
         (BuiltinReward::CenterLine, "center_line"),
         (BuiltinReward::StayInside, "stay_inside"),
         (BuiltinReward::ObjectAvoidance, "object_avoidance"),
+        (BuiltinReward::RaceLine, "race_line"),
     ];
 
-    /// Evaluate for one step's params.
+    /// The built-in's name.
+    pub fn name(self) -> &'static str {
+        BuiltinReward::ALL.iter().find(|(b, _)| *b == self).map(|(_, n)| *n).unwrap_or("?")
+    }
+
+    /// Evaluate for one step's params, on the track whose racing line `line` holds (only
+    /// `race_line` reads it), checked as DeepRacer checks a reward.
     #[inline]
-    pub fn reward(self, p: &RewardParams) -> f64 {
+    pub fn reward(self, p: &RewardParams, line: &LineCell) -> Result<f64, RewardError> {
+        let r = match self {
+            BuiltinReward::RaceLine => line.get()?.reward(p),
+            b => b.plain(p),
+        };
+        check_reward(r, p)
+    }
+
+    /// This built-in as a DeepRacer reward file: the same arithmetic in Python, so a file
+    /// that `reward export` writes gives the rewards the built-in gives. `race_line` carries
+    /// its track's lines ([`crate::race_line::python_source`]), so it has none here.
+    pub fn python_source(self) -> Option<&'static str> {
+        Some(match self {
+            BuiltinReward::CenterLine => PY_CENTER_LINE,
+            BuiltinReward::StayInside => PY_STAY_INSIDE,
+            BuiltinReward::ObjectAvoidance => PY_OBJECT_AVOIDANCE,
+            BuiltinReward::RaceLine => return None,
+        })
+    }
+
+    /// The rewards that read nothing but the params.
+    fn plain(self, p: &RewardParams) -> f64 {
         match self {
             BuiltinReward::CenterLine => {
                 let w = p.track_width;
@@ -57,7 +88,7 @@ impl BuiltinReward {
                 if p.all_wheels_on_track && (0.5 * p.track_width - p.distance_from_center) >= 0.05 { 1.0 } else { 1e-3 }
             }
             BuiltinReward::ObjectAvoidance => {
-                let lane = BuiltinReward::StayInside.reward(p);
+                let lane = BuiltinReward::StayInside.plain(p);
                 let o = &p.objects;
                 let next = o.closest_objects[1];
                 let mut avoid = 1.0;
@@ -75,9 +106,59 @@ impl BuiltinReward {
                 }
                 1e-3 + lane + 4.0 * avoid
             }
+            BuiltinReward::RaceLine => unreachable!("race_line reads its line"),
         }
     }
 }
+
+const PY_CENTER_LINE: &str = r#""""Paddock's built-in center_line reward (DeepRacer's sample "follow the centre line")."""
+
+
+def reward_function(params):
+    w = params['track_width']
+    d = params['distance_from_center']
+    if d <= 0.1 * w:
+        return 1.0
+    if d <= 0.25 * w:
+        return 0.5
+    if d <= 0.5 * w:
+        return 0.1
+    return 1e-3
+"#;
+
+const PY_STAY_INSIDE: &str = r#""""Paddock's built-in stay_inside reward (DeepRacer's sample "stay inside the two borders")."""
+
+
+def reward_function(params):
+    if params['all_wheels_on_track'] and (0.5 * params['track_width'] - params['distance_from_center']) >= 0.05:
+        return 1.0
+    return 1e-3
+"#;
+
+const PY_OBJECT_AVOIDANCE: &str = r#""""Paddock's built-in object_avoidance reward: DeepRacer's object-avoidance sample (inside
+the borders, penalised 0.8 m or nearer behind the next object in the car's lane), the
+distance to that object measured along the track from the car."""
+
+
+def reward_function(params):
+    if params['all_wheels_on_track'] and (0.5 * params['track_width'] - params['distance_from_center']) >= 0.05:
+        lane = 1.0
+    else:
+        lane = 1e-3
+    avoid = 1.0
+    nxt = params['closest_objects'][1]
+    distances = params['objects_distance']
+    left = params['objects_left_of_center']
+    if nxt < len(distances) and nxt < len(left) and left[nxt] == params['is_left_of_center']:
+        gap = (distances[nxt] - params['projection_distance']) % params['track_length']
+        if 0.5 <= gap < 0.8:
+            avoid *= 0.5
+        elif 0.3 <= gap < 0.5:
+            avoid *= 0.2
+        elif gap < 0.3:
+            avoid = 1e-3
+    return 1e-3 + lane + 4.0 * avoid
+"#;
 
 /// A reward function of either kind.
 pub enum RewardFn {
@@ -124,9 +205,7 @@ impl RewardFn {
     /// A short description for logs.
     pub fn describe(&self) -> String {
         match self {
-            RewardFn::Builtin(b) => {
-                format!("built-in {}", BuiltinReward::ALL.iter().find(|(x, _)| x == b).map(|(_, n)| *n).unwrap_or("?"))
-            }
+            RewardFn::Builtin(b) => format!("built-in {}", b.name()),
             RewardFn::Python(p) => format!("python {}", p.path().display()),
         }
     }

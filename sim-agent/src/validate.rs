@@ -8,7 +8,8 @@ use crate::car::{CarParams, wheel_points_at};
 use crate::objects::Traffic;
 use crate::params::{EpisodeClock, Pose, compute_params};
 use crate::race::RaceConfig;
-use crate::reward::{RewardError, RewardFn, check_reward};
+use crate::race_line::LineCell;
+use crate::reward::{RewardError, RewardFn};
 use policy::{Action, ActionSpace};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -27,22 +28,26 @@ pub struct ValidationReport {
     pub max: f64,
     /// Mean reward per kind of state, in [`SAMPLE_KINDS`] order.
     pub mean_by_kind: Vec<(&'static str, f64)>,
+    /// Every call's reward, in the order made (the same states every run).
+    pub rewards: Vec<f64>,
 }
 
 /// The kinds of state sampled, by lateral offset (fraction of the half width) and heading.
 pub const SAMPLE_KINDS: [&str; 5] =
     ["centre line", "near the left border", "near the right border", "off track", "facing backwards"];
 
-/// Call `reward` on sampled states of `track` in `race`. Actions come from `space` (all
-/// discrete actions, or the corners and middle of a continuous range).
+/// Call `reward` on sampled states of `track` (its floor `surface`) in `race`. Actions come
+/// from `space` (all discrete actions, or the corners and middle of a continuous range).
 pub fn validate_reward(
     reward: &mut RewardFn,
     track: &Track,
+    surface: tracks::Surface,
     space: &ActionSpace,
     positions: usize,
     race: &RaceConfig,
 ) -> Result<ValidationReport, RewardError> {
     let car = CarParams::default();
+    let line = LineCell::new(std::sync::Arc::new(track.clone()), car.clone(), surface);
     let mut traffic =
         Traffic::new(track, race, "the race").map_err(|msg| RewardError::Load { origin: "the race".into(), msg })?;
     if let Some(t) = traffic.as_mut() {
@@ -60,6 +65,7 @@ pub fn validate_reward(
         }
     };
     let (mut sum, mut min, mut max, mut calls) = (0.0, f64::MAX, f64::MIN, 0usize);
+    let mut rewards = Vec::new();
     let mut by_kind = [(0.0f64, 0usize); 5];
     let len = track.length();
     for i in 0..positions {
@@ -98,10 +104,11 @@ pub fn validate_reward(
                     t.fill_params(track, &pose, contact, &mut params);
                 }
                 let r = match reward {
-                    RewardFn::Builtin(b) => check_reward(b.reward(&params), &params)?,
+                    RewardFn::Builtin(b) => b.reward(&params, &line)?,
                     RewardFn::Python(py) => py.call(0, 0, track, &params)?,
                 };
                 calls += 1;
+                rewards.push(r);
                 sum += r;
                 min = min.min(r);
                 max = max.max(r);
@@ -116,5 +123,6 @@ pub fn validate_reward(
         mean: sum / calls.max(1) as f64,
         max,
         mean_by_kind: SAMPLE_KINDS.iter().zip(by_kind).map(|(n, (s, c))| (*n, s / c.max(1) as f64)).collect(),
+        rewards,
     })
 }

@@ -8,7 +8,7 @@
 use crate::config::{ObservationKind, SimConfig};
 use crate::env::{Env, EnvError, EnvSpec, Mode, StepOutcome};
 use crate::obs::{obs_dim, observe};
-use crate::reward::{RewardError, RewardFn, check_reward};
+use crate::reward::{RewardError, RewardFn};
 use policy::Action;
 use rayon::prelude::*;
 use std::sync::Arc;
@@ -147,8 +147,7 @@ impl VecEnv {
                         .zip(obs.par_chunks_mut(dim))
                         .try_for_each(|(((e, a), out), o)| {
                             e.advance(*a);
-                            let r =
-                                if e.needs_reward() { check_reward(b.reward(e.params()), e.params())? } else { 0.0 };
+                            let r = if e.needs_reward() { b.reward(e.params(), e.line())? } else { 0.0 };
                             *out = close(e, r, o);
                             Ok(())
                         })

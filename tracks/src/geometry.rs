@@ -323,6 +323,15 @@ impl Track {
         self.center.points()
     }
 
+    /// The rows in driving order (a reversed track's rows run backwards; inner stays inner).
+    pub fn rows(&self) -> crate::TrackRows {
+        crate::TrackRows {
+            center: self.center.points().to_vec(),
+            inner: self.inner.points().to_vec(),
+            outer: self.outer.points().to_vec(),
+        }
+    }
+
     /// The centre line.
     pub fn center(&self) -> &Polyline {
         &self.center

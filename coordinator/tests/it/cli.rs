@@ -99,6 +99,12 @@ fn issue_34_tracks_generate_writes_a_track_that_imports_and_drives_and_refuses_w
         let drive = coordinator(d, &[&["drive", "--track", "g.npy", "--laps", "1"][..], extra].concat());
         assert!(stdout(&drive).contains("1 of 1 laps completed"), "{extra:?}: {}{}", stdout(&drive), stderr(&drive));
     }
+    // numpy reads it as DeepRacer's tracks are read: rows of centre, inner and outer x, y.
+    let check = "import numpy as np\nt = np.load('g.npy')\nassert t.shape[1] == 6 and t.shape[0] > 50, t.shape\n\
+                 w = np.linalg.norm(t[:, 2:4] - t[:, 4:6], axis=1)\nassert np.allclose(w, 1.07, atol=1e-6), w\n\
+                 assert np.allclose(t[0], t[-1]), 'a loop'\nprint('ok')";
+    let o = Command::new(crate::support::python("numpy")).args(["-c", check]).current_dir(d).output().unwrap();
+    assert!(stdout(&o).contains("ok"), "{}{}", stdout(&o), stderr(&o));
     // A loop too short for turns the car can take at that width: refused, nothing written.
     let e = coordinator(d, &["tracks", "generate", "--seed", "1", "--length", "5", "--width", "1.5", "--out", "x.npy"]);
     assert!(!e.status.success() && stderr(&e).contains("cannot close with turns the car can take"), "{}", stderr(&e));
@@ -134,9 +140,39 @@ fn issue_34_tracks_raceline_laps_faster_than_the_centre_and_writes_what_numpy_an
     let o = Command::new(py).args(["-c", check]).current_dir(d).output().unwrap();
     assert!(stdout(&o).contains("ok"), "{}{}", stdout(&o), stderr(&o));
     assert!(std::fs::metadata(d.join("rl.png")).unwrap().len() > 1000);
+    // The action space the line proposes, as DeepRacer's model_metadata.json.
+    let meta = policy::ModelMetadata::load(&d.join("rl.model_metadata.json")).unwrap();
+    let policy::ActionSpace::Discrete(actions) = &meta.action_space else { panic!("{:?}", meta.action_space) };
+    assert_eq!(actions.len(), 7, "{actions:?}");
     // A road narrower than the margins: refused with the row.
     let e = coordinator(d, &["tracks", "raceline", "reinvent_base", "--margin", "0.5"]);
     assert!(!e.status.success() && stderr(&e).contains("no line keeps 0.500 m from both borders"), "{}", stderr(&e));
+}
+
+#[test]
+fn issue_34_reward_export_writes_builtins_that_validate_to_the_builtins_rewards() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let summary = |o: &Output| -> String {
+        assert!(o.status.success(), "{}{}", stdout(o), stderr(o));
+        stdout(o).lines().filter(|l| l.contains("mean reward") || l.contains(" calls: ")).collect::<Vec<_>>().join("\n")
+    };
+    for (name, world) in [("race_line", "reinvent_wood"), ("center_line", "reinvent_base")] {
+        let file = format!("{name}.py");
+        let e = coordinator(d, &["reward", "export", &format!("builtin:{name}"), "--world", world, "--out", &file]);
+        assert!(e.status.success(), "{}", stderr(&e));
+        for reversed in [&[][..], &["--reversed"][..]] {
+            let check = |r: &str| {
+                summary(&coordinator(d, &[&["reward", "validate", r, "--track", world][..], reversed].concat()))
+            };
+            let (builtin, python) = (check(&format!("builtin:{name}")), check(&file));
+            assert_eq!(builtin, python, "{name} {reversed:?}");
+            assert!(builtin.contains("900 calls"), "{builtin}");
+        }
+    }
+    let e = coordinator(d, &["reward", "export", "builtin:fastest", "--out", "x.py"]);
+    assert!(!e.status.success() && stderr(&e).contains("builtin:fastest: not a built-in reward"), "{}", stderr(&e));
+    assert!(!d.join("x.py").exists());
 }
 
 #[test]

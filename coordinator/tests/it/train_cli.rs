@@ -319,12 +319,44 @@ fn issue_5_a_camera_model_learns_to_lap_from_pixels() {
     assert!(log.contains("target laps reached: 3 laps in 2 consecutive evaluations"), "{log}");
     let meta = std::fs::read_to_string(run.join("model/model_metadata.json")).unwrap();
     assert!(meta.contains("FRONT_FACING_CAMERA") && meta.contains("DEEP_CONVOLUTIONAL_NETWORK_SHALLOW"), "{meta}");
+    // An independent evaluation: the model raced against its own DeepRacer archive (issue 34),
+    // a trial ending at the first off-track as `evaluate`'s do.
     let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
     let model = run.join("model").display().to_string();
-    let e = coordinator(dir.path(), &["evaluate", &model, "--world", "reinvent_base", "--trials", "3", "--seed", "2"]);
-    assert!(e.status.success(), "{}", text(&e));
-    let laps: usize = text(&e).lines().filter(|l| l.starts_with("trial ") && l.contains("lap_complete")).count();
-    assert!(laps >= 2, "the camera model laps in an independent evaluation too:\n{}", text(&e));
+    let x = coordinator(d, &["export", &model, "--car", "pixels.tar.gz"]);
+    assert!(x.status.success(), "{}", text(&x));
+    let args = ["race", &model, "pixels.tar.gz", "--trials", "3", "--seed", "2", "--resets", "0", "--out", "race"];
+    let e = coordinator(d, &args);
+    let t = text(&e);
+    assert!(e.status.success(), "{t}");
+    let laps =
+        |name: &str| t.lines().filter(|l| l.trim_start().starts_with(name) && l.contains("lap_complete")).count();
+    assert!(laps("run ") >= 2, "the camera model laps in an independent evaluation too:\n{t}");
+    // The archive is the same policy: the same trials, lap for lap.
+    let trials = |name: &str| -> Vec<String> {
+        t.lines()
+            .filter(|l| l.trim_start().starts_with(name))
+            .map(|l| l.trim_start()[name.len()..].trim().to_string())
+            .collect()
+    };
+    assert_eq!(trials("run "), trials("pixels "), "{t}");
+    let board: Vec<&str> = t.lines().skip_while(|l| !l.starts_with("RANK")).skip(1).take(2).collect();
+    assert!(
+        board.len() == 2 && board.iter().any(|l| l.contains(" run ")) && board.iter().any(|l| l.contains(" pixels ")),
+        "{t}"
+    );
+    // The page: the leaderboard, each model's fastest lap on the track and its camera strip.
+    let page = std::fs::read_to_string(d.join("race/race.html")).unwrap();
+    for (i, name) in board.iter().map(|l| l.split_whitespace().nth(1).unwrap()).enumerate() {
+        for (suffix, width) in [("lap", 300), ("camera", 160 * 10)] {
+            let file = format!("{}-{name}-{suffix}.png", i + 1);
+            assert!(page.contains(&file), "{file}: {page}");
+            let img = image::open(d.join("race").join(&file)).unwrap();
+            assert!(img.width() >= width, "{file}: {}", img.width());
+        }
+    }
+    assert!(page.contains("<td>run</td>") && page.contains("<td>pixels</td>"), "{page}");
 }
 
 /// A small tmpfs, unmounted when dropped.
@@ -353,7 +385,7 @@ fn issue_10_a_full_disk_is_reported_and_the_last_checkpoint_stays_whole_as_root(
             "--world",
             "reinvent_base",
             "--minutes",
-            "0.5",
+            "0.2",
             "--target-laps",
             "0",
             "--checkpoint-seconds",

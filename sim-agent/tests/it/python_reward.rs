@@ -262,3 +262,33 @@ fn issue_31_python_rewards_get_every_object_key_as_deepracer_passes_them() {
     let o = env.step_with(PurePursuit::default().act(&env), &mut sample).unwrap();
     assert!(o.reward > 1.0, "{}", o.reward);
 }
+
+#[test]
+fn issue_34_every_builtin_exported_as_python_gives_the_builtins_rewards() {
+    use sim_agent::race::{RaceConfig, RaceType};
+    use sim_agent::race_line::{LinePlan, python_source};
+    use sim_agent::validate::validate_reward;
+    let world = tracks::world("reinvent_base").unwrap();
+    let car = SimConfig::default().car;
+    let plan = |d| LinePlan::new(&world.track(d), &car, world.surface).unwrap();
+    let race_line_py = python_source(&world.name, world.surface, &plan(Direction::Forward), &plan(Direction::Reversed));
+    let obstacles =
+        RaceConfig { race_type: RaceType::ObjectAvoidance, number_of_obstacles: 3, ..RaceConfig::default() };
+    let space = policy::ModelMetadata::default_state_vector().action_space;
+    for (b, name) in BuiltinReward::ALL {
+        let source = b.python_source().map(str::to_string).unwrap_or_else(|| race_line_py.clone());
+        let race = if b == BuiltinReward::ObjectAvoidance { obstacles.clone() } else { RaceConfig::default() };
+        for d in [Direction::Forward, Direction::Reversed] {
+            let track = world.track(d);
+            let run = |mut r: RewardFn| validate_reward(&mut r, &track, world.surface, &space, 12, &race).unwrap();
+            let want = run(RewardFn::Builtin(b));
+            let got = run(RewardFn::from_source(&format!("{name}.py"), &source).unwrap());
+            assert_eq!(want.rewards.len(), got.rewards.len());
+            for (i, (w, g)) in want.rewards.iter().zip(&got.rewards).enumerate() {
+                assert!((w - g).abs() <= 1e-12 * w.abs().max(1.0), "{name} {d:?}, call {i}: built-in {w}, Python {g}");
+            }
+            let distinct = want.rewards.iter().map(|r| r.to_bits()).collect::<std::collections::BTreeSet<_>>();
+            assert!(distinct.len() > 1, "{name} {d:?}: the states must tell rewards apart");
+        }
+    }
+}

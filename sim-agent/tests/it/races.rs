@@ -294,7 +294,7 @@ fn issue_31_the_builtin_object_avoidance_reward_penalises_closing_in_on_the_next
     loop {
         env.advance(STRAIGHT);
         let p = env.params().clone();
-        let r = BuiltinReward::ObjectAvoidance.reward(&p);
+        let r = BuiltinReward::ObjectAvoidance.reward(&p, env.line()).unwrap();
         let gap = 4.0 - p.x;
         let want = if gap >= 0.8 {
             5.001
@@ -319,7 +319,7 @@ fn issue_31_the_builtin_object_avoidance_reward_penalises_closing_in_on_the_next
     env.advance(Action { steering_angle: 0.0, speed: 0.0 });
     env.finish(0.0);
     env.advance(STRAIGHT);
-    assert!((BuiltinReward::ObjectAvoidance.reward(env.params()) - 5.001).abs() < 1e-9);
+    assert!((BuiltinReward::ObjectAvoidance.reward(env.params(), env.line()).unwrap() - 5.001).abs() < 1e-9);
 }
 
 #[test]
