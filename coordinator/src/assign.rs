@@ -2,7 +2,10 @@
 //! evenly, one world each (counts differ by at most one; a lost agent's world is filled at
 //! once from the most crowded world). With fewer agents than worlds, every agent drives every
 //! world at once, its environments split over them from its own offset, so no agent hops
-//! between worlds and nothing it had running is thrown away. Pure functions, tested here.
+//! between worlds and nothing it had running is thrown away. A job with the adaptive schedule
+//! gives every agent every world and weighs the worlds by their last evaluation
+//! ([`weights`]): the agents split their environments by the weights. Pure functions, tested
+//! here.
 
 use crate::jobs::AgentWork;
 use protocol::Job;
@@ -52,8 +55,54 @@ pub fn assign(
     out
 }
 
-/// The assignment message for `agent`'s share of a job.
-pub fn assignment(doc: &Job, agent: &str, work: &AgentWork) -> anyhow::Result<Assignment> {
+/// One world's last evaluation, as the adaptive schedule reads it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct WorldEval {
+    /// Mean progress (%).
+    pub progress: f64,
+    /// Mean lap time when every trial lapped (s).
+    pub lap_time: Option<f64>,
+    /// The world's reference lap (s; its racing line's), to compare laps of different
+    /// tracks.
+    pub reference: f64,
+}
+
+/// What a world's weakness is at least: worlds that all lap near their best split evenly.
+const BASE_WEAKNESS: f64 = 0.1;
+
+/// The adaptive schedule's weights: each world's share of the environments, from its last
+/// evaluation. A world's weakness is the progress it still misses (1 − progress / 100) plus a
+/// quarter of how much slower its laps are than those of the world lapping nearest its
+/// reference (reference / lap time): lowest progress first, then the slowest lap. Every world
+/// keeps `floor` of an even share; the rest goes by weakness, each counted 0.1 more so that
+/// worlds all lapping near their best split evenly rather than by noise. Even while any world
+/// has no evaluation.
+pub fn weights(evals: &[Option<WorldEval>], floor: f64) -> Vec<f64> {
+    let n = evals.len();
+    let even = vec![1.0 / n.max(1) as f64; n];
+    let Some(evals) = evals.iter().copied().collect::<Option<Vec<WorldEval>>>() else { return even };
+    let speed = |e: &WorldEval| e.lap_time.filter(|l| *l > 0.0).map(|l| e.reference / l);
+    let fastest = evals.iter().filter_map(speed).fold(0.0, f64::max);
+    let weak: Vec<f64> = evals
+        .iter()
+        .map(|e| {
+            let missing = (1.0 - e.progress / 100.0).clamp(0.0, 1.0);
+            let slower = match speed(e) {
+                Some(v) if fastest > 0.0 => 1.0 - v / fastest,
+                _ => 0.0,
+            };
+            missing + 0.25 * slower.clamp(0.0, 1.0)
+        })
+        .map(|w| w + BASE_WEAKNESS)
+        .collect();
+    let total: f64 = weak.iter().sum();
+    let floor = if floor.is_finite() { floor.clamp(0.0, 1.0) } else { 0.0 };
+    weak.iter().map(|w| floor / n as f64 + (1.0 - floor) * w / total).collect()
+}
+
+/// The assignment message for `agent`'s share of a job; `weights` split its environments
+/// over the worlds (the adaptive schedule; empty: round-robin).
+pub fn assignment(doc: &Job, agent: &str, work: &AgentWork, weights: &[f64]) -> anyhow::Result<Assignment> {
     let sim: sim_agent::SimConfig = sim_agent::config::parse_toml(&doc.sim_config_toml, "the job's sim config")?;
     Ok(Assignment {
         protocol_version: PROTOCOL_VERSION,
@@ -74,6 +123,7 @@ pub fn assignment(doc: &Job, agent: &str, work: &AgentWork) -> anyhow::Result<As
         job_worlds: doc.worlds.clone(),
         seed: doc.seed ^ work.generation.wrapping_mul(0x9E37_79B9),
         generation: work.generation,
+        weights: if weights.len() == work.worlds.len() { weights.to_vec() } else { Vec::new() },
     })
 }
 
@@ -109,6 +159,39 @@ mod tests {
         // Agents that keep their world are not moved (no episodes thrown away).
         let kept = plan2.iter().filter(|(a, w)| plan[*a] == **w).count();
         assert!(kept >= 3, "{plan:?} -> {plan2:?}");
+    }
+
+    #[test]
+    fn issue_34_the_schedule_weighs_the_weakest_world_most_and_keeps_a_floor_for_each() {
+        let e = |progress: f64, lap: Option<f64>| Some(WorldEval { progress, lap_time: lap, reference: 5.0 });
+        let short = |progress: f64, lap: f64| Some(WorldEval { progress, lap_time: Some(lap), reference: 2.5 });
+        // Each weakness counts 0.1 more (BASE_WEAKNESS).
+        let split = |weak: &[f64], floor: f64| -> Vec<f64> {
+            let total: f64 = weak.iter().map(|w| w + 0.1).sum();
+            weak.iter().map(|w| floor / weak.len() as f64 + (1.0 - floor) * (w + 0.1) / total).collect()
+        };
+        // (evaluations, floor, the weights wanted)
+        let table: Vec<(Vec<Option<WorldEval>>, f64, Vec<f64>)> = vec![
+            // Not every world evaluated yet: even.
+            (vec![e(50.0, None), None, e(100.0, Some(10.0))], 0.5, vec![1.0 / 3.0; 3]),
+            // Nothing weaker than another: even.
+            (vec![e(100.0, Some(10.0)), e(100.0, Some(10.0))], 0.5, vec![0.5, 0.5]),
+            // Progress first: 40 % and 80 % miss 0.6 and 0.2; the lapping world keeps its floor
+            // and the base weakness.
+            (vec![e(40.0, None), e(80.0, None), e(100.0, Some(10.0))], 0.5, split(&[0.6, 0.2, 0.0], 0.5)),
+            // Then the slowest lap against its reference: at half its line's pace against a
+            // quarter (a shorter line in the same time is the slower lap).
+            (vec![e(100.0, Some(10.0)), short(100.0, 10.0)], 0.0, split(&[0.0, 0.25 * 0.5], 0.0)),
+            // No floor: the weakest takes nearly all.
+            (vec![e(0.0, None), e(100.0, Some(5.0))], 0.0, split(&[1.0, 0.0], 0.0)),
+        ];
+        for (evals, floor, want) in table {
+            let got = weights(&evals, floor);
+            assert!((got.iter().sum::<f64>() - 1.0).abs() < 1e-9, "{got:?}");
+            for (g, w) in got.iter().zip(&want) {
+                assert!((g - w).abs() < 1e-9, "{evals:?} floor {floor}: {got:?}, want {want:?}");
+            }
+        }
     }
 
     #[test]

@@ -1218,3 +1218,72 @@ pub fn race_line(world: &str, minutes: f64, sensors: &[String], seed: u64, out: 
         Ok(1)
     }
 }
+
+/// The worlds of `bench schedule` by default: four tracks of different difficulty, one of
+/// them on a surface of less grip.
+const SCHEDULE_WORLDS: [&str; 5] =
+    ["reinvent_base", "reinvent_wood", "Oval_track", "Bowtie_track", "reInvent2019_track"];
+
+/// `bench schedule`: the same `up` job (several worlds, 2 agents) with the adaptive schedule
+/// and with an even one, for each seed, one after the other; the wall-clock until an
+/// evaluation lapped 3/3 on every world. Passes when the adaptive schedule's median time is
+/// shorter (a job that does not get there counts as its budget).
+pub fn schedule(worlds: &[String], sensor: &str, minutes: f64, seeds: &[u64], out: &std::path::Path) -> Result<i32> {
+    let worlds: Vec<String> =
+        if worlds.is_empty() { SCHEDULE_WORLDS.map(String::from).to_vec() } else { worlds.to_vec() };
+    let seeds: Vec<u64> = if seeds.is_empty() { vec![1, 2, 3] } else { seeds.to_vec() };
+    let me = std::env::current_exe()?;
+    std::fs::create_dir_all(out)?;
+    let dir = out.canonicalize()?;
+    // (schedule, seed, seconds to 3/3 everywhere or None, how it stopped)
+    let mut rows: Vec<(&str, u64, Option<f64>, String)> = Vec::new();
+    for &seed in &seeds {
+        for how in ["adaptive", "even"] {
+            let folder = format!("{how}-{seed}");
+            let mut args: Vec<String> = ["up", "--schedule", how, "--sensor", sensor, "--agents", "2", "--envs", "8"]
+                .map(String::from)
+                .to_vec();
+            for w in &worlds {
+                args.extend(["--world".to_string(), w.clone()]);
+            }
+            args.extend(
+                ["--target-laps", "3", "--minutes", &minutes.to_string(), "--seed", &seed.to_string()]
+                    .map(String::from),
+            );
+            args.extend(["--out".to_string(), folder.clone(), "--force".into()]);
+            let t0 = Instant::now();
+            let text = child(&me, &dir, &args)?;
+            let secs = t0.elapsed().as_secs_f64();
+            let stop = text.lines().find(|l| l.contains(": Finished") || l.contains(": Failed")).unwrap_or("").trim();
+            let lapped = text.contains("target laps reached");
+            rows.push((how, seed, lapped.then_some(secs), stop.to_string()));
+        }
+    }
+    let median = |how: &str| -> f64 {
+        let mut v: Vec<f64> = rows.iter().filter(|r| r.0 == how).map(|r| r.2.unwrap_or(minutes * 60.0)).collect();
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    println!(
+        "# coordinator bench schedule: {} worlds ({}), {sensor}, 2 agents × 8 envs, {minutes} min budget",
+        worlds.len(),
+        worlds.join(", ")
+    );
+    println!();
+    println!("| schedule | seed | s to 3/3 on every world | how it stopped |");
+    println!("|---|---:|---:|---|");
+    for (how, seed, secs, stop) in &rows {
+        let s = secs.map(|s| format!("{s:.0}")).unwrap_or_else(|| "did not".into());
+        println!("| {how} | {seed} | {s} | {stop} |");
+    }
+    let (a, e) = (median("adaptive"), median("even"));
+    println!();
+    println!("median: adaptive {a:.0} s, even {e:.0} s ({:.2}× the even schedule's time)", a / e.max(1e-9));
+    if a < e {
+        println!("verdict: pass: the adaptive schedule gets every world to 3/3 sooner");
+        Ok(0)
+    } else {
+        println!("verdict: FAIL: the adaptive schedule is not faster");
+        Ok(1)
+    }
+}

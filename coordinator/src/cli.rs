@@ -238,6 +238,27 @@ pub enum BenchCommand {
         #[arg(long, default_value = "runs/bench-races")]
         out: PathBuf,
     },
+    /// The adaptive schedule against an even one (issue 34): the same `up` job over several
+    /// worlds (2 agents), adaptive and even, for each seed; the wall-clock until an evaluation
+    /// laps 3/3 on every world. Prints a table and a verdict (exit 1 unless adaptive's median
+    /// is shorter).
+    Schedule {
+        /// Worlds (repeatable; default five of different difficulty).
+        #[arg(long = "world")]
+        worlds: Vec<String>,
+        /// Observations: state or camera.
+        #[arg(long, default_value = "camera")]
+        sensor: String,
+        /// Budget of each job (minutes); a job that does not get there counts as this.
+        #[arg(long, default_value_t = 30.0)]
+        minutes: f64,
+        /// Seeds (repeatable; default 1, 2, 3).
+        #[arg(long = "seed")]
+        seeds: Vec<u64>,
+        /// Where the jobs go (kept).
+        #[arg(long, default_value = "runs/bench-schedule")]
+        out: PathBuf,
+    },
     /// The racing line's reward against the centre line's (issue 34): per sensor, the same
     /// training (`--action-space-from-line`, same seed and minutes) with `builtin:race_line`
     /// and with `builtin:center_line`, the two models raced (`coordinator race`). Prints a
@@ -553,12 +574,16 @@ pub struct UpArgs {
         "world", "reward", "sensor", "hyperparameters", "model_metadata", "clone_from", "minutes",
         "max_episodes", "env_steps", "target_progress", "target_reward", "window", "target_laps",
         "target_evals", "verify_trials", "stop_on_plateau", "stop_on_collapse", "sets", "seed", "race", "obstacles", "bots",
-        "bot_speed", "run_env",
+        "bot_speed", "run_env", "schedule",
     ])]
     pub job: Option<PathBuf>,
     /// World (repeatable; default: reinvent_carpet and reinvent_concrete).
     #[arg(long)]
     pub world: Vec<String>,
+    /// How the environments spread over the worlds: `adaptive` (more where the last
+    /// evaluations are weakest; the default with three worlds or more) or `even`.
+    #[arg(long, value_parser = ["adaptive", "even"])]
+    pub schedule: Option<String>,
     /// DeepRacer's hyperparameters.json.
     #[arg(long)]
     pub hyperparameters: Option<PathBuf>,

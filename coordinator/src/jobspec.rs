@@ -11,6 +11,9 @@
 //! [stop]
 //! minutes = 10
 //! target_progress = 95
+//! [schedule]                         # optional
+//! adaptive = true    # environments move to the weakest worlds (default: with 3 worlds or more)
+//! floor = 0.5        # each world keeps at least this fraction of an even share
 //! ```
 
 use anyhow::{Context, Result, bail};
@@ -59,7 +62,24 @@ pub struct JobSpec {
     /// Simulator configuration (any key of config/default.toml).
     #[serde(default)]
     pub sim: Option<toml::Table>,
+    /// How the coordinator spreads the environments over the worlds.
+    #[serde(default)]
+    pub schedule: ScheduleSpec,
 }
+
+/// `[schedule]`.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ScheduleSpec {
+    /// Move environments to the worlds the last evaluations found weakest (default: on for
+    /// jobs of three worlds or more).
+    pub adaptive: Option<bool>,
+    /// The fraction of an even share each world keeps (default 0.5).
+    pub floor: Option<f64>,
+}
+
+/// The floor of a world's share when `[schedule] floor` is not given.
+pub const DEFAULT_FLOOR: f64 = 0.5;
 
 fn default_reward() -> String {
     "builtin:center_line".into()
@@ -130,6 +150,10 @@ pub fn parse(text: &str, base: &Path, origin: &str, id: &str) -> Result<Job> {
     };
     let meta = ModelMetadata::parse(&model_metadata_json, "model_metadata.json")?;
     sim.observation.set_sensors(&meta).map_err(|e| anyhow::anyhow!("{origin}: model_metadata: {e}"))?;
+    let floor = spec.schedule.floor.unwrap_or(DEFAULT_FLOOR);
+    if !(0.0..=1.0).contains(&floor) {
+        bail!("{origin}: field 'schedule.floor' must be a fraction from 0 to 1, not {floor}");
+    }
     if spec.stop.minutes <= 0.0 || !spec.stop.minutes.is_finite() {
         bail!("{origin}: field 'stop.minutes' must be a positive number of minutes");
     }
@@ -142,7 +166,6 @@ pub fn parse(text: &str, base: &Path, origin: &str, id: &str) -> Result<Job> {
         protocol_version: protocol::PROTOCOL_VERSION,
         id: id.to_string(),
         tracks,
-        worlds: spec.worlds,
         reward_name,
         reward_source,
         model_metadata_json,
@@ -156,6 +179,9 @@ pub fn parse(text: &str, base: &Path, origin: &str, id: &str) -> Result<Job> {
         stop: Some(spec.stop),
         eval_trials: spec.eval_trials.max(1),
         obs_size: sim_agent::obs::obs_dim(&sim.observation) as u64,
+        adaptive: spec.schedule.adaptive.unwrap_or(spec.worlds.len() >= 3),
+        schedule_floor: floor,
+        worlds: spec.worlds,
     })
 }
 
@@ -173,6 +199,8 @@ mod tests {
             ("worlds = [\"reinvent_wood\"]\nreward = \"missing.py\"", "field 'reward'"),
             ("worlds = [\"reinvent_wood\"]\n[stop]\nminutes = -1", "stop.minutes"),
             ("worlds = [\"reinvent_wood\"]\n[stop]\nminute = 3", "minute"),
+            ("worlds = [\"reinvent_wood\"]\n[schedule]\nfloor = 1.5", "field 'schedule.floor' must be a fraction"),
+            ("worlds = [\"reinvent_wood\"]\n[schedule]\nadaptiv = true", "adaptiv"),
             ("worlds = [\"reinvent_wood\"]\n[sim]\ncontrol_hz = \"fast\"", "field 'sim'"),
             ("worlds = \"reinvent_wood\"", "worlds"),
         ] {
@@ -185,6 +213,22 @@ mod tests {
         assert_eq!(ok.worlds.len(), 2);
         assert_eq!(ok.reward_source, "builtin:center_line");
         assert_eq!(ok.out, "runs/j");
+    }
+
+    #[test]
+    fn issue_34_the_adaptive_schedule_is_on_for_three_worlds_or_more_unless_turned_off() {
+        let dir = std::env::temp_dir();
+        let three = "worlds = [\"reinvent_base\", \"reinvent_wood\", \"reinvent_carpet\"]\n";
+        let two = "worlds = [\"reinvent_base\", \"reinvent_wood\"]\n";
+        for (text, adaptive, floor) in [
+            (three.to_string(), true, DEFAULT_FLOOR),
+            (two.to_string(), false, DEFAULT_FLOOR),
+            (format!("{three}[schedule]\nadaptive = false\n"), false, DEFAULT_FLOOR),
+            (format!("{two}[schedule]\nadaptive = true\nfloor = 0.2\n"), true, 0.2),
+        ] {
+            let doc = parse(&text, &dir, "job.toml", "j").unwrap();
+            assert_eq!((doc.adaptive, doc.schedule_floor), (adaptive, floor), "{text}");
+        }
     }
 
     #[test]

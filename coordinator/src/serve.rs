@@ -9,7 +9,7 @@
 //! wall-clock limit as a backstop should the learner be gone.
 
 use anyhow::{Context, Result};
-use coordinator::assign::{assign, assignment};
+use coordinator::assign::{WorldEval, assign, assignment, weights};
 use coordinator::jobs::{AgentWork, Db, JobRecord, JobState, now_unix};
 use protocol::job_reply::Body;
 use protocol::net::{self, DropCounters, NetArgs, decode_sample, zenoh};
@@ -37,6 +37,8 @@ struct State {
     jobs: BTreeMap<String, JobRecord>,
     agents: BTreeMap<String, Alive>,
     learners: BTreeMap<String, Instant>,
+    /// Each world's racing-line lap (s), the adaptive schedule's yardstick, worked out once.
+    line_laps: BTreeMap<String, f64>,
 }
 
 /// Options of `coordinator serve`.
@@ -57,7 +59,12 @@ pub fn serve(args: ServeArgs) -> Result<()> {
     let session = net::open_retrying(&args.net)?;
     let _token =
         session.liveliness().declare_token(keys::COORDINATOR_ALIVE).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
-    let state = Arc::new(Mutex::new(State { jobs, agents: BTreeMap::new(), learners: BTreeMap::new() }));
+    let state = Arc::new(Mutex::new(State {
+        jobs,
+        agents: BTreeMap::new(),
+        learners: BTreeMap::new(),
+        line_laps: BTreeMap::new(),
+    }));
     let drops = Arc::new(DropCounters::default());
 
     // Control queryable.
@@ -220,8 +227,13 @@ fn schedule(st: &mut State, db: &Db, session: &zenoh::Session) {
         .map(|j| j.id().to_string());
     if let Some(id) = &active {
         let j = st.jobs.get_mut(id).expect("active");
-        let plan = assign(&agents, &j.job().worlds, &j.assignments);
-        let mut changed = false;
+        // The adaptive schedule: every agent drives every world, the weights split them.
+        let plan = if j.job().adaptive {
+            agents.iter().map(|a| (a.clone(), j.job().worlds.clone())).collect()
+        } else {
+            assign(&agents, &j.job().worlds, &j.assignments)
+        };
+        let mut changed = j.job().adaptive && reweigh(j, &mut st.line_laps);
         for (a, worlds) in &plan {
             if j.assignments.get(a).map(|w| &w.worlds) != Some(worlds) {
                 j.generation += 1;
@@ -259,7 +271,7 @@ fn schedule(st: &mut State, db: &Db, session: &zenoh::Session) {
             for (a, w) in &j.assignments {
                 // The job's sim config was checked when it started; should it not parse now,
                 // say so rather than send defaults.
-                let asg = match assignment(j.job(), a, w) {
+                let asg = match assignment(j.job(), a, w, &j.weights) {
                     Ok(asg) => asg,
                     Err(e) => {
                         tracing::error!(job = %j.id(), "cannot assign {a}: {e:#}");
@@ -276,6 +288,55 @@ fn schedule(st: &mut State, db: &Db, session: &zenoh::Session) {
             tracing::warn!("could not publish the job table: {e}");
         }
     }
+}
+
+/// The adaptive schedule: the worlds' weights from the learner's last evaluation of each,
+/// laps measured against each world's racing line (`line_laps` keeps them). New weights are
+/// taken when one moves by 5 points or more (an agent's environments move at their episodes'
+/// ends, so small changes are not worth it); true when they were.
+fn reweigh(j: &mut JobRecord, line_laps: &mut BTreeMap<String, f64>) -> bool {
+    let doc = j.job();
+    for w in &doc.worlds {
+        if !line_laps.contains_key(w) {
+            let lap = tracks::world(w)
+                .ok()
+                .and_then(|world| {
+                    let car = sim_agent::SimConfig::default().car;
+                    sim_agent::race_line::LinePlan::new(&world.track(tracks::Direction::Forward), &car, world.surface)
+                        .ok()
+                        .map(|p| p.lap_time)
+                })
+                // No line fits: the centre line at 2 m/s stands in.
+                .unwrap_or_else(|| doc.tracks.iter().find(|t| &t.world == w).map_or(1.0, |t| t.length / 2.0));
+            line_laps.insert(w.clone(), lap);
+        }
+    }
+    let evals: Vec<Option<WorldEval>> = doc
+        .worlds
+        .iter()
+        .map(|w| {
+            let s = j.learner.as_ref()?.worlds.iter().find(|x| &x.world == w).filter(|x| x.evaluated)?;
+            Some(WorldEval {
+                progress: s.eval_progress,
+                lap_time: (s.eval_lap_time > 0.0).then_some(s.eval_lap_time),
+                reference: line_laps[w],
+            })
+        })
+        .collect();
+    let next = weights(&evals, doc.schedule_floor);
+    let moved = j.weights.len() != next.len() || j.weights.iter().zip(&next).any(|(a, b)| (a - b).abs() >= 0.05);
+    if !moved {
+        return false;
+    }
+    let shares: Vec<String> = doc.worlds.iter().zip(&next).map(|(w, x)| format!("{w} {:.0} %", 100.0 * x)).collect();
+    let why = if evals.iter().all(Option::is_some) {
+        "by the last evaluation"
+    } else {
+        "even until every world is evaluated"
+    };
+    j.event(format!("schedule: {} ({why})", shares.join(", ")));
+    j.weights = next;
+    true
 }
 
 fn reply(ok: bool, text: String, body: Option<Body>) -> JobReply {
@@ -480,8 +541,12 @@ fn status_text(j: &JobRecord, st: &State) -> String {
     for w in &j.job().worlds {
         let agents: Vec<&String> = j.assignments.iter().filter(|(_, x)| x.worlds.contains(w)).map(|(a, _)| a).collect();
         let ws = l.worlds.iter().find(|x| &x.world == w).cloned().unwrap_or_default();
+        let share = match j.job().worlds.iter().position(|x| x == w).and_then(|i| j.weights.get(i)) {
+            Some(x) if j.job().adaptive => format!(" share {:>3.0} %", 100.0 * x),
+            _ => String::new(),
+        };
         t.push_str(&format!(
-            "  world {w:<20} agents {:<2} episodes {:>6} crashed {:>5} mean progress {:>5.1} % mean reward {:>8.2} steps/s {:>7.0}  [{}]\n",
+            "  world {w:<20} agents {:<2}{share} episodes {:>6} crashed {:>5} mean progress {:>5.1} % mean reward {:>8.2} steps/s {:>7.0}  [{}]\n",
             agents.len(),
             ws.episodes,
             ws.crashes,

@@ -248,6 +248,7 @@ pub fn train(mut args: TrainArgs) -> Result<i32> {
         id: "local".into(),
         worlds: worlds.iter().map(|w| EnvSpec::from_world(w, Direction::Forward)).collect(),
         offset: 0,
+        weights: Vec::new(),
         envs: args.envs.max(1),
         threads,
         cfg: Arc::new(cfg),

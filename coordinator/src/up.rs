@@ -383,6 +383,11 @@ fn job_spec(args: &UpArgs, out: &Path) -> Result<String> {
         }
     }
     t.insert("stop".into(), Value::Table(stop));
+    if let Some(how) = &args.schedule {
+        let mut schedule = toml::Table::new();
+        schedule.insert("adaptive".into(), Value::Boolean(how == "adaptive"));
+        t.insert("schedule".into(), Value::Table(schedule));
+    }
     // `--set` overrides, checked against the simulator configuration now, kept in the spec.
     if !args.sets.is_empty() {
         let sim: sim_agent::SimConfig = sim_agent::config::load_config(None, &args.sets)?;

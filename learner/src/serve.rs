@@ -569,6 +569,9 @@ impl Link for ZenohLink<'_> {
                     mean_reward: w.mean_reward,
                     steps_per_s: w.steps_per_s,
                     crashes: w.crashes,
+                    evaluated: w.eval.is_some(),
+                    eval_progress: w.eval.map_or(0.0, |e| e.0),
+                    eval_lap_time: w.eval.and_then(|e| e.1).unwrap_or(0.0),
                 })
                 .collect(),
             window_progress: s.window_progress,

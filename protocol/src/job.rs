@@ -230,6 +230,8 @@ mod tests {
                 inner: vec![[0.0, 0.5]],
                 outer: vec![[0.0, -0.5]],
             })],
+            adaptive: true,
+            schedule_floor: 0.5,
         }
     }
 

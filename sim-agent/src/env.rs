@@ -549,6 +549,22 @@ impl Env {
         Ok(self.finish(r))
     }
 
+    /// Drive another world from the episode that has just begun (after a reset, before its
+    /// first step): the same episode, started again on `spec`'s track from the same fraction
+    /// of it. Counters and seeds carry on, so episodes stay numbered without a gap.
+    pub fn set_world(&mut self, spec: EnvSpec) -> Result<(), EnvError> {
+        let traffic =
+            Traffic::new(&spec.track, &self.cfg.race, "the simulator configuration").map_err(EnvError::Config)?;
+        self.car = Car::new(&self.cfg.car, spec.friction, self.dt / self.cfg.physics_substeps as f64);
+        self.line = LineCell::new(spec.track.clone(), self.cfg.car.clone(), spec.surface);
+        self.traffic = traffic;
+        self.spec = spec;
+        self.episode -= 1;
+        self.next_start = self.start_ndist;
+        self.reset();
+        Ok(())
+    }
+
     /// The track's racing line, as `builtin:race_line` sees it.
     pub fn line(&self) -> &LineCell {
         &self.line

@@ -28,6 +28,8 @@ pub struct Collector {
     pub record: bool,
     /// The GPU the policy acts on (`None`: faer on this thread).
     gpu: Option<gpu::Acting>,
+    /// Worlds environments move to when their running episode ends.
+    moves: Vec<Option<EnvSpec>>,
 }
 
 impl Collector {
@@ -54,7 +56,17 @@ impl Collector {
             env_steps: 0,
             episodes: 0,
             gpu: None,
+            moves: Vec::new(),
         }
+    }
+
+    /// Environment `i` drives `spec`'s world from its next episode (the running one ends
+    /// where it is, so nothing simulated is thrown away).
+    pub fn move_at_episode_end(&mut self, i: usize, spec: EnvSpec) {
+        if self.moves.len() < self.vec.len() {
+            self.moves.resize(self.vec.len(), None);
+        }
+        self.moves[i] = Some(spec);
     }
 
     /// Act with the policy's forward passes on `gpu`.
@@ -146,6 +158,13 @@ impl Collector {
                     t.done = true;
                     t.progress = o.progress;
                     t.lap_complete = o.status == EpisodeStatus::LapComplete;
+                    if let Some(spec) = self.moves.get_mut(i).and_then(Option::take) {
+                        self.vec.set_world(i, spec).map_err(|e| RewardError::Load {
+                            origin: "moving an environment to another world".into(),
+                            msg: e.to_string(),
+                        })?;
+                    }
+                    let t = &mut self.open[i];
                     let next = Trajectory {
                         world: self.vec.envs()[i].spec().name.clone(),
                         env: i as u32,

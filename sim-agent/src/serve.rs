@@ -193,6 +193,7 @@ fn start(
         id: id.into(),
         worlds,
         offset: a.offset as usize,
+        weights: a.weights.clone(),
         envs,
         threads: args.threads,
         cfg: Arc::new(cfg),
@@ -215,6 +216,8 @@ struct AgentLink<'a> {
     id: String,
     job: String,
     generation: u64,
+    /// The schedule's weights last taken.
+    weights: Vec<f64>,
     /// The job's worlds (what its messages may name).
     worlds: Vec<String>,
     obs_size: usize,
@@ -245,6 +248,7 @@ impl<'a> AgentLink<'a> {
             id: id.into(),
             job: a.job_id.clone(),
             generation: a.generation,
+            weights: a.weights.clone(),
             worlds: if a.job_worlds.is_empty() { w_names(a) } else { a.job_worlds.clone() },
             obs_size: sim_agent::obs::obs_dim(&cfg.observation),
             actions: protocol::Actions::of(
@@ -286,6 +290,10 @@ impl<'a> AgentLink<'a> {
             }
             if a.job_id == self.job && a.generation == self.generation {
                 self.last_seen = Instant::now();
+                if a.weights != self.weights && a.weights.len() == a.worlds.len() {
+                    self.weights = a.weights.clone();
+                    self.queue.push_back(WorkerInbound::Weights(a.weights));
+                }
             } else {
                 self.next_assignment = Some(a);
                 return Ok(false);

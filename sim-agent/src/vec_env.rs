@@ -125,6 +125,18 @@ impl VecEnv {
         &self.obs
     }
 
+    /// Environment `i` drives `spec`'s world from the episode it has just begun
+    /// ([`Env::set_world`]); its observation is taken again.
+    pub fn set_world(&mut self, i: usize, spec: EnvSpec) -> Result<(), EnvError> {
+        self.envs[i].set_world(spec)?;
+        let dim = self.dim.max(1);
+        observe(&self.envs[i], &mut self.obs[i * dim..(i + 1) * dim]);
+        // A new draw of the camera's randomisation for the new world's episode.
+        self.camera_draws[i].0 = u64::MAX;
+        self.render();
+        Ok(())
+    }
+
     /// The environments (read-only).
     pub fn envs(&self) -> &[Env] {
         &self.envs

@@ -8,7 +8,10 @@
 //! [`WorkerLink`]: `coordinator train` passes in-process channels, `sim-agent serve` passes
 //! Zenoh. A worker may drive several worlds at once (environment `i` drives world
 //! `i + offset mod k`), so an agent with fewer peers than worlds never has to hop between
-//! worlds and lose the episodes it had running.
+//! worlds and lose the episodes it had running. The coordinator's adaptive schedule may
+//! weigh the worlds ([`WorkerInbound::Weights`]): each world then gets its share of the
+//! environments ([`shares`]), and the fewest environments move ([`replan`]), each when its
+//! running episode ends.
 
 use crate::config::SimConfig;
 use crate::reward::{RewardError, RewardFn};
@@ -43,6 +46,8 @@ pub enum WorkerInbound {
     Credit(Credit),
     /// Evaluation trials to run.
     Eval(EvalRequest),
+    /// Each world's share of the environments (the coordinator's adaptive schedule).
+    Weights(Vec<f64>),
     /// Stop driving (the assignment ended, or the run did).
     End,
 }
@@ -73,6 +78,8 @@ pub struct WorkerSetup {
     pub worlds: Vec<EnvSpec>,
     /// Which world environment 0 drives (spreads several workers over the worlds).
     pub offset: usize,
+    /// Each world's share of the environments (empty: round-robin from `offset`).
+    pub weights: Vec<f64>,
     /// Environments.
     pub envs: usize,
     /// Threads for them.
@@ -106,6 +113,8 @@ pub struct Worker {
     collector: Collector,
     cfg: Arc<SimConfig>,
     worlds: Vec<EnvSpec>,
+    /// The world each environment drives, or will once its episode ends.
+    plan: Vec<usize>,
     threads: usize,
     versions: VecDeque<PolicyVersion>,
     /// The versions evaluated last.
@@ -131,7 +140,13 @@ impl Worker {
             return Err(WorkerError::Env(EnvError::Config("a worker needs at least one world".into())));
         }
         let k = s.worlds.len();
-        let specs: Vec<EnvSpec> = (0..s.envs.max(1)).map(|i| s.worlds[(i + s.offset) % k].clone()).collect();
+        let envs = s.envs.max(1);
+        let plan: Vec<usize> = if s.weights.len() == k {
+            replan(&(0..envs).map(|i| (i + s.offset) % k).collect::<Vec<_>>(), &shares(envs, &s.weights))
+        } else {
+            (0..envs).map(|i| (i + s.offset) % k).collect()
+        };
+        let specs: Vec<EnvSpec> = plan.iter().map(|&w| s.worlds[w].clone()).collect();
         let vec = VecEnv::new(specs, s.cfg.clone(), s.seed, s.reward, s.threads)?;
         Ok(Worker {
             id: s.id,
@@ -141,6 +156,7 @@ impl Worker {
             },
             cfg: s.cfg,
             worlds: s.worlds,
+            plan,
             threads: s.threads,
             versions: VecDeque::new(),
             evaluated: VecDeque::new(),
@@ -201,6 +217,24 @@ impl Worker {
                     Some(done) => self.resend = Some(done.clone()),
                     None => self.evals.push_back((r, false)),
                 }
+            }
+            WorkerInbound::Weights(w) => {
+                if w.len() != self.worlds.len() {
+                    return;
+                }
+                let next = replan(&self.plan, &shares(self.plan.len(), &w));
+                for (i, (&was, &now)) in self.plan.iter().zip(&next).enumerate() {
+                    if was != now {
+                        self.collector.move_at_episode_end(i, self.worlds[now].clone());
+                    }
+                }
+                if next != self.plan {
+                    tracing::info!(
+                        environments = ?self.worlds.iter().enumerate().map(|(k, w)| (w.name.as_str(), next.iter().filter(|&&x| x == k).count())).collect::<Vec<_>>(),
+                        "the schedule moves environments between worlds"
+                    );
+                }
+                self.plan = next;
             }
             WorkerInbound::End => {}
         }
@@ -385,4 +419,55 @@ impl From<TrialResult> for Trial {
             frames: t.log.frames,
         }
     }
+}
+
+/// `envs` environments split by `weights` (largest remainders; every world at least one
+/// while there are as many environments as worlds). Weights that are not positive and
+/// finite count as none.
+pub fn shares(envs: usize, weights: &[f64]) -> Vec<usize> {
+    let k = weights.len();
+    if k == 0 {
+        return Vec::new();
+    }
+    let w: Vec<f64> = weights.iter().map(|&x| if x.is_finite() && x > 0.0 { x } else { 0.0 }).collect();
+    let total: f64 = w.iter().sum();
+    let w: Vec<f64> = if total > 0.0 { w.iter().map(|x| x / total).collect() } else { vec![1.0 / k as f64; k] };
+    let exact: Vec<f64> = w.iter().map(|x| x * envs as f64).collect();
+    let mut out: Vec<usize> = exact.iter().map(|x| x.floor() as usize).collect();
+    let mut order: Vec<usize> = (0..k).collect();
+    order.sort_by(|&a, &b| (exact[b] - exact[b].floor()).total_cmp(&(exact[a] - exact[a].floor())).then(a.cmp(&b)));
+    let left = envs - out.iter().sum::<usize>();
+    for &i in order.iter().cycle().take(left) {
+        out[i] += 1;
+    }
+    if envs >= k {
+        while let Some(empty) = out.iter().position(|&c| c == 0) {
+            let most = (0..k).max_by_key(|&i| (out[i], std::cmp::Reverse(i))).expect("k > 0");
+            out[most] -= 1;
+            out[empty] += 1;
+        }
+    }
+    out
+}
+
+/// The world of each environment after the fewest moves that give world `w` `counts[w]`
+/// environments: those already on a world keep it up to its count; the rest go, in order,
+/// to the worlds still short.
+pub fn replan(current: &[usize], counts: &[usize]) -> Vec<usize> {
+    let mut left = counts.to_vec();
+    let mut out: Vec<Option<usize>> = current
+        .iter()
+        .map(|&w| {
+            let keep = left.get(w).is_some_and(|&c| c > 0);
+            if keep {
+                left[w] -= 1;
+            }
+            keep.then_some(w)
+        })
+        .collect();
+    let mut short = left.iter().enumerate().flat_map(|(w, &c)| std::iter::repeat_n(w, c));
+    for o in out.iter_mut().filter(|o| o.is_none()) {
+        *o = short.next().or(Some(current.first().copied().unwrap_or(0)));
+    }
+    out.into_iter().map(|o| o.expect("filled")).collect()
 }

@@ -698,6 +698,15 @@ fn issue_8_three_worlds_two_agents_state_every_world_trained_nothing_wasted() {
     let log = summary["log"].as_array().unwrap().iter().filter_map(|l| l.as_str()).collect::<Vec<_>>().join("\n");
     assert!(log.contains("reinvent_carpet+reinvent_concrete+reinvent_wood"), "{log}");
     assert!(!log.contains(" -> "), "no agent was moved: {log}");
+    // Three worlds: the adaptive schedule (issue 34) weighed them from every world's last
+    // evaluation, which the learner reports per world.
+    assert!(log.contains("schedule: reinvent_carpet "), "{log}");
+    let weights: Vec<f64> = summary["weights"].as_array().unwrap().iter().map(|w| w.as_f64().unwrap()).collect();
+    assert!(weights.len() == 3 && (weights.iter().sum::<f64>() - 1.0).abs() < 1e-9, "{weights:?}");
+    assert!(weights.iter().all(|&w| w >= 0.5 / 3.0 - 1e-9), "every world keeps its floor: {weights:?}");
+    for w in summary["learner"]["worlds"].as_array().unwrap() {
+        assert!(w["evaluated"] == true && w["eval_progress"].as_f64().unwrap() > 0.0, "{w}");
+    }
 }
 
 #[test]

@@ -331,6 +331,9 @@ pub struct WorldFigures {
     pub steps_per_s: f64,
     /// Episodes trained on that ended crashed, in all.
     pub crashes: u64,
+    /// The last evaluation on this world: mean progress (%) and mean lap time when every
+    /// trial lapped (`None` before the first).
+    pub eval: Option<(f64, Option<f64>)>,
 }
 
 /// A run's figures, as the link reports them.
@@ -487,6 +490,8 @@ struct Run<'a> {
     evaluated_version: Option<u64>,
     /// Mean progress and weakest world's laps of the last evaluation.
     last_eval_figures: (f64, u64),
+    /// Per world, the last evaluation's mean progress and lap time.
+    last_eval_worlds: BTreeMap<String, (f64, Option<f64>)>,
     lap_streak: usize,
     /// The checkpoint that held its verification, and what it did.
     verified: Option<String>,
@@ -561,6 +566,7 @@ impl<'a> Run<'a> {
             saved_iteration: None,
             evaluated_version: None,
             last_eval_figures: (0.0, 0),
+            last_eval_worlds: BTreeMap::new(),
             lap_streak: 0,
             verified: None,
             pending: None,
@@ -953,6 +959,7 @@ impl<'a> Run<'a> {
         }
         if !p.verifying {
             self.last_eval_figures = (progress, min_laps as u64);
+            self.last_eval_worlds = per_world.iter().map(|w| (w.0.clone(), (w.1, w.2))).collect();
             let now = self.trend.push(p.iteration, progress);
             if std::mem::discriminant(&now) != std::mem::discriminant(&self.verdict) {
                 match &now {
@@ -1109,6 +1116,7 @@ impl<'a> Run<'a> {
                     mean_reward: mean(w.recent.iter().map(|r| r.3)),
                     steps_per_s: w.steps.iter().map(|r| r.1).sum::<u64>() as f64 / span,
                     crashes: w.crashes,
+                    eval: self.last_eval_worlds.get(name).copied(),
                 }
             })
             .collect();

@@ -17,6 +17,7 @@ fn worker(envs: usize, worlds: &[&str]) -> Worker {
             .map(|w| EnvSpec::from_world(&tracks::world(w).unwrap(), tracks::Direction::Forward))
             .collect(),
         offset: 0,
+        weights: Vec::new(),
         envs,
         threads: 1,
         cfg: Arc::new(SimConfig::default()),
@@ -146,4 +147,46 @@ fn issue_33_a_worker_keeps_the_version_it_evaluated_for_its_verification() {
     w.take(eval(3, 2, "reinvent_base", 1, 1));
     let Some(WorkerOutbound::Eval(r)) = w.work().unwrap() else { panic!("report expected") };
     assert!(r.trials.as_ref().is_err_and(|e| e.contains("no longer held")), "{r:?}");
+}
+
+#[test]
+fn issue_34_the_schedules_weights_move_environments_at_their_episodes_ends_and_none_is_lost() {
+    use sim_agent::worker::{replan, shares};
+    // Pure parts: the split, and the fewest moves.
+    for (envs, weights, want) in [
+        (8, vec![0.5, 0.25, 0.25], vec![4, 2, 2]),
+        (8, vec![0.6, 0.2, 0.2], vec![5, 2, 1]),
+        (3, vec![0.98, 0.01, 0.01], vec![1, 1, 1]),
+        (4, vec![f64::NAN, 0.0, -1.0], vec![2, 1, 1]),
+        (2, vec![0.1, 0.1, 0.8], vec![0, 0, 2]),
+    ] {
+        assert_eq!(shares(envs, &weights), want, "{envs} by {weights:?}");
+    }
+    assert_eq!(replan(&[0, 1, 2, 0, 1, 2], &[4, 1, 1]), vec![0, 1, 2, 0, 0, 0]);
+    assert_eq!(replan(&[0, 0, 0, 0], &[1, 3]), vec![0, 1, 1, 1]);
+    // A worker on three worlds, evenly, then weighted 6:1:1 over 8 environments.
+    let mut w = worker(8, &["reinvent_base", "reinvent_wood", "Oval_track"]);
+    w.take(policy(0));
+    w.take(credit(0, 1, 8));
+    let Some(WorkerOutbound::Experience(first)) = w.work().unwrap() else { panic!("experience expected") };
+    w.take(WorkerInbound::Weights(vec![0.75, 0.125, 0.125]));
+    let mut seen = Vec::new();
+    for round in 2..8 {
+        w.take(credit(0, round, 16));
+        let Some(WorkerOutbound::Experience(e)) = w.work().unwrap() else { panic!("experience expected") };
+        seen.extend(e.trajectories);
+    }
+    // Every environment's episodes come in order without a gap (none thrown away on the move),
+    // and the last ones follow the weights.
+    let mut by_env: std::collections::BTreeMap<u32, Vec<(u64, String)>> = Default::default();
+    for t in first.trajectories.iter().chain(&seen) {
+        by_env.entry(t.env).or_default().push((t.episode, t.world.clone()));
+    }
+    for (env, eps) in &by_env {
+        let numbers: Vec<u64> = eps.iter().map(|e| e.0).collect();
+        assert!(numbers.windows(2).all(|p| p[1] == p[0] + 1), "env {env}: {numbers:?}");
+    }
+    let last: Vec<&str> = by_env.values().map(|eps| eps.last().unwrap().1.as_str()).collect();
+    let on = |world: &str| last.iter().filter(|w| **w == world).count();
+    assert_eq!((on("reinvent_base"), on("reinvent_wood"), on("Oval_track")), (6, 1, 1), "{last:?}");
 }
