@@ -1287,3 +1287,93 @@ pub fn schedule(worlds: &[String], sensor: &str, minutes: f64, seeds: &[u64], ou
         Ok(1)
     }
 }
+
+/// Catalog tracks `bench generated` evaluates on by default: none of them generated.
+const UNSEEN_WORLDS: [&str; 3] = ["reinvent_base", "Oval_track", "Bowtie_track"];
+
+/// `bench generated`: a model trained only on generated tracks (`generated:N`, a new track
+/// every `generated.episodes_per_track` episodes), then evaluated (3 trials) on catalog
+/// tracks it never saw. Passes when it laps 3/3 on every one of them.
+pub fn generated(
+    family: u64,
+    unseen: &[String],
+    sensor: &str,
+    minutes: f64,
+    seed: u64,
+    out: &std::path::Path,
+) -> Result<i32> {
+    let unseen: Vec<String> =
+        if unseen.is_empty() { UNSEEN_WORLDS.map(String::from).to_vec() } else { unseen.to_vec() };
+    if let Some(w) = unseen.iter().find(|w| tracks::generated_seed(w).is_some()) {
+        bail!("--unseen {w}: the tracks to evaluate on are catalog tracks the model never saw");
+    }
+    let me = std::env::current_exe()?;
+    std::fs::create_dir_all(out)?;
+    let dir = out.canonicalize()?;
+    let world = format!("generated:{family}");
+    let args: Vec<String> = [
+        "train",
+        "--world",
+        &world,
+        "--sensor",
+        sensor,
+        "--target-laps",
+        "0",
+        "--minutes",
+        &minutes.to_string(),
+        "--seed",
+        &seed.to_string(),
+        "--out",
+        "generated",
+        "--force",
+    ]
+    .map(String::from)
+    .to_vec();
+    let t0 = Instant::now();
+    child(&me, &dir, &args)?;
+    let secs = t0.elapsed().as_secs_f64();
+    let mut eval = vec!["evaluate".to_string(), "generated/model".into(), "--trials".into(), "3".into()];
+    for w in std::iter::once(&world).chain(&unseen) {
+        eval.extend(["--world".to_string(), w.clone()]);
+    }
+    let text = child(&me, &dir, &eval)?;
+    // The evaluation's table: WORLD, LAPS (n/3), PROGRESS, MEAN LAP.
+    let rows: Vec<(String, String, String, String)> = text
+        .lines()
+        .skip_while(|l| !l.starts_with("WORLD"))
+        .skip(1)
+        .take_while(|l| !l.trim().is_empty() && !l.contains("laps completed"))
+        .filter_map(|l| {
+            let f: Vec<&str> = l.split_whitespace().collect();
+            (f.len() >= 4).then(|| (f[0].to_string(), f[1].to_string(), f[2].to_string(), f[3..].join(" ")))
+        })
+        .collect();
+    println!(
+        "# coordinator bench generated: {sensor}, trained {secs:.0} s on {world} only (a new track every few episodes), seed {seed}"
+    );
+    println!();
+    println!("| world | seen in training | laps | progress | mean lap |");
+    println!("|---|---|---:|---:|---:|");
+    let mut failed = Vec::new();
+    for (w, laps, progress, lap) in &rows {
+        let seen = if *w == world { "its track N (evaluation's)" } else { "never" };
+        println!("| {w} | {seen} | {laps} | {progress} | {lap} |");
+        if *w != world && laps != "3/3" {
+            failed.push(w.clone());
+        }
+    }
+    println!();
+    if rows.len() != unseen.len() + 1 {
+        println!("verdict: FAIL: the evaluation's table was not read:\n{text}");
+        return Ok(1);
+    }
+    if failed.is_empty() {
+        println!(
+            "verdict: pass: trained on generated tracks only, the model laps 3/3 on every catalog track it never saw"
+        );
+        Ok(0)
+    } else {
+        println!("verdict: FAIL: not 3/3 on {}", failed.join(", "));
+        Ok(1)
+    }
+}

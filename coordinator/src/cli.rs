@@ -238,6 +238,30 @@ pub enum BenchCommand {
         #[arg(long, default_value = "runs/bench-races")]
         out: PathBuf,
     },
+    /// Generalisation (issue 34): a model trained only on generated tracks (`generated:N`, a
+    /// new track every few episodes), evaluated on catalog tracks it never saw. Prints a table
+    /// and a verdict (exit 1 unless it laps 3/3 on each).
+    Generated {
+        /// The generated family (`generated:N`).
+        #[arg(long, default_value_t = 1)]
+        family: u64,
+        /// Catalog tracks to evaluate on (repeatable; default reinvent_base, Oval_track,
+        /// Bowtie_track).
+        #[arg(long)]
+        unseen: Vec<String>,
+        /// Observations: state or camera.
+        #[arg(long, default_value = "camera")]
+        sensor: String,
+        /// Minutes of training.
+        #[arg(long, default_value_t = 20.0)]
+        minutes: f64,
+        /// Random seed.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Where the run goes (kept).
+        #[arg(long, default_value = "runs/bench-generated")]
+        out: PathBuf,
+    },
     /// The adaptive schedule against an even one (issue 34): the same `up` job over several
     /// worlds (2 agents), adaptive and even, for each seed; the wall-clock until an evaluation
     /// laps 3/3 on every world. Prints a table and a verdict (exit 1 unless adaptive's median

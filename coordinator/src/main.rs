@@ -89,6 +89,9 @@ fn main() {
             cli::BenchCommand::Races { world, minutes, races, no_up, seed, out } => {
                 bench::races(&world, minutes, &races, !no_up, seed, &out)
             }
+            cli::BenchCommand::Generated { family, unseen, sensor, minutes, seed, out } => {
+                bench::generated(family, &unseen, &sensor, minutes, seed, &out)
+            }
             cli::BenchCommand::Schedule { worlds, sensor, minutes, seeds, out } => {
                 bench::schedule(&worlds, &sensor, minutes, &seeds, &out)
             }

@@ -55,6 +55,9 @@ pub enum RenderError {
     Device(String),
 }
 
+/// Track meshes the renderer keeps before it drops those no view in hand uses.
+const MESHES_KEPT: usize = 64;
+
 /// One camera view to render.
 #[derive(Clone, Debug)]
 pub struct View<'a> {
@@ -597,6 +600,10 @@ impl Renderer {
         let n = views.len() as u32;
         self.ensure(n);
         let keys: Vec<String> = views.iter().map(|v| self.mesh_for(v.track)).collect();
+        // Generated worlds bring a new track every few episodes: meshes no view uses go.
+        if self.meshes.len() > MESHES_KEPT {
+            self.meshes.retain(|k, _| keys.contains(k));
+        }
         // Only what each camera can see: most of a track is behind or beside the car.
         let mut indices: Vec<u32> = Vec::new();
         let mut ranges = Vec::with_capacity(views.len());

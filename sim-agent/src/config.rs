@@ -35,6 +35,8 @@ pub struct SimConfig {
     pub record_trace: bool,
     /// The race: time trial, object avoidance or head-to-bot, with DeepRacer's keys.
     pub race: crate::race::RaceConfig,
+    /// Generated worlds (`generated:N`) in training.
+    pub generated: GeneratedConfig,
 }
 
 impl Default for SimConfig {
@@ -50,6 +52,7 @@ impl Default for SimConfig {
             reward_time_limit: 1.0,
             record_trace: true,
             race: crate::race::RaceConfig::default(),
+            generated: GeneratedConfig::default(),
         }
     }
 }
@@ -142,6 +145,21 @@ impl Default for EpisodeConfig {
             immobilized_distance: 0.0003,
             max_steps: 100_000,
         }
+    }
+}
+
+/// How training drives a generated world (`generated:N`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct GeneratedConfig {
+    /// Episodes an environment drives one generated track before it draws the next (0: it
+    /// keeps to track N).
+    pub episodes_per_track: u64,
+}
+
+impl Default for GeneratedConfig {
+    fn default() -> Self {
+        GeneratedConfig { episodes_per_track: 10 }
     }
 }
 

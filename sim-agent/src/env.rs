@@ -124,6 +124,9 @@ pub struct EnvSpec {
     pub surface: tracks::Surface,
     /// The lighting (for the camera).
     pub lighting: tracks::Lighting,
+    /// A generated world's seed (`generated:N`): training draws a new track every
+    /// `generated.episodes_per_track` episodes.
+    pub generated: Option<u64>,
 }
 
 impl EnvSpec {
@@ -136,6 +139,7 @@ impl EnvSpec {
             noise: None,
             surface: world.surface,
             lighting: world.lighting,
+            generated: tracks::generated_seed(&world.name),
         }
     }
 }
@@ -265,6 +269,7 @@ impl Env {
 
     /// Start a new episode.
     pub fn reset(&mut self) {
+        self.next_generated_track();
         let start = match self.mode {
             Mode::Training => {
                 let s = self.next_start;
@@ -553,16 +558,50 @@ impl Env {
     /// first step): the same episode, started again on `spec`'s track from the same fraction
     /// of it. Counters and seeds carry on, so episodes stay numbered without a gap.
     pub fn set_world(&mut self, spec: EnvSpec) -> Result<(), EnvError> {
+        self.take_world(spec)?;
+        self.episode -= 1;
+        self.next_start = self.start_ndist;
+        self.reset();
+        Ok(())
+    }
+
+    /// Make `spec` this environment's world (the car, the objects, the racing line).
+    fn take_world(&mut self, spec: EnvSpec) -> Result<(), EnvError> {
         let traffic =
             Traffic::new(&spec.track, &self.cfg.race, "the simulator configuration").map_err(EnvError::Config)?;
         self.car = Car::new(&self.cfg.car, spec.friction, self.dt / self.cfg.physics_substeps as f64);
         self.line = LineCell::new(spec.track.clone(), self.cfg.car.clone(), spec.surface);
         self.traffic = traffic;
         self.spec = spec;
-        self.episode -= 1;
-        self.next_start = self.start_ndist;
-        self.reset();
         Ok(())
+    }
+
+    /// A generated world in training: every `generated.episodes_per_track` episodes, the next
+    /// track of this environment's own draw (the world keeps its name, `generated:N`).
+    fn next_generated_track(&mut self) {
+        let every = self.cfg.generated.episodes_per_track;
+        let due = self.spec.generated.is_some()
+            && self.mode == Mode::Training
+            && every > 0
+            && self.episode > 0
+            && self.episode.is_multiple_of(every);
+        if !due {
+            return;
+        }
+        use rand::Rng;
+        let seed: u64 = self.rng.random();
+        // A name of its own: the renderer keeps a track's mesh by its name.
+        let name = format!("{}#{seed:016x}", self.spec.name);
+        match tracks::generated_world(&name, seed) {
+            Ok(world) => {
+                let mut spec = self.spec.clone();
+                spec.track = Arc::new(world.track(self.spec.track.direction()));
+                if let Err(e) = self.take_world(spec) {
+                    tracing::warn!("{}: the next generated track is refused, this one stays: {e}", self.spec.name);
+                }
+            }
+            Err(e) => tracing::warn!("{}: no next generated track, this one stays: {e}", self.spec.name),
+        }
     }
 
     /// The track's racing line, as `builtin:race_line` sees it.

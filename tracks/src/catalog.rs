@@ -130,11 +130,42 @@ pub fn world_names() -> impl Iterator<Item = &'static str> {
     CATALOG.iter().map(|e| e.name)
 }
 
-/// Load a built-in world by name.
+/// The prefix of a generated world's name: `generated:N` is the track
+/// `coordinator tracks generate --seed N` makes at [`GENERATED_LENGTH`] and
+/// [`GENERATED_WIDTH`] (asphalt), the same on every machine. Training on it draws a new track
+/// every few episodes (the simulator's `generated.episodes_per_track`); evaluations keep to
+/// track N.
+pub const GENERATED: &str = "generated:";
+/// A generated world's centre-line length, m (DeepRacer's tracks: 17–33 m).
+pub const GENERATED_LENGTH: f64 = 22.0;
+/// A generated world's width, m (DeepRacer's tracks: about 1.07).
+pub const GENERATED_WIDTH: f64 = 1.07;
+
+/// The seed of a generated world's name (`generated:N`), when it is one.
+pub fn generated_seed(name: &str) -> Option<u64> {
+    name.strip_prefix(GENERATED)?.parse().ok()
+}
+
+/// The generated track of `seed`, named `name`.
+pub fn generated_world(name: &str, seed: u64) -> Result<World, TrackError> {
+    let spec = crate::generate::GenSpec { seed, length: GENERATED_LENGTH, width: GENERATED_WIDTH };
+    let rows = crate::generate::generate(&spec)
+        .map_err(|e| TrackError::Generated { name: name.to_string(), msg: e.to_string() })?;
+    Ok(World { name: name.to_string(), rows, surface: Surface::Asphalt, lighting: Lighting::default() })
+}
+
+/// Load a built-in world by name, or a generated one (`generated:N`).
 pub fn world(name: &str) -> Result<World, TrackError> {
+    if let Some(rest) = name.strip_prefix(GENERATED) {
+        let seed = generated_seed(name).ok_or_else(|| TrackError::Generated {
+            name: name.to_string(),
+            msg: format!("'{rest}' is not a seed: expected generated:N with N a whole number"),
+        })?;
+        return generated_world(name, seed);
+    }
     let entry = CATALOG.iter().find(|e| e.name == name).ok_or_else(|| TrackError::UnknownWorld {
         name: name.to_string(),
-        known: world_names().collect::<Vec<_>>().join(", "),
+        known: world_names().collect::<Vec<_>>().join(", ") + ", generated:N (a generated track)",
     })?;
     let rows = parse_track_npy(entry.bytes, &format!("built-in {}.npy", entry.name))?;
     Ok(World { name: entry.name.to_string(), rows, surface: entry.surface, lighting: Lighting::default() })

@@ -197,6 +197,21 @@ mod tests {
     use crate::{Direction, Track};
 
     #[test]
+    fn issue_34_a_generated_world_is_the_same_track_everywhere_by_its_name() {
+        let w = crate::world("generated:7").unwrap();
+        assert_eq!(w.name, "generated:7");
+        let spec =
+            GenSpec { seed: 7, length: crate::catalog::GENERATED_LENGTH, width: crate::catalog::GENERATED_WIDTH };
+        assert_eq!(w.rows, generate(&spec).unwrap(), "what `tracks generate --seed 7` makes");
+        assert_eq!(crate::world("generated:7").unwrap().rows, w.rows);
+        assert_ne!(crate::world("generated:8").unwrap().rows, w.rows);
+        let e = crate::world("generated:x").unwrap_err().to_string();
+        assert!(e.contains("'generated:x'") && e.contains("expected generated:N"), "{e}");
+        let e = crate::world("no_such_world").unwrap_err().to_string();
+        assert!(e.contains("generated:N"), "{e}");
+    }
+
+    #[test]
     fn issue_34_generated_tracks_have_the_asked_size_and_hold_together() {
         for (seed, length, width) in [(1, 30.0, 1.07), (2, 60.0, 0.8), (3, 18.0, 1.2), (4, 100.0, 1.5), (5, 12.0, 0.6)]
         {

@@ -23,7 +23,7 @@ pub mod objects;
 pub mod raceline;
 pub mod render;
 
-pub use catalog::{Lighting, Surface, World, world, world_names, worlds};
+pub use catalog::{Lighting, Surface, World, generated_seed, generated_world, world, world_names, worlds};
 pub use geometry::{Direction, P2, Projection, Track, TrackQuery, compute_progress, wrap_degrees};
 pub use npy::{TrackRows, parse_track_npy};
 
@@ -55,6 +55,14 @@ pub enum TrackError {
         name: String,
         /// The names that exist.
         known: String,
+    },
+    /// A generated world (`generated:N`) that cannot be made.
+    #[error("world '{name}': {msg}")]
+    Generated {
+        /// The name asked for.
+        name: String,
+        /// Why.
+        msg: String,
     },
 }
 

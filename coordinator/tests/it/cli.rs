@@ -99,6 +99,9 @@ fn issue_34_tracks_generate_writes_a_track_that_imports_and_drives_and_refuses_w
         let drive = coordinator(d, &[&["drive", "--track", "g.npy", "--laps", "1"][..], extra].concat());
         assert!(stdout(&drive).contains("1 of 1 laps completed"), "{extra:?}: {}{}", stdout(&drive), stderr(&drive));
     }
+    // By name, everywhere a world is taken: generated:N is the track of seed N.
+    let drive = coordinator(d, &["drive", "--track", "generated:4", "--laps", "1"]);
+    assert!(stdout(&drive).contains("1 of 1 laps completed"), "{}{}", stdout(&drive), stderr(&drive));
     // numpy reads it as DeepRacer's tracks are read: rows of centre, inner and outer x, y.
     let check = "import numpy as np\nt = np.load('g.npy')\nassert t.shape[1] == 6 and t.shape[0] > 50, t.shape\n\
                  w = np.linalg.norm(t[:, 2:4] - t[:, 4:6], axis=1)\nassert np.allclose(w, 1.07, atol=1e-6), w\n\

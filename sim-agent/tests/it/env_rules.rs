@@ -30,6 +30,7 @@ fn spec_of(track: Track, friction: f64) -> EnvSpec {
         noise: None,
         surface: tracks::Surface::Asphalt,
         lighting: Default::default(),
+        generated: None,
     }
 }
 
@@ -400,4 +401,39 @@ fn issue_31_the_stereo_observation_is_the_two_cameras_interleaved_left_first() {
     assert_eq!(differ(&left, &frames[..19200]), 0, "channel 0: the left camera, 0.03 m left of the axis");
     assert_eq!(differ(&right, &frames[19200..]), 0, "channel 1: the right camera");
     assert!(differ(&left, &right) > 100, "6 cm apart, the two views differ");
+}
+
+#[test]
+fn issue_34_training_on_a_generated_world_draws_a_new_track_every_few_episodes_and_evaluation_keeps_to_its_own() {
+    let world = tracks::world("generated:3").unwrap();
+    let spec = EnvSpec::from_world(&world, tracks::Direction::Forward);
+    assert_eq!(spec.generated, Some(3));
+    let mut cfg = SimConfig::default();
+    cfg.generated.episodes_per_track = 2;
+    let cfg = Arc::new(cfg);
+    let mut env = Env::new(spec.clone(), cfg.clone(), Mode::Training, 1, 0.0).unwrap();
+    let mut tracks_seen = vec![env.track().name().to_string()];
+    for _ in 0..6 {
+        env.reset();
+        assert_eq!(env.spec().name, "generated:3", "the world keeps its name");
+        assert!(env.track().length() > 20.0 && env.track().is_closed());
+        tracks_seen.push(env.track().name().to_string());
+    }
+    // Episodes 1-2 on track 3, then a new track every two episodes.
+    assert_eq!(tracks_seen[0], "generated:3");
+    assert_eq!(tracks_seen[1], "generated:3");
+    assert!(tracks_seen[2].starts_with("generated:3#") && tracks_seen[3] == tracks_seen[2], "{tracks_seen:?}");
+    assert!(tracks_seen[4] != tracks_seen[2] && tracks_seen[5] == tracks_seen[4], "{tracks_seen:?}");
+    // The same seed draws the same tracks.
+    let mut again = Env::new(spec.clone(), cfg.clone(), Mode::Training, 1, 0.0).unwrap();
+    for _ in 0..2 {
+        again.reset();
+    }
+    assert_eq!(again.track().name(), tracks_seen[2]);
+    // Evaluation drives track 3 every trial.
+    let mut eval = Env::new(spec, cfg, Mode::Evaluation(EvalRules::default()), 1, 0.0).unwrap();
+    for _ in 0..6 {
+        eval.reset();
+        assert_eq!(eval.track().name(), "generated:3");
+    }
 }

@@ -38,6 +38,7 @@ fn spec() -> EnvSpec {
         noise: None,
         surface: tracks::Surface::Asphalt,
         lighting: Default::default(),
+        generated: None,
     }
 }
 
