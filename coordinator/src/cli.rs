@@ -843,8 +843,9 @@ pub struct RaceCmdArgs {
     #[arg(long, default_value_t = 3)]
     pub trials: usize,
     /// Off-tracks and crashes a trial survives, each put back on the track with its penalty
-    /// (DeepRacer's races do not end a lap at the first).
-    #[arg(long, default_value_t = 10_000)]
+    /// (DeepRacer's races do not end a lap at the first; `drive`'s default, 10); 0 ends a
+    /// trial at the first, as `evaluate` does.
+    #[arg(long, default_value_t = 10)]
     pub resets: u32,
     /// Seconds added for each time off the track (DeepRacer's OFF_TRACK_PENALTY).
     #[arg(long, default_value_t = 2.0)]
