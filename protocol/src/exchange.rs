@@ -155,11 +155,11 @@ pub fn eval_report_from_wire(
     }
     let ok = |t: &crate::EvalTrial| {
         t.progress.is_finite()
-            && (0.0..=100.0 + 1e-6).contains(&t.progress)
+            && crate::limits::PROGRESS.contains(&t.progress)
             && t.lap_time.is_none_or(|l| l.is_finite() && l >= 0.0)
     };
     if w.trials.len() as u64 > SANITY_LIMIT || !w.trials.iter().all(ok) {
-        return invalid("evaluation trials out of range (progress 0–100 %, finite lap times)".into());
+        return invalid("evaluation trials out of range (progress -100–100 %, finite lap times)".into());
     }
     let trials = if w.error.is_empty() {
         let mut trials = Vec::with_capacity(w.trials.len());
@@ -958,6 +958,15 @@ mod tests {
         let mut lie = eval_report_to_wire(&id, &rep);
         lie.trials[0].progress = 1e9;
         assert!(eval_report_from_wire(lie, &view, "a1").is_err(), "progress over 100 % is refused");
+        // A car that backed over its start line has a little below 0 %, as in DeepRacer: taken
+        // (refused, the learner asked for the same evaluation again and again and the job
+        // stalled: issue 34's schedule bench, seed 3).
+        let mut backed = eval_report_to_wire(&id, &rep);
+        backed.trials[0].progress = -1.5;
+        for row in backed.trials[0].trace.iter_mut().flat_map(|t| t.progress.iter_mut()) {
+            *row = -1.5;
+        }
+        assert_eq!(eval_report_from_wire(backed, &view, "a1").unwrap().trials.unwrap()[0].progress, -1.5);
         // The trial's sim-trace rows are checked like experience.
         type Lie = (&'static str, fn(&mut crate::EvalTrial));
         let lies: [Lie; 6] = [

@@ -329,8 +329,8 @@ pub fn trace_to_wire(trace: &[policy::StepTrace]) -> Option<StepTraces> {
 }
 
 /// Steps' sim-trace fields back: none, or one of each per step, every number finite and in
-/// range (positions within ±10 km, angles and speeds within ±10⁴, progress 0–100 %, known
-/// statuses, times not negative).
+/// range (positions within ±10 km, angles and speeds within ±10⁴, progress within
+/// [`limits::PROGRESS`], known statuses, times not negative).
 pub fn trace_from_wire(w: Option<StepTraces>, steps: usize) -> Result<Vec<policy::StepTrace>, DecodeError> {
     let Some(w) = w else { return Ok(Vec::new()) };
     let bad = |m: String| Err(DecodeError::Invalid(m));
@@ -358,8 +358,8 @@ pub fn trace_from_wire(w: Option<StepTraces>, steps: usize) -> Result<Vec<policy
     if !w.yaw.iter().chain(&w.steer).chain(&w.throttle).all(|&v| within(v as f64, 1e4)) {
         return bad("sim-trace heading, steering or speed not finite or beyond ±1e4".into());
     }
-    if !w.progress.iter().all(|&p| p.is_finite() && (0.0..=100.0 + 1e-3).contains(&p)) {
-        return bad("sim-trace progress outside [0, 100]".into());
+    if !w.progress.iter().all(|&p| p.is_finite() && limits::PROGRESS.contains(&(p as f64))) {
+        return bad("sim-trace progress outside [-100, 100]".into());
     }
     if !w.tstamp.iter().chain(&w.wall_clock).all(|&t| t.is_finite() && (0.0..=1e12).contains(&t))
         || !w.pause_duration.iter().all(|&t| t.is_finite() && (0.0..=1e4).contains(&t))
@@ -486,6 +486,10 @@ pub mod limits {
     /// |a| of a continuous action in the network's unit space (samples from the Gaussian may
     /// leave [-1, 1]; this far out they are nonsense).
     pub const CONTINUOUS_ACTION: f32 = 1e3;
+    /// Progress (%) as DeepRacer's `compute_current_prog` gives it: a car that backs over its
+    /// start line has a little below 0 (−1 % a hundredth of the track behind it), never
+    /// below −100 %, never above 100 % (a millesimal rounding allowed).
+    pub const PROGRESS: std::ops::RangeInclusive<f64> = -100.0..=100.001;
 }
 
 /// A wire trajectory back, checked for consistent lengths and finite numbers.
@@ -534,8 +538,8 @@ pub fn trajectory_from_wire(
     if let Some(l) = w.logp.iter().find(|l| l.abs() > limits::VALUE || (actions != Actions::Continuous && **l > 0.0)) {
         return bad(format!("log-probability {l} out of range"));
     }
-    if !(0.0..=100.0).contains(&w.progress) {
-        return bad(format!("progress {} outside [0, 100]", w.progress));
+    if !limits::PROGRESS.contains(&w.progress) {
+        return bad(format!("progress {} outside [-100, 100]", w.progress));
     }
     if !keys::is_valid_name(&w.world) {
         return bad(format!("world name {:?} is not a valid name", w.world));
@@ -688,8 +692,10 @@ mod tests {
             ("value estimate 100000000", Trajectory { values: vec![1e8, 1.0], ..t.clone() }, D),
             ("log-probability 0.5", Trajectory { logp: vec![0.5, -1.0], ..t.clone() }, D),
             ("progress 140", Trajectory { progress: 140.0, ..t.clone() }, D),
-            ("progress -1", Trajectory { progress: -1.0, ..t.clone() }, D),
+            ("progress -101", Trajectory { progress: -101.0, ..t.clone() }, D),
         ];
+        // A car that backed over its start line: DeepRacer's progress is a little below 0.
+        assert!(trajectory_from_wire(Trajectory { progress: -1.0, ..t.clone() }, 1, D).is_ok());
         for (why, w, actions) in rows {
             match trajectory_from_wire(w.clone(), 1, *actions) {
                 Err(DecodeError::Invalid(m)) => assert!(m.contains(why.split(' ').next_back().unwrap()), "{why}: {m}"),
