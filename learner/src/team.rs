@@ -246,6 +246,8 @@ fn to_wire_state(s: LearnerState, memory: Option<&[u8]>) -> TeamState {
 
 struct Member {
     heard: Instant,
+    /// The last plan it says it made.
+    made: u64,
     in_sync: bool,
     /// The base of the last plan that carried the state to it (older wishes for the state
     /// were sent before it arrived).
@@ -307,6 +309,14 @@ impl<'a> TeamLead<'a> {
         std::iter::once(self.me.clone()).chain(self.members.keys().cloned()).collect()
     }
 
+    /// Whether every member says it made the last update the team made (a member tells
+    /// every half second).
+    pub fn caught_up(&mut self) -> bool {
+        self.hear();
+        let good = self.good;
+        self.members.values().all(|m| m.made == good)
+    }
+
     /// Take the followers' wishes, drop the members gone quiet.
     fn hear(&mut self) {
         while let Some((key, j)) = try_next::<TeamJoin>(&self.joins, &self.drops) {
@@ -322,9 +332,10 @@ impl<'a> TeamLead<'a> {
             let good = self.good;
             let m = self.members.entry(from.clone()).or_insert_with(|| {
                 tracing::info!(job = %self.job, learner = %from, "a learner joins the team");
-                Member { heard: Instant::now(), in_sync: j.plan == good && !j.needs_state, state_base: 0 }
+                Member { heard: Instant::now(), made: j.plan, in_sync: j.plan == good && !j.needs_state, state_base: 0 }
             });
             m.heard = Instant::now();
+            m.made = j.plan;
             if j.needs_state && j.plan < m.state_base.max(1) {
                 // Asked before the state reached it.
             } else if j.needs_state {

@@ -254,7 +254,13 @@ pub fn run(network: &str, seconds: f64, learners: usize, epochs: usize, check: b
     if lead.team_updates != made as u64 {
         bail!("{} of {made} updates were made by the team", lead.team_updates);
     }
-    // The leader goes: the members print their weights' digest and end.
+    // The leader goes once every member has made the last update (a member still applying it
+    // when the leader goes would print the state before it): the members print their
+    // weights' digest and end.
+    let waited = Instant::now();
+    while !lead.caught_up() && waited.elapsed() < Duration::from_secs(10) {
+        std::thread::sleep(Duration::from_millis(50));
+    }
     drop(lead);
     drop(token);
     session.close().wait().map_err(|e| anyhow::anyhow!("{e}"))?;
