@@ -239,8 +239,9 @@ pub enum BenchCommand {
         out: PathBuf,
     },
     /// Generalisation (issue 34): a model trained only on generated tracks (`generated:N`, a
-    /// new track every few episodes), evaluated on catalog tracks it never saw. Prints a table
-    /// and a verdict (exit 1 unless it laps 3/3 on each).
+    /// new track every few episodes, either way round), its last checkpoint evaluated on
+    /// catalog tracks it never saw. Prints a table and a verdict (exit 1 unless it laps 3/3 on
+    /// each).
     Generated {
         /// The generated family (`generated:N`).
         #[arg(long, default_value_t = 1)]

@@ -175,7 +175,7 @@ fn raceline(
     let bytes = tracks::render::render_png_speed(&track, &points, &fast.speed).map_err(anyhow::Error::msg)?;
     std::fs::write(&png, bytes).with_context(|| format!("writing {png}"))?;
     let meta_path = format!("{prefix}.model_metadata.json");
-    let meta = line_metadata(&points, line.closed, &limits, actions);
+    let meta = line_metadata(&sim_agent::race_line::LinePlan::from_profile(&points, line.closed, &fast), actions);
     std::fs::write(&meta_path, meta.to_json()).with_context(|| format!("writing {meta_path}"))?;
     if let policy::ActionSpace::Discrete(list) = &meta.action_space {
         let shown: Vec<String> = list.iter().map(|a| format!("{:+.1}° {:.2} m/s", a.steering_angle, a.speed)).collect();
@@ -186,16 +186,10 @@ fn raceline(
     Ok(0)
 }
 
-/// DeepRacer's camera model_metadata.json with `actions` actions proposed by the line
-/// along `points` (driving order) for a car of `limits`: its steering and speeds, weighted by
-/// the time spent on them, within the console's ±30° and 4 m/s.
-pub fn line_metadata(
-    points: &[tracks::P2],
-    closed: bool,
-    limits: &tracks::raceline::Limits,
-    actions: usize,
-) -> policy::ModelMetadata {
-    let plan = sim_agent::race_line::LinePlan::along(points, closed, limits);
+/// DeepRacer's camera model_metadata.json with `actions` actions proposed by `plan`: its
+/// steering and speeds, weighted by the time spent on them, within the console's ±30° and
+/// 4 m/s.
+fn line_metadata(plan: &sim_agent::race_line::LinePlan, actions: usize) -> policy::ModelMetadata {
     let mut meta = policy::ModelMetadata::default_camera();
     meta.action_space =
         policy::ActionSpace::Discrete(plan.action_space(&sim_agent::SimConfig::default().car, actions, 30.0, 4.0));

@@ -194,10 +194,8 @@ pub fn train(mut args: TrainArgs) -> Result<i32> {
             bail!("--action-space-from-line 0: the action space needs at least one action");
         }
         let w = &worlds[0];
-        let line = tracks::raceline::race_line(&w.track(Direction::Forward).rows(), sim_agent::race_line::MARGIN)
+        let plan = sim_agent::race_line::LinePlan::new(&w.track(Direction::Forward), &cfg.car, w.surface)
             .with_context(|| format!("--action-space-from-line: {}'s racing line", w.name))?;
-        let limits = sim_agent::handling::limits(&cfg.car, w.surface);
-        let plan = sim_agent::race_line::LinePlan::along(&line.points, line.closed, &limits);
         let actions = plan.action_space(&cfg.car, n, 30.0, 4.0);
         let shown: Vec<String> =
             actions.iter().map(|a| format!("{:+.1}° {:.2} m/s", a.steering_angle, a.speed)).collect();

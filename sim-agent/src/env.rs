@@ -577,7 +577,8 @@ impl Env {
     }
 
     /// A generated world in training: every `generated.episodes_per_track` episodes, the next
-    /// track of this environment's own draw (the world keeps its name, `generated:N`).
+    /// track of this environment's own draw, driven either way round at random (the world
+    /// keeps its name, `generated:N`).
     fn next_generated_track(&mut self) {
         let every = self.cfg.generated.episodes_per_track;
         let due = self.spec.generated.is_some()
@@ -590,12 +591,15 @@ impl Env {
         }
         use rand::Rng;
         let seed: u64 = self.rng.random();
+        // Either way round: a generated loop turns mostly one way, its reverse the other.
+        let direction =
+            if self.rng.random_bool(0.5) { tracks::Direction::Reversed } else { tracks::Direction::Forward };
         // A name of its own: the renderer keeps a track's mesh by its name.
         let name = format!("{}#{seed:016x}", self.spec.name);
         match tracks::generated_world(&name, seed) {
             Ok(world) => {
                 let mut spec = self.spec.clone();
-                spec.track = Arc::new(world.track(self.spec.track.direction()));
+                spec.track = Arc::new(world.track(direction));
                 if let Err(e) = self.take_world(spec) {
                     tracing::warn!("{}: the next generated track is refused, this one stays: {e}", self.spec.name);
                 }

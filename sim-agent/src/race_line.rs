@@ -18,7 +18,7 @@ use crate::params::RewardParams;
 use crate::reward::RewardError;
 use policy::Action;
 use std::sync::{Arc, OnceLock};
-use tracks::raceline::{Limits, LineError, curvature, race_line, speed_profile};
+use tracks::raceline::{Limits, LineError, Profile, curvature, race_line, speed_profile};
 use tracks::{P2, Surface, Track};
 
 /// Distance (m) the line keeps from both borders: the car's half-width and room to spare.
@@ -51,7 +51,12 @@ impl LinePlan {
     /// The plan along `points` (a loop's first point repeated last when `closed`) for a car
     /// of `limits`.
     pub fn along(points: &[P2], closed: bool, limits: &Limits) -> LinePlan {
-        let profile = speed_profile(points, closed, limits);
+        LinePlan::from_profile(points, closed, &speed_profile(points, closed, limits))
+    }
+
+    /// The plan along `points` whose speeds `profile` (`speed_profile` of the same points)
+    /// already holds.
+    pub fn from_profile(points: &[P2], closed: bool, profile: &Profile) -> LinePlan {
         let n = if closed { points.len().saturating_sub(1) } else { points.len() };
         LinePlan {
             points: points[..n].to_vec(),

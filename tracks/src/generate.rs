@@ -2,9 +2,10 @@
 //! and width that DeepRacer's `.npy` format holds and the car can drive. The centre line is a
 //! star-shaped curve around the origin, `r(θ) = R·(1 + Σ aₖ·cos(kθ + φₖ))` for k = 2..5 with
 //! random amplitudes and phases, so it never crosses itself; it is scaled to the length and
-//! accepted only when every turn is wide enough (the car's tightest turn at full lock plus
-//! half the width, so the inner border never folds) and no two far parts of the loop come
-//! closer than the width and a gap (so the borders never touch). A draw that fails is
+//! accepted only when every turn is wide enough (at the centre line, half the width and a
+//! margin, so the inner border never folds into a point, and the car's tightest turn at full
+//! lock and a margin, so the car can drive it: hairpins as tight as the catalog's) and no two
+//! far parts of the loop come closer than the width and a gap (so the borders never touch). A draw that fails is
 //! replaced by the next, with smaller amplitudes as the draws go on; a request no loop can
 //! meet (too short to close with turns that wide) is refused before any draw.
 
@@ -16,7 +17,7 @@ use std::f64::consts::PI;
 
 /// The car's tightest turn: the centre's radius at full lock (wheelbase 0.164 m, 30°), m.
 pub const CAR_MIN_RADIUS: f64 = 0.284;
-/// Room kept beyond the car's tightest turn on the inner border, m.
+/// Room kept beyond the car's tightest turn, and inside the inner border's turns, m.
 const TURN_MARGIN: f64 = 0.15;
 /// Room kept between the borders of two far parts of the loop, m.
 const GAP: f64 = 0.3;
@@ -24,6 +25,9 @@ const GAP: f64 = 0.3;
 const SPACING: f64 = 0.4;
 /// Draws tried before a request is given up.
 const DRAWS: u32 = 400;
+/// The first draw's largest amplitude of the second harmonic (the k-th's is this / (k − 1)):
+/// large enough that most tracks have turns both ways and turns near the tightest allowed.
+const BOLDNESS: f64 = 0.7;
 
 /// What to generate.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -80,7 +84,7 @@ pub enum GenError {
 impl GenSpec {
     /// The tightest centre-line radius a track of this width allows.
     pub fn min_radius(&self) -> f64 {
-        CAR_MIN_RADIUS + TURN_MARGIN + self.width / 2.0
+        CAR_MIN_RADIUS.max(self.width / 2.0) + TURN_MARGIN
     }
 }
 
@@ -103,8 +107,9 @@ pub fn generate(spec: &GenSpec) -> Result<TrackRows, GenError> {
     }
     let mut rng = ChaCha8Rng::seed_from_u64(spec.seed);
     for draw in 0..DRAWS {
-        // Rounder shapes as the draws go on: the last ones are nearly circles.
-        let scale = 0.35 * (1.0 - draw as f64 / DRAWS as f64);
+        // Bold shapes first (pinches that turn the other way, turns near the car's tightest),
+        // rounder as the draws go on: the last ones are nearly circles.
+        let scale = BOLDNESS * (1.0 - draw as f64 / DRAWS as f64);
         let terms: Vec<(f64, f64, f64)> = (2..=5)
             .map(|k| (k as f64, rng.random_range(0.0..scale / (k as f64 - 1.0)), rng.random_range(0.0..2.0 * PI)))
             .collect();
@@ -235,7 +240,7 @@ mod tests {
 
     #[test]
     fn issue_34_a_request_no_loop_can_meet_is_refused_with_the_reason() {
-        let e = generate(&GenSpec { seed: 1, length: 5.0, width: 1.0 }).unwrap_err();
+        let e = generate(&GenSpec { seed: 1, length: 5.0, width: 1.5 }).unwrap_err();
         assert!(matches!(e, GenError::TooShort { .. }), "{e}");
         assert!(e.to_string().contains("needs at least"), "{e}");
         for (length, width, what) in [(30.0, 0.1, "--width"), (f64::NAN, 1.0, "--length"), (1e4, 1.0, "--length")] {

@@ -430,6 +430,13 @@ fn issue_34_training_on_a_generated_world_draws_a_new_track_every_few_episodes_a
         again.reset();
     }
     assert_eq!(again.track().name(), tracks_seen[2]);
+    // The new tracks are driven either way round (a generated loop turns mostly one way).
+    let mut ways = std::collections::BTreeSet::new();
+    for _ in 0..20 {
+        again.reset();
+        ways.insert(format!("{:?}", again.track().direction()));
+    }
+    assert_eq!(ways.len(), 2, "{ways:?}");
     // Evaluation drives track 3 every trial.
     let mut eval = Env::new(spec, cfg, Mode::Evaluation(EvalRules::default()), 1, 0.0).unwrap();
     for _ in 0..6 {
