@@ -1321,13 +1321,10 @@ pub fn generated(
     let t0 = Instant::now();
     child(&me, &dir, &args)?;
     let secs = t0.elapsed().as_secs_f64();
-    let index_path = dir.join("generated/checkpoints/deepracer_checkpoints.json");
-    let index: learner::checkpoints::CheckpointIndex = serde_json::from_slice(
-        &std::fs::read(&index_path).with_context(|| format!("reading {}", index_path.display()))?,
-    )
-    .with_context(|| format!("{}: not a checkpoint index", index_path.display()))?;
-    let last = index.last_checkpoint.with_context(|| format!("{}: no checkpoint", index_path.display()))?;
-    let model = format!("generated/checkpoints/{}", last.name);
+    use learner::checkpoints::{OpenMode, RunDir};
+    let run = RunDir::open(&dir.join("generated"), OpenMode::Resume)?;
+    let last = run.index()?.last_checkpoint.with_context(|| format!("{}: no checkpoint", run.root().display()))?;
+    let model = run.checkpoint_dir(&last.name).display().to_string();
     let mut eval = vec!["evaluate".to_string(), model, "--trials".into(), "3".into()];
     for w in std::iter::once(&world).chain(&unseen) {
         eval.extend(["--world".to_string(), w.clone()]);
