@@ -19,6 +19,7 @@ fn main() {
         "WorldStats",
         "AgentStats",
         "DropCount",
+        "DropCounts",
         "JobStatus",
         "JobSummary",
         "JobList",

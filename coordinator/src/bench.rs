@@ -354,7 +354,7 @@ pub fn publish(repeats: usize) -> Result<()> {
 
 /// Prints a bench's last line, `verdict: pass: WHAT` or `verdict: FAIL: ` and the failures,
 /// and returns its exit code (0 or 1).
-fn verdict(failed: &[String], pass: &str) -> i32 {
+pub(crate) fn verdict(failed: &[String], pass: &str) -> i32 {
     if failed.is_empty() {
         println!("verdict: pass: {pass}");
         0

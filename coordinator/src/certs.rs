@@ -1,10 +1,12 @@
 //! `certs new DIR`: the cluster's credentials. One CA (ECDSA P-256, allowed to sign only
 //! certificates directly under it) and one certificate per role, its common name
 //! `paddock-<role>` (what the access rules of `protocol::secure` match), usable for both ends
-//! of a mutual-TLS link. Keys are written readable by their owner only.
+//! of a mutual-TLS link; and the learners' model-signing key (`models.key`, `models.pub`):
+//! learners given the folder sign with it, agents and cars given it trust what it signs.
+//! Keys are written readable by their owner only.
 
 use anyhow::{Context, Result, bail};
-use protocol::secure::{CA_FILE, Role};
+use protocol::secure::{CA_FILE, MODEL_KEY_FILE, MODEL_PUB_FILE, Role};
 use rcgen::{
     BasicConstraints, CertificateParams, DistinguishedName, DnType, ExtendedKeyUsagePurpose, IsCa, Issuer, KeyPair,
     KeyUsagePurpose, date_time_ymd,
@@ -43,6 +45,8 @@ pub fn write(dir: &Path, force: bool) -> Result<Vec<String>> {
         names.push(format!("{}.pem", r.name()));
         names.push(format!("{}.key", r.name()));
     }
+    names.push(MODEL_KEY_FILE.to_string());
+    names.push(MODEL_PUB_FILE.to_string());
     let existing: Vec<&String> = names.iter().filter(|n| dir.join(n).exists()).collect();
     if !existing.is_empty() {
         if !force {
@@ -85,5 +89,7 @@ pub fn write(dir: &Path, force: bool) -> Result<Vec<String>> {
         write_file(&dir.join(format!("{}.pem", r.name())), &cert.pem(), false)?;
         write_file(&dir.join(format!("{}.key", r.name())), &key.serialize_pem(), true)?;
     }
+    let stem = dir.join(MODEL_KEY_FILE).with_extension("");
+    policy::signature::Signer::generate().write_pair(&stem).context("the model-signing key")?;
     Ok(names)
 }

@@ -187,6 +187,21 @@ pub enum BenchCommand {
         #[arg(long, default_value_t = 30.0)]
         up_seconds: f64,
     },
+    /// Every parser and decoder under libFuzzer (`fuzz/`, through cargo-fuzz), a bounded time
+    /// each, from the repository's root: new inputs are kept in `fuzz/corpus`, crashes in
+    /// `fuzz/artifacts` (the suite replays both). Prints a table and a verdict (exit 1 when a
+    /// target found a failing input).
+    Fuzz {
+        /// Seconds per target.
+        #[arg(long, default_value_t = 60)]
+        seconds: u64,
+        /// Only these targets (comma-separated; default: all).
+        #[arg(long, value_delimiter = ',')]
+        targets: Vec<String>,
+        /// cargo-fuzz's sanitizer: none or address (slower; catches what safe Rust cannot do).
+        #[arg(long, default_value = "none")]
+        sanitizer: String,
+    },
     /// What recording the run's logs (sim-trace, metrics JSON, MCAP) costs: steps/s with
     /// `record_trace` on and off, `train` and `up`, interleaved rounds in one run.
     Record {

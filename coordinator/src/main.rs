@@ -13,6 +13,7 @@ mod cli;
 mod client;
 mod dashboard;
 mod drive;
+mod fuzz_bench;
 mod local;
 mod race_cmd;
 mod render_cmd;
@@ -60,6 +61,9 @@ fn main() {
         cli::Command::Certs { command: cli::CertsCommand::New { dir, force } } => certs::write(&dir, force).map(|names| {
             println!("wrote {} in {}", names.join(", "), dir.display());
             println!("each role takes --certs DIR with ca.pem and its own <role>.pem and <role>.key; endpoints are tls/HOST:PORT");
+            println!(
+                "learners sign models with models.key (only their machines need it); agents and cars trust models.pub"
+            );
             0
         }),
         cli::Command::Cars(args) => cars::cars(args),
@@ -101,6 +105,7 @@ fn main() {
             cli::BenchCommand::Sac { world, minutes, sensors, agents, seed, out } => {
                 bench::sac(&world, minutes, &sensors, &agents, seed, &out)
             }
+            cli::BenchCommand::Fuzz { seconds, targets, sanitizer } => fuzz_bench::run(seconds, &targets, &sanitizer),
             cli::BenchCommand::Record { seconds, rounds } => bench::record(seconds, rounds).map(|()| 0),
             cli::BenchCommand::Wire { seconds, rounds, up_seconds } => bench::wire(seconds, rounds, up_seconds).map(|()| 0),
             cli::BenchCommand::Pixels { worlds, unseen, minutes, envs, evals, verify_trials, keep_training, seeds, out } => {

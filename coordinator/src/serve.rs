@@ -14,8 +14,8 @@ use coordinator::jobs::{AgentWork, Db, JobRecord, JobState, now_unix};
 use protocol::job_reply::Body;
 use protocol::net::{self, DropCounters, NetArgs, decode_sample, zenoh};
 use protocol::{
-    AgentInfo, AgentList, AgentReport, AgentRow, AssignmentTable, DropCount, Job, JobList, JobLog, JobReply,
-    JobRequest, JobStatus, JobSummary, LearnerStatus, PROTOCOL_VERSION, job_request::Kind, keys,
+    AgentInfo, AgentList, AgentReport, AgentRow, AssignmentTable, DropCount, DropCounts, Job, JobList, JobLog,
+    JobReply, JobRequest, JobStatus, JobSummary, LearnerStatus, PROTOCOL_VERSION, job_request::Kind, keys,
 };
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex};
@@ -162,9 +162,10 @@ pub fn serve(args: ServeArgs) -> Result<()> {
             }
         }
         while let Ok(Some(s)) = report_sub.try_recv() {
-            if let Some(r) = decode_sample::<AgentReport>(&s, &drops)
-                && let Some(j) = st.jobs.get_mut(&r.job_id).filter(|j| j.state() == JobState::Running)
-            {
+            let Some(r) = decode_sample::<AgentReport>(&s, &drops) else { continue };
+            if r.error.is_empty() {
+                on_refusals(&mut st, r, &drops);
+            } else if let Some(j) = st.jobs.get_mut(&r.job_id).filter(|j| j.state() == JobState::Running) {
                 j.event(format!("agent {} failed: {}", r.agent_id, r.error));
                 j.set_state(JobState::Failed);
                 j.stop_reason = Some(format!("agent {} failed: {}", r.agent_id, r.error));
@@ -176,6 +177,37 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         drop(st);
         std::thread::sleep(TICK.saturating_sub(tick.elapsed()));
     }
+}
+
+/// Agents whose refusals a job keeps.
+const REFUSING_AGENTS: usize = 64;
+
+/// An agent's report of what it refused: kept in the job's record (for `job status`) when the
+/// agent works for that job; reasons cut to a bounded size.
+fn on_refusals(st: &mut State, r: AgentReport, drops: &DropCounters) {
+    let Some(j) = st.jobs.get_mut(&r.job_id) else { return };
+    // An agent that works for the job now, or did (its counts are already here).
+    let known = j.assignments.contains_key(&r.agent_id) || j.agent_refused.contains_key(&r.agent_id);
+    if !known || !j.agent_refused.contains_key(&r.agent_id) && j.agent_refused.len() >= REFUSING_AGENTS {
+        drops.refuse(
+            "a refusal report",
+            &protocol::DecodeError::Invalid(format!("a report from {:?}, which does not work for the job", r.agent_id)),
+        );
+        return;
+    }
+    let counts = r
+        .refused
+        .into_iter()
+        .take(16)
+        .map(|d| DropCount { reason: d.reason.chars().take(200).collect(), count: d.count })
+        .collect();
+    let hostile_peers = r
+        .hostile_peers
+        .into_iter()
+        .take(16)
+        .map(|d| DropCount { reason: d.reason.chars().take(200).collect(), count: d.count })
+        .collect();
+    j.agent_refused.insert(r.agent_id, DropCounts { counts, hostile_peers });
 }
 
 fn on_status(st: &mut State, db: &Db, ls: LearnerStatus) {
@@ -471,7 +503,12 @@ fn handle(st: &Arc<Mutex<State>>, db: &Db, _session: &zenoh::Session, req: JobRe
                     .into_iter()
                     .map(|(reason, count)| DropCount { reason, count })
                     .collect();
-                let status = JobStatus { record: Some(j.clone()), coordinator_refused };
+                let coordinator_hostile_peers = protocol::secure::HOSTILE
+                    .named()
+                    .into_iter()
+                    .map(|(reason, count)| DropCount { reason, count })
+                    .collect();
+                let status = JobStatus { record: Some(j.clone()), coordinator_refused, coordinator_hostile_peers };
                 reply(true, status_text(j, &st), Some(Body::Status(status)))
             }
             None => reply(false, format!("no job '{id}'"), None),
@@ -597,8 +634,26 @@ fn status_text(j: &JobRecord, st: &State) -> String {
     for d in l.refused.iter().take(8) {
         t.push_str(&format!("  refused at the learner {}× : {}\n", d.count, d.reason));
     }
+    for (agent, c) in j.agent_refused.iter().take(8) {
+        for d in c.counts.iter().take(4) {
+            t.push_str(&format!("  refused at {agent} {}× : {}\n", d.count, d.reason));
+        }
+    }
     for (reason, count) in protocol::secure::REFUSED.reasons().into_iter().take(8) {
         t.push_str(&format!("  refused at the coordinator {count}× : {reason}\n"));
+    }
+    // Peers refused again and again, wherever it was.
+    let mut hostile: Vec<(String, &str, u64)> = protocol::secure::HOSTILE
+        .named()
+        .into_iter()
+        .map(|(peer, n)| (peer, "the coordinator", n))
+        .chain(l.hostile_peers.iter().map(|d| (d.reason.clone(), "the learner", d.count)))
+        .collect();
+    for (agent, c) in &j.agent_refused {
+        hostile.extend(c.hostile_peers.iter().map(|d| (d.reason.clone(), agent.as_str(), d.count)));
+    }
+    for (peer, at, n) in hostile.iter().take(8) {
+        t.push_str(&format!("  HOSTILE PEER {peer}: {n} messages refused at {at}\n"));
     }
     t.push_str(&format!("  agents alive: {}, learners alive: {}\n", st.agents.len(), st.learners.len()));
     t.push_str("  recent events:\n");

@@ -36,7 +36,8 @@ struct Cli {
     job: Option<String>,
     #[command(flatten)]
     net: NetCli,
-    /// Public keys (PEM, the learner's `.pub`) whose models the car accepts (repeatable).
+    /// Public keys (PEM, the learner's `.pub`) whose models the car accepts (repeatable). With
+    /// `--certs DIR`, the cluster's `models.pub` there is trusted too.
     #[arg(long)]
     trust: Vec<PathBuf>,
     /// The car's configuration (default: built-in defaults, the same as deploy/car.toml).
@@ -101,14 +102,18 @@ impl Mailbox {
 
 fn run(cli: Cli) -> Result<()> {
     let archive = cli.model_dir.as_deref().filter(|d| d.is_file());
-    if cli.trust.is_empty() && archive.is_none() {
-        bail!("give --trust FILE (the learner's public key): the car drives only models signed by a key it trusts");
+    let mut trusted = cli.trust.clone();
+    trusted.extend(cli.net.certs.as_ref().map(|d| d.join(protocol::secure::MODEL_PUB_FILE)).filter(|p| p.exists()));
+    if trusted.is_empty() && archive.is_none() {
+        bail!(
+            "give --trust FILE (the learner's public key) or --certs DIR holding models.pub: the car drives only models signed by a key it trusts"
+        );
     }
     let car = match &cli.car {
         Some(p) => CarConfig::load(p)?,
         None => CarConfig::default(),
     };
-    let trust = TrustedKeys::load(&cli.trust)?;
+    let trust = TrustedKeys::load(&trusted)?;
     let slot = Arc::new(ModelSlot::default());
     if let Some(a) = archive {
         if cli.job.is_some() {

@@ -62,7 +62,9 @@ struct ServeCli {
     #[arg(long, default_value_t = 5.0)]
     checkpoint_seconds: f64,
     /// The key that signs every model (PKCS#8 PEM, from `coordinator keys new NAME`); default:
-    /// the run folder's `signing.key`, made on first use. Learners of one team share one key.
+    /// the credentials folder's `models.key` with `--certs DIR`, else the run folder's
+    /// `signing.key`, made on first use. Learners of one team share one key (agents take
+    /// policies from one key per job).
     #[arg(long)]
     signing_key: Option<std::path::PathBuf>,
     /// Threads for the update (default: all cores).
@@ -136,14 +138,19 @@ fn main() {
                 &m.id,
             )
         }
-        Command::Serve(a) => serve::serve(serve::ServeArgs {
-            net: protocol::net::NetArgs::from(a.net).as_role(protocol::secure::Role::Learner),
-            id: a.id,
-            threads: learner::use_threads(a.threads),
-            checkpoint_seconds: a.checkpoint_seconds,
-            signing_key: a.signing_key,
-            device: a.device,
-        }),
+        Command::Serve(a) => {
+            // With the cluster's credentials, its model-signing key (when that machine has it).
+            let credentials_key =
+                a.net.certs.as_ref().map(|d| d.join(protocol::secure::MODEL_KEY_FILE)).filter(|k| k.exists());
+            serve::serve(serve::ServeArgs {
+                net: protocol::net::NetArgs::from(a.net).as_role(protocol::secure::Role::Learner),
+                id: a.id,
+                threads: learner::use_threads(a.threads),
+                checkpoint_seconds: a.checkpoint_seconds,
+                signing_key: a.signing_key.or(credentials_key),
+                device: a.device,
+            })
+        }
     };
     protocol::exit::exit(result.map(|()| protocol::exit::SUCCESS))
 }

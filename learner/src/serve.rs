@@ -555,6 +555,11 @@ impl Link for ZenohLink<'_> {
                 .into_iter()
                 .map(|(reason, count)| protocol::DropCount { reason, count })
                 .collect(),
+            hostile_peers: protocol::secure::HOSTILE
+                .named()
+                .into_iter()
+                .map(|(reason, count)| protocol::DropCount { reason, count })
+                .collect(),
             eval_progress: s.eval_progress,
             finished: s.finished,
             run_dir: s.run_dir.clone(),

@@ -197,6 +197,17 @@ impl TrustedKeys {
         self.keys.push((name.into(), signer.key.verifying_key()));
     }
 
+    /// Trust a public key given as hex (32 bytes: a signature's `public_key`).
+    pub fn add_hex(&mut self, name: &str, public_hex: &str) -> Result<(), SignatureError> {
+        let key = hex::decode(public_hex)
+            .ok()
+            .and_then(|b| <[u8; 32]>::try_from(b).ok())
+            .and_then(|b| VerifyingKey::from_bytes(&b).ok())
+            .ok_or_else(|| SignatureError::Refused("the signature's public key is not an ed25519 key in hex".into()))?;
+        self.keys.push((name.into(), key));
+        Ok(())
+    }
+
     /// How many keys are trusted.
     pub fn len(&self) -> usize {
         self.keys.len()
@@ -221,7 +232,7 @@ impl TrustedKeys {
             return refuse(format!("signature format is '{}', expected '{FORMAT}'", sig.format));
         }
         let Some((name, key)) = self.keys.iter().find(|(_, k)| hex::encode(k.as_bytes()) == sig.public_key) else {
-            return refuse(format!("signed by key {}, which is not trusted (--trust)", short(&sig.public_key)));
+            return refuse(format!("signed by key \"{}\", which is not trusted (--trust)", short(&sig.public_key)));
         };
         let bytes: [u8; 64] = match hex::decode(&sig.signature).ok().and_then(|b| b.try_into().ok()) {
             Some(b) => b,

@@ -32,8 +32,9 @@ use crate::nn::{InputShape, Layer, Net};
 use prost::Message;
 use std::collections::HashMap;
 
+/// TensorFlow's graph messages (the part of its `.proto` files a frozen graph uses).
 #[allow(missing_docs, dead_code, clippy::all)]
-mod pb {
+pub mod pb {
     include!(concat!(env!("OUT_DIR"), "/tensorflow.rs"));
 }
 

@@ -58,6 +58,14 @@ impl Role {
 /// The cluster CA's certificate file in a credentials folder.
 pub const CA_FILE: &str = "ca.pem";
 
+/// The learner's model-signing key in a credentials folder (ed25519, PKCS#8 PEM): only the
+/// learners' machines need it.
+pub const MODEL_KEY_FILE: &str = "models.key";
+
+/// Its public half (SubjectPublicKeyInfo PEM): agents and cars given the folder trust the
+/// models it signs.
+pub const MODEL_PUB_FILE: &str = "models.pub";
+
 /// One role's credentials: the CA that signs every role, and this role's certificate and key.
 #[derive(Clone, Debug)]
 pub struct Credentials {
@@ -270,6 +278,89 @@ impl Refusals {
 /// This process's refusals (filled by [`RefusalLayer`]).
 pub static REFUSED: std::sync::LazyLock<Refusals> = std::sync::LazyLock::new(Refusals::default);
 
+/// Refusals of one peer within [`HOSTILE_WINDOW`] that make it hostile.
+pub const HOSTILE_REFUSALS: u64 = 20;
+/// The window [`HOSTILE_REFUSALS`] are counted in.
+pub const HOSTILE_WINDOW: std::time::Duration = std::time::Duration::from_secs(60);
+/// Peers tracked at once (the least recently refused is forgotten past this).
+const MAX_PEERS: usize = 1024;
+
+/// Peers whose messages this node keeps refusing: each is logged once, with its
+/// certificate's name, when it passes [`HOSTILE_REFUSALS`] in a [`HOSTILE_WINDOW`], and named
+/// from then on by [`HostilePeers::named`] (what `job status` shows).
+#[derive(Debug, Default)]
+pub struct HostilePeers {
+    peers: Mutex<BTreeMap<String, PeerRecord>>,
+}
+
+#[derive(Debug)]
+struct PeerRecord {
+    /// Refusals in the current window, and when it began.
+    window: (u64, std::time::Instant),
+    /// Refusals in all.
+    total: u64,
+    last: std::time::Instant,
+    hostile: bool,
+}
+
+impl HostilePeers {
+    /// Count one refusal of `peer` (its certificate's name and Zenoh id); true when this one
+    /// made it hostile (the caller logs it, once).
+    pub fn count(&self, peer: &str, now: std::time::Instant) -> bool {
+        let mut m = self.peers.lock().unwrap_or_else(|p| p.into_inner());
+        if !m.contains_key(peer)
+            && m.len() >= MAX_PEERS
+            && let Some(oldest) = m.iter().min_by_key(|(_, r)| r.last).map(|(k, _)| k.clone())
+        {
+            m.remove(&oldest);
+        }
+        let r =
+            m.entry(peer.to_string()).or_insert(PeerRecord { window: (0, now), total: 0, last: now, hostile: false });
+        if now.duration_since(r.window.1) > HOSTILE_WINDOW {
+            r.window = (0, now);
+        }
+        r.window.0 += 1;
+        r.total += 1;
+        r.last = now;
+        if !r.hostile && r.window.0 >= HOSTILE_REFUSALS {
+            r.hostile = true;
+            return true;
+        }
+        false
+    }
+
+    /// The hostile peers and their refusals in all, most refused first.
+    pub fn named(&self) -> Vec<(String, u64)> {
+        let m = self.peers.lock().unwrap_or_else(|p| p.into_inner());
+        let mut v: Vec<(String, u64)> =
+            m.iter().filter(|(_, r)| r.hostile).map(|(k, r)| (k.clone(), r.total)).collect();
+        v.sort_by(|a, b| b.1.cmp(&a.1).then_with(|| a.0.cmp(&b.0)));
+        v
+    }
+}
+
+/// This process's hostile peers (filled by [`RefusalLayer`]).
+pub static HOSTILE: std::sync::LazyLock<HostilePeers> = std::sync::LazyLock::new(HostilePeers::default);
+
+/// The peer an access-control line names: "certificate 'CN' (zenoh id ZID)", the common
+/// name remembered by Zenoh id for lines from Zenoh's cache.
+pub fn peer_of(message: &str) -> Option<String> {
+    let (head, _) = message.split_once(" is unauthorized to ")?;
+    let head = head.trim_start_matches("Using cached result:").trim();
+    let zid = head.split_once(" on ").map_or(head, |(z, _)| z).trim();
+    let cn = head
+        .split("CertCommonName(")
+        .nth(1)
+        .and_then(|t| t.split(')').next())
+        .map(str::to_string)
+        .or_else(|| PEER_NAMES.lock().unwrap_or_else(|p| p.into_inner()).get(zid).cloned());
+    let zid: String = zid.chars().take(32).collect();
+    Some(match cn {
+        Some(cn) => format!("certificate '{cn}' (zenoh id {zid})"),
+        None => format!("zenoh id {zid}"),
+    })
+}
+
 const ACL_TARGET: &str = "zenoh::net::routing::interceptor::access_control";
 const TLS_TARGET: &str = "zenoh_link_tls";
 
@@ -299,6 +390,9 @@ pub fn refusal_reason(target: &str, message: &str) -> Option<String> {
 /// cache names the peer by its id only.
 static PEERS: std::sync::LazyLock<Mutex<BTreeMap<String, String>>> = std::sync::LazyLock::new(Default::default);
 
+/// The certificates' common names of the peers seen in access-control lines, by Zenoh id.
+static PEER_NAMES: std::sync::LazyLock<Mutex<BTreeMap<String, String>>> = std::sync::LazyLock::new(Default::default);
+
 /// Who the head of an access-control line ("<zid> on <subject>", or "Using cached result:
 /// <zid>") names: the role of its certificate, remembered by Zenoh id.
 fn who_is(head: &str) -> Option<String> {
@@ -313,6 +407,10 @@ fn who_is(head: &str) -> Option<String> {
             let who = Role::from_common_name(cn).map(|r| r.name().to_string()).unwrap_or_else(|| format!("'{cn}'"));
             if peers.len() < 4096 || peers.contains_key(zid) {
                 peers.insert(zid.to_string(), who.clone());
+                let mut names = PEER_NAMES.lock().unwrap_or_else(|p| p.into_inner());
+                if names.len() < 4096 || names.contains_key(zid) {
+                    names.insert(zid.to_string(), cn.to_string());
+                }
             }
             Some(who)
         }
@@ -384,6 +482,16 @@ impl<S: tracing::Subscriber> tracing_subscriber::Layer<S> for RefusalLayer {
             return;
         }
         if let Some(r) = refusal_reason(target, &v.0) {
+            if target.starts_with(ACL_TARGET)
+                && let Some(peer) = peer_of(&v.0)
+                && HOSTILE.count(&peer, std::time::Instant::now())
+            {
+                tracing::warn!(
+                    "{peer} had {HOSTILE_REFUSALS} messages refused within {} s (the latest: {r}); \
+                     job status names it from now on",
+                    HOSTILE_WINDOW.as_secs()
+                );
+            }
             REFUSED.count(r);
         }
     }
@@ -496,6 +604,34 @@ mod tests {
         for (line, want) in lines {
             assert_eq!(is_decision(&line), want, "{line}");
         }
+    }
+
+    #[test]
+    fn issue_35_a_peer_refused_again_and_again_is_named_once() {
+        let line =
+            "f00d on lo+CertCommonName(paddock-agent)+Tls+f00d is unauthorized to Put (ingress) on paddock/v1/jobs";
+        let peer = peer_of(line).unwrap();
+        assert_eq!(peer, "certificate 'paddock-agent' (zenoh id f00d)");
+        // A line from Zenoh's cache names the peer by its id alone: its certificate is remembered.
+        who_is("f00d on lo+CertCommonName(paddock-agent)+Tls+f00d");
+        assert_eq!(peer_of("Using cached result: f00d is unauthorized to Query (ingress) on x").unwrap(), peer);
+        assert_eq!(peer_of("beef is unauthorized to Query (ingress) on x").unwrap(), "zenoh id beef");
+        assert_eq!(peer_of("f00d is authorized to Put (ingress) on x"), None);
+        let h = HostilePeers::default();
+        let t0 = std::time::Instant::now();
+        // Fewer than N in each window: never hostile.
+        for window in 0..3u32 {
+            let at = t0 + (HOSTILE_WINDOW + std::time::Duration::from_secs(1)) * window;
+            for _ in 1..HOSTILE_REFUSALS {
+                assert!(!h.count("slow", at));
+            }
+        }
+        assert!(h.named().is_empty());
+        // A burst: named once, at the N-th refusal, and counted on.
+        let made: Vec<bool> = (0..HOSTILE_REFUSALS + 5).map(|_| h.count(&peer, t0)).collect();
+        assert_eq!(made.iter().filter(|m| **m).count(), 1);
+        assert!(made[HOSTILE_REFUSALS as usize - 1]);
+        assert_eq!(h.named(), vec![(peer, HOSTILE_REFUSALS + 5)]);
     }
 
     #[test]

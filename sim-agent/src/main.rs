@@ -2,6 +2,7 @@
 //! coordinator and streams experience to a learner over Zenoh), `bench` (the simulator's
 //! speed), `car` (the simulated physical car) and `handling` (the car's figures per surface).
 
+mod gate;
 mod hil;
 mod serve;
 
@@ -59,6 +60,11 @@ struct ServeCli {
     /// else the CPU), cpu or gpu (the GPU, a software one included, or an error).
     #[arg(long, default_value = "auto")]
     device: gpu::DeviceChoice,
+    /// A public key whose policies this agent runs (the learner's `.pub`, from `coordinator
+    /// keys new` or the run folder's `signing.pub`); repeatable. With `--certs DIR` its
+    /// `models.pub` is trusted too. With neither, each job's first signer is pinned.
+    #[arg(long, value_name = "FILE")]
+    trust: Vec<PathBuf>,
 }
 
 #[derive(clap::Args)]
@@ -101,12 +107,17 @@ fn main() {
         Command::Bench(args) => bench(args),
         Command::Car(args) => hil::run(args),
         Command::Handling { config } => handling(config),
-        Command::Serve(a) => serve::serve(serve::ServeArgs {
-            net: protocol::net::NetArgs::from(a.net).as_role(protocol::secure::Role::Agent),
-            envs: a.envs,
-            id: a.id,
-            threads: a.threads.unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)),
-            device: a.device,
+        Command::Serve(a) => gate::trust(&a.trust, a.net.certs.as_deref()).and_then(|trust| {
+            serve::serve(serve::ServeArgs {
+                net: protocol::net::NetArgs::from(a.net).as_role(protocol::secure::Role::Agent),
+                envs: a.envs,
+                id: a.id,
+                threads: a
+                    .threads
+                    .unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)),
+                device: a.device,
+                trust,
+            })
         }),
     };
     protocol::exit::exit(result.map(|()| protocol::exit::SUCCESS))

@@ -8,11 +8,12 @@
 //! goes away it keeps its state and carries on when they return; an assignment not refreshed
 //! for a while is dropped.
 
+use crate::gate::{GateJob, PolicyGate, Trust};
 use anyhow::{Context, Result};
 use protocol::Job;
 use protocol::exchange::{self as wire, JobView};
 use protocol::net::{self, DropCounters, NetArgs, Sub, try_next, zenoh};
-use protocol::{AgentInfo, AgentReport, Assignment, PROTOCOL_VERSION, PolicyUpdate, keys};
+use protocol::{AgentInfo, AgentReport, Assignment, DropCount, PROTOCOL_VERSION, PolicyUpdate, keys};
 use sim_agent::config::{SimConfig, parse_toml};
 use sim_agent::worker::{Worker, WorkerError, WorkerInbound, WorkerLink, WorkerOutbound, WorkerSetup};
 use sim_agent::{EnvSpec, RewardFn};
@@ -23,6 +24,12 @@ use zenoh::Wait;
 
 /// How long an assignment stays valid without being re-sent.
 const ASSIGNMENT_TTL: Duration = Duration::from_secs(5);
+
+/// The least time between two reports of this agent's refusals.
+const REFUSAL_REPORT: Duration = Duration::from_secs(2);
+
+/// Refusal reasons a report carries (the most frequent).
+const REFUSAL_REASONS: usize = 16;
 
 /// Options of `sim-agent serve`.
 pub struct ServeArgs {
@@ -36,6 +43,8 @@ pub struct ServeArgs {
     pub threads: usize,
     /// Where the policy acts: a GPU (`gpu::Gpu::open`'s rules) or the CPU.
     pub device: gpu::DeviceChoice,
+    /// Whose policies it runs.
+    pub trust: Trust,
 }
 
 fn host() -> String {
@@ -73,6 +82,8 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         session.liveliness().declare_token(keys::agent_alive(&id)).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
     let assign_sub = net::subscribe(&session, &keys::assignment(&id))?;
     let drops = DropCounters::default();
+    // One gate for every assignment: a job's pinned key outlives a change of worlds.
+    let gate = PolicyGate::start(args.trust.clone()).context("starting the policy check")?;
     tracing::info!(agent = %id, envs = args.envs, "sim agent up; waiting for an assignment");
     let mut failed: Option<(String, u64)> = None;
     let mut docs: Vec<Job> = Vec::new();
@@ -112,7 +123,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
                 }
             },
         };
-        let mut link = match AgentLink::new(&session, &id, &a, &doc, &assign_sub, &drops) {
+        let mut link = match AgentLink::new(&session, &id, &a, &doc, &assign_sub, &drops, &gate) {
             Ok(l) => l,
             Err(e) => {
                 report(&session, &a.job_id, &id, &format!("{e:#}"));
@@ -147,6 +158,8 @@ fn report(session: &zenoh::Session, job: &str, agent: &str, error: &str) {
         job_id: job.into(),
         agent_id: agent.into(),
         error: error.into(),
+        refused: vec![],
+        hostile_peers: vec![],
     };
     if let Err(e) = net::put(session, &keys::agent_report(job, agent), &r) {
         tracing::warn!("could not send the failure report: {e}");
@@ -227,6 +240,11 @@ struct AgentLink<'a> {
     credit_sub: Sub,
     eval_sub: Sub,
     drops: &'a DropCounters,
+    gate: &'a PolicyGate,
+    /// What the gate checks this job's policies against.
+    gate_job: Arc<GateJob>,
+    /// Refusals last reported to the coordinator (their total) and when.
+    reported: (u64, Option<Instant>),
     last_seen: Instant,
     last_query: Option<Instant>,
     queue: VecDeque<WorkerInbound>,
@@ -241,24 +259,31 @@ impl<'a> AgentLink<'a> {
         doc: &Job,
         assign_sub: &'a Sub,
         drops: &'a DropCounters,
+        gate: &'a PolicyGate,
     ) -> Result<AgentLink<'a>> {
         let cfg = job_config(doc)?;
+        let worlds = if a.job_worlds.is_empty() { w_names(a) } else { a.job_worlds.clone() };
+        let obs_size = sim_agent::obs::obs_dim(&cfg.observation);
+        let actions = protocol::Actions::of(
+            &policy::ModelMetadata::parse(&doc.model_metadata_json, "the job's model_metadata.json")?.action_space,
+        );
         Ok(AgentLink {
             session,
             id: id.into(),
             job: a.job_id.clone(),
             generation: a.generation,
             weights: a.weights.clone(),
-            worlds: if a.job_worlds.is_empty() { w_names(a) } else { a.job_worlds.clone() },
-            obs_size: sim_agent::obs::obs_dim(&cfg.observation),
-            actions: protocol::Actions::of(
-                &policy::ModelMetadata::parse(&doc.model_metadata_json, "the job's model_metadata.json")?.action_space,
-            ),
+            gate_job: Arc::new(GateJob { job_id: a.job_id.clone(), obs_size, worlds: worlds.clone(), actions }),
+            worlds,
+            obs_size,
+            actions,
             assign_sub,
             policy_sub: net::subscribe(session, &keys::policy(&a.job_id))?,
             credit_sub: net::subscribe(session, &keys::credit(&a.job_id))?,
             eval_sub: net::subscribe(session, &keys::eval_request(&a.job_id, id))?,
             drops,
+            gate,
+            reported: (0, None),
             last_seen: Instant::now(),
             last_query: None,
             queue: VecDeque::new(),
@@ -270,15 +295,58 @@ impl<'a> AgentLink<'a> {
         JobView { job_id: &self.job, obs_size: self.obs_size, worlds: &self.worlds, actions: self.actions }
     }
 
+    /// Hand a policy to the gate (its verdict comes back in [`Self::poll`]).
     fn take_policy(&mut self, u: PolicyUpdate) {
-        match wire::policy_from_wire(u, &self.view()) {
-            Ok(p) => {
-                tracing::info!(version = p.version, "new policy");
-                self.queue.push_back(WorkerInbound::Policy(p));
+        if let Err(e) = self.gate.offer(&self.gate_job, u) {
+            self.drops.refuse("a policy", &e);
+        }
+    }
+
+    /// The gate's verdicts on this job's policies: the ones that passed go to the worker.
+    fn take_verdicts(&mut self) {
+        while let Some(v) = self.gate.next() {
+            if v.job_id != self.job {
+                continue;
             }
-            Err(e) => {
-                self.drops.refuse("a policy", &e);
+            match v.result {
+                Ok(p) => {
+                    tracing::info!(version = p.policy.version, key = %p.key, "new policy");
+                    self.queue.push_back(WorkerInbound::Policy(p.policy));
+                }
+                Err(e) => self.drops.refuse("a policy", &e),
             }
+        }
+    }
+
+    /// Tell the coordinator what this agent has refused (its checks' and its network's), when
+    /// that changed, at most every [`REFUSAL_REPORT`].
+    fn report_refusals(&mut self) {
+        let total = self.drops.total() + protocol::secure::REFUSED.total();
+        if total == self.reported.0 || self.reported.1.is_some_and(|t| t.elapsed() < REFUSAL_REPORT) {
+            return;
+        }
+        let mut refused: Vec<DropCount> =
+            self.drops.reasons().into_iter().map(|(reason, count)| DropCount { reason, count }).collect();
+        refused
+            .extend(protocol::secure::REFUSED.reasons().into_iter().map(|(reason, count)| DropCount { reason, count }));
+        refused.sort_by(|a, b| b.count.cmp(&a.count).then_with(|| a.reason.cmp(&b.reason)));
+        refused.truncate(REFUSAL_REASONS);
+        let r = AgentReport {
+            protocol_version: PROTOCOL_VERSION,
+            job_id: self.job.clone(),
+            agent_id: self.id.clone(),
+            error: String::new(),
+            refused,
+            hostile_peers: protocol::secure::HOSTILE
+                .named()
+                .into_iter()
+                .take(REFUSAL_REASONS)
+                .map(|(reason, count)| DropCount { reason, count })
+                .collect(),
+        };
+        self.reported = (total, Some(Instant::now()));
+        if let Err(e) = net::put(self.session, &keys::agent_report(&self.job, &self.id), &r) {
+            tracing::warn!("could not report the refusals: {e}");
         }
     }
 
@@ -306,6 +374,8 @@ impl<'a> AgentLink<'a> {
         while let Some((_, u)) = try_next::<PolicyUpdate>(&self.policy_sub, self.drops) {
             self.take_policy(u);
         }
+        self.take_verdicts();
+        self.report_refusals();
         if need_policy && self.queue.is_empty() && self.last_query.is_none_or(|t| t.elapsed() > Duration::from_secs(1))
         {
             self.last_query = Some(Instant::now());

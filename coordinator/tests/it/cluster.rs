@@ -48,6 +48,8 @@ struct Cluster {
     endpoint: String,
     /// `--certs DIR` for every role and CLI call once [`Cluster::secure`] made credentials.
     certs: Vec<String>,
+    /// Arguments every learner gets (a team's shared signing key).
+    learner_args: Vec<String>,
     procs: Procs,
     // Last: released after the processes are gone.
     _turn: std::sync::MutexGuard<'static, ()>,
@@ -61,9 +63,17 @@ impl Cluster {
             _turn: turn,
             endpoint: format!("tcp/127.0.0.1:{}", free_port()),
             certs: vec![],
+            learner_args: vec![],
             dir,
             procs: Procs(vec![]),
         }
+    }
+
+    /// One signing key for every learner from now on, as a team spread over machines needs
+    /// (agents take one key's policies per job).
+    fn shared_signing_key(&mut self) {
+        let (secret, _) = policy::signature::Signer::generate().write_pair(&self.path("team")).unwrap();
+        self.learner_args = vec!["--signing-key".into(), secret.display().to_string()];
     }
 
     /// The cluster's credentials (`certs new certs`) for every role from now on, on `tls/`.
@@ -112,6 +122,7 @@ impl Cluster {
             Command::new(bin("learner"))
                 .args(["serve", "--connect", &ep, "--id", id, "--checkpoint-seconds", "0"])
                 .args(&self.certs)
+                .args(&self.learner_args)
                 .current_dir(dir),
             &log,
         );
@@ -731,6 +742,7 @@ fn team_updates(s: &serde_json::Value) -> u64 {
 #[test]
 fn issue_8_learners_share_updates_drop_the_dead_take_joiners_and_take_over() {
     let mut c = Cluster::new();
+    c.shared_signing_key();
     c.coordinator();
     c.learner_as("learner-a", "learner-a");
     // learner-b works in a folder of its own, as on another machine.
@@ -774,6 +786,7 @@ fn issue_8_learners_share_updates_drop_the_dead_take_joiners_and_take_over() {
 #[test]
 fn issue_32_a_learner_team_shares_sac_updates_and_a_joiner_takes_the_replay_memory() {
     let mut c = Cluster::new();
+    c.shared_signing_key();
     c.coordinator();
     c.learner_as("learner-a", "learner-a");
     c.agent("agent-1");
@@ -905,11 +918,16 @@ fn issue_10_only_the_clusters_roles_connect_and_each_does_only_its_part() {
     for f in ["ca.pem", "coordinator.pem", "learner.pem", "agent.pem", "car.pem", "operator.pem"] {
         assert!(std::fs::read_to_string(c.path("certs").join(f)).unwrap().contains("BEGIN CERTIFICATE"), "{f}");
     }
+    // The learners' model-signing key, whose public half agents and cars trust.
+    policy::signature::TrustedKeys::load(&[c.path("certs/models.pub")]).unwrap();
+    policy::signature::Signer::load(&c.path("certs/models.key")).unwrap();
     #[cfg(unix)]
     {
         use std::os::unix::fs::PermissionsExt;
-        let mode = std::fs::metadata(c.path("certs/agent.key")).unwrap().permissions().mode();
-        assert_eq!(mode & 0o077, 0, "agent.key is private: {mode:o}");
+        for key in ["agent.key", "models.key"] {
+            let mode = std::fs::metadata(c.path("certs").join(key)).unwrap().permissions().mode();
+            assert_eq!(mode & 0o077, 0, "{key} is private: {mode:o}");
+        }
     }
     let o =
         Command::new(bin("coordinator")).args(["certs", "new", "certs"]).current_dir(c.dir.path()).output().unwrap();
@@ -1052,6 +1070,70 @@ fn issue_10_only_the_clusters_roles_connect_and_each_does_only_its_part() {
         let u = protocol::decode::<protocol::PolicyUpdate>(&sample.payload().to_bytes()).unwrap();
         assert!(u.policy_version < 1_000_000, "the operator received the agent's model");
     }
+    // Issue 35: a stolen learner certificate may publish policies, but without the learners'
+    // signing key: a copy of the latest model as v777777 signed by the thief's own key, and
+    // as v777778 unsigned. The agent checks the signature and drives neither; both are
+    // counted at the agent and shown by `job status`.
+    let learner = as_role(Role::Learner);
+    std::thread::sleep(Duration::from_secs(1));
+    let latest = net::query::<protocol::PolicyUpdate>(
+        &agent,
+        &protocol::keys::policy(&id),
+        None,
+        Duration::from_secs(3),
+        &protocol::net::DropCounters::default(),
+    )
+    .unwrap()
+    .into_iter()
+    .next()
+    .expect("the latest policy");
+    let thief = policy::signature::Signer::generate();
+    let as_version = |v: u64, signer: Option<&policy::signature::Signer>| {
+        let mut manifest: serde_json::Value = serde_json::from_str(&latest.manifest_json).unwrap();
+        manifest["policy_version"] = v.into();
+        let manifest_json = manifest.to_string();
+        let signature_json = signer
+            .map(|s| {
+                serde_json::to_string(&s.sign(&latest.weights, &latest.model_metadata_json, &manifest_json)).unwrap()
+            })
+            .unwrap_or_default();
+        protocol::PolicyUpdate { policy_version: v, manifest_json, signature_json, ..latest.clone() }
+    };
+    for _ in 0..3 {
+        net::put(&learner, &protocol::keys::policy(&id), &as_version(777_777, Some(&thief))).unwrap();
+        net::put(&learner, &protocol::keys::policy(&id), &as_version(777_778, None)).unwrap();
+        std::thread::sleep(Duration::from_millis(300));
+    }
+    let s = c.wait(&id, 30, "the agent's signature refusals reported", |s| {
+        let a = s["agent_refused"]["agent-1"].to_string();
+        a.contains("signature: signed by key") && a.contains("signature: the model is not signed")
+    });
+    let text = String::from_utf8_lossy(&c.cli(&["job", "status", &id]).stdout).to_string();
+    assert!(text.contains("refused at agent-1") && text.contains("which is not trusted"), "{text}\n{s}");
+    let log = std::fs::read_to_string(c.path("agent-1.log")).unwrap();
+    assert!(log.contains("new policy") && !log.contains("version=77777"), "agent-1 drove a forged policy: {log}");
+    // A peer refused again and again is logged once by its certificate's name and named by
+    // `job status`: the stolen agent certificate, announcing job tables to the learner.
+    let table = protocol::AssignmentTable {
+        protocol_version: protocol::PROTOCOL_VERSION,
+        job_id: id.clone(),
+        running: false,
+        ..Default::default()
+    };
+    for _ in 0..30 {
+        net::put(&agent, protocol::keys::JOBS, &table).unwrap();
+    }
+    let s = c.wait(&id, 30, "the hostile peer named", |s| {
+        s["learner"]["hostile_peers"].to_string().contains("certificate 'paddock-agent'")
+    });
+    let text = String::from_utf8_lossy(&c.cli(&["job", "status", &id]).stdout).to_string();
+    assert!(text.contains("HOSTILE PEER certificate 'paddock-agent' (zenoh id "), "{text}\n{s}");
+    let log = std::fs::read_to_string(c.path("learner.log")).unwrap();
+    let named = log
+        .lines()
+        .filter(|l| l.contains("certificate 'paddock-agent'") && l.contains("messages refused within"))
+        .count();
+    assert_eq!(named, 1, "logged once: {log}");
     for (name, p) in &mut c.procs.0 {
         assert!(p.try_wait().unwrap().is_none(), "{name} died");
     }

@@ -29,7 +29,8 @@ fn rust_files(dir: &Path, out: &mut Vec<PathBuf>) {
     }
 }
 
-const CRATES: &[&str] = &["tracks", "policy", "protocol", "sim-agent", "learner", "deploy", "coordinator", "tests"];
+const CRATES: &[&str] =
+    &["tracks", "policy", "protocol", "sim-agent", "learner", "deploy", "coordinator", "tests", "fuzz"];
 
 #[test]
 fn every_file_has_a_module_doc_and_nothing_is_left_unfinished() {
