@@ -1,7 +1,7 @@
 //! `bench fuzz`: every fuzz target of `fuzz/` (cargo-fuzz's layout; the targets are
 //! `tests::fuzz`'s) under libFuzzer for a bounded time each, starting from the kept corpus
-//! and the committed seeds; what it finds new is kept in `fuzz/corpus/TARGET`, a crash in
-//! `fuzz/artifacts/TARGET` (the suite replays both). Prints a table and a verdict: pass when
+//! and the committed seeds; what it finds new is kept in `fuzz/corpus/TARGET` (minimised with
+//! `cargo fuzz cmin`), a crash in `fuzz/artifacts/TARGET` (the suite replays both). Prints a table and a verdict: pass when
 //! no target crashed, leaked past the memory limits or timed out.
 
 use anyhow::{Context, Result, bail};
@@ -122,6 +122,16 @@ pub fn run(seconds: u64, only: &[String], sanitizer: &str) -> Result<i32> {
             eprintln!("{log}");
             Some(format!("{what} (input: {input})"))
         };
+        // Keep a small set of inputs that reaches every edge the run reached (what is committed
+        // and replayed by the suite): edges alone, not their hit counts, which keep 5× more.
+        let minimised = cargo(&["cmin", target, "--sanitizer", sanitizer, &corpus_s, "--", "-use_counters=0"])
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .status()
+            .is_ok_and(|s| s.success());
+        if !minimised {
+            eprintln!("bench fuzz: {target}: cargo fuzz cmin failed; the corpus is kept whole");
+        }
         rows.push(Row {
             target: target.clone(),
             runs: runs(&log),
@@ -133,7 +143,7 @@ pub fn run(seconds: u64, only: &[String], sanitizer: &str) -> Result<i32> {
             finding,
         });
     }
-    println!("| target | runs | exec/s | coverage (edges) | corpus before → after | seconds | finding |");
+    println!("| target | runs | exec/s | coverage (edges) | corpus before → after (minimised) | seconds | finding |");
     println!("|---|---:|---:|---:|---:|---:|---|");
     for r in &rows {
         println!(

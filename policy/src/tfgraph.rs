@@ -42,6 +42,9 @@ pub use pb::GraphDef;
 
 const DT_FLOAT: i32 = 1;
 const DT_INT32: i32 = 3;
+/// The most nodes between the output and an input a graph may have (the recursion's depth).
+const MAX_GRAPH_DEPTH: usize = 256;
+
 /// The largest graph read (a DEEPER camera model is ≈ 40 MB).
 pub const MAX_GRAPH_BYTES: usize = 512 << 20;
 
@@ -452,6 +455,9 @@ struct Reader<'g> {
     /// The input placeholders, in the network's input order.
     inputs: Vec<&'g str>,
     memo: HashMap<&'g str, Value>,
+    /// The nodes being evaluated now, from the output inwards: a node met again among them
+    /// is a cycle, and their number is the recursion's depth.
+    path: Vec<&'g str>,
     /// The layers read: one chain per input, then (after a merger) the rest.
     chains: Vec<Vec<Read>>,
     softmax: bool,
@@ -510,7 +516,19 @@ impl<'g> Reader<'g> {
         if let Some(v) = self.memo.get(n.name.as_str()) {
             return Ok(v.clone());
         }
-        let v = self.eval(n)?;
+        if self.path.contains(&n.name.as_str()) {
+            return Err(GraphError::Mismatch(format!("{} ({}) is its own input: the graph has a cycle", n.name, n.op)));
+        }
+        if self.path.len() >= MAX_GRAPH_DEPTH {
+            return Err(GraphError::Mismatch(format!(
+                "{} ({}) is over {MAX_GRAPH_DEPTH} nodes from the output; DeepRacer's graphs are tens deep",
+                n.name, n.op
+            )));
+        }
+        self.path.push(&n.name);
+        let v = self.eval(n);
+        self.path.pop();
+        let v = v?;
         self.memo.insert(&n.name, v.clone());
         Ok(v)
     }
@@ -819,8 +837,9 @@ pub fn read_graph(g: &GraphDef, meta: &ModelMetadata, seed: u64) -> Result<Actor
     }
     let inputs: Vec<&str> = names.inputs.iter().map(|s| s.as_str()).collect();
     let chains = vec![Vec::new(); inputs.len()];
-    let mut r = Reader { nodes, inputs, memo: HashMap::new(), chains, softmax: false };
-    // Deep graphs are short chains (tens of nodes); the recursion depth stays small.
+    let mut r = Reader { nodes, inputs, memo: HashMap::new(), path: Vec::new(), chains, softmax: false };
+    // Deep graphs are short chains (tens of nodes); the recursion is bounded by
+    // MAX_GRAPH_DEPTH and refuses cycles.
     let Value::Data(last) = r.value(out)? else {
         return Err(GraphError::Mismatch("the output does not depend on the input".into()));
     };
@@ -1080,6 +1099,33 @@ mod tests {
         g.node.iter_mut().find(|n| n.op == "Relu").unwrap().op = "Tanh".into();
         let e = read(&g.encode_to_vec(), &shallow, 1).unwrap_err().to_string();
         assert!(e.contains("op Tanh is not in DeepRacer's networks"), "{e}");
+        // Issue 35 (the fuzzer's stack overflow): a node that is its own input, and a chain of
+        // identities longer than any network's, are refused, not followed.
+        let mut g = GraphDef::decode(bytes.as_slice()).unwrap();
+        let relu = g.node.iter().find(|n| n.op == "Relu").unwrap().name.clone();
+        rewire(&mut g, &relu, &relu);
+        let e = read(&g.encode_to_vec(), &shallow, 1).unwrap_err().to_string();
+        assert!(e.contains("is its own input: the graph has a cycle"), "{e}");
+        let mut g = GraphDef::decode(bytes.as_slice()).unwrap();
+        let into = g.node.iter().find(|n| n.op == "Relu").unwrap().input[0].clone();
+        let mut last = into;
+        for i in 0..10_000 {
+            let mut n = g.node.iter().find(|n| n.op == "Relu").unwrap().clone();
+            n.name = format!("chain/{i}");
+            n.op = "Identity".into();
+            n.input = vec![last];
+            last = n.name.clone();
+            g.node.push(n);
+        }
+        rewire(&mut g, &relu, &last);
+        let m = shallow.clone();
+        let e = std::thread::Builder::new()
+            .stack_size(2 << 20)
+            .spawn(move || read(&g.encode_to_vec(), &m, 1).unwrap_err().to_string())
+            .unwrap()
+            .join()
+            .expect("no stack overflow on a thread's default stack");
+        assert!(e.contains("over 256 nodes from the output"), "{e}");
         // Not a graph at all.
         assert!(matches!(read(b"\xff\xff\xff", &shallow, 1), Err(GraphError::NotAGraph(_))));
         assert!(matches!(read(b"", &shallow, 1), Err(GraphError::NotAGraph(_))));

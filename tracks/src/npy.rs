@@ -117,9 +117,50 @@ fn float_rows_npy<const N: usize>(n: usize, rows: impl Iterator<Item = [f64; N]>
 /// Two rows closer than this are the same point (DeepRacer's sanitising epsilon).
 const CLOSE_EPS: f64 = 1e-9;
 
+/// The deepest bracket nesting a `.npy` header may have: a dict holding a tuple (a
+/// structured dtype's list of tuples is one more). The header parser underneath takes time
+/// exponential in the depth (a fuzzer's 40-deep header took more than 10 s), so deeper ones
+/// are refused before it runs.
+const MAX_HEADER_DEPTH: usize = 4;
+
+/// How deep the brackets (`{`, `[`, `(`) of a `.npy` file's header nest (0 when the bytes
+/// are not a `.npy` file: its parser says so).
+fn header_depth(bytes: &[u8]) -> usize {
+    if !bytes.starts_with(b"\x93NUMPY") || bytes.len() < 10 {
+        return 0;
+    }
+    let (len, start) = if bytes[6] == 1 {
+        (u16::from_le_bytes([bytes[8], bytes[9]]) as usize, 10)
+    } else if bytes.len() >= 12 {
+        (u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize, 12)
+    } else {
+        return 0;
+    };
+    let header = &bytes[start.min(bytes.len())..start.saturating_add(len).min(bytes.len())];
+    let (mut depth, mut deepest) = (0usize, 0usize);
+    for b in header {
+        match b {
+            b'{' | b'[' | b'(' => {
+                depth += 1;
+                deepest = deepest.max(depth);
+            }
+            b'}' | b']' | b')' => depth = depth.saturating_sub(1),
+            _ => {}
+        }
+    }
+    deepest
+}
+
 /// Parse and validate the bytes of a `.npy` track file. `origin` names the file in errors.
 pub fn parse_track_npy(bytes: &[u8], origin: &str) -> Result<TrackRows, TrackError> {
     let bad = |msg: String| TrackError::Invalid { origin: origin.to_string(), msg };
+    let depth = header_depth(bytes);
+    if depth > MAX_HEADER_DEPTH {
+        return Err(bad(format!(
+            "the header nests brackets {depth} deep; a track's is a flat dict \
+             ({{'descr': '<f8', 'fortran_order': False, 'shape': (N, 6), }})"
+        )));
+    }
     let npy = npyz::NpyFile::new(bytes).map_err(|e| bad(format!("not a numpy .npy file: {e}")))?;
     match npy.dtype() {
         DType::Plain(ts) if ts.type_char() == TypeChar::Float && ts.size_field() == 8 => {}

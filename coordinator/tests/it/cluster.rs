@@ -1166,6 +1166,66 @@ fn issue_10_only_the_clusters_roles_connect_and_each_does_only_its_part() {
         assert!(Instant::now() < deadline, "agent-1 logs what it refused: {log}");
         std::thread::sleep(Duration::from_secs(1));
     }
+    // Issue 35: the whole cluster under a hostile peer (the stolen agent certificate) for a
+    // bounded time while the job trains: garbage and an oversized message on the keys an
+    // agent may send on, replays of a real batch, out-of-role puts and a flood of queries.
+    // The job goes on and finishes, its model laps, nothing is lost, every refusal is counted.
+    let before = c.status(&id);
+    let real = a_real_batch(&watcher, &id, "agent-1");
+    let dups_before = before["learner"]["dropped_duplicate"].as_u64().unwrap_or(0);
+    let (mut rounds, mut queries) = (0u64, 0u64);
+    let block = |key: &str, bytes: Vec<u8>| {
+        agent.put(key, bytes).congestion_control(zenoh::qos::CongestionControl::Block).wait().unwrap();
+    };
+    let attack = Instant::now();
+    while attack.elapsed() < Duration::from_secs(10) {
+        block(&protocol::keys::experience(&id, "agent-1"), vec![0xff; 64]);
+        block(&protocol::keys::eval_report(&id, "agent-1"), b"not protobuf".to_vec());
+        block(&protocol::keys::experience(&id, "agent-1"), protocol::encode(&real));
+        block(&protocol::keys::policy(&id), protocol::encode(&update));
+        for _ in 0..10 {
+            let _ = agent.get(protocol::keys::policy(&id)).timeout(Duration::from_millis(300)).callback(|_| {}).wait();
+            let _ =
+                agent.get(protocol::keys::job_spec(&id)).timeout(Duration::from_millis(300)).callback(|_| {}).wait();
+            queries += 2;
+        }
+        rounds += 1;
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    block(&protocol::keys::experience(&id, "agent-1"), vec![0x0a; protocol::MAX_MESSAGE_BYTES + 1]);
+    eprintln!("hostile peer: {rounds} rounds, {queries} queries");
+    let count = |s: &serde_json::Value, list: &str, want: &str| -> u64 {
+        let counted = |v: &serde_json::Value| {
+            v.as_array()
+                .map(|a| {
+                    a.iter()
+                        .filter(|d| d["reason"].as_str().is_some_and(|r| r.contains(want)))
+                        .map(|d| d["count"].as_u64().unwrap_or(0))
+                        .sum::<u64>()
+                })
+                .unwrap_or(0)
+        };
+        match list {
+            "everywhere" => {
+                counted(&s["coordinator_refused"])
+                    + counted(&s["learner"]["refused"])
+                    + s["agent_refused"].as_object().map_or(0, |m| m.values().map(|a| counted(&a["counts"])).sum())
+            }
+            _ => counted(&s["learner"][list]),
+        }
+    };
+    let s = c.wait(&id, 60, "every hostile message counted", |s| {
+        count(s, "drops", "malformed") >= count(&before, "drops", "malformed") + 2 * rounds
+            && count(s, "drops", "over the size limit") >= 1
+            && s["learner"]["dropped_duplicate"].as_u64().unwrap_or(0) >= dups_before + rounds
+            && count(s, "everywhere", "agent may not put on paddock/v1/job/*/policy")
+                >= count(&before, "everywhere", "agent may not put on paddock/v1/job/*/policy") + rounds
+    });
+    let v = version(&s);
+    c.wait(&id, 60, "training after the hostile peer", |s| version(s) > v + 1);
+    for (name, p) in &mut c.procs.0 {
+        assert!(p.try_wait().unwrap().is_none(), "{name} died under the hostile peer");
+    }
     // The operator's credentials still stop the job, which ends as any other; a watcher sees
     // it live and leaves when it has finished.
     let watch = Command::new(bin("coordinator"))
@@ -1178,8 +1238,19 @@ fn issue_10_only_the_clusters_roles_connect_and_each_does_only_its_part() {
     std::thread::sleep(Duration::from_secs(5));
     let o = c.cli(&["job", "stop", &id]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stdout));
-    c.wait(&id, 60, "the job finished", |s| s["state"] == "finished");
+    let s = c.wait(&id, 60, "the job finished", |s| s["state"] == "finished");
     assert!(c.path("run/model/model.safetensors").exists());
+    // Its model laps; nothing was lost or trained on twice: updates 1, 2, … each recorded
+    // once, no more episodes trained on than were delivered, none counted twice as new.
+    assert!(s["learner"]["eval_laps"].as_u64().unwrap_or(0) >= 1, "the model laps: {s}");
+    let l = &s["learner"];
+    assert!(l["episodes"].as_u64().unwrap() <= l["episodes_received"].as_u64().unwrap(), "{l}");
+    let metrics = std::fs::read_to_string(c.path("run/metrics.jsonl")).unwrap();
+    let its: Vec<u64> = metrics
+        .lines()
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["iteration"].as_u64().unwrap())
+        .collect();
+    assert_eq!(its, (1..=its.len() as u64).collect::<Vec<_>>(), "{metrics}");
     let o = watch.wait_with_output().unwrap();
     let frames = String::from_utf8_lossy(&o.stdout).to_string();
     assert!(o.status.success(), "{frames}");

@@ -74,10 +74,21 @@ fn bad_files_are_refused_naming_what_is_wrong() {
         (f8_rows(&crossing), "inner border segment starting at row 0 crosses the centre line"),
         (f8_rows(&good)[..200].to_vec(), "truncated"),
         (f8_rows(&good)[..60].to_vec(), "not a numpy .npy file"),
+        // Issue 35: the fuzzer's header (40 brackets deep) held the header parser over 10 s.
+        (deep_header(40), "the header nests brackets 42 deep"),
     ];
     for (bytes, want) in cases {
         let err = parse_track_npy(&bytes, "user.npy").expect_err(want).to_string();
         assert!(err.starts_with("user.npy: "), "error names the file: {err}");
         assert!(err.contains(want), "expected '{want}' in '{err}'");
     }
+}
+
+/// A `.npy` file whose header opens `n` braces inside a list (the fuzzer's timeout, grown).
+fn deep_header(n: usize) -> Vec<u8> {
+    let header = format!("{{[{}'shape': (5, 6), }}", "{".repeat(n - 1));
+    let mut b = b"\x93NUMPY\x01\x00".to_vec();
+    b.extend((header.len() as u16).to_le_bytes());
+    b.extend(header.as_bytes());
+    b
 }
