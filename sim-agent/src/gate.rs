@@ -14,7 +14,6 @@ use policy::exchange::PolicyVersion;
 use policy::signature::TrustedKeys;
 use protocol::exchange::{self as wire, JobView};
 use protocol::{Actions, DecodeError, PolicyUpdate};
-use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::mpsc::{Receiver, SyncSender, TrySendError, sync_channel};
@@ -71,8 +70,8 @@ pub struct Passed {
 #[derive(Debug)]
 pub struct Checker {
     trust: Trust,
-    /// Under [`Trust::FirstUse`]: each job's pinned key.
-    pins: BTreeMap<String, TrustedKeys>,
+    /// Under [`Trust::FirstUse`]: each job's pinned key, the oldest first.
+    pins: Vec<(String, TrustedKeys)>,
 }
 
 /// Jobs whose first-use keys are remembered (the oldest is forgotten past this).
@@ -81,7 +80,7 @@ const MAX_PINS: usize = 64;
 impl Checker {
     /// A checker trusting `trust`.
     pub fn new(trust: Trust) -> Checker {
-        Checker { trust, pins: BTreeMap::new() }
+        Checker { trust, pins: Vec::new() }
     }
 
     /// Check one policy for `job`; the reason when it is refused (signature refusals start
@@ -92,7 +91,8 @@ impl Checker {
             return Err(DecodeError::Invalid(format!("a policy for job {:?}, not {:?}", u.job_id, job.job_id)));
         }
         let parts = wire::policy_parts(&u)?;
-        let (key, pin) = match (&self.trust, self.pins.get(&job.job_id)) {
+        let pinned = self.pins.iter().find(|(j, _)| *j == job.job_id).map(|(_, t)| t);
+        let (key, pin) = match (&self.trust, pinned) {
             (Trust::Keys(t), _) | (Trust::FirstUse, Some(t)) => (parts.verify(t).map_err(refuse)?.to_string(), None),
             (Trust::FirstUse, None) => {
                 let Some(sig) = &parts.signature else {
@@ -113,12 +113,10 @@ impl Checker {
                 "no key to trust was given (--trust FILE, or models.pub with --certs DIR): trusting key {hex}, \
                  which signed this job's first policy, and no other for this job"
             );
-            if self.pins.len() >= MAX_PINS
-                && let Some(oldest) = self.pins.keys().next().cloned()
-            {
-                self.pins.remove(&oldest);
+            if self.pins.len() >= MAX_PINS {
+                self.pins.remove(0);
             }
-            self.pins.insert(job.job_id.clone(), t);
+            self.pins.push((job.job_id.clone(), t));
         }
         Ok(Passed { policy, key })
     }
@@ -278,7 +276,13 @@ mod tests {
         assert_eq!(verdicts[0].result.as_ref().unwrap().policy.version, 1);
         assert!(verdicts[1].result.as_ref().unwrap_err().to_string().contains("not signed"));
         // More than the queue holds at once: the rest are refused as busy, never blocked on.
-        let busy = (0..64).filter_map(|v| gate.offer(&j, update(v, Some(&learner))).err()).count();
-        assert!(busy > 0, "a flood is turned away");
+        // Each takes the check a checksum of 4 MB (some milliseconds), handing one over a copy
+        // (a fraction of that): the queue fills.
+        let mut big = update(9, None);
+        big.weights = vec![7; 4 << 20];
+        let sig = learner.sign(&big.weights, &big.model_metadata_json, &big.manifest_json);
+        big.signature_json = serde_json::to_string(&sig).unwrap();
+        let busy = (0..64).filter_map(|_| gate.offer(&j, big.clone()).err()).count();
+        assert!(busy >= 16, "a flood is turned away: {busy} of 64 refused");
     }
 }
