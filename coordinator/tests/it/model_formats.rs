@@ -158,7 +158,7 @@ fn car_python() -> std::path::PathBuf {
 /// (deepracer-utils' loader), converts it as deepracer-custom-car does (TFLite, FP16) and runs
 /// that, and runs it in OpenVINO: each result into OUT.<engine>.bin.
 const CAR_SIDE: &str = r#"
-import os, sys, tarfile, tempfile, numpy as np
+import atexit, os, shutil, sys, tarfile, tempfile, numpy as np
 archive, out, outp = sys.argv[1:4]
 # Each input: its placeholder, its values' file, its shape (batch first).
 ins = []
@@ -167,6 +167,9 @@ for k in range(4, len(sys.argv), 3):
     ins.append((sys.argv[k], np.fromfile(sys.argv[k + 1], dtype="<f4").reshape(shape)))
 batch = ins[0][1].shape[0]
 work = tempfile.mkdtemp()
+# The unpacked archive and OpenVINO's model (hundreds of MB for a DEEPER network) go when the
+# script ends, whatever its outcome.
+atexit.register(shutil.rmtree, work, True)
 with tarfile.open(archive) as t:
     names = t.getnames()
     t.extractall(work)
