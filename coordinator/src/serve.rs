@@ -195,18 +195,13 @@ fn on_refusals(st: &mut State, r: AgentReport, drops: &DropCounters) {
         );
         return;
     }
-    let counts = r
-        .refused
-        .into_iter()
-        .take(16)
-        .map(|d| DropCount { reason: d.reason.chars().take(200).collect(), count: d.count })
-        .collect();
-    let hostile_peers = r
-        .hostile_peers
-        .into_iter()
-        .take(16)
-        .map(|d| DropCount { reason: d.reason.chars().take(200).collect(), count: d.count })
-        .collect();
+    let bounded = |v: Vec<DropCount>| -> Vec<DropCount> {
+        v.into_iter()
+            .take(16)
+            .map(|d| DropCount { reason: d.reason.chars().take(200).collect(), count: d.count })
+            .collect()
+    };
+    let (counts, hostile_peers) = (bounded(r.refused), bounded(r.hostile_peers));
     j.agent_refused.insert(r.agent_id, DropCounts { counts, hostile_peers });
 }
 
@@ -498,16 +493,8 @@ fn handle(st: &Arc<Mutex<State>>, db: &Db, _session: &zenoh::Session, req: JobRe
         },
         Some(Kind::StatusJobId(id)) => match st.jobs.get(&id) {
             Some(j) => {
-                let coordinator_refused = protocol::secure::REFUSED
-                    .reasons()
-                    .into_iter()
-                    .map(|(reason, count)| DropCount { reason, count })
-                    .collect();
-                let coordinator_hostile_peers = protocol::secure::HOSTILE
-                    .named()
-                    .into_iter()
-                    .map(|(reason, count)| DropCount { reason, count })
-                    .collect();
+                let coordinator_refused = protocol::secure::drop_counts(protocol::secure::REFUSED.reasons());
+                let coordinator_hostile_peers = protocol::secure::drop_counts(protocol::secure::HOSTILE.named());
                 let status = JobStatus { record: Some(j.clone()), coordinator_refused, coordinator_hostile_peers };
                 reply(true, status_text(j, &st), Some(Body::Status(status)))
             }

@@ -550,16 +550,8 @@ impl Link for ZenohLink<'_> {
             write_error: s.write_error.clone(),
             trend: s.trend.clone(),
             failure: String::new(),
-            refused: protocol::secure::REFUSED
-                .reasons()
-                .into_iter()
-                .map(|(reason, count)| protocol::DropCount { reason, count })
-                .collect(),
-            hostile_peers: protocol::secure::HOSTILE
-                .named()
-                .into_iter()
-                .map(|(reason, count)| protocol::DropCount { reason, count })
-                .collect(),
+            refused: protocol::secure::drop_counts(protocol::secure::REFUSED.reasons()),
+            hostile_peers: protocol::secure::drop_counts(protocol::secure::HOSTILE.named()),
             eval_progress: s.eval_progress,
             finished: s.finished,
             run_dir: s.run_dir.clone(),

@@ -329,18 +329,21 @@ pub fn parts_to_wire(job: &str, policy_version: u64, parts: &policy::ModelParts)
     }
 }
 
+/// A published model's signature, if it carries one.
+pub fn policy_signature(u: &crate::PolicyUpdate) -> Result<Option<policy::signature::ModelSignature>, DecodeError> {
+    if u.signature_json.is_empty() {
+        return Ok(None);
+    }
+    serde_json::from_str(&u.signature_json)
+        .map(Some)
+        .map_err(|e| DecodeError::Invalid(format!("signature_json is not a signature: {e}")))
+}
+
 /// A published model's files as they came (signature included), for a verifier; only the
 /// message's own consistency is checked here (its version against the manifest's is left to
 /// the model's decoding).
 pub fn policy_parts(u: &crate::PolicyUpdate) -> Result<policy::ModelParts, DecodeError> {
-    let signature = if u.signature_json.is_empty() {
-        None
-    } else {
-        Some(
-            serde_json::from_str(&u.signature_json)
-                .map_err(|e| DecodeError::Invalid(format!("signature_json is not a signature: {e}")))?,
-        )
-    };
+    let signature = policy_signature(u)?;
     Ok(policy::ModelParts {
         metadata_json: u.model_metadata_json.clone(),
         manifest_json: u.manifest_json.clone(),

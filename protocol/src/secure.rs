@@ -275,6 +275,11 @@ impl Refusals {
     }
 }
 
+/// Counts per reason (or per peer) as the wire carries them.
+pub fn drop_counts(v: Vec<(String, u64)>) -> Vec<crate::DropCount> {
+    v.into_iter().map(|(reason, count)| crate::DropCount { reason, count }).collect()
+}
+
 /// This process's refusals (filled by [`RefusalLayer`]).
 pub static REFUSED: std::sync::LazyLock<Refusals> = std::sync::LazyLock::new(Refusals::default);
 

@@ -90,21 +90,23 @@ impl Checker {
         if u.job_id != job.job_id {
             return Err(DecodeError::Invalid(format!("a policy for job {:?}, not {:?}", u.job_id, job.job_id)));
         }
-        let parts = wire::policy_parts(&u)?;
+        // Checked over the message's own bytes: nothing copied, nothing parsed before.
+        let Some(sig) = wire::policy_signature(&u)? else {
+            return Err(refuse(policy::signature::SignatureError::Refused("the model is not signed".into())));
+        };
+        let verify = |t: &TrustedKeys| {
+            t.verify(&sig, &u.weights, &u.model_metadata_json, &u.manifest_json).map(str::to_string).map_err(refuse)
+        };
         let pinned = self.pins.iter().find(|(j, _)| *j == job.job_id).map(|(_, t)| t);
         let (key, pin) = match (&self.trust, pinned) {
-            (Trust::Keys(t), _) | (Trust::FirstUse, Some(t)) => (parts.verify(t).map_err(refuse)?.to_string(), None),
+            (Trust::Keys(t), _) | (Trust::FirstUse, Some(t)) => (verify(t)?, None),
             (Trust::FirstUse, None) => {
-                let Some(sig) = &parts.signature else {
-                    return Err(refuse(policy::signature::SignatureError::Refused("the model is not signed".into())));
-                };
                 let mut t = TrustedKeys::default();
                 t.add_hex("first use", &sig.public_key).map_err(refuse)?;
-                parts.verify(&t).map_err(refuse)?;
+                verify(&t)?;
                 ("first use".to_string(), Some((t, sig.public_key.clone())))
             }
         };
-        drop(parts);
         let view = JobView { job_id: &job.job_id, obs_size: job.obs_size, worlds: &job.worlds, actions: job.actions };
         let policy = wire::policy_from_wire(u, &view)?;
         if let Some((t, hex)) = pin {

@@ -13,7 +13,7 @@ use anyhow::{Context, Result};
 use protocol::Job;
 use protocol::exchange::{self as wire, JobView};
 use protocol::net::{self, DropCounters, NetArgs, Sub, try_next, zenoh};
-use protocol::{AgentInfo, AgentReport, Assignment, DropCount, PROTOCOL_VERSION, PolicyUpdate, keys};
+use protocol::{AgentInfo, AgentReport, Assignment, PROTOCOL_VERSION, PolicyUpdate, keys};
 use sim_agent::config::{SimConfig, parse_toml};
 use sim_agent::worker::{Worker, WorkerError, WorkerInbound, WorkerLink, WorkerOutbound, WorkerSetup};
 use sim_agent::{EnvSpec, RewardFn};
@@ -325,10 +325,8 @@ impl<'a> AgentLink<'a> {
         if total == self.reported.0 || self.reported.1.is_some_and(|t| t.elapsed() < REFUSAL_REPORT) {
             return;
         }
-        let mut refused: Vec<DropCount> =
-            self.drops.reasons().into_iter().map(|(reason, count)| DropCount { reason, count }).collect();
-        refused
-            .extend(protocol::secure::REFUSED.reasons().into_iter().map(|(reason, count)| DropCount { reason, count }));
+        let mut refused = protocol::secure::drop_counts(self.drops.reasons());
+        refused.extend(protocol::secure::drop_counts(protocol::secure::REFUSED.reasons()));
         refused.sort_by(|a, b| b.count.cmp(&a.count).then_with(|| a.reason.cmp(&b.reason)));
         refused.truncate(REFUSAL_REASONS);
         let r = AgentReport {
@@ -337,11 +335,9 @@ impl<'a> AgentLink<'a> {
             agent_id: self.id.clone(),
             error: String::new(),
             refused,
-            hostile_peers: protocol::secure::HOSTILE
-                .named()
+            hostile_peers: protocol::secure::drop_counts(protocol::secure::HOSTILE.named())
                 .into_iter()
                 .take(REFUSAL_REASONS)
-                .map(|(reason, count)| DropCount { reason, count })
                 .collect(),
         };
         self.reported = (total, Some(Instant::now()));
