@@ -98,7 +98,8 @@ pub enum Command {
         command: KeysCommand,
     },
     /// The cluster's TLS credentials: `certs new DIR` writes a CA and one certificate per role
-    /// (coordinator, learner, agent, car, operator) for every role's `--certs DIR`.
+    /// (coordinator, learner, agent, car, operator) for every role's `--certs DIR`; `issue`
+    /// gives a machine its own, `revoke` withdraws any, `list` shows them.
     Certs {
         #[command(subcommand)]
         command: CertsCommand,
@@ -123,6 +124,40 @@ pub enum CertsCommand {
         /// Replace credentials already there.
         #[arg(long)]
         force: bool,
+    },
+    /// Give machines certificates of their own: DIR/<role>-<id>.pem and .key, common name
+    /// paddock-<role>.<id>, bound by the access rules to that id (agent lab-1's certificate
+    /// cannot send as lab-2), and the ids added to DIR/ids.toml. Copy ca.pem, ids.toml and the
+    /// machine's two files to it; give every node the new ids.toml and restart those that
+    /// should hear the new machine (access rules are read when a node joins). Role-wide
+    /// certificates keep working, each able to speak for any id of its role: enough for a
+    /// small cluster on a network you trust.
+    Issue {
+        /// The credentials folder (with ca.pem and ca.key).
+        dir: PathBuf,
+        /// agent, learner, car, operator or coordinator.
+        role: String,
+        /// The machines' ids (an agent's or learner's --id, a car's id).
+        #[arg(required = true)]
+        ids: Vec<String>,
+        /// Days the certificates are valid.
+        #[arg(long, default_value_t = 3650)]
+        days: u32,
+    },
+    /// Revoke certificates: add them to the CA's revocation list DIR/crl.pem. A running
+    /// coordinator given DIR hands the list to every node within seconds; each then refuses
+    /// those certificates and closes the links it holds to them.
+    Revoke {
+        /// The credentials folder (with ca.pem and ca.key).
+        dir: PathBuf,
+        /// A certificate's name (agent-lab-1, or agent for the role-wide one) or a machine's id.
+        #[arg(required = true)]
+        names: Vec<String>,
+    },
+    /// Every certificate in DIR: its common name, expiry, and whether it is revoked.
+    List {
+        /// The credentials folder.
+        dir: PathBuf,
     },
 }
 

@@ -66,6 +66,34 @@ fn main() {
             );
             0
         }),
+        cli::Command::Certs { command: cli::CertsCommand::Issue { dir, role, ids, days } } => {
+            certs::issue(&dir, &role, &ids, days).map(|names| {
+                println!("wrote {} and ids.toml in {}", names.join(", "), dir.display());
+                println!(
+                    "copy ca.pem, ids.toml and a machine's two files to it; give every node the new ids.toml (each reads it when it joins)"
+                );
+                0
+            })
+        }
+        cli::Command::Certs { command: cli::CertsCommand::Revoke { dir, names } } => {
+            certs::revoke(&dir, &names).map(|done| {
+                for (name, new) in done {
+                    println!("{} {name}", if new { "revoked" } else { "already revoked" });
+                }
+                println!(
+                    "wrote {}: a coordinator running with --certs {} hands it to every node",
+                    dir.join(protocol::revocation::CRL_FILE).display(),
+                    dir.display()
+                );
+                0
+            })
+        }
+        cli::Command::Certs { command: cli::CertsCommand::List { dir } } => certs::list(&dir).map(|rows| {
+            for r in rows {
+                println!("{r}");
+            }
+            0
+        }),
         cli::Command::Cars(args) => cars::cars(args),
         cli::Command::Export { model, car, onnx } => (|| -> anyhow::Result<i32> {
             if let Some(car) = &car {

@@ -41,6 +41,59 @@ struct State {
     line_laps: BTreeMap<String, f64>,
 }
 
+/// How often the revocation list is re-sent (nodes that joined since take it).
+const REVOKED_EVERY: Duration = Duration::from_secs(10);
+
+/// Hand the credentials folder's revocation list to every node: answer queries for it, and
+/// publish it when `certs revoke` changes the file (looked at every second) and every
+/// [`REVOKED_EVERY`]. This node takes it first (its own links to a revoked peer close).
+fn distribute_revocations(
+    session: &zenoh::Session,
+    dir: &std::path::Path,
+    net: &NetArgs,
+) -> Result<zenoh::query::Queryable<()>> {
+    use protocol::revocation::{self, CRL_FILE};
+    use protocol::secure::{Credentials, Role};
+    let creds = Credentials::from_dir(dir, Role::Coordinator, net.own_id(Role::Coordinator).as_deref())?;
+    let queryable = session
+        .declare_queryable(keys::REVOKED)
+        .callback(|q| {
+            if let Some((_, der)) = revocation::held() {
+                let _ = q.reply(keys::REVOKED, der).wait();
+            }
+        })
+        .wait()
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let (s, file) = (session.clone(), dir.join(CRL_FILE));
+    let modified = |f: &std::path::Path| std::fs::metadata(f).and_then(|m| m.modified()).ok();
+    std::thread::Builder::new().name("revocations".into()).spawn(move || {
+        let mut seen = modified(&file);
+        let mut sent = Instant::now() - REVOKED_EVERY;
+        loop {
+            let now = modified(&file);
+            let changed = now != seen;
+            if changed {
+                seen = now;
+                match std::fs::read(&file) {
+                    Ok(bytes) => match revocation::take(&creds, &bytes) {
+                        Err(e) => tracing::error!("{}: {e}; the list in force stays", file.display()),
+                        ok => revocation::log("file", &ok),
+                    },
+                    Err(e) => tracing::error!("{}: {e}", file.display()),
+                }
+            }
+            if (changed || sent.elapsed() >= REVOKED_EVERY)
+                && let Some((_, der)) = revocation::held()
+            {
+                let _ = s.put(keys::REVOKED, der).wait();
+                sent = Instant::now();
+            }
+            std::thread::sleep(Duration::from_secs(1));
+        }
+    })?;
+    Ok(queryable)
+}
+
 /// Options of `coordinator serve`.
 pub struct ServeArgs {
     /// Network endpoints.
@@ -98,6 +151,10 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         })
         .wait()
         .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let _revoked = match &args.net.certs {
+        Some(dir) => Some(distribute_revocations(&session, dir, &args.net)?),
+        None => None,
+    };
     let agents_sub = session
         .liveliness()
         .declare_subscriber(keys::AGENTS_ALIVE)
@@ -622,7 +679,7 @@ fn status_text(j: &JobRecord, st: &State) -> String {
         t.push_str(&format!("  refused at the learner {}× : {}\n", d.count, d.reason));
     }
     for (agent, c) in j.agent_refused.iter().take(8) {
-        for d in c.counts.iter().take(4) {
+        for d in c.counts.iter().take(8) {
             t.push_str(&format!("  refused at {agent} {}× : {}\n", d.count, d.reason));
         }
     }

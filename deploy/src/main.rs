@@ -148,7 +148,8 @@ fn run(cli: Cli) -> Result<()> {
     if cli.job.is_none() && slot.current().is_none() {
         bail!("{}: no model saved there", cli.model_dir.as_ref().expect("checked").display());
     }
-    let session = net::open_retrying(&cli.net.args(cli.job.is_some()).as_role(protocol::secure::Role::Car))?;
+    let session =
+        net::open_retrying(&cli.net.args(cli.job.is_some()).as_machine(protocol::secure::Role::Car, &car.id))?;
     let car_keys = CarKeys::new(&car.namespace);
     let layout = match car.layout {
         Layout::Community => ros::Layout::Community,

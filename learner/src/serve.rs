@@ -48,8 +48,13 @@ pub struct ServeArgs {
 
 /// Run the learner until the process is stopped.
 pub fn serve(args: ServeArgs) -> Result<()> {
-    let session = net::open_retrying(&args.net)?;
-    let id = args.id.clone().unwrap_or_else(|| format!("learner-{}", std::process::id()));
+    // The id: --id, else the one this machine's own certificate carries, else learner-pid.
+    let id = args
+        .id
+        .clone()
+        .or_else(|| args.net.own_id(protocol::secure::Role::Learner))
+        .unwrap_or_else(|| format!("learner-{}", std::process::id()));
+    let session = net::open_retrying(&args.net.clone().as_machine(protocol::secure::Role::Learner, &id))?;
     let _token =
         session.liveliness().declare_token(keys::learner_alive(&id)).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
     let jobs = net::subscribe(&session, keys::JOBS)?;

@@ -21,6 +21,7 @@
 //! | `assignment` | `assign/{agent}` | [`Assignment`] (re-sent every tick) | coordinator |
 //! | `JOBS` | `jobs` | [`AssignmentTable`] per running job (every tick) | coordinator |
 //! | `CONTROL` | `control` | [`JobRequest`] → [`JobReply`] (queryable) | coordinator |
+//! | `REVOKED` | `revoked` | the cluster CA's X.509 CRL, DER ([`revocation`]; re-sent every 10 s, and queryable) | coordinator |
 //! | `job_spec`, `JOB_SPECS` | `job/{job}/spec` | [`Job`] (queryable; fetched once per job) | coordinator |
 //! | `experience`, `experience_all` | `job/{job}/experience/{agent}` | [`ExperienceBatch`] | sim agent |
 //! | `camera`, `cameras` | `job/{job}/camera/{agent}` | [`CameraFrame`] (camera jobs, ≤ 1 a second; for watchers) | sim agent |
@@ -68,6 +69,7 @@ pub mod exchange;
 pub mod exit;
 pub mod job;
 pub mod net;
+pub mod revocation;
 pub mod ros;
 pub mod secure;
 
@@ -197,6 +199,9 @@ pub mod keys {
     }
     /// The coordinator's job-control queryable.
     pub const CONTROL: &str = "paddock/v1/control";
+    /// The cluster's certificate revocation list (DER X.509 CRL signed by the cluster's CA):
+    /// the coordinator publishes it and answers queries for it.
+    pub const REVOKED: &str = "paddock/v1/revoked";
     /// What one of an agent's cars sees (camera jobs), for watchers.
     pub fn camera(job: &str, agent: &str) -> String {
         format!("{ROOT}/job/{job}/camera/{agent}")

@@ -29,12 +29,29 @@ pub struct NetArgs {
     pub insecure: bool,
     /// Whose certificate to present (with `certs`); an operator's when unset.
     pub role: Option<Role>,
+    /// This machine's id: with `certs`, its own certificate (`DIR/<role>-<id>.pem`) is
+    /// presented when the folder holds one, the role-wide one otherwise.
+    pub id: Option<String>,
 }
 
 impl NetArgs {
     /// The same endpoints, presenting `role`'s certificate.
     pub fn as_role(mut self, role: Role) -> NetArgs {
         self.role = Some(role);
+        self
+    }
+
+    /// The id of this machine's own certificate of `role` in the credentials folder, when it
+    /// holds exactly one (what a node with no `--id` takes).
+    pub fn own_id(&self, role: Role) -> Option<String> {
+        self.certs.as_deref().and_then(|d| crate::secure::only_id(d, role))
+    }
+
+    /// The same endpoints, presenting the certificate of `role`'s machine `id` (the
+    /// role-wide one where the folder holds none of its own).
+    pub fn as_machine(mut self, role: Role, id: &str) -> NetArgs {
+        self.role = Some(role);
+        self.id = Some(id.to_string());
         self
     }
 }
@@ -84,6 +101,7 @@ impl NetCli {
             certs: self.certs.clone(),
             insecure: self.insecure,
             role: None,
+            id: None,
         }
     }
 }
@@ -178,9 +196,23 @@ pub fn open(args: &NetArgs) -> Result<zenoh::Session, NetError> {
         };
         config.insert_json5("listen/endpoints", &json_list(&[default.to_string()])).map_err(e)?;
     }
+    let mut credentials = None;
     if let Some(dir) = &args.certs {
         let role = args.role.unwrap_or(Role::Operator);
-        let c = Credentials::from_dir(dir, role).map_err(|x| NetError(x.to_string()))?;
+        // A machine given only its own certificate (no id on the command line) presents it.
+        let id = args.id.clone().or_else(|| crate::secure::only_id(dir, role));
+        let c = Credentials::from_dir(dir, role, id.as_deref()).map_err(|x| NetError(x.to_string()))?;
+        let roster = crate::secure::Roster::load(dir).map_err(|x| NetError(x.to_string()))?;
+        match (&c.id, &id) {
+            (Some(id), _) => tracing::info!(role = role.name(), id, "presenting this machine's own certificate"),
+            (None, Some(id)) => tracing::info!(
+                role = role.name(),
+                id,
+                "no certificate of this machine's own in the folder: presenting the role-wide one"
+            ),
+            (None, None) => {}
+        }
+        credentials = Some((dir.clone(), c.clone()));
         let path = |p: &std::path::Path| format!("{:?}", p.display().to_string());
         let tls = [
             ("root_ca_certificate", path(&c.ca)),
@@ -191,11 +223,13 @@ pub fn open(args: &NetArgs) -> Result<zenoh::Session, NetError> {
             // Certificates name roles, not hosts: the CA's signature and the role are checked.
             ("verify_name_on_connect", "false".into()),
             ("enable_mtls", "true".into()),
+            // A link ends when the peer's certificate expires (a new handshake refuses it).
+            ("close_link_on_expiration", "true".into()),
         ];
         for (k, v) in tls {
             config.insert_json5(&format!("transport/link/tls/{k}"), &v).map_err(e)?;
         }
-        config.insert_json5("access_control", &crate::secure::access_control_json().to_string()).map_err(e)?;
+        config.insert_json5("access_control", &crate::secure::access_control_json(&roster).to_string()).map_err(e)?;
     }
     if !args.insecure {
         let mtls =
@@ -211,7 +245,11 @@ pub fn open(args: &NetArgs) -> Result<zenoh::Session, NetError> {
             }
         }
     }
-    zenoh::open(config).wait().map_err(e)
+    let session = zenoh::open(config).wait().map_err(e)?;
+    if let Some((dir, c)) = credentials {
+        crate::revocation::follow(&session, &dir, &c).map_err(NetError)?;
+    }
+    Ok(session)
 }
 
 /// [`open`], retried every second while the endpoints to connect to are not up yet (a

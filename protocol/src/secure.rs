@@ -1,7 +1,14 @@
-//! Who may connect and what each may do: the cluster's roles, their TLS credentials (one
-//! certificate per role, signed by the cluster's CA, its common name `paddock-<role>`), the
-//! Zenoh access-control rules that bind each role to its own keys, and the count of what the
-//! network refused.
+//! Who may connect and what each may do: the cluster's roles, their TLS credentials (signed
+//! by the cluster's CA: one certificate per role, its common name `paddock-<role>`, or one per
+//! machine, `paddock-<role>.<id>`), the Zenoh access-control rules that bind each role to its
+//! own keys and each machine to its own id, and the count of what the network refused.
+//!
+//! A role-wide certificate may speak for any id of its role (any agent, say): enough for a
+//! small cluster on one network. A machine's own certificate may speak only for its id, so a
+//! stolen machine cannot pose as the fleet; the ids are listed in the credentials folder's
+//! [`ROSTER_FILE`] (written by `coordinator certs issue`), which every node reads when it
+//! opens the network: Zenoh's access rules are fixed for a session's life, so a node started
+//! before an id was issued refuses that id until it restarts.
 //!
 //! Every node enforces the same rules on what it receives (ingress): a message from a peer
 //! whose certificate says `paddock-agent` may only be one an agent sends (experience,
@@ -53,6 +60,108 @@ impl Role {
     pub fn from_common_name(cn: &str) -> Option<Role> {
         Role::ALL.into_iter().find(|r| r.common_name() == cn)
     }
+
+    /// The role named `name` (`agent`, …).
+    pub fn from_name(name: &str) -> Option<Role> {
+        Role::ALL.into_iter().find(|r| r.name() == name)
+    }
+
+    /// One machine's common name, `paddock-<role>.<id>`.
+    pub fn common_name_of(self, id: &str) -> String {
+        format!("paddock-{}.{id}", self.name())
+    }
+}
+
+/// The role and, for one machine's certificate, the id a common name carries
+/// (`paddock-agent` → agent; `paddock-agent.lab-3` → agent `lab-3`).
+pub fn parse_common_name(cn: &str) -> Option<(Role, Option<String>)> {
+    if let Some(r) = Role::from_common_name(cn) {
+        return Some((r, None));
+    }
+    let (head, id) = cn.split_once('.')?;
+    let r = Role::from_common_name(head)?;
+    crate::keys::is_valid_name(id).then(|| (r, Some(id.to_string())))
+}
+
+/// The list of ids holding a certificate of their own, in a credentials folder.
+pub const ROSTER_FILE: &str = "ids.toml";
+
+/// The machines' ids by role ([`ROSTER_FILE`]): `agent = ["lab-1", "lab-2"]`, and so on.
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Roster {
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    coordinator: Vec<String>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    learner: Vec<String>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    agent: Vec<String>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    car: Vec<String>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    operator: Vec<String>,
+}
+
+impl Roster {
+    fn list(&self, role: Role) -> &Vec<String> {
+        match role {
+            Role::Coordinator => &self.coordinator,
+            Role::Learner => &self.learner,
+            Role::Agent => &self.agent,
+            Role::Car => &self.car,
+            Role::Operator => &self.operator,
+        }
+    }
+
+    /// The ids of `role`.
+    pub fn ids(&self, role: Role) -> &[String] {
+        self.list(role)
+    }
+
+    /// Add an id (kept sorted, once).
+    pub fn add(&mut self, role: Role, id: &str) {
+        let l = match role {
+            Role::Coordinator => &mut self.coordinator,
+            Role::Learner => &mut self.learner,
+            Role::Agent => &mut self.agent,
+            Role::Car => &mut self.car,
+            Role::Operator => &mut self.operator,
+        };
+        if !l.iter().any(|x| x == id) {
+            l.push(id.to_string());
+            l.sort();
+        }
+    }
+
+    /// `DIR/ids.toml`, or an empty roster when the folder has none; every id checked.
+    pub fn load(dir: &Path) -> Result<Roster, CredentialError> {
+        let path = dir.join(ROSTER_FILE);
+        let text = match std::fs::read_to_string(&path) {
+            Ok(t) => t,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Roster::default()),
+            Err(e) => return Err(CredentialError { path, what: format!("cannot read it ({e})") }),
+        };
+        let r: Roster =
+            toml::from_str(&text).map_err(|e| CredentialError { path: path.clone(), what: e.to_string() })?;
+        for role in Role::ALL {
+            if let Some(bad) = r.ids(role).iter().find(|id| !crate::keys::is_valid_name(id)) {
+                return Err(CredentialError {
+                    path,
+                    what: format!("{}: id '{bad}' may hold only letters, digits, '-', '_' and '.'", role.name()),
+                });
+            }
+        }
+        Ok(r)
+    }
+
+    /// The roster as [`ROSTER_FILE`] holds it.
+    pub fn to_toml(&self) -> String {
+        format!(
+            "# The machines that hold a certificate of their own (`coordinator certs issue`). Every\n\
+             # node reads this when it joins: copy it with ca.pem to every machine.\n{}",
+            toml::to_string(self).unwrap_or_default()
+        )
+    }
 }
 
 /// The cluster CA's certificate file in a credentials folder.
@@ -66,15 +175,18 @@ pub const MODEL_KEY_FILE: &str = "models.key";
 /// models it signs.
 pub const MODEL_PUB_FILE: &str = "models.pub";
 
-/// One role's credentials: the CA that signs every role, and this role's certificate and key.
+/// One node's credentials: the CA that signs every certificate, and this node's certificate
+/// (its role's, or its machine's own) and key.
 #[derive(Clone, Debug)]
 pub struct Credentials {
     /// The cluster CA certificate (PEM).
     pub ca: PathBuf,
-    /// This role's certificate (PEM).
+    /// This node's certificate (PEM).
     pub cert: PathBuf,
-    /// This role's private key (PEM).
+    /// This node's private key (PEM).
     pub key: PathBuf,
+    /// The id the certificate is bound to (`None`: the role-wide certificate).
+    pub id: Option<String>,
 }
 
 /// Credentials that are missing or not PEM.
@@ -87,14 +199,43 @@ pub struct CredentialError {
     pub what: String,
 }
 
+/// The file stem of a certificate: `agent` (role-wide) or `agent-lab-3` (one machine's).
+pub fn stem(role: Role, id: Option<&str>) -> String {
+    match id {
+        Some(id) => format!("{}-{id}", role.name()),
+        None => role.name().to_string(),
+    }
+}
+
+/// The id of the one machine certificate of `role` in `dir` (`DIR/<role>-<id>.pem`), when
+/// there is exactly one: a machine given only its own files takes its id from them.
+pub fn only_id(dir: &Path, role: Role) -> Option<String> {
+    let prefix = format!("{}-", role.name());
+    let ids: Vec<String> = std::fs::read_dir(dir)
+        .ok()?
+        .flatten()
+        .filter_map(|e| e.file_name().to_str().map(str::to_string))
+        .filter_map(|n| n.strip_prefix(&prefix)?.strip_suffix(".pem").map(str::to_string))
+        .filter(|id| crate::keys::is_valid_name(id) && dir.join(format!("{prefix}{id}.key")).exists())
+        .collect();
+    match ids.as_slice() {
+        [one] => Some(one.clone()),
+        _ => None,
+    }
+}
+
 impl Credentials {
-    /// `DIR/ca.pem`, `DIR/<role>.pem`, `DIR/<role>.key` (as `coordinator certs new DIR` writes
-    /// them), each checked to exist and hold PEM.
-    pub fn from_dir(dir: &Path, role: Role) -> Result<Credentials, CredentialError> {
+    /// `DIR/ca.pem` with `DIR/<role>-<id>.pem` and its key when `id` has a certificate of its
+    /// own there, else the role-wide `DIR/<role>.pem` and `DIR/<role>.key` (as `coordinator
+    /// certs` writes them), each checked to exist and hold PEM.
+    pub fn from_dir(dir: &Path, role: Role, id: Option<&str>) -> Result<Credentials, CredentialError> {
+        let own = id.filter(|id| dir.join(format!("{}.pem", stem(role, Some(id)))).exists());
+        let s = stem(role, own);
         let c = Credentials {
             ca: dir.join(CA_FILE),
-            cert: dir.join(format!("{}.pem", role.name())),
-            key: dir.join(format!("{}.key", role.name())),
+            cert: dir.join(format!("{s}.pem")),
+            key: dir.join(format!("{s}.key")),
+            id: own.map(str::to_string),
         };
         for (p, label) in [(&c.ca, "CERTIFICATE"), (&c.cert, "CERTIFICATE"), (&c.key, "PRIVATE KEY")] {
             let text = std::fs::read_to_string(p).map_err(|e| CredentialError {
@@ -135,68 +276,69 @@ fn rule(id: &str, messages: &[&str], keys: &[&str]) -> serde_json::Value {
     })
 }
 
-/// The access-control section (`access_control` in a Zenoh config) every role runs with:
-/// deny by default, and per role the messages it may send. Only ingress is filtered (each node
-/// judges what it receives), so a node's own sends are never held back.
-pub fn access_control_json() -> serde_json::Value {
+/// One rule of a role's list: what it is for, the messages, the keys.
+type RuleSpec = (&'static str, Vec<&'static str>, Vec<String>);
+
+/// What `role` may send, as the node holding `id`'s certificate (`*`: the role-wide
+/// certificate, which may speak for any id of its role).
+fn role_rules(role: Role, id: &str) -> Vec<RuleSpec> {
     let job = |k: &str| format!("paddock/v1/job/*/{k}");
     let s = |v: &[String]| v.to_vec();
-    let mut rules = Vec::new();
-    let mut policies = Vec::new();
-    let mut add = |role: &str, list: Vec<(&str, Vec<&str>, Vec<String>)>| {
-        let mut ids = Vec::new();
-        for (i, (what, msgs, keys)) in list.into_iter().enumerate() {
-            let id = format!("{role}-{i}-{what}");
-            let keys: Vec<&str> = keys.iter().map(String::as_str).collect();
-            rules.push(rule(&id, &msgs, &keys));
-            ids.push(id);
-        }
-        // What a node sends is judged by its receiver; Zenoh filters egress too when the
-        // default is deny, so every node may send anything to a known subject.
-        ids.push("egress".to_string());
-        policies.push(serde_json::json!({ "id": role, "rules": ids, "subjects": [role] }));
-    };
-    add("coordinator", vec![("all", ALL_MESSAGES.to_vec(), vec!["**".into()])]);
-    add(
-        "learner",
-        vec![
+    // Every node follows the coordinator's revocation list.
+    let revoked = || crate::keys::REVOKED.to_string();
+    match role {
+        Role::Coordinator => vec![("all", ALL_MESSAGES.to_vec(), vec!["**".into()])],
+        Role::Learner => vec![
             (
                 "publish",
                 vec!["put"],
-                s(&[job("policy"), job("best"), job("learner"), job("credit"), job("eval/request/*"), job("team/**")]),
+                s(&[
+                    job("policy"),
+                    job("best"),
+                    job("learner"),
+                    job("credit"),
+                    job("eval/request/*"),
+                    job("team/plan"),
+                    job("team/memory"),
+                    job(&format!("team/share/{id}")),
+                    job(&format!("team/join/{id}")),
+                ]),
             ),
             (
                 "subscribe",
                 vec!["declare_subscriber"],
-                s(&["paddock/v1/jobs".into(), job("experience/**"), job("eval/report/*"), job("team/**")]),
+                s(&["paddock/v1/jobs".into(), job("experience/**"), job("eval/report/*"), job("team/**"), revoked()]),
             ),
-            ("ask", vec!["query"], s(&[job("spec")])),
+            ("ask", vec!["query"], s(&[job("spec"), revoked()])),
             ("answer", vec!["declare_queryable", "reply"], s(&[job("policy"), job("best"), job("promote")])),
             (
                 "alive",
                 vec!["liveliness_token", "declare_liveliness_subscriber", "liveliness_query"],
-                vec!["paddock/v1/alive/learner/*".into()],
+                vec![format!("paddock/v1/alive/learner/{id}")],
             ),
         ],
-    );
-    add(
-        "agent",
-        vec![
-            ("publish", vec!["put"], s(&[job("experience/*"), job("eval/report/*"), job("report/*"), job("camera/*")])),
+        Role::Agent => vec![
+            (
+                "publish",
+                vec!["put"],
+                s(&[
+                    job(&format!("experience/{id}")),
+                    job(&format!("eval/report/{id}")),
+                    job(&format!("report/{id}")),
+                    job(&format!("camera/{id}")),
+                ]),
+            ),
             (
                 "subscribe",
                 vec!["declare_subscriber"],
-                s(&["paddock/v1/assign/*".into(), job("policy"), job("credit"), job("eval/request/*")]),
+                s(&["paddock/v1/assign/*".into(), job("policy"), job("credit"), job("eval/request/*"), revoked()]),
             ),
-            ("ask", vec!["query"], s(&[job("policy"), job("spec")])),
-            ("answer", vec!["declare_queryable", "reply"], vec!["paddock/v1/agent/*/info".into()]),
-            ("alive", vec!["liveliness_token"], vec!["paddock/v1/alive/agent/*".into()]),
+            ("ask", vec!["query"], s(&[job("policy"), job("spec"), revoked()])),
+            ("answer", vec!["declare_queryable", "reply"], vec![format!("paddock/v1/agent/{id}/info")]),
+            ("alive", vec!["liveliness_token"], vec![format!("paddock/v1/alive/agent/{id}")]),
         ],
-    );
-    add(
-        "car",
-        vec![
-            ("publish", vec!["put"], s(&["paddock/v1/car/*/status".into(), ROS_SENSOR.into(), ROS_SERVO.into()])),
+        Role::Car => vec![
+            ("publish", vec!["put"], s(&[format!("paddock/v1/car/{id}/status"), ROS_SENSOR.into(), ROS_SERVO.into()])),
             (
                 "subscribe",
                 vec!["declare_subscriber"],
@@ -206,32 +348,62 @@ pub fn access_control_json() -> serde_json::Value {
                     "paddock/v1/car/*/control".into(),
                     ROS_SENSOR.into(),
                     ROS_SERVO.into(),
+                    revoked(),
                 ]),
             ),
-            ("ask", vec!["query"], s(&[job("policy"), job("best")])),
-            ("alive", vec!["liveliness_token"], vec!["paddock/v1/alive/car/*".into()]),
+            ("ask", vec!["query"], s(&[job("policy"), job("best"), revoked()])),
+            ("alive", vec!["liveliness_token"], vec![format!("paddock/v1/alive/car/{id}")]),
         ],
-    );
-    add(
-        "operator",
-        vec![
-            ("control", vec!["query"], s(&["paddock/v1/control".into(), job("promote")])),
+        Role::Operator => vec![
+            ("control", vec!["query"], s(&["paddock/v1/control".into(), job("promote"), revoked()])),
             ("estop", vec!["put"], vec!["paddock/v1/car/*/control".into()]),
             ("watch", vec!["declare_subscriber"], vec!["paddock/v1/**".into()]),
             ("alive", vec!["declare_liveliness_subscriber", "liveliness_query"], vec!["paddock/v1/alive/**".into()]),
         ],
+    }
+}
+
+/// The access-control section (`access_control` in a Zenoh config) every node runs with:
+/// deny by default; per role (role-wide certificate) and per machine (each id of `roster`,
+/// its own certificate) the messages it may send. Only ingress is filtered (each node judges
+/// what it receives), so a node's own sends are never held back.
+pub fn access_control_json(roster: &Roster) -> serde_json::Value {
+    let mut rules = Vec::new();
+    let mut policies = Vec::new();
+    let mut subjects = Vec::new();
+    let mut add = |subject: String, cn: Option<String>, list: Vec<RuleSpec>| {
+        let mut ids = Vec::new();
+        for (i, (what, msgs, keys)) in list.into_iter().enumerate() {
+            let id = format!("{subject}-{i}-{what}");
+            let keys: Vec<&str> = keys.iter().map(String::as_str).collect();
+            rules.push(rule(&id, &msgs, &keys));
+            ids.push(id);
+        }
+        // What a node sends is judged by its receiver; Zenoh filters egress too when the
+        // default is deny, so every node may send anything to a known subject.
+        ids.push("egress".to_string());
+        policies.push(serde_json::json!({ "id": subject, "rules": ids, "subjects": [subject] }));
+        subjects.push(match cn {
+            Some(cn) => serde_json::json!({ "id": subject, "cert_common_names": [cn] }),
+            // The car's own ROS bridge (zenoh-bridge-ros2dds on the car) holds no certificate:
+            // on the loopback interface over plain TCP it may carry the camera and the servo.
+            None => serde_json::json!({ "id": subject, "interfaces": ["lo"], "link_protocols": ["tcp"] }),
+        });
+    };
+    for r in Role::ALL {
+        add(r.name().to_string(), Some(r.common_name()), role_rules(r, "*"));
+        for id in roster.ids(r) {
+            add(format!("{}.{id}", r.name()), Some(r.common_name_of(id)), role_rules(r, id));
+        }
+    }
+    add(
+        "local-ros".into(),
+        None,
+        vec![("ros", vec!["put", "declare_subscriber"], vec![ROS_SENSOR.into(), ROS_SERVO.into()])],
     );
-    // The car's own ROS bridge (zenoh-bridge-ros2dds on the car) holds no certificate: on
-    // the loopback interface over plain TCP it may carry the camera and the servo, nothing else.
-    add("local-ros", vec![("ros", vec!["put", "declare_subscriber"], vec![ROS_SENSOR.into(), ROS_SERVO.into()])]);
     let mut egress = rule("egress", &ALL_MESSAGES, &["**"]);
     egress["flows"] = serde_json::json!(["egress"]);
     rules.push(egress);
-    let mut subjects: Vec<serde_json::Value> = Role::ALL
-        .iter()
-        .map(|r| serde_json::json!({ "id": r.name(), "cert_common_names": [r.common_name()] }))
-        .collect();
-    subjects.push(serde_json::json!({ "id": "local-ros", "interfaces": ["lo"], "link_protocols": ["tcp"] }));
     serde_json::json!({
         "enabled": true,
         "default_permission": "deny",
@@ -409,7 +581,11 @@ fn who_is(head: &str) -> Option<String> {
     let mut peers = PEERS.lock().unwrap_or_else(|p| p.into_inner());
     match subject.and_then(|s| s.split("CertCommonName(").nth(1)).and_then(|t| t.split(')').next()) {
         Some(cn) => {
-            let who = Role::from_common_name(cn).map(|r| r.name().to_string()).unwrap_or_else(|| format!("'{cn}'"));
+            let who = match parse_common_name(cn) {
+                Some((r, None)) => r.name().to_string(),
+                Some((r, Some(id))) => format!("{} {id}", r.name()),
+                None => format!("'{cn}'"),
+            };
             if peers.len() < 4096 || peers.contains_key(zid) {
                 peers.insert(zid.to_string(), who.clone());
                 let mut names = PEER_NAMES.lock().unwrap_or_else(|p| p.into_inner());
@@ -543,7 +719,14 @@ mod tests {
     fn the_rules_are_a_valid_zenoh_access_control_section() {
         use zenoh::Wait;
         let mut c = zenoh::Config::default();
-        c.insert_json5("access_control", &access_control_json().to_string()).expect("zenoh accepts the rules");
+        let mut roster = Roster::default();
+        roster.add(Role::Agent, "lab-1");
+        roster.add(Role::Learner, "l.2");
+        roster.add(Role::Car, "c1");
+        roster.add(Role::Operator, "me");
+        let acl = access_control_json(&roster);
+        assert_eq!(acl["subjects"].as_array().unwrap().len(), Role::ALL.len() + 4 + 1);
+        c.insert_json5("access_control", &acl.to_string()).expect("zenoh accepts the rules");
         c.insert_json5("listen/endpoints", "[]").unwrap();
         c.insert_json5("scouting/multicast/enabled", "false").unwrap();
         // Zenoh checks the rules (ids, subjects, policies) when a session opens.
@@ -643,13 +826,60 @@ mod tests {
     fn credentials_name_the_missing_file() {
         let dir = std::env::temp_dir().join(format!("paddock-creds-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
-        let e = Credentials::from_dir(&dir, Role::Agent).unwrap_err();
+        let e = Credentials::from_dir(&dir, Role::Agent, None).unwrap_err();
         assert!(e.to_string().contains("ca.pem"), "{e}");
         std::fs::write(dir.join("ca.pem"), "-----BEGIN CERTIFICATE-----\n").unwrap();
         std::fs::write(dir.join("agent.pem"), "not pem").unwrap();
-        let e = Credentials::from_dir(&dir, Role::Agent).unwrap_err();
+        let e = Credentials::from_dir(&dir, Role::Agent, Some("lab-1")).unwrap_err();
         assert!(e.to_string().contains("agent.pem") && e.to_string().contains("PEM CERTIFICATE"), "{e}");
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn issue_35_a_machine_is_named_by_its_certificate_and_takes_its_own_files() {
+        let table = [
+            ("paddock-agent", Some((Role::Agent, None))),
+            ("paddock-agent.lab-1", Some((Role::Agent, Some("lab-1")))),
+            ("paddock-learner.l.2", Some((Role::Learner, Some("l.2")))),
+            ("paddock-agent.", None),
+            ("paddock-agent.a/b", None),
+            ("paddock-wizard.x", None),
+            ("paddock-agentx", None),
+        ];
+        for (cn, want) in table {
+            assert_eq!(parse_common_name(cn), want.map(|(r, id)| (r, id.map(str::to_string))), "{cn}");
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        for f in ["ca.pem", "agent.pem", "agent-lab-1.pem"] {
+            std::fs::write(d.join(f), "-----BEGIN CERTIFICATE-----\n").unwrap();
+        }
+        for f in ["agent.key", "agent-lab-1.key"] {
+            std::fs::write(d.join(f), "-----BEGIN PRIVATE KEY-----\n").unwrap();
+        }
+        assert_eq!(only_id(d, Role::Agent).as_deref(), Some("lab-1"));
+        assert_eq!(only_id(d, Role::Learner), None);
+        let own = Credentials::from_dir(d, Role::Agent, Some("lab-1")).unwrap();
+        assert_eq!(
+            (own.cert.file_name().unwrap().to_str(), own.id.as_deref()),
+            (Some("agent-lab-1.pem"), Some("lab-1"))
+        );
+        // An id without its own certificate presents the role-wide one.
+        let wide = Credentials::from_dir(d, Role::Agent, Some("lab-9")).unwrap();
+        assert_eq!((wide.cert.file_name().unwrap().to_str(), wide.id), (Some("agent.pem"), None));
+        // The roster: missing is empty; written and read back; a bad id names the file.
+        assert_eq!(Roster::load(d).unwrap(), Roster::default());
+        let mut r = Roster::default();
+        r.add(Role::Agent, "lab-2");
+        r.add(Role::Agent, "lab-1");
+        r.add(Role::Agent, "lab-2");
+        std::fs::write(d.join(ROSTER_FILE), r.to_toml()).unwrap();
+        assert_eq!(Roster::load(d).unwrap().ids(Role::Agent), ["lab-1", "lab-2"]);
+        std::fs::write(d.join(ROSTER_FILE), "agent = [\"a/b\"]\n").unwrap();
+        let e = Roster::load(d).unwrap_err().to_string();
+        assert!(e.contains("ids.toml") && e.contains("a/b"), "{e}");
+        std::fs::write(d.join(ROSTER_FILE), "agents = []\n").unwrap();
+        assert!(Roster::load(d).unwrap_err().to_string().contains("ids.toml"));
     }
 
     #[test]

@@ -13,6 +13,7 @@ use anyhow::{Context, Result};
 use protocol::Job;
 use protocol::exchange::{self as wire, JobView};
 use protocol::net::{self, DropCounters, NetArgs, Sub, try_next, zenoh};
+use protocol::secure::Role;
 use protocol::{AgentInfo, AgentReport, Assignment, PROTOCOL_VERSION, PolicyUpdate, keys};
 use sim_agent::config::{SimConfig, parse_toml};
 use sim_agent::worker::{Worker, WorkerError, WorkerInbound, WorkerLink, WorkerOutbound, WorkerSetup};
@@ -59,9 +60,14 @@ fn host() -> String {
 pub fn serve(args: ServeArgs) -> Result<()> {
     // One device for every assignment this agent takes.
     let gpu = gpu::Gpu::open(args.device).context("--device")?.map(Arc::new);
-    let session = net::open_retrying(&args.net)?;
-    let id = args.id.clone().unwrap_or_else(|| format!("{}-{}", host(), std::process::id()));
+    // The id: --id, else the one this machine's own certificate carries, else host-pid.
+    let id = args
+        .id
+        .clone()
+        .or_else(|| args.net.own_id(Role::Agent))
+        .unwrap_or_else(|| format!("{}-{}", host(), std::process::id()));
     anyhow::ensure!(keys::is_valid_name(&id), "agent id '{id}' may hold only letters, digits, '-', '_' and '.'");
+    let session = net::open_retrying(&args.net.clone().as_machine(Role::Agent, &id))?;
     let info = AgentInfo {
         protocol_version: PROTOCOL_VERSION,
         agent_id: id.clone(),

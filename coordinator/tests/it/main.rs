@@ -8,6 +8,7 @@ mod cli;
 mod cluster;
 mod dashboard;
 mod fidelity;
+mod identity;
 mod logs;
 mod model_formats;
 mod netns;

@@ -28,6 +28,8 @@ use zenoh_protocol::{
 };
 use zenoh_result::ZResult;
 
+// PADDOCK PATCH: revocation lists that change at run time.
+pub mod revocation;
 mod unicast;
 mod utils;
 pub use unicast::*;

@@ -326,6 +326,21 @@ impl LinkWithCertExpiration for LinkUnicastTls {
     }
 }
 
+impl LinkUnicastTls {
+    /// PADDOCK PATCH: close the link because the peer's certificate was revoked (as
+    /// `expire` does, the expiration task told to stand down so that the transport's own
+    /// `close` does not wait for it).
+    pub(crate) async fn revoke(&self) -> ZResult<()> {
+        if let Some(expiration_manager) = &self.expiration_manager {
+            if !expiration_manager.set_closing() {
+                return Ok(());
+            }
+            expiration_manager.cancel_expiration_task();
+        }
+        self.close().await
+    }
+}
+
 impl Drop for LinkUnicastTls {
     fn drop(&mut self) {
         // Close the underlying TCP stream
@@ -427,6 +442,10 @@ impl LinkManagerUnicastTrait for LinkManagerUnicastTls {
 
         let (_, tls_conn) = tls_stream.get_ref();
         let auth_identifier = get_server_cert_common_name(tls_conn)?;
+        let tls_conn_peer = tls_conn
+            .peer_certificates()
+            .and_then(|c| c.first())
+            .map(|c| c.clone().into_owned());
         let certchain_expiration_time = get_cert_chain_expiration(&tls_conn.peer_certificates())?
             .expect("server should have certificate chain");
 
@@ -453,6 +472,10 @@ impl LinkManagerUnicastTrait for LinkManagerUnicastTls {
             )
         });
 
+        // PADDOCK PATCH: closed when a revocation list names the server's certificate.
+        if let Some(peer) = tls_conn_peer.as_ref() {
+            crate::revocation::register(peer, &link);
+        }
         Ok(LinkUnicast::from(link as Arc<dyn LinkUnicastTrait>))
     }
 
@@ -599,6 +622,10 @@ async fn accept_task(
                             }
                         }
 
+                        let tls_stream_peer = tls_conn
+                            .peer_certificates()
+                            .and_then(|c| c.first())
+                            .map(|c| c.clone().into_owned());
                         tracing::debug!("Accepted TLS connection on {:?}: {:?}. {:?}.", src_addr, dst_addr, auth_identifier);
                         // Create the new link object
                         let link = Arc::<LinkUnicastTls>::new_cyclic(|weak_link| {
@@ -621,6 +648,11 @@ async fn accept_task(
                                 expiration_manager,
                             )
                         });
+
+                        // PADDOCK PATCH: closed when a revocation list names the client's certificate.
+                        if let Some(peer) = tls_stream_peer.as_ref() {
+                            crate::revocation::register(peer, &link);
+                        }
 
                         // Communicate the new link to the initial transport manager
                         if let Err(e) = manager

@@ -21,9 +21,9 @@ use std::{
     time::Duration,
 };
 
+use crate::revocation::{RevocableClientVerifier, RevocableServerVerifier};
 use rustls::{
     pki_types::{CertificateDer, PrivateKeyDer, TrustAnchor},
-    server::WebPkiClientVerifier,
     version::TLS13,
     ClientConfig, RootCertStore, ServerConfig,
 };
@@ -240,7 +240,9 @@ impl<'a> TlsServerConfig<'a> {
                 || Err(zerror!("Missing root certificates while mTLS is enabled.")),
                 Ok,
             )?;
-            let client_auth = WebPkiClientVerifier::builder(root_cert_store.into()).build()?;
+            // PADDOCK PATCH: webpki's verifier with the process's revocation lists, which
+            // may change while the listener runs (`crate::revocation`).
+            let client_auth = RevocableClientVerifier::new(root_cert_store).map_err(|e| zerror!("{e}"))?;
             ServerConfig::builder_with_protocol_versions(&[&TLS13])
                 .with_client_cert_verifier(client_auth)
                 .with_single_cert(certs, keys.remove(0))
@@ -346,10 +348,16 @@ impl<'a> TlsClientConfig<'a> {
             None => TLS_CLOSE_LINK_ON_EXPIRATION_DEFAULT,
         };
 
-        // Allows mixed user-generated CA and webPKI CA
-        tracing::debug!("Loading default Web PKI certificates.");
-        let mut root_cert_store = RootCertStore {
-            roots: webpki_roots::TLS_SERVER_ROOTS.to_vec(),
+        // Allows mixed user-generated CA and webPKI CA.
+        // PADDOCK PATCH: not with mutual TLS, where only the cluster's own CA may vouch for a
+        // server (a public CA's certificate for a look-alike name would pass otherwise).
+        let mut root_cert_store = if tls_client_server_auth {
+            RootCertStore::empty()
+        } else {
+            tracing::debug!("Loading default Web PKI certificates.");
+            RootCertStore {
+                roots: webpki_roots::TLS_SERVER_ROOTS.to_vec(),
+            }
         };
 
         if let Some(custom_root_cert) = load_trust_anchors(config)? {
@@ -404,19 +412,16 @@ impl<'a> TlsClientConfig<'a> {
 
             let builder = ClientConfig::builder_with_protocol_versions(&[&TLS13]);
 
-            if tls_server_name_verification {
-                builder
-                    .with_root_certificates(root_cert_store)
-                    .with_client_auth_cert(certs, keys.remove(0))
-            } else {
-                builder
-                    .dangerous()
-                    .with_custom_certificate_verifier(Arc::new(WebPkiVerifierAnyServerName::new(
-                        root_cert_store,
-                    )))
-                    .with_client_auth_cert(certs, keys.remove(0))
-            }
-            .map_err(|e| zerror!("Bad certificate/key: {}", e))?
+            // PADDOCK PATCH: webpki's verifier with the process's revocation lists, the
+            // server's name checked or not as configured (`crate::revocation`).
+            let verifier =
+                RevocableServerVerifier::new(root_cert_store, tls_server_name_verification)
+                    .map_err(|e| zerror!("{e}"))?;
+            builder
+                .dangerous()
+                .with_custom_certificate_verifier(verifier)
+                .with_client_auth_cert(certs, keys.remove(0))
+                .map_err(|e| zerror!("Bad certificate/key: {}", e))?
         } else {
             let builder = ClientConfig::builder();
             if tls_server_name_verification {
