@@ -64,6 +64,9 @@ fn distribute_revocations(
         })
         .wait()
         .map_err(|e| anyhow::anyhow!("{e}"))?;
+    if let Some((number, _)) = revocation::held() {
+        tracing::info!(number, "revocation list in force, from {}", dir.join(CRL_FILE).display());
+    }
     let (s, file) = (session.clone(), dir.join(CRL_FILE));
     let modified = |f: &std::path::Path| std::fs::metadata(f).and_then(|m| m.modified()).ok();
     std::thread::Builder::new().name("revocations".into()).spawn(move || {
@@ -77,7 +80,14 @@ fn distribute_revocations(
                 match std::fs::read(&file) {
                     Ok(bytes) => match revocation::take(&creds, &bytes) {
                         Err(e) => tracing::error!("{}: {e}; the list in force stays", file.display()),
-                        ok => revocation::log("file", &ok),
+                        Ok(revocation::Taken::Installed { number, revoked, closed, .. }) => tracing::info!(
+                            number,
+                            revoked,
+                            closed,
+                            "revocation list in force, from {}; handing it to every node",
+                            file.display()
+                        ),
+                        Ok(revocation::Taken::Unchanged) => {}
                     },
                     Err(e) => tracing::error!("{}: {e}", file.display()),
                 }

@@ -204,6 +204,13 @@ pub fn open(args: &NetArgs) -> Result<zenoh::Session, NetError> {
         let c = Credentials::from_dir(dir, role, id.as_deref()).map_err(|x| NetError(x.to_string()))?;
         let roster = crate::secure::Roster::load(dir).map_err(|x| NetError(x.to_string()))?;
         match (&c.id, &id) {
+            (Some(id), _) if !roster.ids(role).contains(id) => tracing::warn!(
+                role = role.name(),
+                id,
+                "presenting this machine's own certificate, but {} does not list it: nodes that read that \
+                 file refuse this machine; copy the ids.toml `coordinator certs issue` wrote",
+                dir.join(crate::secure::ROSTER_FILE).display()
+            ),
             (Some(id), _) => tracing::info!(role = role.name(), id, "presenting this machine's own certificate"),
             (None, Some(id)) => tracing::info!(
                 role = role.name(),

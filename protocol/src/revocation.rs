@@ -110,8 +110,13 @@ pub fn take(creds: &Credentials, bytes: &[u8]) -> Result<Taken, RevocationError>
         }
     }
     let read = |p: &Path| std::fs::read(p).map_err(|e| RevocationError::Credentials(format!("{}: {e}", p.display())));
-    let self_revoked = zenoh_link_tls::revocation::check_revocation_list(&read(&creds.ca)?, &read(&creds.cert)?, &der)
-        .map_err(RevocationError::NotTheCa)?;
+    use zenoh_link_tls::revocation::{ListCheckError, check_revocation_list};
+    let self_revoked = check_revocation_list(&read(&creds.ca)?, &read(&creds.cert)?, &der).map_err(|e| match e {
+        ListCheckError::Certificate(e) => {
+            RevocationError::Credentials(format!("{} (signed by {}): {e}", creds.cert.display(), creds.ca.display()))
+        }
+        ListCheckError::List(e) => RevocationError::NotTheCa(e),
+    })?;
     let closed =
         zenoh_link_tls::revocation::set_revocation_lists(vec![der.clone()]).map_err(RevocationError::Malformed)?;
     *held = Some((number, der));
@@ -157,8 +162,10 @@ pub fn follow(session: &zenoh::Session, dir: &Path, creds: &Credentials) -> Resu
     if file.exists() {
         let bytes = std::fs::read(&file).map_err(|e| format!("{}: {e}", file.display()))?;
         let r = take(creds, &bytes);
-        if let Err(e) = &r {
-            return Err(format!("{}: {e}", file.display()));
+        match &r {
+            Err(e @ RevocationError::Credentials(_)) => return Err(e.to_string()),
+            Err(e) => return Err(format!("{}: {e}", file.display())),
+            Ok(_) => {}
         }
         log("file", &r);
     }
@@ -250,6 +257,15 @@ mod tests {
         // A list with the cluster CA's name and a higher number, signed by another key.
         let forged = crl(&impostor, 9, std::slice::from_ref(&own));
         assert!(matches!(take(&creds, forged.der()), Err(RevocationError::NotTheCa(_))), "forged list taken");
+        // A list under another issuer's name does not apply to the cluster's certificates: its
+        // signature is never looked at by a handshake, so it is refused outright (taken, a
+        // number like u64::MAX would lock out every genuine list after it).
+        let key = KeyPair::generate().unwrap();
+        let mut p = CertificateParams::new(Vec::<String>::new()).unwrap();
+        p.distinguished_name.push(DnType::CommonName, "someone-else");
+        p.is_ca = IsCa::Ca(rcgen::BasicConstraints::Constrained(0));
+        let elsewhere = crl(&Issuer::new(p, key), u64::MAX, std::slice::from_ref(&own));
+        assert!(matches!(take(&creds, elsewhere.der()), Err(RevocationError::NotTheCa(_))), "foreign list taken");
         assert_eq!(held(), None);
         let other = vec![0x11; 20];
         let two = crl(&cluster, 2, std::slice::from_ref(&other));

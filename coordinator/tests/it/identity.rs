@@ -66,6 +66,7 @@ fn issue_35_each_machine_speaks_only_for_itself_and_a_revoked_or_expired_certifi
     certs(tmp.path(), &["new", &ds]);
     let out = certs(tmp.path(), &["issue", &ds, "agent", "lab-1", "lab-2"]);
     assert!(out.contains("agent-lab-1.pem") && out.contains("ids.toml"), "{out}");
+    certs(tmp.path(), &["issue", &ds, "learner", "gpu-1"]);
     // A certificate that expired yesterday, signed by the cluster's CA, its id on the roster.
     {
         let key = rcgen::KeyPair::from_pem(&std::fs::read_to_string(d.join("ca.key")).unwrap()).unwrap();
@@ -103,7 +104,10 @@ fn issue_35_each_machine_speaks_only_for_itself_and_a_revoked_or_expired_certifi
     );
     let base = NetArgs { connect: vec![endpoint.clone()], certs: Some(d.clone()), ..Default::default() };
     let open = |a: NetArgs| net::open(&a).unwrap();
-    let learner = open(base.clone().as_role(Role::Learner));
+    // The receiver listens where every agent dials it: its refusals are this process's.
+    let receiver_ep = format!("tls/127.0.0.1:{}", free_port());
+    let learner = open(NetArgs { listen: vec![receiver_ep.clone()], ..base.clone() }.as_role(Role::Learner));
+    let _token = learner.liveliness().declare_token("paddock/v1/alive/learner/recv").wait().unwrap();
     let seen: Seen = Arc::default();
     let s2 = seen.clone();
     let _sub = learner
@@ -111,13 +115,22 @@ fn issue_35_each_machine_speaks_only_for_itself_and_a_revoked_or_expired_certifi
         .callback(move |s| s2.lock().unwrap().push(s.key_expr().to_string()))
         .wait()
         .unwrap();
-    let lab1 = open(base.clone().as_machine(Role::Agent, "lab-1"));
-    let lab2 = open(base.clone().as_machine(Role::Agent, "lab-2"));
+    let agents = NetArgs { connect: vec![receiver_ep.clone(), endpoint.clone()], ..base.clone() };
+    let lab1 = open(agents.clone().as_machine(Role::Agent, "lab-1"));
+    let lab2 = open(agents.clone().as_machine(Role::Agent, "lab-2"));
     // No --id and several machines' files in the folder: the role-wide certificate.
-    let wide = open(base.clone().as_role(Role::Agent));
-    let old = open(base.clone().as_machine(Role::Agent, "old"));
+    let wide = open(agents.clone().as_role(Role::Agent));
+    let old = open(agents.clone().as_machine(Role::Agent, "old"));
     let key = |id: &str| protocol::keys::experience("j", id);
     let wait = Duration::from_secs(20);
+    let refused = |what: &str| protocol::secure::REFUSED.reasons().iter().any(|(r, _)| r.contains(what));
+    let until = |what: &str, ok: &dyn Fn() -> bool| {
+        let t = Instant::now();
+        while !ok() {
+            assert!(t.elapsed() < wait, "{what}: {:?}", protocol::secure::REFUSED.reasons());
+            std::thread::sleep(Duration::from_millis(100));
+        }
+    };
 
     // Each machine sends as itself; the role-wide certificate may still speak for any agent.
     assert!(reaches(&seen, &lab1, &key("lab-1"), wait), "lab-1's own experience");
@@ -138,8 +151,22 @@ fn issue_35_each_machine_speaks_only_for_itself_and_a_revoked_or_expired_certifi
         reasons.iter().any(|(r, _)| r.contains("agent lab-1 may not put on paddock/v1/job/*/experience/lab-2")),
         "{reasons:?}"
     );
-    // The expired certificate never got through a handshake.
-    assert!(!reaches(&seen, &old, &key("old"), Duration::from_secs(2)), "an expired certificate connected");
+    // Liveliness too: lab-1's token under its own id is taken, one under lab-2's refused.
+    let _own = lab1.liveliness().declare_token("paddock/v1/alive/agent/lab-1").wait().unwrap();
+    let _posing = lab1.liveliness().declare_token("paddock/v1/alive/agent/lab-2").wait().unwrap();
+    until("lab-1's token as lab-2 refused", &|| {
+        refused("agent lab-1 may not liveliness token on paddock/v1/alive/agent/lab-2")
+    });
+    assert!(!refused("on paddock/v1/alive/agent/lab-1"), "{:?}", protocol::secure::REFUSED.reasons());
+    // The expired certificate is refused at the handshake, and never heard.
+    until("the expired certificate refused", &|| refused("invalid peer certificate: certificate expired"));
+    assert!(!reaches(&seen, &old, &key("old"), Duration::from_secs(1)), "an expired certificate connected");
+    // A learner with its own certificate watches every learner's token (a team's need).
+    let gpu = open(base.clone().as_machine(Role::Learner, "gpu-1"));
+    until("gpu-1 sees the other learner", &|| {
+        let r = gpu.liveliness().get("paddock/v1/alive/learner/*").timeout(Duration::from_secs(1)).wait().unwrap();
+        std::iter::from_fn(|| r.recv().ok()).any(|r| r.result().is_ok_and(|s| s.key_expr().as_str().ends_with("/recv")))
+    });
 
     // Revoke lab-1 while it is connected: the running coordinator hands the list to every node,
     // which closes its links to lab-1 and refuses it from then on; lab-2 carries on.
@@ -152,8 +179,13 @@ fn issue_35_each_machine_speaks_only_for_itself_and_a_revoked_or_expired_certifi
         std::thread::sleep(Duration::from_millis(100));
     }
     std::thread::sleep(Duration::from_secs(1));
-    assert!(!reaches(&seen, &lab1, &key("lab-1"), Duration::from_secs(3)), "a revoked machine was heard");
+    assert!(!reaches(&seen, &lab1, &key("lab-1"), Duration::from_secs(2)), "a revoked machine was heard");
     assert!(reaches(&seen, &lab2, &key("lab-2"), wait), "lab-2 after lab-1's revocation");
+    // lab-1 dials again and is refused at the handshake (not only cut off after it), and the
+    // coordinator's own process took the list from the folder.
+    until("the revoked certificate refused", &|| refused("invalid peer certificate: Revoked"));
+    let log = std::fs::read_to_string(tmp.path().join("coordinator.log")).unwrap();
+    assert!(log.contains("revocation list in force"), "{log}");
     let listed = certs(tmp.path(), &["list", &ds]);
     let status = |f: &str| listed.lines().find(|l| l.starts_with(f)).map(|l| l.split_whitespace().last().unwrap_or(""));
     assert_eq!(
@@ -162,6 +194,7 @@ fn issue_35_each_machine_speaks_only_for_itself_and_a_revoked_or_expired_certifi
         "{listed}"
     );
     // A revoked id may be issued anew (a new key); the list keeps the old one revoked.
+    std::fs::copy(d.join("agent-lab-1.pem"), d.join("lab-1-before.pem")).unwrap();
     certs(tmp.path(), &["issue", &ds, "agent", "lab-1"]);
-    assert!(openssl_verify(&d, "agent-lab-1.pem"));
+    assert!(openssl_verify(&d, "agent-lab-1.pem") && !openssl_verify(&d, "lab-1-before.pem"));
 }

@@ -70,6 +70,8 @@ pub fn set_revocation_lists(lists: Vec<Vec<u8>>) -> Result<usize, String> {
     let revoked = |serial: &[u8]| serials.contains(serial);
     let mut to_close = Vec::new();
     {
+        // The links' lock first, then the lists': a link registered meanwhile is either
+        // scanned here or checked against the new lists in `register`.
         let mut links = LINKS.lock().unwrap_or_else(|p| p.into_inner());
         links.retain(|(_, _, l)| l.strong_count() > 0);
         for (serial, name, link) in links.iter() {
@@ -79,8 +81,6 @@ pub fn set_revocation_lists(lists: Vec<Vec<u8>>) -> Result<usize, String> {
                 }
             }
         }
-    }
-    {
         let mut l = LISTS.write().unwrap_or_else(|p| p.into_inner());
         l.ders = lists
             .into_iter()
@@ -127,7 +127,9 @@ pub(crate) fn register(peer: &CertificateDer<'_>, link: &Arc<LinkUnicastTls>) {
         .and_then(|cn| cn.as_str().ok())
         .unwrap_or("no common name")
         .to_string();
+    let mut links = LINKS.lock().unwrap_or_else(|p| p.into_inner());
     if is_revoked(&serial) {
+        drop(links);
         tracing::warn!("Closing TLS link {link}: the peer's certificate ({name}) is revoked");
         let l = link.clone();
         zenoh_runtime::ZRuntime::Acceptor.spawn(async move {
@@ -135,7 +137,6 @@ pub(crate) fn register(peer: &CertificateDer<'_>, link: &Arc<LinkUnicastTls>) {
         });
         return;
     }
-    let mut links = LINKS.lock().unwrap_or_else(|p| p.into_inner());
     links.retain(|(_, _, l)| l.strong_count() > 0);
     links.push((serial, name, Arc::downgrade(link)));
 }
@@ -170,24 +171,44 @@ fn client_verifier(
         .map_err(|e| e.to_string())
 }
 
+/// Why [`check_revocation_list`] refused.
+#[derive(Debug)]
+pub enum ListCheckError {
+    /// The CA or the certificate to try the list on is unusable (before any list is used).
+    Certificate(String),
+    /// The list is not the CA's, or does not apply to the certificates it signs.
+    List(String),
+}
+
 /// Check `list` (a DER X.509 CRL) against the CA (`ca_pem`) by verifying `cert_pem` (a
-/// certificate that CA signed) with it, as a handshake would: `Ok(true)` when the list
-/// revokes that certificate, `Ok(false)` when it does not, an error when the list cannot be
-/// used (its signature is not the CA's, it is malformed, or the certificate fails otherwise).
-pub fn check_revocation_list(ca_pem: &[u8], cert_pem: &[u8], list: &[u8]) -> Result<bool, String> {
-    let roots = Arc::new(roots_from_pem(ca_pem)?);
+/// certificate that CA signed) with it, as a handshake would, except that the list must be
+/// authoritative for that certificate (the CA's own list, signed by it): `Ok(true)` when it
+/// revokes that certificate, `Ok(false)` when it does not.
+pub fn check_revocation_list(
+    ca_pem: &[u8],
+    cert_pem: &[u8],
+    list: &[u8],
+) -> Result<bool, ListCheckError> {
+    let roots = Arc::new(roots_from_pem(ca_pem).map_err(ListCheckError::Certificate)?);
     let cert = rustls_pemfile::certs(&mut Cursor::new(cert_pem))
         .next()
-        .ok_or("certificate: no PEM certificate found")?
-        .map_err(|e| format!("certificate: {e}"))?;
-    let v = client_verifier(
-        roots,
-        vec![CertificateRevocationListDer::from(list.to_vec())],
-    )?;
-    match v.verify_client_cert(&cert, &[], UnixTime::now()) {
+        .ok_or_else(|| ListCheckError::Certificate("no PEM certificate found".into()))?
+        .map_err(|e| ListCheckError::Certificate(e.to_string()))?;
+    let plain = client_verifier(roots.clone(), Vec::new()).map_err(ListCheckError::Certificate)?;
+    plain
+        .verify_client_cert(&cert, &[], UnixTime::now())
+        .map_err(|e| ListCheckError::Certificate(e.to_string()))?;
+    // Unknown status refused: a list that is not the CA's own (another issuer, another
+    // distribution point) would otherwise pass unchecked, its signature never looked at.
+    let strict = WebPkiClientVerifier::builder(roots)
+        .with_crls([CertificateRevocationListDer::from(list.to_vec())])
+        .only_check_end_entity_revocation()
+        .build()
+        .map_err(|e| ListCheckError::List(e.to_string()))?;
+    match strict.verify_client_cert(&cert, &[], UnixTime::now()) {
         Ok(_) => Ok(false),
         Err(Error::InvalidCertificate(CertificateError::Revoked)) => Ok(true),
-        Err(e) => Err(e.to_string()),
+        Err(e) => Err(ListCheckError::List(e.to_string())),
     }
 }
 

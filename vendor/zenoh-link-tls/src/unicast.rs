@@ -327,9 +327,11 @@ impl LinkWithCertExpiration for LinkUnicastTls {
 }
 
 impl LinkUnicastTls {
-    /// PADDOCK PATCH: close the link because the peer's certificate was revoked (as
-    /// `expire` does, the expiration task told to stand down so that the transport's own
-    /// `close` does not wait for it).
+    /// PADDOCK PATCH: end the link because the peer's certificate was revoked. The TCP
+    /// socket is shut both ways at once (not through `close`, which waits for a write in
+    /// progress: a peer that stops reading would hold the link open), so that reads and
+    /// writes fail and the transport drops the link; the expiration task is told to stand
+    /// down so that the transport's own `close` does not wait for it.
     pub(crate) async fn revoke(&self) -> ZResult<()> {
         if let Some(expiration_manager) = &self.expiration_manager {
             if !expiration_manager.set_closing() {
@@ -337,7 +339,11 @@ impl LinkUnicastTls {
             }
             expiration_manager.cancel_expiration_task();
         }
-        self.close().await
+        let stream = self.inner.lock().unwrap_or_else(|e| e.into_inner());
+        let (tcp, _) = stream.get_ref();
+        socket2::SockRef::from(tcp)
+            .shutdown(std::net::Shutdown::Both)
+            .map_err(|e| zerror!(e).into())
     }
 }
 
