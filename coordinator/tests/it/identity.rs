@@ -57,6 +57,25 @@ fn reaches(seen: &Seen, from: &zenoh::Session, key: &str, within: Duration) -> b
     false
 }
 
+/// An agent certificate for `id` valid from `from` to `until`, signed by the folder's CA,
+/// its id added to the roster.
+fn agent_cert(d: &Path, id: &str, from: time::OffsetDateTime, until: time::OffsetDateTime) {
+    let key = rcgen::KeyPair::from_pem(&std::fs::read_to_string(d.join("ca.key")).unwrap()).unwrap();
+    let issuer = rcgen::Issuer::from_ca_cert_pem(&std::fs::read_to_string(d.join("ca.pem")).unwrap(), key).unwrap();
+    let k = rcgen::KeyPair::generate().unwrap();
+    let mut p = rcgen::CertificateParams::new(vec!["localhost".to_string()]).unwrap();
+    p.distinguished_name.push(rcgen::DnType::CommonName, Role::Agent.common_name_of(id));
+    p.extended_key_usages =
+        vec![rcgen::ExtendedKeyUsagePurpose::ServerAuth, rcgen::ExtendedKeyUsagePurpose::ClientAuth];
+    (p.not_before, p.not_after) = (from, until);
+    let cert = p.signed_by(&k, &issuer).unwrap();
+    std::fs::write(d.join(format!("agent-{id}.pem")), cert.pem()).unwrap();
+    std::fs::write(d.join(format!("agent-{id}.key")), k.serialize_pem()).unwrap();
+    let mut roster = protocol::secure::Roster::load(d).unwrap();
+    roster.add(Role::Agent, id);
+    std::fs::write(d.join("ids.toml"), roster.to_toml()).unwrap();
+}
+
 #[test]
 fn issue_35_each_machine_speaks_only_for_itself_and_a_revoked_or_expired_certificate_is_refused() {
     protocol::secure::init_logging("warn");
@@ -67,25 +86,12 @@ fn issue_35_each_machine_speaks_only_for_itself_and_a_revoked_or_expired_certifi
     let out = certs(tmp.path(), &["issue", &ds, "agent", "lab-1", "lab-2"]);
     assert!(out.contains("agent-lab-1.pem") && out.contains("ids.toml"), "{out}");
     certs(tmp.path(), &["issue", &ds, "learner", "gpu-1"]);
-    // A certificate that expired yesterday, signed by the cluster's CA, its id on the roster.
-    {
-        let key = rcgen::KeyPair::from_pem(&std::fs::read_to_string(d.join("ca.key")).unwrap()).unwrap();
-        let issuer = rcgen::Issuer::from_ca_cert_pem(&std::fs::read_to_string(d.join("ca.pem")).unwrap(), key).unwrap();
-        let k = rcgen::KeyPair::generate().unwrap();
-        let mut p = rcgen::CertificateParams::new(vec!["localhost".to_string()]).unwrap();
-        p.distinguished_name.push(rcgen::DnType::CommonName, Role::Agent.common_name_of("old"));
-        p.extended_key_usages =
-            vec![rcgen::ExtendedKeyUsagePurpose::ServerAuth, rcgen::ExtendedKeyUsagePurpose::ClientAuth];
-        let now = time::OffsetDateTime::now_utc();
-        p.not_before = now - time::Duration::days(30);
-        p.not_after = now - time::Duration::days(1);
-        let cert = p.signed_by(&k, &issuer).unwrap();
-        std::fs::write(d.join("agent-old.pem"), cert.pem()).unwrap();
-        std::fs::write(d.join("agent-old.key"), k.serialize_pem()).unwrap();
-        let mut roster = protocol::secure::Roster::load(&d).unwrap();
-        roster.add(Role::Agent, "old");
-        std::fs::write(d.join("ids.toml"), roster.to_toml()).unwrap();
-    }
+    // A certificate that expired yesterday and one that expires during the test, signed by the
+    // cluster's CA, their ids on the roster.
+    let now = time::OffsetDateTime::now_utc();
+    agent_cert(&d, "old", now - time::Duration::days(30), now - time::Duration::days(1));
+    let short_until = Instant::now() + Duration::from_secs(12);
+    agent_cert(&d, "short", now - time::Duration::days(1), now + time::Duration::seconds(12));
     // OpenSSL agrees with what Paddock wrote.
     assert!(openssl_verify(&d, "agent-lab-1.pem") && !openssl_verify(&d, "agent-old.pem"));
 
@@ -121,6 +127,7 @@ fn issue_35_each_machine_speaks_only_for_itself_and_a_revoked_or_expired_certifi
     // No --id and several machines' files in the folder: the role-wide certificate.
     let wide = open(agents.clone().as_role(Role::Agent));
     let old = open(agents.clone().as_machine(Role::Agent, "old"));
+    let short = open(agents.clone().as_machine(Role::Agent, "short"));
     let key = |id: &str| protocol::keys::experience("j", id);
     let wait = Duration::from_secs(20);
     let refused = |what: &str| protocol::secure::REFUSED.reasons().iter().any(|(r, _)| r.contains(what));
@@ -136,6 +143,7 @@ fn issue_35_each_machine_speaks_only_for_itself_and_a_revoked_or_expired_certifi
     assert!(reaches(&seen, &lab1, &key("lab-1"), wait), "lab-1's own experience");
     assert!(reaches(&seen, &lab2, &key("lab-2"), wait), "lab-2's own experience");
     assert!(reaches(&seen, &wide, &key("anyone"), wait), "the role-wide certificate");
+    assert!(reaches(&seen, &short, &key("short"), short_until - Instant::now()), "before its expiry");
     // lab-1 posing as lab-2 is refused by the receiver's access rules, and counted by name:
     // its own experience, sent after, arrives; the forged puts before it (same link, in
     // order) do not.
@@ -193,6 +201,9 @@ fn issue_35_each_machine_speaks_only_for_itself_and_a_revoked_or_expired_certifi
         (Some("REVOKED"), Some("valid"), Some("EXPIRED")),
         "{listed}"
     );
+    // The certificate that expired meanwhile: its links were closed, and it is not heard.
+    std::thread::sleep(short_until.saturating_duration_since(Instant::now()) + Duration::from_secs(1));
+    assert!(!reaches(&seen, &short, &key("short"), Duration::from_secs(2)), "heard after its certificate expired");
     // A revoked id may be issued anew (a new key); the list keeps the old one revoked.
     std::fs::copy(d.join("agent-lab-1.pem"), d.join("lab-1-before.pem")).unwrap();
     certs(tmp.path(), &["issue", &ds, "agent", "lab-1"]);
