@@ -39,6 +39,17 @@ fn write_file(path: &Path, text: &str, secret: bool) -> Result<()> {
         .with_context(|| format!("{}: cannot write it", path.display()))
 }
 
+/// A node's certificate parameters: common name `cn`, usable for both ends of a mutual-TLS
+/// link (validity left to the caller).
+fn leaf(cn: &str) -> Result<CertificateParams> {
+    let mut p = CertificateParams::new(vec!["localhost".to_string()]).context("certificate parameters")?;
+    p.distinguished_name = DistinguishedName::new();
+    p.distinguished_name.push(DnType::CommonName, cn);
+    p.key_usages = vec![KeyUsagePurpose::DigitalSignature];
+    p.extended_key_usages = vec![ExtendedKeyUsagePurpose::ServerAuth, ExtendedKeyUsagePurpose::ClientAuth];
+    Ok(p)
+}
+
 /// Write a CA and every role's certificate and key into `dir`. Existing credentials are kept
 /// unless `force` (a new CA makes every certificate already handed out useless).
 pub fn write(dir: &Path, force: bool) -> Result<Vec<String>> {
@@ -82,11 +93,7 @@ pub fn write(dir: &Path, force: bool) -> Result<Vec<String>> {
     let issuer = Issuer::new(ca, ca_key);
     for r in Role::ALL {
         let key = KeyPair::generate().with_context(|| format!("generating the {} key", r.name()))?;
-        let mut p = CertificateParams::new(vec!["localhost".to_string()]).context("certificate parameters")?;
-        p.distinguished_name = DistinguishedName::new();
-        p.distinguished_name.push(DnType::CommonName, r.common_name());
-        p.key_usages = vec![KeyUsagePurpose::DigitalSignature];
-        p.extended_key_usages = vec![ExtendedKeyUsagePurpose::ServerAuth, ExtendedKeyUsagePurpose::ClientAuth];
+        let mut p = leaf(&r.common_name())?;
         validity(&mut p);
         let cert = p.signed_by(&key, &issuer).with_context(|| format!("signing the {} certificate", r.name()))?;
         write_file(&dir.join(format!("{}.pem", r.name())), &cert.pem(), false)?;
@@ -181,11 +188,7 @@ pub fn issue(dir: &Path, role: &str, ids: &[String], days: u32) -> Result<Vec<St
             let _ = std::fs::remove_file(&key);
         }
         let k = KeyPair::generate().context("generating a key")?;
-        let mut p = CertificateParams::new(vec!["localhost".to_string()]).context("certificate parameters")?;
-        p.distinguished_name = DistinguishedName::new();
-        p.distinguished_name.push(DnType::CommonName, role.common_name_of(id));
-        p.key_usages = vec![KeyUsagePurpose::DigitalSignature];
-        p.extended_key_usages = vec![ExtendedKeyUsagePurpose::ServerAuth, ExtendedKeyUsagePurpose::ClientAuth];
+        let mut p = leaf(&role.common_name_of(id))?;
         p.not_before = now - time::Duration::hours(1);
         p.not_after = now + time::Duration::days(days.into());
         let cert = p.signed_by(&k, &issuer).with_context(|| format!("signing {id}'s certificate"))?;

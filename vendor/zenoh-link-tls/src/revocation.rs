@@ -91,12 +91,17 @@ pub fn set_revocation_lists(lists: Vec<Vec<u8>>) -> Result<usize, String> {
     }
     let closed = to_close.len();
     for (name, link) in to_close {
-        tracing::warn!("Closing TLS link {link}: the peer's certificate ({name}) is revoked");
-        zenoh_runtime::ZRuntime::Acceptor.spawn(async move {
-            let _ = link.revoke().await;
-        });
+        close_revoked(&name, link);
     }
     Ok(closed)
+}
+
+/// End a link whose peer's certificate (named `name`) is revoked, on the runtime.
+fn close_revoked(name: &str, link: Arc<LinkUnicastTls>) {
+    tracing::warn!("Closing TLS link {link}: the peer's certificate ({name}) is revoked");
+    zenoh_runtime::ZRuntime::Acceptor.spawn(async move {
+        let _ = link.revoke().await;
+    });
 }
 
 /// How many times the lists were replaced in this process.
@@ -130,11 +135,7 @@ pub(crate) fn register(peer: &CertificateDer<'_>, link: &Arc<LinkUnicastTls>) {
     let mut links = LINKS.lock().unwrap_or_else(|p| p.into_inner());
     if is_revoked(&serial) {
         drop(links);
-        tracing::warn!("Closing TLS link {link}: the peer's certificate ({name}) is revoked");
-        let l = link.clone();
-        zenoh_runtime::ZRuntime::Acceptor.spawn(async move {
-            let _ = l.revoke().await;
-        });
+        close_revoked(&name, link.clone());
         return;
     }
     links.retain(|(_, _, l)| l.strong_count() > 0);
