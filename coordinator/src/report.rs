@@ -248,9 +248,17 @@ macro_rules! both {
             root.present().map_err(|e| anyhow::anyhow!("{}: {e}", svg.display()))?;
         }
         {
-            let root = BitMapBackend::new(&png, $size).into_drawing_area();
-            $draw(&root).map_err(|e| anyhow::anyhow!("{}: {e}", png.display()))?;
-            root.present().map_err(|e| anyhow::anyhow!("{}: {e}", png.display()))?;
+            // Drawn into memory and encoded by `image` (plotters' own encoder would build a
+            // second, older `image`).
+            let (w, h): (u32, u32) = $size;
+            let mut rgb = vec![0u8; (w * h * 3) as usize];
+            {
+                let root = BitMapBackend::with_buffer(&mut rgb, $size).into_drawing_area();
+                $draw(&root).map_err(|e| anyhow::anyhow!("{}: {e}", png.display()))?;
+                root.present().map_err(|e| anyhow::anyhow!("{}: {e}", png.display()))?;
+            }
+            image::save_buffer(&png, &rgb, w, h, image::ExtendedColorType::Rgb8)
+                .map_err(|e| anyhow::anyhow!("{}: {e}", png.display()))?;
         }
         $name.to_string()
     }};

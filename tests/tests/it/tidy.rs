@@ -142,3 +142,23 @@ fn issue_29_the_vendored_zenoh_patch_is_the_one_built() {
     assert!(entry.contains(&format!("version = \"{version}\"")), "Cargo.lock: {entry}");
     assert!(!entry.contains("source ="), "Cargo.lock takes zenoh-link-tls from crates.io, not vendor/: {entry}");
 }
+
+/// Issue 50: every member names `workspace-hack`, so that a build of any subset of the roles
+/// takes the same dependency features as every other (a role built after another compiles
+/// none of their shared dependencies again); cargo-hakari's `manage-deps` adds the line.
+#[test]
+fn every_member_shares_one_set_of_dependency_features() {
+    let manifest = std::fs::read_to_string(root().join("Cargo.toml")).unwrap();
+    let members: Vec<&str> = manifest
+        .split("members = [")
+        .nth(1)
+        .and_then(|rest| rest.split(']').next())
+        .expect("the root Cargo.toml lists its members")
+        .split(',')
+        .map(|m| m.trim().trim_matches('"'))
+        .filter(|m| !m.is_empty() && *m != "workspace-hack")
+        .collect();
+    assert!(members.len() >= 8, "{members:?}");
+    let missing: Vec<&&str> = members.iter().filter(|m| !dependencies(m).contains(&"workspace-hack".to_string())).collect();
+    assert!(missing.is_empty(), "run `cargo hakari manage-deps`: these members lack workspace-hack: {missing:?}");
+}
