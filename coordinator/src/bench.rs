@@ -121,6 +121,8 @@ fn up_row(
         &per.to_string(),
         "--minutes",
         minutes,
+        "--target-laps",
+        "0",
         "--out",
     ])
     .arg(out);
@@ -874,7 +876,8 @@ pub fn long_job(minutes: f64, trials: u32, out: &std::path::Path) -> Result<i32>
     }
     // Stability is under test, not the logs: no gigabytes of sim-trace.
     args.extend(["--agents", "2", "--set", "record_trace=false", "--out", "up"].map(String::from));
-    args.extend(["--minutes".into(), minutes.to_string()]);
+    // The whole time: a soak, not a race to the first verified model.
+    args.extend(["--minutes".into(), minutes.to_string(), "--target-laps".into(), "0".into()]);
     child(&me, out, &args)?;
     let run = out.join("up/run");
     let index: serde_json::Value =

@@ -686,15 +686,16 @@ pub struct UpArgs {
     /// Environments per agent.
     #[arg(long, default_value_t = 16)]
     pub envs: usize,
-    /// Time limit (minutes).
-    #[arg(long, default_value_t = 2.0)]
+    /// Time limit (minutes): the job stops here if it has not stopped at its verified model.
+    #[arg(long, default_value_t = 5.0)]
     pub minutes: f64,
     /// Stop early when the mean progress over the last --window episodes reaches this (%).
     #[arg(long)]
     pub target_progress: Option<f64>,
-    /// Stop early once an evaluation completes this many laps on every world...
-    #[arg(long)]
-    pub target_laps: Option<u32>,
+    /// Stop early once an evaluation completes this many laps on every world... (0: train to
+    /// the time limit or another stop).
+    #[arg(long, default_value_t = 3)]
+    pub target_laps: u32,
     /// ...in this many consecutive evaluations...
     #[arg(long, default_value_t = 1)]
     pub target_evals: u32,

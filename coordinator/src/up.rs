@@ -366,15 +366,17 @@ fn job_spec(args: &UpArgs, out: &Path) -> Result<String> {
     let mut stop = toml::Table::new();
     stop.insert("minutes".into(), Value::Float(args.minutes));
     let int = |v: u64| Value::Integer(v as i64);
+    // The verified model is the default stop, as `train`'s; `--target-laps 0` trains on.
+    let laps = (args.target_laps > 0).then_some(args.target_laps);
     for (key, v) in [
         ("max_episodes", args.max_episodes.map(int)),
         ("env_steps_budget", args.env_steps.map(int)),
         ("target_progress", args.target_progress.map(Value::Float)),
         ("target_reward", args.target_reward.map(Value::Float)),
         ("window", Some(int(args.window))),
-        ("target_laps", args.target_laps.map(|l| int(l.into()))),
-        ("target_evals", args.target_laps.map(|_| int(args.target_evals.max(1).into()))),
-        ("verify_trials", args.target_laps.map(|_| int(args.verify_trials.into()))),
+        ("target_laps", laps.map(|l| int(l.into()))),
+        ("target_evals", laps.map(|_| int(args.target_evals.max(1).into()))),
+        ("verify_trials", laps.map(|_| int(args.verify_trials.into()))),
         ("plateau_evals", args.stop_on_plateau.map(|p| int(p.into()))),
         ("stop_on_collapse", args.stop_on_collapse.then_some(Value::Boolean(true))),
     ] {
@@ -476,10 +478,14 @@ mod tests {
         assert_eq!((job.seed, job.envs_per_agent), (9, 3));
         assert!(job.sim_config_toml.contains("record_trace = false"), "{}", job.sim_config_toml);
         assert_eq!(job.out, d.join("run").display().to_string());
-        // The defaults: two worlds, the state vector, DeepRacer's hyperparameters, 2 minutes.
+        // The defaults: two worlds, the state vector, DeepRacer's hyperparameters, and the stop
+        // at the verified model (3/3 once, then 10 trials a world), 5 minutes at most.
         let plain = spec(&[], d);
         assert_eq!(plain.worlds, ["reinvent_carpet", "reinvent_concrete"]);
-        assert_eq!(plain.stop().minutes, 2.0);
+        let stop = plain.stop();
+        assert_eq!((stop.minutes, stop.target_laps, stop.target_evals, stop.verify_trials), (5.0, Some(3), 1, 10));
+        // `--target-laps 0`: no lap target, the job trains to its time limit.
+        assert_eq!(spec(&["--target-laps", "0"], d).stop().target_laps, None);
         // A spec file instead: the flags that describe a job are refused beside it.
         let both = Cli::try_parse_from(["coordinator", "up", "--job", "job.toml", "--minutes", "3"]);
         assert!(both.is_err_and(|e| e.to_string().contains("cannot be used with")));

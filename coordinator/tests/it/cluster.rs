@@ -273,7 +273,8 @@ fn issue_4_up_runs_a_job_to_its_stop_and_the_model_improves() {
     let _turn = exclusive();
     let dir = tempfile::tempdir().unwrap();
     let o = Command::new(bin("coordinator"))
-        .args(["up", "--agents", "2", "--envs", "8", "--minutes", "2", "--target-progress", "80", "--seed", "7"])
+        .args(["up", "--agents", "2", "--envs", "8", "--minutes", "2", "--target-progress", "80", "--target-laps", "0"])
+        .args(["--seed", "7"])
         .args(["--out", "up"])
         .current_dir(dir.path())
         .output()
@@ -702,7 +703,7 @@ fn assert_cluster_logs(run: &Path, metrics: &[serde_json::Value]) {
 fn issue_8_three_worlds_two_agents_state_every_world_trained_nothing_wasted() {
     let dir = tempfile::tempdir().unwrap();
     let (summary, metrics, seconds) =
-        up_three_worlds(dir.path(), &["--envs", "6", "--env-steps", "300000", "--minutes", "10"]);
+        up_three_worlds(dir.path(), &["--envs", "6", "--env-steps", "300000", "--minutes", "10", "--target-laps", "0"]);
     assert_no_waste(&summary, &metrics, seconds, 10);
     assert_cluster_logs(&dir.path().join("up/run"), &metrics);
     // Each agent drove all three worlds at once: no hopping between worlds.
@@ -724,7 +725,7 @@ fn issue_8_three_worlds_two_agents_state_every_world_trained_nothing_wasted() {
 fn issue_8_three_worlds_two_agents_camera_every_world_trained_nothing_wasted() {
     let dir = tempfile::tempdir().unwrap();
     let (summary, metrics, seconds) =
-        up_three_worlds(dir.path(), &["--sensor", "camera", "--envs", "3", "--max-episodes", "80", "--minutes", "10"]);
+        up_three_worlds(dir.path(), &["--sensor", "camera", "--envs", "3", "--max-episodes", "80", "--minutes", "10", "--target-laps", "0"]);
     assert_no_waste(&summary, &metrics, seconds, 3);
 }
 
@@ -1264,7 +1265,8 @@ fn issue_10_chaos_up_restarts_whatever_is_killed_and_the_job_completes_with_whol
     let dir = tempfile::tempdir().unwrap();
     let log = std::fs::File::create(dir.path().join("up.out")).unwrap();
     let mut up = Command::new(bin("coordinator"))
-        .args(["up", "--agents", "2", "--envs", "8", "--minutes", "1.25", "--checkpoint-seconds", "1", "--out", "up"])
+        .args(["up", "--agents", "2", "--envs", "8", "--minutes", "1.25", "--target-laps", "0", "--checkpoint-seconds", "1"])
+        .args(["--out", "up"])
         .current_dir(dir.path())
         .stdout(log.try_clone().unwrap())
         .stderr(log)

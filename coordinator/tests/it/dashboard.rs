@@ -86,6 +86,8 @@ fn issue_11_the_dashboard_shows_the_graph_and_the_camera_live_in_chromium() {
             "2",
             "--minutes",
             "3",
+            "--target-laps",
+            "0",
         ])
         .args(["--out", "up"])
         .current_dir(dir.path())
