@@ -161,8 +161,9 @@ mod tests {
         assert!(kept >= 3, "{plan:?} -> {plan2:?}");
     }
 
+    /// Issue 34: the schedule weighs the weakest world most and keeps a floor for each.
     #[test]
-    fn issue_34_the_schedule_weighs_the_weakest_world_most_and_keeps_a_floor_for_each() {
+    fn the_schedule_weighs_the_weakest_world_most_and_keeps_a_floor_for_each() {
         let e = |progress: f64, lap: Option<f64>| Some(WorldEval { progress, lap_time: lap, reference: 5.0 });
         let short = |progress: f64, lap: f64| Some(WorldEval { progress, lap_time: Some(lap), reference: 2.5 });
         // Each weakness counts 0.1 more (BASE_WEAKNESS).
@@ -194,8 +195,9 @@ mod tests {
         }
     }
 
+    /// Issue 8: fewer agents than worlds drive every world at once.
     #[test]
-    fn issue_8_fewer_agents_than_worlds_drive_every_world_at_once() {
+    fn fewer_agents_than_worlds_drive_every_world_at_once() {
         let worlds = names(&["carpet", "concrete", "wood"]);
         let agents = names(&["a", "b"]);
         let plan = assign(&agents, &worlds, &BTreeMap::new());

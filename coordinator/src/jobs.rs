@@ -114,8 +114,9 @@ mod tests {
         assert_eq!(back["job1"], rec);
     }
 
+    /// Issue 29: an earlier JSON table is left alone and unreadable records are skipped.
     #[test]
-    fn issue_29_an_earlier_json_table_is_left_alone_and_unreadable_records_are_skipped() {
+    fn an_earlier_json_table_is_left_alone_and_unreadable_records_are_skipped() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("jobs.redb");
         {

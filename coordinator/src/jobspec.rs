@@ -215,8 +215,9 @@ mod tests {
         assert_eq!(ok.out, "runs/j");
     }
 
+    /// Issue 34: the adaptive schedule is on for three worlds or more unless turned off.
     #[test]
-    fn issue_34_the_adaptive_schedule_is_on_for_three_worlds_or_more_unless_turned_off() {
+    fn the_adaptive_schedule_is_on_for_three_worlds_or_more_unless_turned_off() {
         let dir = std::env::temp_dir();
         let three = "worlds = [\"reinvent_base\", \"reinvent_wood\", \"reinvent_carpet\"]\n";
         let two = "worlds = [\"reinvent_base\", \"reinvent_wood\"]\n";
@@ -231,8 +232,9 @@ mod tests {
         }
     }
 
+    /// Issue 29: every stop key is read into the job.
     #[test]
-    fn issue_29_every_stop_key_is_read_into_the_job() {
+    fn every_stop_key_is_read_into_the_job() {
         let dir = std::env::temp_dir();
         let text = "worlds = [\"reinvent_base\"]\n[stop]\nminutes = 0.1\nmax_episodes = 60\nenv_steps_budget = 15000\n\
                     target_progress = 25\ntarget_reward = 15\nwindow = 7\ntarget_laps = 3\ntarget_evals = 2\n\

@@ -468,8 +468,9 @@ mod tests {
         stop_rules(&args)
     }
 
+    /// Issue 29: each stop flag sets its rule and only that.
     #[test]
-    fn issue_29_each_stop_flag_sets_its_rule_and_only_that() {
+    fn each_stop_flag_sets_its_rule_and_only_that() {
         // The run's stop rules are tested through a whole run in learner/tests/it/run_scripted.rs;
         // here, that each flag of `train` reaches its rule.
         let base = rules(&[]);

@@ -414,8 +414,9 @@ mod tests {
         coordinator::jobspec::parse(&text, out, "job.toml", "up").unwrap_or_else(|e| panic!("{e:#}\n{text}"))
     }
 
+    /// Issue 29: `up` takes into its job every input `train` takes.
     #[test]
-    fn issue_29_up_takes_every_input_train_takes_into_its_job() {
+    fn up_takes_every_input_train_takes_into_its_job() {
         let dir = tempfile::tempdir().unwrap();
         let d = dir.path();
         std::fs::write(d.join("h.json"), r#"{"batch_size": 32, "term_cond_max_episodes": 40}"#).unwrap();

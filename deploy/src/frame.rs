@@ -304,8 +304,9 @@ mod tests {
         assert!(out.iter().all(|v| (v - want).abs() <= 2.0), "{want} vs {:?}", &out[..4]);
     }
 
+    /// Issue 31: LiDAR data is taken as the fusion node sends it or as raw ranges.
     #[test]
-    fn issue_31_lidar_data_as_the_fusion_node_sends_it_or_as_raw_ranges() {
+    fn lidar_data_is_taken_as_the_fusion_node_sends_it_or_as_raw_ranges() {
         let input = |sensor, sectors, values, clip| LidarInput { sensor, sectors, values, clip };
         let discretized = input(Sensor::DiscretizedSectorLidar, 8, 8, 2.0);
         let mut ranges = [f32::INFINITY; 64];

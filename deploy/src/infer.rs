@@ -421,8 +421,9 @@ mod tests {
         assert_eq!(car.logits(&obs, &mut s), tape.output());
     }
 
+    /// Issue 32: a SAC model drives the simulator's action, tanh of the means.
     #[test]
-    fn issue_32_a_sac_model_drives_the_simulators_action_tanh_of_the_means() {
+    fn a_sac_model_drives_the_simulators_action_tanh_of_the_means() {
         let meta = ModelMetadata::parse(
             r#"{"action_space":{"steering_angle":{"low":-30,"high":30},"speed":{"low":1,"high":2}},
                 "sensor":["FRONT_FACING_CAMERA"],"training_algorithm":"sac","action_space_type":"continuous"}"#,
@@ -443,8 +444,9 @@ mod tests {
         }
     }
 
+    /// Issue 31: a camera and LiDAR tower runs its embedders then the half-precision middleware.
     #[test]
-    fn issue_31_a_camera_and_lidar_tower_runs_its_embedders_then_the_half_precision_middleware() {
+    fn a_camera_and_lidar_tower_runs_its_embedders_then_the_half_precision_middleware() {
         let meta = ModelMetadata::parse(
             r#"{"action_space":[{"steering_angle":-20,"speed":1},{"steering_angle":20,"speed":1}],
                 "sensor":["STEREO_CAMERAS","LIDAR"],"version":"5"}"#,

@@ -159,8 +159,9 @@ pub fn headless_nvidia() {
 mod tests {
     use super::*;
 
+    /// Issue 33: a headless NVIDIA server is run again with the EGL ICD and nothing else is.
     #[test]
-    fn issue_33_a_headless_nvidia_server_is_run_again_with_the_egl_icd_and_nothing_else_is() {
+    fn a_headless_nvidia_server_is_run_again_with_the_egl_icd_and_nothing_else_is() {
         let egl = Path::new("/usr/local/nvidia/lib64/libEGL_nvidia.so.0");
         let lvp = vec![PathBuf::from("/usr/share/vulkan/icd.d/lvp_icd.x86_64.json")];
         let set = || Some(OsString::from("/tmp/x.json"));
@@ -186,8 +187,9 @@ mod tests {
         }
     }
 
+    /// Issue 33: the EGL ICD file keeps the driver's API version.
     #[test]
-    fn issue_33_the_egl_icd_file_keeps_the_drivers_api_version() {
+    fn the_egl_icd_file_keeps_the_drivers_api_version() {
         let egl = Path::new("/usr/local/nvidia/lib64/libEGL_nvidia.so.0");
         let driver =
             r#"{"file_format_version":"1.0.1","ICD":{"library_path":"libGLX_nvidia.so.0","api_version":"1.4.312"}}"#;

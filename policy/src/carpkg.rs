@@ -235,8 +235,9 @@ mod tests {
         tar.into_inner().unwrap()
     }
 
+    /// Issue 30: an archive is what a car loads and comes back whole.
     #[test]
-    fn issue_30_an_archive_is_what_a_car_loads_and_comes_back_whole() {
+    fn an_archive_is_what_a_car_loads_and_comes_back_whole() {
         let meta = ModelMetadata::default_camera();
         let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(1);
         let model = ActorCritic::new(&meta, 0, &mut rng);
@@ -256,8 +257,9 @@ mod tests {
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1, "no temporary file left");
     }
 
+    /// Issue 30: archives a car would refuse are refused naming the entry.
     #[test]
-    fn issue_30_archives_a_car_would_refuse_are_refused_naming_the_entry() {
+    fn archives_a_car_would_refuse_are_refused_naming_the_entry() {
         use tar::EntryType::{Regular, Symlink};
         let meta = ModelMetadata::default_camera().to_json();
         let m = meta.as_bytes();

@@ -653,8 +653,9 @@ mod tests {
         }
     }
 
+    /// Issue 31: LiDAR inputs are read as DeepRacer reads them.
     #[test]
-    fn issue_31_lidar_inputs_as_deepracer_reads_them() {
+    fn lidar_inputs_are_read_as_deepracer_reads_them() {
         let parse = |sensors: &str, extra: &str| {
             ModelMetadata::parse(
                 &format!(

@@ -979,8 +979,9 @@ mod tests {
         tape.output().to_vec()
     }
 
+    /// Issue 30: every network, sensor and action space goes out and comes back bit for bit.
     #[test]
-    fn issue_30_every_network_sensor_and_action_space_goes_out_and_comes_back_bit_for_bit() {
+    fn every_network_sensor_and_action_space_goes_out_and_comes_back_bit_for_bit() {
         for network in
             ["DEEP_CONVOLUTIONAL_NETWORK_SHALLOW", "DEEP_CONVOLUTIONAL_NETWORK", "DEEP_CONVOLUTIONAL_NETWORK_DEEP"]
         {
@@ -1034,8 +1035,10 @@ mod tests {
         g.node.extend(w.nodes);
     }
 
+    /// Issue 30: a graph as TensorFlow writes it reads the same, rescaler offsets and Keras dense
+    /// layers included.
     #[test]
-    fn issue_30_a_graph_as_tensorflow_writes_it_reads_the_same_rescaler_offsets_and_keras_dense_included() {
+    fn a_graph_as_tensorflow_writes_it_reads_the_same_rescaler_offsets_and_keras_dense_included() {
         let m = meta("FRONT_FACING_CAMERA", "DEEP_CONVOLUTIONAL_NETWORK", false);
         let a = model(&m, 4);
         let mut g = graph(&a, &m).unwrap();
@@ -1081,8 +1084,9 @@ mod tests {
         }
     }
 
+    /// Issue 30: a graph that is not the network is refused with what differs.
     #[test]
-    fn issue_30_a_graph_that_is_not_the_network_is_refused_with_what_differs() {
+    fn a_graph_that_is_not_the_network_is_refused_with_what_differs() {
         let shallow = meta("FRONT_FACING_CAMERA", "DEEP_CONVOLUTIONAL_NETWORK_SHALLOW", false);
         let deep = meta("FRONT_FACING_CAMERA", "DEEP_CONVOLUTIONAL_NETWORK_DEEP", false);
         let bytes = write(&model(&shallow, 1), &shallow).unwrap();
@@ -1131,8 +1135,9 @@ mod tests {
         assert!(matches!(read(b"", &shallow, 1), Err(GraphError::NotAGraph(_))));
     }
 
+    /// Issue 32: a SAC policy goes out as DeepRacer freezes it and its means come back.
     #[test]
-    fn issue_32_a_sac_policy_goes_out_as_deepracer_freezes_it_and_its_means_come_back() {
+    fn a_sac_policy_goes_out_as_deepracer_freezes_it_and_its_means_come_back() {
         for (sensor, network) in [
             ("FRONT_FACING_CAMERA", "DEEP_CONVOLUTIONAL_NETWORK_SHALLOW"),
             ("STEREO_CAMERAS", "DEEP_CONVOLUTIONAL_NETWORK"),
@@ -1165,16 +1170,18 @@ mod tests {
         }
     }
 
+    /// Issue 30: what a car graph cannot hold is refused by name.
     #[test]
-    fn issue_30_what_a_car_graph_cannot_hold_is_refused_by_name() {
+    fn what_a_car_graph_cannot_hold_is_refused_by_name() {
         let state = ModelMetadata::default_state_vector();
         let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(1);
         let e = write(&ActorCritic::new(&state, 20, &mut rng), &state).unwrap_err().to_string();
         assert!(e.contains("STATE_VECTOR"), "{e}");
     }
 
+    /// Issue 31: camera and LiDAR graphs come back whole and a wrong merger is refused.
     #[test]
-    fn issue_31_camera_and_lidar_graphs_come_back_whole_and_a_wrong_merger_is_refused() {
+    fn camera_and_lidar_graphs_come_back_whole_and_a_wrong_merger_is_refused() {
         let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(31);
         for (sensors, network) in [
             ("FRONT_FACING_CAMERA\", \"SECTOR_LIDAR", "DEEP_CONVOLUTIONAL_NETWORK_SHALLOW"),

@@ -740,8 +740,10 @@ mod tests {
         ("job1".into(), vec!["reinvent_wood".into(), "reinvent_carpet".into()])
     }
 
+    /// Issue 32: a replay memory travels to a joiner in parts and a part that does not fit is
+    /// refused.
     #[test]
-    fn issue_32_a_replay_memory_travels_to_a_joiner_in_parts_and_a_part_that_does_not_fit_is_refused() {
+    fn a_replay_memory_travels_to_a_joiner_in_parts_and_a_part_that_does_not_fit_is_refused() {
         let memory: Vec<u8> = (0..2 * MEMORY_PART + 5).map(|i| (i * 7 % 251) as u8).collect();
         let parts = memory_to_wire("job1", "l0", 8, &memory);
         assert_eq!(parts.len(), 3);
@@ -777,8 +779,9 @@ mod tests {
         assert!(refused(other, &mut got).contains("its other parts"));
     }
 
+    /// Issue 8: team messages round trip and refuse what does not fit.
     #[test]
-    fn issue_8_team_messages_round_trip_and_refuse_what_does_not_fit() {
+    fn team_messages_round_trip_and_refuse_what_does_not_fit() {
         let (id, worlds) = job();
         let view = JobView { job_id: &id, obs_size: 3, worlds: &worlds, actions: crate::Actions::Discrete(5) };
         let t = policy::Trajectory {

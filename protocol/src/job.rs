@@ -235,8 +235,9 @@ mod tests {
         }
     }
 
+    /// Issue 8: the job travels as protobuf and comes back whole.
     #[test]
-    fn issue_8_the_job_travels_as_protobuf_and_comes_back_whole() {
+    fn the_job_travels_as_protobuf_and_comes_back_whole() {
         let j = job();
         let back: Job = crate::decode(&crate::encode(&j)).unwrap();
         assert_eq!(back, j);
@@ -262,8 +263,9 @@ mod tests {
         }
     }
 
+    /// Issue 29: a job record is one protobuf message and its JSON names the state.
     #[test]
-    fn issue_29_a_job_record_is_one_protobuf_message_and_its_json_names_the_state() {
+    fn a_job_record_is_one_protobuf_message_and_its_json_names_the_state() {
         use prost::Message;
         let mut r = JobRecord::start(job());
         r.assignments.insert("a1".into(), AgentWork { worlds: vec!["reinvent_wood".into()], offset: 0, generation: 3 });
@@ -287,8 +289,9 @@ mod tests {
         assert!(decode_record(b"\xff\xff").is_err());
     }
 
+    /// Issue 29: a stop table is the stop message.
     #[test]
-    fn issue_29_a_stop_table_is_the_stop_message() {
+    fn a_stop_table_is_the_stop_message() {
         // Keys left out take the defaults; unknown keys are refused by name.
         let s: JobStop = serde_json::from_str(r#"{"max_episodes": 60, "target_laps": 3}"#).unwrap();
         assert_eq!(s, JobStop { max_episodes: 60, target_laps: Some(3), ..default_stop() });

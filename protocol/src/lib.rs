@@ -571,8 +571,9 @@ pub fn trajectory_from_wire(
 mod tests {
     use super::*;
 
+    /// Issue 8: camera observations travel as bytes and come back exactly.
     #[test]
-    fn issue_8_camera_observations_travel_as_bytes_and_come_back_exactly() {
+    fn camera_observations_travel_as_bytes_and_come_back_exactly() {
         let t = |obs: Vec<f32>| policy::Trajectory {
             world: "reinvent_wood".into(),
             obs,
@@ -659,10 +660,10 @@ mod tests {
 
     const D: Actions = Actions::Discrete(4);
 
-    /// A batch that decodes but does not fit the job (an action index of 99 in a space of 10
-    /// would kill the learner) is refused, one reason per row.
+    /// Issue 10: a batch that decodes but does not fit the job (an action index of 99 in a space of
+    /// 10 would kill the learner) is refused, one reason per row.
     #[test]
-    fn issue_10_trajectories_that_do_not_fit_the_job_are_refused() {
+    fn trajectories_that_do_not_fit_the_job_are_refused() {
         let t = Trajectory {
             obs_size: 1,
             obs: vec![0.5, 0.5],

@@ -236,8 +236,9 @@ mod tests {
         .unwrap()
     }
 
+    /// Issue 35: only the CA's newer lists are taken.
     #[test]
-    fn issue_35_only_the_cas_newer_lists_are_taken() {
+    fn only_the_cas_newer_lists_are_taken() {
         let dir = tempfile::tempdir().unwrap();
         // Two CAs with the same name: only the signature tells them apart.
         let ((cluster, ca_pem), (impostor, _)) = (ca(), ca());

@@ -804,8 +804,9 @@ mod tests {
         }
     }
 
+    /// Issue 35: a peer refused again and again is named once.
     #[test]
-    fn issue_35_a_peer_refused_again_and_again_is_named_once() {
+    fn a_peer_refused_again_and_again_is_named_once() {
         let line =
             "f00d on lo+CertCommonName(paddock-agent)+Tls+f00d is unauthorized to Put (ingress) on paddock/v1/jobs";
         let peer = peer_of(line).unwrap();
@@ -845,8 +846,9 @@ mod tests {
         std::fs::remove_dir_all(&dir).unwrap();
     }
 
+    /// Issue 35: a machine is named by its certificate and takes its own files.
     #[test]
-    fn issue_35_a_machine_is_named_by_its_certificate_and_takes_its_own_files() {
+    fn a_machine_is_named_by_its_certificate_and_takes_its_own_files() {
         let table = [
             ("paddock-agent", Some((Role::Agent, None))),
             ("paddock-agent.lab-1", Some((Role::Agent, Some("lab-1")))),

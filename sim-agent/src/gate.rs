@@ -224,8 +224,9 @@ mod tests {
         c.check(&job(), u).map(|p| p.key).unwrap_err().to_string()
     }
 
+    /// Issue 35: only policies signed by a trusted key pass.
     #[test]
-    fn issue_35_only_policies_signed_by_a_trusted_key_pass() {
+    fn only_policies_signed_by_a_trusted_key_pass() {
         let learner = Signer::from_seed([1; 32]);
         let thief = Signer::from_seed([2; 32]);
         let mut trust = TrustedKeys::default();
@@ -244,8 +245,9 @@ mod tests {
         assert!(refusal(&mut c, other).contains("not \"j\""));
     }
 
+    /// Issue 35: without keys the first signer of a job is pinned.
     #[test]
-    fn issue_35_without_keys_the_first_signer_of_a_job_is_pinned() {
+    fn without_keys_the_first_signer_of_a_job_is_pinned() {
         let learner = Signer::from_seed([1; 32]);
         let thief = Signer::from_seed([2; 32]);
         let mut c = Checker::new(Trust::FirstUse);
@@ -259,8 +261,9 @@ mod tests {
         assert!(c.check(&job(), update(4, Some(&learner))).is_ok());
     }
 
+    /// Issue 35: the gate checks on its own thread and says when it is busy.
     #[test]
-    fn issue_35_the_gate_checks_on_its_own_thread_and_says_when_it_is_busy() {
+    fn the_gate_checks_on_its_own_thread_and_says_when_it_is_busy() {
         let learner = Signer::from_seed([1; 32]);
         let gate = PolicyGate::start(Trust::FirstUse).unwrap();
         let j = Arc::new(job());

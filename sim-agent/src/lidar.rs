@@ -105,16 +105,18 @@ mod tests {
         }
     }
 
+    /// Issue 31: the rays run round the back from 30 degrees left.
     #[test]
-    fn issue_31_the_rays_run_round_the_back_from_30_degrees_left() {
+    fn the_rays_run_round_the_back_from_30_degrees_left() {
         assert!((ray_angle(0).to_degrees() - 30.0).abs() < 1e-3);
         assert!((ray_angle(63).to_degrees() - 330.0).abs() < 1e-3);
         // Rays 31 and 32 straddle straight behind.
         assert!(ray_angle(31).to_degrees() < 180.0 && ray_angle(32).to_degrees() > 180.0);
     }
 
+    /// Issue 31: rays hit rectangles where the geometry says.
     #[test]
-    fn issue_31_rays_hit_rectangles_where_the_geometry_says() {
+    fn rays_hit_rectangles_where_the_geometry_says() {
         let o = P2::new(0.0, 0.0);
         // A 0.4 × 0.3 box 2 m ahead along x: its near face at 1.8 m.
         assert_eq!(ray_rectangle(o, 1.0, 0.0, P2::new(2.0, 0.0), 0.0, (0.4, 0.3)), Some(1.8));
@@ -128,8 +130,9 @@ mod tests {
         assert_eq!(ray_rectangle(o, 1.0, 0.0, o, 0.3, (0.4, 0.3)), Some(0.0));
     }
 
+    /// Issue 31: a scan sees a box behind and a car beside but not ahead.
     #[test]
-    fn issue_31_a_scan_sees_a_box_behind_and_a_car_beside_but_not_ahead() {
+    fn a_scan_sees_a_box_behind_and_a_car_beside_but_not_ahead() {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
         // The car at the origin facing +x. A box 1 m behind the laser: its face 0.8 m away.
         let behind = [object(-1.0 + MOUNT_AHEAD, 0.0, 0.0, false)];
@@ -154,8 +157,9 @@ mod tests {
         assert!(s[31].is_infinite() && s[32].is_infinite());
     }
 
+    /// Issue 31: the LiDAR filters match DeepRacer's on hand-computed scans.
     #[test]
-    fn issue_31_deepracers_filters_on_hand_computed_scans() {
+    fn the_lidar_filters_match_deepracers_on_hand_computed_scans() {
         let mut scan = [f32::INFINITY; RAYS];
         scan[3] = 0.3; // sector 0
         scan[20] = 0.6; // sector 2

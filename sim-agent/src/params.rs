@@ -199,8 +199,9 @@ mod tests {
         Track::new("square", &rows, tracks::Direction::Forward)
     }
 
+    /// Issue 31: object params are the simapp's on hand-computed states.
     #[test]
-    fn issue_31_object_params_are_the_simapps_on_hand_computed_states() {
+    fn object_params_are_the_simapps_on_hand_computed_states() {
         let t = square();
         let objects = [
             TrackObject { position: P2::new(5.0, 0.25), heading: 0.0 }, // edge 1, inside: left, 5 m along

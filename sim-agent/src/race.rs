@@ -280,8 +280,9 @@ impl RaceConfig {
 mod tests {
     use super::*;
 
+    /// Issue 31: a DeepRacer-for-Cloud run.env configures the race.
     #[test]
-    fn issue_31_a_deepracer_for_cloud_run_env_configures_the_race() {
+    fn a_deepracer_for_cloud_run_env_configures_the_race() {
         let env = r#"
 # run.env
 DR_WORLD_NAME=reInvent2019_track
@@ -319,8 +320,9 @@ DR_H2B_IS_LANE_CHANGE=true
         assert_eq!(back.race, c);
     }
 
+    /// Issue 31: bad race keys are refused naming the key.
     #[test]
-    fn issue_31_bad_race_keys_are_refused_naming_the_key() {
+    fn bad_race_keys_are_refused_naming_the_key() {
         for (env, want) in [
             (
                 "DR_RACE_TYPE=DRAG_RACE",
@@ -343,8 +345,9 @@ DR_H2B_IS_LANE_CHANGE=true
         }
     }
 
+    /// Issue 31: the race table reads DeepRacer's keys lower-cased.
     #[test]
-    fn issue_31_the_race_table_reads_deepracers_keys_lower_cased() {
+    fn the_race_table_reads_deepracers_keys_lower_cased() {
         let t: RaceConfig =
             toml::from_str("race_type = \"head_to_bot\"\nnumber_of_bot_cars = 2\nbot_car_speed = 0.5\n").unwrap();
         assert_eq!((t.race_type, t.number_of_bot_cars, t.bot_car_speed), (RaceType::HeadToBot, 2, 0.5));

@@ -307,8 +307,9 @@ mod tests {
         (env, SimConfig::default().car)
     }
 
+    /// Issue 34: the race line reward is highest on the line at its speed and pace.
     #[test]
-    fn issue_34_the_race_line_reward_is_highest_on_the_line_at_its_speed_and_pace() {
+    fn the_race_line_reward_is_highest_on_the_line_at_its_speed_and_pace() {
         let (env, _) = reinvent();
         let plan = env.line().get().unwrap();
         let i = plan.points.len() / 3;
@@ -338,8 +339,9 @@ mod tests {
         assert!((plan.reward(&lap) - (best + 10.0)).abs() < 1e-9);
     }
 
+    /// Issue 34: the action space from the line covers its straights and its tightest turn.
     #[test]
-    fn issue_34_the_action_space_from_the_line_covers_its_straights_and_its_tightest_turn() {
+    fn the_action_space_from_the_line_covers_its_straights_and_its_tightest_turn() {
         let (env, car) = reinvent();
         let plan = env.line().get().unwrap();
         let actions = plan.action_space(&car, 7, 30.0, 4.0);

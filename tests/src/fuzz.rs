@@ -2,7 +2,7 @@
 //! fed arbitrary bytes; it must return (a value or an error), never panic, hang or allocate
 //! without bound. `fuzz/` runs them under libFuzzer (`cargo fuzz`, through `coordinator bench
 //! fuzz`); the suite replays their kept corpus and any crash they found
-//! (`tests/tests/it/issue_35_fuzz_corpus.rs`). [`seeds`] gives each target valid inputs to
+//! (`tests/tests/it/fuzz_corpus.rs`). [`seeds`] gives each target valid inputs to
 //! start from.
 
 use protocol::exchange::{self as ex, JobView};

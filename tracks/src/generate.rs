@@ -201,8 +201,9 @@ mod tests {
     use super::*;
     use crate::{Direction, Track};
 
+    /// Issue 34: a generated world is the same track everywhere by its name.
     #[test]
-    fn issue_34_a_generated_world_is_the_same_track_everywhere_by_its_name() {
+    fn a_generated_world_is_the_same_track_everywhere_by_its_name() {
         let w = crate::world("generated:7").unwrap();
         assert_eq!(w.name, "generated:7");
         let spec =
@@ -216,8 +217,9 @@ mod tests {
         assert!(e.contains("generated:N"), "{e}");
     }
 
+    /// Issue 34: generated tracks have the asked size and hold together.
     #[test]
-    fn issue_34_generated_tracks_have_the_asked_size_and_hold_together() {
+    fn generated_tracks_have_the_asked_size_and_hold_together() {
         for (seed, length, width) in [(1, 30.0, 1.07), (2, 60.0, 0.8), (3, 18.0, 1.2), (4, 100.0, 1.5), (5, 12.0, 0.6)]
         {
             let spec = GenSpec { seed, length, width };
@@ -238,8 +240,9 @@ mod tests {
         }
     }
 
+    /// Issue 34: a request no loop can meet is refused with the reason.
     #[test]
-    fn issue_34_a_request_no_loop_can_meet_is_refused_with_the_reason() {
+    fn a_request_no_loop_can_meet_is_refused_with_the_reason() {
         let e = generate(&GenSpec { seed: 1, length: 5.0, width: 1.5 }).unwrap_err();
         assert!(matches!(e, GenError::TooShort { .. }), "{e}");
         assert!(e.to_string().contains("needs at least"), "{e}");

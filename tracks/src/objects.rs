@@ -230,8 +230,9 @@ mod tests {
         crate::world("reinvent_base").unwrap().track(Direction::Forward)
     }
 
+    /// Issue 31: fixed positions are fractions of the length in DeepRacer's lanes.
     #[test]
-    fn issue_31_fixed_positions_are_fractions_of_the_length_in_deepracers_lanes() {
+    fn fixed_positions_are_fractions_of_the_length_in_deepracers_lanes() {
         let t = base();
         let len = t.length();
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
@@ -253,8 +254,9 @@ mod tests {
         }
     }
 
+    /// Issue 31: spaced obstacles keep DeepRacer's documented gap every episode.
     #[test]
-    fn issue_31_spaced_obstacles_keep_deepracers_documented_gap_every_episode() {
+    fn spaced_obstacles_keep_deepracers_documented_gap_every_episode() {
         let t = base();
         let len = t.length();
         let gap = 0.02 * len;
@@ -290,8 +292,9 @@ mod tests {
         assert_eq!(a, b);
     }
 
+    /// Issue 31: more obstacles than the track holds are refused naming the keys.
     #[test]
-    fn issue_31_more_obstacles_than_the_track_holds_are_refused_naming_the_keys() {
+    fn more_obstacles_than_the_track_holds_are_refused_naming_the_keys() {
         let t = base();
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
         // 10 % gaps on a lap: at most 9 or 10 fit between 10 % and L − 1 m.
@@ -304,8 +307,9 @@ mod tests {
         );
     }
 
+    /// Issue 31: the crash rule is a car corner inside an object.
     #[test]
-    fn issue_31_the_crash_rule_is_a_car_corner_inside_an_object() {
+    fn the_crash_rule_is_a_car_corner_inside_an_object() {
         let o = P2::new(0.0, 0.0);
         let boxed = |at: P2, h: f64| crashed(at, h, &[(o, 0.0, BOX_FOOTPRINT)]);
         // (car position, car heading, crashed?) against a box at the origin facing +x
@@ -329,8 +333,9 @@ mod tests {
         assert_eq!(crashed(o, 0.0, &[far, (o, 0.0, BOX_FOOTPRINT)]), Some(1));
     }
 
+    /// Issue 31: closest objects wrap around the lap.
     #[test]
-    fn issue_31_closest_objects_wrap_around_the_lap() {
+    fn closest_objects_wrap_around_the_lap() {
         // Objects at 5, 12, 2 m (unsorted, as the simapp's list is).
         let d = [5.0, 12.0, 2.0];
         for (car, want) in [
@@ -346,8 +351,9 @@ mod tests {
         assert_eq!(closest_objects(&[], 1.0), [0, 0]);
     }
 
+    /// Issue 31: the car starts in the other lane beside an object.
     #[test]
-    fn issue_31_the_car_starts_in_the_other_lane_beside_an_object() {
+    fn the_car_starts_in_the_other_lane_beside_an_object() {
         let t = base();
         let objs = [t.lane_pose(Lane::Inner, 0.5), t.lane_pose(Lane::Outer, 8.0)];
         assert_eq!(start_lane(&t, 0.0, &objs), Some(Lane::Outer));

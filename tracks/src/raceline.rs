@@ -260,8 +260,9 @@ mod tests {
         }
     }
 
+    /// Issue 34: on a circle the line is a circle and its time is the grip's.
     #[test]
-    fn issue_34_on_a_circle_the_line_is_a_circle_and_its_time_is_the_grips() {
+    fn on_a_circle_the_line_is_a_circle_and_its_time_is_the_grips() {
         // Every point's curvature is its neighbours' mean already: the line stays a circle
         // (K1999 evens curvature out; it has nothing to even out here).
         let rows = circle(3.0, 1.0, 120);
@@ -278,8 +279,9 @@ mod tests {
         assert!((p.lap_time - p.length / v).abs() < 0.02 * p.lap_time);
     }
 
+    /// Issue 34: the line cuts the corners and laps faster than the centre.
     #[test]
-    fn issue_34_the_line_cuts_the_corners_and_laps_faster_than_the_centre() {
+    fn the_line_cuts_the_corners_and_laps_faster_than_the_centre() {
         for seed in [1, 2, 3] {
             let rows = generate(&GenSpec { seed, length: 30.0, width: 1.07 }).unwrap();
             let margin = 0.15;
@@ -309,8 +311,9 @@ mod tests {
         }
     }
 
+    /// Issue 34: no line fits a road narrower than the margins.
     #[test]
-    fn issue_34_no_line_fits_a_road_narrower_than_the_margins() {
+    fn no_line_fits_a_road_narrower_than_the_margins() {
         let rows = circle(3.0, 0.25, 60);
         let e = race_line(&rows, 0.15).unwrap_err();
         assert!(matches!(e, LineError::TooNarrow { row: 0, .. }), "{e}");

@@ -68,8 +68,10 @@ fn wait_status(sub: &net::Sub, car: &str, secs: f64, what: &str, ok: impl Fn(&Ca
     panic!("{what}: not within {secs} s; last status {last:?}");
 }
 
+/// Issue 9: `deploy` drives the simulated car, takes new models, refuses forged ones and stops
+/// without frames.
 #[test]
-fn issue_9_deploy_drives_the_simulated_car_takes_new_models_refuses_forged_ones_and_stops_without_frames() {
+fn deploy_drives_the_simulated_car_takes_new_models_refuses_forged_ones_and_stops_without_frames() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     // 1. A camera model, trained in one process until it laps reinvent_base (3/3 in two

@@ -80,8 +80,10 @@ fn tracks_show_prints_figures_and_draws_a_png() {
     assert!(stderr(&bad).contains("no built-in world named 'no_such_world'"), "{}", stderr(&bad));
 }
 
+/// Issue 34: `tracks generate` writes a track that imports and drives, and refuses what cannot
+/// close.
 #[test]
-fn issue_34_tracks_generate_writes_a_track_that_imports_and_drives_and_refuses_what_cannot_close() {
+fn tracks_generate_writes_a_track_that_imports_and_drives_and_refuses_what_cannot_close() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     let args = ["tracks", "generate", "--seed", "4", "--length", "24", "--out", "g.npy", "--png", "g.png"];
@@ -114,8 +116,9 @@ fn issue_34_tracks_generate_writes_a_track_that_imports_and_drives_and_refuses_w
     assert!(!d.join("x.npy").exists());
 }
 
+/// Issue 34: `tracks raceline` laps faster than the centre and writes what NumPy and Python read.
 #[test]
-fn issue_34_tracks_raceline_laps_faster_than_the_centre_and_writes_what_numpy_and_python_read() {
+fn tracks_raceline_laps_faster_than_the_centre_and_writes_what_numpy_and_python_read() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     let lap = |out: &str, name: &str| -> f64 {
@@ -152,8 +155,9 @@ fn issue_34_tracks_raceline_laps_faster_than_the_centre_and_writes_what_numpy_an
     assert!(!e.status.success() && stderr(&e).contains("no line keeps 0.500 m from both borders"), "{}", stderr(&e));
 }
 
+/// Issue 34: `reward export` writes builtins that validate to the builtins' rewards.
 #[test]
-fn issue_34_reward_export_writes_builtins_that_validate_to_the_builtins_rewards() {
+fn reward_export_writes_builtins_that_validate_to_the_builtins_rewards() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     let summary = |o: &Output| -> String {
@@ -326,8 +330,9 @@ fn drive_refuses_a_bad_override_naming_it() {
     assert!(stderr(&o).contains("steerin_deg"), "{}", stderr(&o));
 }
 
+/// Issue 29: every binary prints the one exit code table and keeps to it.
 #[test]
-fn issue_29_every_binary_prints_the_one_exit_code_table_and_keeps_to_it() {
+fn every_binary_prints_the_one_exit_code_table_and_keeps_to_it() {
     // (binary, a runtime failure's arguments): usage errors exit 2, runtime failures 1, and
     // each `--help` ends with the same table.
     let dir = tempfile::tempdir().unwrap();

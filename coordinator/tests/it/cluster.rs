@@ -239,8 +239,9 @@ fn worlds_of(s: &serde_json::Value, agent: &str) -> Vec<String> {
         .collect()
 }
 
+/// Issue 8: a retried job start or stop is the same job and another spec cannot take its id.
 #[test]
-fn issue_8_a_retried_job_start_or_stop_is_the_same_job_and_another_spec_cannot_take_its_id() {
+fn a_retried_job_start_or_stop_is_the_same_job_and_another_spec_cannot_take_its_id() {
     // A `job start` whose reply is lost has started the job; the CLI's retry sends the very
     // same document and must get the job back, not "taken". Another spec under that id is
     // refused.
@@ -268,8 +269,9 @@ fn issue_8_a_retried_job_start_or_stop_is_the_same_job_and_another_spec_cannot_t
 const SPEC: &str =
     "worlds = [\"reinvent_carpet\", \"reinvent_concrete\"]\nout = \"run\"\nenvs_per_agent = 8\n[stop]\nminutes = 5\n";
 
+/// Issue 4: `up` runs a job to its stop and the model improves.
 #[test]
-fn issue_4_up_runs_a_job_to_its_stop_and_the_model_improves() {
+fn up_runs_a_job_to_its_stop_and_the_model_improves() {
     let _turn = exclusive();
     let dir = tempfile::tempdir().unwrap();
     let o = Command::new(bin("coordinator"))
@@ -306,8 +308,9 @@ fn issue_4_up_runs_a_job_to_its_stop_and_the_model_improves() {
     }
 }
 
+/// Issue 32: SAC trains to laps under `up` with every step the agents simulate.
 #[test]
-fn issue_32_sac_trains_to_laps_under_up_with_every_step_the_agents_simulate() {
+fn sac_trains_to_laps_under_up_with_every_step_the_agents_simulate() {
     let _turn = exclusive();
     let dir = tempfile::tempdir().unwrap();
     // deepracer-for-cloud's SAC model_metadata.json, on the state vector.
@@ -336,8 +339,9 @@ fn issue_32_sac_trains_to_laps_under_up_with_every_step_the_agents_simulate() {
     assert!(last["sac"]["replay"].as_u64().unwrap() > 0, "{last}");
 }
 
+/// Issue 4: a killed agent's world is reassigned, and a restarted learner and coordinator carry on.
 #[test]
-fn issue_4_killed_agent_world_reassigned_learner_and_coordinator_restart() {
+fn a_killed_agents_world_is_reassigned_and_a_restarted_learner_and_coordinator_carry_on() {
     let mut c = Cluster::new();
     c.coordinator();
     c.learner();
@@ -402,8 +406,9 @@ fn issue_4_killed_agent_world_reassigned_learner_and_coordinator_restart() {
     assert!(list.contains("job1") && list.contains("finished"), "{list}");
 }
 
+/// Issue 4: bad input is counted and dropped and bad jobs are refused.
 #[test]
-fn issue_4_bad_input_is_counted_and_dropped_and_bad_jobs_are_refused() {
+fn bad_input_is_counted_and_dropped_and_bad_jobs_are_refused() {
     use protocol::net::{self, NetArgs, zenoh};
     use zenoh::Wait;
     let mut c = Cluster::new();
@@ -549,8 +554,9 @@ fn issue_4_bad_input_is_counted_and_dropped_and_bad_jobs_are_refused() {
     assert!(text.contains("outside the action space of # actions"), "{text}");
 }
 
+/// Issue 4: a job runs to its stop with every message through a router.
 #[test]
-fn issue_4_the_same_job_through_a_router() {
+fn a_job_runs_to_its_stop_with_every_message_through_a_router() {
     // The coordinator's session runs as a Zenoh router; the learner and the agent are clients
     // of it (zenoh configuration files, `-c`), so every message goes through the router.
     let mut c = Cluster::new();
@@ -584,8 +590,10 @@ fn issue_4_the_same_job_through_a_router() {
     assert!(c.path("run/model/model.safetensors").exists());
 }
 
+/// Issue 8: a stop condition from DeepRacer's hyperparameters.json finishes the job, and a job the
+/// learner cannot start fails.
 #[test]
-fn issue_8_a_stop_condition_through_the_cluster() {
+fn a_hyperparameters_stop_condition_finishes_the_job_and_a_job_the_learner_cannot_start_fails() {
     // Each rule is tested through a whole run in learner/tests/it/run_scripted.rs and each
     // `[stop]` key across the wire in the learner's unit tests; here one of them end to end,
     // from DeepRacer's hyperparameters.json: the job finishes with the reason in its status
@@ -699,8 +707,9 @@ fn assert_cluster_logs(run: &Path, metrics: &[serde_json::Value]) {
     assert!(std::fs::metadata(run.join("trace.mcap")).unwrap().len() > 10_000, "the MCAP log");
 }
 
+/// Issue 8: three state worlds on two agents are all trained and nothing is wasted.
 #[test]
-fn issue_8_three_worlds_two_agents_state_every_world_trained_nothing_wasted() {
+fn three_state_worlds_on_two_agents_are_all_trained_and_nothing_is_wasted() {
     let dir = tempfile::tempdir().unwrap();
     let (summary, metrics, seconds) =
         up_three_worlds(dir.path(), &["--envs", "6", "--env-steps", "300000", "--minutes", "10", "--target-laps", "0"]);
@@ -721,8 +730,9 @@ fn issue_8_three_worlds_two_agents_state_every_world_trained_nothing_wasted() {
     }
 }
 
+/// Issue 8: three camera worlds on two agents are all trained and nothing is wasted.
 #[test]
-fn issue_8_three_worlds_two_agents_camera_every_world_trained_nothing_wasted() {
+fn three_camera_worlds_on_two_agents_are_all_trained_and_nothing_is_wasted() {
     let dir = tempfile::tempdir().unwrap();
     let (summary, metrics, seconds) =
         up_three_worlds(dir.path(), &["--sensor", "camera", "--envs", "3", "--max-episodes", "80", "--minutes", "10", "--target-laps", "0"]);
@@ -740,8 +750,9 @@ fn team_updates(s: &serde_json::Value) -> u64 {
     s["learner"]["team_updates"].as_u64().unwrap_or(0)
 }
 
+/// Issue 8: learners share updates, drop the dead, take joiners and take over.
 #[test]
-fn issue_8_learners_share_updates_drop_the_dead_take_joiners_and_take_over() {
+fn learners_share_updates_drop_the_dead_take_joiners_and_take_over() {
     let mut c = Cluster::new();
     c.shared_signing_key();
     c.coordinator();
@@ -784,8 +795,9 @@ fn issue_8_learners_share_updates_drop_the_dead_take_joiners_and_take_over() {
     c.wait(&id, 60, "training goes on under learner-b", |s| version(s) > v + 1);
 }
 
+/// Issue 32: a learner team shares SAC updates and a joiner takes the replay memory.
 #[test]
-fn issue_32_a_learner_team_shares_sac_updates_and_a_joiner_takes_the_replay_memory() {
+fn a_learner_team_shares_sac_updates_and_a_joiner_takes_the_replay_memory() {
     let mut c = Cluster::new();
     c.shared_signing_key();
     c.coordinator();
@@ -827,8 +839,9 @@ fn issue_32_a_learner_team_shares_sac_updates_and_a_joiner_takes_the_replay_memo
     assert!(!log.contains("replay memory starts empty") && !log.contains("does not fit"), "{log}");
 }
 
+/// Issue 9: the learner signs what it publishes, and a person promotes the version cars drive.
 #[test]
-fn issue_9_the_learner_signs_what_it_publishes_and_a_person_promotes_the_version_cars_drive() {
+fn the_learner_signs_what_it_publishes_and_a_person_promotes_the_version_cars_drive() {
     use policy::signature::TrustedKeys;
     use protocol::net::{self, DropCounters, NetArgs};
     use protocol::{PolicyUpdate, keys};
@@ -908,8 +921,9 @@ fn stolen(c: &Cluster, role: &str) -> String {
     d.display().to_string()
 }
 
+/// Issue 10: only the cluster's roles connect and each does only its part.
 #[test]
-fn issue_10_only_the_clusters_roles_connect_and_each_does_only_its_part() {
+fn only_the_clusters_roles_connect_and_each_does_only_its_part() {
     use protocol::net::{self, NetArgs, zenoh};
     use protocol::secure::Role;
     use zenoh::Wait;
@@ -1259,8 +1273,9 @@ fn issue_10_only_the_clusters_roles_connect_and_each_does_only_its_part() {
     assert!(n >= 2 && frames.contains("Finished"), "{n} frames: {frames}");
 }
 
+/// Issue 10: `chaos up` restarts whatever is killed and the job completes with whole records.
 #[test]
-fn issue_10_chaos_up_restarts_whatever_is_killed_and_the_job_completes_with_whole_records() {
+fn chaos_up_restarts_whatever_is_killed_and_the_job_completes_with_whole_records() {
     let _turn = exclusive();
     let dir = tempfile::tempdir().unwrap();
     let log = std::fs::File::create(dir.path().join("up.out")).unwrap();
@@ -1361,8 +1376,9 @@ fn issue_10_chaos_up_restarts_whatever_is_killed_and_the_job_completes_with_whol
     }
 }
 
+/// Issue 8: a reply that cannot be read is not reported as silence.
 #[test]
-fn issue_8_a_reply_that_cannot_be_read_is_not_reported_as_silence() {
+fn a_reply_that_cannot_be_read_is_not_reported_as_silence() {
     // Something answers the job-control query with bytes that are not a reply: the CLI says
     // so (and why), instead of "no coordinator answered".
     use protocol::net::{self, NetArgs, zenoh::Wait};

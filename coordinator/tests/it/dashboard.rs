@@ -69,8 +69,9 @@ fn first_line_with(child: &mut Child, needle: &str) -> String {
     }
 }
 
+/// Issue 11: the dashboard shows the graph and the camera live in Chromium.
 #[test]
-fn issue_11_the_dashboard_shows_the_graph_and_the_camera_live_in_chromium() {
+fn the_dashboard_shows_the_graph_and_the_camera_live_in_chromium() {
     let dir = tempfile::tempdir().unwrap();
     let coordinator = env!("CARGO_BIN_EXE_coordinator");
     let mut up = Command::new(coordinator)

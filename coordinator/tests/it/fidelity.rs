@@ -55,8 +55,9 @@ fn check(dir: &Path, track: &str, reversed: bool, extra: &[&str]) -> String {
     out.lines().last().unwrap_or_default().to_string()
 }
 
+/// Issue 12: params of driven laps agree with Shapely on every shipped track.
 #[test]
-fn issue_12_params_of_driven_laps_agree_with_shapely_on_every_shipped_track() {
+fn params_of_driven_laps_agree_with_shapely_on_every_shipped_track() {
     let dir = tempfile::tempdir().unwrap();
     std::fs::write(dir.path().join("recorder.py"), RECORDER).unwrap();
     let tracks: Vec<String> = std::fs::read_dir(repo().join("tracks/data"))

@@ -76,8 +76,9 @@ fn agent_cert(d: &Path, id: &str, from: time::OffsetDateTime, until: time::Offse
     std::fs::write(d.join("ids.toml"), roster.to_toml()).unwrap();
 }
 
+/// Issue 35: each machine speaks only for itself and a revoked or expired certificate is refused.
 #[test]
-fn issue_35_each_machine_speaks_only_for_itself_and_a_revoked_or_expired_certificate_is_refused() {
+fn each_machine_speaks_only_for_itself_and_a_revoked_or_expired_certificate_is_refused() {
     protocol::secure::init_logging("warn");
     let tmp = tempfile::tempdir().unwrap();
     let d = tmp.path().join("certs");

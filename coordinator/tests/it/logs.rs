@@ -75,8 +75,9 @@ fn lines(path: &Path) -> Vec<serde_json::Value> {
         .collect()
 }
 
+/// Issue 11: deepracer-utils and MCAP read a training run.
 #[test]
-fn issue_11_deepracer_utils_and_mcap_read_a_training_run() {
+fn deepracer_utils_and_mcap_read_a_training_run() {
     let dir = tempfile::tempdir().unwrap();
     let run = dir.path().join("run");
     let out = Command::new(env!("CARGO_BIN_EXE_coordinator"))
@@ -162,8 +163,9 @@ fn inked(png: &Path) -> f64 {
     ink as f64 / (img.width() * img.height()) as f64
 }
 
+/// Issue 11: `report` draws a run folder and refuses a folder that is not one.
 #[test]
-fn issue_11_report_draws_a_run_folder() {
+fn report_draws_a_run_folder_and_refuses_a_folder_that_is_not_one() {
     let dir = tempfile::tempdir().unwrap();
     let run = dir.path().join("run");
     let coordinator = env!("CARGO_BIN_EXE_coordinator");
@@ -197,8 +199,9 @@ fn issue_11_report_draws_a_run_folder() {
     assert!(err.contains("not a run folder") && err.contains(&dir.path().display().to_string()), "{err}");
 }
 
+/// Issue 11: `train` stops at a plateau when asked and says so.
 #[test]
-fn issue_11_train_stops_at_a_plateau_when_asked_and_says_so() {
+fn train_stops_at_a_plateau_when_asked_and_says_so() {
     let dir = tempfile::tempdir().unwrap();
     let run = dir.path().join("run");
     // The state vector laps within seconds; without a lap target it would train 2 minutes.

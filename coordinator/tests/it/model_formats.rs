@@ -102,8 +102,9 @@ fn check(meta: &ModelMetadata, obs_size: usize, seed: u64) {
     }
 }
 
+/// Issue 9: ONNX export matches Paddock's forward pass in onnxruntime.
 #[test]
-fn issue_9_onnx_export_matches_paddocks_forward_pass_in_onnxruntime() {
+fn onnx_export_matches_paddocks_forward_pass_in_onnxruntime() {
     // DeepRacer's SHALLOW camera network, discrete actions.
     check(&ModelMetadata::default_camera(), 120 * 160, 3);
     // The deeper camera network with a continuous action space.
@@ -116,16 +117,18 @@ fn issue_9_onnx_export_matches_paddocks_forward_pass_in_onnxruntime() {
     check(&ModelMetadata::default_state_vector(), 20, 5);
 }
 
+/// Issue 32: ONNX export of a SAC model gives the simulator's action in onnxruntime.
 #[test]
-fn issue_32_onnx_export_of_a_sac_model_gives_the_simulators_action_in_onnxruntime() {
+fn onnx_export_of_a_sac_model_gives_the_simulators_action_in_onnxruntime() {
     let text = r#"{"action_space": {"steering_angle": {"low": -30, "high": 30}, "speed": {"low": 1, "high": 2}},
         "sensor": ["FRONT_FACING_CAMERA"], "neural_network": "DEEP_CONVOLUTIONAL_NETWORK_SHALLOW",
         "training_algorithm": "sac", "action_space_type": "continuous", "version": "4"}"#;
     check(&ModelMetadata::parse(text, "sac").unwrap(), 120 * 160, 6);
 }
 
+/// Issue 31: ONNX export of camera and LiDAR models takes an input per sensor in onnxruntime.
 #[test]
-fn issue_31_onnx_export_of_camera_and_lidar_models_takes_an_input_per_sensor_in_onnxruntime() {
+fn onnx_export_of_camera_and_lidar_models_takes_an_input_per_sensor_in_onnxruntime() {
     // The camera first (FRONT_FACING_CAMERA < SECTOR_LIDAR), and the LiDAR first
     // (DISCRETIZED_SECTOR_LIDAR < FRONT_FACING_CAMERA, LIDAR < STEREO_CAMERAS).
     for (sensors, extra) in [
@@ -249,8 +252,10 @@ fn coordinator(args: &[&std::ffi::OsStr], dir: &std::path::Path) -> String {
     text
 }
 
+/// Issue 30: the car archive runs in TensorFlow TFLite and OpenVINO as Paddock does and comes back
+/// whole.
 #[test]
-fn issue_30_the_car_archive_runs_in_tensorflow_tflite_and_openvino_as_paddock_does_and_comes_back_whole() {
+fn the_car_archive_runs_in_tensorflow_tflite_and_openvino_as_paddock_does_and_comes_back_whole() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     let stereo = r#"{"action_space": [{"steering_angle": -20, "speed": 1}, {"steering_angle": 0, "speed": 2},
@@ -428,8 +433,9 @@ with open(pb, "wb") as f:
 print(sorted(set(n.op for n in frozen.node)))
 "#;
 
+/// Issue 30: a graph TensorFlow froze imports with the same outputs.
 #[test]
-fn issue_30_a_graph_tensorflow_froze_imports_with_the_same_outputs() {
+fn a_graph_tensorflow_froze_imports_with_the_same_outputs() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     std::fs::write(d.join("tf_writes.py"), TF_WRITES).unwrap();
@@ -493,8 +499,9 @@ fn issue_30_a_graph_tensorflow_froze_imports_with_the_same_outputs() {
     assert!(!d.join("wrong").exists());
 }
 
+/// Issue 30: `bench model-files` times every network against the folder.
 #[test]
-fn issue_30_bench_model_files_times_every_network_against_the_folder() {
+fn bench_model_files_times_every_network_against_the_folder() {
     let dir = tempfile::tempdir().unwrap();
     let said = coordinator(&["bench", "model-files", "--repeats", "1"].map(std::ffi::OsStr::new), dir.path());
     for network in

@@ -52,8 +52,9 @@ impl Hosts {
     }
 }
 
+/// Issue 4: a job runs across three network namespaces as root.
 #[test]
-fn issue_4_a_job_across_three_network_namespaces_as_root() {
+fn a_job_runs_across_three_network_namespaces_as_root() {
     need_root("network namespaces");
     let dir = tempfile::tempdir().unwrap();
     let tag = std::process::id() % 10000;

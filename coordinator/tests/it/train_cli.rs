@@ -19,8 +19,9 @@ fn repo(rel: &str) -> String {
     p.canonicalize().unwrap().display().to_string()
 }
 
+/// Issue 8: `train` stops on a stop condition with its reason and an evaluated model.
 #[test]
-fn issue_8_a_stop_condition_in_one_process() {
+fn train_stops_on_a_stop_condition_with_its_reason_and_an_evaluated_model() {
     // Each rule is tested through a whole run in learner/tests/it/run_scripted.rs and each flag
     // against its rule in `train`'s unit tests; here one of them end to end: the reason is
     // printed and kept in summary.json, and the final model is evaluated and saved.
@@ -129,8 +130,9 @@ fn train_then_evaluate_then_clone_and_resume() {
     assert!(!d.join("run3").exists());
 }
 
+/// Issue 33: a device that is not one is refused before training.
 #[test]
-fn issue_33_a_device_that_is_not_one_is_refused_before_training() {
+fn a_device_that_is_not_one_is_refused_before_training() {
     let dir = tempfile::tempdir().unwrap();
     let o = coordinator(dir.path(), &["train", "--out", "run", "--device", "cuda"]);
     assert!(
@@ -200,8 +202,9 @@ fn metrics(path: &Path) -> Vec<serde_json::Value> {
     std::fs::read_to_string(path).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect()
 }
 
+/// Issue 32: SAC trains to laps and a resumed run goes on with its critics and memory.
 #[test]
-fn issue_32_sac_trains_to_laps_and_a_resumed_run_goes_on_with_its_critics_and_memory() {
+fn sac_trains_to_laps_and_a_resumed_run_goes_on_with_its_critics_and_memory() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     std::fs::write(d.join("model_metadata_sac.json"), SAC_METADATA).unwrap();
@@ -251,8 +254,9 @@ fn issue_32_sac_trains_to_laps_and_a_resumed_run_goes_on_with_its_critics_and_me
     assert_eq!(next["replay"].as_u64().unwrap(), kept + next["new_transitions"].as_u64().unwrap(), "{next}");
 }
 
+/// Issue 32: SAC with a discrete action space gets DeepRacer's error.
 #[test]
-fn issue_32_sac_with_a_discrete_action_space_gets_deepracers_error() {
+fn sac_with_a_discrete_action_space_gets_deepracers_error() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     std::fs::write(
@@ -266,8 +270,9 @@ fn issue_32_sac_with_a_discrete_action_space_gets_deepracers_error() {
     assert!(!d.join("run").exists());
 }
 
+/// Issue 31: a DeepRacer-for-Cloud run.env trains its race with its custom files.
 #[test]
-fn issue_31_a_deepracer_for_cloud_run_env_trains_its_race_with_its_custom_files() {
+fn a_deepracer_for_cloud_run_env_trains_its_race_with_its_custom_files() {
     // deepracer-for-cloud's layout: run.env, and custom_files/ beside it.
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
@@ -309,8 +314,9 @@ fn issue_31_a_deepracer_for_cloud_run_env_trains_its_race_with_its_custom_files(
     assert!(!b.status.success() && text(&b).contains("exp/bad.env: DR_RACE_TYPE is \"DRAG_RACE\""), "{}", text(&b));
 }
 
+/// Issue 5: a camera model learns to lap from pixels.
 #[test]
-fn issue_5_a_camera_model_learns_to_lap_from_pixels() {
+fn a_camera_model_learns_to_lap_from_pixels() {
     // DeepRacer's SHALLOW network on 160x120 grayscale frames rendered on lavapipe, DeepRacer's
     // default hyperparameters; training stops after two consecutive 3/3 evaluations (the
     // streak rule, without a verification). The run is the one the car-in-the-loop test drives
@@ -368,8 +374,9 @@ impl Drop for SmallDisk {
     }
 }
 
+/// Issue 10: a full disk is reported and the last checkpoint stays whole as root.
 #[test]
-fn issue_10_a_full_disk_is_reported_and_the_last_checkpoint_stays_whole_as_root() {
+fn a_full_disk_is_reported_and_the_last_checkpoint_stays_whole_as_root() {
     need_root("mounting a small tmpfs");
     let dir = tempfile::tempdir().unwrap();
     let mnt = dir.path().join("small");

@@ -46,8 +46,9 @@ fn aws_car() -> CarConfig {
     CarConfig { layout: policy::car::Layout::Aws, ..CarConfig::default() }
 }
 
+/// Issue 9: only genuine models that fit the car are taken.
 #[test]
-fn issue_9_only_genuine_models_that_fit_the_car_are_taken() {
+fn only_genuine_models_that_fit_the_car_are_taken() {
     let learner = Signer::from_seed([1; 32]);
     let stranger = Signer::from_seed([2; 32]);
     let mut trust = TrustedKeys::default();
@@ -96,8 +97,9 @@ fn issue_9_only_genuine_models_that_fit_the_car_are_taken() {
     assert_eq!(slot.swaps(), 3);
 }
 
+/// Issue 9: no throttle before a model, then the model's choice.
 #[test]
-fn issue_9_no_throttle_before_a_model_then_the_models_choice() {
+fn no_throttle_before_a_model_then_the_models_choice() {
     let learner = Signer::from_seed([1; 32]);
     let mut trust = TrustedKeys::default();
     trust.add("learner.pub", &learner);
@@ -134,8 +136,9 @@ fn issue_9_no_throttle_before_a_model_then_the_models_choice() {
     assert_eq!(d.figures().bad_frames, 1);
 }
 
+/// Issue 9: the watchdog and the e-stop bring the throttle to zero.
 #[test]
-fn issue_9_watchdog_and_e_stop_bring_throttle_to_zero() {
+fn watchdog_and_e_stop_bring_throttle_to_zero() {
     let learner = Signer::from_seed([1; 32]);
     let mut trust = TrustedKeys::default();
     trust.add("learner.pub", &learner);
@@ -165,11 +168,11 @@ fn issue_9_watchdog_and_e_stop_bring_throttle_to_zero() {
     assert!(c.version.is_some() && d.state() == CarState::Driving);
 }
 
-/// The CI run of the car-in-the-loop test once missed one frame's 66 ms period while a model
-/// loaded beside the drive loop on two cores: the loader now runs as a background thread.
+/// Issue 9: the CI run of the car-in-the-loop test once missed one frame's 66 ms period while a
+/// model loaded beside the drive loop on two cores: the loader now runs as a background thread.
 #[cfg(target_os = "linux")]
 #[test]
-fn issue_9_the_model_loader_runs_at_background_priority() {
+fn the_model_loader_runs_at_background_priority() {
     // Field 19 of /proc/thread-self/stat is the thread's niceness (after the command's closing
     // parenthesis, field 3 is the first).
     fn nice() -> i32 {
@@ -188,8 +191,10 @@ fn issue_9_the_model_loader_runs_at_background_priority() {
     assert_ne!(nice(), 19);
 }
 
+/// Issue 30: a DeepRacer archive drives only when the car trusts its name and then as Paddock
+/// computes.
 #[test]
-fn issue_30_a_deepracer_archive_drives_only_when_the_car_trusts_its_name_and_then_as_paddock_computes() {
+fn a_deepracer_archive_drives_only_when_the_car_trusts_its_name_and_then_as_paddock_computes() {
     let meta = ModelMetadata::default_camera();
     let model = ActorCritic::new(&meta, 120 * 160, &mut rand_chacha::ChaCha8Rng::seed_from_u64(4));
     let dir = tempfile::tempdir().unwrap();
@@ -231,8 +236,9 @@ fn issue_30_a_deepracer_archive_drives_only_when_the_car_trusts_its_name_and_the
     assert!(err.contains("my model.v3.tar.gz") && err.contains("trust_unsigned lists \"my_model\""), "{err}");
 }
 
+/// Issue 31: a stereo model drives from both images in both layouts.
 #[test]
-fn issue_31_a_stereo_model_drives_from_both_images_in_both_layouts() {
+fn a_stereo_model_drives_from_both_images_in_both_layouts() {
     let learner = Signer::from_seed([1; 32]);
     let mut trust = TrustedKeys::default();
     trust.add("learner.pub", &learner);
@@ -290,8 +296,9 @@ fn issue_31_a_stereo_model_drives_from_both_images_in_both_layouts() {
     }
 }
 
+/// Issue 31: a camera and sector-LiDAR model drives from the message's LiDAR data in both layouts.
 #[test]
-fn issue_31_a_camera_and_sector_lidar_model_drives_from_the_messages_lidar_data_in_both_layouts() {
+fn a_camera_and_sector_lidar_model_drives_from_the_messages_lidar_data_in_both_layouts() {
     let learner = Signer::from_seed([1; 32]);
     let mut trust = TrustedKeys::default();
     trust.add("learner.pub", &learner);

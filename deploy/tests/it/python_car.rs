@@ -171,17 +171,20 @@ fn check(layout: &str, certs: bool) {
     assert!(throttles.iter().all(|t| *t > 0.0), "a verified model drives: {throttles:?}");
 }
 
+/// Issue 9: a Python car speaks CDR with deploy-community layout.
 #[test]
-fn issue_9_a_python_car_speaks_cdr_with_deploy_community_layout() {
+fn a_python_car_speaks_cdr_with_deploy_community_layout() {
     check_layout("community");
 }
 
+/// Issue 9: a Python car speaks CDR with deploy-aws layout.
 #[test]
-fn issue_9_a_python_car_speaks_cdr_with_deploy_aws_layout() {
+fn a_python_car_speaks_cdr_with_deploy_aws_layout() {
     check_layout("aws");
 }
 
+/// Issue 10: the car's bridge on loopback works under the cluster's access rules.
 #[test]
-fn issue_10_the_cars_bridge_on_loopback_works_under_the_clusters_access_rules() {
+fn the_cars_bridge_on_loopback_works_under_the_clusters_access_rules() {
     check("community", true);
 }

@@ -23,8 +23,9 @@ fn close(what: &str, a: &[f32], b: &[f32], tol: f32) {
     }
 }
 
+/// Issue 33: the product in every orientation and split matches faer.
 #[test]
-fn issue_33_the_product_in_every_orientation_and_split_matches_faer() {
+fn the_product_in_every_orientation_and_split_matches_faer() {
     let gpu = open();
     let mut rng = ChaCha8Rng::seed_from_u64(1);
     let mut scratch = None;
@@ -101,8 +102,9 @@ fn networks(rng: &mut ChaCha8Rng) -> Vec<(&'static str, Net)> {
     ]
 }
 
+/// Issue 33: every layer forward and backward matches faer.
 #[test]
-fn issue_33_every_layer_forward_and_backward_matches_faer() {
+fn every_layer_forward_and_backward_matches_faer() {
     let gpu = open();
     let mut rng = ChaCha8Rng::seed_from_u64(2);
     for (name, net) in networks(&mut rng) {
@@ -145,8 +147,9 @@ fn issue_33_every_layer_forward_and_backward_matches_faer() {
     }
 }
 
+/// Issue 33: Adam on the GPU matches the CPU optimiser and flags a non-finite gradient.
 #[test]
-fn issue_33_adam_matches_the_cpu_optimiser_and_flags_a_non_finite_gradient() {
+fn adam_matches_the_cpu_optimiser_and_flags_a_non_finite_gradient() {
     let gpu = open();
     let mut rng = ChaCha8Rng::seed_from_u64(3);
     let n = 70_000;

@@ -5,8 +5,9 @@
 
 use std::process::Command;
 
+/// Issue 8: the bench reports the step's reach as the median of rounds taken in turn.
 #[test]
-fn issue_8_the_bench_reports_the_steps_reach_as_the_median_of_rounds_taken_in_turn() {
+fn the_bench_reports_the_steps_reach_as_the_median_of_rounds_taken_in_turn() {
     let o = Command::new(env!("CARGO_BIN_EXE_learner"))
         .args(["bench", "--network", "MLP", "--seconds", "0.2", "--threads", "1"])
         .env("RUST_LOG", "warn")

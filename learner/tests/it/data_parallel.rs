@@ -49,8 +49,9 @@ fn episodes(model: &ActorCritic, n: usize, rng: &mut ChaCha8Rng) -> Vec<Trajecto
         .collect()
 }
 
+/// Issue 8: two learners make one learner's update.
 #[test]
-fn issue_8_two_learners_make_one_learners_update() {
+fn two_learners_make_one_learners_update() {
     // Teams of two (a member a tower) and four (two a tower, each with half of every
     // minibatch); every epoch, and an update that stops early on `target_kl`: the members
     // stop together, at the single learner's step.
@@ -143,8 +144,9 @@ impl<T> Reducer for Watched<T> {
     }
 }
 
+/// Issue 8: the summed shares are the whole minibatch gradient.
 #[test]
-fn issue_8_the_summed_shares_are_the_whole_minibatch_gradient() {
+fn the_summed_shares_are_the_whole_minibatch_gradient() {
     // A team of four, one minibatch of the whole batch: what the two members of each tower
     // sum at the first step must be that tower's gradient of the mean loss over every sample
     // (each share weighted by its size; Adam is blind to a constant factor, so this is
@@ -226,8 +228,9 @@ impl Reducer for Broken {
     }
 }
 
+/// Issue 8: a broken group refuses the update and keeps the weights.
 #[test]
-fn issue_8_a_broken_group_refuses_the_update_and_keeps_the_weights() {
+fn a_broken_group_refuses_the_update_and_keeps_the_weights() {
     let meta = ModelMetadata::default_state_vector();
     let mut rng = ChaCha8Rng::seed_from_u64(12);
     let model = ActorCritic::new(&meta, 27, &mut rng);
@@ -239,8 +242,9 @@ fn issue_8_a_broken_group_refuses_the_update_and_keeps_the_weights() {
     assert_eq!(ppo.version, 7);
 }
 
+/// Issue 8: a joiner that takes the state makes the same updates bit for bit.
 #[test]
-fn issue_8_a_joiner_that_takes_the_state_makes_the_same_updates_bit_for_bit() {
+fn a_joiner_that_takes_the_state_makes_the_same_updates_bit_for_bit() {
     let meta = ModelMetadata::default_state_vector();
     let mut rng = ChaCha8Rng::seed_from_u64(21);
     let model = ActorCritic::new(&meta, 27, &mut rng);
@@ -268,8 +272,9 @@ fn issue_8_a_joiner_that_takes_the_state_makes_the_same_updates_bit_for_bit() {
     assert_ne!(no_moments.model, leader.model);
 }
 
+/// Issue 8: a state that does not fit is refused and changes nothing.
 #[test]
-fn issue_8_a_state_that_does_not_fit_is_refused_and_changes_nothing() {
+fn a_state_that_does_not_fit_is_refused_and_changes_nothing() {
     let meta = ModelMetadata::default_state_vector();
     let mut rng = ChaCha8Rng::seed_from_u64(22);
     let model = ActorCritic::new(&meta, 27, &mut rng);
@@ -292,8 +297,9 @@ fn issue_8_a_state_that_does_not_fit_is_refused_and_changes_nothing() {
     }
 }
 
+/// Issue 8: a camera network's team sends factors and makes one learner's update.
 #[test]
-fn issue_8_camera_network_team_sends_factors_and_makes_one_learners_update() {
+fn camera_network_team_sends_factors_and_makes_one_learners_update() {
     // DeepRacer's SHALLOW network in a team of four (two members a tower): its first dense
     // layer (5.8 M weights a tower) travels as its factors (each share's inputs and output
     // gradients), multiplied out by both members of the tower.
@@ -343,8 +349,9 @@ fn issue_8_camera_network_team_sends_factors_and_makes_one_learners_update() {
 /// Exchanges as a member made them: the exchange, and the members that gave to it.
 type Log = Vec<(u64, Vec<usize>)>;
 
+/// Issue 8: a team trains each tower on its own members and swaps them once an update.
 #[test]
-fn issue_8_a_team_trains_each_tower_on_its_own_members_and_swaps_them_once_an_update() {
+fn a_team_trains_each_tower_on_its_own_members_and_swaps_them_once_an_update() {
     // No member repeats the other tower's optimiser step: in a team of four, ranks 0 and 2
     // train the policy tower and sum only their shares of it (exchange 2k + 1), ranks 1 and 3
     // the value tower; every step ends with the whole team's figures (2k + 2). After the
@@ -401,8 +408,9 @@ fn issue_8_a_team_trains_each_tower_on_its_own_members_and_swaps_them_once_an_up
 /// A change made to a state on its way.
 type Tamper = fn(&mut [f32]);
 
+/// Issue 8: a tower state that does not fit refuses the update and changes nothing.
 #[test]
-fn issue_8_a_tower_state_that_does_not_fit_refuses_the_update_and_changes_nothing() {
+fn a_tower_state_that_does_not_fit_refuses_the_update_and_changes_nothing() {
     let meta = ModelMetadata::default_state_vector();
     let mut rng = ChaCha8Rng::seed_from_u64(15);
     let model = ActorCritic::new(&meta, 27, &mut rng);
@@ -440,8 +448,9 @@ fn issue_8_a_tower_state_that_does_not_fit_refuses_the_update_and_changes_nothin
     }
 }
 
+/// Issue 30: the value tower's warm-up holds the policy, alone and in a team.
 #[test]
-fn issue_30_the_value_towers_warm_up_holds_the_policy_alone_and_in_a_team() {
+fn the_value_towers_warm_up_holds_the_policy_alone_and_in_a_team() {
     // An imported model's first updates (policy versions below `value_warmup_updates`) train
     // the value tower only; then the policy moves, alone and in a team alike.
     let meta = ModelMetadata::default_state_vector();

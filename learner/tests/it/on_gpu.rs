@@ -69,8 +69,9 @@ fn same_learner(what: &str, g: &Ppo, c: &Ppo) {
     }
 }
 
+/// Issue 33: a PPO update on the GPU matches faer.
 #[test]
-fn issue_33_a_ppo_update_on_the_gpu_matches_faer() {
+fn a_ppo_update_on_the_gpu_matches_faer() {
     let gpu = gpu();
     let mut rng = ChaCha8Rng::seed_from_u64(33);
     let cases = [
@@ -134,8 +135,9 @@ fn issue_33_a_ppo_update_on_the_gpu_matches_faer() {
     }
 }
 
+/// Issue 33: a refused update leaves the GPU state and a restored one is trained from.
 #[test]
-fn issue_33_a_refused_update_leaves_the_gpu_state_and_a_restored_one_is_trained_from() {
+fn a_refused_update_leaves_the_gpu_state_and_a_restored_one_is_trained_from() {
     let gpu = gpu();
     let mut rng = ChaCha8Rng::seed_from_u64(34);
     let model = ActorCritic::new(&state_meta(false), 13, &mut rng);
@@ -169,13 +171,13 @@ fn issue_33_a_refused_update_leaves_the_gpu_state_and_a_restored_one_is_trained_
     same_learner("after a restore", &other, &cpu);
 }
 
-/// SAC's gradient steps on the GPU against the same steps on faer from the same state: the
-/// losses of every step, then every network, optimiser moment and the temperature, for the
-/// state vector (no embedder, squared error, the temperature tuned, V's target copied), a
-/// small camera (a conv embedder shared by the heads, Huber, the target moved by τ = 0.25)
-/// and a camera + LiDAR (networks of two inputs).
+/// Issue 33: SAC's gradient steps on the GPU against the same steps on faer from the same state:
+/// the losses of every step, then every network, optimiser moment and the temperature, for the
+/// state vector (no embedder, squared error, the temperature tuned, V's target copied), a small
+/// camera (a conv embedder shared by the heads, Huber, the target moved by τ = 0.25) and a
+/// camera + LiDAR (networks of two inputs).
 #[test]
-fn issue_33_sac_steps_on_the_gpu_match_faer() {
+fn sac_steps_on_the_gpu_match_faer() {
     use learner::sac::{Batch, Sac, SacGpu, SacNets, SacSettings, Tapes, TwinQ};
     use policy::nn::{InputShape, LayerSpec::*, Net};
     let gpu = gpu();
@@ -268,9 +270,9 @@ fn issue_33_sac_steps_on_the_gpu_match_faer() {
     }
 }
 
-/// A SAC learner made with a GPU makes its iterations there, as one on faer does.
+/// Issue 33: a SAC learner made with a GPU makes its iterations there, as one on faer does.
 #[test]
-fn issue_33_a_sac_learner_with_a_gpu_trains_as_one_on_faer() {
+fn a_sac_learner_with_a_gpu_trains_as_one_on_faer() {
     use learner::algorithm::{Algorithm, Shared};
     use learner::sac::SacTrainer;
     let meta = ModelMetadata::parse(

@@ -201,8 +201,9 @@ fn a_nan_never_reaches_the_weights() {
     assert_ne!(ppo.model, before);
 }
 
+/// Issue 8: the old policy is the network as the update begins.
 #[test]
-fn issue_8_the_old_policy_is_the_network_as_the_update_begins() {
+fn the_old_policy_is_the_network_as_the_update_begins() {
     // DeepRacer's PPO clips around the network as the update begins and computes GAE from its
     // values, whichever version acted (flow control lets experience lag two versions): the
     // acting-time log-probabilities and values do not enter the update at all.
@@ -229,8 +230,9 @@ fn issue_8_the_old_policy_is_the_network_as_the_update_begins() {
     assert!(loss_and_grad(&model, &stale, &(0..32).collect::<Vec<_>>(), &h, Par::Seq).clip_fraction > 0.5);
 }
 
+/// Issue 8: an update stops its epochs once the policy moved past the target KL.
 #[test]
-fn issue_8_an_update_stops_its_epochs_once_the_policy_moved_past_target_kl() {
+fn an_update_stops_its_epochs_once_the_policy_moved_past_target_kl() {
     let mut rng = ChaCha8Rng::seed_from_u64(6);
     let model = ActorCritic::new(&meta(false), 6, &mut rng);
     let (trajs, _) = bandit_episodes(&model, 0, 128, &mut rng);

@@ -237,8 +237,9 @@ fn lines(path: &Path) -> Vec<serde_json::Value> {
 
 const HALFWAY: Script = Script { steps: 20, progress: 30.0, eval: |_| 50.0, verify: |_| 10 };
 
+/// Issue 29: every stop condition ends the run with its reason, an evaluation and a model.
 #[test]
-fn issue_29_every_stop_condition_ends_the_run_with_its_reason_an_evaluation_and_a_model() {
+fn every_stop_condition_ends_the_run_with_its_reason_an_evaluation_and_a_model() {
     let dir = tempfile::tempdir().unwrap();
     let h = quick();
     // (row, rules, hyperparameters, script, the reason's words)
@@ -326,8 +327,9 @@ fn issue_29_every_stop_condition_ends_the_run_with_its_reason_an_evaluation_and_
     }
 }
 
+/// Issue 29: a run with nothing to stop it goes on.
 #[test]
-fn issue_29_a_run_with_nothing_to_stop_it_goes_on() {
+fn a_run_with_nothing_to_stop_it_goes_on() {
     // The scripted worker never meets a target: 25 updates and still running when the
     // episodes run out (a budget far above them), so no rule fires early by mistake.
     let dir = tempfile::tempdir().unwrap();
@@ -343,8 +345,10 @@ fn issue_29_a_run_with_nothing_to_stop_it_goes_on() {
     assert_eq!(s.iterations, 25);
 }
 
+/// Issue 29: the learning rate cools down over the second half of the budget unless a target ends
+/// the job.
 #[test]
-fn issue_29_the_learning_rate_cools_down_over_the_second_half_of_the_budget_unless_a_target_ends_the_job() {
+fn the_learning_rate_cools_down_over_the_second_half_of_the_budget_unless_a_target_ends_the_job() {
     // A budget of 100 episodes is 10 updates of 10. The first half trains at `lr`; from
     // there the rate falls in a straight line towards zero at the budget's end, so the
     // job's last model is not caught mid-stride. "constant" keeps DeepRacer's fixed rate, and
@@ -372,8 +376,10 @@ fn issue_29_the_learning_rate_cools_down_over_the_second_half_of_the_budget_unle
     }
 }
 
+/// Issue 33: the run stops at the first checkpoint that holds its verification and that is the
+/// model.
 #[test]
-fn issue_33_the_run_stops_at_the_first_checkpoint_that_holds_its_verification_and_that_is_the_model() {
+fn the_run_stops_at_the_first_checkpoint_that_holds_its_verification_and_that_is_the_model() {
     // Evaluations lap from the second on. The first lapping checkpoint's verification laps 9
     // of 10 trials: not held, training goes on. The next lapping checkpoint's laps 10 of 10:
     // the run stops there, that checkpoint is the model, and no later version is evaluated.

@@ -117,8 +117,9 @@ fn check(mut nets: SacNets, settings: &SacSettings, pixels: bool, rng: &mut ChaC
     }
 }
 
+/// Issue 32: the three SAC losses match finite differences.
 #[test]
-fn issue_32_the_three_sac_losses_match_finite_differences() {
+fn the_three_sac_losses_match_finite_differences() {
     let mut rng = ChaCha8Rng::seed_from_u64(32);
     let (m, obs) = meta(7);
     let settings = SacSettings::for_space(&m.action_space).unwrap();
@@ -131,8 +132,9 @@ fn issue_32_the_three_sac_losses_match_finite_differences() {
     check(cam, &settings, true, &mut rng, "camera embedder");
 }
 
+/// Issue 32: the temperature follows the entropy target.
 #[test]
-fn issue_32_the_temperature_follows_the_entropy_target() {
+fn the_temperature_follows_the_entropy_target() {
     let mut rng = ChaCha8Rng::seed_from_u64(3);
     let (m, obs) = meta(4);
     let nets = SacNets::new(&m, obs, &mut rng);
@@ -146,8 +148,9 @@ fn issue_32_the_temperature_follows_the_entropy_target() {
     assert_eq!(losses_and_grads(&nets, &fixed, 0.2, &batch, &eps, Par::Seq, &mut Tapes::default()).1.log_alpha, 0.0);
 }
 
+/// Issue 32: the replay memory keeps episodes in order and pixels as bytes.
 #[test]
-fn issue_32_the_replay_memory_keeps_episodes_in_order_and_pixels_as_bytes() {
+fn the_replay_memory_keeps_episodes_in_order_and_pixels_as_bytes() {
     // Two values a step: a float, then a pixel.
     let pixel = std::ops::Range { start: 1, end: 2 };
     let mut r = Replay::new(5, 2, vec![pixel]);
@@ -226,10 +229,10 @@ impl Bandit {
     }
 }
 
-/// The bandit with a = (0.8 x₀, −0.4 x₁) for the observation x. SAC must find it (a wrong sign
-/// in the policy's gradient through Q, or a wrong target, fails it).
+/// Issue 32: the bandit with a = (0.8 x₀, −0.4 x₁) for the observation x. SAC must find it (a wrong
+/// sign in the policy's gradient through Q, or a wrong target, fails it).
 #[test]
-fn issue_32_sac_learns_a_task_whose_answer_is_known() {
+fn sac_learns_a_task_whose_answer_is_known() {
     let mut rng = ChaCha8Rng::seed_from_u64(5);
     let (m, obs) = meta(2);
     let nets = SacNets::new(&m, obs, &mut rng);
@@ -244,13 +247,13 @@ fn issue_32_sac_learns_a_task_whose_answer_is_known() {
     assert!(after < 0.15 && after < before / 3.0, "largest action error {before:.3} → {after:.3}");
 }
 
-/// The same bandit from pixels: the two values are the brightness of an 8 × 10 image's left
-/// and right halves, stored as bytes in the replay memory, and every network sees them through
-/// its convolutions (the Q heads through their shared embedder). SAC must find the answer
-/// from the image alone (a wrong gradient through a convolution, the embedder or the pixels'
-/// scale fails it).
+/// Issue 32: the same bandit from pixels: the two values are the brightness of an 8 × 10 image's
+/// left and right halves, stored as bytes in the replay memory, and every network sees them through
+/// its convolutions (the Q heads through their shared embedder). SAC must find the answer from the
+/// image alone (a wrong gradient through a convolution, the embedder or the pixels' scale fails
+/// it).
 #[test]
-fn issue_32_sac_learns_the_bandit_from_pixels() {
+fn sac_learns_the_bandit_from_pixels() {
     let mut rng = ChaCha8Rng::seed_from_u64(5);
     let (m, _) = meta(80);
     let nets = small_camera_nets(&mut rng);
@@ -277,8 +280,9 @@ fn issue_32_sac_learns_the_bandit_from_pixels() {
     assert!(after < 0.2 && after < before / 3.0, "largest action error {before:.3} → {after:.3}");
 }
 
+/// Issue 32: the replay memory survives a save and a smaller capacity keeps the newest.
 #[test]
-fn issue_32_the_replay_memory_survives_a_save_and_a_smaller_capacity_keeps_the_newest() {
+fn the_replay_memory_survives_a_save_and_a_smaller_capacity_keeps_the_newest() {
     let dir = tempfile::tempdir().unwrap();
     let pixel = std::ops::Range { start: 0, end: 1 };
     let mut r = Replay::new(6, 3, vec![pixel]);
@@ -312,8 +316,9 @@ fn issue_32_the_replay_memory_survives_a_save_and_a_smaller_capacity_keeps_the_n
     assert!(e.contains("safetensors"), "{e}");
 }
 
+/// Issue 32: a replay memory larger than a quarter of the machine is capped.
 #[test]
-fn issue_32_a_replay_memory_larger_than_a_quarter_of_the_machine_is_capped() {
+fn a_replay_memory_larger_than_a_quarter_of_the_machine_is_capped() {
     use learner::sac::trainer::replay_capacity;
     let camera = std::ops::Range { start: 0, end: 19_200 };
     // (wanted, values a step, pixels, machine's memory, capacity): 6 GiB / 19,213 bytes = 335,317.
@@ -329,13 +334,13 @@ fn issue_32_a_replay_memory_larger_than_a_quarter_of_the_machine_is_capped() {
     }
 }
 
-/// Two and three learners, each with a share of every batch, make one learner's steps: the
-/// members end each step with the same state, bit for bit, and that state is one learner's
-/// on the whole batch (to the rounding of the sums' order). With 300 inputs and batches of 8
-/// every network's dense layers are big enough to travel as their factors (inputs and output
-/// gradients), which every member multiplies out in rank order.
+/// Issue 32: two and three learners, each with a share of every batch, make one learner's steps:
+/// the members end each step with the same state, bit for bit, and that state is one learner's on
+/// the whole batch (to the rounding of the sums' order). With 300 inputs and batches of 8 every
+/// network's dense layers are big enough to travel as their factors (inputs and output gradients),
+/// which every member multiplies out in rank order.
 #[test]
-fn issue_32_a_team_of_learners_makes_one_learners_sac_steps() {
+fn a_team_of_learners_makes_one_learners_sac_steps() {
     for (inputs, batch) in [(6, 64), (300, 8)] {
         team_makes_one_learners_steps(inputs, batch);
     }
@@ -413,11 +418,11 @@ fn team_makes_one_learners_steps(inputs: usize, batch: usize) {
     }
 }
 
-/// A learner team's joiner takes over a SAC learner's networks, optimisers and replay memory
-/// (a ring that has wrapped round), and from then on makes the leader's updates bit for bit;
+/// Issue 32: a learner team's joiner takes over a SAC learner's networks, optimisers and replay
+/// memory (a ring that has wrapped round), and from then on makes the leader's updates bit for bit;
 /// a state without its memory, or with a tensor missing, is refused with nothing changed.
 #[test]
-fn issue_32_a_joiner_takes_over_a_sac_learner_and_its_memory_and_updates_as_it_does() {
+fn a_joiner_takes_over_a_sac_learner_and_its_memory_and_updates_as_it_does() {
     use learner::algorithm::Shared;
     use learner::sac::SacTrainer;
     let (m, obs) = meta(6);
@@ -467,11 +472,11 @@ fn issue_32_a_joiner_takes_over_a_sac_learner_and_its_memory_and_updates_as_it_d
     }
 }
 
-/// The big dense layers' weight gradients a SAC step leaves as factors (what a learner team
-/// sends, and what Adam multiplies out) are the full gradients, `dW = dᵀ·x`; the losses and
+/// Issue 32: the big dense layers' weight gradients a SAC step leaves as factors (what a learner
+/// team sends, and what Adam multiplies out) are the full gradients, `dW = dᵀ·x`; the losses and
 /// every other gradient value are the same.
 #[test]
-fn issue_32_sac_gradients_left_as_factors_multiply_out_to_the_full_ones() {
+fn sac_gradients_left_as_factors_multiply_out_to_the_full_ones() {
     use learner::sac::{Defer, losses_and_grads_share};
     let mut rng = ChaCha8Rng::seed_from_u64(4);
     let (m, obs) = meta(300);
@@ -508,13 +513,13 @@ fn issue_32_sac_gradients_left_as_factors_multiply_out_to_the_full_ones() {
     assert_eq!(full.q_embed, def.q_embed);
 }
 
-/// A SAC run keeps its replay memory at every checkpoint: the first writes it whole, each
+/// Issue 32: a SAC run keeps its replay memory at every checkpoint: the first writes it whole, each
 /// later one the transitions stored since as a part, and parts grown as large as the memory
 /// become the whole memory again; a run that crashed after a checkpoint resumes with the
 /// memory as it was then (the ring's oldest gone as they were). A part that does not fit is
 /// refused, naming its file.
 #[test]
-fn issue_32_the_replay_memory_is_kept_at_every_checkpoint_and_survives_a_crash() {
+fn the_replay_memory_is_kept_at_every_checkpoint_and_survives_a_crash() {
     use learner::algorithm::{Algorithm, Shared};
     use learner::sac::SacTrainer;
     let dir = tempfile::tempdir().unwrap();

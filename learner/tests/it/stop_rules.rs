@@ -5,8 +5,9 @@ use learner::Hyperparameters;
 use learner::run::{Standing, StopRules, TargetLaps};
 use learner::trend::Verdict;
 
+/// Issue 8: each stop rule fires on its own figure and not before.
 #[test]
-fn issue_8_each_stop_rule_fires_on_its_own_figure_and_not_before() {
+fn each_stop_rule_fires_on_its_own_figure_and_not_before() {
     let rules = StopRules {
         minutes: 2.0,
         max_episodes: Some(500),
@@ -73,8 +74,9 @@ fn issue_8_each_stop_rule_fires_on_its_own_figure_and_not_before() {
     assert_eq!(told.check(&hyper, &Standing { verdict: collapse, ..quiet.clone() }), None);
 }
 
+/// Issue 33: a verification needs the target's share of its trials.
 #[test]
-fn issue_33_a_verification_needs_the_targets_share_of_its_trials() {
+fn a_verification_needs_the_targets_share_of_its_trials() {
     // (laps of the evaluation's trials, trials per evaluation, verification trials, laps needed)
     let table =
         [(3, 3, 10, 10), (2, 3, 10, 7), (1, 3, 10, 4), (3, 3, 3, 3), (5, 3, 10, 10), (1, 1, 10, 10), (3, 3, 1, 1)];

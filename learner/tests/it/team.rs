@@ -6,8 +6,9 @@
 
 use std::process::Command;
 
+/// Issue 8: three learner processes make one learner's update.
 #[test]
-fn issue_8_three_learner_processes_make_one_learners_update() {
+fn three_learner_processes_make_one_learners_update() {
     let o = Command::new(env!("CARGO_BIN_EXE_learner"))
         .args([
             "bench",
@@ -33,8 +34,9 @@ fn issue_8_three_learner_processes_make_one_learners_update() {
     assert!(out.contains("3 learner processes × 1 thread"), "{out}");
 }
 
+/// Issue 32: three learner processes make one SAC learner's updates from the leader's memory.
 #[test]
-fn issue_32_three_learner_processes_make_one_sac_learners_updates_from_the_leaders_memory() {
+fn three_learner_processes_make_one_sac_learners_updates_from_the_leaders_memory() {
     let o = Command::new(env!("CARGO_BIN_EXE_learner"))
         .args(["bench", "--network", "MLP", "--sac", "--learners", "3", "--check", "--team-only"])
         .args(["--seconds", "0.5", "--epochs", "1"])

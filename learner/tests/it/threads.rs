@@ -5,8 +5,9 @@
 use std::collections::HashSet;
 use std::sync::Mutex;
 
+/// Issue 8: the maths runs on the threads it was given.
 #[test]
-fn issue_8_the_maths_runs_on_the_threads_it_was_given() {
+fn the_maths_runs_on_the_threads_it_was_given() {
     // Three: not the core count of the machines this runs on (1, 2, 16).
     assert_eq!(learner::use_threads(Some(3)), 3);
     assert_eq!(rayon::current_num_threads(), 3);

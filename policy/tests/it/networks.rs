@@ -24,8 +24,9 @@ fn stereo_tower(network: NeuralNetwork) -> Net {
     policy::ActorCritic::new(&meta, 0, &mut rand_chacha::ChaCha8Rng::seed_from_u64(1)).pi
 }
 
+/// Issue 31: stereo towers are DeepRacer's.
 #[test]
-fn issue_31_stereo_towers_are_deepracers() {
+fn stereo_towers_are_deepracers() {
     // 120×160×2. SHALLOW: the front camera's embedder with two input channels (11×16×64).
     // DEEP and DEEPER: DeepRacer's stereo embedder (32,3,1)(64,3,2)(64,3,1)(128,3,2)(128,3,1),
     // 25×35×128, then Dense 512, or 256 and 128.
@@ -93,8 +94,9 @@ fn shallow_layer_shapes_follow_the_reference() {
     );
 }
 
+/// Issue 31: camera and LiDAR networks concatenate embedders in DeepRacer's order.
 #[test]
-fn issue_31_camera_and_lidar_networks_concatenate_embedders_in_deepracers_order() {
+fn camera_and_lidar_networks_concatenate_embedders_in_deepracers_order() {
     let meta = |sensors: &str, network: NeuralNetwork| {
         ModelMetadata::parse(
             &format!(

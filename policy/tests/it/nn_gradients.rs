@@ -105,8 +105,9 @@ fn chunked_conv_net() -> (InputShape, Vec<LayerSpec>) {
     (InputShape::Image(60, 64, 4), specs)
 }
 
+/// Issue 8: conv layers worked a chunk at a time match finite differences.
 #[test]
-fn issue_8_conv_layers_worked_a_chunk_at_a_time_match_finite_differences() {
+fn conv_layers_worked_a_chunk_at_a_time_match_finite_differences() {
     let (input, specs) = chunked_conv_net();
     let mut rng = ChaCha8Rng::seed_from_u64(8);
     let net = Net::new(input, &specs, None, &mut rng);
@@ -119,8 +120,9 @@ fn issue_8_conv_layers_worked_a_chunk_at_a_time_match_finite_differences() {
     check(input, &linear, 5, 8);
 }
 
+/// Issue 8: conv layers in chunks and thread shares give the whole batch's gradient.
 #[test]
-fn issue_8_conv_layers_in_chunks_and_thread_shares_give_the_whole_batchs_gradient() {
+fn conv_layers_in_chunks_and_thread_shares_give_the_whole_batchs_gradient() {
     let (input, specs) = chunked_conv_net();
     let mut rng = ChaCha8Rng::seed_from_u64(9);
     let net = Net::new(input, &specs, None, &mut rng);
@@ -155,10 +157,10 @@ fn issue_8_conv_layers_in_chunks_and_thread_shares_give_the_whole_batchs_gradien
     }
 }
 
-/// Kernel rows of 8 floats (SHALLOW's and DEEPER's first layer: an 8×8 kernel on
+/// Issue 8: kernel rows of 8 floats (SHALLOW's and DEEPER's first layer: an 8×8 kernel on
 /// one channel, or 4 wide on two) are unfolded by their own copy loop; its backward pass too.
 #[test]
-fn issue_8_conv_layers_with_kernel_rows_of_eight_floats_match_finite_differences() {
+fn conv_layers_with_kernel_rows_of_eight_floats_match_finite_differences() {
     check(InputShape::Image(20, 24, 1), &[LayerSpec::Conv(3, 8, 4), LayerSpec::Dense(3)], 2, 10);
     check(InputShape::Image(9, 11, 2), &[LayerSpec::Conv(3, 4, 2), LayerSpec::Dense(3)], 2, 11);
 }
@@ -218,11 +220,11 @@ fn adam_minimises_a_quadratic() {
     assert_eq!(opt.beta2, 0.999);
 }
 
-/// A dense layer's weight gradient left as factors and multiplied out inside the Adam
+/// Issue 8: a dense layer's weight gradient left as factors and multiplied out inside the Adam
 /// step (in bands of rows, one a thread) gives the step Adam takes on the multiplied-out
 /// gradient; the same bits on one thread or two; and a non-finite value anywhere is reported.
 #[test]
-fn issue_8_adam_on_factored_weight_gradients_matches_the_multiplied_out_step() {
+fn adam_on_factored_weight_gradients_matches_the_multiplied_out_step() {
     use policy::nn::{FactoredGrad, Factors};
     let mut rng = ChaCha8Rng::seed_from_u64(8);
     // 37 inputs → 21 outputs (two threads take uneven bands: 11 and 10 rows) → ReLU → 3.
@@ -280,11 +282,11 @@ fn issue_8_adam_on_factored_weight_gradients_matches_the_multiplied_out_step() {
     assert!(!step(&bad, Par::Seq, None).1);
 }
 
-/// Adam's loop runs on the widest vectors the CPU has (runtime dispatch); it must
+/// Issue 8: Adam's loop runs on the widest vectors the CPU has (runtime dispatch); it must
 /// still be the plain IEEE formula, element by element, so that every CPU and every thread
 /// count gives the same bits (a fused multiply-add, or any reordering, would fail this).
 #[test]
-fn issue_8_adam_on_wide_vectors_gives_the_plain_formulas_bits() {
+fn adam_on_wide_vectors_gives_the_plain_formulas_bits() {
     let mut rng = ChaCha8Rng::seed_from_u64(8);
     // Not a multiple of any vector width, and long enough for the threaded path's chunks.
     let n = 4 * (1 << 15) + 1003;
@@ -322,11 +324,11 @@ fn issue_8_adam_on_wide_vectors_gives_the_plain_formulas_bits() {
     }
 }
 
-/// A dense layer's forward pass over a batch is made as `outᵀ = b + W · xᵀ` and turned
+/// Issue 8: a dense layer's forward pass over a batch is made as `outᵀ = b + W · xᵀ` and turned
 /// (faster for the camera networks' big layer), over one sample as `x · Wᵀ`: both give every
 /// sample the plain product, `y = x Wᵀ + b`, computed here in f64, whatever the batch.
 #[test]
-fn issue_8_a_dense_layer_gives_every_batch_size_the_plain_product() {
+fn a_dense_layer_gives_every_batch_size_the_plain_product() {
     let mut rng = ChaCha8Rng::seed_from_u64(18);
     let (n_in, n_out) = (300, 17);
     let mut net = Net::new(InputShape::Flat(n_in), &[LayerSpec::Dense(n_out)], None, &mut rng);
@@ -355,11 +357,11 @@ fn issue_8_a_dense_layer_gives_every_batch_size_the_plain_product() {
     }
 }
 
-/// A forward pass over no samples gives no output: the one-sample orientation of the dense
+/// Issue 8: a forward pass over no samples gives no output: the one-sample orientation of the dense
 /// layer once set its bias with one slice copy of the whole output, which panicked on an
 /// empty batch.
 #[test]
-fn issue_8_a_forward_pass_over_no_samples_gives_no_output() {
+fn a_forward_pass_over_no_samples_gives_no_output() {
     let mut rng = ChaCha8Rng::seed_from_u64(19);
     let net =
         Net::new(InputShape::Flat(10), &[LayerSpec::Dense(4), LayerSpec::Relu, LayerSpec::Dense(2)], None, &mut rng);
@@ -383,8 +385,9 @@ fn two_input_net(rng: &mut ChaCha8Rng) -> Net {
     )
 }
 
+/// Issue 31: a two-input network matches finite differences in every embedder.
 #[test]
-fn issue_31_a_two_input_network_matches_finite_differences_in_every_embedder() {
+fn a_two_input_network_matches_finite_differences_in_every_embedder() {
     let mut rng = ChaCha8Rng::seed_from_u64(31);
     let net = two_input_net(&mut rng);
     assert_eq!(net.in_size(), 12 * 14 + 8);
@@ -400,8 +403,9 @@ fn issue_31_a_two_input_network_matches_finite_differences_in_every_embedder() {
     check_net(net, 4, "dense + bare input", &mut rng);
 }
 
+/// Issue 31: embedders are concatenated in input order sample by sample.
 #[test]
-fn issue_31_embedders_are_concatenated_in_input_order_sample_by_sample() {
+fn embedders_are_concatenated_in_input_order_sample_by_sample() {
     let mut rng = ChaCha8Rng::seed_from_u64(32);
     let net = two_input_net(&mut rng);
     let batch = 3;
@@ -472,8 +476,9 @@ fn check_input_grad(mut net: Net, batch: usize, what: &str, rng: &mut ChaCha8Rng
     );
 }
 
+/// Issue 32: the gradient w.r.t. the input matches finite differences.
 #[test]
-fn issue_32_the_gradient_wrt_the_input_matches_finite_differences() {
+fn the_gradient_wrt_the_input_matches_finite_differences() {
     use LayerSpec::*;
     let mut rng = ChaCha8Rng::seed_from_u64(32);
     let mlp = Net::new(InputShape::Flat(9), &[Dense(16), Relu, Dense(16), Relu, Dense(1)], None, &mut rng);

@@ -19,8 +19,9 @@ fn collector(meta: &ModelMetadata) -> Collector {
     Collector::new(vec, meta.action_space.clone(), 5)
 }
 
+/// Issue 33: a collection acted on the GPU is the one acted on faer.
 #[test]
-fn issue_33_a_collection_acted_on_the_gpu_is_the_one_acted_on_faer() {
+fn a_collection_acted_on_the_gpu_is_the_one_acted_on_faer() {
     let gpu = Arc::new(gpu::Gpu::open(gpu::DeviceChoice::Gpu).unwrap().expect("`gpu` opens lavapipe"));
     let meta = ModelMetadata::default_state_vector();
     let mut cpu = collector(&meta);
@@ -40,10 +41,10 @@ fn issue_33_a_collection_acted_on_the_gpu_is_the_one_acted_on_faer() {
     }
 }
 
-/// Evaluation trials acted on the GPU (as a worker with `--device gpu` runs them) are the
+/// Issue 33: evaluation trials acted on the GPU (as a worker with `--device gpu` runs them) are the
 /// trials acted on faer: the same progress, lap times and steps.
 #[test]
-fn issue_33_evaluation_trials_on_the_gpu_are_the_ones_on_faer() {
+fn evaluation_trials_on_the_gpu_are_the_ones_on_faer() {
     use sim_agent::rollout::evaluate;
     let gpu = Arc::new(gpu::Gpu::open(gpu::DeviceChoice::Gpu).unwrap().expect("`gpu` opens lavapipe"));
     let meta = ModelMetadata::default_state_vector();

@@ -118,8 +118,9 @@ fn the_start_frame_matches_the_stored_reference() {
     );
 }
 
+/// Issue 31: obstacles and bots are drawn where they stand.
 #[test]
-fn issue_31_obstacles_and_bots_are_drawn_where_they_stand() {
+fn obstacles_and_bots_are_drawn_where_they_stand() {
     use sim_agent::objects::{Kind, Object};
     use tracks::objects::{BOX_FOOTPRINT, CAR_FOOTPRINT, Lane, ObjectPose};
     let mut r = Renderer::new().expect("an adapter (lavapipe or a GPU)");

@@ -76,13 +76,13 @@ fn grip_differs_between_surfaces_when_cornering_hard() {
     assert!(by_grip.iter().all(|&(_, r)| r > bicycle_radius(20.0) * 1.1), "{by_grip:?}");
 }
 
-/// At full throttle the car flipped (the drive force reached ≈5 g at the contact
+/// Issue 12: at full throttle the car flipped (the drive force reached ≈5 g at the contact
 /// patches and pitched the chassis past vertical). On every surface, from rest at 4 m/s,
 /// braking from 4 m/s, and at full lock at 4 m/s, the chassis stays on its wheels: roll and
 /// pitch stay small, the heading never jumps, and the car reaches and sheds its speed as a
 /// friction-limited point mass would (within 25 %).
 #[test]
-fn issue_12_full_throttle_braking_and_full_lock_at_4_m_s_keep_the_car_on_its_wheels() {
+fn full_throttle_braking_and_full_lock_at_4_m_s_keep_the_car_on_its_wheels() {
     use sim_agent::handling::{Manoeuvre, hold, measure};
     for surface in Surface::ALL {
         let h = measure(&CarParams::default(), surface);
@@ -107,11 +107,11 @@ fn issue_12_full_throttle_braking_and_full_lock_at_4_m_s_keep_the_car_on_its_whe
     }
 }
 
-/// The wheel centres `all_wheels_on_track` and `is_offtrack` test are DeepRacer's
+/// Issue 12: the wheel centres `all_wheels_on_track` and `is_offtrack` test are DeepRacer's
 /// URDF links, front and rear axles each with its own half-track (left rear, left front,
 /// right rear, right front, as `LINK_NAMES`), not an averaged one.
 #[test]
-fn issue_12_the_wheels_sit_where_deepracers_urdf_puts_them() {
+fn the_wheels_sit_where_deepracers_urdf_puts_them() {
     let urdf = [[-0.081663, 0.08105], [0.082311, 0.079601], [-0.081663, -0.08105], [0.082311, -0.079601]];
     let wheels = sim_agent::car::wheel_layout(&CarParams::default());
     for (w, u) in wheels.iter().zip(urdf) {

@@ -138,14 +138,14 @@ fn training_starts_move_round_robin_and_evaluation_starts_at_the_line() {
     assert!(q.distance_from_center < 1e-6 && q.ndist < 1e-9);
 }
 
-/// An evaluation reset as DeepRacer's evaluation worker does it, checked row
+/// Issue 12: an evaluation reset as DeepRacer's evaluation worker does it, checked row
 /// by row: the `off_track` row carries the whole penalty in `pause_duration`; the car is put
 /// back at the previous row's progress in the lane nearer to where it stood; it waits there
 /// for `penalty × 15` `pause` rows (reward 0, steps and clock running at 15 Hz, the remaining
 /// seconds counting down to 0); driving resumes with `in_progress`. When the resets run out
 /// the `off_track` row ends the trial.
 #[test]
-fn issue_12_an_evaluation_reset_waits_out_its_penalty_in_pause_rows_in_the_nearer_lane() {
+fn an_evaluation_reset_waits_out_its_penalty_in_pause_rows_in_the_nearer_lane() {
     let rules = EvalRules { max_resets: 2, penalty_s: 2.0, time_limit_s: None, ..EvalRules::default() };
     let mut env = Env::new(base(), Arc::new(quiet()), Mode::Evaluation(rules), 1, 0.0).unwrap();
     let dt = 1.0 / 15.0;
@@ -200,11 +200,11 @@ fn issue_12_an_evaluation_reset_waits_out_its_penalty_in_pause_rows_in_the_neare
     }
 }
 
-/// DeepRacer holds the car in the `prepare` step (it sends zero speed and pins the
+/// Issue 12: DeepRacer holds the car in the `prepare` step (it sends zero speed and pins the
 /// model), so the first row is where the car starts; Gazebo's clock runs on from one trial
 /// to the next, so `tstamp` does too.
 #[test]
-fn issue_12_the_prepare_step_holds_the_car_and_the_clock_runs_on_across_trials() {
+fn the_prepare_step_holds_the_car_and_the_clock_runs_on_across_trials() {
     let mut env = Env::new(base(), Arc::new(quiet()), Mode::Evaluation(EvalRules::default()), 1, 0.0).unwrap();
     let driver = PurePursuit::default();
     let mut last_tstamp: Option<f64> = None;
@@ -352,8 +352,9 @@ fn camera_domain_randomisation_changes_the_view_between_episodes_and_only_when_a
     assert_eq!(random, frames(true, 1), "same seed, same randomisation");
 }
 
+/// Issue 31: the stereo observation is the two cameras interleaved left first.
 #[test]
-fn issue_31_the_stereo_observation_is_the_two_cameras_interleaved_left_first() {
+fn the_stereo_observation_is_the_two_cameras_interleaved_left_first() {
     use sim_agent::camera::{Renderer, STEREO_OFFSET, View, beside};
     let mut cfg = SimConfig::default();
     cfg.observation.kind = sim_agent::config::ObservationKind::Stereo;
@@ -403,8 +404,10 @@ fn issue_31_the_stereo_observation_is_the_two_cameras_interleaved_left_first() {
     assert!(differ(&left, &right) > 100, "6 cm apart, the two views differ");
 }
 
+/// Issue 34: training on a generated world draws a new track every few episodes and evaluation
+/// keeps to its own.
 #[test]
-fn issue_34_training_on_a_generated_world_draws_a_new_track_every_few_episodes_and_evaluation_keeps_to_its_own() {
+fn training_on_a_generated_world_draws_a_new_track_every_few_episodes_and_evaluation_keeps_to_its_own() {
     let world = tracks::world("generated:3").unwrap();
     let spec = EnvSpec::from_world(&world, tracks::Direction::Forward);
     assert_eq!(spec.generated, Some(3));

@@ -142,8 +142,9 @@ fn python_rewards_in_the_vector_env_match_the_builtin_bit_for_bit() {
     assert_eq!(py, rs);
 }
 
+/// Issue 8: a reward from a job compiles in memory and keeps its name.
 #[test]
-fn issue_8_a_reward_from_a_job_compiles_in_memory_and_keeps_its_name() {
+fn a_reward_from_a_job_compiles_in_memory_and_keeps_its_name() {
     // A job carries its reward file's text; agents and the coordinator compile it without
     // writing it anywhere, and tracebacks still name the user's file.
     let source = std::fs::read_to_string(data("raises_key_error.py")).unwrap();
@@ -162,10 +163,10 @@ fn issue_8_a_reward_from_a_job_compiles_in_memory_and_keeps_its_name() {
     assert!(e.contains("broken.py"), "{e}");
 }
 
-/// A reward call has a time limit. The endless one fails with the file, the step and
+/// Issue 10: a reward call has a time limit. The endless one fails with the file, the step and
 /// where it was stuck; the thread then runs other rewards as before (nothing left pending).
 #[test]
-fn issue_10_a_reward_that_never_returns_is_stopped_at_its_time_limit() {
+fn a_reward_that_never_returns_is_stopped_at_its_time_limit() {
     let limit = std::time::Duration::from_millis(200);
     let r = RewardFn::from_spec(&data("never_returns.py")).unwrap().with_time_limit(limit);
     let t = std::time::Instant::now();
@@ -217,8 +218,9 @@ fn objects_fold(p: &sim_agent::params::RewardParams) -> f64 {
     total
 }
 
+/// Issue 31: Python rewards get every object key as DeepRacer passes them.
 #[test]
-fn issue_31_python_rewards_get_every_object_key_as_deepracer_passes_them() {
+fn python_rewards_get_every_object_key_as_deepracer_passes_them() {
     use sim_agent::race::{RaceConfig, RaceType};
     for race in [
         RaceConfig { race_type: RaceType::ObjectAvoidance, number_of_obstacles: 3, ..RaceConfig::default() },
@@ -263,8 +265,9 @@ fn issue_31_python_rewards_get_every_object_key_as_deepracer_passes_them() {
     assert!(o.reward > 1.0, "{}", o.reward);
 }
 
+/// Issue 34: every builtin exported as Python gives the rewards the builtin gives.
 #[test]
-fn issue_34_every_builtin_exported_as_python_gives_the_builtins_rewards() {
+fn every_builtin_exported_as_python_gives_the_builtins_rewards() {
     use sim_agent::race::{RaceConfig, RaceType};
     use sim_agent::race_line::{LinePlan, python_source};
     use sim_agent::validate::validate_reward;

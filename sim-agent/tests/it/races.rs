@@ -68,8 +68,9 @@ fn drive(env: &mut Env, act: Action, max: usize) -> Vec<StepOutcome> {
     out
 }
 
+/// Issue 31: a box in the way ends a training episode crashed.
 #[test]
-fn issue_31_a_box_in_the_way_ends_a_training_episode_crashed() {
+fn a_box_in_the_way_ends_a_training_episode_crashed() {
     // A box at 4 m in the inner lane: its back edge at 3.75 m, the car's front corners
     // 0.1618 m ahead of its origin.
     let mut env = Env::new(spec(), boxes(&["0.05,1"]), Mode::Training, 1, 0.0).unwrap();
@@ -84,8 +85,9 @@ fn issue_31_a_box_in_the_way_ends_a_training_episode_crashed() {
     assert!(steps[..steps.len() - 1].iter().all(|s| s.status != EpisodeStatus::Crashed && s.crashes == 0));
 }
 
+/// Issue 31: a start beside a box moves to the other lane and passes it.
 #[test]
-fn issue_31_a_start_beside_a_box_moves_to_the_other_lane_and_passes_it() {
+fn a_start_beside_a_box_moves_to_the_other_lane_and_passes_it() {
     // A box 0.8 m from the start, inner lane: the car starts in the outer lane (0.15 m right
     // of the centre line), and driving straight its corners (0.248 to 0.052 m right) clear
     // the box (from 0.05 m right of the centre) until the first corner.
@@ -103,8 +105,9 @@ fn issue_31_a_start_beside_a_box_moves_to_the_other_lane_and_passes_it() {
     assert!(clear.pose().y.abs() < 1e-9);
 }
 
+/// Issue 31: evaluation pays the collision penalty and restarts behind the box in the other lane.
 #[test]
-fn issue_31_evaluation_pays_the_collision_penalty_and_restarts_behind_the_box_in_the_other_lane() {
+fn evaluation_pays_the_collision_penalty_and_restarts_behind_the_box_in_the_other_lane() {
     let rules = EvalRules { max_resets: 3, ..EvalRules::default() };
     assert_eq!(rules.collision_penalty_s, 5.0, "DeepRacer's COLLISION_PENALTY");
     let mut env = Env::new(spec(), boxes(&["0.05,1"]), Mode::Evaluation(rules), 1, 0.0).unwrap();
@@ -133,8 +136,9 @@ fn issue_31_evaluation_pays_the_collision_penalty_and_restarts_behind_the_box_in
     assert!(rest.iter().all(|(o, _)| o.status != EpisodeStatus::Crashed && o.crashes == 1));
 }
 
+/// Issue 31: a crash comes before off-track on the same step.
 #[test]
-fn issue_31_a_crash_comes_before_off_track_on_the_same_step() {
+fn a_crash_comes_before_off_track_on_the_same_step() {
     // On a road 0.4 m wide a box in the outer lane (0.1 m right of the centre line, 0.4 m
     // across) reaches 0.1 m past the right border, so a car can be off the road and touching
     // it at once. Cars turn off the road to the right, the box a few centimetres further each
@@ -162,8 +166,9 @@ fn issue_31_a_crash_comes_before_off_track_on_the_same_step() {
     assert!(both > 0, "no run touched the box while off the track: the table tests nothing");
 }
 
+/// Issue 31: object params in the environment are the hand-computed ones.
 #[test]
-fn issue_31_object_params_in_the_environment_are_the_hand_computed_ones() {
+fn object_params_in_the_environment_are_the_hand_computed_ones() {
     // Boxes at 72 m (inner lane, on the last side: x = 0.15, y = 8) and at 4 m (outer lane).
     let mut env = Env::new(spec(), boxes(&["0.9,1", "0.05,-1"]), Mode::Training, 1, 0.0).unwrap();
     env.advance(STRAIGHT);
@@ -212,8 +217,9 @@ fn bots(lane_change: bool) -> RaceConfig {
     }
 }
 
+/// Issue 31: bots drive their lanes at their speed and stop when hit from behind.
 #[test]
-fn issue_31_bots_drive_their_lanes_at_their_speed_and_stop_when_hit_from_behind() {
+fn bots_drive_their_lanes_at_their_speed_and_stop_when_hit_from_behind() {
     use rand::SeedableRng;
     let track = square();
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
@@ -246,8 +252,9 @@ fn issue_31_bots_drive_their_lanes_at_their_speed_and_stop_when_hit_from_behind(
     assert!((at(&t, 0).position - P2::new(4.5, 0.15)).norm() < 1e-9, "{:?}", at(&t, 0));
 }
 
+/// Issue 31: bots change lanes over the lane change distance.
 #[test]
-fn issue_31_bots_change_lanes_over_the_lane_change_distance() {
+fn bots_change_lanes_over_the_lane_change_distance() {
     use rand::SeedableRng;
     let track = square();
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
@@ -266,8 +273,9 @@ fn issue_31_bots_change_lanes_over_the_lane_change_distance() {
     assert!(y(&mut t, 9.0, &mut rng).abs() < 1e-9, "the next change, 8 s to 10 s");
 }
 
+/// Issue 31: a track too short for the race is refused naming the key.
 #[test]
-fn issue_31_a_track_too_short_for_the_race_is_refused_naming_the_key() {
+fn a_track_too_short_for_the_race_is_refused_naming_the_key() {
     let track = square();
     for (race, want) in [
         (
@@ -285,8 +293,10 @@ fn issue_31_a_track_too_short_for_the_race_is_refused_naming_the_key() {
     assert!(Traffic::new(&track, &RaceConfig::default(), "x").unwrap().is_none(), "a time trial has none");
 }
 
+/// Issue 31: the builtin object avoidance reward penalises closing in on the next object in its
+/// lane.
 #[test]
-fn issue_31_the_builtin_object_avoidance_reward_penalises_closing_in_on_the_next_object_in_its_lane() {
+fn the_builtin_object_avoidance_reward_penalises_closing_in_on_the_next_object_in_its_lane() {
     // A box at 4 m in the outer lane, the car on the centre line (not left of it: the box's
     // side): 4 + 1 + 0.001 far off, then ×0.5, ×0.2 and 0.001 for the avoidance term as the
     // gap from the car's reference point falls under 0.8, 0.5 and 0.3 m.
@@ -323,8 +333,10 @@ fn issue_31_the_builtin_object_avoidance_reward_penalises_closing_in_on_the_next
     assert!((BuiltinReward::ObjectAvoidance.reward(env.params(), env.line()).unwrap() - 5.001).abs() < 1e-9);
 }
 
+/// Issue 31: a camera and LiDAR observation holds the pixels and the filtered scan in DeepRacer's
+/// order.
 #[test]
-fn issue_31_a_camera_and_lidar_observation_holds_the_pixels_and_the_filtered_scan_in_deepracers_order() {
+fn a_camera_and_lidar_observation_holds_the_pixels_and_the_filtered_scan_in_deepracers_order() {
     use sim_agent::config::{CameraLidar, LidarSensor, ObservationKind};
     // A box 0.8 m behind the start line: the car starts in the other lane, the box at its
     // back, within the LiDAR's 2 m.

@@ -46,8 +46,9 @@ fn credit(version: u64, round: u64, episodes: u64) -> WorkerInbound {
     WorkerInbound::Credit(Credit { version, round, episodes: [("w1".to_string(), episodes)].into() })
 }
 
+/// Issue 8: a worker simulates only what it was granted.
 #[test]
-fn issue_8_a_worker_simulates_only_what_it_was_granted() {
+fn a_worker_simulates_only_what_it_was_granted() {
     let mut w = worker(4, &["reinvent_base"]);
     // Nothing granted: nothing simulated.
     w.take(policy(0));
@@ -77,8 +78,9 @@ fn issue_8_a_worker_simulates_only_what_it_was_granted() {
     assert!(w.work().unwrap().is_none());
 }
 
+/// Issue 8: a worker evaluates when asked and follows a restarted learner.
 #[test]
-fn issue_8_a_worker_evaluates_when_asked_and_follows_a_restarted_learner() {
+fn a_worker_evaluates_when_asked_and_follows_a_restarted_learner() {
     let mut w = worker(4, &["reinvent_carpet", "reinvent_wood"]);
     w.take(policy(0));
     w.take(policy(1));
@@ -106,11 +108,11 @@ fn issue_8_a_worker_evaluates_when_asked_and_follows_a_restarted_learner() {
     assert_eq!(e.credit, (0, 1));
 }
 
-/// An off-policy learner (SAC) grants the next round while it updates, so a worker always
+/// Issue 32: an off-policy learner (SAC) grants the next round while it updates, so a worker always
 /// holds a grant: an evaluation request waits through one round of episodes at most, then
 /// runs before the next round (it once waited for minutes, and runs ended without one).
 #[test]
-fn issue_32_an_evaluation_waits_through_one_round_of_episodes_at_most() {
+fn an_evaluation_waits_through_one_round_of_episodes_at_most() {
     let mut w = worker(2, &["reinvent_base"]);
     w.take(policy(1));
     w.take(credit(1, 1, 2));
@@ -126,10 +128,10 @@ fn issue_32_an_evaluation_waits_through_one_round_of_episodes_at_most() {
     assert_eq!(e.credit, (1, 2));
 }
 
-/// A checkpoint that met the lap target is verified by the worker that evaluated it, however
-/// many versions training has published since (a worker keeps only the newest few).
+/// Issue 33: a checkpoint that met the lap target is verified by the worker that evaluated it,
+/// however many versions training has published since (a worker keeps only the newest few).
 #[test]
-fn issue_33_a_worker_keeps_the_version_it_evaluated_for_its_verification() {
+fn a_worker_keeps_the_version_it_evaluated_for_its_verification() {
     let mut w = worker(1, &["reinvent_base"]);
     w.take(policy(1));
     w.take(eval(1, 1, "reinvent_base", 1, 1));
@@ -149,8 +151,9 @@ fn issue_33_a_worker_keeps_the_version_it_evaluated_for_its_verification() {
     assert!(r.trials.as_ref().is_err_and(|e| e.contains("no longer held")), "{r:?}");
 }
 
+/// Issue 34: the schedule's weights move environments at their episodes' ends and none is lost.
 #[test]
-fn issue_34_the_schedules_weights_move_environments_at_their_episodes_ends_and_none_is_lost() {
+fn the_schedules_weights_move_environments_at_their_episodes_ends_and_none_is_lost() {
     use sim_agent::worker::{replan, shares};
     // Pure parts: the split, and the fewest moves.
     for (envs, weights, want) in [

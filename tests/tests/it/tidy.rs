@@ -74,8 +74,9 @@ fn dependencies(krate: &str) -> Vec<String> {
     deps
 }
 
+/// Issue 8: the learner and the simulator do not depend on each other.
 #[test]
-fn issue_8_learner_and_simulator_are_peers() {
+fn the_learner_and_the_simulator_do_not_depend_on_each_other() {
     let learner = dependencies("learner");
     assert!(learner.contains(&"policy".to_string()), "{learner:?}");
     for not in ["sim-agent", "tracks"] {
@@ -120,8 +121,9 @@ fn the_simulator_and_learner_libraries_do_not_touch_the_wire() {
     }
 }
 
+/// Issue 29: the vendored zenoh patch is the one built.
 #[test]
-fn issue_29_the_vendored_zenoh_patch_is_the_one_built() {
+fn the_vendored_zenoh_patch_is_the_one_built() {
     // `[patch.crates-io]` is silently unused (a warning) once zenoh moves past the patched
     // release; then the TLS crash vendor/README.md describes is back. So zenoh is pinned to
     // that release, and the lock file takes zenoh-link-tls from vendor/ (no `source` line).

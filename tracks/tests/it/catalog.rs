@@ -65,11 +65,11 @@ fn reversing_keeps_length_and_flips_orientation() {
     assert_eq!(f.waypoints().first(), r.waypoints().last());
 }
 
-/// DeepRacer's simapp drops a row that repeats the one before when it loads a
+/// Issue 12: DeepRacer's simapp drops a row that repeats the one before when it loads a
 /// track, so reward functions see fewer `waypoints` than the file has rows, and
 /// `closest_waypoints` counts in that shorter list. (file, rows, the repeated row, waypoints).
 #[test]
-fn issue_12_waypoints_are_the_rows_without_repeats_on_every_shipped_track() {
+fn waypoints_are_the_rows_without_repeats_on_every_shipped_track() {
     let table: &[(&str, usize, Option<usize>, usize)] = &[
         ("reinvent_base", 119, None, 119),
         ("reinvent_carpet", 119, None, 119),

@@ -14,8 +14,9 @@ fn a_hand_written_file_loads_with_the_right_figures() {
     assert!((s.min_width - 2f64.sqrt()).abs() < 1e-12, "corner rows are sqrt(2) apart: {}", s.min_width);
 }
 
+/// Issue 12: whole repeated rows load and are dropped as DeepRacer drops them.
 #[test]
-fn issue_12_whole_repeated_rows_load_and_are_dropped_as_deepracer_drops_them() {
+fn whole_repeated_rows_load_and_are_dropped_as_deepracer_drops_them() {
     let mut rows = rectangle_rows();
     rows.insert(2, rows[1]);
     let parsed = parse_track_npy(&f8_rows(&rows), "rep.npy").unwrap();

@@ -7,8 +7,9 @@ use sim_agent::{BuiltinReward, Env, EnvSpec, EpisodeStatus, EvalRules, Mode};
 use std::sync::Arc;
 use tracks::Direction;
 
+/// Issue 2: the scripted driver laps every closed world in both directions.
 #[test]
-fn issue_2_the_scripted_driver_laps_every_closed_world_in_both_directions() {
+fn the_scripted_driver_laps_every_closed_world_in_both_directions() {
     let driver = PurePursuit { max_speed: 2.0, ..PurePursuit::default() };
     for world in tracks::worlds() {
         for direction in [Direction::Forward, Direction::Reversed] {

@@ -17,8 +17,9 @@ fn inputs(dir: &Path) -> Vec<(String, Vec<u8>)> {
     v
 }
 
+/// Issue 35: every kept fuzz input is replayed.
 #[test]
-fn issue_35_every_kept_fuzz_input_is_replayed() {
+fn every_kept_fuzz_input_is_replayed() {
     let root = fuzz::repo("fuzz");
     let mut replayed = 0;
     for t in fuzz::TARGETS {
@@ -36,11 +37,11 @@ fn issue_35_every_kept_fuzz_input_is_replayed() {
     eprintln!("replayed {replayed} inputs");
 }
 
-/// Every seed the code makes is committed under `fuzz/seeds/TARGET` for libFuzzer to start
-/// from (`PADDOCK_WRITE_SEEDS=1` writes them again; a model's weights are not byte-for-byte
+/// Issue 35: every seed the code makes is committed under `fuzz/seeds/TARGET` for libFuzzer to
+/// start from (`PADDOCK_WRITE_SEEDS=1` writes them again; a model's weights are not byte-for-byte
 /// the same from one build to the next, so only their presence is checked).
 #[test]
-fn issue_35_the_fuzz_seeds_are_committed() {
+fn the_fuzz_seeds_are_committed() {
     let root = fuzz::repo("fuzz/seeds");
     let write = std::env::var("PADDOCK_WRITE_SEEDS").is_ok_and(|v| v == "1");
     for t in fuzz::TARGETS {

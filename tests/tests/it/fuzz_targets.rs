@@ -65,10 +65,11 @@ fn inputs(seeds: Vec<Vec<u8>>) -> impl Strategy<Value = Vec<u8>> {
 }
 
 macro_rules! targets {
-    ($($test:ident => $target:literal),* $(,)?) => {
+    ($($(#[doc = $doc:literal])* $test:ident => $target:literal),* $(,)?) => {
         proptest! {
             #![proptest_config(config())]
             $(
+                $(#[doc = $doc])*
                 #[test]
                 fn $test(bytes in inputs(fuzz::seeds($target))) {
                     assert!(fuzz::run($target, &bytes));
@@ -88,18 +89,30 @@ macro_rules! targets {
 }
 
 targets! {
-    issue_10_fuzz_protobuf_messages => "protobuf",
-    issue_10_fuzz_the_cars_cdr_messages => "cdr",
-    issue_10_fuzz_track_npy_files => "npy",
-    issue_10_fuzz_model_metadata_json => "model_metadata",
-    issue_10_fuzz_hyperparameters_json => "hyperparameters",
-    issue_10_fuzz_job_toml => "job_toml",
-    issue_10_fuzz_car_toml => "car_toml",
-    issue_10_fuzz_sim_config_toml => "sim_config",
-    issue_10_fuzz_model_folder_weights => "safetensors",
-    issue_35_fuzz_tf_graphs => "tf_graph",
-    issue_35_fuzz_model_archives => "model_archive",
-    issue_35_fuzz_signatures => "signature",
+    /// Issue 10: protobuf messages, random or mutated, parse or are refused: never a panic.
+    protobuf_messages_never_panic => "protobuf",
+    /// Issue 10: the car's CDR messages, random or mutated, parse or are refused: never a panic.
+    the_cars_cdr_messages_never_panic => "cdr",
+    /// Issue 10: track .npy files, random or mutated, parse or are refused: never a panic.
+    track_npy_files_never_panic => "npy",
+    /// Issue 10: model_metadata.json files, random or mutated, parse or are refused: never a panic.
+    model_metadata_json_never_panic => "model_metadata",
+    /// Issue 10: hyperparameters.json files, random or mutated, parse or are refused: never a panic.
+    hyperparameters_json_never_panic => "hyperparameters",
+    /// Issue 10: job TOML files, random or mutated, parse or are refused: never a panic.
+    job_toml_never_panic => "job_toml",
+    /// Issue 10: car TOML files, random or mutated, parse or are refused: never a panic.
+    car_toml_never_panic => "car_toml",
+    /// Issue 10: simulator config TOML files, random or mutated, parse or are refused: never a panic.
+    sim_config_toml_never_panic => "sim_config",
+    /// Issue 10: a model folder's weights, random or mutated, parse or are refused: never a panic.
+    model_folder_weights_never_panic => "safetensors",
+    /// Issue 35: TensorFlow graphs, random or mutated, parse or are refused: never a panic.
+    tf_graphs_never_panic => "tf_graph",
+    /// Issue 35: model archives, random or mutated, parse or are refused: never a panic.
+    model_archives_never_panic => "model_archive",
+    /// Issue 35: signatures, random or mutated, parse or are refused: never a panic.
+    signatures_never_panic => "signature",
 }
 
 /// The allocator's limit is real: a request beyond it fails (and the run would abort).

@@ -12,8 +12,9 @@ use sim_agent::{BuiltinReward, EnvSpec, RewardFn, VecEnv};
 use std::sync::Arc;
 use tracks::Direction;
 
+/// Issue 3: PPO learns to drive reinvent_base.
 #[test]
-fn issue_3_ppo_learns_to_drive_reinvent_base() {
+fn ppo_learns_to_drive_reinvent_base() {
     let meta = ModelMetadata::default_state_vector();
     let cfg = Arc::new(SimConfig::default());
     let spec = EnvSpec::from_world(&tracks::world("reinvent_base").unwrap(), Direction::Forward);
