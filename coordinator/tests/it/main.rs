@@ -7,6 +7,7 @@ mod car_in_the_loop;
 mod cli;
 mod cluster;
 mod dashboard;
+mod docs;
 mod fidelity;
 mod identity;
 mod logs;
