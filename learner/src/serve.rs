@@ -607,8 +607,9 @@ impl Link for ZenohLink<'_> {
 mod tests {
     use super::*;
 
+    /// Issue 29: each field of a job's stop table reaches its rule across the wire.
     #[test]
-    fn issue_29_each_field_of_a_jobs_stop_table_reaches_its_rule_across_the_wire() {
+    fn each_field_of_a_jobs_stop_table_reaches_its_rule_across_the_wire() {
         // The rules themselves are tested through a whole run (learner/tests/it/run_scripted.rs);
         // here, that a job's `[stop]` table, sent as the `Job` message, asks for the same.
         let base = protocol::job::default_stop();
@@ -676,8 +677,9 @@ mod tests {
         }
     }
 
+    /// Issue 29: the manifest's observation comes from the job's simulator configuration.
     #[test]
-    fn issue_29_the_manifest_observation_comes_from_the_jobs_sim_config() {
+    fn the_manifest_observation_comes_from_the_jobs_sim_config() {
         let toml = "control_hz = 15\n[observation]\nkind = \"camera\"\nlookahead_points = 10\nlidar_range = 2.0\n";
         let o = observation_of(toml).unwrap();
         assert_eq!(o, serde_json::json!({"kind": "camera", "lookahead_points": 10, "lidar_range": 2.0}));

@@ -629,8 +629,9 @@ impl Shared for SacTrainer {
 mod tests {
     use super::*;
 
+    /// Issue 32: the fraction of a gradient step carried to the next iteration stays in [0, 1).
     #[test]
-    fn issue_32_the_carried_fraction_of_a_step_stays_below_one() {
+    fn the_carried_fraction_of_a_step_stays_below_one() {
         for (new, ratio, carry, want) in [
             (10, 1.0, 0.0, (10, 0.0)),
             (3, 0.5, 0.0, (1, 0.5)),
