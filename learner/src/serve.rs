@@ -12,9 +12,10 @@ use crate::team::{self, FollowEnd, TeamLead};
 use anyhow::{Context, Result};
 use faer::Par;
 use learner::Hyperparameters;
-use learner::algorithm::{LearnerState, Shared};
+use learner::algorithm::{Shared, Team};
 use learner::device::Device;
-use learner::run::{Inbound, Link, LinkError, Quiet, RunSpec, Start, StopRules, TargetLaps, Team, run};
+use learner::run::{Inbound, Link, LinkError, Quiet, RunSpec, Start, StopRules, TargetLaps, run};
+use learner::update::LearnerState;
 use policy::ModelMetadata;
 use policy::exchange::{Credit, EvalRequest, PolicyVersion};
 use policy::folder::Manifest;
@@ -197,7 +198,7 @@ fn follow_job(
         updates += 1;
         match result {
             Ok(stats) => {
-                tracing::info!(job = %doc.id, version = algo.version(), samples = stats.samples, updates, "team update")
+                tracing::info!(job = %doc.id, version = algo.version(), samples = stats.samples(), updates, "team update")
             }
             Err(why) => tracing::warn!(job = %doc.id, version = algo.version(), updates, "team update refused: {why}"),
         }

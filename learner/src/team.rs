@@ -24,8 +24,8 @@
 //! ([`wire::MEMORY_PART`]) on the team's memory key just before the plan that carries the
 //! state.
 
-use learner::algorithm::{LearnerState, Shared};
-use learner::run::Team;
+use learner::algorithm::{Shared, Team};
+use learner::update::LearnerState;
 use learner::{GroupError, Reducer, Refused, UpdateStats};
 use policy::Trajectory;
 use protocol::exchange::{self as wire, JobView, MemoryParts, TeamPlan, TeamState};

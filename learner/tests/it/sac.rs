@@ -418,7 +418,6 @@ fn team_makes_one_learners_steps(inputs: usize, batch: usize) {
 /// a state without its memory, or with a tensor missing, is refused with nothing changed.
 #[test]
 fn issue_32_a_joiner_takes_over_a_sac_learner_and_its_memory_and_updates_as_it_does() {
-    use learner::algorithm::Shared;
     use learner::sac::SacTrainer;
     let (m, obs) = meta(6);
     let h =
@@ -515,7 +514,6 @@ fn issue_32_sac_gradients_left_as_factors_multiply_out_to_the_full_ones() {
 /// refused, naming its file.
 #[test]
 fn issue_32_the_replay_memory_is_kept_at_every_checkpoint_and_survives_a_crash() {
-    use learner::algorithm::{Algorithm, Shared};
     use learner::sac::SacTrainer;
     let dir = tempfile::tempdir().unwrap();
     let root = dir.path();
