@@ -1,4 +1,4 @@
-//! The seam between a training run and its algorithm. The run (`run.rs`) publishes,
+//! The seam between a training run and its algorithm. The run (`run/`) publishes,
 //! grants, gathers, checkpoints and evaluates the same way for every algorithm; what differs
 //! is here: how an iteration's episodes become a new policy version, whether experience from
 //! an older version is still usable (PPO: within `max_policy_lag`; SAC: always, it is
