@@ -323,8 +323,9 @@ mod tests {
         }
     }
 
+    /// Issue 10: a resumed run records each update once.
     #[test]
-    fn issue_10_a_resumed_run_records_each_update_once() {
+    fn a_resumed_run_records_each_update_once() {
         let dir = std::env::temp_dir().join(format!("paddock-rewind-test-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         let run = RunDir::open(&dir, OpenMode::New).unwrap();

@@ -1,9 +1,10 @@
 //! `--device auto|cpu|gpu`: where a learner's network maths run. The GPU path is PPO's
 //! update and SAC's gradient steps for a learner alone (`ppo/on_gpu.rs`, `sac/on_gpu.rs`), on
 //! every network Paddock builds (one input or several); a learner team's members train on
-//! faer.
+//! faer. The Adam step both GPU paths record is here ([`adam`]).
 
-use gpu::{DeviceChoice, Gpu};
+use gpu::{DeviceChoice, Gpu, GpuNet};
+use policy::nn::Adam;
 use std::sync::{Arc, Mutex};
 
 /// A process's `--device`: the GPU is opened once, the first time a run asks for it, and
@@ -42,4 +43,19 @@ pub(crate) fn note_team_on_cpu() {
     ONCE.call_once(|| {
         tracing::warn!("in a learner team the updates run on the CPU (faer); the GPU trains a learner alone")
     });
+}
+
+/// Record Adam's step `t` of `net` with `opt`'s settings.
+pub(crate) fn adam(gpu: &Gpu, enc: &mut wgpu::CommandEncoder, net: &GpuNet, opt: &Adam, t: u32, flag: &wgpu::Buffer) {
+    let step = opt.lr / (1.0 - opt.beta1.powi(t as i32));
+    let inv_c2 = 1.0 / (1.0 - opt.beta2.powi(t as i32));
+    gpu.adam(
+        enc,
+        net.len(),
+        [&net.params, &net.m, &net.v],
+        &net.grad,
+        flag,
+        [opt.beta1, opt.beta2, opt.eps],
+        (step, inv_c2),
+    );
 }

@@ -374,8 +374,9 @@ mod tests {
         assert_eq!(p.hyperparameters.target_kl, Some(DEFAULT_TARGET_KL));
     }
 
+    /// Issue 8: `target_kl` is a number or null, and survives the round trip.
     #[test]
-    fn issue_8_target_kl_is_a_number_or_null_and_survives_the_round_trip() {
+    fn target_kl_is_a_number_or_null_and_survives_the_round_trip() {
         for (text, want) in
             [(r#"{"target_kl": 0.02}"#, Some(0.02)), (r#"{"target_kl": null}"#, None), ("{}", Some(DEFAULT_TARGET_KL))]
         {
@@ -386,8 +387,9 @@ mod tests {
         }
     }
 
+    /// Issue 30: `value_warmup_updates` is read and written, and zero without it.
     #[test]
-    fn issue_30_value_warmup_updates_is_read_written_and_zero_without_it() {
+    fn value_warmup_updates_is_read_written_and_zero_without_it() {
         assert_eq!(Hyperparameters::parse("{}", "h").unwrap().hyperparameters.value_warmup_updates, 0);
         let h = Hyperparameters::parse(r#"{"value_warmup_updates": 5}"#, "h").unwrap().hyperparameters;
         assert_eq!(h.value_warmup_updates, 5);
@@ -396,8 +398,9 @@ mod tests {
         assert!(e.contains("value_warmup_updates"), "{e}");
     }
 
+    /// Issue 8: the learning-rate schedule is the cool-down unless the file says constant.
     #[test]
-    fn issue_8_lr_schedule_is_cooldown_unless_the_file_says_constant() {
+    fn lr_schedule_is_cooldown_unless_the_file_says_constant() {
         for (text, want) in [
             ("{}", LrSchedule::Cooldown),
             (r#"{"lr_schedule": "constant"}"#, LrSchedule::Constant),

@@ -1,15 +1,22 @@
 //! The learner, a plain library: PPO and SAC on faer, DeepRacer's hyperparameters, checkpoints.
 //!
-//! - [`algorithm`]: what a run needs of its algorithm, PPO's or SAC's.
-//! - [`hyperparams`]: `hyperparameters.json`, read unchanged.
-//! - [`ppo`]: GAE, the clipped surrogate, the value loss, their gradients, the update.
-//! - [`checkpoints`]: run folders, atomic checkpoints, best/last records.
-//! - [`device`]: `--device auto|cpu|gpu`, and what the GPU path (the `gpu` crate) trains.
-//! - [`record`]: the run's logs: DeepRacer's sim-trace and metrics JSON (DRfC's layout), MCAP.
+//! The modules are layers; each uses only those above it in this list:
+//!
+//! - [`hyperparams`]: `hyperparameters.json`, read unchanged. [`trend`]: plateaus and
+//!   collapses of evaluation progress. [`checkpoints`]: run folders, atomic checkpoints,
+//!   best/last records. [`device`]: `--device auto|cpu|gpu`, and the GPU's Adam step.
+//! - [`group`]: a group of learners that trains as one (a learner team's exchange): the
+//!   [`Reducer`], [`Alone`], [`GroupError`], factored gradients.
+//! - [`update`]: what every algorithm's update shares: [`Refused`], [`update::LearnerState`],
+//!   [`StateMismatch`].
+//! - [`ppo`] and [`sac`]: the two algorithms, each with its own figures, neither using the
+//!   other.
+//! - [`algorithm`]: what a run and a learner team need of an algorithm ([`algorithm::Algorithm`],
+//!   [`algorithm::Shared`], [`algorithm::Team`]), implemented for PPO and SAC; [`UpdateStats`].
+//! - [`record`]: the run's logs: `metrics.jsonl`'s records, DeepRacer's sim-trace and metrics
+//!   JSON (DRfC's layout), MCAP.
 //! - [`run`]: one training run (flow control, updates, evaluations on the workers,
 //!   checkpoints, stop rules) over any [`run::Link`]: in-process channels or Zenoh.
-//! - [`sac`]: soft actor-critic as DeepRacer trains it: its networks, losses and replay memory.
-//! - [`trend`]: when to stop: plateaus and collapses of evaluation progress.
 //!
 //! Architecture invariant: no simulator and no transport here. Experience and evaluation
 //! results arrive as [`policy::exchange`] values through a [`run::Link`], from a worker in the
@@ -18,16 +25,21 @@
 pub mod algorithm;
 pub mod checkpoints;
 pub mod device;
+pub mod group;
 pub mod hyperparams;
 pub mod ppo;
 pub mod record;
 pub mod run;
 pub mod sac;
 pub mod trend;
+pub mod update;
 
+pub use algorithm::UpdateStats;
 pub use gpu::DeviceChoice;
+pub use group::{Alone, GroupError, Reducer};
 pub use hyperparams::{Hyperparameters, LossType, LrSchedule};
-pub use ppo::{Alone, GroupError, Ppo, Reducer, Refused, StateMismatch, UpdateStats};
+pub use ppo::Ppo;
+pub use update::{Refused, StateMismatch};
 
 /// Run this process's parallel network maths on `threads` threads (default: one per core):
 /// sizes rayon's global pool, which `faer` and the conv, Adam and gradient loops run on.

@@ -634,11 +634,12 @@ mod tests {
     use super::{bench_metadata, gemm_shapes, median};
     use rand::SeedableRng;
 
-    /// The ceiling makes the step's GEMMs as the step makes them: a product read-modify-writes
-    /// its output only where the step's does (adding into every output would read 23 MB a
-    /// tower more than the step does for the big dense layer's weight gradient).
+    /// Issue 8: the ceiling makes the step's GEMMs as the step makes them: a product
+    /// read-modify-writes its output only where the step's does (adding into every output
+    /// would read 23 MB a tower more than the step does for the big dense layer's weight
+    /// gradient).
     #[test]
-    fn issue_8_the_ceilings_gemms_add_into_their_output_only_where_the_steps_do() {
+    fn the_ceilings_gemms_add_into_their_output_only_where_the_steps_do() {
         let (_, _, meta) = bench_metadata("SHALLOW").unwrap();
         let model = policy::ActorCritic::new(&meta, 27, &mut rand_chacha::ChaCha8Rng::seed_from_u64(1));
         let got: Vec<_> = gemm_shapes(&model.pi, 64, 1, true).iter().map(|s| (s.m, s.n, s.k, s.add)).collect();

@@ -10,6 +10,8 @@
 //!   `metrics/TrainingMetrics[_<i>].json` (training and evaluation episodes; Paddock adds each
 //!   episode's `world` and `paddock_iteration`) and `metrics/evaluation/evaluation-<ts>.json`
 //!   per evaluation; `tracks.json`, the worlds' lines;
+//! - `metrics.jsonl`'s and `evaluations.jsonl`'s lines: [`IterationRecord`] (each update)
+//!   and [`EvalRecord`] (each evaluation), which the run writes and its observers hear;
 //! - `trace.mcap` for Foxglove: the tracks (`foxglove.SceneUpdate`), each step's pose
 //!   (`foxglove.PoseInFrame`) and figures, each update's figures, each evaluation trial (and,
 //!   in camera jobs, what the car saw in the first trial, `foxglove.RawImage` mono8), as
@@ -21,16 +23,130 @@
 //! written; only what the learner trains on is written (as DeepRacer logs only what its
 //! trainer receives).
 
-use crate::run::{EvalRecord, IterationRecord};
+use crate::algorithm::UpdateStats;
+use crate::sac::SacFigures;
 use policy::exchange::Trial;
 use policy::simtrace::{HEADER, action_text, write_row, write_trajectory};
 use policy::{ActionSpace, StepTrace, TrackLines, Trajectory};
+use serde::Serialize;
 use serde_json::{Value, json};
 use std::collections::BTreeMap;
 use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
+
+/// One update, as `metrics.jsonl` records it.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct IterationRecord {
+    /// Iteration (from 1, continuing on resume).
+    pub iteration: u64,
+    /// Policy version after the update.
+    pub policy_version: u64,
+    /// Seconds since the start.
+    pub time_s: f64,
+    /// Episodes in this update.
+    pub episodes: usize,
+    /// Episodes trained on so far.
+    pub total_episodes: u64,
+    /// Samples (steps) in this update.
+    pub steps: usize,
+    /// Environment steps received so far.
+    pub env_steps: u64,
+    /// Mean episode reward of this update's episodes.
+    pub mean_reward: f64,
+    /// Mean progress (%) of this update's episodes.
+    pub mean_progress: f64,
+    /// PPO figures.
+    pub policy_loss: f64,
+    /// Value loss.
+    pub value_loss: f64,
+    /// Entropy.
+    pub entropy: f64,
+    /// Approximate KL.
+    pub approx_kl: f64,
+    /// Fraction of clipped ratios.
+    pub clip_fraction: f64,
+    /// Explained variance of the value estimates.
+    pub explained_variance: f64,
+    /// Seconds spent waiting for this update's experience.
+    pub wait_s: f64,
+    /// Seconds the update took (forward, backward, Adam).
+    pub update_s: f64,
+    /// Samples per second of the update alone.
+    pub samples_per_s: f64,
+    /// Largest policy lag among this update's episodes.
+    pub policy_lag: u64,
+    /// Episodes received so far (simulated and delivered).
+    pub episodes_received: u64,
+    /// Episodes dropped as stale so far.
+    pub dropped_stale: u64,
+    /// Batches dropped as duplicates so far.
+    pub dropped_duplicate: u64,
+    /// Episodes dropped as malformed so far.
+    pub dropped_bad: u64,
+    /// Why the update was refused (non-finite loss), if it was.
+    pub refused: Option<String>,
+    /// Gradient steps the update took.
+    pub gradient_steps: usize,
+    /// The update stopped at this gradient step, its KL past 1.5 × `target_kl`.
+    pub kl_stop: Option<usize>,
+    /// The learning rate the update used (`lr` on the job's `lr_schedule`).
+    pub lr: f64,
+    /// SAC's figures (the Q loss, the temperature, the replay memory); absent for PPO.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sac: Option<SacFigures>,
+}
+
+impl IterationRecord {
+    /// Take the update's figures from its algorithm's own: PPO's fill the PPO columns, SAC's
+    /// its columns and `sac`; the rest stay zero (a refused update's are all zero).
+    pub fn take_figures(&mut self, stats: &UpdateStats) {
+        match stats {
+            UpdateStats::Ppo(s) => {
+                (self.policy_loss, self.value_loss, self.entropy) = (s.policy_loss, s.value_loss, s.entropy);
+                (self.approx_kl, self.clip_fraction, self.explained_variance) =
+                    (s.approx_kl, s.clip_fraction, s.explained_variance);
+                (self.gradient_steps, self.kl_stop) = (s.gradient_steps, s.kl_stop);
+            }
+            UpdateStats::Sac(s) => {
+                (self.policy_loss, self.value_loss, self.entropy) = (s.policy_loss, s.value_loss, s.entropy);
+                self.gradient_steps = s.gradient_steps;
+                self.sac = Some(s.figures);
+            }
+        }
+    }
+}
+
+/// One evaluation over every world.
+#[derive(Clone, Debug, Serialize)]
+pub struct EvalRecord {
+    /// The iteration whose weights were evaluated.
+    pub iteration: u64,
+    /// Their policy version.
+    pub policy_version: u64,
+    /// Per world: mean progress, mean lap time, laps, trials.
+    pub worlds: Vec<(String, f64, Option<f64>, usize, usize)>,
+    /// Mean progress over every trial.
+    pub progress: f64,
+    /// Mean lap time when every trial completed.
+    pub lap_time: Option<f64>,
+    /// Laps completed on the world that completed fewest.
+    pub min_laps: usize,
+    /// Trials per world.
+    pub trials: usize,
+    /// This became the best model.
+    pub best: bool,
+    /// Per world, the folder of its evaluation sim-trace (`evaluation-<YYYYMMDDHHMMSS>`).
+    pub simtrace: Vec<(String, String)>,
+    /// How the evaluations are going (plateau, collapse), empty while improving.
+    pub trend: String,
+    /// Crashes in all its trials (obstacles, bots).
+    pub crashes: u32,
+    /// This is the verification of a checkpoint that met the lap target (its own trials, with
+    /// fresh noise), not a new checkpoint's evaluation.
+    pub verification: bool,
+}
 
 /// The MCAP file of a new run (a resumed run writes `trace-<iteration>.mcap`).
 pub const MCAP_FILE: &str = "trace.mcap";
@@ -502,5 +618,58 @@ impl Mcap {
 
     fn finish(&mut self) -> std::io::Result<()> {
         self.out.finish().map(|_| ()).map_err(mcap_err)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ppo::PpoStats;
+    use crate::sac::SacStats;
+
+    /// Issue 50: an update's line in `metrics.jsonl` takes PPO's figures into PPO's columns
+    /// and SAC's into the shared columns and `sac`; what the algorithm does not have stays
+    /// zero, and a line without SAC's figures has no `sac`.
+    #[test]
+    fn each_algorithms_figures_fill_its_own_columns() {
+        let ppo = PpoStats {
+            samples: 64,
+            policy_loss: 0.5,
+            value_loss: 2.0,
+            entropy: 1.5,
+            approx_kl: 0.01,
+            clip_fraction: 0.25,
+            explained_variance: 0.75,
+            gradient_steps: 4,
+            policy_version: 3,
+            kl_stop: Some(4),
+        };
+        let figures =
+            SacFigures { q_loss: 3.0, q_mean: -1.0, alpha: 0.2, replay: 500, new_transitions: 70, refused_episodes: 1 };
+        let sac = SacStats {
+            samples: 256,
+            policy_loss: -0.5,
+            value_loss: 0.125,
+            entropy: 2.5,
+            gradient_steps: 8,
+            policy_version: 3,
+            figures,
+        };
+        // (stats, (policy loss, value loss, entropy, KL, clip fraction, explained variance),
+        // (gradient steps, KL stop), SAC's figures)
+        for (stats, losses, steps, own) in [
+            (UpdateStats::Ppo(ppo), (0.5, 2.0, 1.5, 0.01, 0.25, 0.75), (4, Some(4)), None),
+            (UpdateStats::Sac(sac), (-0.5, 0.125, 2.5, 0.0, 0.0, 0.0), (8, None), Some(figures)),
+        ] {
+            let mut rec = IterationRecord { iteration: 7, lr: 3e-4, ..IterationRecord::default() };
+            rec.take_figures(&stats);
+            let r = &rec;
+            let got = (r.policy_loss, r.value_loss, r.entropy, r.approx_kl, r.clip_fraction, r.explained_variance);
+            assert_eq!(got, losses, "{stats:?}");
+            assert_eq!(((r.gradient_steps, r.kl_stop), r.sac), (steps, own), "{stats:?}");
+            assert_eq!((r.iteration, r.lr), (7, 3e-4), "the rest is the run's");
+            let line = serde_json::to_value(r).unwrap();
+            assert_eq!(line.get("sac").is_some(), own.is_some(), "{line}");
+        }
     }
 }

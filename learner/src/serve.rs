@@ -12,9 +12,10 @@ use crate::team::{self, FollowEnd, TeamLead};
 use anyhow::{Context, Result};
 use faer::Par;
 use learner::Hyperparameters;
-use learner::algorithm::{LearnerState, Shared};
+use learner::algorithm::{Shared, Team};
 use learner::device::Device;
-use learner::run::{Inbound, Link, LinkError, Quiet, RunSpec, Start, StopRules, TargetLaps, Team, run};
+use learner::run::{Inbound, Link, LinkError, Quiet, RunSpec, Start, StopRules, TargetLaps, run};
+use learner::update::LearnerState;
 use policy::ModelMetadata;
 use policy::exchange::{Credit, EvalRequest, PolicyVersion};
 use policy::folder::Manifest;
@@ -197,7 +198,7 @@ fn follow_job(
         updates += 1;
         match result {
             Ok(stats) => {
-                tracing::info!(job = %doc.id, version = algo.version(), samples = stats.samples, updates, "team update")
+                tracing::info!(job = %doc.id, version = algo.version(), samples = stats.samples(), updates, "team update")
             }
             Err(why) => tracing::warn!(job = %doc.id, version = algo.version(), updates, "team update refused: {why}"),
         }
@@ -607,8 +608,9 @@ impl Link for ZenohLink<'_> {
 mod tests {
     use super::*;
 
+    /// Issue 29: each field of a job's stop table reaches its rule across the wire.
     #[test]
-    fn issue_29_each_field_of_a_jobs_stop_table_reaches_its_rule_across_the_wire() {
+    fn each_field_of_a_jobs_stop_table_reaches_its_rule_across_the_wire() {
         // The rules themselves are tested through a whole run (learner/tests/it/run_scripted.rs);
         // here, that a job's `[stop]` table, sent as the `Job` message, asks for the same.
         let base = protocol::job::default_stop();
@@ -676,8 +678,9 @@ mod tests {
         }
     }
 
+    /// Issue 29: the manifest's observation comes from the job's simulator configuration.
     #[test]
-    fn issue_29_the_manifest_observation_comes_from_the_jobs_sim_config() {
+    fn the_manifest_observation_comes_from_the_jobs_sim_config() {
         let toml = "control_hz = 15\n[observation]\nkind = \"camera\"\nlookahead_points = 10\nlidar_range = 2.0\n";
         let o = observation_of(toml).unwrap();
         assert_eq!(o, serde_json::json!({"kind": "camera", "lookahead_points": 10, "lidar_range": 2.0}));

@@ -24,8 +24,8 @@
 //! ([`wire::MEMORY_PART`]) on the team's memory key just before the plan that carries the
 //! state.
 
-use learner::algorithm::{LearnerState, Shared};
-use learner::run::Team;
+use learner::algorithm::{Shared, Team};
+use learner::update::LearnerState;
 use learner::{GroupError, Reducer, Refused, UpdateStats};
 use policy::Trajectory;
 use protocol::exchange::{self as wire, JobView, MemoryParts, TeamPlan, TeamState};
@@ -642,8 +642,9 @@ fn rate_fits(plan_lr: f64, job_lr: f64) -> Result<(), DecodeError> {
 mod tests {
     use super::*;
 
+    /// Issue 8: a plan cannot raise the learning rate above the job's.
     #[test]
-    fn issue_8_a_plan_cannot_raise_the_rate_above_the_jobs() {
+    fn a_plan_cannot_raise_the_rate_above_the_jobs() {
         for (plan, ok) in [(3e-4, true), (1.5e-4, true), (0.0, true), (3.0001e-4, false), (1.0, false)] {
             let r = rate_fits(plan, 3e-4);
             assert_eq!(r.is_ok(), ok, "{plan}");

@@ -11,8 +11,7 @@ use crate::bench_metadata;
 use crate::team::{FollowEnd, TeamLead, follow};
 use anyhow::{Context, Result, bail};
 use faer::Par;
-use learner::algorithm::Shared;
-use learner::run::Team;
+use learner::algorithm::{Shared, Team};
 use learner::sac::SacTrainer;
 use learner::{Hyperparameters, Ppo};
 use policy::{ActorCritic, ModelMetadata, Trajectory};
@@ -152,7 +151,10 @@ fn rate(seconds: f64, mut update: impl FnMut() -> Result<usize>) -> Result<(f64,
 
 /// The sample-gradients an update made: PPO's every sample once an epoch, SAC's its batches.
 fn sample_gradients(stats: &learner::UpdateStats, epochs: usize) -> usize {
-    if stats.sac.is_some() { stats.samples } else { stats.samples * epochs }
+    match stats {
+        learner::UpdateStats::Sac(s) => s.samples,
+        learner::UpdateStats::Ppo(s) => s.samples * epochs,
+    }
 }
 
 /// The bench's leader: rows for 1 learner and for a team of `learners`.

@@ -108,8 +108,9 @@ impl Trend {
 mod tests {
     use super::*;
 
+    /// Issue 11: plateaus and collapses of evaluation progress are told apart.
     #[test]
-    fn issue_11_plateaus_and_collapses_are_told_apart() {
+    fn plateaus_and_collapses_are_told_apart() {
         let rules = TrendRules { plateau_evals: 3, ..TrendRules::default() };
         // (evaluations' mean progress, the verdict after the last one)
         let table: [(&[f64], &str); 7] = [

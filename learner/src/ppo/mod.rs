@@ -18,20 +18,18 @@
 //! maths on it (`on_gpu.rs`); a team's members make theirs on faer.
 
 mod on_gpu;
-pub(crate) use on_gpu::adam as adam_on_gpu;
 mod team;
 
 pub use on_gpu::GpuTrainer;
 
-pub use team::{Alone, GroupError, Reducer};
 use team::{Part, Role};
-pub(crate) use team::{check_factors, kept, skipped};
 
-use crate::algorithm::LearnerState;
+use crate::group::{Alone, Reducer, factored_grads};
 use crate::hyperparams::{Hyperparameters, LossType};
+use crate::update::{LearnerState, Refused, StateMismatch};
 use faer::Par;
 use policy::model::{LOG_STD_RANGE, clip_log_std, gaussian_entropy, gaussian_logp, log_softmax};
-use policy::nn::{Adam, FactoredGrad, Factors, Tape};
+use policy::nn::{Adam, Factors, Tape};
 use policy::{ActorCritic, Choice, Head, Trajectory};
 use rand::SeedableRng;
 use rand::seq::SliceRandom;
@@ -430,37 +428,9 @@ fn deferred_ranges(net: &policy::nn::Net, defer: &[usize]) -> Vec<(usize, usize)
     r
 }
 
-/// A tower's factored layers' weight gradients as the optimiser takes them: this learner's
-/// own `factors`, or every team member's shares of the tower in rank order (`every`, as
-/// [`Reducer::all_reduce`] returned them: per member, layer by layer, `x` then `d`).
-pub(crate) fn factored_grads<'a>(
-    factors: &'a [Factors],
-    every: Option<(&[&'a [f32]], &[usize])>,
-) -> Vec<FactoredGrad<'a>> {
-    let mut all: Vec<FactoredGrad<'a>> = factors
-        .iter()
-        .map(|f| FactoredGrad {
-            offset: f.offset,
-            n_in: f.n_in,
-            n_out: f.n_out,
-            shares: if every.is_none() { vec![(&f.x[..], &f.d[..])] } else { Vec::new() },
-        })
-        .collect();
-    if let Some((every, shares)) = every {
-        for (fr, &b) in every.iter().zip(shares) {
-            let mut pos = 0;
-            for g in all.iter_mut() {
-                g.shares.push((&fr[pos..pos + b * g.n_in], &fr[pos + b * g.n_in..pos + b * (g.n_in + g.n_out)]));
-                pos += b * (g.n_in + g.n_out);
-            }
-        }
-    }
-    all
-}
-
-/// What one training iteration did.
+/// What one PPO update did.
 #[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
-pub struct UpdateStats {
+pub struct PpoStats {
     /// Samples trained on.
     pub samples: usize,
     /// Mean clipped-surrogate loss over minibatches.
@@ -482,61 +452,6 @@ pub struct UpdateStats {
     /// The update stopped before its last epoch: this gradient step's approximate KL passed
     /// 1.5 × `target_kl` (the step itself was taken).
     pub kl_stop: Option<usize>,
-    /// SAC's figures (`None` for PPO).
-    pub sac: Option<crate::sac::SacStats>,
-}
-
-/// A state that does not fit this learner's model and optimisers (nothing was changed).
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-#[error("{0}")]
-pub struct StateMismatch(pub String);
-
-/// Why an update was refused. The weights and the optimiser state are as they were before it.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub enum Refused {
-    /// Fewer samples than one minibatch.
-    #[error("{samples} samples: fewer than one minibatch of {batch}")]
-    TooFewSamples {
-        /// Samples in the batch.
-        samples: usize,
-        /// The minibatch size.
-        batch: usize,
-    },
-    /// A loss or gradient that is not a number.
-    #[error(
-        "non-finite loss or gradient at gradient step {step} (loss {loss}): update refused, weights kept at version {version}"
-    )]
-    NonFinite {
-        /// The gradient step (from 0).
-        step: usize,
-        /// Its loss.
-        loss: f64,
-        /// The version kept.
-        version: u64,
-    },
-    /// The GPU failed (the device was lost, a buffer too big for it).
-    #[error("the GPU failed: {error}; weights kept at version {version}")]
-    Device {
-        /// What failed.
-        error: String,
-        /// The version kept.
-        version: u64,
-    },
-    /// The learner group failed (a member lost, a share that does not fit).
-    #[error("the learner group failed: {error}; weights kept at version {version}")]
-    Group {
-        /// What failed.
-        error: GroupError,
-        /// The version kept.
-        version: u64,
-    },
-}
-
-impl Refused {
-    /// The group failed, not the numbers: the update can be made again without it.
-    pub fn is_group(&self) -> bool {
-        matches!(self, Refused::Group { .. })
-    }
 }
 
 /// The learner's state: the model, its optimisers, its version.
@@ -587,13 +502,13 @@ impl Ppo {
     }
 
     /// Train on a set of trajectories (one iteration).
-    pub fn update(&mut self, trajs: &[Trajectory]) -> Result<UpdateStats, Refused> {
+    pub fn update(&mut self, trajs: &[Trajectory]) -> Result<PpoStats, Refused> {
         self.update_in(trajs, &mut Alone)
     }
 
     /// Train on a set of trajectories as one learner of a data-parallel group: every learner
     /// of the group calls this with the same trajectories, from the same state.
-    pub fn update_in(&mut self, trajs: &[Trajectory], group: &mut dyn Reducer) -> Result<UpdateStats, Refused> {
+    pub fn update_in(&mut self, trajs: &[Trajectory], group: &mut dyn Reducer) -> Result<PpoStats, Refused> {
         let seed = self.draw_seed();
         self.update_planned(trajs, seed, group)
     }
@@ -612,15 +527,12 @@ impl Ppo {
         trajs: &[Trajectory],
         seed: u64,
         group: &mut dyn Reducer,
-    ) -> Result<UpdateStats, Refused> {
+    ) -> Result<PpoStats, Refused> {
         self.refusable(|p| p.train(trajs, seed, group))
     }
 
     /// Make an update with `update`; if it is refused, put the weights and optimisers back.
-    fn refusable(
-        &mut self,
-        update: impl FnOnce(&mut Ppo) -> Result<UpdateStats, Refused>,
-    ) -> Result<UpdateStats, Refused> {
+    fn refusable(&mut self, update: impl FnOnce(&mut Ppo) -> Result<PpoStats, Refused>) -> Result<PpoStats, Refused> {
         let saved = (self.model.clone(), self.opt_pi.clone(), self.opt_v.clone(), self.opt_log_std.clone());
         let result = update(self);
         if result.is_err() {
@@ -634,7 +546,7 @@ impl Ppo {
     /// passes 1.5 × `target_kl`. In a team each member computes its part of every minibatch
     /// and the group sums them ([`Ppo::step_in_team`]), and the members swap the towers they
     /// trained at the end.
-    fn train(&mut self, trajs: &[Trajectory], seed: u64, group: &mut dyn Reducer) -> Result<UpdateStats, Refused> {
+    fn train(&mut self, trajs: &[Trajectory], seed: u64, group: &mut dyn Reducer) -> Result<PpoStats, Refused> {
         let version = self.version;
         let group_failed = |error| Refused::Group { error, version };
         if self.gpu.is_some() && group.shard().1 > 1 {
@@ -652,12 +564,12 @@ impl Ppo {
     /// The epochs of an update on a batch already made, as a learner alone: what `learner
     /// bench` times (on faer and on the GPU), without GAE's forward pass over the batch. A
     /// refused update leaves the weights and optimisers as they were.
-    pub fn update_on_batch(&mut self, batch: &Batch, seed: u64) -> Result<UpdateStats, Refused> {
+    pub fn update_on_batch(&mut self, batch: &Batch, seed: u64) -> Result<PpoStats, Refused> {
         self.refusable(|p| p.epochs(batch, seed, &mut Alone))
     }
 
     /// `num_epochs` epochs of shuffled minibatches of `batch` (see [`Ppo::train`]).
-    fn epochs(&mut self, batch: &Batch, seed: u64, group: &mut dyn Reducer) -> Result<UpdateStats, Refused> {
+    fn epochs(&mut self, batch: &Batch, seed: u64, group: &mut dyn Reducer) -> Result<PpoStats, Refused> {
         let version = self.version;
         let group_failed = |error| Refused::Group { error, version };
         let n = batch.len();
@@ -665,7 +577,7 @@ impl Ppo {
         if n / bs == 0 {
             return Err(Refused::TooFewSamples { samples: n, batch: bs });
         }
-        let mut stats = UpdateStats { samples: n, explained_variance: explained_variance(batch), ..Default::default() };
+        let mut stats = PpoStats { samples: n, explained_variance: explained_variance(batch), ..Default::default() };
         let mut shuffle = ChaCha8Rng::seed_from_u64(seed);
         if let (Some(g), 1) = (&mut self.gpu, group.shard().1) {
             let hold = self.version < self.hyper.value_warmup_updates;
@@ -707,7 +619,7 @@ impl Ppo {
     }
 
     /// An accepted update's figures (averaged over its gradient steps) and the next version.
-    fn finish(&mut self, mut stats: UpdateStats) -> UpdateStats {
+    fn finish(&mut self, mut stats: PpoStats) -> PpoStats {
         let k = stats.gradient_steps as f64;
         stats.policy_loss /= k;
         stats.value_loss /= k;

@@ -8,8 +8,10 @@
 //! per-sample terms. The weights are read back once an update, for publication. The batch's
 //! old log-probabilities and GAE's values are the resident towers' forward passes too.
 
-use super::{Batch, CLIP_EPSILON, Refused, UpdateStats, batch_with, logp_of};
+use super::{Batch, CLIP_EPSILON, PpoStats, batch_with, logp_of};
+use crate::device::adam;
 use crate::hyperparams::{Hyperparameters, LossType};
+use crate::update::Refused;
 use gpu::kernels::{LossArgs, SAMPLE, STATS};
 use gpu::{Gpu, GpuError, GpuNet};
 use policy::model::LOG_STD_RANGE;
@@ -164,7 +166,7 @@ impl GpuTrainer {
         mut order: impl FnMut(&mut Vec<usize>),
         hold_policy: bool,
         version: u64,
-        stats: &mut UpdateStats,
+        stats: &mut PpoStats,
     ) -> Result<(), Refused> {
         let n = batch.len();
         let [opt_pi, opt_v, opt_log_std] = opts;
@@ -409,19 +411,4 @@ impl Resident {
             finite_grads: out[2 * n].to_bits() == 0,
         })
     }
-}
-
-/// Record Adam's step `t` of `net` with `opt`'s settings.
-pub(crate) fn adam(gpu: &Gpu, enc: &mut wgpu::CommandEncoder, net: &GpuNet, opt: &Adam, t: u32, flag: &wgpu::Buffer) {
-    let step = opt.lr / (1.0 - opt.beta1.powi(t as i32));
-    let inv_c2 = 1.0 / (1.0 - opt.beta2.powi(t as i32));
-    gpu.adam(
-        enc,
-        net.len(),
-        [&net.params, &net.m, &net.v],
-        &net.grad,
-        flag,
-        [opt.beta1, opt.beta2, opt.eps],
-        (step, inv_c2),
-    );
 }

@@ -1,77 +1,32 @@
-//! A learner team's side of PPO's update: the [`Reducer`] through which the members of a
-//! group share each update (a group of one, [`Alone`], shares nothing), each member's part
-//! (which tower it trains, its share of each minibatch), and the exchanges that make the
+//! A learner team's side of PPO's update: each member's part (which tower it trains, its
+//! share of each minibatch), and the exchanges through the group's [`Reducer`] that make the
 //! team's update one learner's: the old policy's figures split by rank, the tower's shares
 //! summed, the step's loss figures summed, and the towers' states swapped at the end. PPO's
 //! own loop (`ppo/mod.rs`) reaches these through `batch_in`, `step_in_team` and
 //! `swap_towers`.
+//!
+//! A group of one trains both towers alone. In a team the two towers are trained apart (they
+//! share nothing but the minibatch): the even ranks train the policy tower and the odd ranks
+//! the value tower, so that no member repeats the other tower's optimiser step. The members
+//! of a tower split each minibatch's samples between them, and the tower's update equals one
+//! learner's on the whole minibatch (to float rounding; with one member a tower, bit for bit
+//! the step one learner takes on the same batch).
+//!
+//! The exchanges of an update, numbered by `step`:
+//! - `0`, every member: its rows of the old policy's log-probabilities and values;
+//! - `2k + 1`, the members of a tower, for the update's `k`-th gradient step: the tower's
+//!   shares (made only when two or more members train the tower);
+//! - `2k + 2`, every member: the step's loss figures, each tower's from its first member,
+//!   and whether each member's step was finite, so that all refuse or stop together;
+//! - after the last of `K` steps, `2K + 1` and `2K + 2`: rank 0 sends the policy tower's
+//!   weights and optimiser state to the members that train the value tower, and rank 1 the
+//!   value tower's to those that train the policy tower, so every member ends the update
+//!   with the same state, bit for bit, and any of them can lead or go on alone.
 
-use super::{Batch, LossGrad, Ppo, batch_with, factored_grads, logp_and_values, make_batch_for};
+use super::{Batch, LossGrad, Ppo, batch_with, logp_and_values, make_batch_for};
+use crate::group::{GroupError, Reducer, check_factors, factored_grads, kept, skipped};
 use policy::nn::{Adam, Factors};
 use policy::{Head, Trajectory};
-
-/// Why a learner group's step failed (a member lost, a share that does not fit).
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-#[error("{0}")]
-pub struct GroupError(pub String);
-
-/// The learners of a group that trains as one learner, as one learner's update sees them.
-/// A group of one trains both towers alone. In a team the two towers are trained apart
-/// (they share nothing but the minibatch): the even ranks train the policy tower and the odd
-/// ranks the value tower, so that no member repeats the other tower's optimiser step. The
-/// members of a tower split each minibatch's samples between them (data parallelism, as
-/// DD-PPO does): each computes the gradient of its share weighted by the share's size, and
-/// `all_reduce` sums the shares in rank order, so they all apply the same Adam step to the
-/// same weights and the tower's update equals one learner's on the whole minibatch (to float
-/// rounding; with one member a tower, bit for bit the step one learner takes on the same
-/// batch). The big dense layers' weight gradients travel as their factors (inputs and output
-/// gradients of the share, a fraction of the size) and every member of the tower multiplies
-/// them out, in rank order too.
-///
-/// The exchanges of an update, numbered by `step`:
-/// - `0`, every member: its rows of the old policy's log-probabilities and values;
-/// - `2k + 1`, the members of a tower, for the update's `k`-th gradient step: the tower's
-///   shares (made only when two or more members train the tower);
-/// - `2k + 2`, every member: the step's loss figures, each tower's from its first member,
-///   and whether each member's step was finite, so that all refuse or stop together;
-/// - after the last of `K` steps, `2K + 1` and `2K + 2`: rank 0 sends the policy tower's
-///   weights and optimiser state to the members that train the value tower, and rank 1 the
-///   value tower's to those that train the policy tower, so every member ends the update
-///   with the same state, bit for bit, and any of them can lead or go on alone.
-pub trait Reducer {
-    /// This learner's rank and the group's size.
-    fn shard(&self) -> (usize, usize);
-    /// Replace `values` by the sum of the shares of the members `ranks` (ascending), added
-    /// in rank order, and return their `factors` in rank order. A member in `ranks` gives its
-    /// own `values` and `factors`; one not in `ranks` gives nothing and receives the sum
-    /// (its `values` only set the length: with one member in `ranks`, that member's values,
-    /// bit for bit). `step` numbers the exchanges of one update (see [`Reducer`]).
-    fn all_reduce(
-        &mut self,
-        step: u64,
-        ranks: &[usize],
-        values: &mut [f32],
-        factors: Vec<f32>,
-    ) -> Result<Vec<Vec<f32>>, GroupError>;
-}
-
-/// A group of one: nothing to add.
-pub struct Alone;
-
-impl Reducer for Alone {
-    fn shard(&self) -> (usize, usize) {
-        (0, 1)
-    }
-    fn all_reduce(
-        &mut self,
-        _step: u64,
-        _ranks: &[usize],
-        _values: &mut [f32],
-        factors: Vec<f32>,
-    ) -> Result<Vec<Vec<f32>>, GroupError> {
-        Ok(vec![factors])
-    }
-}
 
 /// A team member's part in every gradient step: the tower it trains, the members that train
 /// it (ascending ranks) and its place among them.
@@ -103,7 +58,7 @@ impl Role {
 /// members' steps were not finite.
 pub(super) const FIGURES: usize = 6;
 
-/// A model's two towers, as a team splits its work (see [`Reducer`]).
+/// A model's two towers, as a team splits its work (see the module's doc).
 #[derive(Clone, Copy, PartialEq, Debug)]
 pub(super) enum Part {
     /// The policy tower (and the log-std of a Gaussian head).
@@ -329,25 +284,6 @@ impl Ppo {
     }
 }
 
-/// The parameter ranges a tower's factored layers leave out of its gradient vector.
-pub(crate) fn skipped(factors: &[Factors]) -> Vec<(usize, usize)> {
-    let mut r: Vec<(usize, usize)> = factors.iter().map(|f| (f.offset, f.offset + f.n_in * f.n_out)).collect();
-    r.sort_unstable();
-    r
-}
-
-/// The parts of `grad` outside `skip`, in order.
-pub(crate) fn kept<'a>(grad: &'a [f32], skip: &'a [(usize, usize)]) -> impl Iterator<Item = &'a [f32]> + 'a {
-    let mut at = 0;
-    let mut out = Vec::with_capacity(skip.len() + 1);
-    for &(a, b) in skip {
-        out.push(&grad[at..a]);
-        at = b;
-    }
-    out.push(&grad[at..]);
-    out.into_iter()
-}
-
 /// This learner's share of `part` of a minibatch (`shares[rank]` of its samples), weighted
 /// by its size: the values to sum over the tower's members (the gradient but its factored
 /// layers' weights; then for the policy tower the log-std gradient, the policy loss, the
@@ -400,22 +336,4 @@ fn take_sum(lg: &mut LossGrad, part: Part, values: &[f32]) {
         }
         Part::Value => lg.value_loss = f[0] as f64,
     }
-}
-
-/// Every member's factors must hold its share's samples, `per_sample` numbers each (the
-/// factored layers' inputs and outputs).
-pub(crate) fn check_factors(every: &[Vec<f32>], per_sample: usize, shares: &[usize]) -> Result<(), GroupError> {
-    if every.len() != shares.len() {
-        return Err(GroupError(format!("{} members' factors for a group of {}", every.len(), shares.len())));
-    }
-    for (r, fr) in every.iter().enumerate() {
-        if fr.len() != shares[r] * per_sample {
-            return Err(GroupError(format!(
-                "member {r}'s factors hold {} numbers where {} were expected",
-                fr.len(),
-                shares[r] * per_sample
-            )));
-        }
-    }
-    Ok(())
 }

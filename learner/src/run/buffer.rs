@@ -122,8 +122,9 @@ mod tests {
         }
     }
 
+    /// Issue 29: each episode is kept, or dropped under its reason.
     #[test]
-    fn issue_29_each_episode_is_kept_or_dropped_under_its_reason() {
+    fn each_episode_is_kept_or_dropped_under_its_reason() {
         // A learner at version 10 that takes episodes at most 2 versions old, 4 floats a step.
         // (episode, what becomes of it)
         let table = [
@@ -142,8 +143,9 @@ mod tests {
         assert_eq!((b.len(), b.stale, b.bad, b.received), (2, 2, 3, 107));
     }
 
+    /// Issue 29: a batch seen before is a duplicate, per worker.
     #[test]
-    fn issue_29_a_batch_seen_before_is_a_duplicate_per_worker() {
+    fn a_batch_seen_before_is_a_duplicate_per_worker() {
         let mut b = Buffer::default();
         let table = [("a", 1, true), ("a", 2, true), ("a", 1, false), ("b", 1, true), ("b", 1, false), ("a", 3, true)];
         for (worker, seq, new) in table {
@@ -152,8 +154,9 @@ mod tests {
         assert_eq!(b.dup, 2);
     }
 
+    /// Issue 29: the first episodes to arrive are trained on, and an update ages the rest.
     #[test]
-    fn issue_29_the_first_to_arrive_are_trained_on_and_an_update_ages_the_rest() {
+    fn the_first_to_arrive_are_trained_on_and_an_update_ages_the_rest() {
         let mut b = Buffer::default();
         for (v, w) in [(5, "a"), (6, "b"), (7, "a"), (7, "c")] {
             assert_eq!(b.admit(w, episode(v, 3, 2), 7, 2, 2), Admitted::Kept);

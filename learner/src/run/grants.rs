@@ -127,8 +127,9 @@ mod tests {
         c.episodes.iter().map(|(w, n)| (w.clone(), *n)).collect()
     }
 
+    /// Issue 29: the shortfall is split over the workers alive.
     #[test]
-    fn issue_29_the_shortfall_is_split_over_the_workers_alive() {
+    fn the_shortfall_is_split_over_the_workers_alive() {
         // (need, workers, shares)
         type Row<'a> = (u64, &'a [&'a str], &'a [(&'a str, u64)]);
         let table: [Row; 4] = [
@@ -146,8 +147,9 @@ mod tests {
         assert_eq!(split(3, 1, 20, &[]), None);
     }
 
+    /// Issue 32: a new round after `clear` is numbered above the last, even for the same version.
     #[test]
-    fn issue_32_a_new_round_after_clear_is_numbered_above_the_last_even_for_the_same_version() {
+    fn a_new_round_after_clear_is_numbered_above_the_last_even_for_the_same_version() {
         let t0 = Instant::now();
         let a = names(&["a"]);
         let mut g = Grants::new(1000);
@@ -160,8 +162,9 @@ mod tests {
         assert_eq!(g.due(5, 20, &a, t0).map(|c| (c.version, c.round)), Some((5, 1003)));
     }
 
+    /// Issue 29: a round is announced every second until spent, then the shortfall is granted anew.
     #[test]
-    fn issue_29_a_round_is_announced_every_second_until_spent_then_the_shortfall_is_granted_anew() {
+    fn a_round_is_announced_every_second_until_spent_then_the_shortfall_is_granted_anew() {
         let t0 = Instant::now();
         let at = |s: f64| t0 + Duration::from_secs_f64(s);
         let ab = names(&["a", "b"]);
@@ -206,8 +209,9 @@ mod tests {
         assert_eq!(g.round.as_ref().unwrap().delivered, before);
     }
 
+    /// Issue 29: after an update the next version is granted at once, in a new round.
     #[test]
-    fn issue_29_after_an_update_the_next_version_is_granted_at_once_in_a_new_round() {
+    fn after_an_update_the_next_version_is_granted_at_once_in_a_new_round() {
         let t0 = Instant::now();
         let mut g = Grants::new(50);
         let a = names(&["a"]);

@@ -20,7 +20,8 @@ mod on_gpu;
 pub mod replay;
 pub mod trainer;
 
-use crate::ppo::{Alone, GroupError, Reducer, StateMismatch, check_factors, factored_grads, kept, skipped};
+use crate::group::{Alone, GroupError, Reducer, check_factors, factored_grads, kept, skipped};
+use crate::update::StateMismatch;
 use faer::Par;
 use policy::model::{SAC_LOG_STD_RANGE, Squashed, sac_policy, sac_q_embedder, sac_q_head, sac_value, squashed};
 use policy::nn::{Adam, Factors, Net, Tape};
@@ -31,7 +32,7 @@ use rand_distr::{Distribution, StandardNormal};
 
 pub use on_gpu::{SacGpu, Session as SacSession};
 pub use replay::{Replay, ReplayError};
-pub use trainer::{SacStats, SacTrainer};
+pub use trainer::{SacFigures, SacStats, SacTrainer};
 
 /// What one SAC update does, from `hyperparameters.json` and the action space.
 #[derive(Clone, Debug, PartialEq)]

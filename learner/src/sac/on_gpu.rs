@@ -193,7 +193,7 @@ impl Session {
         for (k, (net, opt)) in nets.into_iter().zip(opts).enumerate() {
             if let Some(net) = net {
                 self.t[k] += 1;
-                crate::ppo::adam_on_gpu(gpu, &mut enc, net, opt, self.t[k], &self.flag);
+                crate::device::adam(gpu, &mut enc, net, opt, self.t[k], &self.flag);
             }
         }
         for (k, &c) in READ.iter().enumerate() {

@@ -1,4 +1,4 @@
-//! SAC in a training run ([`crate::algorithm::Algorithm`]): every episode that arrives goes
+//! SAC in a training run: every episode that arrives goes
 //! into the replay memory, whatever version acted (off-policy data is never stale); an
 //! iteration then takes `sac_gradient_steps_per_transition` gradient steps per new transition
 //! (DeepRacer's one), on batches of `batch_size` drawn with replacement (while the memory
@@ -13,17 +13,16 @@
 //! after a clean end or a crash, continues with the critics and the memory of its last
 //! checkpoint, or says which it starts without.
 //!
-//! In a learner team ([`Shared`]) every member holds a copy of the replay memory: each plan
+//! In a learner team every member holds a copy of the replay memory: each plan
 //! brings the iteration's episodes, which every member stores in the same order, and its
 //! seed, from which every member draws the same batches and noise; each gradient step is then
 //! shared as [`Sac::step_in`] shares it. A joiner takes over the networks, their optimisers
 //! and the memory.
 
 use super::{Losses, Replay, Sac, SacGpu, SacNets, SacSettings, Tapes};
-use crate::algorithm::{Algorithm, LearnerState, Shared};
+use crate::group::{Alone, Reducer};
 use crate::hyperparams::{Hyperparameters, LossType};
-use crate::ppo::{Reducer, Refused, StateMismatch, UpdateStats};
-use crate::run::Team;
+use crate::update::{LearnerState, Refused, StateMismatch};
 use faer::Par;
 use gpu::GpuError;
 use policy::model::Head;
@@ -57,9 +56,28 @@ fn memory_parts(root: &Path) -> std::io::Result<Vec<std::path::PathBuf>> {
     Ok(parts)
 }
 
-/// What an iteration's update reports beyond PPO's figures.
-#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+/// What one SAC iteration did.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct SacStats {
+    /// Samples trained on (gradient steps × batch size).
+    pub samples: usize,
+    /// The policy's loss, averaged over the iteration's gradient steps.
+    pub policy_loss: f64,
+    /// V's loss, averaged.
+    pub value_loss: f64,
+    /// The policy's entropy, averaged.
+    pub entropy: f64,
+    /// Gradient steps taken.
+    pub gradient_steps: usize,
+    /// Policy version after the iteration.
+    pub policy_version: u64,
+    /// SAC's own figures: the critics, the temperature, the replay memory.
+    pub figures: SacFigures,
+}
+
+/// SAC's figures that no other algorithm has (`metrics.jsonl` keeps them under `sac`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+pub struct SacFigures {
     /// The Q heads' loss, averaged over the iteration's gradient steps.
     pub q_loss: f64,
     /// `min(q1, q2)` at the policy's draws, averaged.
@@ -349,35 +367,31 @@ pub(crate) fn write_tensors(
         .map_err(|e| format!("{}: {e}", path.display()))
 }
 
-impl Algorithm for SacTrainer {
-    fn name(&self) -> &'static str {
-        "sac"
-    }
-
-    fn version(&self) -> u64 {
+/// What a run and a learner team need of a SAC learner, besides its updates.
+impl SacTrainer {
+    /// The policy version workers act with (+1 per accepted iteration).
+    pub fn version(&self) -> u64 {
         self.version
     }
 
-    fn model(&self) -> &ActorCritic {
+    /// The model published, evaluated and saved: SAC's policy and V.
+    pub fn model(&self) -> &ActorCritic {
         &self.model
     }
 
-    fn set_lr(&mut self, lr: f64) {
+    /// The learning rate the next iteration uses.
+    pub fn lr(&self) -> f64 {
+        self.sac.settings.lr as f64
+    }
+
+    /// Set the learning rate the next iteration uses.
+    pub fn set_lr(&mut self, lr: f64) {
         self.sac.set_lr(lr as f32);
     }
 
-    fn off_policy(&self) -> bool {
-        true
-    }
-
-    fn update(&mut self, trajs: &[Trajectory], team: Option<&mut dyn Team>) -> Result<UpdateStats, Refused> {
-        match team {
-            Some(team) => team.update(self, trajs),
-            None => self.update_alone(trajs),
-        }
-    }
-
-    fn save_state(&self, dir: &Path) -> Result<(), String> {
+    /// Write the critics and the temperature into the checkpoint folder `dir`
+    /// ([`CRITICS_FILE`]).
+    pub fn save_state(&self, dir: &Path) -> Result<(), String> {
         let nets = &self.sac.nets;
         let mut named = vec![
             ("q1", f32_bytes(&nets.q.q1.params), Dtype::F32),
@@ -395,7 +409,9 @@ impl Algorithm for SacTrainer {
         write_tensors(&dir.join(CRITICS_FILE), &named, info)
     }
 
-    fn save_memory(&self, root: &Path) -> Result<(), String> {
+    /// Write the whole replay memory into the run folder `root` ([`REPLAY_FILE`]) and let
+    /// the parts go.
+    pub fn save_memory(&self, root: &Path) -> Result<(), String> {
         self.replay.save(&root.join(REPLAY_FILE))?;
         // The parts are in the whole memory now.
         match std::fs::remove_dir_all(root.join(REPLAY_PARTS)) {
@@ -406,7 +422,9 @@ impl Algorithm for SacTrainer {
         }
     }
 
-    fn save_memory_part(&mut self, root: &Path) -> Result<(), String> {
+    /// Write into the run folder `root` the transitions stored since the last checkpoint (a
+    /// part in [`REPLAY_PARTS`]), or the whole memory when the parts would hold more than it.
+    pub fn save_memory_part(&mut self, root: &Path) -> Result<(), String> {
         let new = (self.replay.added() - self.on_disk).min(self.replay.len() as u64) as usize;
         if new == 0 {
             return Ok(());
@@ -445,7 +463,7 @@ impl SacTrainer {
     /// refused), their batches and noise drawn from `seed`, each step shared with `group`;
     /// then the new version. A refused iteration leaves the networks as they were (the
     /// episodes stay in the memory).
-    fn iterate(&mut self, stored: (usize, usize), seed: u64, group: &mut dyn Reducer) -> Result<UpdateStats, Refused> {
+    fn iterate(&mut self, stored: (usize, usize), seed: u64, group: &mut dyn Reducer) -> Result<SacStats, Refused> {
         let (new, refused_episodes) = stored;
         let (steps, carry) = steps_and_carry(new, self.ratio, self.carry);
         let batch_size = if self.replay.len() > self.sac.settings.batch_size {
@@ -513,22 +531,21 @@ impl SacTrainer {
         let n = steps.max(1) as f64;
         self.version += 1;
         self.sync_model();
-        Ok(UpdateStats {
+        Ok(SacStats {
             samples: steps * batch_size,
             policy_loss: sum.policy / n,
             value_loss: sum.v / n,
             entropy: sum.entropy / n,
             gradient_steps: steps,
             policy_version: self.version,
-            sac: Some(SacStats {
+            figures: SacFigures {
                 q_loss: sum.q / n,
                 q_mean: sum.q_mean / n,
                 alpha: self.sac.alpha() as f64,
                 replay: self.replay.len(),
                 new_transitions: new,
                 refused_episodes,
-            }),
-            ..UpdateStats::default()
+            },
         })
     }
 
@@ -539,55 +556,60 @@ impl SacTrainer {
     }
 }
 
-impl Shared for SacTrainer {
-    fn version(&self) -> u64 {
-        self.version
-    }
-
-    fn lr(&self) -> f64 {
-        self.sac.settings.lr as f64
-    }
-
-    fn set_lr(&mut self, lr: f64) {
-        self.sac.set_lr(lr as f32);
-    }
-
-    fn draw_seed(&mut self) -> u64 {
+/// A SAC learner's part in a learner team: the plan's update, and what a joiner takes over.
+impl SacTrainer {
+    /// The seed of the next iteration (a team's leader draws it and sends it in the plan).
+    pub fn draw_seed(&mut self) -> u64 {
         self.seeds.next_u64()
     }
 
-    fn update_planned(
+    /// The iteration every member makes from a plan: `trajs` stored, then the gradient steps
+    /// drawn from `seed`, each shared with `group`. A refused iteration leaves the networks as
+    /// they were (the episodes stay in the memory).
+    pub fn update_planned(
         &mut self,
         trajs: &[Trajectory],
         seed: u64,
         group: &mut dyn Reducer,
-    ) -> Result<UpdateStats, Refused> {
+    ) -> Result<SacStats, Refused> {
         let stored = self.store(trajs);
         self.pending = Some(stored);
         self.iterate(stored, seed, group)
     }
 
-    /// The episodes of the failed attempt are in the memory already: only its steps are made.
-    fn update_again(&mut self, trajs: &[Trajectory]) -> Result<UpdateStats, Refused> {
+    /// The iteration made by a learner alone.
+    pub fn update_alone(&mut self, trajs: &[Trajectory]) -> Result<SacStats, Refused> {
+        let seed = self.draw_seed();
+        self.update_planned(trajs, seed, &mut Alone)
+    }
+
+    /// The leader makes alone the iteration its team's attempt failed at. The episodes of the
+    /// failed attempt are in the memory already: only its steps are made.
+    pub fn update_again(&mut self, trajs: &[Trajectory]) -> Result<SacStats, Refused> {
         let stored = match self.pending {
             Some(stored) => stored,
             None => self.store(trajs),
         };
         let seed = self.draw_seed();
-        self.iterate(stored, seed, &mut crate::ppo::Alone)
+        self.iterate(stored, seed, &mut Alone)
     }
 
-    fn state(&self) -> LearnerState {
+    /// What a joiner takes over: the networks, their optimisers, the carried fraction of a step.
+    pub fn state(&self) -> LearnerState {
         let mut tensors = self.sac.tensors();
         tensors.push(("carry".into(), vec![self.carry]));
         LearnerState { version: self.version, tensors }
     }
 
-    fn memory(&self) -> Option<Vec<u8>> {
+    /// The replay memory, as bytes, that a joiner takes over with [`SacTrainer::state`]
+    /// (always some: a SAC learner has one).
+    pub fn memory(&self) -> Option<Vec<u8>> {
         Some(self.replay.to_bytes())
     }
 
-    fn restore(&mut self, state: LearnerState, memory: Option<&[u8]>) -> Result<(), StateMismatch> {
+    /// Take over a member's state and replay memory. Refused, with nothing changed, unless
+    /// both fit.
+    pub fn restore(&mut self, state: LearnerState, memory: Option<&[u8]>) -> Result<(), StateMismatch> {
         let Some(bytes) = memory else {
             return Err(StateMismatch(
                 "a SAC learner's state comes with its replay memory, and this one has none".into(),
@@ -630,7 +652,8 @@ mod tests {
     use super::*;
 
     #[test]
-    fn issue_32_the_carried_fraction_of_a_step_stays_below_one() {
+    /// Issue 32: the fraction of a gradient step carried to the next iteration stays in [0, 1).
+    fn the_carried_fraction_of_a_step_stays_below_one() {
         for (new, ratio, carry, want) in [
             (10, 1.0, 0.0, (10, 0.0)),
             (3, 0.5, 0.0, (1, 0.5)),

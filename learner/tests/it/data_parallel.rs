@@ -17,7 +17,7 @@ fn run_team<R: Reducer + Send>(
     members: &mut [Ppo],
     reducers: Vec<R>,
     trajs: &[Trajectory],
-) -> Vec<Result<learner::UpdateStats, learner::Refused>> {
+) -> Vec<Result<learner::ppo::PpoStats, learner::Refused>> {
     std::thread::scope(|s| {
         let handles: Vec<_> = members
             .iter_mut()

@@ -6,8 +6,7 @@
 //! the suite (`--device gpu` takes a software adapter), so no test needs a GPU.
 
 use faer::Par;
-use learner::ppo::Alone;
-use learner::{Hyperparameters, LossType, Ppo};
+use learner::{Alone, Hyperparameters, LossType, Ppo};
 use policy::{ActorCritic, ModelMetadata, Trajectory};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -273,7 +272,7 @@ fn sac_steps_on_the_gpu_match_faer() {
 /// Issue 33: a SAC learner made with a GPU makes its iterations there, as one on faer does.
 #[test]
 fn a_sac_learner_with_a_gpu_trains_as_one_on_faer() {
-    use learner::algorithm::{Algorithm, Shared};
+    use learner::algorithm::Shared;
     use learner::sac::SacTrainer;
     let meta = ModelMetadata::parse(
         r#"{"action_space":{"steering_angle":{"low":-30,"high":30},"speed":{"low":1,"high":2}},"action_space_type":"continuous","training_algorithm":"sac","sensor":["STATE_VECTOR"],"neural_network":"PADDOCK_MLP","version":"5"}"#,

@@ -423,7 +423,6 @@ fn team_makes_one_learners_steps(inputs: usize, batch: usize) {
 /// a state without its memory, or with a tensor missing, is refused with nothing changed.
 #[test]
 fn a_joiner_takes_over_a_sac_learner_and_its_memory_and_updates_as_it_does() {
-    use learner::algorithm::Shared;
     use learner::sac::SacTrainer;
     let (m, obs) = meta(6);
     let h =
@@ -520,7 +519,6 @@ fn sac_gradients_left_as_factors_multiply_out_to_the_full_ones() {
 /// refused, naming its file.
 #[test]
 fn the_replay_memory_is_kept_at_every_checkpoint_and_survives_a_crash() {
-    use learner::algorithm::{Algorithm, Shared};
     use learner::sac::SacTrainer;
     let dir = tempfile::tempdir().unwrap();
     let root = dir.path();

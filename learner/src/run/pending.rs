@@ -3,7 +3,8 @@
 //! verification is the same checkpoint evaluated again with more trials and fresh noise, asked
 //! of the worker that evaluated each world (it keeps the versions it evaluated).
 
-use super::{Link, LinkError, RunSpec};
+use super::link::{Link, LinkError};
+use super::spec::RunSpec;
 use policy::ActorCritic;
 use policy::exchange::{EvalRequest, Trial};
 use policy::folder::Manifest;
