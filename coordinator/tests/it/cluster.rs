@@ -734,8 +734,10 @@ fn three_state_worlds_on_two_agents_are_all_trained_and_nothing_is_wasted() {
 #[test]
 fn three_camera_worlds_on_two_agents_are_all_trained_and_nothing_is_wasted() {
     let dir = tempfile::tempdir().unwrap();
-    let (summary, metrics, seconds) =
-        up_three_worlds(dir.path(), &["--sensor", "camera", "--envs", "3", "--max-episodes", "80", "--minutes", "10", "--target-laps", "0"]);
+    let (summary, metrics, seconds) = up_three_worlds(
+        dir.path(),
+        &["--sensor", "camera", "--envs", "3", "--max-episodes", "80", "--minutes", "10", "--target-laps", "0"],
+    );
     assert_no_waste(&summary, &metrics, seconds, 3);
 }
 
@@ -1280,7 +1282,19 @@ fn chaos_up_restarts_whatever_is_killed_and_the_job_completes_with_whole_records
     let dir = tempfile::tempdir().unwrap();
     let log = std::fs::File::create(dir.path().join("up.out")).unwrap();
     let mut up = Command::new(bin("coordinator"))
-        .args(["up", "--agents", "2", "--envs", "8", "--minutes", "1.25", "--target-laps", "0", "--checkpoint-seconds", "1"])
+        .args([
+            "up",
+            "--agents",
+            "2",
+            "--envs",
+            "8",
+            "--minutes",
+            "1.25",
+            "--target-laps",
+            "0",
+            "--checkpoint-seconds",
+            "1",
+        ])
         .args(["--out", "up"])
         .current_dir(dir.path())
         .stdout(log.try_clone().unwrap())

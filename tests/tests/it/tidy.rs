@@ -161,6 +161,7 @@ fn every_member_shares_one_set_of_dependency_features() {
         .filter(|m| !m.is_empty() && *m != "workspace-hack")
         .collect();
     assert!(members.len() >= 8, "{members:?}");
-    let missing: Vec<&&str> = members.iter().filter(|m| !dependencies(m).contains(&"workspace-hack".to_string())).collect();
+    let missing: Vec<&&str> =
+        members.iter().filter(|m| !dependencies(m).contains(&"workspace-hack".to_string())).collect();
     assert!(missing.is_empty(), "run `cargo hakari manage-deps`: these members lack workspace-hack: {missing:?}");
 }
