@@ -390,38 +390,41 @@ pub enum BenchCommand {
     },
     /// Wall-clock to 3/3 laps on every world from pixels: `train` in one process, then `up`
     /// with 2 agents, same worlds, same settings, in one run; then both models on more tracks.
-    Pixels {
-        /// Worlds to train on.
-        #[arg(long, default_value = "reinvent_carpet,reinvent_concrete,reinvent_wood", value_delimiter = ',')]
-        worlds: Vec<String>,
-        /// Worlds never trained on, for the generalisation table.
-        #[arg(long, default_value = "reinvent_base,reInvent2019_track,Oval_track", value_delimiter = ',')]
-        unseen: Vec<String>,
-        /// Time limit of each training (minutes).
-        #[arg(long, default_value_t = 20.0)]
-        minutes: f64,
-        /// Environments in total (split over the agents for `up`).
-        #[arg(long, default_value_t = 16)]
-        envs: usize,
-        /// Consecutive 3/3 evaluations (on every world) before the checkpoint is verified.
-        #[arg(long, default_value_t = 1)]
-        evals: u32,
-        /// Trials per world of the verification that ends a training (0: none; the streak
-        /// of --evals ends it).
-        #[arg(long, default_value_t = learner::run::VERIFY_TRIALS as u32, value_parser = clap::value_parser!(u32).range(0..=MAX_VERIFY_TRIALS))]
-        verify_trials: u32,
-        /// Train for the whole --minutes (no lap target), to see whether a policy that lapped
-        /// everywhere stays good.
-        #[arg(long)]
-        keep_training: bool,
-        /// Seeds: both setups are run once per seed (`train --seed S`, `up --seed S`) and
-        /// compared seed by seed and by their medians.
-        #[arg(long, default_value = "1", value_delimiter = ',')]
-        seeds: Vec<u64>,
-        /// Where the runs go (kept, with their models).
-        #[arg(long, default_value = "runs/bench-pixels")]
-        out: PathBuf,
-    },
+    Pixels(PixelsArgs),
+}
+
+#[derive(Args, Clone, Debug)]
+pub struct PixelsArgs {
+    /// Worlds to train on.
+    #[arg(long, default_value = "reinvent_carpet,reinvent_concrete,reinvent_wood", value_delimiter = ',')]
+    pub worlds: Vec<String>,
+    /// Worlds never trained on, for the generalisation table.
+    #[arg(long, default_value = "reinvent_base,reInvent2019_track,Oval_track", value_delimiter = ',')]
+    pub unseen: Vec<String>,
+    /// Time limit of each training (minutes).
+    #[arg(long, default_value_t = 20.0)]
+    pub minutes: f64,
+    /// Environments in total (split over the agents for `up`).
+    #[arg(long, default_value_t = 16)]
+    pub envs: usize,
+    /// Consecutive 3/3 evaluations (on every world) before the checkpoint is verified.
+    #[arg(long, default_value_t = 1)]
+    pub evals: u32,
+    /// Trials per world of the verification that ends a training (0: none; the streak
+    /// of --evals ends it).
+    #[arg(long, default_value_t = learner::run::VERIFY_TRIALS as u32, value_parser = clap::value_parser!(u32).range(0..=MAX_VERIFY_TRIALS))]
+    pub verify_trials: u32,
+    /// Train for the whole --minutes (no lap target), to see whether a policy that lapped
+    /// everywhere stays good.
+    #[arg(long)]
+    pub keep_training: bool,
+    /// Seeds: both setups are run once per seed (`train --seed S`, `up --seed S`) and
+    /// compared seed by seed and by their medians.
+    #[arg(long, default_value = "1", value_delimiter = ',')]
+    pub seeds: Vec<u64>,
+    /// Where the runs go (kept, with their models).
+    #[arg(long, default_value = "runs/bench-pixels")]
+    pub out: PathBuf,
 }
 
 pub use protocol::net::NetCli;

@@ -19,7 +19,7 @@ use policy::exchange::{Trial, summarise};
 use policy::folder::{self, Manifest, Parent};
 use sim_agent::config::load_config;
 use sim_agent::obs::obs_dim;
-use sim_agent::rollout::evaluate;
+use sim_agent::rollout::{EvalPlan, evaluate};
 use sim_agent::worker::{Worker, WorkerSetup};
 use sim_agent::{EnvSpec, EvalRules, RewardFn, SimConfig};
 use std::path::{Path, PathBuf};
@@ -333,17 +333,8 @@ pub fn evaluate_cmd(args: EvaluateArgs) -> Result<i32> {
     for name in &names {
         let world = resolve_world(name)?;
         let spec = EnvSpec::from_world(&world, if args.reversed { Direction::Reversed } else { Direction::Forward });
-        let trials: Vec<Trial> = evaluate(
-            &model,
-            &f.metadata.action_space,
-            &spec,
-            &cfg,
-            rules.clone(),
-            args.trials,
-            args.seed,
-            threads,
-            None,
-        )?
+        let plan = EvalPlan { rules: rules.clone(), count: args.trials, seed: args.seed, threads };
+        let trials: Vec<Trial> = evaluate(&model, &f.metadata.action_space, &spec, &cfg, &plan, None)?
         .into_iter()
         .map(Trial::from)
         .collect();
