@@ -11,7 +11,6 @@ use crate::cli::RaceCmdArgs;
 use crate::tracks_cmd::resolve_world;
 use anyhow::{Context, Result, bail};
 use policy::folder::{self, ModelFolder};
-use sim_agent::config::load_config;
 use sim_agent::rollout::{EvalPlan, TrialResult, evaluate};
 use sim_agent::{EnvSpec, EvalRules, SimConfig};
 use std::fmt::Write as _;
@@ -109,7 +108,7 @@ pub fn run(args: &RaceCmdArgs) -> Result<Vec<Standing>> {
     if args.trials == 0 {
         bail!("--trials 0: a race needs at least one trial");
     }
-    let race: SimConfig = load_config(None, &args.race.with_sets(&[])?)?;
+    let race: SimConfig = args.race.sim_config(None, &[])?;
     let world = resolve_world(&args.world)?;
     let direction = if args.reversed { Direction::Reversed } else { Direction::Forward };
     let spec = EnvSpec::from_world(&world, direction);

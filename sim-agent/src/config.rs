@@ -287,6 +287,18 @@ where
     overridden(table, &origin, sets)
 }
 
+/// `value` with `key=value` overrides applied as [`load_config`] applies them (`origin`
+/// names `value` in errors): typed settings first, `--set` on top.
+pub fn apply_sets<T>(value: T, origin: &str, sets: &[String]) -> Result<T, ConfigError>
+where
+    T: serde::de::DeserializeOwned + Serialize,
+{
+    if sets.is_empty() {
+        return Ok(value);
+    }
+    overridden(toml::Table::try_from(&value).expect("a configuration serialises"), origin, sets)
+}
+
 /// `table` with `sets` applied, as `T`.
 fn overridden<T: serde::de::DeserializeOwned>(
     mut table: toml::Table,
