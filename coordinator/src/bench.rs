@@ -439,18 +439,11 @@ struct PixelsRun {
 /// `bench pixels`: `train` and `up` from pixels on several worlds, per seed, to the verified
 /// model (or, with `keep_training`, for the whole time, to see whether a policy that lapped
 /// everywhere stays good), then both models on those worlds and on unseen ones.
-#[allow(clippy::too_many_arguments)]
-pub fn pixels(
-    worlds: &[String],
-    unseen: &[String],
-    minutes: f64,
-    envs: usize,
-    evals: u32,
-    verify_trials: u32,
-    keep_training: bool,
-    seeds: &[u64],
-    out: &std::path::Path,
-) -> Result<()> {
+pub fn pixels(args: &crate::cli::PixelsArgs) -> Result<()> {
+    let crate::cli::PixelsArgs { worlds, unseen, minutes, envs, evals, verify_trials, keep_training, seeds, out } =
+        args;
+    let (minutes, envs, evals, verify_trials, keep_training) =
+        (*minutes, *envs, *evals, *verify_trials, *keep_training);
     if seeds.is_empty() {
         bail!("--seeds: give at least one seed");
     }

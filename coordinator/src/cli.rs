@@ -1,7 +1,9 @@
 //! The command line, as clap types. Subcommand and flag names are part of the interface.
 
 use clap::{Args, Parser, Subcommand};
-use std::path::PathBuf;
+use sim_agent::SimConfig;
+use sim_agent::race::{RaceConfig, RaceType};
+use std::path::{Path, PathBuf};
 
 /// Paddock: train DeepRacer-style cars on your own machines.
 #[derive(Parser)]
@@ -390,38 +392,41 @@ pub enum BenchCommand {
     },
     /// Wall-clock to 3/3 laps on every world from pixels: `train` in one process, then `up`
     /// with 2 agents, same worlds, same settings, in one run; then both models on more tracks.
-    Pixels {
-        /// Worlds to train on.
-        #[arg(long, default_value = "reinvent_carpet,reinvent_concrete,reinvent_wood", value_delimiter = ',')]
-        worlds: Vec<String>,
-        /// Worlds never trained on, for the generalisation table.
-        #[arg(long, default_value = "reinvent_base,reInvent2019_track,Oval_track", value_delimiter = ',')]
-        unseen: Vec<String>,
-        /// Time limit of each training (minutes).
-        #[arg(long, default_value_t = 20.0)]
-        minutes: f64,
-        /// Environments in total (split over the agents for `up`).
-        #[arg(long, default_value_t = 16)]
-        envs: usize,
-        /// Consecutive 3/3 evaluations (on every world) before the checkpoint is verified.
-        #[arg(long, default_value_t = 1)]
-        evals: u32,
-        /// Trials per world of the verification that ends a training (0: none; the streak
-        /// of --evals ends it).
-        #[arg(long, default_value_t = learner::run::VERIFY_TRIALS as u32, value_parser = clap::value_parser!(u32).range(0..=MAX_VERIFY_TRIALS))]
-        verify_trials: u32,
-        /// Train for the whole --minutes (no lap target), to see whether a policy that lapped
-        /// everywhere stays good.
-        #[arg(long)]
-        keep_training: bool,
-        /// Seeds: both setups are run once per seed (`train --seed S`, `up --seed S`) and
-        /// compared seed by seed and by their medians.
-        #[arg(long, default_value = "1", value_delimiter = ',')]
-        seeds: Vec<u64>,
-        /// Where the runs go (kept, with their models).
-        #[arg(long, default_value = "runs/bench-pixels")]
-        out: PathBuf,
-    },
+    Pixels(PixelsArgs),
+}
+
+#[derive(Args, Clone, Debug)]
+pub struct PixelsArgs {
+    /// Worlds to train on.
+    #[arg(long, default_value = "reinvent_carpet,reinvent_concrete,reinvent_wood", value_delimiter = ',')]
+    pub worlds: Vec<String>,
+    /// Worlds never trained on, for the generalisation table.
+    #[arg(long, default_value = "reinvent_base,reInvent2019_track,Oval_track", value_delimiter = ',')]
+    pub unseen: Vec<String>,
+    /// Time limit of each training (minutes).
+    #[arg(long, default_value_t = 20.0)]
+    pub minutes: f64,
+    /// Environments in total (split over the agents for `up`).
+    #[arg(long, default_value_t = 16)]
+    pub envs: usize,
+    /// Consecutive 3/3 evaluations (on every world) before the checkpoint is verified.
+    #[arg(long, default_value_t = 1)]
+    pub evals: u32,
+    /// Trials per world of the verification that ends a training (0: none; the streak
+    /// of --evals ends it).
+    #[arg(long, default_value_t = learner::run::VERIFY_TRIALS as u32, value_parser = clap::value_parser!(u32).range(0..=MAX_VERIFY_TRIALS))]
+    pub verify_trials: u32,
+    /// Train for the whole --minutes (no lap target), to see whether a policy that lapped
+    /// everywhere stays good.
+    #[arg(long)]
+    pub keep_training: bool,
+    /// Seeds: both setups are run once per seed (`train --seed S`, `up --seed S`) and
+    /// compared seed by seed and by their medians.
+    #[arg(long, default_value = "1", value_delimiter = ',')]
+    pub seeds: Vec<u64>,
+    /// Where the runs go (kept, with their models).
+    #[arg(long, default_value = "runs/bench-pixels")]
+    pub out: PathBuf,
 }
 
 pub use protocol::net::NetCli;
@@ -511,7 +516,8 @@ pub enum JobCommand {
 }
 
 /// The race a command drives, as DeepRacer configures it (`race` keys of the simulator
-/// configuration); these become `--set race.KEY=VALUE` overrides, before the command's own.
+/// configuration): set on the configuration as typed values, before the command's `--set`
+/// overrides (see [`RaceArgs::sim_config`]).
 #[derive(Args, Clone, Debug, Default)]
 pub struct RaceArgs {
     /// Race type: time_trial, object_avoidance or head_to_bot (other keys through
@@ -606,13 +612,23 @@ impl RaceArgs {
         Ok(Some(f))
     }
 
-    /// `sets` with the race's overrides in front (so that `--set` has the last word).
-    pub fn with_sets(&self, sets: &[String]) -> anyhow::Result<Vec<String>> {
+    /// Whether a flag (or `--run-env`) describes the race.
+    pub fn given(&self) -> bool {
+        self.race.is_some()
+            || self.obstacles.is_some()
+            || self.bots.is_some()
+            || self.bot_speed.is_some()
+            || self.run_env.is_some()
+    }
+
+    /// `race` as the flags describe it: a `--run-env`'s race replaces it whole (its keys
+    /// that the file leaves out at deepracer-for-cloud's defaults), then `--race`,
+    /// `--obstacles`, `--bots` and `--bot-speed` set theirs.
+    pub fn apply(&self, race: &mut RaceConfig) -> anyhow::Result<()> {
         use anyhow::Context;
-        let mut out = vec![];
         if let Some(path) = &self.run_env {
             let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-            out = sim_agent::race::RaceConfig::from_run_env(&text, &path.display().to_string())?.to_sets();
+            *race = RaceConfig::from_run_env(&text, &path.display().to_string())?;
         }
         let implied = match (&self.race, self.obstacles, self.bots) {
             (Some(r), ..) => Some(r.as_str()),
@@ -622,22 +638,28 @@ impl RaceArgs {
             (None, None, None) => None,
         };
         if let Some(r) = implied {
-            if sim_agent::race::RaceType::parse(r).is_none() {
-                anyhow::bail!("--race {r}: expected time_trial, object_avoidance or head_to_bot");
-            }
-            out.push(format!("race.race_type=\"{r}\""));
+            race.race_type = RaceType::parse(r)
+                .ok_or_else(|| anyhow::anyhow!("--race {r}: expected time_trial, object_avoidance or head_to_bot"))?;
         }
         if let Some(n) = self.obstacles {
-            out.push(format!("race.number_of_obstacles={n}"));
+            race.number_of_obstacles = n;
         }
         if let Some(n) = self.bots {
-            out.push(format!("race.number_of_bot_cars={n}"));
+            race.number_of_bot_cars = n;
         }
         if let Some(v) = self.bot_speed {
-            out.push(format!("race.bot_car_speed={v:?}"));
+            race.bot_car_speed = v;
         }
-        out.extend(sets.iter().cloned());
-        Ok(out)
+        Ok(())
+    }
+
+    /// The simulator configuration a command runs: `file`'s (or the defaults), the race these
+    /// flags describe, then `sets` (`--set key=value`, `race.KEY` too), which have the last word.
+    pub fn sim_config(&self, file: Option<&Path>, sets: &[String]) -> anyhow::Result<SimConfig> {
+        let mut cfg: SimConfig = sim_agent::config::load_config(file, &[])?;
+        self.apply(&mut cfg.race)?;
+        let origin = file.map_or_else(|| "defaults".to_string(), |p| p.display().to_string());
+        Ok(sim_agent::config::apply_sets(cfg, &origin, sets)?)
     }
 }
 
@@ -1135,4 +1157,71 @@ pub struct RenderArgs {
     /// Colour instead of the policy's grayscale.
     #[arg(long)]
     pub rgb: bool,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sets(s: &[&str]) -> Vec<String> {
+        s.iter().map(|s| s.to_string()).collect()
+    }
+
+    /// Issue 50: the race flags set the simulator configuration's race as typed values, and
+    /// `--set race.KEY=VALUE` still has the last word.
+    #[test]
+    fn the_race_flags_set_the_race_and_set_overrides_win() {
+        let dir = tempfile::tempdir().unwrap();
+        let env = dir.path().join("run.env");
+        std::fs::write(&env, "DR_RACE_TYPE=HEAD_TO_BOT\nDR_H2B_NUMBER_OF_BOT_CARS=4\nDR_H2B_BOT_CAR_SPEED=0.3\n")
+            .unwrap();
+        let oa = RaceType::ObjectAvoidance;
+        let h2b = RaceType::HeadToBot;
+        for (flags, over, want) in [
+            (RaceArgs::default(), vec![], (RaceType::TimeTrial, 6, 3, 0.2)),
+            (RaceArgs { race: Some("object_avoidance".into()), ..Default::default() }, vec![], (oa, 6, 3, 0.2)),
+            (RaceArgs { obstacles: Some(2), ..Default::default() }, vec![], (oa, 2, 3, 0.2)),
+            (RaceArgs { bots: Some(1), bot_speed: Some(0.5), ..Default::default() }, vec![], (h2b, 6, 1, 0.5)),
+            (
+                RaceArgs { obstacles: Some(2), ..Default::default() },
+                sets(&["race.number_of_obstacles=5"]),
+                (oa, 5, 3, 0.2),
+            ),
+            (RaceArgs { run_env: Some(env.clone()), ..Default::default() }, vec![], (h2b, 6, 4, 0.3)),
+            (
+                RaceArgs { run_env: Some(env.clone()), bots: Some(2), ..Default::default() },
+                sets(&["race.bot_car_speed=0.4"]),
+                (h2b, 6, 2, 0.4),
+            ),
+        ] {
+            let r = flags.sim_config(None, &over).unwrap().race;
+            assert_eq!((r.race_type, r.number_of_obstacles, r.number_of_bot_cars, r.bot_car_speed), want, "{flags:?}");
+        }
+    }
+
+    /// Issue 50: a bad race flag, `run.env` key or `--set race.` override is refused naming it.
+    #[test]
+    fn a_bad_race_setting_is_refused_naming_its_flag() {
+        let dir = tempfile::tempdir().unwrap();
+        let env = dir.path().join("run.env");
+        std::fs::write(&env, "DR_RACE_TYPE=DRAG_RACE\n").unwrap();
+        for (flags, over, want) in [
+            (RaceArgs { race: Some("drag".into()), ..Default::default() }, vec![], "--race drag: expected time_trial"),
+            (RaceArgs { obstacles: Some(1), bots: Some(1), ..Default::default() }, vec![], "--obstacles and --bots"),
+            (
+                RaceArgs { run_env: Some(env.clone()), ..Default::default() },
+                vec![],
+                "run.env: DR_RACE_TYPE is \"DRAG_RACE\"",
+            ),
+            (
+                RaceArgs { obstacles: Some(1), ..Default::default() },
+                sets(&["race.number_of_obstacles.x=1"]),
+                "--set race.number_of_obstacles.x=1: 'number_of_obstacles' is not a section",
+            ),
+            (RaceArgs::default(), sets(&["race.bots=2"]), "defaults with --set overrides: "),
+        ] {
+            let e = format!("{:#}", flags.sim_config(None, &over).unwrap_err());
+            assert!(e.contains(want), "{flags:?} {over:?}: {e}");
+        }
+    }
 }

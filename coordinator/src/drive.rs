@@ -6,7 +6,6 @@ use crate::tracks_cmd::{draw, resolve_world};
 use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use policy::{ActionSpace, ModelMetadata};
-use sim_agent::config::load_config;
 use sim_agent::driver::PurePursuit;
 use sim_agent::simtrace::{ActionTaken, SimTraceWriter};
 use sim_agent::validate::validate_reward;
@@ -20,7 +19,7 @@ fn direction(reversed: bool) -> Direction {
 }
 
 pub fn drive(args: DriveArgs) -> Result<i32> {
-    let cfg: SimConfig = load_config(args.config.as_deref(), &args.race.with_sets(&args.sets)?)?;
+    let cfg: SimConfig = args.race.sim_config(args.config.as_deref(), &args.sets)?;
     let world = resolve_world(&args.track)?;
     let mut reward = RewardFn::from_spec(&args.reward)?;
     let spec = EnvSpec::from_world(&world, direction(args.reversed));
@@ -121,7 +120,7 @@ pub fn drive(args: DriveArgs) -> Result<i32> {
 }
 
 pub fn validate(args: ValidateArgs) -> Result<i32> {
-    let race: SimConfig = load_config(None, &args.race.with_sets(&[])?)?;
+    let race: SimConfig = args.race.sim_config(None, &[])?;
     let world = resolve_world(&args.track)?;
     let track = world.track(direction(args.reversed));
     let space = match &args.model_metadata {

@@ -136,10 +136,7 @@ fn main() {
             cli::BenchCommand::Fuzz { seconds, targets, sanitizer } => fuzz_bench::run(seconds, &targets, &sanitizer),
             cli::BenchCommand::Record { seconds, rounds } => bench::record(seconds, rounds).map(|()| 0),
             cli::BenchCommand::Wire { seconds, rounds, up_seconds } => bench::wire(seconds, rounds, up_seconds).map(|()| 0),
-            cli::BenchCommand::Pixels { worlds, unseen, minutes, envs, evals, verify_trials, keep_training, seeds, out } => {
-                bench::pixels(&worlds, &unseen, minutes, envs, evals, verify_trials, keep_training, &seeds, &out)
-                    .map(|()| 0)
-            }
+            cli::BenchCommand::Pixels(args) => bench::pixels(&args).map(|()| 0),
         },
     };
     protocol::exit::exit(result)

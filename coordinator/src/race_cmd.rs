@@ -11,8 +11,7 @@ use crate::cli::RaceCmdArgs;
 use crate::tracks_cmd::resolve_world;
 use anyhow::{Context, Result, bail};
 use policy::folder::{self, ModelFolder};
-use sim_agent::config::load_config;
-use sim_agent::rollout::{TrialResult, evaluate};
+use sim_agent::rollout::{EvalPlan, TrialResult, evaluate};
 use sim_agent::{EnvSpec, EvalRules, SimConfig};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -109,7 +108,7 @@ pub fn run(args: &RaceCmdArgs) -> Result<Vec<Standing>> {
     if args.trials == 0 {
         bail!("--trials 0: a race needs at least one trial");
     }
-    let race: SimConfig = load_config(None, &args.race.with_sets(&[])?)?;
+    let race: SimConfig = args.race.sim_config(None, &[])?;
     let world = resolve_world(&args.world)?;
     let direction = if args.reversed { Direction::Reversed } else { Direction::Forward };
     let spec = EnvSpec::from_world(&world, direction);
@@ -163,8 +162,8 @@ pub fn run(args: &RaceCmdArgs) -> Result<Vec<Standing>> {
         let mut trials = Vec::new();
         for t in 0..args.trials {
             let seed = args.seed.wrapping_add(t as u64);
-            let mut one =
-                evaluate(&model, &f.metadata.action_space, &spec, &cfg, rules.clone(), 1, seed, threads, None)?;
+            let plan = EvalPlan { rules: rules.clone(), count: 1, seed, threads };
+            let mut one = evaluate(&model, &f.metadata.action_space, &spec, &cfg, &plan, None)?;
             let r = one.remove(0);
             println!(
                 "  {name:<24} trial {}: {:<10} progress {:>5.1} %  lap {:>8}  off-track {}  crashes {}",

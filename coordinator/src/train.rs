@@ -18,9 +18,8 @@ use learner::run::{Observer, RunSpec, Start, StopRules, TargetLaps, run};
 use policy::ModelMetadata;
 use policy::exchange::{Trial, summarise};
 use policy::folder::{self, Manifest, Parent};
-use sim_agent::config::load_config;
 use sim_agent::obs::obs_dim;
-use sim_agent::rollout::evaluate;
+use sim_agent::rollout::{EvalPlan, evaluate};
 use sim_agent::worker::{Worker, WorkerSetup};
 use sim_agent::{EnvSpec, EvalRules, RewardFn, SimConfig};
 use std::path::{Path, PathBuf};
@@ -146,7 +145,6 @@ fn stop_rules(args: &TrainArgs) -> StopRules {
 }
 
 pub fn train(mut args: TrainArgs) -> Result<i32> {
-    args.sets = args.race.with_sets(&args.sets)?;
     if let Some(f) = args.race.run_env_files()? {
         let meta = f.fill(&mut args.world, &mut args.reward, &mut args.hyperparameters, &mut args.sets);
         args.model_metadata = args.model_metadata.or(meta);
@@ -181,7 +179,7 @@ pub fn train(mut args: TrainArgs) -> Result<i32> {
     if let Some(lr) = args.lr {
         hyper.lr = lr;
     }
-    let mut cfg: SimConfig = load_config(sim_path.as_deref(), &args.sets)?;
+    let mut cfg: SimConfig = args.race.sim_config(sim_path.as_deref(), &args.sets)?;
     check_sensors(&meta, &mut cfg)?;
     let worlds = worlds_arg.iter().map(|w| resolve_world(w)).collect::<Result<Vec<_>>>()?;
     if let Some(n) = args.action_space_from_line {
@@ -301,7 +299,7 @@ pub fn train(mut args: TrainArgs) -> Result<i32> {
 
 pub fn evaluate_cmd(args: EvaluateArgs) -> Result<i32> {
     let f = folder::load(&args.model_dir)?;
-    let race: SimConfig = load_config(None, &args.race.with_sets(&[])?)?;
+    let race: SimConfig = args.race.sim_config(None, &[])?;
     let cfg = SimConfig {
         race: race.race,
         observation: serde_json::from_value(f.manifest.observation.clone())
@@ -334,20 +332,11 @@ pub fn evaluate_cmd(args: EvaluateArgs) -> Result<i32> {
     for name in &names {
         let world = resolve_world(name)?;
         let spec = EnvSpec::from_world(&world, if args.reversed { Direction::Reversed } else { Direction::Forward });
-        let trials: Vec<Trial> = evaluate(
-            &model,
-            &f.metadata.action_space,
-            &spec,
-            &cfg,
-            rules.clone(),
-            args.trials,
-            args.seed,
-            threads,
-            None,
-        )?
-        .into_iter()
-        .map(Trial::from)
-        .collect();
+        let plan = EvalPlan { rules: rules.clone(), count: args.trials, seed: args.seed, threads };
+        let trials: Vec<Trial> = evaluate(&model, &f.metadata.action_space, &spec, &cfg, &plan, None)?
+            .into_iter()
+            .map(Trial::from)
+            .collect();
         for (i, t) in trials.iter().enumerate() {
             println!(
                 "trial {}: {:<20} {:<12} progress {:>6.1} %  lap time {:>8}  off-track {:>2}  crashes {:>2}  steps {:>5}",

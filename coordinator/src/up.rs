@@ -131,7 +131,8 @@ fn spawn(
 }
 
 pub fn up(mut args: UpArgs) -> Result<i32> {
-    args.sets = args.race.with_sets(&args.sets)?;
+    // The race flags, checked before anything starts (the job's spec applies them).
+    args.race.apply(&mut sim_agent::race::RaceConfig::default())?;
     if let Some(f) = args.race.run_env_files()? {
         let meta = f.fill(&mut args.world, &mut args.reward, &mut args.hyperparameters, &mut args.sets);
         // An explicit --sensor is the user's choice of model; the file's metadata does not
@@ -390,9 +391,10 @@ fn job_spec(args: &UpArgs, out: &Path) -> Result<String> {
         schedule.insert("adaptive".into(), Value::Boolean(how == "adaptive"));
         t.insert("schedule".into(), Value::Table(schedule));
     }
-    // `--set` overrides, checked against the simulator configuration now, kept in the spec.
-    if !args.sets.is_empty() {
-        let sim: sim_agent::SimConfig = sim_agent::config::load_config(None, &args.sets)?;
+    // The race flags and `--set` overrides, checked against the simulator configuration now,
+    // kept in the spec.
+    if !args.sets.is_empty() || args.race.given() {
+        let sim = args.race.sim_config(None, &args.sets)?;
         t.insert("sim".into(), Value::try_from(&sim)?);
     }
     Ok(format!(

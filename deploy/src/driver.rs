@@ -9,9 +9,9 @@
 //! [`Driver::tick`] sends throttle 0 when frames stop for `watchdog_ms`, again every period,
 //! until they return. Every state change is logged.
 
-use crate::frame::{add_lidar, preprocess};
+use crate::frame::{FrameError, add_lidar, preprocess};
 use crate::infer::Scratch;
-use crate::verify::{VerifiedModel, verify};
+use crate::verify::{Refusal, VerifiedModel, verify};
 use arc_swap::ArcSwapOption;
 use policy::car::{CarConfig, Layout};
 use policy::signature::TrustedKeys;
@@ -80,9 +80,32 @@ pub struct ModelSlot {
 /// and load take about 200 ms of CPU, and on a car's few cores they must never hold back the
 /// thread that answers frames (the frame period is 66 ms). The kernel still gives the loader
 /// every cycle the drive loop leaves idle.
-pub fn background_thread() -> Result<(), String> {
-    thread_priority::set_current_thread_priority(thread_priority::ThreadPriority::Min)
-        .map_err(|e| format!("lowering the loader thread's priority: {e:?}"))
+pub fn background_thread() -> Result<(), PriorityError> {
+    thread_priority::set_current_thread_priority(thread_priority::ThreadPriority::Min).map_err(PriorityError)
+}
+
+/// The loader thread's priority could not be lowered (the system's reason).
+#[derive(Debug, thiserror::Error)]
+#[error("lowering the loader thread's priority: {0:?}")]
+pub struct PriorityError(thread_priority::Error);
+
+/// Why a frame got no command (the car keeps its last one until the watchdog's).
+#[derive(Debug, thiserror::Error)]
+pub enum BadFrame {
+    /// The message is not an `EvoSensorMsg` in the car's layout.
+    #[error(transparent)]
+    Message(#[from] ros::CdrError),
+    /// Its images or LiDAR values are not what the model takes (the message names which).
+    #[error(transparent)]
+    Input(#[from] FrameError),
+    /// The model chose an action outside its action space.
+    #[error("model v{version} chose {choice:?} outside its action space")]
+    OutsideActions {
+        /// The model's policy version.
+        version: u64,
+        /// What it chose.
+        choice: Choice,
+    },
 }
 
 impl ModelSlot {
@@ -109,10 +132,11 @@ impl ModelSlot {
         self.consider(crate::verify::verify_import(parts, name, car, source), source, &Follow::Latest)
     }
 
-    fn consider(&self, verified: Result<crate::verify::VerifiedModel, String>, source: &str, follow: &Follow) -> Offer {
+    fn consider(&self, verified: Result<VerifiedModel, Refusal>, source: &str, follow: &Follow) -> Offer {
         let m = match verified {
             Ok(m) => m,
             Err(why) => {
+                let why = why.to_string();
                 self.refused.fetch_add(1, Ordering::Relaxed);
                 tracing::warn!(source, "model refused: {why}");
                 if let Ok(mut l) = self.last_refusal.lock() {
@@ -299,7 +323,7 @@ impl Driver {
     }
 
     /// One `EvoSensorMsg` (CDR bytes, the car's layout): the command that answers it.
-    pub fn frame(&mut self, bytes: &[u8], now: Instant) -> Result<Command, String> {
+    pub fn frame(&mut self, bytes: &[u8], now: Instant) -> Result<Command, BadFrame> {
         let layout = match self.car.layout {
             Layout::Community => ros::Layout::Community,
             Layout::Aws => ros::Layout::Aws,
@@ -308,7 +332,7 @@ impl Driver {
             Ok(f) => f,
             Err(e) => {
                 self.figures.bad_frames += 1;
-                return Err(e.to_string());
+                return Err(e.into());
             }
         };
         self.last_frame = Some(now);
@@ -331,7 +355,7 @@ impl Driver {
                     .and_then(|()| add_lidar(m.lidar, &sensors.lidar, &mut self.obs))
                 {
                     self.figures.bad_frames += 1;
-                    return Err(e.to_string());
+                    return Err(e.into());
                 }
                 let t0 = Instant::now();
                 let choice = m.policy.mode(&self.obs, &mut self.scratch);
@@ -341,7 +365,7 @@ impl Driver {
                     Choice::Continuous(u) => m.metadata.action_space.scale([u[0] as f64, u[1] as f64]),
                 };
                 let Some(action) = action else {
-                    return Err(format!("model v{} chose {choice:?} outside its action space", m.version));
+                    return Err(BadFrame::OutsideActions { version: m.version, choice });
                 };
                 let (angle, throttle) = m.servo.to_servo(action);
                 self.set_state(CarState::Driving);

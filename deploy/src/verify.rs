@@ -5,11 +5,11 @@
 //! (and the LiDAR's values) the car produces.
 
 use crate::infer::CarPolicy;
-use policy::car::{CarConfig, ServoMap};
+use policy::car::{CarConfig, DoesNotFit, ServoMap};
 use policy::model::{CAMERA_SHAPE, input_shape};
 use policy::nn::InputShape;
-use policy::signature::TrustedKeys;
-use policy::{ActorCritic, Manifest, ModelMetadata, ModelParts};
+use policy::signature::{SignatureError, TrustedKeys};
+use policy::{ActorCritic, Manifest, ModelError, ModelMetadata, ModelParts};
 use std::path::Path;
 
 /// A model that passed every check, ready to drive.
@@ -40,42 +40,76 @@ pub struct VerifiedModel {
     pub parts: ModelParts,
 }
 
+/// Why a car refuses a model: the check it failed, naming the file, key or limit.
+#[derive(Debug, thiserror::Error)]
+pub enum Refusal {
+    /// Not signed by a trusted key.
+    #[error("signature: {0}")]
+    Signature(SignatureError),
+    /// A DeepRacer archive's model whose name `car.toml` does not trust.
+    #[error(
+        "'{name}' is an unsigned DeepRacer model: the car drives it only if car.toml's trust_unsigned lists \"{name}\""
+    )]
+    Untrusted {
+        /// The model's name (from the archive's file name).
+        name: String,
+    },
+    /// A file of the model is damaged or does not match its metadata.
+    #[error(transparent)]
+    Model(#[from] ModelError),
+    /// Its sensors or action space do not fit the car.
+    #[error(transparent)]
+    DoesNotFit(#[from] DoesNotFit),
+    /// It takes a vector, not a camera frame.
+    #[error("the model takes a vector of {0}, not a camera frame")]
+    NotCamera(usize),
+    /// Its input is not the frames (and LiDAR values) the car gives.
+    #[error(
+        "the manifest says {obs_size} inputs; the car gives {}×{}×{} frames{}",
+        .frame.0, .frame.1, .frame.2,
+        .lidar.map_or(String::new(), |n| format!(" and {n} LiDAR values"))
+    )]
+    Inputs {
+        /// `manifest.json`'s `obs_size`.
+        obs_size: usize,
+        /// The frame the model takes: rows, columns, channels.
+        frame: (usize, usize, usize),
+        /// The LiDAR values it takes, if any.
+        lidar: Option<usize>,
+    },
+}
+
 /// Check a model's files for this car (see the module documentation); the reason when not.
-pub fn verify(parts: ModelParts, trust: &TrustedKeys, car: &CarConfig, source: &str) -> Result<VerifiedModel, String> {
-    let key = parts.verify(trust).map_err(|e| format!("signature: {e}"))?.to_string();
+pub fn verify(parts: ModelParts, trust: &TrustedKeys, car: &CarConfig, source: &str) -> Result<VerifiedModel, Refusal> {
+    let key = parts.verify(trust).map_err(Refusal::Signature)?.to_string();
     checked(parts, key, car, source)
 }
 
 /// [`verify`] for a model imported from DeepRacer's archive named `name` (see
 /// `policy::carpkg::car_model_name`): unsigned, so driven only when `car.toml` trusts that name.
-pub fn verify_import(parts: ModelParts, name: &str, car: &CarConfig, source: &str) -> Result<VerifiedModel, String> {
+pub fn verify_import(parts: ModelParts, name: &str, car: &CarConfig, source: &str) -> Result<VerifiedModel, Refusal> {
     if !car.trust_unsigned.iter().any(|n| n == name) {
-        return Err(format!(
-            "'{name}' is an unsigned DeepRacer model: the car drives it only if car.toml's trust_unsigned lists \"{name}\""
-        ));
+        return Err(Refusal::Untrusted { name: name.to_string() });
     }
     checked(parts, format!("unsigned, trusted by name ('{name}' in car.toml)"), car, source)
 }
 
 /// Every check after the signature's.
-fn checked(parts: ModelParts, key: String, car: &CarConfig, source: &str) -> Result<VerifiedModel, String> {
-    let folder = parts.decode(Path::new(source)).map_err(|e| e.to_string())?;
+fn checked(parts: ModelParts, key: String, car: &CarConfig, source: &str) -> Result<VerifiedModel, Refusal> {
+    let folder = parts.decode(Path::new(source))?;
     car.fits(&folder.metadata)?;
     let input = match input_shape(&folder.metadata, folder.manifest.obs_size) {
         InputShape::Image(h, w, c) => (h, w, c),
-        InputShape::Flat(n) => return Err(format!("the model takes a vector of {n}, not a camera frame")),
+        InputShape::Flat(n) => return Err(Refusal::NotCamera(n)),
     };
     let (h, w, _) = CAMERA_SHAPE;
     let size = policy::model::input_size(&folder.metadata, folder.manifest.obs_size);
     if folder.manifest.obs_size != size || (input.0, input.1) != (h, w) {
-        return Err(format!(
-            "the manifest says {} inputs; the car gives {}×{}×{} frames{}",
-            folder.manifest.obs_size,
-            input.0,
-            input.1,
-            input.2,
-            folder.metadata.lidar.map_or(String::new(), |l| format!(" and {} LiDAR values", l.size()))
-        ));
+        return Err(Refusal::Inputs {
+            obs_size: folder.manifest.obs_size,
+            frame: input,
+            lidar: folder.metadata.lidar.map(|l| l.size()),
+        });
     }
     let lidar = folder.metadata.lidar.map(|l| {
         let first = policy::model::inputs(&folder.metadata, 0)[0].0 == l.sensor;

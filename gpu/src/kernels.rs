@@ -98,6 +98,22 @@ pub struct Operand<'a> {
     pub t: bool,
 }
 
+/// One product for [`Gpu::gemm`]: `c (m×n) = op(a) (m×k) · op(b) (k×n)`, added to what `c`
+/// holds when `add`.
+#[derive(Clone, Copy)]
+pub struct Gemm<'a> {
+    /// m, n and k.
+    pub mnk: [usize; 3],
+    /// The left operand.
+    pub a: Operand<'a>,
+    /// The right operand.
+    pub b: Operand<'a>,
+    /// The output's buffer and where it starts (floats).
+    pub c: (&'a wgpu::Buffer, usize),
+    /// Add to the output rather than replace it.
+    pub add: bool,
+}
+
 /// Every compiled pipeline.
 pub struct Kernels {
     four: wgpu::BindGroupLayout,
@@ -292,19 +308,10 @@ impl Gpu {
         pass.dispatch_workgroups(grid.0, grid.1, grid.2);
     }
 
-    /// `c (m×n) = op(a) · op(b)`, added to `c` when `add`. A small output over a long K is
-    /// split over K into `scratch` (grown as needed) and the parts added in order.
-    #[allow(clippy::too_many_arguments)]
-    pub fn gemm(
-        &self,
-        enc: &mut wgpu::CommandEncoder,
-        [m, n, k]: [usize; 3],
-        a: Operand,
-        b: Operand,
-        c: (&wgpu::Buffer, usize),
-        add: bool,
-        scratch: &mut Option<wgpu::Buffer>,
-    ) {
+    /// Record `g`: `c (m×n) = op(a) · op(b)`, added to `c` when `add`. A small output over a
+    /// long K is split over K into `scratch` (grown as needed) and the parts added in order.
+    pub fn gemm(&self, enc: &mut wgpu::CommandEncoder, g: &Gemm<'_>, scratch: &mut Option<wgpu::Buffer>) {
+        let Gemm { mnk: [m, n, k], a, b, c, add } = *g;
         let tiles = m.div_ceil(64) * n.div_ceil(64);
         // Enough workgroups to fill a big GPU, each with at least 512 of K.
         let splits = if tiles >= 64 { 1 } else { (k / 512).min(128 / tiles).max(1) };

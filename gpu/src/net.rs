@@ -7,7 +7,7 @@
 //! a row of ones. A network of several inputs (camera and LiDAR) takes each input's values
 //! out of the samples into its embedder and the embeddings side by side into the rest.
 
-use crate::kernels::Operand;
+use crate::kernels::{Gemm, Operand};
 use crate::{Gpu, GpuError};
 use policy::nn::{Layer, Net};
 
@@ -274,11 +274,13 @@ impl GpuNet {
                     gpu.op(enc, "fill_rows", p.rows * p.n_out, &self.params, None, out, bias, 0.0);
                     gpu.gemm(
                         enc,
-                        [p.rows, p.n_out, p.n_in],
-                        Operand { buf: unfolded, at: 0, t: false },
-                        Operand { buf: &self.params, at: p.offset, t: true },
-                        (out, 0),
-                        true,
+                        &Gemm {
+                            mnk: [p.rows, p.n_out, p.n_in],
+                            a: Operand { buf: unfolded, at: 0, t: false },
+                            b: Operand { buf: &self.params, at: p.offset, t: true },
+                            c: (out, 0),
+                            add: true,
+                        },
                         &mut self.scratch,
                     );
                 }
@@ -323,7 +325,13 @@ impl GpuNet {
         let Some((merged, d_merged, width)) = self.merged.as_ref().map(|m| (m.values.clone(), m.grad.clone(), m.width))
         else {
             enc.copy_buffer_to_buffer(d_out.0, (d_out.1 * 4) as u64, &self.d[0], 0, (batch * last * 4) as u64);
-            let cur = self.backward_layers(gpu, enc, 0..self.layers.len(), x, batch, params, d_in.is_some());
+            let cur = self.backward_layers(
+                gpu,
+                enc,
+                0..self.layers.len(),
+                x,
+                Pass { batch, params, want_in: d_in.is_some() },
+            );
             if let Some(d_in) = d_in {
                 enc.copy_buffer_to_buffer(&self.d[cur], 0, d_in, 0, (batch * self.in_size * 4) as u64);
             }
@@ -335,7 +343,8 @@ impl GpuNet {
             enc.copy_buffer_to_buffer(d_out.0, (d_out.1 * 4) as u64, &d_merged, 0, bytes);
         } else {
             enc.copy_buffer_to_buffer(d_out.0, (d_out.1 * 4) as u64, &self.d[0], 0, (batch * last * 4) as u64);
-            let cur = self.backward_layers(gpu, enc, self.trunk.clone(), &merged, batch, params, true);
+            let cur =
+                self.backward_layers(gpu, enc, self.trunk.clone(), &merged, Pass { batch, params, want_in: true });
             enc.copy_buffer_to_buffer(&self.d[cur], 0, &d_merged, 0, bytes);
         }
         let mut o = 0;
@@ -346,7 +355,8 @@ impl GpuNet {
             if trains || d_in.is_some() {
                 let d0 = self.d[0].clone();
                 copy_cols(gpu, enc, batch, (&d_merged, width, o), (&d0, out, 0), out);
-                let cur = self.backward_layers(gpu, enc, layers, &values, batch, params, d_in.is_some());
+                let cur =
+                    self.backward_layers(gpu, enc, layers, &values, Pass { batch, params, want_in: d_in.is_some() });
                 if let Some(d_in) = d_in {
                     copy_cols(gpu, enc, batch, (&self.d[cur].clone(), size, 0), (d_in, self.in_size, at), size);
                 }
@@ -359,17 +369,15 @@ impl GpuNet {
     /// wrt their output in `d[0]`: the parameters' gradient when `params`, and the gradient
     /// wrt `x` when `want_in` (else down to the range's first layer with parameters).
     /// Returns which of the two gradient buffers holds the last gradient computed.
-    #[allow(clippy::too_many_arguments)]
     fn backward_layers(
         &mut self,
         gpu: &Gpu,
         enc: &mut wgpu::CommandEncoder,
         range: std::ops::Range<usize>,
         x: &wgpu::Buffer,
-        batch: usize,
-        params: bool,
-        want_in: bool,
+        pass: Pass,
     ) -> usize {
+        let Pass { batch, params, want_in } = pass;
         let first_param = range.clone().find(|&i| self.layers[i].param_count() > 0).unwrap_or(range.end);
         let lowest = if want_in { range.start } else { first_param };
         let mut cur = 0;
@@ -388,20 +396,24 @@ impl GpuNet {
                     if params {
                         gpu.gemm(
                             enc,
-                            [p.n_out, p.n_in, p.rows],
-                            Operand { buf: d, at: 0, t: true },
-                            Operand { buf: unfolded, at: 0, t: false },
-                            (&self.grad, p.offset),
-                            true,
+                            &Gemm {
+                                mnk: [p.n_out, p.n_in, p.rows],
+                                a: Operand { buf: d, at: 0, t: true },
+                                b: Operand { buf: unfolded, at: 0, t: false },
+                                c: (&self.grad, p.offset),
+                                add: true,
+                            },
                             &mut self.scratch,
                         );
                         gpu.gemm(
                             enc,
-                            [1, p.n_out, p.rows],
-                            Operand { buf: &self.ones, at: 0, t: false },
-                            Operand { buf: d, at: 0, t: false },
-                            (&self.grad, p.offset + p.n_in * p.n_out),
-                            true,
+                            &Gemm {
+                                mnk: [1, p.n_out, p.rows],
+                                a: Operand { buf: &self.ones, at: 0, t: false },
+                                b: Operand { buf: d, at: 0, t: false },
+                                c: (&self.grad, p.offset + p.n_in * p.n_out),
+                                add: true,
+                            },
                             &mut self.scratch,
                         );
                     }
@@ -410,11 +422,13 @@ impl GpuNet {
                         let target = if p.geometry.is_some() { &self.d_cols } else { d_prev };
                         gpu.gemm(
                             enc,
-                            [p.rows, p.n_in, p.n_out],
-                            Operand { buf: d, at: 0, t: false },
-                            Operand { buf: &self.params, at: p.offset, t: false },
-                            (target, 0),
-                            false,
+                            &Gemm {
+                                mnk: [p.rows, p.n_in, p.n_out],
+                                a: Operand { buf: d, at: 0, t: false },
+                                b: Operand { buf: &self.params, at: p.offset, t: false },
+                                c: (target, 0),
+                                add: false,
+                            },
                             &mut self.scratch,
                         );
                         if let Some(geometry) = p.geometry {
@@ -459,4 +473,13 @@ impl GpuNet {
     pub fn read_moments(&self, gpu: &Gpu) -> Result<(Vec<f32>, Vec<f32>), GpuError> {
         Ok((gpu.download(&self.m, 0, self.n_params)?, gpu.download(&self.v, 0, self.n_params)?))
     }
+}
+
+/// What one backward pass through a range of layers computes: over `batch` samples, the
+/// parameters' gradient when `params`, and the gradient wrt the range's input when `want_in`.
+#[derive(Clone, Copy)]
+struct Pass {
+    batch: usize,
+    params: bool,
+    want_in: bool,
 }

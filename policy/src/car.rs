@@ -157,34 +157,60 @@ impl CarConfig {
 
     /// Whether a model can run on this car: its sensors are the car's (never the simulator's
     /// state vector) and its actions within the car's limits. The reason when not.
-    pub fn fits(&self, meta: &ModelMetadata) -> Result<(), String> {
+    pub fn fits(&self, meta: &ModelMetadata) -> Result<(), DoesNotFit> {
         for s in &meta.sensor {
             if *s == Sensor::StateVector {
-                return Err(
-                    "the model drives from STATE_VECTOR, the simulator's state: a real car has no state vector; \
-                            train it with --sensor camera"
-                        .into(),
-                );
+                return Err(DoesNotFit::StateVector);
             }
             if !self.sensors.iter().any(|c| c == s.name()) {
-                return Err(format!("the model needs sensor {}, the car has {:?}", s.name(), self.sensors));
+                return Err(DoesNotFit::Sensor { sensor: s.name(), car: self.sensors.clone() });
             }
         }
         let (steer, speed) = extremes(&meta.action_space);
         if steer > self.max_model_steering_deg + 1e-9 {
-            return Err(format!(
-                "the action space steers up to {steer}°; the car allows {}° (max_model_steering_deg)",
-                self.max_model_steering_deg
-            ));
+            return Err(DoesNotFit::Steering { model: steer, car: self.max_model_steering_deg });
         }
         if speed > self.max_model_speed + 1e-9 {
-            return Err(format!(
-                "the action space goes up to {speed} m/s; the car allows {} m/s (max_model_speed)",
-                self.max_model_speed
-            ));
+            return Err(DoesNotFit::Speed { model: speed, car: self.max_model_speed });
         }
         Ok(())
     }
+}
+
+/// Why a model cannot run on a car ([`CarConfig::fits`]): the sensor or the `car.toml` limit,
+/// and what the model asks for.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum DoesNotFit {
+    /// The model drives from the simulator's state vector.
+    #[error(
+        "the model drives from STATE_VECTOR, the simulator's state: a real car has no state vector; \
+         train it with --sensor camera"
+    )]
+    StateVector,
+    /// The model needs a sensor `car.toml`'s `sensors` does not list.
+    #[error("the model needs sensor {sensor}, the car has {car:?}")]
+    Sensor {
+        /// The sensor (DeepRacer's name).
+        sensor: &'static str,
+        /// The car's sensors.
+        car: Vec<String>,
+    },
+    /// The action space steers further than `max_model_steering_deg`.
+    #[error("the action space steers up to {model}°; the car allows {car}° (max_model_steering_deg)")]
+    Steering {
+        /// The model's largest steering angle (degrees).
+        model: f64,
+        /// `car.toml`'s limit.
+        car: f64,
+    },
+    /// The action space goes faster than `max_model_speed`.
+    #[error("the action space goes up to {model} m/s; the car allows {car} m/s (max_model_speed)")]
+    Speed {
+        /// The model's largest speed (m/s).
+        model: f64,
+        /// `car.toml`'s limit.
+        car: f64,
+    },
 }
 
 /// The largest |steering| and |speed| an action space can ask for, as the navigation node
@@ -315,10 +341,18 @@ mod tests {
     fn a_state_vector_model_or_one_beyond_the_car_does_not_fit() {
         let car = CarConfig::default();
         assert!(car.fits(&ModelMetadata::default_camera()).is_ok());
-        let e = car.fits(&ModelMetadata::default_state_vector()).unwrap_err();
-        assert!(e.contains("STATE_VECTOR"), "{e}");
+        let narrow = CarConfig { max_model_steering_deg: 10.0, ..CarConfig::default() };
         let slow = CarConfig { max_model_speed: 1.5, ..CarConfig::default() };
-        let e = slow.fits(&ModelMetadata::default_camera()).unwrap_err();
-        assert!(e.contains("max_model_speed"), "{e}");
+        let blind = CarConfig { sensors: vec![], ..CarConfig::default() };
+        // Issue 50: each reason names the sensor or the car.toml field.
+        for (car, meta, field) in [
+            (&car, ModelMetadata::default_state_vector(), "STATE_VECTOR"),
+            (&narrow, ModelMetadata::default_camera(), "max_model_steering_deg"),
+            (&slow, ModelMetadata::default_camera(), "max_model_speed"),
+            (&blind, ModelMetadata::default_camera(), "needs sensor FRONT_FACING_CAMERA"),
+        ] {
+            let e = car.fits(&meta).unwrap_err().to_string();
+            assert!(e.contains(field), "{e}");
+        }
     }
 }

@@ -8,6 +8,7 @@
 //! the root. Beyond the car: entries that are not plain files or folders, paths that leave the
 //! archive, and archives over [`MAX_ARCHIVE_BYTES`] unpacked are refused, naming the entry.
 
+use crate::error::FileError;
 use crate::folder::{Manifest, ModelFolder, sha256_hex};
 use crate::metadata::ModelMetadata;
 use crate::model::ActorCritic;
@@ -25,22 +26,10 @@ pub const METADATA_PATH: &str = "model_metadata.json";
 /// Why an archive could not be written or read.
 #[derive(Debug, thiserror::Error)]
 pub enum PackageError {
-    /// A file could not be read or written.
-    #[error("{path}: {error}")]
-    Io {
-        /// The file.
-        path: String,
-        /// The error.
-        error: std::io::Error,
-    },
-    /// The archive is not what a car takes.
-    #[error("{path}: {msg}")]
-    Invalid {
-        /// The archive.
-        path: String,
-        /// What is wrong, naming the entry.
-        msg: String,
-    },
+    /// The archive could not be read or written, or is not what a car takes (the message
+    /// names the entry).
+    #[error(transparent)]
+    File(#[from] FileError),
     /// Its metadata is not a `model_metadata.json` Paddock reads.
     #[error(transparent)]
     Metadata(#[from] crate::metadata::MetadataError),
@@ -96,29 +85,27 @@ pub fn pack(model: &ActorCritic, meta: &ModelMetadata) -> Result<Vec<u8>, GraphE
 pub fn write(path: &Path, model: &ActorCritic, meta: &ModelMetadata) -> Result<usize, PackageError> {
     let bytes =
         pack(model, meta).map_err(|source| PackageError::Graph { path: path.display().to_string(), error: source })?;
-    let io = |source| PackageError::Io { path: path.display().to_string(), error: source };
     let tmp = path.with_file_name(format!(
         ".{}.tmp",
         path.file_name().map(|f| f.to_string_lossy().into_owned()).unwrap_or_default()
     ));
-    std::fs::write(&tmp, &bytes).map_err(io)?;
+    std::fs::write(&tmp, &bytes).map_err(FileError::io_at(path))?;
     std::fs::rename(&tmp, path).map_err(|e| {
         let _ = std::fs::remove_file(&tmp);
-        io(e)
+        FileError::io(path, e)
     })?;
     Ok(bytes.len())
 }
 
 /// Read an archive (`.tar.gz`, or a plain `.tar`), as a car's loader does.
 pub fn read(path: &Path) -> Result<Package, PackageError> {
-    let bytes =
-        std::fs::read(path).map_err(|source| PackageError::Io { path: path.display().to_string(), error: source })?;
+    let bytes = std::fs::read(path).map_err(FileError::io_at(path))?;
     unpack(&bytes, &path.display().to_string())
 }
 
 /// [`read`] of an archive's bytes; `origin` names it in errors.
 pub fn unpack(bytes: &[u8], origin: &str) -> Result<Package, PackageError> {
-    let bad = |msg: String| PackageError::Invalid { path: origin.to_string(), msg };
+    let bad = |msg: String| PackageError::from(FileError::invalid(origin, msg));
     let gz = bytes.starts_with(&[0x1f, 0x8b]);
     let reader: Box<dyn Read + '_> =
         if gz { Box::new(flate2::read::GzDecoder::new(bytes).take(MAX_ARCHIVE_BYTES + 1)) } else { Box::new(bytes) };

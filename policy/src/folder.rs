@@ -12,6 +12,7 @@
 //! old folder or the new one, never half of one. Loading checks every tensor's presence and
 //! shape against what `model_metadata.json` implies, and the weights' checksum.
 
+use crate::error::FileError;
 use crate::metadata::ModelMetadata;
 use crate::model::{ActorCritic, Head};
 use crate::nn::{Layer, Net};
@@ -65,30 +66,9 @@ pub struct ModelFolder {
     pub manifest: Manifest,
 }
 
-/// Why a model folder could not be read or written.
-#[derive(Debug, thiserror::Error)]
-pub enum ModelError {
-    /// A file could not be read or written.
-    #[error("{path}: {error}")]
-    Io {
-        /// The file.
-        path: String,
-        /// The error.
-        error: std::io::Error,
-    },
-    /// The folder's contents are inconsistent.
-    #[error("{path}: {msg}")]
-    Invalid {
-        /// The file.
-        path: String,
-        /// What is wrong.
-        msg: String,
-    },
-}
-
-fn io(path: &Path) -> impl FnOnce(std::io::Error) -> ModelError + '_ {
-    move |source| ModelError::Io { path: path.display().to_string(), error: source }
-}
+/// Why a model folder could not be read or written: a [`FileError`] naming the folder's file
+/// (the weights, the metadata, the manifest or the signature).
+pub type ModelError = FileError;
 
 /// Named tensors of a model: (name, shape, values).
 fn tensors(model: &ActorCritic) -> Vec<(String, Vec<usize>, &[f32])> {
@@ -168,21 +148,21 @@ impl ModelParts {
     pub fn read(dir: &Path) -> Result<ModelParts, ModelError> {
         let read_text = |file: &str| -> Result<String, ModelError> {
             let p = dir.join(file);
-            std::fs::read_to_string(&p).map_err(io(&p))
+            std::fs::read_to_string(&p).map_err(FileError::io_at(&p))
         };
         let metadata_json = read_text("model_metadata.json")?;
         let manifest_json = read_text("manifest.json")?;
         let w_path = dir.join("model.safetensors");
-        let weights = std::fs::read(&w_path).map_err(io(&w_path))?;
+        let weights = std::fs::read(&w_path).map_err(FileError::io_at(&w_path))?;
         let s_path = dir.join("signature.json");
-        let signature = match std::fs::read_to_string(&s_path) {
-            Ok(text) => Some(serde_json::from_str(&text).map_err(|e| ModelError::Invalid {
-                path: s_path.display().to_string(),
-                msg: format!("not a signature file: {e}"),
-            })?),
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
-            Err(e) => return Err(io(&s_path)(e)),
-        };
+        let signature =
+            match std::fs::read_to_string(&s_path) {
+                Ok(text) => Some(serde_json::from_str(&text).map_err(|e| {
+                    FileError::invalid(s_path.display().to_string(), format!("not a signature file: {e}"))
+                })?),
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
+                Err(e) => return Err(FileError::io(&s_path, e)),
+            };
         Ok(ModelParts { metadata_json, manifest_json, weights, signature })
     }
 
@@ -190,16 +170,16 @@ impl ModelParts {
     /// folder renamed into place, so that a reader sees the old folder or the new one.
     pub fn write(&self, dir: &Path) -> Result<(), ModelError> {
         let parent = dir.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
-        std::fs::create_dir_all(parent).map_err(io(parent))?;
+        std::fs::create_dir_all(parent).map_err(FileError::io_at(parent))?;
         let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "model".into());
         let tmp = parent.join(format!(".{name}.tmp-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&tmp);
-        std::fs::create_dir_all(&tmp).map_err(io(&tmp))?;
+        std::fs::create_dir_all(&tmp).map_err(FileError::io_at(&tmp))?;
         let write = |file: &str, bytes: &[u8]| -> Result<(), ModelError> {
             use std::io::Write;
             let p = tmp.join(file);
-            let mut f = std::fs::File::create(&p).map_err(io(&p))?;
-            f.write_all(bytes).and_then(|()| f.sync_all()).map_err(io(&p))
+            let mut f = std::fs::File::create(&p).map_err(FileError::io_at(&p))?;
+            f.write_all(bytes).and_then(|()| f.sync_all()).map_err(FileError::io_at(&p))
         };
         let written = (|| {
             write("model.safetensors", &self.weights)?;
@@ -217,9 +197,9 @@ impl ModelParts {
         }
         let old: PathBuf = parent.join(format!(".{name}.old-{}", std::process::id()));
         if dir.exists() {
-            std::fs::rename(dir, &old).map_err(io(dir))?;
+            std::fs::rename(dir, &old).map_err(FileError::io_at(dir))?;
         }
-        std::fs::rename(&tmp, dir).map_err(io(dir))?;
+        std::fs::rename(&tmp, dir).map_err(FileError::io_at(dir))?;
         let _ = std::fs::remove_dir_all(&old);
         Ok(())
     }
@@ -280,12 +260,12 @@ pub fn to_parts(folder: &ModelFolder) -> (String, String, Vec<u8>) {
 pub fn from_parts(meta_text: &str, manifest_text: &str, bytes: &[u8], dir: &Path) -> Result<ModelFolder, ModelError> {
     let meta_path = dir.join("model_metadata.json");
     let metadata = ModelMetadata::parse(meta_text, &meta_path.display().to_string())
-        .map_err(|e| ModelError::Invalid { path: meta_path.display().to_string(), msg: e.msg })?;
+        .map_err(|e| FileError::invalid(meta_path.display().to_string(), e.msg))?;
     let man_path = dir.join("manifest.json");
     let manifest: Manifest = serde_json::from_str(manifest_text)
-        .map_err(|e| ModelError::Invalid { path: man_path.display().to_string(), msg: e.to_string() })?;
+        .map_err(|e| FileError::invalid(man_path.display().to_string(), e.to_string()))?;
     let w_path = dir.join("model.safetensors");
-    let bad = |msg: String| ModelError::Invalid { path: w_path.display().to_string(), msg };
+    let bad = |msg: String| FileError::invalid(w_path.display().to_string(), msg);
     let sum = sha256_hex(bytes);
     if sum != manifest.weights_sha256 {
         return Err(bad(format!(

@@ -1,5 +1,7 @@
 //! What sim-agent, learner and deploy share about a model.
 //!
+//! - [`error`]: [`FileError`], a file that could not be read or written, or whose contents
+//!   are wrong, naming the file.
 //! - [`metadata`]: DeepRacer's `model_metadata.json` and action spaces.
 //! - [`nn`]: layers on faer, forward and backward, Adam.
 //! - [`model`]: the actor-critic (separate policy and value towers, DeepRacer's networks by
@@ -18,6 +20,7 @@
 
 pub mod car;
 pub mod carpkg;
+pub mod error;
 pub mod exchange;
 pub mod experience;
 pub mod folder;
@@ -28,10 +31,11 @@ pub mod signature;
 pub mod simtrace;
 pub mod tfgraph;
 
+pub use error::FileError;
 pub use experience::{EpisodeStatus, StepTrace, TrackLines, Trajectory};
 pub use folder::{Manifest, ModelError, ModelFolder, ModelParts};
 pub use metadata::{
-    Action, ActionSpace, MAX_SPEED, MAX_STEERING_DEG, MIN_SPEED, MetadataError, ModelMetadata, NeuralNetwork, Sensor,
-    TrainingAlgorithm,
+    Action, ActionSpace, Incompatible, MAX_SPEED, MAX_STEERING_DEG, MIN_SPEED, MetadataError, ModelMetadata,
+    NeuralNetwork, Sensor, TrainingAlgorithm,
 };
 pub use model::{ActOutput, ActorCritic, Choice, Head};

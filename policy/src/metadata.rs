@@ -466,37 +466,63 @@ impl ModelMetadata {
 
     /// Whether another metadata's network inputs and outputs match this one's
     /// (same sensors, same network, same action count and kind); the reason if not.
-    pub fn compatible_with(&self, other: &ModelMetadata) -> Result<(), String> {
+    pub fn compatible_with(&self, other: &ModelMetadata) -> Result<(), Incompatible> {
         if self.sensor != other.sensor {
-            return Err(format!(
-                "sensors differ ({:?} vs {:?}): the network's inputs would no longer match",
-                self.sensor, other.sensor
-            ));
+            return Err(Incompatible::Sensors { ours: self.sensor.clone(), theirs: other.sensor.clone() });
         }
         if self.neural_network != other.neural_network {
-            return Err(format!(
-                "neural_network differs ({} vs {})",
-                self.neural_network.name(),
-                other.neural_network.name()
-            ));
+            return Err(Incompatible::Network { ours: self.neural_network, theirs: other.neural_network });
         }
-        let kind = |m: &ModelMetadata| matches!(m.action_space, ActionSpace::Discrete(_));
+        let kind = |m: &ModelMetadata| {
+            if matches!(m.action_space, ActionSpace::Discrete(_)) { "discrete" } else { "continuous" }
+        };
         if kind(self) != kind(other) || self.action_space.dim() != other.action_space.dim() {
-            return Err(format!(
-                "the action space differs ({} {} outputs vs {} {}): the output layer would no longer match",
-                if kind(self) { "discrete" } else { "continuous" },
-                self.action_space.dim(),
-                if kind(other) { "discrete" } else { "continuous" },
-                other.action_space.dim()
-            ));
+            return Err(Incompatible::Outputs {
+                ours: (kind(self), self.action_space.dim()),
+                theirs: (kind(other), other.action_space.dim()),
+            });
         }
         if self.action_space != other.action_space {
-            return Err(
-                "the action space's values differ: each output of the trained network would change meaning".into()
-            );
+            return Err(Incompatible::ActionValues);
         }
         Ok(())
     }
+}
+
+/// Why a model's network does not fit another `model_metadata.json` (resuming or cloning a
+/// run with other metadata): what differs, both values, and why it matters.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum Incompatible {
+    /// `sensor` differs: the network's inputs would not match.
+    #[error("sensors differ ({ours:?} vs {theirs:?}): the network's inputs would no longer match")]
+    Sensors {
+        /// This model's sensors.
+        ours: Vec<Sensor>,
+        /// The other metadata's.
+        theirs: Vec<Sensor>,
+    },
+    /// `neural_network` differs.
+    #[error("neural_network differs ({} vs {})", .ours.name(), .theirs.name())]
+    Network {
+        /// This model's network.
+        ours: NeuralNetwork,
+        /// The other metadata's.
+        theirs: NeuralNetwork,
+    },
+    /// The action space's kind or size differs: the output layer would not match.
+    #[error(
+        "the action space differs ({} {} outputs vs {} {}): the output layer would no longer match",
+        .ours.0, .ours.1, .theirs.0, .theirs.1
+    )]
+    Outputs {
+        /// This model's action space: `discrete` or `continuous`, and its outputs.
+        ours: (&'static str, usize),
+        /// The other metadata's.
+        theirs: (&'static str, usize),
+    },
+    /// Same shape, other values: each output would mean another action.
+    #[error("the action space's values differ: each output of the trained network would change meaning")]
+    ActionValues,
 }
 
 /// `lidar_config` for `DISCRETIZED_SECTOR_LIDAR`, with DeepRacer's defaults and checks

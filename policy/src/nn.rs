@@ -460,7 +460,7 @@ impl Net {
                         }
                         _ => None,
                     };
-                    conv_forward(layer, inp, out, relu, w, b, &mut tape.conv, par);
+                    Conv { layer, w, b, par }.forward(inp, out, relu, &mut tape.conv);
                 }
             }
         }
@@ -496,7 +496,8 @@ impl Net {
         let batch = tape.batch;
         d_in.clear();
         d_in.resize(batch * self.in_size(), 0.0);
-        self.backward_pass(tape, d_out, grad, par, defer, factors, Some(d_in));
+        let pass = Backward { tape, grad, par, defer, factors, want_input: true };
+        self.backward_pass(pass, d_out, Some(d_in));
     }
 
     /// The dense layers whose weight gradient for `batch` samples is at least four times
@@ -522,32 +523,25 @@ impl Net {
         defer: &[usize],
         factors: &mut Vec<Factors>,
     ) {
-        self.backward_pass(tape, d_out, grad, par, defer, factors, None);
+        let pass = Backward { tape, grad, par, defer, factors, want_input: false };
+        self.backward_pass(pass, d_out, None);
     }
 
-    #[allow(clippy::too_many_arguments)]
-    fn backward_pass(
-        &self,
-        tape: &mut Tape,
-        d_out: &[f32],
-        grad: &mut [f32],
-        par: Par,
-        defer: &[usize],
-        factors: &mut Vec<Factors>,
-        mut d_in: Option<&mut Vec<f32>>,
-    ) {
-        let batch = tape.batch;
+    /// The backward pass `pass` describes, from `d_out`; the input gradient into `d_in` when
+    /// one is given (`pass.want_input`).
+    fn backward_pass(&self, mut pass: Backward<'_, '_>, d_out: &[f32], mut d_in: Option<&mut Vec<f32>>) {
+        debug_assert_eq!(pass.want_input, d_in.is_some());
+        let batch = pass.tape.batch;
         assert_eq!(d_out.len(), batch * self.out_size());
-        assert_eq!(grad.len(), self.params.len());
-        let mut d = std::mem::take(&mut tape.d);
-        let mut d_prev = std::mem::take(&mut tape.d_prev);
+        assert_eq!(pass.grad.len(), self.params.len());
+        let mut d = std::mem::take(&mut pass.tape.d);
+        let mut d_prev = std::mem::take(&mut pass.tape.d_prev);
         d.clear();
         d.extend_from_slice(d_out);
         let sections = self.sections();
         let nb = self.inputs.len();
         let trunk = sections.last().expect("the rest").clone();
-        let want_input = d_in.is_some();
-        let mut pass = Backward { tape, grad, par, defer, factors, want_input };
+        let want_input = pass.want_input;
         self.backward_layers(trunk.clone(), nb, 0, &mut d, &mut d_prev, &mut pass);
         if let (0, Some(d_in)) = (nb, d_in.as_deref_mut()) {
             let n = d_in.len();
@@ -655,6 +649,7 @@ impl Net {
                 Layer::Conv2d { filters, offset, .. } => {
                     let kkc = layer.param_count() / filters - 1;
                     let w = &self.params[offset..offset + filters * kkc];
+                    let b = &self.params[offset + filters * kkc..offset + filters * kkc + filters];
                     let sums = grad[offset..offset + filters * kkc + filters].split_at_mut(filters * kkc);
                     let relu_in = match self.layers.get(i + 1) {
                         Some(Layer::Relu { .. }) if i + 1 < range.end => Some(&tape.acts[i + shift + 1][..]),
@@ -667,7 +662,7 @@ impl Net {
                     } else {
                         None
                     };
-                    conv_backward(layer, inp, d, relu_in, dx, w, sums, &mut tape.conv, par);
+                    Conv { layer, w, b, par }.backward(inp, d, relu_in, dx, sums, &mut tape.conv);
                 }
             }
             if !need_dx {
@@ -763,129 +758,136 @@ fn pieces<T>(v: Option<&mut [T]>, len: usize) -> impl Iterator<Item = Option<&mu
     std::iter::from_fn(move || Some(it.as_mut().and_then(|it| it.next())))
 }
 
-/// A conv layer's forward pass, chunk by chunk (see [`CONV_CHUNK_BYTES`]), samples split
-/// between threads when `par` allows: `out (batch·oh·ow × filters) = b + im2col(x) · wᵀ`,
-/// and, when the next layer is a ReLU (`relu`, its output), `relu = max(0, out)` while the
-/// chunk is in cache.
-#[allow(clippy::too_many_arguments)]
-fn conv_forward(
-    layer: &Layer,
-    x: &[f32],
-    out: &mut [f32],
-    relu: Option<&mut [f32]>,
-    w: &[f32],
-    b: &[f32],
-    scratch: &mut Vec<ConvScratch>,
+/// A conv layer, its weights (`filters × k·k·c`) and biases, and the threads its passes may
+/// use.
+#[derive(Clone, Copy)]
+struct Conv<'a> {
+    layer: &'a Layer,
+    w: &'a [f32],
+    b: &'a [f32],
     par: Par,
-) {
-    let ConvPlan { filters, kkc, oh, ow, per_in, per_out, share, chunk, shares } =
-        ConvPlan::new(layer, x, par, scratch);
-    let run = |x: &[f32], out: &mut [f32], mut relu: Option<&mut [f32]>, s: &mut ConvScratch| {
-        for (c, (xc, oc)) in x.chunks(chunk * per_in).zip(out.chunks_mut(chunk * per_out)).enumerate() {
-            let n = xc.len() / per_in;
-            im2col(layer, xc, n, &mut s.cols);
-            for row in oc.chunks_mut(filters) {
-                row.copy_from_slice(b);
-            }
-            gemm(oc, n * oh * ow, filters, kkc, &s.cols, false, w, true, true, Par::Seq);
-            if let Some(relu) = relu.as_deref_mut() {
-                for (r, v) in relu[c * chunk * per_out..][..oc.len()].iter_mut().zip(oc.iter()) {
-                    *r = v.max(0.0);
-                }
-            }
-        }
-    };
-    if shares == 1 {
-        return run(x, out, relu, &mut scratch[0]);
-    }
-    let parts: Vec<_> = (x.chunks(share * per_in).zip(out.chunks_mut(share * per_out)))
-        .zip(pieces(relu, share * per_out))
-        .zip(scratch.iter_mut())
-        .collect();
-    use rayon::prelude::*;
-    parts.into_par_iter().for_each(|(((x, out), relu), s)| run(x, out, relu, s));
 }
 
-/// A conv layer's backward pass, chunk by chunk as [`conv_forward`] (the input unfolded
-/// again, from cache, rather than kept). `d` is the gradient wrt the layer's outputs; when
-/// the next layer is a ReLU, `relu_in` is that ReLU's input (this layer's output) and `d`
-/// the gradient wrt the ReLU's output, masked here chunk by chunk. Then `gb += Σ d`,
-/// `gw += dᵀ · im2col(x)` and, when `dx` is given, `dx += col2im(d · w)` (`dx` zeroed by
-/// the caller). With several threads each adds its samples' gradients into its own
-/// buffers, and those are summed in thread order, so the result depends on the thread
-/// count but not on scheduling.
-#[allow(clippy::too_many_arguments)]
-fn conv_backward(
-    layer: &Layer,
-    x: &[f32],
-    d: &mut [f32],
-    relu_in: Option<&[f32]>,
-    dx: Option<&mut [f32]>,
-    w: &[f32],
-    (gw, gb): (&mut [f32], &mut [f32]),
-    scratch: &mut Vec<ConvScratch>,
-    par: Par,
-) {
-    let ConvPlan { filters, kkc, oh, ow, per_in, per_out, share, chunk, shares } =
-        ConvPlan::new(layer, x, par, scratch);
-    let run = |x: &[f32],
-               d: &mut [f32],
-               relu_in: Option<&[f32]>,
-               mut dx: Option<&mut [f32]>,
-               s: &mut ConvScratch,
-               sums: Option<(&mut [f32], &mut [f32])>| {
-        let ConvScratch { cols, d_cols, gw: own_gw, gb: own_gb } = s;
-        let (gw, gb) = match sums {
-            Some(sums) => sums,
-            None => {
-                own_gw.clear();
-                own_gw.resize(filters * kkc, 0.0);
-                own_gb.clear();
-                own_gb.resize(filters, 0.0);
-                (&mut own_gw[..], &mut own_gb[..])
+impl Conv<'_> {
+    /// The forward pass, chunk by chunk (see [`CONV_CHUNK_BYTES`]), samples split between
+    /// threads when `par` allows: `out (batch·oh·ow × filters) = b + im2col(x) · wᵀ`, and, when
+    /// the next layer is a ReLU (`relu`, its output), `relu = max(0, out)` while the chunk is in
+    /// cache.
+    fn forward(&self, x: &[f32], out: &mut [f32], relu: Option<&mut [f32]>, scratch: &mut Vec<ConvScratch>) {
+        let Conv { layer, w, b, par } = *self;
+        let ConvPlan { filters, kkc, oh, ow, per_in, per_out, share, chunk, shares } =
+            ConvPlan::new(layer, x, par, scratch);
+        let run = |x: &[f32], out: &mut [f32], mut relu: Option<&mut [f32]>, s: &mut ConvScratch| {
+            for (c, (xc, oc)) in x.chunks(chunk * per_in).zip(out.chunks_mut(chunk * per_out)).enumerate() {
+                let n = xc.len() / per_in;
+                im2col(layer, xc, n, &mut s.cols);
+                for row in oc.chunks_mut(filters) {
+                    row.copy_from_slice(b);
+                }
+                gemm(oc, n * oh * ow, filters, kkc, &s.cols, false, w, true, true, Par::Seq);
+                if let Some(relu) = relu.as_deref_mut() {
+                    for (r, v) in relu[c * chunk * per_out..][..oc.len()].iter_mut().zip(oc.iter()) {
+                        *r = v.max(0.0);
+                    }
+                }
             }
         };
-        let n_all = x.len() / per_in;
-        for first in (0..n_all).step_by(chunk) {
-            let n = chunk.min(n_all - first);
-            let rows = n * oh * ow;
-            let dc = &mut d[first * per_out..(first + n) * per_out];
-            if let Some(pre) = relu_in {
-                // A select with an unconditional store, so the loop vectorises.
-                for (g, v) in dc.iter_mut().zip(&pre[first * per_out..(first + n) * per_out]) {
-                    *g = if *v <= 0.0 { 0.0 } else { *g };
-                }
-            }
-            for row in dc.chunks(filters) {
-                for (g, v) in gb.iter_mut().zip(row) {
-                    *g += v;
-                }
-            }
-            im2col(layer, &x[first * per_in..(first + n) * per_in], n, cols);
-            gemm(gw, filters, kkc, rows, dc, true, cols, false, true, Par::Seq);
-            if let Some(dx) = dx.as_deref_mut() {
-                d_cols.resize(rows * kkc, 0.0);
-                gemm(&mut d_cols[..rows * kkc], rows, kkc, filters, dc, false, w, false, false, Par::Seq);
-                col2im(layer, &d_cols[..rows * kkc], n, &mut dx[first * per_in..(first + n) * per_in]);
-            }
+        if shares == 1 {
+            return run(x, out, relu, &mut scratch[0]);
         }
-    };
-    if shares == 1 {
-        return run(x, d, relu_in, dx, &mut scratch[0], Some((gw, gb)));
+        let parts: Vec<_> = (x.chunks(share * per_in).zip(out.chunks_mut(share * per_out)))
+            .zip(pieces(relu, share * per_out))
+            .zip(scratch.iter_mut())
+            .collect();
+        use rayon::prelude::*;
+        parts.into_par_iter().for_each(|(((x, out), relu), s)| run(x, out, relu, s));
     }
-    let parts: Vec<_> = (x.chunks(share * per_in).zip(d.chunks_mut(share * per_out)))
-        .zip(relu_in.map(|r| r.chunks(share * per_out)).into_iter().flatten().map(Some).chain(std::iter::repeat(None)))
-        .zip(pieces(dx, share * per_in))
-        .zip(scratch.iter_mut())
-        .collect();
-    use rayon::prelude::*;
-    parts.into_par_iter().for_each(|((((x, d), relu_in), dx), s)| run(x, d, relu_in, dx, s, None));
-    for s in &scratch[..shares] {
-        for (g, v) in gw.iter_mut().zip(&s.gw) {
-            *g += v;
+
+    /// The backward pass, chunk by chunk as [`Conv::forward`] (the input unfolded again, from
+    /// cache, rather than kept). `d` is the gradient wrt the layer's outputs; when the next layer
+    /// is a ReLU, `relu_in` is that ReLU's input (this layer's output) and `d` the gradient wrt
+    /// the ReLU's output, masked here chunk by chunk. Then `gb += Σ d`, `gw += dᵀ · im2col(x)`
+    /// and, when `dx` is given, `dx += col2im(d · w)` (`dx` zeroed by the caller). With several
+    /// threads each adds its samples' gradients into its own buffers, and those are summed in
+    /// thread order, so the result depends on the thread count but not on scheduling.
+    fn backward(
+        &self,
+        x: &[f32],
+        d: &mut [f32],
+        relu_in: Option<&[f32]>,
+        dx: Option<&mut [f32]>,
+        (gw, gb): (&mut [f32], &mut [f32]),
+        scratch: &mut Vec<ConvScratch>,
+    ) {
+        let Conv { layer, w, par, .. } = *self;
+        let ConvPlan { filters, kkc, oh, ow, per_in, per_out, share, chunk, shares } =
+            ConvPlan::new(layer, x, par, scratch);
+        let run = |x: &[f32],
+                   d: &mut [f32],
+                   relu_in: Option<&[f32]>,
+                   mut dx: Option<&mut [f32]>,
+                   s: &mut ConvScratch,
+                   sums: Option<(&mut [f32], &mut [f32])>| {
+            let ConvScratch { cols, d_cols, gw: own_gw, gb: own_gb } = s;
+            let (gw, gb) = match sums {
+                Some(sums) => sums,
+                None => {
+                    own_gw.clear();
+                    own_gw.resize(filters * kkc, 0.0);
+                    own_gb.clear();
+                    own_gb.resize(filters, 0.0);
+                    (&mut own_gw[..], &mut own_gb[..])
+                }
+            };
+            let n_all = x.len() / per_in;
+            for first in (0..n_all).step_by(chunk) {
+                let n = chunk.min(n_all - first);
+                let rows = n * oh * ow;
+                let dc = &mut d[first * per_out..(first + n) * per_out];
+                if let Some(pre) = relu_in {
+                    // A select with an unconditional store, so the loop vectorises.
+                    for (g, v) in dc.iter_mut().zip(&pre[first * per_out..(first + n) * per_out]) {
+                        *g = if *v <= 0.0 { 0.0 } else { *g };
+                    }
+                }
+                for row in dc.chunks(filters) {
+                    for (g, v) in gb.iter_mut().zip(row) {
+                        *g += v;
+                    }
+                }
+                im2col(layer, &x[first * per_in..(first + n) * per_in], n, cols);
+                gemm(gw, filters, kkc, rows, dc, true, cols, false, true, Par::Seq);
+                if let Some(dx) = dx.as_deref_mut() {
+                    d_cols.resize(rows * kkc, 0.0);
+                    gemm(&mut d_cols[..rows * kkc], rows, kkc, filters, dc, false, w, false, false, Par::Seq);
+                    col2im(layer, &d_cols[..rows * kkc], n, &mut dx[first * per_in..(first + n) * per_in]);
+                }
+            }
+        };
+        if shares == 1 {
+            return run(x, d, relu_in, dx, &mut scratch[0], Some((gw, gb)));
         }
-        for (g, v) in gb.iter_mut().zip(&s.gb) {
-            *g += v;
+        let parts: Vec<_> = (x.chunks(share * per_in).zip(d.chunks_mut(share * per_out)))
+            .zip(
+                relu_in
+                    .map(|r| r.chunks(share * per_out))
+                    .into_iter()
+                    .flatten()
+                    .map(Some)
+                    .chain(std::iter::repeat(None)),
+            )
+            .zip(pieces(dx, share * per_in))
+            .zip(scratch.iter_mut())
+            .collect();
+        use rayon::prelude::*;
+        parts.into_par_iter().for_each(|((((x, d), relu_in), dx), s)| run(x, d, relu_in, dx, s, None));
+        for s in &scratch[..shares] {
+            for (g, v) in gw.iter_mut().zip(&s.gw) {
+                *g += v;
+            }
+            for (g, v) in gb.iter_mut().zip(&s.gb) {
+                *g += v;
+            }
         }
     }
 }

@@ -23,6 +23,7 @@ use ed25519_dalek::{Signer as _, SigningKey, Verifier as _, VerifyingKey};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
+use crate::error::FileError;
 use crate::folder::sha256_hex;
 
 /// The first line of the signed text (and the signature file's format tag).
@@ -31,22 +32,9 @@ pub const FORMAT: &str = "paddock-signature-1";
 /// Why a key or a signature could not be used.
 #[derive(Debug, thiserror::Error)]
 pub enum SignatureError {
-    /// A key file could not be read or written.
-    #[error("{path}: {error}")]
-    Io {
-        /// The file.
-        path: String,
-        /// The error.
-        error: std::io::Error,
-    },
-    /// A key file is not a key of the expected kind.
-    #[error("{path}: {msg}")]
-    BadKey {
-        /// The file.
-        path: String,
-        /// What is wrong.
-        msg: String,
-    },
+    /// A key file could not be read or written, or is not a key of the expected kind.
+    #[error(transparent)]
+    File(#[from] FileError),
     /// A model's signature is missing, malformed, by an untrusted key, or does not match.
     #[error("{0}")]
     Refused(String),
@@ -86,7 +74,7 @@ pub fn signed_text(weights: &[u8], metadata_json: &str, manifest_json: &str) -> 
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> SignatureError + '_ {
-    move |source| SignatureError::Io { path: path.display().to_string(), error: source }
+    move |error| FileError::io(path, error).into()
 }
 
 impl Signer {
@@ -104,9 +92,11 @@ impl Signer {
     /// Read a PKCS#8 PEM secret key.
     pub fn load(path: &Path) -> Result<Signer, SignatureError> {
         let text = std::fs::read_to_string(path).map_err(io(path))?;
-        let key = SigningKey::from_pkcs8_pem(&text).map_err(|e| SignatureError::BadKey {
-            path: path.display().to_string(),
-            msg: format!("not an ed25519 secret key in PKCS#8 PEM ({e}); make one with `coordinator keys new NAME`"),
+        let key = SigningKey::from_pkcs8_pem(&text).map_err(|e| {
+            FileError::invalid(
+                path.display().to_string(),
+                format!("not an ed25519 secret key in PKCS#8 PEM ({e}); make one with `coordinator keys new NAME`"),
+            )
         })?;
         Ok(Signer { key })
     }
@@ -117,10 +107,10 @@ impl Signer {
         let secret = stem.with_extension("key");
         let public = stem.with_extension("pub");
         if secret.exists() {
-            return Err(SignatureError::BadKey {
-                path: secret.display().to_string(),
-                msg: "exists already; remove it first to make a new key".into(),
-            });
+            return Err(SignatureError::from(FileError::invalid(
+                secret.display().to_string(),
+                "exists already; remove it first to make a new key",
+            )));
         }
         if let Some(dir) = secret.parent().filter(|p| !p.as_os_str().is_empty()) {
             std::fs::create_dir_all(dir).map_err(io(dir))?;
@@ -183,9 +173,11 @@ impl TrustedKeys {
         let mut t = TrustedKeys::default();
         for p in paths {
             let text = std::fs::read_to_string(p).map_err(io(p))?;
-            let key = VerifyingKey::from_public_key_pem(&text).map_err(|e| SignatureError::BadKey {
-                path: p.display().to_string(),
-                msg: format!("not an ed25519 public key in PEM ({e}); give the learner's `.pub` file"),
+            let key = VerifyingKey::from_public_key_pem(&text).map_err(|e| {
+                FileError::invalid(
+                    p.display().to_string(),
+                    format!("not an ed25519 public key in PEM ({e}); give the learner's `.pub` file"),
+                )
             })?;
             t.keys.push((p.display().to_string(), key));
         }

@@ -193,11 +193,12 @@ impl Writer {
         self.node(name, "Const", &[], attrs)
     }
 
-    /// `x·W + b` with Paddock's `W` (`out × in`) written as TensorFlow's kernel (`in × out`).
-    /// A dense layer's first `rows` outputs (all of them but for SAC's policy means).
-    #[allow(clippy::too_many_arguments)]
-    fn dense(&mut self, scope: &str, x: &str, net: &Net, inp: usize, out: usize, rows: usize, offset: usize) -> String {
-        let w = &net.params[offset..offset + inp * out];
+    /// `x·W + b` with Paddock's `W` (`rows × inp`) written as TensorFlow's kernel (`inp ×
+    /// rows`): a dense layer's first `rows = b.len()` outputs (all of them but for SAC's policy
+    /// means), `w` their weights.
+    fn dense(&mut self, scope: &str, x: &str, inp: usize, w: &[f32], b: &[f32]) -> String {
+        let rows = b.len();
+        debug_assert_eq!(w.len(), rows * inp);
         let mut kernel = vec![0.0f32; inp * rows];
         for o in 0..rows {
             for i in 0..inp {
@@ -205,7 +206,7 @@ impl Writer {
             }
         }
         let k = self.constant(&format!("{scope}/kernel"), &[inp as i64, rows as i64], &kernel);
-        let b = self.constant(&format!("{scope}/bias"), &[rows as i64], &net.params[offset + inp * out..][..rows]);
+        let b = self.constant(&format!("{scope}/bias"), &[rows as i64], b);
         let attrs = vec![
             float_type(),
             ("transpose_a".into(), attr(pb::attr_value::Value::B(false))),
@@ -250,7 +251,7 @@ pub fn graph(model: &ActorCritic, meta: &ModelMetadata) -> Result<GraphDef, Grap
         trunk.start
     };
     let trunk_denses = net.layers[middleware..].iter().filter(|l| matches!(l, Layer::Dense { .. })).count();
-    let mut denses = 0;
+    let mut count = Count { names: &names, own: 0, denses: 0, trunk_denses };
     let mut embedded = Vec::new();
     for ((sensor, shape, range), placeholder) in inputs.iter().zip(&names.inputs) {
         let dims: Vec<i64> = match *shape {
@@ -269,7 +270,7 @@ pub fn graph(model: &ActorCritic, meta: &ModelMetadata) -> Result<GraphDef, Grap
         let embedder = format!("{}/{sensor}", names.scope);
         // rl_coach numbers an embedder's layers 0, 2, 4, … and the activation after layer k
         // `BatchnormActivationDropout_{k+1}`.
-        let mut own = 0;
+        count.own = 0;
         let mut image = matches!(shape, InputShape::Image(..));
         for i in range.clone() {
             let in_trunk = i >= middleware;
@@ -277,7 +278,7 @@ pub fn graph(model: &ActorCritic, meta: &ModelMetadata) -> Result<GraphDef, Grap
                 cur = g.flatten(&embedder, &cur, net.layers[i].in_size());
                 image = false;
             }
-            cur = g.layer(net, i, &cur, &embedder, in_trunk, &mut own, &mut denses, trunk_denses, &names)?;
+            cur = g.layer(net, i, &cur, (&embedder, in_trunk), &mut count)?;
         }
         if image && !net.inputs.is_empty() {
             let n = net.layers[range.clone()].last().map_or(shape.size(), |l| l.out_size());
@@ -297,9 +298,9 @@ pub fn graph(model: &ActorCritic, meta: &ModelMetadata) -> Result<GraphDef, Grap
             ("Tidx".into(), attr(pb::attr_value::Value::Type(DT_INT32))),
         ];
         cur = g.node(&format!("{}/merger", names.scope), "ConcatV2", &ins, attrs);
-        let mut own = 0;
+        count.own = 0;
         for i in trunk {
-            cur = g.layer(net, i, &cur, &names.scope, true, &mut own, &mut denses, trunk_denses, &names)?;
+            cur = g.layer(net, i, &cur, (&names.scope, true), &mut count)?;
         }
     }
     match model.head {
@@ -315,6 +316,15 @@ pub fn graph(model: &ActorCritic, meta: &ModelMetadata) -> Result<GraphDef, Grap
     })
 }
 
+/// The counts that name the layers as rl_coach does: the current embedder's layers so far
+/// (`own`), and the middleware's and head's dense layers so far (`denses`) of `trunk_denses`.
+struct Count<'a> {
+    names: &'a Names,
+    own: usize,
+    denses: usize,
+    trunk_denses: usize,
+}
+
 impl Writer {
     fn flatten(&mut self, embedder: &str, x: &str, n: usize) -> String {
         let s = self.int_constant(&format!("{embedder}/flatten/Reshape/shape"), &[2], &[-1, n as i32]);
@@ -322,21 +332,19 @@ impl Writer {
         self.node(&format!("{embedder}/flatten/Reshape"), "Reshape", &[x, &s], attrs)
     }
 
-    /// Layer `i` of `net` on `x`: in an embedder (`embedder`'s scope, its `own` layers
-    /// counted), or in the middleware and head (`in_trunk`; `denses` of `trunk_denses`).
-    #[allow(clippy::too_many_arguments)]
+    /// Layer `i` of `net` on `x`: in an embedder (`embedder`'s scope, its layers counted in
+    /// `count.own`), or in the middleware and head (`in_trunk`; its dense layers counted in
+    /// `count.denses`).
     fn layer(
         &mut self,
         net: &Net,
         i: usize,
         x: &str,
-        embedder: &str,
-        in_trunk: bool,
-        own: &mut usize,
-        denses: &mut usize,
-        trunk_denses: usize,
-        names: &Names,
+        (embedder, in_trunk): (&str, bool),
+        count: &mut Count<'_>,
     ) -> Result<String, GraphError> {
+        let Count { names, own, denses, trunk_denses } = count;
+        let trunk_denses = *trunk_denses;
         Ok(match net.layers[i] {
             Layer::Scale { factor, .. } => {
                 let y = self.constant(&format!("{embedder}/truediv/y"), &[], &[1.0 / factor]);
@@ -379,7 +387,7 @@ impl Writer {
             Layer::Dense { inp, out, offset } if !in_trunk => {
                 let scope = format!("{embedder}/Dense_{}", 2 * *own);
                 *own += 1;
-                self.dense(&scope, x, net, inp, out, out, offset)
+                self.dense(&scope, x, inp, &net.params[offset..][..inp * out], &net.params[offset + inp * out..][..out])
             }
             Layer::Dense { inp, out, offset } => {
                 *denses += 1;
@@ -394,7 +402,13 @@ impl Writer {
                 } else {
                     (format!("{}/middleware_fc_embedder/Dense_{}", names.scope, 2 * (*denses - 1)), out)
                 };
-                self.dense(&scope, x, net, inp, out, rows, offset)
+                self.dense(
+                    &scope,
+                    x,
+                    inp,
+                    &net.params[offset..][..inp * rows],
+                    &net.params[offset + inp * out..][..rows],
+                )
             }
             Layer::Relu { .. } => {
                 let name = if in_trunk {

@@ -254,7 +254,7 @@ pub fn open(args: &NetArgs) -> Result<zenoh::Session, NetError> {
     }
     let session = zenoh::open(config).wait().map_err(e)?;
     if let Some((dir, c)) = credentials {
-        crate::revocation::follow(&session, &dir, &c).map_err(NetError)?;
+        crate::revocation::follow(&session, &dir, &c).map_err(|e| NetError(e.to_string()))?;
     }
     Ok(session)
 }

@@ -157,14 +157,14 @@ fn short(e: &RevocationError) -> &'static str {
 /// Follow the cluster's revocation list on `session`: the folder's [`CRL_FILE`] at once (an
 /// unusable file is an error naming it), then every list the coordinator publishes or
 /// answers with.
-pub fn follow(session: &zenoh::Session, dir: &Path, creds: &Credentials) -> Result<(), String> {
+pub fn follow(session: &zenoh::Session, dir: &Path, creds: &Credentials) -> Result<(), FollowError> {
     let file = dir.join(CRL_FILE);
     if file.exists() {
-        let bytes = std::fs::read(&file).map_err(|e| format!("{}: {e}", file.display()))?;
+        let bytes = std::fs::read(&file).map_err(policy::FileError::io_at(&file))?;
         let r = take(creds, &bytes);
-        match &r {
-            Err(e @ RevocationError::Credentials(_)) => return Err(e.to_string()),
-            Err(e) => return Err(format!("{}: {e}", file.display())),
+        match r {
+            Err(e @ RevocationError::Credentials(_)) => return Err(FollowError::Credentials(e)),
+            Err(error) => return Err(FollowError::Refused { path: file.display().to_string(), error }),
             Ok(_) => {}
         }
         log("file", &r);
@@ -175,7 +175,7 @@ pub fn follow(session: &zenoh::Session, dir: &Path, creds: &Credentials) -> Resu
         .callback(move |s| log("published", &take(&c, &s.payload().to_bytes())))
         .background()
         .wait()
-        .map_err(|e| e.to_string())?;
+        .map_err(|e| FollowError::Subscribe(e.to_string()))?;
     let c = creds.clone();
     let s = session.clone();
     std::thread::Builder::new()
@@ -190,8 +190,33 @@ pub fn follow(session: &zenoh::Session, dir: &Path, creds: &Credentials) -> Resu
                 }
             }
         })
-        .map_err(|e| e.to_string())?;
+        .map_err(FollowError::Thread)?;
     Ok(())
+}
+
+/// Why a node could not follow the revocation list.
+#[derive(Debug, thiserror::Error)]
+pub enum FollowError {
+    /// The credentials folder's [`CRL_FILE`] could not be read.
+    #[error(transparent)]
+    File(#[from] policy::FileError),
+    /// The credentials folder's [`CRL_FILE`] is not a list the node takes.
+    #[error("{path}: {error}")]
+    Refused {
+        /// The file.
+        path: String,
+        /// Why it was refused.
+        error: RevocationError,
+    },
+    /// The node's own credentials could not be read to check the list.
+    #[error(transparent)]
+    Credentials(RevocationError),
+    /// The subscription to the published lists failed (zenoh's reason).
+    #[error("{0}")]
+    Subscribe(String),
+    /// The thread that asks for the current list could not start.
+    #[error("{0}")]
+    Thread(std::io::Error),
 }
 
 #[cfg(test)]

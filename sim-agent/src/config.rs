@@ -261,30 +261,13 @@ impl ObservationKind {
     }
 }
 
-/// Why a configuration could not be loaded.
-#[derive(Debug, thiserror::Error)]
-pub enum ConfigError {
-    /// The file could not be read.
-    #[error("{path}: {error}")]
-    Io {
-        /// The file.
-        path: String,
-        /// The error.
-        error: std::io::Error,
-    },
-    /// The TOML is malformed or a field is wrong.
-    #[error("{origin}: {msg}")]
-    Invalid {
-        /// The file or override.
-        origin: String,
-        /// What is wrong.
-        msg: String,
-    },
-}
+/// Why a configuration could not be loaded: a [`policy::FileError`] naming the file, the
+/// `--set` override or the defaults, and the field.
+pub type ConfigError = policy::FileError;
 
 /// Parse TOML text into `T`, naming `origin` in errors.
 pub fn parse_toml<T: serde::de::DeserializeOwned>(text: &str, origin: &str) -> Result<T, ConfigError> {
-    toml::from_str(text).map_err(|e| ConfigError::Invalid { origin: origin.to_string(), msg: e.to_string() })
+    toml::from_str(text).map_err(|e| ConfigError::invalid(origin, e.to_string()))
 }
 
 /// Load `T` from an optional TOML file, then apply `key=value` overrides (dotted keys,
@@ -293,16 +276,37 @@ pub fn load_config<T>(file: Option<&Path>, sets: &[String]) -> Result<T, ConfigE
 where
     T: serde::de::DeserializeOwned + Serialize + Default,
 {
-    let mut table: toml::Table = match file {
+    let table: toml::Table = match file {
         Some(path) => {
-            let text = std::fs::read_to_string(path)
-                .map_err(|source| ConfigError::Io { path: path.display().to_string(), error: source })?;
+            let text = std::fs::read_to_string(path).map_err(ConfigError::io_at(path))?;
             parse_toml(&text, &path.display().to_string())?
         }
         None => toml::Table::try_from(T::default()).expect("defaults serialise"),
     };
+    let origin = file.map(|p| p.display().to_string()).unwrap_or_else(|| "defaults".into());
+    overridden(table, &origin, sets)
+}
+
+/// `value` with `key=value` overrides applied as [`load_config`] applies them (`origin`
+/// names `value` in errors): typed settings first, `--set` on top.
+pub fn apply_sets<T>(value: T, origin: &str, sets: &[String]) -> Result<T, ConfigError>
+where
+    T: serde::de::DeserializeOwned + Serialize,
+{
+    if sets.is_empty() {
+        return Ok(value);
+    }
+    overridden(toml::Table::try_from(&value).expect("a configuration serialises"), origin, sets)
+}
+
+/// `table` with `sets` applied, as `T`.
+fn overridden<T: serde::de::DeserializeOwned>(
+    mut table: toml::Table,
+    origin: &str,
+    sets: &[String],
+) -> Result<T, ConfigError> {
     for set in sets {
-        let bad = |msg: String| ConfigError::Invalid { origin: format!("--set {set}"), msg };
+        let bad = |msg: String| ConfigError::invalid(format!("--set {set}"), msg);
         let (key, value) = set.split_once('=').ok_or_else(|| bad("expected key=value".into()))?;
         let value: toml::Value = match toml::from_str::<toml::Table>(&format!("v = {value}")) {
             Ok(mut t) => t.remove("v").expect("parsed key"),
@@ -319,18 +323,25 @@ where
         }
         node.insert(parts[parts.len() - 1].to_string(), value);
     }
-    let origin = file.map(|p| p.display().to_string()).unwrap_or_else(|| "defaults".into());
-    T::deserialize(toml::Value::Table(table)).map_err(|e| ConfigError::Invalid {
-        origin: if sets.is_empty() { origin } else { format!("{origin} with --set overrides") },
-        msg: e.to_string(),
+    T::deserialize(toml::Value::Table(table)).map_err(|e| {
+        let origin = if sets.is_empty() { origin.to_string() } else { format!("{origin} with --set overrides") };
+        ConfigError::invalid(origin, e.to_string())
     })
+}
+
+/// A model's `sensor` list that the simulator cannot observe.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+#[error("sensor {sensors:?} is not supported: Paddock trains from a camera (with or without a LiDAR) or STATE_VECTOR")]
+pub struct UnsupportedSensors {
+    /// The model's sensors (DeepRacer's names).
+    pub sensors: Vec<&'static str>,
 }
 
 impl ObservationConfig {
     /// The observation a model's `sensor` list calls for: the state vector (with or without
     /// Paddock's border lidar), or the front camera or the stereo pair, each with or without
     /// DeepRacer's LiDAR.
-    pub fn set_sensors(&mut self, meta: &policy::ModelMetadata) -> Result<(), String> {
+    pub fn set_sensors(&mut self, meta: &policy::ModelMetadata) -> Result<(), UnsupportedSensors> {
         use policy::Sensor;
         let camera = [Sensor::FrontFacingCamera, Sensor::LeftCamera, Sensor::Observation, Sensor::StereoCameras]
             .into_iter()
@@ -356,10 +367,7 @@ impl ObservationConfig {
                 });
             }
         } else {
-            return Err(format!(
-                "sensor {:?} is not supported: Paddock trains from a camera (with or without a LiDAR) or STATE_VECTOR",
-                meta.sensor.iter().map(|s| s.name()).collect::<Vec<_>>()
-            ));
+            return Err(UnsupportedSensors { sensors: meta.sensor.iter().map(|s| s.name()).collect() });
         }
         Ok(())
     }

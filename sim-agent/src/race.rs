@@ -267,13 +267,6 @@ impl RaceConfig {
             }
         }))
     }
-
-    /// The configuration as `--set race.KEY=VALUE` overrides (every key), so that a
-    /// `run.env` travels the way `--set` does: into a job's simulator configuration.
-    pub fn to_sets(&self) -> Vec<String> {
-        let table = toml::Table::try_from(self).expect("a race serialises");
-        table.iter().map(|(k, v)| format!("race.{k}={v}")).collect()
-    }
 }
 
 #[cfg(test)]
@@ -315,8 +308,9 @@ DR_H2B_IS_LANE_CHANGE=true
         );
         // Not an object-avoidance race: no obstacles.
         assert_eq!(RaceConfig::default().placement("x").unwrap(), None);
-        // As --set overrides, it reads back the same.
-        let back: crate::SimConfig = crate::config::load_config(None, &c.to_sets()).unwrap();
+        // As the `[race]` table of a job's simulator configuration, it reads back the same.
+        let sim = crate::SimConfig { race: c.clone(), ..crate::SimConfig::default() };
+        let back: crate::SimConfig = crate::config::parse_toml(&toml::to_string(&sim).unwrap(), "sim.toml").unwrap();
         assert_eq!(back.race, c);
     }
 

@@ -218,25 +218,42 @@ pub struct TrialLog {
     pub frames: Vec<policy::exchange::Frame>,
 }
 
-/// Run `trials` evaluation trials in parallel from the start line, with the policy's most
-/// likely action at every step; its forward passes on `gpu` when one is given (a GPU that
-/// fails leaves the rest of the trials on the CPU, and the log says so).
-#[allow(clippy::too_many_arguments)]
+/// How an evaluation runs: its rules, how many trials, their seed and the threads that step
+/// them.
+#[derive(Clone, Debug)]
+pub struct EvalPlan {
+    /// Resets, penalties and time limit.
+    pub rules: EvalRules,
+    /// Trials, run side by side.
+    pub count: usize,
+    /// The environments' and the action sampling's seed.
+    pub seed: u64,
+    /// Threads stepping the environments.
+    pub threads: usize,
+}
+
+/// Run `plan.count` evaluation trials in parallel from the start line, with the policy's
+/// most likely action at every step; its forward passes on `gpu` when one is given (a GPU
+/// that fails leaves the rest of the trials on the CPU, and the log says so).
 pub fn evaluate(
     model: &Arc<ActorCritic>,
     space: &ActionSpace,
     spec: &EnvSpec,
     cfg: &Arc<SimConfig>,
-    rules: EvalRules,
-    trials: usize,
-    seed: u64,
-    threads: usize,
+    plan: &EvalPlan,
     mut gpu: Option<&mut gpu::Acting>,
 ) -> Result<Vec<TrialResult>, RewardError> {
+    let EvalPlan { ref rules, count: trials, seed, threads } = *plan;
     let reward = RewardFn::Builtin(crate::BuiltinReward::CenterLine);
-    let mut vec =
-        VecEnv::with_mode(vec![spec.clone(); trials], cfg.clone(), seed, reward, threads, Mode::Evaluation(rules))
-            .map_err(|e| RewardError::Load { origin: "evaluation".into(), msg: e.to_string() })?;
+    let mut vec = VecEnv::with_mode(
+        vec![spec.clone(); trials],
+        cfg.clone(),
+        seed,
+        reward,
+        threads,
+        Mode::Evaluation(rules.clone()),
+    )
+    .map_err(|e| RewardError::Load { origin: "evaluation".into(), msg: e.to_string() })?;
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let mut results: Vec<Option<TrialResult>> = vec![None; trials];
     let mut logs: Vec<TrialLog> = vec![TrialLog::default(); trials];

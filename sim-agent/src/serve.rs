@@ -176,7 +176,7 @@ fn report(session: &zenoh::Session, job: &str, agent: &str, error: &str) {
 fn job_config(doc: &Job) -> Result<SimConfig> {
     let mut cfg: SimConfig = parse_toml(&doc.sim_config_toml, "the job's sim config")?;
     let meta = policy::ModelMetadata::parse(&doc.model_metadata_json, "the job's model_metadata.json")?;
-    cfg.observation.set_sensors(&meta).map_err(|e| anyhow::anyhow!("{e}"))?;
+    cfg.observation.set_sensors(&meta)?;
     Ok(cfg)
 }
 

@@ -15,7 +15,7 @@
 
 use crate::config::SimConfig;
 use crate::reward::{RewardError, RewardFn};
-use crate::rollout::{Collector, TrialResult, evaluate};
+use crate::rollout::{Collector, EvalPlan, TrialResult, evaluate};
 use crate::vec_env::VecEnv;
 use crate::{EnvError, EnvSpec, EvalRules};
 use policy::exchange::{Credit, EvalReport, EvalRequest, Experience, PolicyVersion, Trial};
@@ -355,17 +355,13 @@ impl Worker {
                 EnvSpec::from_world(&world, tracks::Direction::Forward)
             }
         };
-        let trials = evaluate(
-            &p.model,
-            &p.metadata.action_space,
-            &spec,
-            &self.cfg,
-            EvalRules::default(),
-            r.trials.max(1) as usize,
-            r.seed,
-            self.threads,
-            self.collector.gpu_mut(),
-        )?;
+        let plan = EvalPlan {
+            rules: EvalRules::default(),
+            count: r.trials.max(1) as usize,
+            seed: r.seed,
+            threads: self.threads,
+        };
+        let trials = evaluate(&p.model, &p.metadata.action_space, &spec, &self.cfg, &plan, self.collector.gpu_mut())?;
         let track_len = spec.track.length();
         Ok(trials
             .into_iter()

@@ -196,7 +196,7 @@ pub fn parse_track_npy(bytes: &[u8], origin: &str) -> Result<TrackRows, TrackErr
         inner: (0..n).map(|r| P2::new(at(r, 2), at(r, 3))).collect(),
         outer: (0..n).map(|r| P2::new(at(r, 4), at(r, 5))).collect(),
     };
-    validate_rows(&rows).map_err(bad)?;
+    validate_rows(&rows).map_err(|e| bad(e.to_string()))?;
     Ok(rows)
 }
 
@@ -208,29 +208,61 @@ fn describe_dtype(dtype: &DType) -> String {
     }
 }
 
+/// Why rows are not a usable track, naming the offending row.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum BadRows {
+    /// The three columns' lengths differ.
+    #[error("centre, inner and outer columns differ in length")]
+    Lengths,
+    /// Fewer than three distinct centre points.
+    #[error("has {rows} rows ({distinct} distinct points), expected at least 3")]
+    TooFew {
+        /// Rows.
+        rows: usize,
+        /// Rows but a closing repeat of the first.
+        distinct: usize,
+    },
+    /// A row repeats the previous centre point but not its borders.
+    #[error(
+        "row {row} repeats row {}'s centre point with different borders: a zero-length centre-line segment",
+        .row - 1
+    )]
+    ZeroSegment {
+        /// The row.
+        row: usize,
+    },
+    /// A border crosses the centre line.
+    #[error(
+        "the {border} border segment starting at row {border_row} crosses the centre line segment starting at row {centre_row}"
+    )]
+    Crossing {
+        /// `inner` or `outer`.
+        border: &'static str,
+        /// The border segment's first row.
+        border_row: usize,
+        /// The centre line segment's first row.
+        centre_row: usize,
+    },
+}
+
 /// The checks that make rows usable as a track, with the offending row named.
-pub fn validate_rows(rows: &TrackRows) -> Result<(), String> {
+pub fn validate_rows(rows: &TrackRows) -> Result<(), BadRows> {
     let n = rows.len();
     if rows.inner.len() != n || rows.outer.len() != n {
-        return Err("centre, inner and outer columns differ in length".to_string());
+        return Err(BadRows::Lengths);
     }
     let distinct = if rows.is_closed() { n - 1 } else { n };
     if distinct < 3 {
-        return Err(format!("has {n} rows ({distinct} distinct points), expected at least 3"));
+        return Err(BadRows::TooFew { rows: n, distinct });
     }
     for i in 1..n {
         if (rows.center[i] - rows.center[i - 1]).norm() <= CLOSE_EPS && !rows.repeats_previous(i) {
-            return Err(format!(
-                "row {i} repeats row {}'s centre point with different borders: a zero-length centre-line segment",
-                i - 1
-            ));
+            return Err(BadRows::ZeroSegment { row: i });
         }
     }
     for (border, name) in [(&rows.inner, "inner"), (&rows.outer, "outer")] {
         if let Some((b, c)) = first_crossing(border, &rows.center) {
-            return Err(format!(
-                "the {name} border segment starting at row {b} crosses the centre line segment starting at row {c}"
-            ));
+            return Err(BadRows::Crossing { border: name, border_row: b, centre_row: c });
         }
     }
     Ok(())

@@ -378,7 +378,10 @@ fn a_camera_and_sector_lidar_model_drives_from_the_messages_lidar_data_in_both_l
         }
         // No LiDAR values, or a count the model cannot take: an error naming lidar_data.
         for lidar in [vec![], vec![0.5; 5]] {
-            let e = d.frame(&ros::encode_sensor(vec![frame.clone()], &lidar, layout), Instant::now()).unwrap_err();
+            let e = d
+                .frame(&ros::encode_sensor(vec![frame.clone()], &lidar, layout), Instant::now())
+                .unwrap_err()
+                .to_string();
             assert!(e.starts_with("lidar_data: ") && e.contains("SECTOR_LIDAR takes 8"), "{e}");
         }
     }

@@ -1,6 +1,6 @@
 //! Each kernel against the CPU path it stands in for, to float tolerance.
 
-use gpu::kernels::Operand;
+use gpu::kernels::{Gemm, Operand};
 use gpu::{DeviceChoice, Gpu, GpuNet};
 use policy::nn::{Adam, InputShape, LayerSpec, Net, Tape};
 use rand::{Rng, SeedableRng};
@@ -49,11 +49,13 @@ fn the_product_in_every_orientation_and_split_matches_faer() {
             let mut enc = gpu.device.create_command_encoder(&Default::default());
             gpu.gemm(
                 &mut enc,
-                [m, n, k],
-                Operand { buf: &abuf, at: pa, t: a_t },
-                Operand { buf: &bbuf, at: pb, t: b_t },
-                (&cbuf, pc),
-                add,
+                &Gemm {
+                    mnk: [m, n, k],
+                    a: Operand { buf: &abuf, at: pa, t: a_t },
+                    b: Operand { buf: &bbuf, at: pb, t: b_t },
+                    c: (&cbuf, pc),
+                    add,
+                },
                 &mut scratch,
             );
             gpu.queue.submit([enc.finish()]);

@@ -79,12 +79,25 @@ fn weights_that_do_not_fit_the_metadata_are_refused_clearly() {
 
 #[test]
 fn compatibility_names_what_differs() {
+    use policy::Incompatible;
     let a = meta(DISCRETE);
     assert!(a.compatible_with(&a).is_ok());
-    let e = a.compatible_with(&meta(CONTINUOUS)).unwrap_err();
-    assert!(e.contains("output layer"), "{e}");
     let faster = meta(&DISCRETE.replace(r#""speed":2"#, r#""speed":3"#));
-    assert!(a.compatible_with(&faster).unwrap_err().contains("change meaning"));
     let lidar = meta(&DISCRETE.replace(r#"["STATE_VECTOR"]"#, r#"["STATE_VECTOR","LIDAR"]"#));
-    assert!(a.compatible_with(&lidar).unwrap_err().contains("inputs"));
+    // Issue 50: each reason is typed, and its message names what differs and why it matters.
+    for (other, want, shown) in [
+        (meta(CONTINUOUS), "Outputs", "action space differs (discrete 2 outputs vs continuous 2): the output layer"),
+        (faster, "ActionValues", "change meaning"),
+        (lidar, "Sensors", "sensors differ ([StateVector] vs [StateVector, Lidar]): the network's inputs"),
+    ] {
+        let e = a.compatible_with(&other).unwrap_err();
+        let kind = match e {
+            Incompatible::Sensors { .. } => "Sensors",
+            Incompatible::Network { .. } => "Network",
+            Incompatible::Outputs { .. } => "Outputs",
+            Incompatible::ActionValues => "ActionValues",
+        };
+        assert_eq!(kind, want, "{e}");
+        assert!(e.to_string().contains(shown), "{e}");
+    }
 }

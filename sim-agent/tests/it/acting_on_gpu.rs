@@ -45,7 +45,7 @@ fn a_collection_acted_on_the_gpu_is_the_one_acted_on_faer() {
 /// trials acted on faer: the same progress, lap times and steps.
 #[test]
 fn evaluation_trials_on_the_gpu_are_the_ones_on_faer() {
-    use sim_agent::rollout::evaluate;
+    use sim_agent::rollout::{EvalPlan, evaluate};
     let gpu = Arc::new(gpu::Gpu::open(gpu::DeviceChoice::Gpu).unwrap().expect("`gpu` opens lavapipe"));
     let meta = ModelMetadata::default_state_vector();
     let spec = EnvSpec::from_world(&tracks::world("Oval_track").unwrap(), tracks::Direction::Forward);
@@ -54,9 +54,10 @@ fn evaluation_trials_on_the_gpu_are_the_ones_on_faer() {
     let model = Arc::new(ActorCritic::new(&meta, obs, &mut rand_chacha::ChaCha8Rng::seed_from_u64(9)));
     let rules = sim_agent::EvalRules::default();
     let space = &meta.action_space;
-    let cpu = evaluate(&model, space, &spec, &cfg, rules.clone(), 3, 4, 1, None).unwrap();
+    let plan = EvalPlan { rules, count: 3, seed: 4, threads: 1 };
+    let cpu = evaluate(&model, space, &spec, &cfg, &plan, None).unwrap();
     let mut acting = gpu::Acting::new(gpu);
-    let on_gpu = evaluate(&model, space, &spec, &cfg, rules, 3, 4, 1, Some(&mut acting)).unwrap();
+    let on_gpu = evaluate(&model, space, &spec, &cfg, &plan, Some(&mut acting)).unwrap();
     assert!(cpu.iter().map(|t| t.steps).sum::<u64>() > 30);
     for (a, b) in cpu.iter().zip(&on_gpu) {
         assert_eq!((a.progress, a.lap_time, a.steps, a.off_track), (b.progress, b.lap_time, b.steps, b.off_track));
