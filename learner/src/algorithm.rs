@@ -18,7 +18,7 @@ use crate::group::{Alone, Reducer};
 use crate::ppo::{Ppo, PpoStats};
 use crate::sac::{SacStats, SacTrainer};
 use crate::update::{LearnerState, Refused, StateMismatch};
-use policy::{ActorCritic, Trajectory};
+use policy::{ActorCritic, FileError, Trajectory};
 use std::path::Path;
 
 /// What one update did, in its algorithm's own figures.
@@ -123,17 +123,17 @@ pub trait Algorithm {
     /// One iteration on these episodes (with the learner team, when there is one).
     fn update(&mut self, trajs: &[Trajectory], team: Option<&mut dyn Team>) -> Result<UpdateStats, Refused>;
     /// Write what a checkpoint keeps beyond the model into its folder `dir` (nothing for PPO).
-    fn save_state(&self, _dir: &Path) -> Result<(), String> {
+    fn save_state(&self, _dir: &Path) -> Result<(), FileError> {
         Ok(())
     }
     /// Write what a resumed run continues with beyond the checkpoint into the run folder
     /// `root`, when the run ends (SAC's replay memory; nothing for PPO).
-    fn save_memory(&self, _root: &Path) -> Result<(), String> {
+    fn save_memory(&self, _root: &Path) -> Result<(), FileError> {
         Ok(())
     }
     /// Write into the run folder `root`, at a checkpoint, what a run resumed after a crash
     /// needs beyond the checkpoint (SAC: the transitions stored since the last one).
-    fn save_memory_part(&mut self, _root: &Path) -> Result<(), String> {
+    fn save_memory_part(&mut self, _root: &Path) -> Result<(), FileError> {
         Ok(())
     }
 }
@@ -268,15 +268,15 @@ impl Algorithm for SacTrainer {
         }
     }
 
-    fn save_state(&self, dir: &Path) -> Result<(), String> {
+    fn save_state(&self, dir: &Path) -> Result<(), FileError> {
         SacTrainer::save_state(self, dir)
     }
 
-    fn save_memory(&self, root: &Path) -> Result<(), String> {
+    fn save_memory(&self, root: &Path) -> Result<(), FileError> {
         SacTrainer::save_memory(self, root)
     }
 
-    fn save_memory_part(&mut self, root: &Path) -> Result<(), String> {
+    fn save_memory_part(&mut self, root: &Path) -> Result<(), FileError> {
         SacTrainer::save_memory_part(self, root)
     }
 }

@@ -68,26 +68,13 @@ pub enum RunError {
     /// Resuming a folder that holds no run.
     #[error("{0} holds no run to resume (no model/ folder)")]
     NothingToResume(String),
-    /// A file operation failed.
-    #[error("{path}: {error}")]
-    Io {
-        /// The file.
-        path: String,
-        /// The error.
-        error: std::io::Error,
-    },
-    /// A file holds something unexpected.
-    #[error("{path}: {msg}")]
-    Invalid {
-        /// The file.
-        path: String,
-        /// What.
-        msg: String,
-    },
+    /// A file of the folder could not be read or written, or holds something unexpected.
+    #[error(transparent)]
+    File(#[from] policy::FileError),
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> RunError + '_ {
-    move |source| RunError::Io { path: path.display().to_string(), error: source }
+    move |source| RunError::File(policy::FileError::io(path, source))
 }
 
 /// Write `bytes` to `path` through a temporary file and a rename.
@@ -180,7 +167,8 @@ impl RunDir {
             return Ok(CheckpointIndex::default());
         }
         let text = std::fs::read_to_string(&p).map_err(io(&p))?;
-        serde_json::from_str(&text).map_err(|e| RunError::Invalid { path: p.display().to_string(), msg: e.to_string() })
+        serde_json::from_str(&text)
+            .map_err(|e| RunError::File(policy::FileError::invalid(p.display().to_string(), e.to_string())))
     }
 
     /// Record a checkpoint that has been written: updates best/last, prunes old ones.
@@ -209,10 +197,10 @@ impl RunDir {
     pub fn record_best(&self, rec: CheckpointRecord) -> Result<(), RunError> {
         let mut index = self.index()?;
         if !self.checkpoint_dir(&rec.name).join("manifest.json").exists() {
-            return Err(RunError::Invalid {
-                path: self.checkpoint_dir(&rec.name).display().to_string(),
-                msg: "the verified checkpoint's folder is missing".into(),
-            });
+            return Err(RunError::File(policy::FileError::invalid(
+                self.checkpoint_dir(&rec.name).display().to_string(),
+                "the verified checkpoint's folder is missing",
+            )));
         }
         index.best_checkpoint = Some(rec);
         self.write_index(&index)

@@ -211,7 +211,7 @@ impl Run<'_> {
             Some(&self.signer),
         )
         .map_err(|e| e.to_string())
-        .and_then(|_| self.algo.save_state(&self.dir.checkpoint_dir(name)))
+        .and_then(|_| self.algo.save_state(&self.dir.checkpoint_dir(name)).map_err(|e| e.to_string()))
         .and_then(|_| {
             self.dir
                 .record_last(CheckpointRecord {

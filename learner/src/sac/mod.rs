@@ -31,7 +31,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 
 pub use on_gpu::{SacGpu, Session as SacSession};
-pub use replay::{Replay, ReplayError};
+pub use replay::{BadMemory, Replay, ReplayError};
 pub use trainer::{SacFigures, SacStats, SacTrainer};
 
 /// What one SAC update does, from `hyperparameters.json` and the action space.

@@ -8,6 +8,12 @@ use super::Batch;
 use rand::Rng;
 use std::ops::Range;
 
+/// Why a replay memory's bytes (what [`Replay::save`] wrote) were refused: what is wrong with
+/// them, naming the header key, tensor or byte range.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{0}")]
+pub struct BadMemory(pub String);
+
 /// Why an episode was not stored.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum ReplayError {
@@ -186,12 +192,11 @@ impl Replay {
     /// Write the memory to `path` (safetensors, streamed to a temporary file then renamed):
     /// its buffers as they lie in the ring, the pixels without a copy, and where the oldest
     /// transition is.
-    pub fn save(&self, path: &std::path::Path) -> Result<(), String> {
+    pub fn save(&self, path: &std::path::Path) -> Result<(), policy::FileError> {
         let tmp = path.with_extension("tmp");
         self.with_views(|views, info| safetensors::serialize_to_file(views, Some(info), &tmp))
-            .map_err(|e| e.to_string())
-            .and_then(|_| std::fs::rename(&tmp, path).map_err(|e| e.to_string()))
-            .map_err(|e| format!("{}: {e}", path.display()))
+            .map_err(|e| policy::FileError::invalid(path.display().to_string(), e.to_string()))?;
+        std::fs::rename(&tmp, path).map_err(policy::FileError::io_at(path))
     }
 
     /// The memory as [`Replay::save`] writes it, in memory (what a learner team's joiner
@@ -241,19 +246,19 @@ impl Replay {
     }
 
     /// The capacity a memory's bytes were written with (`None`: not said, an older file).
-    pub fn capacity_of(bytes: &[u8]) -> Result<Option<usize>, String> {
-        let (_, meta) =
-            safetensors::SafeTensors::read_metadata(bytes).map_err(|e| format!("not a safetensors file: {e}"))?;
+    pub fn capacity_of(bytes: &[u8]) -> Result<Option<usize>, BadMemory> {
+        let (_, meta) = safetensors::SafeTensors::read_metadata(bytes)
+            .map_err(|e| BadMemory(format!("not a safetensors file: {e}")))?;
         match meta.metadata().as_ref().and_then(|m| m.get("capacity")) {
             None => Ok(None),
-            Some(c) => c.parse().map(Some).map_err(|_| format!("'capacity' is {c:?}, not a number")),
+            Some(c) => c.parse().map(Some).map_err(|_| BadMemory(format!("'capacity' is {c:?}, not a number"))),
         }
     }
 
     /// A memory of `capacity` transitions holding what [`Replay::save`] wrote (the newest
     /// of them, when it held more).
-    pub fn from_bytes(bytes: &[u8], capacity: usize) -> Result<Replay, String> {
-        let file = Stored::read(bytes)?;
+    pub fn from_bytes(bytes: &[u8], capacity: usize) -> Result<Replay, BadMemory> {
+        let file = Stored::read(bytes).map_err(BadMemory)?;
         let mut r = Replay::new(capacity, file.per, file.bytes.clone());
         let n = file.end.len();
         if n == r.capacity && file.oldest > 0 {
@@ -277,13 +282,13 @@ impl Replay {
     /// oldest of this memory's make way when it is full); false, and nothing appended, when
     /// this memory has stored as many transitions as it had (it holds them already). Refused,
     /// with nothing changed, unless it holds transitions of this memory's shape.
-    pub fn extend_from_bytes(&mut self, bytes: &[u8]) -> Result<bool, String> {
-        let file = Stored::read(bytes)?;
+    pub fn extend_from_bytes(&mut self, bytes: &[u8]) -> Result<bool, BadMemory> {
+        let file = Stored::read(bytes).map_err(BadMemory)?;
         if file.per != self.per || file.bytes != self.bytes {
-            return Err(format!(
+            return Err(BadMemory(format!(
                 "transitions of {} values (bytes at {:?}), this run's have {} (bytes at {:?})",
                 file.per, file.bytes, self.per, self.bytes
-            ));
+            )));
         }
         if file.added <= self.added {
             return Ok(false);

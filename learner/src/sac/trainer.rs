@@ -27,7 +27,7 @@ use faer::Par;
 use gpu::GpuError;
 use policy::model::Head;
 use policy::nn::InputShape;
-use policy::{ActorCritic, Choice, ModelMetadata, Trajectory};
+use policy::{ActorCritic, Choice, FileError, ModelMetadata, Trajectory};
 use rand::{RngCore, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use safetensors::{Dtype, SafeTensors, tensor::TensorView};
@@ -209,14 +209,14 @@ impl SacTrainer {
 
     /// Take the critics (and the temperature) from a checkpoint folder; false when it holds
     /// none.
-    pub fn load_state(&mut self, dir: &Path) -> Result<bool, String> {
+    pub fn load_state(&mut self, dir: &Path) -> Result<bool, FileError> {
         let path = dir.join(CRITICS_FILE);
         let bytes = match std::fs::read(&path) {
             Ok(b) => b,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(false),
-            Err(e) => return Err(format!("{}: {e}", path.display())),
+            Err(e) => return Err(FileError::io(&path, e)),
         };
-        let bad = |m: String| format!("{}: {m}", path.display());
+        let bad = |m: String| FileError::invalid(path.display().to_string(), m);
         let st = SafeTensors::deserialize(&bytes).map_err(|e| bad(format!("not a safetensors file: {e}")))?;
         let mut next = self.sac.clone();
         let nets = &mut next.nets;
@@ -239,23 +239,24 @@ impl SacTrainer {
     /// ended (or when its parts grew as large as the memory), then the parts written at each
     /// checkpoint since, in order. False when it holds none. Refused, naming the file, when
     /// one does not fit this run (its memory then starts empty).
-    pub fn load_memory(&mut self, root: &Path) -> Result<bool, String> {
+    pub fn load_memory(&mut self, root: &Path) -> Result<bool, FileError> {
         let mut found = false;
         let mut memory = Replay::new(self.replay.capacity(), self.replay.per(), self.replay.byte_ranges().to_vec());
         let path = root.join(REPLAY_FILE);
         match std::fs::read(&path) {
             Ok(bytes) => {
-                memory.extend_from_bytes(&bytes).map_err(|e| format!("{}: {e}", path.display()))?;
+                memory.extend_from_bytes(&bytes).map_err(|e| FileError::invalid(path.display().to_string(), e.0))?;
                 found = true;
             }
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
-            Err(e) => return Err(format!("{}: {e}", path.display())),
+            Err(e) => return Err(FileError::io(&path, e)),
         }
         let mut parts = 0;
-        for part in memory_parts(root).map_err(|e| format!("{}: {e}", root.join(REPLAY_PARTS).display()))? {
-            let bytes = std::fs::read(&part).map_err(|e| format!("{}: {e}", part.display()))?;
+        let parts_dir = root.join(REPLAY_PARTS);
+        for part in memory_parts(root).map_err(FileError::io_at(&parts_dir))? {
+            let bytes = std::fs::read(&part).map_err(FileError::io_at(&part))?;
             let before = memory.added();
-            if memory.extend_from_bytes(&bytes).map_err(|e| format!("{}: {e}", part.display()))? {
+            if memory.extend_from_bytes(&bytes).map_err(|e| FileError::invalid(part.display().to_string(), e.0))? {
                 parts += (memory.added() - before) as usize;
                 found = true;
             }
@@ -352,7 +353,7 @@ pub(crate) fn write_tensors(
     path: &Path,
     named: &[(&str, Vec<u8>, Dtype)],
     info: HashMap<String, String>,
-) -> Result<(), String> {
+) -> Result<(), FileError> {
     let views: Vec<(String, TensorView<'_>)> = named
         .iter()
         .map(|(n, b, d)| {
@@ -360,11 +361,10 @@ pub(crate) fn write_tensors(
             (n.to_string(), TensorView::new(*d, vec![len], b).expect("sizes agree"))
         })
         .collect();
-    let bytes = safetensors::serialize(views, Some(info)).map_err(|e| e.to_string())?;
+    let bytes = safetensors::serialize(views, Some(info))
+        .map_err(|e| FileError::invalid(path.display().to_string(), e.to_string()))?;
     let tmp = path.with_extension("tmp");
-    std::fs::write(&tmp, bytes)
-        .and_then(|_| std::fs::rename(&tmp, path))
-        .map_err(|e| format!("{}: {e}", path.display()))
+    std::fs::write(&tmp, bytes).and_then(|_| std::fs::rename(&tmp, path)).map_err(FileError::io_at(path))
 }
 
 /// What a run and a learner team need of a SAC learner, besides its updates.
@@ -391,7 +391,7 @@ impl SacTrainer {
 
     /// Write the critics and the temperature into the checkpoint folder `dir`
     /// ([`CRITICS_FILE`]).
-    pub fn save_state(&self, dir: &Path) -> Result<(), String> {
+    pub fn save_state(&self, dir: &Path) -> Result<(), FileError> {
         let nets = &self.sac.nets;
         let mut named = vec![
             ("q1", f32_bytes(&nets.q.q1.params), Dtype::F32),
@@ -411,20 +411,18 @@ impl SacTrainer {
 
     /// Write the whole replay memory into the run folder `root` ([`REPLAY_FILE`]) and let
     /// the parts go.
-    pub fn save_memory(&self, root: &Path) -> Result<(), String> {
+    pub fn save_memory(&self, root: &Path) -> Result<(), FileError> {
         self.replay.save(&root.join(REPLAY_FILE))?;
         // The parts are in the whole memory now.
         match std::fs::remove_dir_all(root.join(REPLAY_PARTS)) {
-            Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
-                Err(format!("{}: {e}", root.join(REPLAY_PARTS).display()))
-            }
+            Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(FileError::io(&root.join(REPLAY_PARTS), e)),
             _ => Ok(()),
         }
     }
 
     /// Write into the run folder `root` the transitions stored since the last checkpoint (a
     /// part in [`REPLAY_PARTS`]), or the whole memory when the parts would hold more than it.
-    pub fn save_memory_part(&mut self, root: &Path) -> Result<(), String> {
+    pub fn save_memory_part(&mut self, root: &Path) -> Result<(), FileError> {
         let new = (self.replay.added() - self.on_disk).min(self.replay.len() as u64) as usize;
         if new == 0 {
             return Ok(());
@@ -442,7 +440,7 @@ impl SacTrainer {
         std::fs::create_dir_all(&dir)
             .and_then(|_| std::fs::write(&tmp, bytes))
             .and_then(|_| std::fs::rename(&tmp, &path))
-            .map_err(|e| format!("{}: {e}", path.display()))?;
+            .map_err(FileError::io_at(&path))?;
         (self.on_disk, self.in_parts) = (self.replay.added(), self.in_parts + new);
         Ok(())
     }
@@ -623,7 +621,7 @@ impl SacTrainer {
         if carry.len() != 1 || !(0.0..1.0).contains(&carry[0]) {
             return Err(StateMismatch(format!("tensor `carry` is {carry:?}, expected one number in [0, 1)")));
         }
-        let capacity = Replay::capacity_of(bytes).map_err(StateMismatch)?.unwrap_or(self.replay.capacity());
+        let capacity = Replay::capacity_of(bytes).map_err(|e| StateMismatch(e.0))?.unwrap_or(self.replay.capacity());
         let replay =
             Replay::from_bytes(bytes, capacity).map_err(|e| StateMismatch(format!("the replay memory: {e}")))?;
         if replay.per() != self.replay.per() {

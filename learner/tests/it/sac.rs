@@ -313,7 +313,7 @@ fn the_replay_memory_survives_a_save_and_a_smaller_capacity_keeps_the_newest() {
     assert!(b.reward.iter().all(|&x| x == 2.0) && b.obs.chunks(3).all(|o| o[0] >= 20.0), "{:?}", b.reward);
     // A damaged file is refused, naming what is wrong.
     let e = Replay::from_bytes(&bytes[..bytes.len() / 2], 6).unwrap_err();
-    assert!(e.contains("safetensors"), "{e}");
+    assert!(e.0.contains("safetensors"), "{e}");
 }
 
 /// Issue 32: a replay memory larger than a quarter of the machine is capped.
@@ -592,5 +592,6 @@ fn the_replay_memory_is_kept_at_every_checkpoint_and_survives_a_crash() {
     std::fs::copy(alien.path().join("replay.safetensors"), root.join("replay/99999999999999999999.safetensors"))
         .unwrap();
     let e = again.load_memory(root).unwrap_err();
-    assert!(e.contains("99999999999999999999.safetensors") && e.contains("transitions of 8 values"), "{e}");
+    assert!(e.path().ends_with("99999999999999999999.safetensors"), "{e}");
+    assert!(e.to_string().contains("transitions of 8 values"), "{e}");
 }
