@@ -13,6 +13,7 @@
 //! Every file is written to a temporary name and renamed into place. The best checkpoint is
 //! chosen by mean evaluation progress, then by lap time.
 
+use policy::FileError;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -70,21 +71,17 @@ pub enum RunError {
     NothingToResume(String),
     /// A file of the folder could not be read or written, or holds something unexpected.
     #[error(transparent)]
-    File(#[from] policy::FileError),
-}
-
-fn io(path: &Path) -> impl FnOnce(std::io::Error) -> RunError + '_ {
-    move |source| RunError::File(policy::FileError::io(path, source))
+    File(#[from] FileError),
 }
 
 /// Write `bytes` to `path` through a temporary file and a rename.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), RunError> {
     if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
-        std::fs::create_dir_all(parent).map_err(io(parent))?;
+        std::fs::create_dir_all(parent).map_err(FileError::io_at(parent))?;
     }
     let tmp = path.with_extension(format!("tmp-{}", std::process::id()));
-    std::fs::write(&tmp, bytes).map_err(io(&tmp))?;
-    std::fs::rename(&tmp, path).map_err(io(path))
+    std::fs::write(&tmp, bytes).map_err(FileError::io_at(&tmp))?;
+    Ok(std::fs::rename(&tmp, path).map_err(FileError::io_at(path))?)
 }
 
 /// How to open a run folder.
@@ -115,10 +112,10 @@ impl RunDir {
             OpenMode::Resume if !root.join("model").join("manifest.json").exists() => {
                 return Err(RunError::NothingToResume(root.display().to_string()));
             }
-            OpenMode::Force if exists => std::fs::remove_dir_all(root).map_err(io(root))?,
+            OpenMode::Force if exists => std::fs::remove_dir_all(root).map_err(FileError::io_at(root))?,
             _ => {}
         }
-        std::fs::create_dir_all(root.join("checkpoints")).map_err(io(root))?;
+        std::fs::create_dir_all(root.join("checkpoints")).map_err(FileError::io_at(root))?;
         Ok(RunDir { root: root.to_path_buf(), failures: Default::default() })
     }
 
@@ -166,9 +163,9 @@ impl RunDir {
         if !p.exists() {
             return Ok(CheckpointIndex::default());
         }
-        let text = std::fs::read_to_string(&p).map_err(io(&p))?;
+        let text = std::fs::read_to_string(&p).map_err(FileError::io_at(&p))?;
         serde_json::from_str(&text)
-            .map_err(|e| RunError::File(policy::FileError::invalid(p.display().to_string(), e.to_string())))
+            .map_err(|e| RunError::File(FileError::invalid(p.display().to_string(), e.to_string())))
     }
 
     /// Record a checkpoint that has been written: updates best/last, prunes old ones.
@@ -197,7 +194,7 @@ impl RunDir {
     pub fn record_best(&self, rec: CheckpointRecord) -> Result<(), RunError> {
         let mut index = self.index()?;
         if !self.checkpoint_dir(&rec.name).join("manifest.json").exists() {
-            return Err(RunError::File(policy::FileError::invalid(
+            return Err(RunError::File(FileError::invalid(
                 self.checkpoint_dir(&rec.name).display().to_string(),
                 "the verified checkpoint's folder is missing",
             )));
@@ -215,7 +212,7 @@ impl RunDir {
     fn prune(&self, index: &CheckpointIndex) -> Result<(), RunError> {
         let dir = self.root.join("checkpoints");
         let mut names: Vec<String> = std::fs::read_dir(&dir)
-            .map_err(io(&dir))?
+            .map_err(FileError::io_at(&dir))?
             .filter_map(|e| e.ok())
             .map(|e| e.file_name().to_string_lossy().into_owned())
             .filter(|n| n.starts_with("ckpt_"))
@@ -227,7 +224,7 @@ impl RunDir {
         for (i, n) in names.iter().enumerate() {
             if i < keep_from && Some(n) != best.as_ref() && Some(n) != last.as_ref() {
                 let p = dir.join(n);
-                std::fs::remove_dir_all(&p).map_err(io(&p))?;
+                std::fs::remove_dir_all(&p).map_err(FileError::io_at(&p))?;
             }
         }
         Ok(())
@@ -254,8 +251,8 @@ impl RunDir {
     fn append_line(&self, name: &str, line: &serde_json::Value) -> Result<(), RunError> {
         use std::io::Write;
         let p = self.root.join(name);
-        let mut f = std::fs::OpenOptions::new().create(true).append(true).open(&p).map_err(io(&p))?;
-        writeln!(f, "{line}").map_err(io(&p))
+        let mut f = std::fs::OpenOptions::new().create(true).append(true).open(&p).map_err(FileError::io_at(&p))?;
+        Ok(writeln!(f, "{line}").map_err(FileError::io_at(&p))?)
     }
 
     /// On resuming from the checkpoint of `iteration`: keep in `metrics.jsonl` and
