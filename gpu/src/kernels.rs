@@ -259,6 +259,67 @@ fn groups(n: usize) -> (u32, u32) {
     if g <= 65_535 { (g, 1) } else { (65_535, g.div_ceil(65_535)) }
 }
 
+/// One element-wise kernel of ops.wgsl: its entry point, the outputs it makes, and its
+/// integer arguments `u` and float `x` (zero unless set).
+#[derive(Clone, Copy, Debug)]
+pub struct Op<'a> {
+    /// The kernel's entry point in ops.wgsl.
+    pub entry: &'a str,
+    /// Outputs made.
+    pub n: usize,
+    /// The integer arguments.
+    pub u: [u32; 7],
+    /// The float argument.
+    pub x: f32,
+}
+
+impl<'a> Op<'a> {
+    /// `entry` over `n` outputs, its arguments zero.
+    pub fn new(entry: &'a str, n: usize) -> Op<'a> {
+        Op { entry, n, u: [0; 7], x: 0.0 }
+    }
+
+    /// With the integer arguments `u`.
+    pub fn u(self, u: [u32; 7]) -> Op<'a> {
+        Op { u, ..self }
+    }
+
+    /// With the float argument `x`.
+    pub fn x(self, x: f32) -> Op<'a> {
+        Op { x, ..self }
+    }
+}
+
+/// One Adam step's constants (loss.wgsl's): `step` is lr / (1 − β1ᵗ), `inv_c2` 1 / (1 − β2ᵗ).
+#[derive(Clone, Copy, Debug)]
+pub struct AdamStep {
+    /// β1.
+    pub b1: f32,
+    /// β2.
+    pub b2: f32,
+    /// ε.
+    pub eps: f32,
+    /// lr / (1 − β1ᵗ).
+    pub step: f32,
+    /// 1 / (1 − β2ᵗ).
+    pub inv_c2: f32,
+}
+
+/// The buffers a PPO loss kernel reads and writes.
+#[derive(Clone, Copy, Debug)]
+pub struct LossBuffers<'a> {
+    /// The tower's outputs.
+    pub out: &'a wgpu::Buffer,
+    /// The batch's samples.
+    pub samples: &'a wgpu::Buffer,
+    /// The minibatch's indices.
+    pub idx: &'a wgpu::Buffer,
+    /// The gradient wrt the outputs (written).
+    pub d: &'a wgpu::Buffer,
+    /// Each sample's figures (written).
+    pub stats: &'a wgpu::Buffer,
+}
+
 /// What `policy_loss` and `value_loss` are told (loss.wgsl's `Loss`).
 #[derive(Clone, Copy, Debug, Default)]
 pub struct LossArgs {
@@ -368,20 +429,16 @@ impl Gpu {
         self.run(enc, &kern.reduce, &kern.four, &[parts, &kern.dummy, c.0, &u], (gx, gy, 1));
     }
 
-    /// One element-wise kernel of ops.wgsl over `n` outputs: `dst` from `src` (and `src2`),
-    /// with its integer arguments `u` and float `x`.
-    #[allow(clippy::too_many_arguments)]
+    /// One element-wise kernel of ops.wgsl, `op`: `dst` from `src` (and `src2`).
     pub fn op(
         &self,
         enc: &mut wgpu::CommandEncoder,
-        entry: &str,
-        n: usize,
+        op: Op<'_>,
         src: &wgpu::Buffer,
         src2: Option<&wgpu::Buffer>,
         dst: &wgpu::Buffer,
-        u: [u32; 7],
-        x: f32,
     ) {
+        let Op { entry, n, u, x } = op;
         if n == 0 {
             return;
         }
@@ -402,9 +459,8 @@ impl Gpu {
         self.run(enc, pipeline, &kern.four, &[&kern.dummy, &kern.dummy, buf, &args], (gx, gy, 1));
     }
 
-    /// Adam over `n` parameters (loss.wgsl's arithmetic is policy::nn::Adam's): `step` is
-    /// lr / (1 − β1ᵗ), `inv_c2` 1 / (1 − β2ᵗ). A non-finite gradient value sets `flag`.
-    #[allow(clippy::too_many_arguments)]
+    /// Adam over `n` parameters (loss.wgsl's arithmetic is policy::nn::Adam's), with the
+    /// constants `step` gives. A non-finite gradient value sets `flag`.
     pub fn adam(
         &self,
         enc: &mut wgpu::CommandEncoder,
@@ -412,9 +468,9 @@ impl Gpu {
         [params, m, v]: [&wgpu::Buffer; 3],
         grad: &wgpu::Buffer,
         flag: &wgpu::Buffer,
-        [b1, b2, eps]: [f32; 3],
-        (step, inv_c2): (f32, f32),
+        step: AdamStep,
     ) {
+        let AdamStep { b1, b2, eps, step, inv_c2 } = step;
         let kern = &self.kernels;
         let u = self.uniform(&[
             n as u32,
@@ -434,21 +490,11 @@ impl Gpu {
         self.run(enc, &kern.adam, &kern.six_opt, &[params, m, v, grad, flag, &u], (gx, gy, 1));
     }
 
-    /// PPO's policy loss (`value` false) or value loss over a minibatch: the tower's outputs
-    /// `out`, the batch's `samples` and the minibatch's indices in `idx`; the gradient wrt
-    /// the outputs into `d`, each sample's figures into `stats`.
-    #[allow(clippy::too_many_arguments)]
-    pub fn loss(
-        &self,
-        enc: &mut wgpu::CommandEncoder,
-        value: bool,
-        args: LossArgs,
-        out: &wgpu::Buffer,
-        samples: &wgpu::Buffer,
-        idx: &wgpu::Buffer,
-        d: &wgpu::Buffer,
-        stats: &wgpu::Buffer,
-    ) {
+    /// PPO's policy loss (`value` false) or value loss over a minibatch: the tower's outputs,
+    /// the batch's samples and the minibatch's indices in `bufs`; the gradient wrt the outputs
+    /// into its `d`, each sample's figures into its `stats`.
+    pub fn loss(&self, enc: &mut wgpu::CommandEncoder, value: bool, args: LossArgs, bufs: LossBuffers<'_>) {
+        let LossBuffers { out, samples, idx, d, stats } = bufs;
         let kern = &self.kernels;
         let u = self.uniform(&[
             args.n,

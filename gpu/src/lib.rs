@@ -24,7 +24,7 @@ pub mod net;
 
 pub use acting::Acting;
 pub use device::{DeviceChoice, Gpu};
-pub use net::GpuNet;
+pub use net::{GpuNet, Wants};
 
 /// What can go wrong on the GPU path.
 #[derive(Debug, thiserror::Error)]

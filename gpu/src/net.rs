@@ -7,9 +7,18 @@
 //! a row of ones. A network of several inputs (camera and LiDAR) takes each input's values
 //! out of the samples into its embedder and the embeddings side by side into the rest.
 
-use crate::kernels::{Gemm, Operand};
+use crate::kernels::{Gemm, Op, Operand};
 use crate::{Gpu, GpuError};
 use policy::nn::{Layer, Net};
+
+/// What a backward pass makes besides the gradients inside the network.
+#[derive(Clone, Copy, Debug)]
+pub struct Wants<'a> {
+    /// The parameters' gradient, added into the network's `grad`.
+    pub params: bool,
+    /// The gradient wrt the network's input, into this buffer.
+    pub d_in: Option<&'a wgpu::Buffer>,
+}
 
 /// A network on the GPU.
 pub struct GpuNet {
@@ -104,7 +113,7 @@ fn copy_cols(
     n: usize,
 ) {
     let u = [n, dst.1, dst.2, src.1, src.2, 0, 0].map(|v| v as u32);
-    gpu.op(enc, "copy_cols", batch * n, src.0, None, dst.0, u, 0.0);
+    gpu.op(enc, Op::new("copy_cols", batch * n).u(u), src.0, None, dst.0);
 }
 
 impl GpuNet {
@@ -258,20 +267,22 @@ impl GpuNet {
             let input = if i == range.start { x } else { &before[i - 1] };
             let out = &after[0];
             match self.layers[i] {
-                Layer::Scale { size, factor } => gpu.op(enc, "scale", batch * size, input, None, out, [0; 7], factor),
-                Layer::Relu { size } => gpu.op(enc, "relu", batch * size, input, None, out, [0; 7], 0.0),
+                Layer::Scale { size, factor } => {
+                    gpu.op(enc, Op::new("scale", batch * size).x(factor), input, None, out)
+                }
+                Layer::Relu { size } => gpu.op(enc, Op::new("relu", batch * size), input, None, out),
                 Layer::Dense { .. } | Layer::Conv2d { .. } => {
                     // A dense layer is a conv over one position a sample: the product's rows.
                     let p = Product::of(&self.layers[i], batch);
                     let unfolded = match (&self.cols[i], p.geometry) {
                         (Some(cols), Some(geometry)) => {
-                            gpu.op(enc, "im2col", p.rows * p.n_in, input, None, cols, geometry, 0.0);
+                            gpu.op(enc, Op::new("im2col", p.rows * p.n_in).u(geometry), input, None, cols);
                             cols
                         }
                         _ => input,
                     };
                     let bias = [(p.offset + p.n_in * p.n_out) as u32, p.n_out as u32, 0, 0, 0, 0, 0];
-                    gpu.op(enc, "fill_rows", p.rows * p.n_out, &self.params, None, out, bias, 0.0);
+                    gpu.op(enc, Op::new("fill_rows", p.rows * p.n_out).u(bias), &self.params, None, out);
                     gpu.gemm(
                         enc,
                         &Gemm {
@@ -304,13 +315,12 @@ impl GpuNet {
         d_out: &wgpu::Buffer,
         batch: usize,
     ) {
-        self.backward_with(gpu, enc, x, (d_out, 0), batch, true, None);
+        self.backward_with(gpu, enc, x, (d_out, 0), batch, Wants { params: true, d_in: None });
     }
 
-    /// [`GpuNet::backward`] with `d_out` from float `d_out.1` of its buffer; the parameters'
-    /// gradient added into `grad` only when `params`; and the gradient wrt the input written
-    /// into `d_in` (`batch × in`) when one is given (a network upstream needs it).
-    #[allow(clippy::too_many_arguments)]
+    /// [`GpuNet::backward`] with `d_out` from float `d_out.1` of its buffer, making what
+    /// `wants` says: the parameters' gradient (added into `grad`), the gradient wrt the input
+    /// (`batch × in`, into the buffer given: a network upstream needs it), or both.
     pub fn backward_with(
         &mut self,
         gpu: &Gpu,
@@ -318,9 +328,9 @@ impl GpuNet {
         x: &wgpu::Buffer,
         d_out: (&wgpu::Buffer, usize),
         batch: usize,
-        params: bool,
-        d_in: Option<&wgpu::Buffer>,
+        wants: Wants<'_>,
     ) {
+        let Wants { params, d_in } = wants;
         let last = self.out_size();
         let Some((merged, d_merged, width)) = self.merged.as_ref().map(|m| (m.values.clone(), m.grad.clone(), m.width))
         else {
@@ -386,10 +396,8 @@ impl GpuNet {
             let input = if i == range.start { x } else { &self.acts[i - 1] };
             let (d, d_prev) = if cur == 0 { (&self.d[0], &self.d[1]) } else { (&self.d[1], &self.d[0]) };
             match self.layers[i] {
-                Layer::Scale { size, factor } => gpu.op(enc, "scale", batch * size, d, None, d_prev, [0; 7], factor),
-                Layer::Relu { size } => {
-                    gpu.op(enc, "relu_back", batch * size, d, Some(&self.acts[i]), d_prev, [0; 7], 0.0)
-                }
+                Layer::Scale { size, factor } => gpu.op(enc, Op::new("scale", batch * size).x(factor), d, None, d_prev),
+                Layer::Relu { size } => gpu.op(enc, Op::new("relu_back", batch * size), d, Some(&self.acts[i]), d_prev),
                 Layer::Dense { .. } | Layer::Conv2d { .. } => {
                     let p = Product::of(&self.layers[i], batch);
                     let unfolded = self.cols[i].as_ref().unwrap_or(input);
@@ -433,7 +441,7 @@ impl GpuNet {
                         );
                         if let Some(geometry) = p.geometry {
                             let size = batch * self.layers[i].in_size();
-                            gpu.op(enc, "col2im", size, &self.d_cols, None, d_prev, geometry, 0.0);
+                            gpu.op(enc, Op::new("col2im", size).u(geometry), &self.d_cols, None, d_prev);
                         }
                     }
                 }

@@ -3,6 +3,7 @@
 //! every network Paddock builds (one input or several); a learner team's members train on
 //! faer. The Adam step both GPU paths record is here ([`adam`]).
 
+use gpu::kernels::AdamStep;
 use gpu::{DeviceChoice, Gpu, GpuNet};
 use policy::nn::Adam;
 use std::sync::{Arc, Mutex};
@@ -49,13 +50,6 @@ pub(crate) fn note_team_on_cpu() {
 pub(crate) fn adam(gpu: &Gpu, enc: &mut wgpu::CommandEncoder, net: &GpuNet, opt: &Adam, t: u32, flag: &wgpu::Buffer) {
     let step = opt.lr / (1.0 - opt.beta1.powi(t as i32));
     let inv_c2 = 1.0 / (1.0 - opt.beta2.powi(t as i32));
-    gpu.adam(
-        enc,
-        net.len(),
-        [&net.params, &net.m, &net.v],
-        &net.grad,
-        flag,
-        [opt.beta1, opt.beta2, opt.eps],
-        (step, inv_c2),
-    );
+    let constants = AdamStep { b1: opt.beta1, b2: opt.beta2, eps: opt.eps, step, inv_c2 };
+    gpu.adam(enc, net.len(), [&net.params, &net.m, &net.v], &net.grad, flag, constants);
 }

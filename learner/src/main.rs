@@ -244,7 +244,8 @@ fn bench(network: &str, seconds: f64, threads: usize, device: learner::DeviceCho
                                 Operand::A => (&a[i * mk..(i + 1) * mk], &mut c[..]),
                                 Operand::C => (&a[..], &mut c[i * mn..(i + 1) * mn]),
                             };
-                            policy::nn::gemm(c, s.m, s.n, s.k, a, s.a_t, b, s.b_t, s.add, par)
+                            let (m, n, k, a_t, b_t, add) = (s.m, s.n, s.k, s.a_t, s.b_t, s.add);
+                            policy::nn::gemm(c, a, b, policy::nn::Product { m, n, k, a_t, b_t, add }, par)
                         }
                     };
                     if s.chunks == 0 {

@@ -26,7 +26,7 @@
 use crate::algorithm::UpdateStats;
 use crate::sac::SacFigures;
 use policy::exchange::Trial;
-use policy::simtrace::{HEADER, action_text, write_row, write_trajectory};
+use policy::simtrace::{HEADER, Row, action_text, write_row, write_trajectory};
 use policy::{ActionSpace, StepTrace, TrackLines, Trajectory};
 use serde::Serialize;
 use serde_json::{Value, json};
@@ -329,7 +329,9 @@ impl Recorder {
                 let n = t.trace.len();
                 for (s, ((tr, c), r)) in t.trace.iter().zip(&t.choices).zip(&t.rewards).enumerate() {
                     let action = action_text(c, &self.space);
-                    write_row(&mut out, k as u64, s as u64 + 1, tr, &action, *r as f64, s + 1 == n, t.track_len)?;
+                    let (episode, step, reward, done) = (k as u64, s as u64 + 1, *r as f64, s + 1 == n);
+                    let row = Row { episode, step, trace: tr, action: &action, reward, done, track_len: t.track_len };
+                    write_row(&mut out, &row)?;
                 }
                 let mut m = episode_metrics(&t.trace, &t.rewards, t.progress);
                 let resets = t.off_track.saturating_sub(u32::from(t.status == "off_track"))

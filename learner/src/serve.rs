@@ -204,7 +204,8 @@ fn follow_job(
         }
     };
     let limit = learner::sac::trainer::memory_limit();
-    let end = team::follow(session, id, &view, algo.as_mut(), limit, drops, &mut keep_going, &mut on_update)?;
+    let follower = team::Follower { session, me: id, memory_limit: limit, drops };
+    let end = team::follow(follower, &view, algo.as_mut(), &mut keep_going, &mut on_update)?;
     // The team's state, if this learner took part at all.
     Ok((end, (updates > 0).then(|| (algo.state(), algo.memory()))))
 }

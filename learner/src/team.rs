@@ -473,21 +473,30 @@ pub enum FollowEnd {
 /// What a follower hears about each update it made.
 pub type OnUpdate<'a> = dyn FnMut(&dyn Shared, &Result<UpdateStats, Refused>) + 'a;
 
-/// Take part in `job`'s updates as `me` until the leader goes or `keep_going` says stop.
-/// `algo` is this learner's (its state, and memory, are replaced by the leader's before the
-/// first update); `on_update` hears about every update made. A replay memory larger than
-/// `memory_limit` bytes is refused.
-#[allow(clippy::too_many_arguments)]
+/// A learner that follows a job's leader in its updates: its session and name, and what it
+/// accepts.
+pub struct Follower<'a> {
+    /// The learner's session.
+    pub session: &'a zenoh::Session,
+    /// The learner's id.
+    pub me: &'a str,
+    /// A replay memory larger than this many bytes is refused.
+    pub memory_limit: u64,
+    /// Where refused messages are counted.
+    pub drops: Arc<DropCounters>,
+}
+
+/// Take part in `view`'s job's updates as `member` until the leader goes or `keep_going`
+/// says stop. `algo` is this learner's (its state, and memory, are replaced by the leader's
+/// before the first update); `on_update` hears about every update made.
 pub fn follow(
-    session: &zenoh::Session,
-    me: &str,
+    follower: Follower<'_>,
     view: &JobView<'_>,
     algo: &mut dyn Shared,
-    memory_limit: u64,
-    drops: Arc<DropCounters>,
     keep_going: &mut dyn FnMut() -> bool,
     on_update: &mut OnUpdate<'_>,
 ) -> anyhow::Result<FollowEnd> {
+    let Follower { session, me, memory_limit, drops } = follower;
     let plans = net::subscribe(session, &keys::team_plan(view.job_id))?;
     let memories = net::subscribe(session, &keys::team_memory(view.job_id))?;
     let mut parts = MemoryParts::new(memory_limit);

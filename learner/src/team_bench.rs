@@ -8,7 +8,7 @@
 //! optimisers) bit for bit.
 
 use crate::bench_metadata;
-use crate::team::{FollowEnd, TeamLead, follow};
+use crate::team::{FollowEnd, Follower, TeamLead, follow};
 use anyhow::{Context, Result, bail};
 use faer::Par;
 use learner::algorithm::{Shared, Team};
@@ -333,7 +333,8 @@ pub fn member(network: &str, epochs: usize, sac: bool, net_args: NetArgs, id: &s
     let view = JobView { job_id: JOB, obs_size: os, worlds: &worlds, actions };
     let mut updates = 0u64;
     let drops = Arc::new(DropCounters::default());
-    let end = follow(&session, id, &view, algo.as_mut(), u64::MAX, drops, &mut || true, &mut |_, _| updates += 1)?;
+    let follower = Follower { session: &session, me: id, memory_limit: u64::MAX, drops };
+    let end = follow(follower, &view, algo.as_mut(), &mut || true, &mut |_, _| updates += 1)?;
     if end != FollowEnd::LeaderGone {
         bail!("the member stopped: {end:?}");
     }

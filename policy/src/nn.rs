@@ -9,28 +9,57 @@ use faer::{Accum, MatMut, MatRef, Par};
 use rand::Rng;
 use rand_distr::{Distribution, Normal};
 
-/// `dst (m×n) = op(a) (m×k) · op(b) (k×n)` (+ `dst` when `accumulate`), all row-major.
-/// `a_t`: `a` is stored as `k×m`; `b_t`: `b` is stored as `n×k`.
-#[allow(clippy::too_many_arguments)]
-pub fn gemm(
-    dst: &mut [f32],
-    m: usize,
-    n: usize,
-    k: usize,
-    a: &[f32],
-    a_t: bool,
-    b: &[f32],
-    b_t: bool,
-    accumulate: bool,
-    par: Par,
-) {
+/// One matrix product's sizes and storage: `dst (m×n) = op(a) (m×k) · op(b) (k×n)`, all
+/// row-major; `a_t`: `a` is stored as `k×m`; `b_t`: `b` is stored as `n×k`; `add`: the
+/// product is added to `dst` rather than written over it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Product {
+    /// Rows of the result.
+    pub m: usize,
+    /// Columns of the result.
+    pub n: usize,
+    /// The inner dimension.
+    pub k: usize,
+    /// `a` is stored transposed (`k×m`).
+    pub a_t: bool,
+    /// `b` is stored transposed (`n×k`).
+    pub b_t: bool,
+    /// Add into `dst` (else replace it).
+    pub add: bool,
+}
+
+impl Product {
+    /// `m×k · k×n`, both operands as they are, written over `dst`.
+    pub fn new(m: usize, n: usize, k: usize) -> Product {
+        Product { m, n, k, a_t: false, b_t: false, add: false }
+    }
+
+    /// `a` is stored transposed.
+    pub fn a_t(self) -> Product {
+        Product { a_t: true, ..self }
+    }
+
+    /// `b` is stored transposed.
+    pub fn b_t(self) -> Product {
+        Product { b_t: true, ..self }
+    }
+
+    /// Added into `dst`.
+    pub fn add(self) -> Product {
+        Product { add: true, ..self }
+    }
+}
+
+/// `dst = op(a) · op(b)` (+ `dst`) as `p` describes.
+pub fn gemm(dst: &mut [f32], a: &[f32], b: &[f32], p: Product, par: Par) {
+    let Product { m, n, k, a_t, b_t, add } = p;
     debug_assert_eq!(dst.len(), m * n);
     let lhs =
         if a_t { MatRef::from_row_major_slice(a, k, m).transpose() } else { MatRef::from_row_major_slice(a, m, k) };
     let rhs =
         if b_t { MatRef::from_row_major_slice(b, n, k).transpose() } else { MatRef::from_row_major_slice(b, k, n) };
     let out = MatMut::from_row_major_slice_mut(dst, m, n);
-    let beta = if accumulate { Accum::Add } else { Accum::Replace };
+    let beta = if add { Accum::Add } else { Accum::Replace };
     faer::linalg::matmul::matmul(out, beta, lhs, rhs, 1.0f32, par);
 }
 
@@ -434,7 +463,7 @@ impl Net {
                         let out_t = &mut tape.out_t;
                         out_t.clear();
                         out_t.extend(b.iter().flat_map(|&v| std::iter::repeat_n(v, batch)));
-                        gemm(out_t, n_out, batch, n_in, w, false, inp, true, true, par);
+                        gemm(out_t, w, inp, Product::new(n_out, batch, n_in).b_t().add(), par);
                         for (o, col) in out_t.chunks_exact(batch).enumerate() {
                             for (row, v) in out.chunks_exact_mut(n_out).zip(col) {
                                 row[o] = *v;
@@ -444,7 +473,7 @@ impl Net {
                         for row in out.chunks_mut(n_out) {
                             row.copy_from_slice(b);
                         }
-                        gemm(out, batch, n_out, n_in, inp, false, w, true, true, par);
+                        gemm(out, inp, w, Product::new(batch, n_out, n_in).b_t().add(), par);
                     }
                 }
                 Layer::Conv2d { filters, offset, .. } => {
@@ -470,32 +499,31 @@ impl Net {
     /// the last forward pass: adds parameter gradients into `grad` (same layout as `params`).
     /// The input gradient is not computed (nothing upstream needs it).
     pub fn backward(&self, tape: &mut Tape, d_out: &[f32], grad: &mut [f32], par: Par) {
-        self.backward_factored(tape, d_out, grad, par, &[], &mut Vec::new());
+        self.backward_factored(tape, d_out, grad, par, Deferral::none(&mut Vec::new()));
     }
 
     /// [`Net::backward`], and the gradient wrt the network's input into `d_in` (`batch ×
     /// in`, a sample's inputs in their order): what a loss that flows through this network
     /// into something upstream needs (SAC's policy loss through the Q network's action).
     pub fn backward_input(&self, tape: &mut Tape, d_out: &[f32], grad: &mut [f32], par: Par, d_in: &mut Vec<f32>) {
-        self.backward_input_factored(tape, d_out, grad, par, &[], &mut Vec::new(), d_in);
+        self.backward_input_factored(tape, d_out, grad, par, Deferral::none(&mut Vec::new()), d_in);
     }
 
-    /// [`Net::backward_input`], leaving the weight gradient of the dense layers `defer` as
-    /// their factors, as [`Net::backward_factored`] does.
-    #[allow(clippy::too_many_arguments)]
+    /// [`Net::backward_input`], leaving the weight gradient of the dense layers `defer`
+    /// names as their factors, as [`Net::backward_factored`] does.
     pub fn backward_input_factored(
         &self,
         tape: &mut Tape,
         d_out: &[f32],
         grad: &mut [f32],
         par: Par,
-        defer: &[usize],
-        factors: &mut Vec<Factors>,
+        defer: Deferral<'_>,
         d_in: &mut Vec<f32>,
     ) {
         let batch = tape.batch;
         d_in.clear();
         d_in.resize(batch * self.in_size(), 0.0);
+        let Deferral { layers: defer, factors } = defer;
         let pass = Backward { tape, grad, par, defer, factors, want_input: true };
         self.backward_pass(pass, d_out, Some(d_in));
     }
@@ -512,17 +540,11 @@ impl Net {
             .collect()
     }
 
-    /// [`Net::backward`], leaving the weight gradient of the dense layers `defer` as their
-    /// factors (pushed to `factors`, last layer first) instead of adding it to `grad`.
-    pub fn backward_factored(
-        &self,
-        tape: &mut Tape,
-        d_out: &[f32],
-        grad: &mut [f32],
-        par: Par,
-        defer: &[usize],
-        factors: &mut Vec<Factors>,
-    ) {
+    /// [`Net::backward`], leaving the weight gradient of the dense layers `defer` names as
+    /// their factors (pushed to its `factors`, last layer first) instead of adding it to
+    /// `grad`.
+    pub fn backward_factored(&self, tape: &mut Tape, d_out: &[f32], grad: &mut [f32], par: Par, defer: Deferral<'_>) {
+        let Deferral { layers: defer, factors } = defer;
         let pass = Backward { tape, grad, par, defer, factors, want_input: false };
         self.backward_pass(pass, d_out, None);
     }
@@ -633,7 +655,7 @@ impl Net {
                         factors.push(Factors { offset, n_in, n_out, batch, x, d: d.clone() });
                     } else {
                         // dW (out × in) += dᵀ (out × batch) · x (batch × in)
-                        gemm(gw, n_out, n_in, batch, d, true, inp, false, true, par);
+                        gemm(gw, d, inp, Product::new(n_out, n_in, batch).a_t().add(), par);
                     }
                     for row in d.chunks(n_out) {
                         for (g, v) in gb.iter_mut().zip(row) {
@@ -643,7 +665,7 @@ impl Net {
                     if need_dx {
                         d_prev.resize(batch * n_in, 0.0);
                         let w = &self.params[offset..offset + n_in * n_out];
-                        gemm(d_prev, batch, n_in, n_out, d, false, w, false, false, par);
+                        gemm(d_prev, d, w, Product::new(batch, n_in, n_out), par);
                     }
                 }
                 Layer::Conv2d { filters, offset, .. } => {
@@ -682,6 +704,23 @@ struct Backward<'t, 'f> {
     factors: &'f mut Vec<Factors>,
     /// Carry the gradient down to the network's input.
     want_input: bool,
+}
+
+/// The dense layers (indices into a net's layers) whose weight gradient a backward pass
+/// leaves as their factors, and where it pushes them.
+#[derive(Debug)]
+pub struct Deferral<'a> {
+    /// The layers deferred.
+    pub layers: &'a [usize],
+    /// Where their factors go, last layer first.
+    pub factors: &'a mut Vec<Factors>,
+}
+
+impl<'a> Deferral<'a> {
+    /// No layer deferred (`factors` stays as it is).
+    pub fn none(factors: &'a mut Vec<Factors>) -> Deferral<'a> {
+        Deferral { layers: &[], factors }
+    }
 }
 
 /// A dense layer's weight gradient as its factors, `dW = dᵀ · x`: what a learner team's
@@ -784,7 +823,7 @@ impl Conv<'_> {
                 for row in oc.chunks_mut(filters) {
                     row.copy_from_slice(b);
                 }
-                gemm(oc, n * oh * ow, filters, kkc, &s.cols, false, w, true, true, Par::Seq);
+                gemm(oc, &s.cols, w, Product::new(n * oh * ow, filters, kkc).b_t().add(), Par::Seq);
                 if let Some(relu) = relu.as_deref_mut() {
                     for (r, v) in relu[c * chunk * per_out..][..oc.len()].iter_mut().zip(oc.iter()) {
                         *r = v.max(0.0);
@@ -856,10 +895,10 @@ impl Conv<'_> {
                     }
                 }
                 im2col(layer, &x[first * per_in..(first + n) * per_in], n, cols);
-                gemm(gw, filters, kkc, rows, dc, true, cols, false, true, Par::Seq);
+                gemm(gw, dc, cols, Product::new(filters, kkc, rows).a_t().add(), Par::Seq);
                 if let Some(dx) = dx.as_deref_mut() {
                     d_cols.resize(rows * kkc, 0.0);
-                    gemm(&mut d_cols[..rows * kkc], rows, kkc, filters, dc, false, w, false, false, Par::Seq);
+                    gemm(&mut d_cols[..rows * kkc], dc, w, Product::new(rows, kkc, filters), Par::Seq);
                     col2im(layer, &d_cols[..rows * kkc], n, &mut dx[first * per_in..(first + n) * per_in]);
                 }
             }

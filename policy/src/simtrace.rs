@@ -46,19 +46,29 @@ pub fn action_text(choice: &Choice, space: &ActionSpace) -> String {
     }
 }
 
-/// One row. `episode`: DeepRacer's episode column (training: the worker's episode counter;
-/// evaluation: the trial); `step`: from 1.
-#[allow(clippy::too_many_arguments)]
-pub fn write_row(
-    out: &mut impl Write,
-    episode: u64,
-    step: u64,
-    t: &StepTrace,
-    action: &str,
-    reward: f64,
-    done: bool,
-    track_len: f64,
-) -> std::io::Result<()> {
+/// One row of a simtrace CSV: a step and what it was worth.
+#[derive(Clone, Copy, Debug)]
+pub struct Row<'a> {
+    /// DeepRacer's episode column (training: the worker's episode counter; evaluation: the
+    /// trial).
+    pub episode: u64,
+    /// The step, from 1.
+    pub step: u64,
+    /// Where the car was and what it did.
+    pub trace: &'a StepTrace,
+    /// The action as DeepRacer writes it (an index, or `[steering speed]`).
+    pub action: &'a str,
+    /// The step's reward.
+    pub reward: f64,
+    /// The episode's last step.
+    pub done: bool,
+    /// The track's length (m).
+    pub track_len: f64,
+}
+
+/// Write `row` as DeepRacer's simapp writes it.
+pub fn write_row(out: &mut impl Write, row: &Row<'_>) -> std::io::Result<()> {
+    let Row { episode, step, trace: t, action, reward, done, track_len } = *row;
     writeln!(
         out,
         "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
@@ -94,7 +104,17 @@ pub fn write_trajectory(
     let n = t.trace.len();
     for (i, ((s, c), r)) in t.trace.iter().zip(&t.choices).zip(&t.rewards).enumerate() {
         let done = t.done && i + 1 == n;
-        write_row(out, episode, i as u64 + 1, s, &action_text(c, space), *r as f64, done, t.track_len)?;
+        let action = action_text(c, space);
+        let row = Row {
+            episode,
+            step: i as u64 + 1,
+            trace: s,
+            action: &action,
+            reward: *r as f64,
+            done,
+            track_len: t.track_len,
+        };
+        write_row(out, &row)?;
     }
     Ok(())
 }
@@ -120,7 +140,9 @@ mod tests {
             wall_clock: 1772822267.7927284,
         };
         let mut out = Vec::new();
-        write_row(&mut out, 0, 1, &t, "8", 0.0, false, 59.99785047027138).unwrap();
+        let row =
+            Row { episode: 0, step: 1, trace: &t, action: "8", reward: 0.0, done: false, track_len: 59.99785047027138 };
+        write_row(&mut out, &row).unwrap();
         assert_eq!(
             String::from_utf8(out).unwrap(),
             "0,1.0,0.20775390119932716,-2.1729670099725897,180.0,15.0,1.5,8,0.0,False,True,0.25,0,59.99785047027138,36.721000000000004,prepare,0.0,0,1772822267.7927284\n"

@@ -3,7 +3,7 @@
 
 use crate::env::StepOutcome;
 use policy::Action;
-use policy::simtrace::{HEADER, py_float, write_row};
+use policy::simtrace::{HEADER, Row, py_float, write_row};
 use std::io::Write;
 
 /// Which action was taken: a discrete index, or a continuous pair.
@@ -41,7 +41,8 @@ impl<W: Write> SimTraceWriter<W> {
             ActionTaken::Continuous(a) => format!("[{} {}]", py_float(a.steering_angle), py_float(a.speed)),
         };
         let t = policy::StepTrace { wall_clock, ..o.trace };
-        write_row(&mut self.out, episode, o.steps, &t, &action, o.reward, o.done, track_len)
+        let row = Row { episode, step: o.steps, trace: &t, action: &action, reward: o.reward, done: o.done, track_len };
+        write_row(&mut self.out, &row)
     }
 
     /// Flush and return the writer.

@@ -1,6 +1,6 @@
 //! Each kernel against the CPU path it stands in for, to float tolerance.
 
-use gpu::kernels::{Gemm, Operand};
+use gpu::kernels::{AdamStep, Gemm, Operand};
 use gpu::{DeviceChoice, Gpu, GpuNet};
 use policy::nn::{Adam, InputShape, LayerSpec, Net, Tape};
 use rand::{Rng, SeedableRng};
@@ -37,7 +37,7 @@ fn the_product_in_every_orientation_and_split_matches_faer() {
             let b = random(k * n, &mut rng);
             let c0 = random(m * n, &mut rng);
             let mut want = c0.clone();
-            policy::nn::gemm(&mut want, m, n, k, &a, a_t, &b, b_t, add, faer::Par::Seq);
+            policy::nn::gemm(&mut want, &a, &b, policy::nn::Product { m, n, k, a_t, b_t, add }, faer::Par::Seq);
             // Each operand from an offset in a bigger buffer.
             let (pa, pb, pc) = (3, 5, 7);
             let abuf = gpu.buffer("a", pa + a.len()).unwrap();
@@ -130,7 +130,7 @@ fn every_layer_forward_and_backward_matches_faer() {
             let mut enc = gpu.device.create_command_encoder(&Default::default());
             g.forward(&gpu, &mut enc, &xb, batch);
             g.zero_grad(&mut enc);
-            g.backward_with(&gpu, &mut enc, &xb, (&db, 0), batch, true, Some(&d_in));
+            g.backward_with(&gpu, &mut enc, &xb, (&db, 0), batch, gpu::Wants { params: true, d_in: Some(&d_in) });
             gpu.queue.submit([enc.finish()]);
             let got_out = gpu.download(g.output(), 0, want_out.len()).unwrap();
             close(&format!("{name} batch {batch} output"), &got_out, &want_out, 1e-5);
@@ -175,7 +175,8 @@ fn adam_matches_the_cpu_optimiser_and_flags_a_non_finite_gradient() {
         let mut enc = gpu.device.create_command_encoder(&Default::default());
         let step = 3e-4 / (1.0 - 0.9f32.powi(t as i32));
         let inv_c2 = 1.0 / (1.0 - 0.999f32.powi(t as i32));
-        gpu.adam(&mut enc, n, [&p, &m, &v], &g, &flag, [0.9, 0.999, 1e-5], (step, inv_c2));
+        let constants = AdamStep { b1: 0.9, b2: 0.999, eps: 1e-5, step, inv_c2 };
+        gpu.adam(&mut enc, n, [&p, &m, &v], &g, &flag, constants);
         gpu.queue.submit([enc.finish()]);
         let raised = gpu.download(&flag, 0, 1).unwrap()[0].to_bits() != 0;
         assert_eq!(raised, !finite, "step {t}");

@@ -29,7 +29,7 @@ use crate::hyperparams::{Hyperparameters, LossType};
 use crate::update::{LearnerState, Refused, StateMismatch};
 use faer::Par;
 use policy::model::{LOG_STD_RANGE, clip_log_std, gaussian_entropy, gaussian_logp, log_softmax};
-use policy::nn::{Adam, Factors, Tape};
+use policy::nn::{Adam, Deferral, Factors, Tape};
 use policy::{ActorCritic, Choice, Head, Trajectory};
 use rand::SeedableRng;
 use rand::seq::SliceRandom;
@@ -258,22 +258,28 @@ pub fn loss_and_grad_factored(
     par: Par,
     defer: (&[usize], &[usize]),
 ) -> LossGrad {
-    loss_and_grad_of(ws, model, batch, idx, h, par, defer, None)
+    loss_and_grad_of(ws, Minibatch { model, batch, idx }, h, par, defer, None)
+}
+
+/// What a loss is taken of: `model`'s towers on the samples `idx` of `batch`.
+#[derive(Clone, Copy)]
+struct Minibatch<'a> {
+    model: &'a ActorCritic,
+    batch: &'a Batch,
+    idx: &'a [usize],
 }
 
 /// [`loss_and_grad_factored`] of both towers (`only` none) or of one: a team member trains
 /// one tower, and the other's loss figures and gradient stay zero.
-#[allow(clippy::too_many_arguments)]
 fn loss_and_grad_of(
     ws: &mut Workspace,
-    model: &ActorCritic,
-    batch: &Batch,
-    idx: &[usize],
+    on: Minibatch<'_>,
     h: &Hyperparameters,
     par: Par,
     defer: (&[usize], &[usize]),
     only: Option<Part>,
 ) -> LossGrad {
+    let Minibatch { model, batch, idx } = on;
     let n = idx.len();
     let os = batch.obs_size;
     let Workspace { tape_pi, tape_v, obs, grad_pi, grad_v } = ws;
@@ -303,7 +309,7 @@ fn loss_and_grad_of(
     let inv_n = 1.0 / n as f32;
     let mut out_stats = LossGrad { grad_pi, grad_v, ..Default::default() };
     if only != Some(Part::Value) {
-        policy_loss_and_grad(model, batch, idx, beta, par, defer.0, (&obs[..], tape_pi), &mut out_stats);
+        policy_loss_and_grad(on, beta, par, defer.0, (&obs[..], tape_pi), &mut out_stats);
     }
     if only != Some(Part::Policy) {
         model.v.forward(obs, n, tape_v, par);
@@ -319,7 +325,8 @@ fn loss_and_grad_of(
             out_stats.value_loss += loss as f64;
             d_v[k] = grad * inv_n;
         }
-        model.v.backward_factored(tape_v, &d_v, &mut out_stats.grad_v, par, defer.1, &mut out_stats.factors_v);
+        let deferral = Deferral { layers: defer.1, factors: &mut out_stats.factors_v };
+        model.v.backward_factored(tape_v, &d_v, &mut out_stats.grad_v, par, deferral);
     }
 
     let nf = n as f64;
@@ -334,17 +341,15 @@ fn loss_and_grad_of(
 
 /// The policy tower's part of [`loss_and_grad_of`]: the clipped surrogate and entropy
 /// (summed over `idx`, not yet divided), the tower's gradient and the log-std's.
-#[allow(clippy::too_many_arguments)]
 fn policy_loss_and_grad(
-    model: &ActorCritic,
-    batch: &Batch,
-    idx: &[usize],
+    on: Minibatch<'_>,
     beta: f32,
     par: Par,
     defer: &[usize],
     (obs, tape_pi): (&[f32], &mut Tape),
     out_stats: &mut LossGrad,
 ) {
+    let Minibatch { model, batch, idx } = on;
     let n = idx.len();
     let inv_n = 1.0 / n as f32;
     model.pi.forward(obs, n, tape_pi, par);
@@ -410,7 +415,8 @@ fn policy_loss_and_grad(
             }
         }
     }
-    model.pi.backward_factored(tape_pi, &d_out, &mut out_stats.grad_pi, par, defer, &mut out_stats.factors_pi);
+    let deferral = Deferral { layers: defer, factors: &mut out_stats.factors_pi };
+    model.pi.backward_factored(tape_pi, &d_out, &mut out_stats.grad_pi, par, deferral);
     out_stats.grad_log_std = g_log_std;
 }
 
@@ -583,7 +589,8 @@ impl Ppo {
             let hold = self.version < self.hyper.value_warmup_updates;
             let opts = [&mut self.opt_pi, &mut self.opt_v, &mut self.opt_log_std];
             let order = |o: &mut Vec<usize>| o.shuffle(&mut shuffle);
-            g.train(&mut self.model, opts, &self.hyper, batch, bs, order, hold, version, &mut stats)?;
+            let epochs = on_gpu::Epochs { batch, bs, hold_policy: hold, version };
+            g.train(&mut self.model, opts, &self.hyper, epochs, order, &mut stats)?;
             return Ok(self.finish(stats));
         }
         let mut order: Vec<usize> = (0..n).collect();
@@ -647,7 +654,8 @@ impl Ppo {
         let t0 = std::time::Instant::now();
         let mut ws = std::mem::take(&mut self.ws);
         let only = role.map(|r| r.part);
-        let mut lg = loss_and_grad_of(&mut ws, &self.model, batch, mine, &self.hyper, self.par, defer, only);
+        let on = Minibatch { model: &self.model, batch, idx: mine };
+        let mut lg = loss_and_grad_of(&mut ws, on, &self.hyper, self.par, defer, only);
         self.ws = ws;
         let t1 = std::time::Instant::now();
         let finite = match role {

@@ -12,12 +12,30 @@ use super::{Batch, CLIP_EPSILON, PpoStats, batch_with, logp_of};
 use crate::device::adam;
 use crate::hyperparams::{Hyperparameters, LossType};
 use crate::update::Refused;
-use gpu::kernels::{LossArgs, SAMPLE, STATS};
+use gpu::kernels::{LossArgs, LossBuffers, Op, SAMPLE, STATS};
 use gpu::{Gpu, GpuError, GpuNet};
 use policy::model::LOG_STD_RANGE;
 use policy::nn::Adam;
 use policy::{ActorCritic, Choice, Head, Trajectory};
 use std::sync::Arc;
+
+/// One update's epochs on the GPU: the batch, its minibatch size, and whether the policy is
+/// held (the value warm-up); `version` names the update in a refusal.
+pub(super) struct Epochs<'a> {
+    pub batch: &'a Batch,
+    pub bs: usize,
+    pub hold_policy: bool,
+    pub version: u64,
+}
+
+/// One gradient step: `len` samples from `at` in the epoch's order, the Gaussian head's
+/// log-stds, and whether the policy is held.
+struct Step {
+    at: usize,
+    len: usize,
+    log_std: [f32; 2],
+    hold_policy: bool,
+}
 
 /// A learner's GPU: the device, and the model's state on it once the first update put it
 /// there. A clone (a saved copy of the learner) shares the device and holds nothing on it.
@@ -151,23 +169,20 @@ impl GpuTrainer {
         batch_with(trajs, model.obs_size(), hyper.discount_factor, |obs, choices| r.relabel(gpu, model, obs, choices))
     }
 
-    /// PPO's update of `model` on `batch` (made on the CPU, as for faer), minibatches of `bs`
-    /// in the order `order` gives each epoch. `opts`: the CPU optimisers of pi, v and the
-    /// log-std (the last is stepped here; the first two's moments are taken over the first
-    /// time). A refused update leaves the state on the GPU as it was.
-    #[allow(clippy::too_many_arguments)]
+    /// PPO's update of `model` on `epochs.batch` (made on the CPU, as for faer), in the
+    /// order `order` gives each epoch. `opts`: the CPU optimisers of pi, v and the log-std
+    /// (the last is stepped here; the first two's moments are taken over the first time). A
+    /// refused update leaves the state on the GPU as it was.
     pub(super) fn train(
         &mut self,
         model: &mut ActorCritic,
         opts: [&mut Adam; 3],
         hyper: &Hyperparameters,
-        batch: &Batch,
-        bs: usize,
+        epochs: Epochs<'_>,
         mut order: impl FnMut(&mut Vec<usize>),
-        hold_policy: bool,
-        version: u64,
         stats: &mut PpoStats,
     ) -> Result<(), Refused> {
+        let Epochs { batch, bs, hold_policy, version } = epochs;
         let n = batch.len();
         let [opt_pi, opt_v, opt_log_std] = opts;
         let lost = |e: GpuError| Refused::Device { error: e.to_string(), version };
@@ -200,9 +215,8 @@ impl GpuTrainer {
                         Head::Gaussian { log_std } => log_std,
                         _ => [0.0; 2],
                     };
-                    let f = r
-                        .minibatch(&gpu, model, hyper, (mb * bs, bs), log_std, hold_policy, [opt_pi, opt_v])
-                        .map_err(lost)?;
+                    let step = Step { at: mb * bs, len: bs, log_std, hold_policy };
+                    let f = r.minibatch(&gpu, model, hyper, step, [opt_pi, opt_v]).map_err(lost)?;
                     let mut g_log_std = f.grad_log_std;
                     if let Head::Gaussian { log_std } = &mut model.head {
                         for j in 0..2 {
@@ -328,30 +342,25 @@ impl Resident {
         Ok((logp, values))
     }
 
-    /// One gradient step on the minibatch of `len` samples at `at` in the epoch's order.
-    #[allow(clippy::too_many_arguments)]
+    /// One gradient step on the minibatch `step` says.
     fn minibatch(
         &mut self,
         gpu: &Gpu,
         model: &ActorCritic,
         hyper: &Hyperparameters,
-        (at, len): (usize, usize),
-        log_std: [f32; 2],
-        hold_policy: bool,
+        step: Step,
         opts: [&mut Adam; 2],
     ) -> Result<Figures, GpuError> {
+        let Step { at, len, log_std, hold_policy } = step;
         let os = model.pi.in_size() as u32;
         let inv_n = 1.0 / len as f32;
         let mut enc = gpu.device.create_command_encoder(&Default::default());
         gpu.op(
             &mut enc,
-            "gather_rows",
-            len * os as usize,
+            Op::new("gather_rows", len * os as usize).u([os, at as u32, 0, 0, 0, 0, 0]),
             &self.obs,
             Some(&self.idx),
             &self.mb_obs,
-            [os, at as u32, 0, 0, 0, 0, 0],
-            0.0,
         );
         enc.clear_buffer(&self.flag, 0, None);
         // The policy tower: forward, the clipped surrogate and entropy, backward.
@@ -370,7 +379,14 @@ impl Resident {
             clip: CLIP_EPSILON,
             log_std,
         };
-        gpu.loss(&mut enc, false, args, self.pi.output(), &self.samples, &self.idx, &self.d_pi, &self.stats_pi);
+        let bufs = LossBuffers {
+            out: self.pi.output(),
+            samples: &self.samples,
+            idx: &self.idx,
+            d: &self.d_pi,
+            stats: &self.stats_pi,
+        };
+        gpu.loss(&mut enc, false, args, bufs);
         self.pi.zero_grad(&mut enc);
         self.pi.backward(gpu, &mut enc, &self.mb_obs, &self.d_pi, len);
         // The value tower.
@@ -380,7 +396,14 @@ impl Resident {
             LossType::MeanSquaredError => 1,
         };
         let args = LossArgs { dim: 1, kind, ..args };
-        gpu.loss(&mut enc, true, args, self.v.output(), &self.samples, &self.idx, &self.d_v, &self.stats_v);
+        let bufs = LossBuffers {
+            out: self.v.output(),
+            samples: &self.samples,
+            idx: &self.idx,
+            d: &self.d_v,
+            stats: &self.stats_v,
+        };
+        gpu.loss(&mut enc, true, args, bufs);
         self.v.zero_grad(&mut enc);
         self.v.backward(gpu, &mut enc, &self.mb_obs, &self.d_v, len);
         // Adam on both towers (the policy's held while the value tower warms up).

@@ -24,7 +24,7 @@ use crate::group::{Alone, GroupError, Reducer, check_factors, factored_grads, ke
 use crate::update::StateMismatch;
 use faer::Par;
 use policy::model::{SAC_LOG_STD_RANGE, Squashed, sac_policy, sac_q_embedder, sac_q_head, sac_value, squashed};
-use policy::nn::{Adam, Factors, Net, Tape};
+use policy::nn::{Adam, Deferral, Factors, Net, Tape};
 use policy::{ActionSpace, ModelMetadata};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -295,24 +295,34 @@ pub fn losses_and_grads(
     par: Par,
     t: &mut Tapes,
 ) -> (Losses, Grads) {
-    losses_and_grads_share(nets, s, alpha, batch, eps, 1.0 / batch.len().max(1) as f32, &Defer::none(), par, t)
+    let share = Share { batch, eps, weight: 1.0 / batch.len().max(1) as f32 };
+    losses_and_grads_share(nets, s, alpha, share, &Defer::none(), par, t)
 }
 
-/// [`losses_and_grads`] of a share of a batch, each transition weighted by `weight` (one
-/// over the whole batch's size): the shares' losses and gradients add up to the batch's. The
-/// weight gradients of the layers `defer` are left as their factors.
-#[allow(clippy::too_many_arguments)]
+/// A learner's share of a batch: its transitions, their noise (two values each), and the
+/// weight of each (one over the whole batch's size).
+#[derive(Clone, Copy, Debug)]
+pub struct Share<'a> {
+    /// The share's transitions.
+    pub batch: &'a Batch,
+    /// Two noise values per transition.
+    pub eps: &'a [f32],
+    /// Each transition's weight in the losses and gradients.
+    pub weight: f32,
+}
+
+/// [`losses_and_grads`] of `share` of a batch: the shares' losses and gradients add up to
+/// the batch's. The weight gradients of the layers `defer` are left as their factors.
 pub fn losses_and_grads_share(
     nets: &SacNets,
     s: &SacSettings,
     alpha: f32,
-    batch: &Batch,
-    eps: &[f32],
-    weight: f32,
+    share: Share<'_>,
     defer: &Defer,
     par: Par,
     t: &mut Tapes,
 ) -> (Losses, Grads) {
+    let Share { batch, eps, weight } = share;
     let b = batch.len();
     let inv = weight;
     assert_eq!(eps.len(), 2 * b, "two noise values per transition");
@@ -364,8 +374,22 @@ pub fn losses_and_grads_share(
         d1[i] = e1 * inv;
         d2[i] = e2 * inv;
     }
-    nets.q.q1.backward_input_factored(&mut t.q1, &d1, &mut g.q1, par, &defer.q1, &mut g.factors.q1, &mut t.dx1);
-    nets.q.q2.backward_input_factored(&mut t.q2, &d2, &mut g.q2, par, &defer.q2, &mut g.factors.q2, &mut t.dx2);
+    nets.q.q1.backward_input_factored(
+        &mut t.q1,
+        &d1,
+        &mut g.q1,
+        par,
+        Deferral { layers: &defer.q1, factors: &mut g.factors.q1 },
+        &mut t.dx1,
+    );
+    nets.q.q2.backward_input_factored(
+        &mut t.q2,
+        &d2,
+        &mut g.q2,
+        par,
+        Deferral { layers: &defer.q2, factors: &mut g.factors.q2 },
+        &mut t.dx2,
+    );
     if let Some(e) = &nets.q.embed {
         let d_emb: Vec<f32> = (t.dx1.chunks_exact(width + 2).zip(t.dx2.chunks_exact(width + 2)))
             .flat_map(|(r1, r2)| r1[..width].iter().zip(&r2[..width]).map(|(x, y)| x + y).collect::<Vec<_>>())
@@ -407,7 +431,13 @@ pub fn losses_and_grads_share(
             }
         }
     }
-    nets.policy.backward_factored(&mut t.policy, &d_out, &mut g.policy, par, &defer.policy, &mut g.factors.policy);
+    nets.policy.backward_factored(
+        &mut t.policy,
+        &d_out,
+        &mut g.policy,
+        par,
+        Deferral { layers: &defer.policy, factors: &mut g.factors.policy },
+    );
     // V against min q − α·log π of the same draws.
     nets.v.forward(&batch.obs, b, &mut t.v, par);
     let mut dv = vec![0.0f32; b];
@@ -422,7 +452,7 @@ pub fn losses_and_grads_share(
             dv[i] = 2.0 * e * inv;
         }
     }
-    nets.v.backward_factored(&mut t.v, &dv, &mut g.v, par, &defer.v, &mut g.factors.v);
+    nets.v.backward_factored(&mut t.v, &dv, &mut g.v, par, Deferral { layers: &defer.v, factors: &mut g.factors.v });
     if let Some(h) = s.target_entropy {
         // SAC's temperature loss −log α·(log π + H̄), as Stable-Baselines3 writes it.
         g.log_alpha = -draws.iter().map(|d| d.logp + h).sum::<f32>() * inv;
@@ -527,11 +557,12 @@ impl Sac {
         // The big dense layers, chosen for the whole batch: every member defers the same.
         let defer = Defer::for_batch(&self.nets, b);
         let (mut losses, mut g) = if size > 1 {
-            let share = batch.rows(lo..hi);
-            let e = &eps[2 * lo..2 * hi];
-            losses_and_grads_share(&self.nets, &self.settings, alpha, &share, e, weight, &defer, par, tapes)
+            let rows = batch.rows(lo..hi);
+            let share = Share { batch: &rows, eps: &eps[2 * lo..2 * hi], weight };
+            losses_and_grads_share(&self.nets, &self.settings, alpha, share, &defer, par, tapes)
         } else {
-            losses_and_grads_share(&self.nets, &self.settings, alpha, batch, &eps, weight, &defer, par, tapes)
+            let share = Share { batch, eps: &eps, weight };
+            losses_and_grads_share(&self.nets, &self.settings, alpha, share, &defer, par, tapes)
         };
         let shares: Vec<usize> = (0..size).map(|r| b * (r + 1) / size - b * r / size).collect();
         let mut every = None;

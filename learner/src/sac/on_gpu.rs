@@ -9,8 +9,8 @@
 //! CPU. A refused iteration reads nothing back: the learner's state is as it was.
 
 use super::{Batch, Losses, Sac};
-use gpu::kernels::{SacArgs, sac as col};
-use gpu::{Gpu, GpuError, GpuNet};
+use gpu::kernels::{Op, SacArgs, sac as col};
+use gpu::{Gpu, GpuError, GpuNet, Wants};
 use policy::nn::Adam;
 use std::sync::Arc;
 
@@ -167,18 +167,46 @@ impl Session {
         for net in [&self.policy, &self.q1, &self.q2, &self.v].into_iter().chain(self.embed.as_ref()) {
             net.zero_grad(&mut enc);
         }
-        self.q1.backward_with(gpu, &mut enc, &self.x, (&self.cols, col::D1 * cap), b, true, Some(&self.dx1));
-        self.q2.backward_with(gpu, &mut enc, &self.x, (&self.cols, col::D2 * cap), b, true, Some(&self.dx2));
+        self.q1.backward_with(
+            gpu,
+            &mut enc,
+            &self.x,
+            (&self.cols, col::D1 * cap),
+            b,
+            Wants { params: true, d_in: Some(&self.dx1) },
+        );
+        self.q2.backward_with(
+            gpu,
+            &mut enc,
+            &self.x,
+            (&self.cols, col::D2 * cap),
+            b,
+            Wants { params: true, d_in: Some(&self.dx2) },
+        );
         if let Some(e) = self.embed.as_mut() {
             let u = [w as u32, (w + 2) as u32, 0, 0, 0, 0, 0];
-            gpu.op(&mut enc, "add_cols", b * w, &self.dx1, Some(&self.dx2), &self.d_emb, u, 0.0);
+            gpu.op(&mut enc, Op::new("add_cols", b * w).u(u), &self.dx1, Some(&self.dx2), &self.d_emb);
             e.backward(gpu, &mut enc, &self.obs, &self.d_emb, b);
         }
         // The policy's draws through the heads: min(q1, q2) and its gradient wrt the action.
         self.heads_at(gpu, &mut enc, b, col::A, [col::Q1P, col::Q2P]);
         gpu.sac(&mut enc, "min_q", args, &[], None, &self.cols);
-        self.q1.backward_with(gpu, &mut enc, &self.x, (&self.cols, col::DM1 * cap), b, false, Some(&self.dx1));
-        self.q2.backward_with(gpu, &mut enc, &self.x, (&self.cols, col::DM2 * cap), b, false, Some(&self.dx2));
+        self.q1.backward_with(
+            gpu,
+            &mut enc,
+            &self.x,
+            (&self.cols, col::DM1 * cap),
+            b,
+            Wants { params: false, d_in: Some(&self.dx1) },
+        );
+        self.q2.backward_with(
+            gpu,
+            &mut enc,
+            &self.x,
+            (&self.cols, col::DM2 * cap),
+            b,
+            Wants { params: false, d_in: Some(&self.dx2) },
+        );
         let reads = [self.policy.output(), &self.dx1, &self.dx2];
         gpu.sac(&mut enc, "policy_grad", args, &reads, Some(&self.d_pol), &self.cols);
         self.policy.backward(gpu, &mut enc, &self.obs, &self.d_pol, b);
@@ -186,7 +214,14 @@ impl Session {
         self.v.forward(gpu, &mut enc, &self.obs, b);
         enc.copy_buffer_to_buffer(self.v.output(), 0, &self.cols, column(col::V), (b * 4) as u64);
         gpu.sac(&mut enc, "v_errors", args, &[], None, &self.cols);
-        self.v.backward_with(gpu, &mut enc, &self.obs, (&self.cols, col::DV * cap), b, true, None);
+        self.v.backward_with(
+            gpu,
+            &mut enc,
+            &self.obs,
+            (&self.cols, col::DV * cap),
+            b,
+            Wants { params: true, d_in: None },
+        );
         // Each network's Adam step, from the gradients of the weights as they were.
         let opts = [&sac.adam_policy, &sac.adam_embed, &sac.adam_q1, &sac.adam_q2, &sac.adam_v];
         let nets = [Some(&self.policy), self.embed.as_ref(), Some(&self.q1), Some(&self.q2), Some(&self.v)];
@@ -245,7 +280,7 @@ impl Session {
         let (w, cap) = (self.w, self.cap);
         let emb = self.embed.as_ref().map_or(&self.obs, |e| e.output());
         let u = [w as u32, 2, cap as u32, (action * cap) as u32, 0, 0, 0];
-        gpu.op(enc, "concat_rows", b * (w + 2), emb, Some(&self.cols), &self.x, u, 0.0);
+        gpu.op(enc, Op::new("concat_rows", b * (w + 2)).u(u), emb, Some(&self.cols), &self.x);
         for (head, c) in [&mut self.q1, &mut self.q2].into_iter().zip(into) {
             head.forward(gpu, enc, &self.x, b);
             enc.copy_buffer_to_buffer(head.output(), 0, &self.cols, (c * cap * 4) as u64, (b * 4) as u64);
@@ -260,7 +295,7 @@ impl Session {
         if tau >= 1.0 {
             enc.copy_buffer_to_buffer(&self.v.params, 0, &self.v_target.params, 0, (n * 4) as u64);
         } else {
-            gpu.op(&mut enc, "lerp", n, &self.v.params, None, &self.v_target.params, [0; 7], tau);
+            gpu.op(&mut enc, Op::new("lerp", n).x(tau), &self.v.params, None, &self.v_target.params);
         }
         gpu.queue.submit([enc.finish()]);
     }

@@ -476,7 +476,7 @@ fn a_joiner_takes_over_a_sac_learner_and_its_memory_and_updates_as_it_does() {
 /// every other gradient value are the same.
 #[test]
 fn sac_gradients_left_as_factors_multiply_out_to_the_full_ones() {
-    use learner::sac::{Defer, losses_and_grads_share};
+    use learner::sac::{Defer, Share, losses_and_grads_share};
     let mut rng = ChaCha8Rng::seed_from_u64(4);
     let (m, obs) = meta(300);
     let s = SacSettings::for_space(&m.action_space).unwrap();
@@ -487,7 +487,8 @@ fn sac_gradients_left_as_factors_multiply_out_to_the_full_ones() {
     let defer = Defer::for_batch(&nets, 8);
     let (l_full, full) = losses_and_grads(&nets, &s, 0.3, &batch, &eps, Par::Seq, &mut Tapes::default());
     let mut t = Tapes::default();
-    let (l_def, def) = losses_and_grads_share(&nets, &s, 0.3, &batch, &eps, 1.0 / 8.0, &defer, Par::Seq, &mut t);
+    let share = Share { batch: &batch, eps: &eps, weight: 1.0 / 8.0 };
+    let (l_def, def) = losses_and_grads_share(&nets, &s, 0.3, share, &defer, Par::Seq, &mut t);
     assert_eq!(l_full, l_def);
     let f = &def.factors;
     for (name, full, part, factors) in [

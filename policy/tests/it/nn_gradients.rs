@@ -225,7 +225,7 @@ fn adam_minimises_a_quadratic() {
 /// gradient; the same bits on one thread or two; and a non-finite value anywhere is reported.
 #[test]
 fn adam_on_factored_weight_gradients_matches_the_multiplied_out_step() {
-    use policy::nn::{FactoredGrad, Factors};
+    use policy::nn::{Deferral, FactoredGrad, Factors};
     let mut rng = ChaCha8Rng::seed_from_u64(8);
     // 37 inputs → 21 outputs (two threads take uneven bands: 11 and 10 rows) → ReLU → 3.
     let net =
@@ -240,7 +240,7 @@ fn adam_on_factored_weight_gradients_matches_the_multiplied_out_step() {
     net.forward(&x, batch, &mut tape, Par::Seq);
     let mut rest = vec![0.0f32; n];
     let mut factors: Vec<Factors> = Vec::new();
-    net.backward_factored(&mut tape, &c, &mut rest, Par::Seq, &[0], &mut factors);
+    net.backward_factored(&mut tape, &c, &mut rest, Par::Seq, Deferral { layers: &[0], factors: &mut factors });
     assert_eq!(factors.len(), 1);
     let f = &factors[0];
     // Two shares (as two learners of a team would send them) and one.
