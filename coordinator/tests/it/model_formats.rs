@@ -60,7 +60,8 @@ fn check(meta: &ModelMetadata, obs_size: usize, seed: u64) {
     cmd.arg(&script).arg(&onnx).arg(&got_path);
     for ((sensor, _), (file, dims)) in inputs.iter().zip(input_files(&inputs, &x, batch, &d.join("x"))) {
         let name = if inputs.len() == 1 { "observation" } else { sensor.name() };
-        cmd.arg(name).arg(&file).arg(dims);
+        let dims: Vec<String> = dims.iter().map(|d| d.to_string()).collect();
+        cmd.arg(name).arg(&file).arg(dims.join(","));
     }
     let out = cmd.output().unwrap();
     assert!(out.status.success(), "onnxruntime: {}", String::from_utf8_lossy(&out.stderr));
@@ -161,61 +162,62 @@ fn car_python() -> std::path::PathBuf {
 /// (deepracer-utils' loader), converts it as deepracer-custom-car does (TFLite, FP16) and runs
 /// that, and runs it in OpenVINO: each result into OUT.<engine>.bin.
 const CAR_SIDE: &str = r#"
-import atexit, os, shutil, sys, tarfile, tempfile, numpy as np
-archive, out, outp = sys.argv[1:4]
-# Each input: its placeholder, its values' file, its shape (batch first).
-ins = []
-for k in range(4, len(sys.argv), 3):
-    shape = [int(s) for s in sys.argv[k + 2].split(",")]
-    ins.append((sys.argv[k], np.fromfile(sys.argv[k + 1], dtype="<f4").reshape(shape)))
-batch = ins[0][1].shape[0]
-work = tempfile.mkdtemp()
-# The unpacked archive and OpenVINO's model (hundreds of MB for a DEEPER network) go when the
-# script ends, whatever its outcome.
-atexit.register(shutil.rmtree, work, True)
-with tarfile.open(archive) as t:
-    names = t.getnames()
-    t.extractall(work)
-pbs = [os.path.join(r, f) for r, _, fs in os.walk(work) for f in fs if f.endswith(".pb")]
-assert len(pbs) == 1 and os.path.isfile(os.path.join(work, "model_metadata.json")), names
-pb = pbs[0]
+import atexit, json, os, shutil, sys, tarfile, tempfile, numpy as np
+# One process for every case (TensorFlow and OpenVINO load once): each case is an archive,
+# its outputs' prefix, the output node, and its inputs (placeholder, values' file, shape with
+# the batch first).
+cases = json.load(open(sys.argv[1]))
 import tensorflow as tf
-g = tf.compat.v1.GraphDef()
-g.ParseFromString(open(pb, "rb").read())
-with tf.Graph().as_default() as graph:
-    tf.compat.v1.import_graph_def(g, name="")
-    with tf.compat.v1.Session(graph=graph) as sess:
-        y = sess.run(outp + ":0", {name + ":0": x for name, x in ins})
-y.astype("<f4").tofile(out + ".tf.bin")
-# deepracer-custom-car's model optimizer node, with its arguments (TFLITE engine).
-conv = tf.compat.v1.lite.TFLiteConverter.from_frozen_graph(
-    graph_def_file=pb, input_arrays=[name for name, _ in ins], output_arrays=[outp],
-    input_shapes={name: [1] + list(x.shape[1:]) for name, x in ins})
-conv.allow_custom_ops = True
-conv.optimizations = [tf.lite.Optimize.DEFAULT]
-conv.target_spec.supported_types = [tf.float16]
-lite = conv.convert()
-it = tf.lite.Interpreter(model_content=lite)
-it.allocate_tensors()
-slots = {d["name"]: d["index"] for d in it.get_input_details()}
-rows = []
-for i in range(batch):
-    for name, x in ins:
-        it.set_tensor(slots[name], x[i:i + 1])
-    it.invoke()
-    rows.append(it.get_tensor(it.get_output_details()[0]["index"]).copy())
-np.concatenate(rows).astype("<f4").tofile(out + ".tflite.bin")
-# OpenVINO, as the car's OV 2024 engine converts it (the names it finds carry ":0"; FP16
-# weights), on the CPU.
 import openvino as ov
-m = ov.convert_model(pb, input=[(name + ":0", [1] + list(x.shape[1:])) for name, x in ins], output=outp + ":0")
-ov.save_model(m, os.path.join(work, "model.xml"), compress_to_fp16=True)
-c = ov.Core().compile_model(os.path.join(work, "model.xml"), "CPU")
-rows = [c({name + ":0": x[i:i + 1] for name, x in ins})[c.output(0)] for i in range(batch)]
-np.concatenate(rows).astype("<f4").tofile(out + ".openvino.bin")
-print(" ".join(names))
+for case in cases:
+    archive, out, outp = case["archive"], case["out"], case["output"]
+    ins = [(i["placeholder"], np.fromfile(i["file"], dtype="<f4").reshape(i["shape"])) for i in case["inputs"]]
+    batch = ins[0][1].shape[0]
+    work = tempfile.mkdtemp()
+    # The unpacked archive and OpenVINO's model (hundreds of MB for a DEEPER network) go when
+    # the script ends, whatever its outcome.
+    atexit.register(shutil.rmtree, work, True)
+    with tarfile.open(archive) as t:
+        names = t.getnames()
+        t.extractall(work)
+    pbs = [os.path.join(r, f) for r, _, fs in os.walk(work) for f in fs if f.endswith(".pb")]
+    assert len(pbs) == 1 and os.path.isfile(os.path.join(work, "model_metadata.json")), names
+    pb = pbs[0]
+    g = tf.compat.v1.GraphDef()
+    g.ParseFromString(open(pb, "rb").read())
+    with tf.Graph().as_default() as graph:
+        tf.compat.v1.import_graph_def(g, name="")
+        with tf.compat.v1.Session(graph=graph) as sess:
+            y = sess.run(outp + ":0", {name + ":0": x for name, x in ins})
+    y.astype("<f4").tofile(out + ".tf.bin")
+    # deepracer-custom-car's model optimizer node, with its arguments (TFLITE engine).
+    conv = tf.compat.v1.lite.TFLiteConverter.from_frozen_graph(
+        graph_def_file=pb, input_arrays=[name for name, _ in ins], output_arrays=[outp],
+        input_shapes={name: [1] + list(x.shape[1:]) for name, x in ins})
+    conv.allow_custom_ops = True
+    conv.optimizations = [tf.lite.Optimize.DEFAULT]
+    conv.target_spec.supported_types = [tf.float16]
+    lite = conv.convert()
+    it = tf.lite.Interpreter(model_content=lite)
+    it.allocate_tensors()
+    slots = {d["name"]: d["index"] for d in it.get_input_details()}
+    rows = []
+    for i in range(batch):
+        for name, x in ins:
+            it.set_tensor(slots[name], x[i:i + 1])
+        it.invoke()
+        rows.append(it.get_tensor(it.get_output_details()[0]["index"]).copy())
+    np.concatenate(rows).astype("<f4").tofile(out + ".tflite.bin")
+    # OpenVINO, as the car's OV 2024 engine converts it (the names it finds carry ":0"; FP16
+    # weights), on the CPU.
+    m = ov.convert_model(pb, input=[(name + ":0", [1] + list(x.shape[1:])) for name, x in ins], output=outp + ":0")
+    ov.save_model(m, os.path.join(work, "model.xml"), compress_to_fp16=True)
+    c = ov.Core().compile_model(os.path.join(work, "model.xml"), "CPU")
+    rows = [c({name + ":0": x[i:i + 1] for name, x in ins})[c.output(0)] for i in range(batch)]
+    np.concatenate(rows).astype("<f4").tofile(out + ".openvino.bin")
+    shutil.rmtree(work, True)
+    print(case["name"] + ": " + " ".join(names))
 "#;
-
 fn floats(path: &std::path::Path) -> Vec<f32> {
     std::fs::read(path).unwrap().chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()
 }
@@ -283,6 +285,11 @@ fn the_car_archive_runs_in_tensorflow_tflite_and_openvino_as_paddock_does_and_co
     ];
     let script = d.join("car_side.py");
     std::fs::write(&script, CAR_SIDE).unwrap();
+    // Every case's model, archive and inputs first; then the car's engines on all of them in
+    // one Python process; then each case's outputs against Paddock's and its import back.
+    let batch = 3;
+    let mut made = Vec::new();
+    let mut jobs = Vec::new();
     for (name, meta) in cases {
         let inputs = policy::model::inputs(&meta, 0);
         let size = policy::model::input_size(&meta, 0);
@@ -302,17 +309,22 @@ fn the_car_archive_runs_in_tensorflow_tflite_and_openvino_as_paddock_does_and_co
         let said = coordinator(&["export".as_ref(), folder.as_os_str(), "--car".as_ref(), archive.as_os_str()], d);
         assert!(said.contains(&format!("a car lists it as '{name}'")), "{said}");
         // Camera frames and LiDAR readings (0/1 sectors or 0.15-1 m), each input to its file.
-        let batch = 3;
         let x = observations(&inputs, batch, 11);
         let names = policy::tfgraph::Names::of(&meta).unwrap();
-        let mut cmd = Command::new(car_python());
-        cmd.arg(&script).arg(&archive).arg(d.join(name)).arg(&names.output);
-        for (placeholder, (file, dims)) in names.inputs.iter().zip(input_files(&inputs, &x, batch, &d.join(name))) {
-            cmd.arg(placeholder).arg(&file).arg(dims);
-        }
-        let out = cmd.output().unwrap();
-        assert!(out.status.success(), "{name}: {}", String::from_utf8_lossy(&out.stderr));
-        assert_eq!(String::from_utf8_lossy(&out.stdout).trim(), "agent/model.pb model_metadata.json");
+        let files = input_files(&inputs, &x, batch, &d.join(name));
+        let ins: Vec<serde_json::Value> = (names.inputs.iter().zip(files))
+            .map(|(placeholder, (file, shape))| serde_json::json!({"placeholder": placeholder, "file": file, "shape": shape}))
+            .collect();
+        jobs.push(serde_json::json!({"name": name, "archive": archive, "out": d.join(name), "output": names.output, "inputs": ins}));
+        made.push((name, meta, model, x, archive));
+    }
+    let cases_file = d.join("cases.json");
+    std::fs::write(&cases_file, serde_json::to_vec(&jobs).unwrap()).unwrap();
+    let out = Command::new(car_python()).arg(&script).arg(&cases_file).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let printed = String::from_utf8_lossy(&out.stdout).to_string();
+    for (name, meta, model, x, archive) in made {
+        assert!(printed.contains(&format!("{name}: agent/model.pb model_metadata.json")), "{name}: {printed}");
         let want = paddock_policy(&model, &x, batch);
         // TensorFlow in float32 matches closely; TFLite's FP16 weights and OpenVINO's FP16 IR
         // within what the car's half precision allows (and choose the same action).
@@ -343,13 +355,13 @@ fn the_car_archive_runs_in_tensorflow_tflite_and_openvino_as_paddock_does_and_co
 }
 
 /// Each input's values out of `batch` samples `x`, written to `PREFIX.xK.bin`: the files and
-/// their shapes (batch first, comma-separated), in input order.
+/// their shapes (batch first), in input order.
 fn input_files(
     inputs: &[(policy::Sensor, policy::nn::InputShape)],
     x: &[f32],
     batch: usize,
     prefix: &std::path::Path,
-) -> Vec<(std::path::PathBuf, String)> {
+) -> Vec<(std::path::PathBuf, Vec<usize>)> {
     let size: usize = inputs.iter().map(|(_, s)| s.size()).sum();
     let mut at = 0;
     let mut out = Vec::new();
@@ -360,8 +372,8 @@ fn input_files(
         let file = prefix.with_extension(format!("x{k}.bin"));
         write_floats(&file, &part);
         let dims = match *shape {
-            policy::nn::InputShape::Image(h, w, c) => format!("{batch},{h},{w},{c}"),
-            policy::nn::InputShape::Flat(n) => format!("{batch},{n}"),
+            policy::nn::InputShape::Image(h, w, c) => vec![batch, h, w, c],
+            policy::nn::InputShape::Flat(n) => vec![batch, n],
         };
         out.push((file, dims));
     }
