@@ -36,6 +36,7 @@ pub mod python;
 pub mod race;
 pub mod race_line;
 pub mod reward;
+pub mod reward_check;
 pub mod rollout;
 pub mod simtrace;
 pub mod validate;

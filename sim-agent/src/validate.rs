@@ -16,7 +16,7 @@ use rand_chacha::ChaCha8Rng;
 use tracks::Track;
 
 /// What a passing validation saw.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct ValidationReport {
     /// Number of calls made.
     pub calls: usize,
@@ -36,8 +36,26 @@ pub struct ValidationReport {
 pub const SAMPLE_KINDS: [&str; 5] =
     ["centre line", "near the left border", "near the right border", "off track", "facing backwards"];
 
+/// Where a reward is validated: the track and its floor, the race, the actions (all discrete
+/// actions, or the corners and middle of a continuous range) and how many places along the
+/// track are sampled.
+#[derive(Clone, Copy, Debug)]
+pub struct Sampling<'a> {
+    /// The track.
+    pub track: &'a Track,
+    /// Its floor.
+    pub surface: tracks::Surface,
+    /// The model's actions.
+    pub space: &'a ActionSpace,
+    /// Places sampled along the track.
+    pub positions: usize,
+    /// The race (its objects are placed as its first episode places them).
+    pub race: &'a RaceConfig,
+}
+
 /// Call `reward` on sampled states of `track` (its floor `surface`) in `race`. Actions come
-/// from `space` (all discrete actions, or the corners and middle of a continuous range).
+/// from `space` (all discrete actions, or the corners and middle of a continuous range). The
+/// first failed call is the error.
 pub fn validate_reward(
     reward: &mut RewardFn,
     track: &Track,
@@ -46,6 +64,33 @@ pub fn validate_reward(
     positions: usize,
     race: &RaceConfig,
 ) -> Result<ValidationReport, RewardError> {
+    let at = Sampling { track, surface, space, positions, race };
+    let (report, mut failures) = sample(reward, at, true)?;
+    match failures.pop() {
+        Some(e) => Err(e),
+        None => Ok(report),
+    }
+}
+
+/// [`validate_reward`] that goes on after a failed call: the report of the calls that
+/// returned a reward, and every failed call. A call that runs out of time ends the calls (the
+/// next would take the whole limit too).
+pub fn validate_reward_all(
+    reward: &mut RewardFn,
+    at: Sampling<'_>,
+) -> Result<(ValidationReport, Vec<RewardError>), RewardError> {
+    sample(reward, at, false)
+}
+
+/// The sampled calls, up to the first failure when `stop_at_first`; an error only for what
+/// stops every call (the race's objects).
+fn sample(
+    reward: &mut RewardFn,
+    at: Sampling<'_>,
+    stop_at_first: bool,
+) -> Result<(ValidationReport, Vec<RewardError>), RewardError> {
+    let Sampling { track, surface, space, positions, race } = at;
+    let mut failures = Vec::new();
     let car = CarParams::default();
     let line = LineCell::new(std::sync::Arc::new(track.clone()), car.clone(), surface);
     let mut traffic =
@@ -103,9 +148,21 @@ pub fn validate_reward(
                     let contact = t.contact(track, at, pose.yaw, params.progress.rem_euclid(100.0));
                     t.fill_params(track, &pose, contact, &mut params);
                 }
-                let r = match reward {
-                    RewardFn::Builtin(b) => b.reward(&params, &line)?,
-                    RewardFn::Python(py) => py.call(0, 0, track, &params)?,
+                let called = match reward {
+                    RewardFn::Builtin(b) => b.reward(&params, &line),
+                    RewardFn::Python(py) => py.call(0, 0, track, &params),
+                };
+                let r = match called {
+                    Ok(r) => r,
+                    Err(e) => {
+                        // A call out of time took the whole limit: the next would too.
+                        let out_of_time = matches!(e, RewardError::TimedOut { .. });
+                        failures.push(e);
+                        if stop_at_first || out_of_time {
+                            return Ok((report(calls, (sum, min, max), by_kind, rewards), failures));
+                        }
+                        continue;
+                    }
                 };
                 calls += 1;
                 rewards.push(r);
@@ -117,12 +174,22 @@ pub fn validate_reward(
             }
         }
     }
-    Ok(ValidationReport {
+    Ok((report(calls, (sum, min, max), by_kind, rewards), failures))
+}
+
+/// The report of `calls` rewards: their sum, smallest and largest; by kind of state.
+fn report(
+    calls: usize,
+    (sum, min, max): (f64, f64, f64),
+    by_kind: [(f64, usize); 5],
+    rewards: Vec<f64>,
+) -> ValidationReport {
+    ValidationReport {
         calls,
-        min,
+        min: if calls == 0 { 0.0 } else { min },
         mean: sum / calls.max(1) as f64,
-        max,
+        max: if calls == 0 { 0.0 } else { max },
         mean_by_kind: SAMPLE_KINDS.iter().zip(by_kind).map(|(n, (s, c))| (*n, s / c.max(1) as f64)).collect(),
         rewards,
-    })
+    }
 }

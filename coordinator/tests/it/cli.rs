@@ -209,6 +209,8 @@ fn tracks_import_measures_a_users_file_and_refuses_a_broken_one() {
     assert!(stderr(&b).contains("broken.npy: row 3 column 1 (center_y) is NaN"), "{}", stderr(&b));
 }
 
+/// Issue 51: `reward validate` passes DeepRacer's samples and tells every fault of a broken
+/// file on its line.
 #[test]
 fn reward_validate_passes_deepracers_samples_and_fails_broken_files() {
     let dir = tempfile::tempdir().unwrap();
@@ -219,17 +221,57 @@ fn reward_validate_passes_deepracers_samples_and_fails_broken_files() {
         assert!(o.status.success(), "{f}: {}{}", stdout(&o), stderr(&o));
         assert!(stdout(&o).contains("PASSED") && stdout(&o).contains("min "), "{}", stdout(&o));
     }
+    // Each failure on its line (file:line: error: …), as editors read compilers' messages.
     for (f, want) in [
-        ("raises_key_error.py", "KeyError: 'distance_from_centre'"),
+        ("raises_key_error.py", ":3: error: KeyError: 'distance_from_centre'"),
         ("nan_off_track.py", "returned NaN"),
         ("returns_string.py", "(str)"),
         ("too_large.py", "[-1e5, 1e5]"),
-        ("syntax_error.py", "SyntaxError"),
+        ("syntax_error.py", ":1: error: SyntaxError"),
+        ("no_function.py", "error: the file defines no reward_function(params)"),
     ] {
         let o = coordinator(dir.path(), &["reward", "validate", &repo(&format!("tests/data/rewards/{f}"))]);
         assert_eq!(o.status.code(), Some(1), "{f}");
         assert!(stdout(&o).contains("FAILED") && stdout(&o).contains(want), "{f}: {}", stdout(&o));
     }
+    // Every finding, not the first: two faults of the calls and an undefined name, each on
+    // its line; DeepRacer's refusals are warnings, and a file with only those passes.
+    let faults = dir.path().join("faults.py");
+    std::fs::write(
+        &faults,
+        "import os\ndef reward_function(params):\n    if params['is_offtrack']:\n        return params['no_such_key']\n    if params['progress'] > 50:\n        return 1 / 0\n    return 1.0 if params['speed'] < LIMIT else 0.5\n",
+    )
+    .unwrap();
+    let o = coordinator(dir.path(), &["reward", "validate", "faults.py"]);
+    let out = stdout(&o);
+    assert_eq!(o.status.code(), Some(1), "{out}");
+    for want in [
+        "faults.py:1: warning: import of os",
+        "faults.py:7: error: undefined name 'LIMIT'",
+        "FAILED: 1 error, 1 warning",
+    ] {
+        assert!(out.contains(want), "{want}: {out}");
+    }
+    std::fs::write(
+        &faults,
+        "import os\ndef reward_function(params):\n    if params['is_offtrack']:\n        return params['no_such_key']\n    if params['progress'] > 50:\n        return 1 / 0\n    return 1.0\n",
+    )
+    .unwrap();
+    let o = coordinator(dir.path(), &["reward", "validate", "faults.py"]);
+    let out = stdout(&o);
+    for want in [
+        "faults.py:1: warning: import of os",
+        "faults.py:4: error: KeyError: 'no_such_key'",
+        "faults.py:6: error: ZeroDivisionError: division by zero",
+        "FAILED: 2 errors, 1 warning",
+        "the first failed call:",
+    ] {
+        assert!(out.contains(want), "{want}: {out}");
+    }
+    std::fs::write(&faults, "import os\ndef reward_function(params):\n    return 1.0\n").unwrap();
+    let o = coordinator(dir.path(), &["reward", "validate", "faults.py"]);
+    let out = stdout(&o);
+    assert!(o.status.success() && out.contains("PASSED, with 1 warning"), "{out}");
     // issue 31: the object-avoidance sample reads objects_*: validated in a race with boxes
     // it passes; in a time trial (no objects, as DeepRacer would run it) it fails naming why.
     let oa = repo("examples/rewards/object_avoidance.py");
