@@ -1085,6 +1085,10 @@ pub struct ValidateArgs {
     /// Seconds one call may take (the simulator's `reward_time_limit`).
     #[arg(long, default_value_t = 1.0)]
     pub time_limit: f64,
+    /// Print one JSON object: `ok`, the `errors` and `warnings` (each a `line` and a
+    /// `message`), and the `rewards` of the calls that returned.
+    #[arg(long)]
+    pub json: bool,
     /// The race whose objects the sampled states have.
     #[command(flatten)]
     pub race: RaceArgs,

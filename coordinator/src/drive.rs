@@ -7,9 +7,9 @@ use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use policy::{ActionSpace, ModelMetadata};
 use sim_agent::driver::PurePursuit;
-use sim_agent::reward_check::{Severity, check_source, finding_of};
+use sim_agent::reward_check::{self, RewardInput, Severity};
 use sim_agent::simtrace::{ActionTaken, SimTraceWriter};
-use sim_agent::validate::{Sampling, validate_reward_all};
+use sim_agent::validate::Sampling;
 use sim_agent::{Env, EnvSpec, EvalRules, Mode, RewardFn, SimConfig};
 use std::io::BufWriter;
 use std::sync::Arc;
@@ -122,7 +122,8 @@ pub fn drive(args: DriveArgs) -> Result<i32> {
 
 /// `reward validate`: every finding about the file on its line (the static checks, then the
 /// calls on sampled states, which go on past a failed call), the rewards of the calls that
-/// returned, and the first failed call in full (its traceback and params).
+/// returned, and the first failed call in full (its traceback and params); or all of it as
+/// one JSON object (`--json`).
 pub fn validate(args: ValidateArgs) -> Result<i32> {
     let race: SimConfig = args.race.sim_config(None, &[])?;
     let world = resolve_world(&args.track)?;
@@ -133,71 +134,48 @@ pub fn validate(args: ValidateArgs) -> Result<i32> {
     };
     let limit = sim_agent::config::SimConfig { reward_time_limit: args.time_limit, ..Default::default() };
     let file = args.file.as_str();
-    let builtin = file.starts_with("builtin:") || sim_agent::BuiltinReward::ALL.iter().any(|(_, n)| *n == file);
-    let mut findings = Vec::new();
-    if !builtin {
-        let source = match std::fs::read_to_string(file) {
-            Ok(s) => s,
-            Err(e) => {
-                println!("FAILED: {file}: {e}");
-                return Ok(1);
-            }
+    if !args.json {
+        println!("validating {file} on {} ({})", world.name, if args.reversed { "reversed" } else { "forward" });
+    }
+    let at =
+        Sampling { track: &track, surface: world.surface, space: &space, positions: args.positions, race: &race.race };
+    let v = reward_check::validate(RewardInput::of_spec(file), at, limit.reward_time_limit())
+        .map_err(|e| anyhow::anyhow!("{file}: {e}"))?;
+    let code = if v.ok() { 0 } else { 1 };
+    if args.json {
+        let listed = |s: Severity| -> Vec<serde_json::Value> {
+            v.findings
+                .iter()
+                .filter(|f| f.severity == s)
+                .map(|f| serde_json::json!({"line": f.line, "message": f.message}))
+                .collect()
         };
-        findings = check_source(&source, file).map_err(|e| anyhow::anyhow!("{file}: {e}"))?;
+        let rewards = v.report.as_ref().map(|r| {
+            serde_json::json!({"calls": r.calls, "min": r.min, "mean": r.mean, "max": r.max,
+                "mean_by_kind": r.mean_by_kind.iter().map(|(k, m)| serde_json::json!({"kind": k, "mean": m})).collect::<Vec<_>>()})
+        });
+        let out = serde_json::json!({
+            "ok": v.ok(),
+            "errors": listed(Severity::Error),
+            "warnings": listed(Severity::Warning),
+            "rewards": rewards,
+        });
+        println!("{out}");
+        return Ok(code);
     }
-    let mut first_failure = None;
-    let mut report = None;
-    if !findings.iter().any(|f| f.severity == Severity::Error) {
-        match RewardFn::from_spec(file) {
-            Ok(r) => {
-                let mut reward = r.with_time_limit(limit.reward_time_limit());
-                println!(
-                    "validating {} on {} ({})",
-                    reward.describe(),
-                    world.name,
-                    if args.reversed { "reversed" } else { "forward" }
-                );
-                let at = Sampling {
-                    track: &track,
-                    surface: world.surface,
-                    space: &space,
-                    positions: args.positions,
-                    race: &race.race,
-                };
-                let (r, failures) = match validate_reward_all(&mut reward, at) {
-                    Ok(done) => done,
-                    Err(e) => (Default::default(), vec![e]),
-                };
-                for e in &failures {
-                    let f = finding_of(e, file);
-                    if !findings.contains(&f) {
-                        findings.push(f);
-                    }
-                }
-                first_failure = failures.into_iter().next();
-                report = Some(r).filter(|r: &sim_agent::validate::ValidationReport| r.calls > 0);
-            }
-            Err(e) => {
-                findings.push(finding_of(&e, file));
-                first_failure = Some(e);
-            }
-        }
-    }
-    findings.sort_by_key(|f| (f.line.unwrap_or(0), f.severity));
-    for f in &findings {
+    for f in &v.findings {
         match f.line {
             Some(line) => println!("{file}:{line}: {}: {}", f.severity.label(), f.message),
             None => println!("{file}: {}: {}", f.severity.label(), f.message),
         }
     }
-    if let Some(report) = &report {
+    if let Some(report) = &v.report {
         for (kind, mean) in &report.mean_by_kind {
             println!("  {kind:<22} mean reward {mean:.4}");
         }
         println!("{} calls: min {:.4}, mean {:.4}, max {:.4}", report.calls, report.min, report.mean, report.max);
     }
-    let count = |s: Severity| findings.iter().filter(|f| f.severity == s).count();
-    let (errors, warnings) = (count(Severity::Error), count(Severity::Warning));
+    let (errors, warnings) = (v.count(Severity::Error), v.count(Severity::Warning));
     if errors == 0 {
         match warnings {
             0 => println!("PASSED"),
@@ -206,10 +184,10 @@ pub fn validate(args: ValidateArgs) -> Result<i32> {
         return Ok(0);
     }
     println!("FAILED: {errors} error{}, {warnings} warning{}", plural(errors), plural(warnings));
-    if let Some(e) = first_failure {
+    if let Some(e) = &v.first_failure {
         println!("the first failed call:\n{e}");
     }
-    Ok(1)
+    Ok(code)
 }
 
 fn plural(n: usize) -> &'static str {

@@ -12,9 +12,12 @@
 //! The static checks read the file with CPython's own parser (`ast` and `symtable`), so they
 //! see exactly the Python the reward will run on; nothing of the file is executed.
 
-use crate::reward::RewardError;
+use crate::reward::{RewardError, RewardFn};
+use crate::validate::{Sampling, ValidationReport, validate_reward_all};
 use pyo3::prelude::*;
 use std::ffi::CString;
+use std::path::Path;
+use std::time::Duration;
 
 /// How much a finding matters.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, serde::Serialize)]
@@ -169,6 +172,116 @@ pub fn check_source(source: &str, name: &str) -> Result<Vec<Finding>, String> {
             })
             .collect())
     })
+}
+
+/// The reward to validate: a built-in (`builtin:NAME`), a file (its folder on `sys.path`, as
+/// in training), or a file's text received from elsewhere (the console's editor), with the
+/// name its tracebacks give it.
+#[derive(Clone, Copy, Debug)]
+pub enum RewardInput<'a> {
+    /// `builtin:NAME`, or a bare built-in name.
+    Builtin(&'a str),
+    /// A Python reward file.
+    File(&'a Path),
+    /// A Python reward file's text, and its name.
+    Source {
+        /// What tracebacks call the file.
+        name: &'a str,
+        /// The file's text.
+        text: &'a str,
+    },
+}
+
+impl RewardInput<'_> {
+    /// `builtin:NAME` or a bare built-in name is a built-in; anything else a file.
+    pub fn of_spec(spec: &str) -> RewardInput<'_> {
+        let name = spec.strip_prefix("builtin:").unwrap_or(spec);
+        if spec.starts_with("builtin:") || crate::BuiltinReward::ALL.iter().any(|(_, n)| *n == name) {
+            RewardInput::Builtin(spec)
+        } else {
+            RewardInput::File(Path::new(spec))
+        }
+    }
+}
+
+/// What validating a reward found: every finding (by line), the rewards of the calls that
+/// returned, and the first failed call in full (traceback and params).
+#[derive(Debug, Default)]
+pub struct Validation {
+    /// Every finding, by line.
+    pub findings: Vec<Finding>,
+    /// The calls that returned a reward (none when a static error kept the file from being
+    /// called, or when every call failed).
+    pub report: Option<ValidationReport>,
+    /// The first failed call, or what kept the file from loading.
+    pub first_failure: Option<RewardError>,
+}
+
+impl Validation {
+    /// No error (warnings allowed).
+    pub fn ok(&self) -> bool {
+        self.count(Severity::Error) == 0
+    }
+
+    /// How many findings of `severity`.
+    pub fn count(&self, severity: Severity) -> usize {
+        self.findings.iter().filter(|f| f.severity == severity).count()
+    }
+}
+
+/// Validate `input`: the static checks of a Python file, then (when they found no error) the
+/// calls on the states `at` samples, each at most `time_limit`, going on past a failed call.
+/// An `Err` is a problem of Paddock's (the checker itself), not of the file.
+pub fn validate(input: RewardInput<'_>, at: Sampling<'_>, time_limit: Duration) -> Result<Validation, String> {
+    let mut v = Validation::default();
+    let (name, loaded) = match input {
+        RewardInput::Builtin(spec) => (spec.to_string(), RewardFn::from_spec(spec)),
+        RewardInput::File(path) => {
+            let name = path.display().to_string();
+            match std::fs::read_to_string(path) {
+                Ok(text) => v.findings = check_source(&text, &name)?,
+                Err(e) => {
+                    v.findings.push(Finding {
+                        line: None,
+                        severity: Severity::Error,
+                        message: format!("cannot read the file: {e}"),
+                    });
+                    return Ok(v);
+                }
+            }
+            (name.clone(), RewardFn::from_spec(&name))
+        }
+        RewardInput::Source { name, text } => {
+            v.findings = check_source(text, name)?;
+            (name.to_string(), RewardFn::from_source(name, text))
+        }
+    };
+    if !v.ok() {
+        return Ok(v);
+    }
+    match loaded {
+        Ok(reward) => {
+            let mut reward = reward.with_time_limit(time_limit);
+            let (report, failures) = match validate_reward_all(&mut reward, at) {
+                Ok(done) => done,
+                Err(e) => (ValidationReport::default(), vec![e]),
+            };
+            for e in &failures {
+                let f = finding_of(e, &name);
+                if !v.findings.contains(&f) {
+                    v.findings.push(f);
+                }
+            }
+            v.first_failure = failures.into_iter().next();
+            v.report = Some(report).filter(|r| r.calls > 0);
+        }
+        Err(e) => {
+            v.findings.push(finding_of(&e, &name));
+            v.first_failure = Some(e);
+        }
+    }
+    v.findings.sort_by_key(|f| (f.line.unwrap_or(0), f.severity));
+    Ok(v)
 }
 
 /// A failed call of the reward function as a finding: the line of the file's innermost frame

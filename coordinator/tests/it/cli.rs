@@ -268,6 +268,16 @@ fn reward_validate_passes_deepracers_samples_and_fails_broken_files() {
     ] {
         assert!(out.contains(want), "{want}: {out}");
     }
+    // The same as one JSON object, what the console's editor marks.
+    let o = coordinator(dir.path(), &["reward", "validate", "faults.py", "--json"]);
+    let v: serde_json::Value =
+        serde_json::from_str(stdout(&o).trim()).unwrap_or_else(|e| panic!("{e}: {}", stdout(&o)));
+    assert_eq!(o.status.code(), Some(1));
+    assert_eq!(v["ok"], false);
+    let lines =
+        |k: &str| -> Vec<u64> { v[k].as_array().unwrap().iter().map(|e| e["line"].as_u64().unwrap()).collect() };
+    assert_eq!((lines("errors"), lines("warnings")), (vec![4, 6], vec![1]), "{v}");
+    assert!(v["rewards"]["calls"].as_u64().unwrap() > 0, "{v}");
     std::fs::write(&faults, "import os\ndef reward_function(params):\n    return 1.0\n").unwrap();
     let o = coordinator(dir.path(), &["reward", "validate", "faults.py"]);
     let out = stdout(&o);

@@ -2,7 +2,7 @@
 //! own parser) and what each must be told; every example reward and DeepRacer sample passes
 //! with nothing to say; and the calls on sampled states report every distinct failure.
 
-use sim_agent::reward_check::{Finding, Severity, check_source, finding_of};
+use sim_agent::reward_check::{Finding, RewardInput, Severity, check_source, finding_of, validate};
 use sim_agent::validate::{Sampling, validate_reward_all};
 use sim_agent::{RewardFn, race::RaceConfig};
 use std::path::PathBuf;
@@ -117,4 +117,40 @@ fn the_sampled_calls_report_every_distinct_failure_on_its_line() {
     found.sort_by_key(|f| f.line);
     let lines: Vec<(Option<usize>, &str)> = found.iter().map(|f| (f.line, f.message.as_str())).collect();
     assert_eq!(lines, [(Some(3), "KeyError: 'no_such_key'"), (Some(5), "ZeroDivisionError: division by zero")]);
+}
+
+/// Issue 51: a reward file's text from an editor is validated as the file itself is (one code
+/// path for the CLI and the console), and a static error keeps the file from being called.
+#[test]
+fn a_files_text_is_validated_as_the_file_is() {
+    let text = "import os\ndef reward_function(params):\n    if params['is_offtrack']:\n        return params['no_such_key']\n    return 1.0\n";
+    let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("reward_check_text");
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("r.py");
+    std::fs::write(&file, text).unwrap();
+    let world = tracks::world("reinvent_base").unwrap();
+    let track = world.track(Direction::Forward);
+    let space = policy::ActionSpace::Continuous { steering_angle: (-30.0, 30.0), speed: (0.5, 4.0) };
+    let race = RaceConfig::default();
+    let at = Sampling { track: &track, surface: world.surface, space: &space, positions: 6, race: &race };
+    let limit = std::time::Duration::from_secs(1);
+    let name = file.display().to_string();
+    let from_file = validate(RewardInput::File(&file), at, limit).unwrap();
+    let from_text = validate(RewardInput::Source { name: &name, text }, at, limit).unwrap();
+    assert_eq!(from_file.findings, from_text.findings);
+    let lines: Vec<(Option<usize>, Severity)> = from_file.findings.iter().map(|f| (f.line, f.severity)).collect();
+    assert_eq!(lines, [(Some(1), W), (Some(4), E)], "{:#?}", from_file.findings);
+    assert!(!from_file.ok() && from_file.report.as_ref().is_some_and(|r| r.calls > 0));
+    assert!(from_file.first_failure.is_some());
+    // A name never defined: found before any call, and no call is made.
+    let broken = validate(
+        RewardInput::Source { name: "b.py", text: "def reward_function(params):\n    return LIMIT\n" },
+        at,
+        limit,
+    )
+    .unwrap();
+    assert_eq!((broken.count(E), broken.report.is_none()), (1, true), "{broken:#?}");
+    // A built-in has nothing to find.
+    let builtin = validate(RewardInput::of_spec("builtin:center_line"), at, limit).unwrap();
+    assert!(builtin.ok() && builtin.findings.is_empty() && builtin.report.is_some());
 }
