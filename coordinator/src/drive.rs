@@ -176,16 +176,15 @@ pub fn validate(args: ValidateArgs) -> Result<i32> {
         println!("{} calls: min {:.4}, mean {:.4}, max {:.4}", report.calls, report.min, report.mean, report.max);
     }
     let (errors, warnings) = (v.count(Severity::Error), v.count(Severity::Warning));
-    if errors == 0 {
-        match warnings {
-            0 => println!("PASSED"),
-            n => println!("PASSED, with {n} warning{} (DeepRacer's console would refuse the file)", plural(n)),
+    match (errors, warnings) {
+        (0, 0) => println!("PASSED"),
+        (0, n) => println!("PASSED, with {n} warning{} (DeepRacer's console would refuse the file)", plural(n)),
+        (e, w) => {
+            println!("FAILED: {e} error{}, {w} warning{}", plural(e), plural(w));
+            if let Some(e) = &v.first_failure {
+                println!("the first failed call:\n{e}");
+            }
         }
-        return Ok(0);
-    }
-    println!("FAILED: {errors} error{}, {warnings} warning{}", plural(errors), plural(warnings));
-    if let Some(e) = &v.first_failure {
-        println!("the first failed call:\n{e}");
     }
     Ok(code)
 }

@@ -115,8 +115,13 @@ impl PythonReward {
     pub fn load(path: &Path) -> Result<PythonReward, RewardError> {
         let origin = path.display().to_string();
         let source = std::fs::read_to_string(path).map_err(|e| RewardError::Load { origin, msg: e.to_string() })?;
+        Self::load_text(path, &source)
+    }
+
+    /// [`PythonReward::load`] of the file's text, read already.
+    pub fn load_text(path: &Path, source: &str) -> Result<PythonReward, RewardError> {
         let dir = path.parent().map(|d| if d.as_os_str().is_empty() { Path::new(".") } else { d });
-        Self::compile(&source, path, dir)
+        Self::compile(source, path, dir)
     }
 
     /// Compile a reward file's text received from elsewhere (a job from the network):

@@ -185,6 +185,12 @@ impl RewardFn {
         Ok(RewardFn::Python(Box::new(PythonReward::load(Path::new(spec))?)))
     }
 
+    /// The Python reward file `path` whose text, `text`, was read already (its folder goes on
+    /// `sys.path`, as for [`RewardFn::from_spec`]).
+    pub fn from_file_text(path: &Path, text: &str) -> Result<RewardFn, RewardError> {
+        Ok(RewardFn::Python(Box::new(PythonReward::load_text(path, text)?)))
+    }
+
     /// A reward from a job's text: `builtin:NAME`, or the source of a Python reward file
     /// named `name` (compiled in memory; tracebacks name `name`).
     pub fn from_source(name: &str, source: &str) -> Result<RewardFn, RewardError> {

@@ -20,8 +20,7 @@ use std::path::Path;
 use std::time::Duration;
 
 /// How much a finding matters.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, serde::Serialize)]
-#[serde(rename_all = "lowercase")]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
 pub enum Severity {
     /// Training with this file would fail (or the reward is not what DeepRacer accepts).
     Error,
@@ -30,7 +29,7 @@ pub enum Severity {
 }
 
 /// One finding, on its line of the file when it has one.
-#[derive(Clone, Debug, PartialEq, Eq, serde::Serialize)]
+#[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Finding {
     /// The line (from 1), when the finding is on one.
     pub line: Option<usize>,
@@ -49,20 +48,6 @@ impl Severity {
         }
     }
 }
-
-impl std::fmt::Display for Finding {
-    /// `line N: error: message` (or without the line).
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let kind = self.severity.label();
-        match self.line {
-            Some(line) => write!(f, "line {line}: {kind}: {}", self.message),
-            None => write!(f, "{kind}: {}", self.message),
-        }
-    }
-}
-
-/// The modules DeepRacer's reward validation lets a file import.
-pub const DEEPRACER_IMPORTS: [&str; 5] = ["math", "random", "numpy", "scipy", "shapely"];
 
 /// The checks, in Python: `check(source, name)` returns `(line or None, "error"|"warning",
 /// message)` tuples.
@@ -238,8 +223,8 @@ pub fn validate(input: RewardInput<'_>, at: Sampling<'_>, time_limit: Duration) 
         RewardInput::Builtin(spec) => (spec.to_string(), RewardFn::from_spec(spec)),
         RewardInput::File(path) => {
             let name = path.display().to_string();
-            match std::fs::read_to_string(path) {
-                Ok(text) => v.findings = check_source(&text, &name)?,
+            let text = match std::fs::read_to_string(path) {
+                Ok(text) => text,
                 Err(e) => {
                     v.findings.push(Finding {
                         line: None,
@@ -248,8 +233,9 @@ pub fn validate(input: RewardInput<'_>, at: Sampling<'_>, time_limit: Duration) 
                     });
                     return Ok(v);
                 }
-            }
-            (name.clone(), RewardFn::from_spec(&name))
+            };
+            v.findings = check_source(&text, &name)?;
+            (name, RewardFn::from_file_text(path, &text))
         }
         RewardInput::Source { name, text } => {
             v.findings = check_source(text, name)?;
