@@ -239,7 +239,7 @@ pub fn model_files(repeats: usize) -> Result<()> {
 }
 
 pub fn publish(repeats: usize) -> Result<()> {
-    let port = crate::up::free_port()?;
+    let port = coordinator::supervise::free_port()?;
     let endpoint = format!("tcp/127.0.0.1:{port}");
     let learner = net::open(&NetArgs { listen: vec![endpoint.clone()], ..Default::default() })?;
     let folder = camera_model("DEEP_CONVOLUTIONAL_NETWORK_SHALLOW")?;
@@ -613,7 +613,7 @@ pub fn pixels(args: &crate::cli::PixelsArgs) -> Result<()> {
 fn wire_round(certs: Option<&std::path::Path>, batch: &[u8], seconds: f64) -> Result<(f64, f64)> {
     use protocol::secure::Role;
     use std::sync::atomic::{AtomicU64, Ordering};
-    let port = crate::up::free_port()?;
+    let port = coordinator::supervise::free_port()?;
     let proto = if certs.is_some() { "tls" } else { "tcp" };
     let endpoint = format!("{proto}/127.0.0.1:{port}");
     let base = NetArgs { certs: certs.map(|p| p.to_path_buf()), ..Default::default() };

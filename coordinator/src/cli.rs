@@ -39,6 +39,15 @@ pub enum Command {
     Race(RaceCmdArgs),
     /// Keep jobs, watch agents, assign worlds, enforce stop conditions (the coordinator role).
     Serve(ServeCli),
+    /// The web console: DeepRacer's racer workflow in a browser. On one machine it starts a
+    /// coordinator, a learner and sim agents and serves on http://127.0.0.1:8100 (the address
+    /// it prints carries its token). Runs the `console` binary: `console --help` lists its flags.
+    #[command(disable_help_flag = true)]
+    Console {
+        /// The console's flags (`--agents N`, `--listen ADDR`, `--data DIR`, …).
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
     /// Job control: start, list, status, stop, logs.
     Job {
         #[command(subcommand)]
@@ -441,6 +450,10 @@ pub struct ServeCli {
     /// The job database (redb); jobs survive restarts.
     #[arg(long, default_value = "paddock-coordinator.redb")]
     pub db: PathBuf,
+    /// Serve the web console beside the coordinator on this address (host:port), its data
+    /// folder beside the database (`console-data`).
+    #[arg(long, value_name = "ADDR")]
+    pub console: Option<String>,
 }
 
 #[derive(Subcommand)]

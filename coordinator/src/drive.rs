@@ -143,24 +143,7 @@ pub fn validate(args: ValidateArgs) -> Result<i32> {
         .map_err(|e| anyhow::anyhow!("{file}: {e}"))?;
     let code = if v.ok() { 0 } else { 1 };
     if args.json {
-        let listed = |s: Severity| -> Vec<serde_json::Value> {
-            v.findings
-                .iter()
-                .filter(|f| f.severity == s)
-                .map(|f| serde_json::json!({"line": f.line, "message": f.message}))
-                .collect()
-        };
-        let rewards = v.report.as_ref().map(|r| {
-            serde_json::json!({"calls": r.calls, "min": r.min, "mean": r.mean, "max": r.max,
-                "mean_by_kind": r.mean_by_kind.iter().map(|(k, m)| serde_json::json!({"kind": k, "mean": m})).collect::<Vec<_>>()})
-        });
-        let out = serde_json::json!({
-            "ok": v.ok(),
-            "errors": listed(Severity::Error),
-            "warnings": listed(Severity::Warning),
-            "rewards": rewards,
-        });
-        println!("{out}");
+        println!("{}", v.to_json());
         return Ok(code);
     }
     for f in &v.findings {

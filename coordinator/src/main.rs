@@ -43,9 +43,15 @@ fn main() {
         cli::Command::Evaluate(args) => train::evaluate_cmd(args),
         cli::Command::Race(args) => race_cmd::race(args),
         cli::Command::Clone(args) => train::clone_cmd(args),
-        cli::Command::Serve(a) => {
-            serve::serve(serve::ServeArgs { net: client::net_args(&a.net, false).as_role(protocol::secure::Role::Coordinator), db: a.db }).map(|()| 0)
-        }
+        cli::Command::Serve(a) => (|| -> anyhow::Result<i32> {
+            let _console = a.console.as_deref().map(|addr| console_beside(&a, addr)).transpose()?;
+            serve::serve(serve::ServeArgs {
+                net: client::net_args(&a.net, false).as_role(protocol::secure::Role::Coordinator),
+                db: a.db,
+            })?;
+            Ok(0)
+        })(),
+        cli::Command::Console { args } => console(&args),
         cli::Command::Job { command } => client::run(command),
         cli::Command::Agents { net } => client::run(cli::JobCommand::Agents { net }),
         cli::Command::Up(args) => up::up(args),
@@ -140,4 +146,50 @@ fn main() {
         },
     };
     protocol::exit::exit(result)
+}
+
+/// `coordinator console …`: the `console` binary in this process's place.
+fn console(args: &[String]) -> anyhow::Result<i32> {
+    use std::os::unix::process::CommandExt as _;
+    let bin = coordinator::supervise::sibling("console")?;
+    let e = std::process::Command::new(&bin).args(args).exec();
+    Err(anyhow::anyhow!("starting {}: {e}", bin.display()))
+}
+
+/// `serve --console ADDR`: the console as a child of the coordinator, connected to its first
+/// listen endpoint (on loopback when it listens on every address); killed when serve ends.
+fn console_beside(a: &cli::ServeCli, addr: &str) -> anyhow::Result<Beside> {
+    let listen = a.net.listen.first().ok_or_else(|| {
+        anyhow::anyhow!("--console needs --listen ENDPOINT (for example tcp/127.0.0.1:7447): the console reaches the coordinator there")
+    })?;
+    let endpoint = listen.replace("0.0.0.0", "127.0.0.1").replace("[::]", "[::1]");
+    let data =
+        a.db.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(std::path::Path::new(".")).join("console-data");
+    let mut args: Vec<String> =
+        ["--connect", &endpoint, "--listen", addr, "--data"].iter().map(|s| s.to_string()).collect();
+    args.push(data.display().to_string());
+    if let Some(c) = &a.net.certs {
+        args.extend(["--certs".to_string(), c.display().to_string()]);
+    }
+    if a.net.insecure {
+        args.push("--insecure".into());
+    }
+    let bin = coordinator::supervise::sibling("console")?;
+    // Its output goes where serve's goes: the address with its token is printed there.
+    let child = std::process::Command::new(&bin)
+        .args(&args)
+        .spawn()
+        .map_err(|e| anyhow::anyhow!("starting {}: {e}", bin.display()))?;
+    tracing::info!(%addr, "console started beside the coordinator");
+    Ok(Beside(child))
+}
+
+/// A process that ends with this one.
+struct Beside(std::process::Child);
+
+impl Drop for Beside {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
 }

@@ -7,128 +7,13 @@
 use crate::cli::UpArgs;
 use crate::client::request;
 use anyhow::{Context, Result, bail};
+use coordinator::supervise::{Children, free_port, sibling, spawn, write_pids};
 use indicatif::{ProgressBar, ProgressStyle};
 use protocol::JobState;
 use protocol::job_request::Kind;
 use protocol::net::{self, NetArgs};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
-
-/// One supervised role: how to start it again.
-struct Role {
-    name: String,
-    child: Child,
-    bin: PathBuf,
-    args: Vec<String>,
-    log: PathBuf,
-    restarts: u32,
-}
-
-/// Children that are killed when this value is dropped.
-struct Children(Vec<Role>);
-
-impl Drop for Children {
-    fn drop(&mut self) {
-        for r in &mut self.0 {
-            let _ = r.child.kill();
-        }
-        for r in &mut self.0 {
-            let _ = r.child.wait();
-        }
-    }
-}
-
-/// Restarts of one role before `up` gives up on the job.
-const MAX_RESTARTS: u32 = 10;
-
-/// `logs/pids.json`, replaced whole (a reader never sees half of it).
-fn write_pids(logs: &Path, children: &Children) -> Result<()> {
-    let tmp = logs.join(".pids.json.tmp");
-    std::fs::write(&tmp, children.pids().to_string())?;
-    std::fs::rename(&tmp, logs.join("pids.json"))?;
-    Ok(())
-}
-
-fn start(bin: &Path, args: &[String], log: &Path) -> Result<Child> {
-    let out = std::fs::OpenOptions::new().create(true).append(true).open(log)?;
-    Command::new(bin)
-        .args(args)
-        .stdin(Stdio::null())
-        .stdout(out.try_clone()?)
-        .stderr(out)
-        .spawn()
-        .with_context(|| format!("starting {}", bin.display()))
-}
-
-impl Children {
-    /// Start again every role that exited (the learner resumes from its last checkpoint, the
-    /// coordinator from its database); what happened, one line each.
-    fn supervise(&mut self) -> Result<Vec<String>> {
-        let mut events = Vec::new();
-        for r in &mut self.0 {
-            let Ok(Some(status)) = r.child.try_wait() else { continue };
-            if r.restarts >= MAX_RESTARTS {
-                bail!("{} exited {} times (last: {status}); see {}", r.name, r.restarts + 1, r.log.display());
-            }
-            r.restarts += 1;
-            r.child = start(&r.bin, &r.args, &r.log)?;
-            events
-                .push(format!("up: {} exited ({status}) and was restarted ({} of {MAX_RESTARTS})", r.name, r.restarts));
-        }
-        Ok(events)
-    }
-
-    /// The process id of each role, by name (for `logs/pids.json`).
-    fn pids(&self) -> serde_json::Value {
-        self.0
-            .iter()
-            .map(|r| (r.name.clone(), serde_json::json!(r.child.id())))
-            .collect::<serde_json::Map<_, _>>()
-            .into()
-    }
-}
-
-/// A sibling binary of this one (`target/release/learner` next to `coordinator`).
-pub fn sibling(name: &str) -> Result<PathBuf> {
-    let me = std::env::current_exe()?;
-    let p = me.with_file_name(name);
-    if !p.exists() {
-        bail!(
-            "{} not found next to {}: build every role with `cargo build --release --workspace` (./paddock does)",
-            p.display(),
-            me.display()
-        );
-    }
-    Ok(p)
-}
-
-/// A free TCP port on loopback.
-pub fn free_port() -> Result<u16> {
-    Ok(std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?.port())
-}
-
-fn spawn(
-    children: &mut Children,
-    name: &str,
-    bin: &Path,
-    args: &[String],
-    common: &[String],
-    log: &Path,
-) -> Result<()> {
-    let args: Vec<String> = args.iter().chain(common).cloned().collect();
-    let _ = std::fs::remove_file(log);
-    let child = start(bin, &args, log)?;
-    children.0.push(Role {
-        name: name.to_string(),
-        child,
-        bin: bin.to_path_buf(),
-        args,
-        log: log.to_path_buf(),
-        restarts: 0,
-    });
-    Ok(())
-}
 
 pub fn up(mut args: UpArgs) -> Result<i32> {
     // The race flags, checked before anything starts (the job's spec applies them).

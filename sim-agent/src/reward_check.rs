@@ -212,6 +212,29 @@ impl Validation {
     pub fn count(&self, severity: Severity) -> usize {
         self.findings.iter().filter(|f| f.severity == severity).count()
     }
+
+    /// The answer as JSON, as `reward validate --json` prints it and the console's API
+    /// answers: `{"ok", "errors": [{"line", "message"}], "warnings": [...], "rewards"}`, with
+    /// `rewards` null when no call returned.
+    pub fn to_json(&self) -> serde_json::Value {
+        let listed = |s: Severity| -> Vec<serde_json::Value> {
+            self.findings
+                .iter()
+                .filter(|f| f.severity == s)
+                .map(|f| serde_json::json!({"line": f.line, "message": f.message}))
+                .collect()
+        };
+        let rewards = self.report.as_ref().map(|r| {
+            serde_json::json!({"calls": r.calls, "min": r.min, "mean": r.mean, "max": r.max,
+                "mean_by_kind": r.mean_by_kind.iter().map(|(k, m)| serde_json::json!({"kind": k, "mean": m})).collect::<Vec<_>>()})
+        });
+        serde_json::json!({
+            "ok": self.ok(),
+            "errors": listed(Severity::Error),
+            "warnings": listed(Severity::Warning),
+            "rewards": rewards,
+        })
+    }
 }
 
 /// Validate `input`: the static checks of a Python file, then (when they found no error) the

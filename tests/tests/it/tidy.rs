@@ -31,8 +31,19 @@ fn rust_files(dir: &Path, out: &mut Vec<PathBuf>) {
     }
 }
 
-const CRATES: &[&str] =
-    &["tracks", "policy", "protocol", "gpu", "sim-agent", "learner", "deploy", "coordinator", "tests", "fuzz"];
+const CRATES: &[&str] = &[
+    "tracks",
+    "policy",
+    "protocol",
+    "gpu",
+    "sim-agent",
+    "learner",
+    "deploy",
+    "coordinator",
+    "console",
+    "tests",
+    "fuzz",
+];
 
 /// Issue 50: every file has a module doc, nothing is left unfinished, and no function
 /// is let off clippy's limit on arguments.

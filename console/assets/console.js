@@ -1,0 +1,328 @@
+// Paddock console: the create-model wizard and a model's live page. The graphs are uPlot's,
+// the editor CodeMirror's, the buttons htmx's; this file only wires them to the API.
+"use strict";
+var Paddock = (function () {
+  function $(sel, root) { return (root || document).querySelector(sel); }
+  function $$(sel, root) { return Array.prototype.slice.call((root || document).querySelectorAll(sel)); }
+  function val(name) {
+    var el = $('[name="' + name + '"]:checked') || $('[name="' + name + '"]');
+    return el ? el.value : null;
+  }
+  function num(name) { return Number(val(name)); }
+  function text(el, s) { el.textContent = s; return el; }
+  function li(s) { return text(document.createElement("li"), s); }
+
+  // ---- The wizard ----------------------------------------------------------------------
+  function wizard() {
+    var step = 1, last = 5;
+    var editor = CodeMirror.fromTextArea($("#reward"), {
+      mode: "python", lineNumbers: true, indentUnit: 4, gutters: ["CodeMirror-linenumbers", "marks"],
+    });
+    editor.setSize(null, 420);
+    var marked = [];
+    function clearMarks() {
+      marked.forEach(function (n) { editor.removeLineClass(n, "background", "error-line"); });
+      marked = [];
+      editor.clearGutter("marks");
+    }
+    function markLine(line, message) {
+      var n = line - 1;
+      if (n < 0 || n >= editor.lineCount()) return;
+      editor.addLineClass(n, "background", "error-line");
+      var m = document.createElement("span");
+      m.className = "error-mark";
+      m.title = message;
+      m.textContent = "●";
+      editor.setGutterMarker(n, "marks", m);
+      marked.push(n);
+    }
+    function show(n) {
+      step = n;
+      $$("section[data-step]").forEach(function (s) { s.hidden = Number(s.dataset.step) !== n; });
+      $$(".steps li").forEach(function (s) { s.classList.toggle("current", Number(s.dataset.step) === n); });
+      $("#back").disabled = n === 1;
+      $("#next").hidden = n === last;
+      $("#submit").hidden = n !== last;
+      if (n === 5) editor.refresh();
+    }
+    $("#back").onclick = function () { show(Math.max(1, step - 1)); };
+    $("#next").onclick = function () { show(Math.min(last, step + 1)); };
+    $$(".steps li").forEach(function (s) { s.onclick = function () { show(Number(s.dataset.step)); }; });
+
+    function raceChanged() {
+      var t = val("race_type");
+      $("#objects").hidden = t !== "object_avoidance";
+      $("#bots").hidden = t !== "head_to_bot";
+    }
+    $$('[name="race_type"]').forEach(function (r) { r.onchange = raceChanged; });
+    function algorithmChanged() {
+      var sac = val("training_algorithm") === "sac";
+      $$(".ppo").forEach(function (e) { e.hidden = sac; });
+      $$(".sac").forEach(function (e) { e.hidden = !sac; });
+      if (sac) $('[name="action_type"][value="continuous"]').checked = true;
+      actionChanged();
+    }
+    $$('[name="training_algorithm"]').forEach(function (r) { r.onchange = algorithmChanged; });
+
+    function discreteActions() {
+      var n = num("steer_n"), max = num("steer_max"), k = num("speed_n"), vmax = num("speed_max"), out = [];
+      for (var i = 0; i < n; i++) {
+        var steer = n === 1 ? 0 : -max + (2 * max * i) / (n - 1);
+        for (var j = 1; j <= k; j++) out.push({ steering_angle: Math.round(steer * 100) / 100, speed: Math.round((vmax * j / k) * 100) / 100 });
+      }
+      return out;
+    }
+    function actionSpace() {
+      if (val("action_type") === "discrete") return discreteActions();
+      return { steering_angle: { low: num("steer_low"), high: num("steer_high") }, speed: { low: num("speed_low"), high: num("speed_high") } };
+    }
+    function drawActions() {
+      var g = $("#action-graph"), space = actionSpace(), ns = "http://www.w3.org/2000/svg";
+      while (g.firstChild) g.removeChild(g.firstChild);
+      function at(steer, speed) {
+        var a = (steer * Math.PI) / 180, r = (speed / 4) * 100;
+        return [-Math.sin(a) * r, -Math.cos(a) * r];
+      }
+      function el(tag, attrs) {
+        var e = document.createElementNS(ns, tag);
+        Object.keys(attrs).forEach(function (k) { e.setAttribute(k, attrs[k]); });
+        g.appendChild(e);
+        return e;
+      }
+      el("path", { d: "M-100,0 A100,100 0 0 1 100,0", fill: "none", stroke: "#ccc" });
+      if (Array.isArray(space)) {
+        var rows = $("#action-rows");
+        while (rows.firstChild) rows.removeChild(rows.firstChild);
+        space.forEach(function (a, i) {
+          var p = at(a.steering_angle, a.speed);
+          el("line", { x1: 0, y1: 0, x2: p[0], y2: p[1], stroke: "#1f77b4" });
+          el("circle", { cx: p[0], cy: p[1], r: 3, fill: "#1f77b4" });
+          var tr = document.createElement("tr");
+          [i, a.steering_angle, a.speed].forEach(function (v) { tr.appendChild(text(document.createElement("td"), String(v))); });
+          rows.appendChild(tr);
+        });
+      } else {
+        var lo = at(space.steering_angle.high, space.speed.high), hi = at(space.steering_angle.low, space.speed.high);
+        var lo2 = at(space.steering_angle.high, space.speed.low), hi2 = at(space.steering_angle.low, space.speed.low);
+        el("path", {
+          d: "M" + lo2 + " L" + lo + " A" + (space.speed.high / 4) * 100 + "," + (space.speed.high / 4) * 100 + " 0 0 1 " + hi +
+             " L" + hi2 + " A" + (space.speed.low / 4) * 100 + "," + (space.speed.low / 4) * 100 + " 0 0 0 " + lo2 + "Z",
+          fill: "rgba(31,119,180,0.3)", stroke: "#1f77b4",
+        });
+      }
+    }
+    function actionChanged() {
+      var d = val("action_type") === "discrete";
+      $("#discrete").hidden = !d;
+      $("#continuous").hidden = d;
+      drawActions();
+    }
+    $$('[name="action_type"]').forEach(function (r) { r.onchange = actionChanged; });
+    $$("#continuous input, #discrete input, #discrete select").forEach(function (e) { e.oninput = drawActions; e.onchange = drawActions; });
+
+    $("#find-track").oninput = function () {
+      var q = this.value.toLowerCase();
+      $$(".track").forEach(function (t) { t.hidden = t.dataset.name.indexOf(q) < 0; });
+    };
+    var samples = JSON.parse($("#samples-json").textContent);
+    $("#use-sample").onclick = function () { editor.setValue(samples[Number($("#samples").value)].code); clearMarks(); };
+
+    function metadata() {
+      var sensors = [val("camera")], state = sensors[0] === "STATE_VECTOR";
+      if ($('[name="lidar"]').checked && !state) sensors.push("SECTOR_LIDAR");
+      return {
+        action_space: actionSpace(), sensor: sensors, neural_network: state ? "PADDOCK_MLP" : val("neural_network"),
+        training_algorithm: val("training_algorithm"), action_space_type: val("action_type"), version: "5",
+      };
+    }
+    function hyperparameters() {
+      var h = { batch_size: num("batch_size"), lr: num("lr"), discount_factor: num("discount_factor"), loss_type: val("loss_type") };
+      if (val("training_algorithm") === "sac") {
+        h.sac_alpha = num("sac_alpha");
+        h.num_episodes_between_training = 1;
+      } else {
+        h.num_epochs = num("num_epochs");
+        h.beta_entropy = num("beta_entropy");
+        h.num_episodes_between_training = num("num_episodes_between_training");
+      }
+      return h;
+    }
+    function race() {
+      var t = val("race_type"), r = { race_type: t };
+      if (t === "object_avoidance") {
+        r.number_of_obstacles = num("number_of_obstacles");
+        r.randomize_obstacle_locations = $('[name="randomize_obstacle_locations"]').checked;
+      }
+      if (t === "head_to_bot") {
+        r.number_of_bot_cars = num("number_of_bot_cars");
+        r.bot_car_speed = num("bot_car_speed");
+      }
+      return r;
+    }
+    function stop() {
+      var kind = val("stop_kind"), s = { minutes: num("minutes") };
+      if (kind === "verified") { s.target_laps = 3; s.target_evals = 1; s.verify_trials = 10; }
+      if (kind === "steps") s.env_steps_budget = num("env_steps_budget");
+      return s;
+    }
+    function body() {
+      var b = {
+        name: $("#name").value, description: $("#description").value,
+        tracks: $$('[name="tracks"]:checked').map(function (c) { return c.value; }),
+        reward_function: editor.getValue(), model_metadata: metadata(), hyperparameters: hyperparameters(),
+        stop: stop(), race: race(),
+      };
+      if (prefill && prefill.clone_from) b.clone_from = prefill.clone_from;
+      return b;
+    }
+
+    function showValidation(v) {
+      var out = $("#validation");
+      while (out.firstChild) out.removeChild(out.firstChild);
+      clearMarks();
+      var head = document.createElement("p");
+      head.className = v.ok ? "passed" : "failed";
+      text(head, v.ok ? "Your reward function passed validation" + (v.warnings.length ? ", with " + v.warnings.length + " warning(s)." : ".")
+                      : "Validation found " + v.errors.length + " error(s).");
+      out.appendChild(head);
+      var list = document.createElement("ul");
+      v.errors.concat(v.warnings).forEach(function (f) {
+        list.appendChild(li((f.line ? "line " + f.line + ": " : "") + f.message));
+      });
+      out.appendChild(list);
+      v.errors.forEach(function (f) { if (f.line) markLine(f.line, f.message); });
+    }
+    $("#validate").onclick = function () {
+      var button = this;
+      button.disabled = true;
+      text(button, "Validating…");
+      fetch("/api/v1/rewards/validate", {
+        method: "POST", headers: { "Content-Type": "application/json" },
+        body: JSON.stringify({ reward_function: editor.getValue(), track: $("#validate-track").value, model_metadata: metadata() }),
+      }).then(function (r) { return r.json(); }).then(function (v) {
+        if (v.errors && v.ok === undefined) v = { ok: false, errors: v.errors, warnings: [] };
+        showValidation(v);
+      }).finally(function () { button.disabled = false; text(button, "Validate"); });
+    };
+
+    $("#wizard").onsubmit = function (ev) {
+      ev.preventDefault();
+      var errors = $("#errors");
+      while (errors.firstChild) errors.removeChild(errors.firstChild);
+      $("#submit").disabled = true;
+      fetch("/api/v1/models", { method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body()) })
+        .then(function (r) { return r.json().then(function (v) { return [r.status, v]; }); })
+        .then(function (rv) {
+          if (rv[0] === 201) { location.href = "/models/" + encodeURIComponent(rv[1].name); return; }
+          var list = document.createElement("ul");
+          (rv[1].errors || [{ field: "", message: rv[1].error }]).forEach(function (e) {
+            list.appendChild(li((e.field ? e.field + ": " : "") + (e.line ? "line " + e.line + ": " : "") + e.message));
+          });
+          errors.appendChild(text(document.createElement("p"), "The model was not created:"));
+          errors.appendChild(list);
+          var reward = (rv[1].errors || []).filter(function (e) { return e.field === "reward_function"; });
+          if (reward.length) { show(5); showValidation({ ok: false, errors: reward, warnings: [] }); }
+        })
+        .finally(function () { $("#submit").disabled = false; });
+    };
+
+    var prefill = JSON.parse($("#prefill").textContent);
+    if (prefill) {
+      $("#name").value = prefill.name || "";
+      $("#description").value = prefill.description || "";
+      if (prefill.reward_source) editor.setValue(prefill.reward_source);
+      if (prefill.tracks) $$('[name="tracks"]').forEach(function (c) { c.checked = prefill.tracks.indexOf(c.value) >= 0; });
+      var m = prefill.model_metadata || {};
+      if (m.training_algorithm) $('[name="training_algorithm"][value="' + m.training_algorithm + '"]').checked = true;
+      if (Array.isArray(m.action_space)) $('[name="action_type"][value="discrete"]').checked = true;
+      (m.sensor || []).forEach(function (s) {
+        var c = $('[name="camera"][value="' + s + '"]');
+        if (c) c.checked = true;
+        if (s.indexOf("LIDAR") >= 0) $('[name="lidar"]').checked = true;
+      });
+      // DeepRacer's locks on a clone: the same algorithm, action-space type and sensors.
+      $$('[name="training_algorithm"], [name="action_type"], [name="camera"], [name="lidar"]').forEach(function (e) { e.disabled = true; });
+    }
+    raceChanged();
+    algorithmChanged();
+    show(1);
+  }
+
+  // ---- A model's page ------------------------------------------------------------------
+  function model() {
+    var m = JSON.parse($("#model-json").textContent);
+    var base = "/api/v1/models/" + encodeURIComponent(m.name);
+    var data = { it: [], reward: [], progress: [], eval: [], entropy: [], sps: [] };
+    var best = null;
+    function bestMarker(u) {
+      if (best === null) return;
+      var x = u.valToPos(best, "x", true), ctx = u.ctx;
+      ctx.save();
+      ctx.strokeStyle = "#2ca02c";
+      ctx.setLineDash([6, 4]);
+      ctx.beginPath();
+      ctx.moveTo(x, u.bbox.top);
+      ctx.lineTo(x, u.bbox.top + u.bbox.height);
+      ctx.stroke();
+      ctx.restore();
+    }
+    var width = Math.min(640, $("#graph").clientWidth || 640);
+    var graph = new uPlot({
+      width: width, height: 300, hooks: { draw: [bestMarker] },
+      scales: { x: { time: false } },
+      axes: [{ label: "Iteration" }, { label: "Reward" }, { side: 1, scale: "%", label: "Completion (%)", grid: { show: false } }],
+      series: [
+        { label: "Iteration" },
+        { label: "Average reward (training)", stroke: "#ff7f0e" },
+        { label: "Average completion (training)", stroke: "#1f77b4", scale: "%" },
+        { label: "Average completion (evaluation)", stroke: "#d62728", scale: "%", points: { show: true } },
+      ],
+    }, [[], [], [], []], $("#graph"));
+    var second = new uPlot({
+      width: width, height: 160, scales: { x: { time: false } },
+      axes: [{ label: "Iteration" }, { label: "Entropy" }, { side: 1, scale: "sps", label: "Samples/s", grid: { show: false } }],
+      series: [{ label: "Iteration" }, { label: "Entropy", stroke: "#9467bd" }, { label: "Samples/s (update)", stroke: "#8c564b", scale: "sps" }],
+    }, [[], [], []], $("#entropy-graph"));
+    function redraw() {
+      graph.setData([data.it, data.reward, data.progress, data.eval]);
+      second.setData([data.it, data.entropy, data.sps]);
+    }
+    function addMetrics(v) {
+      v.updates.forEach(function (u) {
+        data.it.push(u.iteration); data.reward.push(u.reward); data.progress.push(u.progress);
+        data.eval.push(null); data.entropy.push(u.entropy === undefined ? null : u.entropy); data.sps.push(u.samples_per_s);
+      });
+      v.evaluations.forEach(function (e) {
+        var i = data.it.lastIndexOf(e.iteration);
+        if (i >= 0 && !e.verification) data.eval[i] = e.progress;
+        if (e.best) best = e.iteration;
+      });
+      redraw();
+    }
+    var events = new EventSource(base + "/events");
+    events.addEventListener("status", function (e) {
+      var s = JSON.parse(e.data), el = $("#status");
+      text(el, s.status);
+      el.className = "status " + s.status;
+      $("#stop").disabled = s.status !== "training";
+      $("#delete").disabled = s.status === "training" || s.status === "stopping";
+      fetch(base).then(function (r) { return r.json(); }).then(function (v) {
+        if (v.status_text) text($("#events"), v.status_text + (v.events && v.events.length ? "\n\n" + v.events.join("\n") : ""));
+      });
+    });
+    events.addEventListener("metrics", function (e) { addMetrics(JSON.parse(e.data)); });
+    events.addEventListener("camera", function (e) {
+      var c = JSON.parse(e.data), img = $("#camera");
+      img.src = base + "/camera.png?n=" + c.count;
+      img.hidden = false;
+      $("#camera-note").hidden = true;
+      text($("#camera-caption"), c.agent + " on " + c.world + ", policy v" + c.policy_version);
+    });
+    document.body.addEventListener("htmx:responseError", function (e) {
+      var box = $("#action-error");
+      try { text(box, JSON.parse(e.detail.xhr.responseText).error); } catch (_) { text(box, e.detail.xhr.statusText); }
+      box.hidden = false;
+    });
+  }
+  return { wizard: wizard, model: model };
+})();

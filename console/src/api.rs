@@ -1,0 +1,493 @@
+//! The JSON API under `/api/v1/` (documented in `openapi.json`, served at
+//! `/api/v1/openapi.json`). The pages use it; so can any program with the token.
+//!
+//! Bad requests get 400 with every invalid field (`{"error", "errors": [{"field",
+//! "message", "line"?}]}`), unknown models 404, a name taken 409; each refusal is counted.
+
+use crate::hub::Hub;
+use crate::models::{self, FieldError};
+use crate::store::{ModelRecord, Store, StoreError};
+use axum::body::Bytes;
+use axum::extract::{Path, State};
+use axum::http::{StatusCode, header};
+use axum::response::sse::{Event, KeepAlive, Sse};
+use axum::response::{IntoResponse, Response};
+use protocol::job_reply::Body;
+use protocol::job_request::Kind;
+use protocol::{JobReply, JobState};
+use serde_json::{Value, json};
+use std::sync::Arc;
+use std::time::Duration;
+
+/// What every handler shares.
+#[derive(Clone)]
+pub struct App {
+    /// The data folder.
+    pub store: Store,
+    /// The Zenoh side.
+    pub hub: Hub,
+    /// The secret.
+    pub token: Arc<String>,
+}
+
+/// A JSON error answer: `{"error": message}`.
+pub fn error(code: StatusCode, message: &str) -> Response {
+    (code, axum::Json(json!({"error": message}))).into_response()
+}
+
+/// 400 with every invalid field.
+pub fn invalid(errors: &[FieldError]) -> Response {
+    crate::counters::refused("invalid fields");
+    let summary: Vec<String> = errors.iter().map(|e| format!("{}: {}", e.field, e.message)).collect();
+    (StatusCode::BAD_REQUEST, axum::Json(json!({"error": summary.join("; "), "errors": errors}))).into_response()
+}
+
+fn store_error(e: StoreError) -> Response {
+    match e {
+        StoreError::NotFound(_) => {
+            crate::counters::refused("an unknown model");
+            error(StatusCode::NOT_FOUND, &e.to_string())
+        }
+        StoreError::Taken(_) => {
+            crate::counters::refused("a model name taken");
+            error(StatusCode::CONFLICT, &e.to_string())
+        }
+        StoreError::Io { .. } => {
+            tracing::error!("{e}");
+            error(StatusCode::INTERNAL_SERVER_ERROR, &e.to_string())
+        }
+    }
+}
+
+fn json_body(body: &Bytes) -> Result<Value, FieldError> {
+    serde_json::from_slice(body).map_err(|e| FieldError {
+        field: String::new(),
+        message: format!("the body is not JSON: {e}"),
+        line: None,
+    })
+}
+
+/// A model's status from its job's state: `training`, `stopping`, `ready`, `failed`, or
+/// `unknown` (the coordinator has not listed the job: it is starting, or its database is gone).
+pub fn status_of(state: Option<JobState>, rec: &ModelRecord, store: &Store) -> &'static str {
+    match state {
+        Some(JobState::Running) => "training",
+        Some(JobState::Stopping) => "stopping",
+        Some(JobState::Finished) => "ready",
+        Some(JobState::Failed) => "failed",
+        _ => match store.dir(&rec.name) {
+            Ok(d) if d.join("run/model/manifest.json").exists() => "ready",
+            _ => "unknown",
+        },
+    }
+}
+
+/// The best lap of a model's evaluations (s): the fastest mean lap of an evaluation whose
+/// every trial finished.
+pub fn best_lap(store: &Store, name: &str) -> Option<f64> {
+    let text = std::fs::read_to_string(store.dir(name).ok()?.join("run/evaluations.jsonl")).ok()?;
+    text.lines()
+        .filter_map(|l| serde_json::from_str::<Value>(l).ok())
+        .filter_map(|v| v["lap_time"].as_f64())
+        .min_by(f64::total_cmp)
+}
+
+fn model_json(app: &App, rec: &ModelRecord, state: Option<JobState>) -> Value {
+    json!({
+        "name": rec.name,
+        "description": rec.description,
+        "status": status_of(state, rec, &app.store),
+        "job_id": rec.job_id,
+        "algorithm": rec.algorithm,
+        "sensors": rec.sensors,
+        "tracks": rec.tracks,
+        "reward": rec.reward,
+        "stop": rec.stop,
+        "created": rec.created,
+        "best_lap_s": best_lap(&app.store, &rec.name),
+    })
+}
+
+/// `GET /api/v1/health`: the coordinator's answer, refusals counted.
+pub async fn health(State(app): State<App>) -> Response {
+    let (listed, error) = {
+        let s = app.hub.seen.lock().expect("hub state");
+        (s.listed.map(|t| t.elapsed().as_secs_f64()), s.error.clone())
+    };
+    axum::Json(
+        json!({"coordinator_listed_s_ago": listed, "coordinator_error": error, "refused": crate::counters::all()}),
+    )
+    .into_response()
+}
+
+/// `GET /api/v1/tracks`.
+pub async fn tracks() -> Response {
+    let list: Vec<Value> = tracks::worlds()
+        .iter()
+        .map(|w| {
+            let t = w.track(tracks::Direction::Forward);
+            json!({"name": w.name, "surface": w.surface.name(), "length_m": t.length(),
+                   "picture": format!("/api/v1/tracks/{}/picture.svg", w.name)})
+        })
+        .collect();
+    axum::Json(list).into_response()
+}
+
+/// `GET /api/v1/tracks/NAME/picture.svg`: the track drawn from its own lines.
+pub async fn track_picture(Path(name): Path<String>) -> Response {
+    match tracks::world(&name) {
+        Ok(w) => ([(header::CONTENT_TYPE, "image/svg+xml")], crate::pictures::track_svg(&w)).into_response(),
+        Err(e) => {
+            crate::counters::refused("an unknown track");
+            error(StatusCode::NOT_FOUND, &e.to_string())
+        }
+    }
+}
+
+/// `POST /api/v1/rewards/validate` `{"reward_function", "track"?, "model_metadata"?}`.
+pub async fn validate_reward(body: Bytes) -> Response {
+    let v = match json_body(&body) {
+        Ok(v) => v,
+        Err(f) => return invalid(&[f]),
+    };
+    let mut errors = Vec::new();
+    let source = match v.get("reward_function") {
+        Some(Value::String(s)) if s.chars().count() <= models::MAX_REWARD_CHARS => s.clone(),
+        Some(Value::String(_)) => {
+            errors.push(field("reward_function", format!("at most {} characters", models::MAX_REWARD_CHARS)));
+            String::new()
+        }
+        _ => {
+            errors.push(field("reward_function", "required: the reward file's text".into()));
+            String::new()
+        }
+    };
+    let track = v.get("track").and_then(Value::as_str).unwrap_or("reinvent_base");
+    let world = tracks::world(track).map_err(|e| errors.push(field("track", e.to_string()))).ok();
+    let metadata = match v.get("model_metadata") {
+        None | Some(Value::Null) => None,
+        Some(m) => policy::ModelMetadata::parse(&m.to_string(), "model_metadata")
+            .map_err(|e| errors.push(field("model_metadata", e.to_string())))
+            .ok(),
+    };
+    if !errors.is_empty() {
+        return invalid(&errors);
+    }
+    let world = world.expect("checked");
+    let done = tokio::task::spawn_blocking(move || {
+        let input = if source.starts_with("builtin:") {
+            sim_agent::reward_check::RewardInput::Builtin(&source)
+        } else {
+            sim_agent::reward_check::RewardInput::Source { name: "reward_function.py", text: &source }
+        };
+        models::validate(input, &world, metadata.as_ref()).map(|v| v.to_json())
+    })
+    .await;
+    match done {
+        Ok(Ok(v)) => axum::Json(v).into_response(),
+        Ok(Err(e)) => error(StatusCode::INTERNAL_SERVER_ERROR, &e),
+        Err(e) => error(StatusCode::INTERNAL_SERVER_ERROR, &format!("the validation failed: {e}")),
+    }
+}
+
+fn field(name: &str, message: String) -> FieldError {
+    FieldError { field: name.into(), message, line: None }
+}
+
+/// `GET /api/v1/models`.
+pub async fn list_models(State(app): State<App>) -> Response {
+    let list: Vec<Value> =
+        app.store.list().iter().map(|r| model_json(&app, r, app.hub.job(&r.job_id).map(|j| j.state()))).collect();
+    axum::Json(list).into_response()
+}
+
+/// `POST /api/v1/models`: check, store, start the job; 201 with the model.
+pub async fn create_model(State(app): State<App>, body: Bytes) -> Response {
+    let v = match json_body(&body) {
+        Ok(v) => v,
+        Err(f) => return invalid(&[f]),
+    };
+    if let Some(name) = v.get("name").and_then(Value::as_str)
+        && let Ok(r) = app.store.get(name)
+    {
+        return store_error(StoreError::Taken(r.name));
+    }
+    let store = app.store.clone();
+    let made = tokio::task::spawn_blocking(move || -> Result<(ModelRecord, protocol::Job), Created> {
+        let now = protocol::job::now_unix();
+        let source = |from: &str| -> Result<(policy::ModelMetadata, std::path::PathBuf), String> {
+            let rec = store.get(from).map_err(|e| e.to_string())?;
+            let dir = store.dir(&rec.name).map_err(|e| e.to_string())?;
+            let model = dir.join("run/model");
+            if !model.join("manifest.json").exists() {
+                return Err(format!("model '{from}' has no trained model yet"));
+            }
+            let text = std::fs::read_to_string(dir.join("model_metadata.json")).map_err(|e| e.to_string())?;
+            let meta = policy::ModelMetadata::parse(&text, "model_metadata.json").map_err(|e| e.to_string())?;
+            Ok((meta, model))
+        };
+        let job_id = |name: &str| format!("{name}-{}", (now * 1000.0) as u64 % 100_000_000);
+        let checked = models::check(&v, now, job_id, &source).map_err(Created::Invalid)?;
+        let record = checked.files.record.clone();
+        let run = store.dir(&record.name)?.join("run");
+        let job = store.create(&checked.files, |tmp| -> Result<protocol::Job, Created> {
+            let spec = tmp.join("job.toml");
+            std::fs::write(&spec, models::job_spec(&checked, &run))
+                .map_err(|e| Created::Store(StoreError::Io { path: spec.display().to_string(), msg: e.to_string() }))?;
+            coordinator::jobspec::load(&spec, &record.job_id)
+                .map_err(|e| Created::Invalid(vec![models::spec_error(&e)]))
+        })?;
+        Ok((record, job))
+    })
+    .await;
+    let (record, job) = match made {
+        Ok(Ok(m)) => m,
+        Ok(Err(Created::Store(e))) => return store_error(e),
+        Ok(Err(Created::Invalid(e))) => return invalid(&e),
+        Err(e) => return error(StatusCode::INTERNAL_SERVER_ERROR, &format!("creating the model failed: {e}")),
+    };
+    match app.hub.request(Kind::StartJob(job), Duration::from_secs(10)).await {
+        Ok(r) if r.ok => {
+            tracing::info!(model = %record.name, job = %record.job_id, "model created; its job started");
+            app.hub.watch(&record.job_id);
+            let state = match &r.body {
+                Some(Body::Job(j)) => Some(j.state()),
+                _ => None,
+            };
+            (StatusCode::CREATED, axum::Json(model_json(&app, &record, state))).into_response()
+        }
+        other => {
+            // Nothing is kept of a model whose job did not start.
+            let why = match other {
+                Ok(r) => r.text,
+                Err(e) => e,
+            };
+            let _ = app.store.delete(&record.name);
+            error(StatusCode::SERVICE_UNAVAILABLE, &format!("the coordinator did not start the model's job: {why}"))
+        }
+    }
+}
+
+enum Created {
+    Store(StoreError),
+    Invalid(Vec<FieldError>),
+}
+
+impl From<StoreError> for Created {
+    fn from(e: StoreError) -> Created {
+        Created::Store(e)
+    }
+}
+
+/// A model's record and its job's status as the coordinator answers now.
+async fn fresh(app: &App, name: &str) -> Result<(ModelRecord, Option<JobReply>), Response> {
+    let rec = app.store.get(name).map_err(store_error)?;
+    let r = app.hub.request(Kind::StatusJobId(rec.job_id.clone()), Duration::from_secs(3)).await.ok();
+    Ok((rec, r))
+}
+
+/// `GET /api/v1/models/NAME`: the model, its status, and its job's figures.
+pub async fn get_model(State(app): State<App>, Path(name): Path<String>) -> Response {
+    let (rec, reply) = match fresh(&app, &name).await {
+        Ok(x) => x,
+        Err(r) => return r,
+    };
+    let job = reply.as_ref().and_then(coordinator::control::status_of).and_then(|s| s.record.clone());
+    let mut v = model_json(&app, &rec, job.as_ref().filter(|j| j.job.is_some()).map(|j| j.state()));
+    if let Some(j) = &job {
+        let l = j.learner.clone().unwrap_or_default();
+        v["training"] = json!({
+            "iteration": l.iteration, "policy_version": l.policy_version, "episodes": l.episodes,
+            "env_steps": l.env_steps, "progress": l.window_progress, "reward": l.window_reward,
+            "eval_progress": l.eval_progress, "eval_laps": l.eval_laps, "stop_reason": l.stop_reason,
+            "failure": l.failure, "steps_per_s": l.worlds.iter().map(|w| w.steps_per_s).sum::<f64>(),
+            "worlds": l.worlds.iter().map(|w| json!({"world": w.world, "steps_per_s": w.steps_per_s, "progress": w.mean_progress})).collect::<Vec<_>>(),
+        });
+        v["events"] = json!(j.log);
+    }
+    if let Some(r) = &reply {
+        v["status_text"] = json!(r.text);
+    }
+    axum::Json(v).into_response()
+}
+
+/// `POST /api/v1/models/NAME/stop`.
+pub async fn stop_model(State(app): State<App>, Path(name): Path<String>) -> Response {
+    let rec = match app.store.get(&name) {
+        Ok(r) => r,
+        Err(e) => return store_error(e),
+    };
+    match app.hub.request(Kind::StopJobId(rec.job_id.clone()), Duration::from_secs(10)).await {
+        Ok(r) if r.ok => {
+            let state = match &r.body {
+                Some(Body::Job(j)) => Some(j.state()),
+                _ => None,
+            };
+            axum::Json(model_json(&app, &rec, state)).into_response()
+        }
+        Ok(r) => error(StatusCode::CONFLICT, &r.text),
+        Err(e) => error(StatusCode::SERVICE_UNAVAILABLE, &e),
+    }
+}
+
+/// `DELETE /api/v1/models/NAME`: refused while it trains.
+pub async fn delete_model(State(app): State<App>, Path(name): Path<String>) -> Response {
+    let rec = match app.store.get(&name) {
+        Ok(r) => r,
+        Err(e) => return store_error(e),
+    };
+    let status = status_of(app.hub.job(&rec.job_id).map(|j| j.state()), &rec, &app.store);
+    if matches!(status, "training" | "stopping") {
+        crate::counters::refused("deleting a training model");
+        return error(StatusCode::CONFLICT, &format!("model '{name}' is {status}: stop it first"));
+    }
+    match app.store.delete(&name) {
+        Ok(()) => {
+            tracing::info!(model = %name, "model deleted");
+            StatusCode::NO_CONTENT.into_response()
+        }
+        Err(e) => store_error(e),
+    }
+}
+
+/// A model's graph so far: `metrics.jsonl` and `evaluations.jsonl` from `skip` lines on.
+pub fn metrics(store: &Store, name: &str, skip: (usize, usize)) -> (Vec<Value>, Vec<Value>) {
+    let Ok(dir) = store.dir(name) else { return (Vec::new(), Vec::new()) };
+    let read = |file: &str, skip: usize| -> Vec<Value> {
+        std::fs::read_to_string(dir.join("run").join(file))
+            .unwrap_or_default()
+            .lines()
+            .skip(skip)
+            .filter_map(|l| serde_json::from_str::<Value>(l).ok())
+            .collect()
+    };
+    let updates = read("metrics.jsonl", skip.0)
+        .into_iter()
+        .map(|m| {
+            json!({"iteration": m["iteration"], "time_s": m["time_s"], "reward": m["mean_reward"],
+                   "progress": m["mean_progress"], "entropy": m.get("entropy"), "samples_per_s": m["samples_per_s"],
+                   "env_steps": m["env_steps"]})
+        })
+        .collect();
+    let evals = read("evaluations.jsonl", skip.1)
+        .into_iter()
+        .map(|e| {
+            json!({"iteration": e["iteration"], "progress": e["progress"], "lap_time": e["lap_time"],
+                   "best": e["best"], "min_laps": e["min_laps"], "verification": e["verification"],
+                   "worlds": e["worlds"]})
+        })
+        .collect();
+    (updates, evals)
+}
+
+/// `GET /api/v1/models/NAME/metrics`: every update's and evaluation's figures.
+pub async fn model_metrics(State(app): State<App>, Path(name): Path<String>) -> Response {
+    if let Err(e) = app.store.get(&name) {
+        return store_error(e);
+    }
+    let (updates, evaluations) = metrics(&app.store, &name, (0, 0));
+    axum::Json(json!({"updates": updates, "evaluations": evaluations})).into_response()
+}
+
+/// `GET /api/v1/models/NAME/camera.png`: the latest frame of one of its agents.
+pub async fn camera(State(app): State<App>, Path(name): Path<String>) -> Response {
+    let rec = match app.store.get(&name) {
+        Ok(r) => r,
+        Err(e) => return store_error(e),
+    };
+    app.hub.watch(&rec.job_id);
+    match app.hub.frame(&rec.job_id) {
+        Some(f) => {
+            ([(header::CONTENT_TYPE, "image/png"), (header::CACHE_CONTROL, "no-store")], f.png.to_vec()).into_response()
+        }
+        None => error(StatusCode::NOT_FOUND, "no camera frame yet (models with a camera, while they train)"),
+    }
+}
+
+/// `GET /api/v1/models/NAME/events`: server-sent events, once a second when something is new:
+/// `status` (the model's status and job figures), `metrics` (new updates and evaluations),
+/// `camera` (a new frame: its agent, world and number).
+pub async fn events(State(app): State<App>, Path(name): Path<String>) -> Response {
+    let rec = match app.store.get(&name) {
+        Ok(r) => r,
+        Err(e) => return store_error(e),
+    };
+    app.hub.watch(&rec.job_id);
+    struct Seen {
+        lines: (usize, usize),
+        status: Option<Value>,
+        frames: u64,
+        first: bool,
+    }
+    let start = Seen { lines: (0, 0), status: None, frames: 0, first: true };
+    let stream = futures_util::stream::unfold((app, rec, start), |(app, rec, mut seen)| async move {
+        if !seen.first {
+            tokio::time::sleep(Duration::from_secs(1)).await;
+        }
+        seen.first = false;
+        let mut out: Vec<Result<Event, std::convert::Infallible>> = Vec::new();
+        let job = app.hub.job(&rec.job_id);
+        let summary = job.as_ref().map(|j| {
+            json!({"state": j.state().name(), "minutes": j.minutes, "episodes": j.episodes, "progress": j.progress})
+        });
+        let status = json!({"status": status_of(job.map(|j| j.state()), &rec, &app.store), "job": summary});
+        if seen.status.as_ref() != Some(&status) {
+            out.push(Ok(Event::default().event("status").data(status.to_string())));
+            seen.status = Some(status);
+        }
+        let (updates, evaluations) = metrics(&app.store, &rec.name, seen.lines);
+        if !updates.is_empty() || !evaluations.is_empty() {
+            seen.lines.0 += updates.len();
+            seen.lines.1 += evaluations.len();
+            out.push(Ok(Event::default()
+                .event("metrics")
+                .data(json!({"updates": updates, "evaluations": evaluations}).to_string())));
+        }
+        if let Some(f) = app.hub.frame(&rec.job_id)
+            && f.count != seen.frames
+        {
+            seen.frames = f.count;
+            out.push(Ok(Event::default().event("camera").data(
+                json!({"agent": f.agent, "world": f.world, "policy_version": f.policy_version, "count": f.count})
+                    .to_string(),
+            )));
+        }
+        Some((futures_util::stream::iter(out), (app, rec, seen)))
+    });
+    use futures_util::StreamExt;
+    Sse::new(stream.flatten()).keep_alive(KeepAlive::default()).into_response()
+}
+
+/// `GET /api/v1/models/NAME/car.tar.gz`: DeepRacer's car archive of the best model
+/// (`physicalmodel-NAME.tar.gz`). 409 before a model is written; 422 for a model no car can
+/// drive (the state vector).
+pub async fn car_archive(State(app): State<App>, Path(name): Path<String>) -> Response {
+    let dir = match app.store.get(&name).and_then(|r| app.store.dir(&r.name)) {
+        Ok(d) => d,
+        Err(e) => return store_error(e),
+    };
+    let made = tokio::task::spawn_blocking(move || -> Result<Vec<u8>, (StatusCode, String)> {
+        let f = policy::folder::load(&dir.join("run/model"))
+            .map_err(|e| (StatusCode::CONFLICT, format!("it has no trained model yet ({e})")))?;
+        policy::carpkg::pack(&f.model, &f.metadata)
+            .map_err(|e| (StatusCode::UNPROCESSABLE_ENTITY, format!("it cannot go to a car: {e}")))
+    })
+    .await;
+    match made {
+        Ok(Ok(bytes)) => (
+            [
+                (header::CONTENT_TYPE, "application/gzip".to_string()),
+                (header::CONTENT_DISPOSITION, format!("attachment; filename=\"physicalmodel-{name}.tar.gz\"")),
+            ],
+            bytes,
+        )
+            .into_response(),
+        Ok(Err((code, e))) => error(code, &format!("model '{name}': {e}")),
+        Err(e) => error(StatusCode::INTERNAL_SERVER_ERROR, &e.to_string()),
+    }
+}
+
+/// `GET /api/v1/openapi.json`.
+pub async fn openapi() -> Response {
+    ([(header::CONTENT_TYPE, "application/json")], crate::OPENAPI).into_response()
+}

@@ -1,0 +1,137 @@
+//! Paddock's console: DeepRacer's racer workflow in a browser, on the user's machine.
+//!
+//! A thin web shell (axum) over the coordinator's library: models are job specs the CLI's
+//! parser makes ([`models`]), started and watched through the job-control protocol's client
+//! ([`hub`]), kept in a data folder ([`store`]). The pages ([`pages`]) and the JSON API
+//! ([`api`]) share every function; [`auth`] guards both with the console's token.
+//!
+//! ```text
+//! browser ──HTTP──► axum router ─┬─ pages (templates, assets)
+//!                                ├─ api (JSON, server-sent events)
+//!                                └─ hub thread ──Zenoh──► coordinator serve ─► learner, agents
+//!                   data folder ◄┘ (models/NAME: DeepRacer's files, job.toml, run/)
+//! ```
+
+pub mod api;
+pub mod auth;
+pub mod counters;
+pub mod hub;
+pub mod models;
+pub mod pages;
+pub mod pictures;
+pub mod store;
+
+use anyhow::{Context, Result, bail};
+use axum::Router;
+use axum::routing::{get, post};
+use std::net::SocketAddr;
+use std::sync::Arc;
+
+/// The API's OpenAPI document.
+pub const OPENAPI: &str = include_str!("openapi.json");
+
+/// The largest request body (a reward file is at most 140,000 characters; an upload's limit
+/// is its own).
+pub const MAX_BODY: usize = 1 << 20;
+
+/// How the console serves.
+pub struct Options {
+    /// Where it listens.
+    pub listen: SocketAddr,
+    /// Listen beyond loopback without TLS and login.
+    pub insecure: bool,
+    /// The secret (a new one when `None`).
+    pub token: Option<String>,
+}
+
+/// Refuse to listen beyond loopback without `--insecure`: the console has no TLS or login yet,
+/// and its token would cross the network in the clear.
+pub fn check_listen(listen: &SocketAddr, insecure: bool) -> Result<()> {
+    if !listen.ip().is_loopback() && !insecure {
+        bail!(
+            "--listen {listen} is beyond loopback: the console serves plain HTTP with a token and no login, so anyone \
+             on the network who sees the token controls your training; listen on 127.0.0.1, or pass --insecure"
+        );
+    }
+    Ok(())
+}
+
+/// The router: pages, API, assets; everything but the assets behind the token.
+pub fn router(app: api::App) -> Router {
+    let guarded = Router::new()
+        .route("/", get(pages::models))
+        .route("/models/rows", get(pages::model_rows))
+        .route("/models/new", get(pages::new_model))
+        .route("/models/{name}", get(pages::model))
+        .route("/licences", get(pages::licences))
+        .route("/api/v1/openapi.json", get(api::openapi))
+        .route("/api/v1/health", get(api::health))
+        .route("/api/v1/tracks", get(api::tracks))
+        .route("/api/v1/tracks/{name}/picture.svg", get(api::track_picture))
+        .route("/api/v1/rewards/validate", post(api::validate_reward))
+        .route("/api/v1/models", get(api::list_models).post(api::create_model))
+        .route("/api/v1/models/{name}", get(api::get_model).delete(api::delete_model))
+        .route("/api/v1/models/{name}/stop", post(api::stop_model))
+        .route("/api/v1/models/{name}/metrics", get(api::model_metrics))
+        .route("/api/v1/models/{name}/events", get(api::events))
+        .route("/api/v1/models/{name}/camera.png", get(api::camera))
+        .route("/api/v1/models/{name}/car.tar.gz", get(api::car_archive))
+        .fallback(|| async {
+            counters::refused("an unknown address");
+            api::error(axum::http::StatusCode::NOT_FOUND, "no such page or API route")
+        })
+        .with_state(app.clone())
+        .layer(axum::middleware::from_fn_with_state(app.token.clone(), auth::guard));
+    Router::new()
+        .route("/assets/{name}", get(pages::asset))
+        .merge(guarded)
+        .layer(axum::extract::DefaultBodyLimit::max(MAX_BODY))
+}
+
+/// Serve until Ctrl-C or SIGTERM. Prints the address with the token first (one line,
+/// `console      http://ADDR/?token=…`).
+pub fn serve(opts: Options, store: store::Store, hub: hub::Hub) -> Result<()> {
+    check_listen(&opts.listen, opts.insecure)?;
+    let token = Arc::new(opts.token.unwrap_or_else(auth::new_token));
+    let app = api::App { store, hub, token: token.clone() };
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .thread_name("console")
+        .build()
+        .context("starting the web server's runtime")?;
+    let served = rt.block_on(async move {
+        let listener = tokio::net::TcpListener::bind(opts.listen)
+            .await
+            .with_context(|| format!("listening on {}", opts.listen))?;
+        let addr = listener.local_addr()?;
+        println!("console      http://{addr}/?token={token}");
+        use std::io::Write as _;
+        std::io::stdout().flush()?;
+        tracing::info!(%addr, data = %app.store.root().display(), "console serving");
+        // Live pages keep their event streams open: at a stop the server is dropped, not
+        // drained.
+        let server = tokio::spawn(async move { axum::serve(listener, router(app)).await });
+        match futures_util::future::select(server, std::pin::pin!(stopped())).await {
+            futures_util::future::Either::Left((done, _)) => {
+                done.context("the web server")?.context("serving the console")
+            }
+            futures_util::future::Either::Right(_) => Ok(()),
+        }
+    });
+    rt.shutdown_timeout(std::time::Duration::from_secs(2));
+    served
+}
+
+async fn stopped() {
+    let term = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(_) => std::future::pending::<()>().await,
+        }
+    };
+    futures_util::future::select(std::pin::pin!(tokio::signal::ctrl_c()), std::pin::pin!(term)).await;
+    tracing::info!("console stopping");
+}

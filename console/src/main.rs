@@ -1,0 +1,187 @@
+//! `console`: Paddock's web console. On one machine (no `--connect`) it starts and supervises
+//! a coordinator, a learner and sim agents on loopback, as `coordinator up` does, and serves
+//! the console beside them; with `--connect` it serves the console of a running cluster
+//! (`coordinator serve --console ADDR` starts it so). `./paddock console` runs it.
+
+use anyhow::{Context, Result};
+use clap::Parser;
+use coordinator::supervise::{Children, free_port, sibling, spawn, write_pids};
+use protocol::net::NetArgs;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::time::Duration;
+
+/// Paddock's web console: create, train, watch, evaluate and download models in a browser.
+#[derive(Parser)]
+#[command(name = "console", version)]
+struct Cli {
+    /// Where the console listens (loopback unless --insecure; port 0 picks a free one).
+    #[arg(long, default_value = "127.0.0.1:8100")]
+    listen: SocketAddr,
+    /// The data folder: models, their files and runs, and (on one machine) the job database
+    /// and the roles' logs. Kept across restarts.
+    #[arg(long, default_value = "paddock-data")]
+    data: PathBuf,
+    /// Sim agent processes to start (on one machine).
+    #[arg(long, default_value_t = 2)]
+    agents: usize,
+    /// Environments per agent (on one machine).
+    #[arg(long, default_value_t = 16)]
+    envs: usize,
+    /// Where the learner's network maths run (on one machine): auto, cpu or gpu.
+    #[arg(long, default_value = "auto")]
+    device: String,
+    /// Seconds between the learner's evaluations and checkpoints (on one machine).
+    #[arg(long, default_value_t = 2.0)]
+    checkpoint_seconds: f64,
+    /// A running cluster's coordinator (Zenoh endpoint): serve its console, start nothing.
+    #[arg(long)]
+    connect: Vec<String>,
+    /// The cluster's credentials folder (as the CLI's `--certs`).
+    #[arg(long, value_name = "DIR")]
+    certs: Option<PathBuf>,
+    /// Listen beyond loopback without TLS and login (anyone who sees the token can use it).
+    #[arg(long)]
+    insecure: bool,
+    /// The token (a new random one when not given). For scripts; the printed address carries it.
+    #[arg(long)]
+    token: Option<String>,
+}
+
+fn main() {
+    protocol::secure::init_logging("warn,zenoh=error,console=info,coordinator=info");
+    let cli = Cli::parse();
+    protocol::exit::exit(run(cli).map(|()| 0))
+}
+
+fn run(cli: Cli) -> Result<()> {
+    paddock_console::check_listen(&cli.listen, cli.insecure)?;
+    let store = paddock_console::store::Store::open(&cli.data)?;
+    let certs = cli
+        .certs
+        .as_deref()
+        .map(|d| d.canonicalize().with_context(|| format!("--certs {}", d.display())))
+        .transpose()?;
+    let mut children = Children(Vec::new());
+    let connect = if cli.connect.is_empty() {
+        let endpoint = start_roles(&cli, store.root(), certs.as_deref(), &mut children)?;
+        vec![endpoint]
+    } else {
+        cli.connect.clone()
+    };
+    let local = cli.connect.is_empty();
+    let hub = paddock_console::hub::Hub::start(&NetArgs { connect, certs, ..Default::default() })?;
+    // On one machine the console opens once its coordinator answers; a cluster's console
+    // opens at once and says on its pages when the coordinator does not answer.
+    if local && !hub.wait_listed(Duration::from_secs(60)) {
+        anyhow::bail!(
+            "the coordinator did not answer within 60 s; see {}",
+            store.root().join("logs/coordinator.log").display()
+        );
+    }
+    // The roles are supervised while the console serves: one that exits is started again.
+    let supervised = std::sync::Arc::new(std::sync::Mutex::new(children));
+    {
+        let s = supervised.clone();
+        let logs = store.root().join("logs");
+        std::thread::spawn(move || {
+            loop {
+                std::thread::sleep(Duration::from_secs(1));
+                let mut c = s.lock().expect("roles");
+                match c.supervise() {
+                    Ok(events) => {
+                        for e in events {
+                            tracing::warn!("{e}");
+                        }
+                    }
+                    Err(e) => tracing::error!("{e:#}"),
+                }
+                if !c.0.is_empty() {
+                    let _ = write_pids(&logs, &c);
+                }
+            }
+        });
+    }
+    let opts = paddock_console::Options { listen: cli.listen, insecure: cli.insecure, token: cli.token };
+    let served = paddock_console::serve(opts, store, hub);
+    // The roles stop with the console.
+    drop(std::mem::replace(&mut *supervised.lock().expect("roles"), Children(Vec::new())));
+    served
+}
+
+/// Start a coordinator (its database in the data folder), a learner and the agents on
+/// loopback; the coordinator's endpoint.
+fn start_roles(
+    cli: &Cli,
+    data: &std::path::Path,
+    certs: Option<&std::path::Path>,
+    children: &mut Children,
+) -> Result<String> {
+    let logs = data.join("logs");
+    std::fs::create_dir_all(&logs).with_context(|| format!("making {}", logs.display()))?;
+    let port = free_port()?;
+    let endpoint = format!("{}/127.0.0.1:{port}", if certs.is_some() { "tls" } else { "tcp" });
+    let common: Vec<String> = certs.iter().flat_map(|d| ["--certs".to_string(), d.display().to_string()]).collect();
+    let coordinator = sibling("coordinator")?;
+    let db = data.join("coordinator.redb").display().to_string();
+    let s = |v: &[&str]| v.iter().map(|x| x.to_string()).collect::<Vec<String>>();
+    spawn(
+        children,
+        "coordinator",
+        &coordinator,
+        &s(&["serve", "--listen", &endpoint, "--db", &db]),
+        &common,
+        &logs.join("coordinator.log"),
+    )?;
+    let checkpoint = cli.checkpoint_seconds.to_string();
+    spawn(
+        children,
+        "learner",
+        &sibling("learner")?,
+        &s(&[
+            "serve",
+            "--connect",
+            &endpoint,
+            "--id",
+            "learner-1",
+            "--checkpoint-seconds",
+            &checkpoint,
+            "--device",
+            &cli.device,
+        ]),
+        &common,
+        &logs.join("learner.log"),
+    )?;
+    let threads = (std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1) / cli.agents.max(1)).max(1);
+    for i in 1..=cli.agents {
+        let id = format!("agent-{i}");
+        spawn(
+            children,
+            &id,
+            &sibling("sim-agent")?,
+            &s(&[
+                "serve",
+                "--connect",
+                &endpoint,
+                "--id",
+                &id,
+                "--envs",
+                &cli.envs.to_string(),
+                "--threads",
+                &threads.to_string(),
+                "--device",
+                &cli.device,
+            ]),
+            &common,
+            &logs.join(format!("{id}.log")),
+        )?;
+    }
+    write_pids(&logs, children)?;
+    println!(
+        "roles        coordinator on {endpoint}, learner-1, {} agent(s) x {} envs; logs in {}",
+        cli.agents,
+        cli.envs,
+        logs.display()
+    );
+    Ok(endpoint)
+}

@@ -1,0 +1,282 @@
+//! The pages: server-rendered templates (minijinja, every value HTML-escaped), the embedded
+//! assets with their licences, and the reward editor's samples. What a page shows comes from
+//! the same functions the API answers with.
+
+use crate::api::{App, best_lap, status_of};
+use axum::extract::{Path, Query, State};
+use axum::http::{StatusCode, header};
+use axum::response::{Html, IntoResponse, Response};
+use minijinja::Environment;
+use serde_json::{Value, json};
+use std::collections::HashMap;
+use std::sync::LazyLock;
+
+static TEMPLATES: LazyLock<Environment<'static>> = LazyLock::new(|| {
+    let mut env = Environment::new();
+    for (name, text) in [
+        ("base.html", include_str!("../templates/base.html")),
+        ("models.html", include_str!("../templates/models.html")),
+        ("rows.html", include_str!("../templates/rows.html")),
+        ("new.html", include_str!("../templates/new.html")),
+        ("model.html", include_str!("../templates/model.html")),
+        ("licences.html", include_str!("../templates/licences.html")),
+    ] {
+        env.add_template(name, text).expect("the console's templates parse");
+    }
+    env
+});
+
+/// An embedded asset: its path under `/assets/`, type, bytes, and where it comes from.
+pub struct Asset {
+    /// The file name.
+    pub name: &'static str,
+    /// Its Content-Type.
+    pub kind: &'static str,
+    /// The bytes.
+    pub bytes: &'static [u8],
+}
+
+/// Every asset the pages load: nothing comes from elsewhere (the console works offline).
+pub const ASSETS: &[Asset] = &[
+    Asset { name: "console.css", kind: "text/css", bytes: include_bytes!("../assets/console.css") },
+    Asset { name: "console.js", kind: "text/javascript", bytes: include_bytes!("../assets/console.js") },
+    Asset { name: "htmx.min.js", kind: "text/javascript", bytes: include_bytes!("../assets/htmx.min.js") },
+    Asset { name: "uPlot.iife.min.js", kind: "text/javascript", bytes: include_bytes!("../assets/uPlot.iife.min.js") },
+    Asset { name: "uPlot.min.css", kind: "text/css", bytes: include_bytes!("../assets/uPlot.min.css") },
+    Asset { name: "codemirror.min.js", kind: "text/javascript", bytes: include_bytes!("../assets/codemirror.min.js") },
+    Asset { name: "codemirror.css", kind: "text/css", bytes: include_bytes!("../assets/codemirror.css") },
+];
+
+/// The libraries inside the console, with their licences (shown at `/licences`).
+pub const LICENCES: &[(&str, &str, &str)] = &[
+    ("htmx 2.0.11", "https://htmx.org", include_str!("../assets/licences/htmx.txt")),
+    ("uPlot 1.6.32", "https://github.com/leeoniya/uPlot", include_str!("../assets/licences/uplot.txt")),
+    (
+        "CodeMirror 5.65.21 (with its Python mode)",
+        "https://codemirror.net/5/",
+        include_str!("../assets/licences/codemirror.txt"),
+    ),
+];
+
+/// The reward editor's samples: DeepRacer's four, then Paddock's.
+pub const SAMPLES: &[(&str, &str)] = &[
+    (
+        "Time trial: follow the center line (DeepRacer's default)",
+        include_str!("../../examples/rewards/follow_center_line.py"),
+    ),
+    ("Time trial: stay inside the two borders", include_str!("../../examples/rewards/stay_inside_two_borders.py")),
+    ("Time trial: prevent zig-zag", include_str!("../../examples/rewards/prevent_zig_zag.py")),
+    ("Object avoidance: stay in one lane, do not crash", include_str!("../../examples/rewards/object_avoidance.py")),
+    ("Point in the right direction", include_str!("../../examples/rewards/point_in_the_right_direction.py")),
+    ("Paddock: the racing line (built in)", "builtin:race_line"),
+    ("Paddock: the center line (built in)", "builtin:center_line"),
+];
+
+fn render(name: &str, ctx: Value) -> Response {
+    match TEMPLATES.get_template(name).and_then(|t| t.render(ctx)) {
+        Ok(html) => Html(html).into_response(),
+        Err(e) => {
+            tracing::error!("the page {name} did not render: {e:#}");
+            (StatusCode::INTERNAL_SERVER_ERROR, format!("the page {name} did not render: {e}")).into_response()
+        }
+    }
+}
+
+/// `/assets/NAME`.
+pub async fn asset(Path(name): Path<String>) -> Response {
+    match ASSETS.iter().find(|a| a.name == name) {
+        Some(a) => ([(header::CONTENT_TYPE, a.kind), (header::CACHE_CONTROL, "max-age=3600")], a.bytes).into_response(),
+        None => {
+            crate::counters::refused("an unknown asset");
+            (StatusCode::NOT_FOUND, "no such asset").into_response()
+        }
+    }
+}
+
+/// `/licences`.
+pub async fn licences() -> Response {
+    let list: Vec<Value> = LICENCES.iter().map(|(n, u, t)| json!({"name": n, "url": u, "text": t})).collect();
+    render("licences.html", json!({"licences": list}))
+}
+
+fn when(unix: f64) -> String {
+    let secs = unix as i64;
+    let (days, rest) = (secs.div_euclid(86_400), secs.rem_euclid(86_400));
+    // Civil date from days since 1970-01-01 (Howard Hinnant's algorithm).
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + i64::from(m <= 2);
+    format!("{y:04}-{m:02}-{d:02} {:02}:{:02} UTC", rest / 3600, rest % 3600 / 60)
+}
+
+fn rows(app: &App, q: &str, sort: &str) -> Vec<Value> {
+    let q = q.to_lowercase();
+    let mut list: Vec<Value> = app
+        .store
+        .list()
+        .into_iter()
+        .filter(|r| q.is_empty() || r.name.to_lowercase().contains(&q) || r.description.to_lowercase().contains(&q))
+        .map(|r| {
+            let status = status_of(app.hub.job(&r.job_id).map(|j| j.state()), &r, &app.store);
+            json!({"name": r.name, "description": r.description, "status": status, "algorithm": r.algorithm,
+                   "sensors": r.sensors, "tracks": r.tracks, "best_lap_s": best_lap(&app.store, &r.name),
+                   "created": r.created, "created_text": when(r.created)})
+        })
+        .collect();
+    let key = |v: &Value| -> String {
+        match sort {
+            "name" | "status" | "algorithm" => v[sort].as_str().unwrap_or("").to_lowercase(),
+            "sensors" | "track" => v[if sort == "track" { "tracks" } else { "sensors" }].to_string(),
+            _ => String::new(),
+        }
+    };
+    match sort {
+        "created" | "" => {}
+        "best_lap" => list.sort_by(|a, b| {
+            let f = |v: &Value| v["best_lap_s"].as_f64().unwrap_or(f64::INFINITY);
+            f(a).total_cmp(&f(b))
+        }),
+        _ => list.sort_by_key(|v| key(v)),
+    }
+    list
+}
+
+/// `/`: the models.
+pub async fn models(State(app): State<App>) -> Response {
+    let list = rows(&app, "", "created");
+    let owned: std::collections::BTreeSet<String> = app.store.list().into_iter().map(|r| r.job_id).collect();
+    let (other, error) = {
+        let s = app.hub.seen.lock().expect("hub state");
+        let other: Vec<Value> = s
+            .jobs
+            .values()
+            .filter(|j| !owned.contains(&j.id))
+            .map(|j| {
+                json!({"id": j.id, "state": j.state().name(), "worlds": j.worlds, "minutes": j.minutes,
+                            "episodes": j.episodes, "progress": j.progress})
+            })
+            .collect();
+        (other, s.error.clone())
+    };
+    render("models.html", json!({"models": list, "other_jobs": other, "coordinator_error": error}))
+}
+
+/// `/models/rows?q=&sort=`: the table's rows (htmx swaps them in).
+pub async fn model_rows(State(app): State<App>, Query(q): Query<HashMap<String, String>>) -> Response {
+    let text = q.get("q").map(String::as_str).unwrap_or("");
+    let sort = q.get("sort").map(String::as_str).unwrap_or("created");
+    render("rows.html", json!({"models": rows(&app, text, sort), "q": text}))
+}
+
+/// `/models/new` (`?clone=NAME`: the wizard filled in from that model).
+pub async fn new_model(State(app): State<App>, Query(q): Query<HashMap<String, String>>) -> Response {
+    let tracks: Vec<Value> = tracks::worlds()
+        .iter()
+        .map(|w| json!({"name": w.name, "surface": w.surface.name(), "length": w.track(tracks::Direction::Forward).length()}))
+        .collect();
+    let samples: Vec<Value> = SAMPLES.iter().map(|(t, c)| json!({"title": t, "code": c})).collect();
+    let mut prefill = Value::Null;
+    let mut clone_of = Value::Null;
+    if let Some(from) = q.get("clone") {
+        let rec = match app.store.get(from) {
+            Ok(r) => r,
+            Err(e) => return not_found(&e.to_string()),
+        };
+        let dir = app.store.dir(&rec.name).expect("a stored model's name is valid");
+        let read = |f: &str| std::fs::read_to_string(dir.join(f)).ok();
+        let json_file = |f: &str| read(f).and_then(|t| serde_json::from_str::<Value>(&t).ok()).unwrap_or(Value::Null);
+        prefill = json!({
+            "name": format!("{}-clone", rec.name).chars().take(64).collect::<String>(),
+            "description": format!("Clone of {}", rec.name).chars().take(255).collect::<String>(),
+            "tracks": rec.tracks, "stop": rec.stop, "clone_from": rec.name,
+            "reward_source": read("reward_function.py").unwrap_or_else(|| rec.reward.clone()),
+            "model_metadata": json_file("model_metadata.json"),
+            "hyperparameters": json_file("hyperparameters.json"),
+        });
+        clone_of = json!(rec.name);
+    }
+    render(
+        "new.html",
+        json!({"tracks": tracks, "samples": samples, "default_track": "reinvent_base", "prefill": prefill, "clone_of": clone_of}),
+    )
+}
+
+fn not_found(message: &str) -> Response {
+    crate::counters::refused("an unknown model");
+    let mut r = render("licences.html", json!({"error": message}));
+    *r.status_mut() = StatusCode::NOT_FOUND;
+    r
+}
+
+/// `/models/NAME`.
+pub async fn model(State(app): State<App>, Path(name): Path<String>) -> Response {
+    let rec = match app.store.get(&name) {
+        Ok(r) => r,
+        Err(e) => return not_found(&e.to_string()),
+    };
+    app.hub.watch(&rec.job_id);
+    let status = status_of(app.hub.job(&rec.job_id).map(|j| j.state()), &rec, &app.store);
+    let m = json!({"name": rec.name, "description": rec.description, "status": status, "tracks": rec.tracks,
+                   "sensors": rec.sensors, "algorithm": rec.algorithm, "reward": rec.reward, "stop": rec.stop,
+                   "job_id": rec.job_id});
+    render("model.html", json!({"m": m, "created_text": when(rec.created), "status_text": ""}))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn dates_are_civil_utc() {
+        assert_eq!(when(0.0), "1970-01-01 00:00 UTC");
+        assert_eq!(when(1_796_000_000.0), "2026-11-30 00:53 UTC");
+        assert_eq!(when(951_782_400.0), "2000-02-29 00:00 UTC");
+    }
+
+    #[test]
+    fn every_template_renders_and_escapes_what_it_shows() {
+        let evil = "<img src=x onerror=alert(1)>";
+        let html = TEMPLATES
+            .get_template("rows.html")
+            .unwrap()
+            .render(json!({"models": [{"name": evil, "description": evil, "status": "ready", "algorithm": "sac",
+                                       "sensors": [evil], "tracks": [evil], "created_text": "now"}]}))
+            .unwrap();
+        assert!(!html.contains("<img"), "{html}");
+        assert!(html.contains("&lt;img src=x onerror=alert(1)&gt;"), "{html}");
+    }
+
+    /// Each page renders with what its handler gives it; JSON inside a script cannot close it.
+    #[test]
+    fn every_page_renders_with_its_handlers_context() {
+        let evil = "</script><img src=x onerror=alert(1)>";
+        let m = json!({"name": "m1", "description": evil, "status": "training", "tracks": ["reinvent_base"],
+                       "sensors": ["FRONT_FACING_CAMERA"], "algorithm": "clipped_ppo", "reward": evil,
+                       "stop": {"minutes": 10}, "job_id": "m1-1"});
+        for (page, ctx) in [
+            ("model.html", json!({"m": m, "created_text": "now", "status_text": evil})),
+            (
+                "new.html",
+                json!({"tracks": [{"name": "reinvent_base", "surface": "asphalt", "length": 17.7}],
+                       "samples": [{"title": "t", "code": evil}], "default_track": "reinvent_base",
+                       "prefill": {"name": evil}, "clone_of": evil}),
+            ),
+            (
+                "models.html",
+                json!({"models": [], "other_jobs": [{"id": evil, "state": "running", "worlds": [evil],
+                                   "minutes": 1.0, "episodes": 3, "progress": 4.0}], "coordinator_error": evil}),
+            ),
+            ("licences.html", json!({"licences": [{"name": "x", "url": "https://x", "text": evil}]})),
+            ("licences.html", json!({"error": evil})),
+        ] {
+            let html = TEMPLATES.get_template(page).unwrap().render(ctx).unwrap_or_else(|e| panic!("{page}: {e:#}"));
+            assert!(!html.contains(evil) && !html.contains("<img src=x"), "{page} shows the text as HTML:\n{html}");
+        }
+    }
+}

@@ -1,0 +1,193 @@
+//! The API from a program's side: what it refuses (401, 403, 400 with every field, 404, 409)
+//! and a model from creation to a verified model, seen by the CLI, kept across a restart.
+
+use crate::support::{Console, TOKEN, bin, http, state_metadata, wait_for};
+use serde_json::json;
+use std::process::Command;
+
+/// Issue 51: the API refuses what it should, with every invalid field named.
+#[test]
+fn the_api_refuses_requests_without_the_token_from_elsewhere_or_with_invalid_fields() {
+    let dir = tempfile::tempdir().unwrap();
+    let c = Console::start(&dir.path().join("data"));
+    // No token, a wrong one: 401, and the API says how to authenticate.
+    let r = http(&c.addr, "GET", "/api/v1/models", &[], None);
+    assert_eq!(r.code, 401);
+    assert_eq!(r.header("www-authenticate"), Some("Bearer"));
+    assert_eq!(http(&c.addr, "GET", "/api/v1/models", &[("Authorization", "Bearer nope")], None).code, 401);
+    assert_eq!(http(&c.addr, "GET", "/?token=nope", &[], None).code, 401);
+    assert_eq!(http(&c.addr, "GET", "/models/new", &[], None).code, 401, "pages too");
+    // The token in the address: a cookie, and the address cleaned of it.
+    let r = http(&c.addr, "GET", &format!("/models/new?token={TOKEN}"), &[], None);
+    assert_eq!(r.code, 303);
+    assert_eq!(r.header("location"), Some("/models/new"));
+    let cookie = r.header("set-cookie").unwrap().split(';').next().unwrap().to_string();
+    assert!(r.header("set-cookie").unwrap().contains("HttpOnly"));
+    let page = http(&c.addr, "GET", "/models/new", &[("Cookie", &cookie)], None);
+    assert_eq!(page.code, 200);
+    assert!(String::from_utf8_lossy(&page.body).contains("Reward function"));
+    // The cookie does not let another site's page change anything.
+    let body = br#"{"name": "x"}"#;
+    let evil = [("Cookie", cookie.as_str()), ("Origin", "http://evil.example"), ("Content-Type", "application/json")];
+    assert_eq!(http(&c.addr, "POST", "/api/v1/models", &evil, Some(body)).code, 403);
+    let host = format!("http://{}", c.addr);
+    let own = [("Cookie", cookie.as_str()), ("Origin", host.as_str()), ("Content-Type", "application/json")];
+    assert_eq!(http(&c.addr, "POST", "/api/v1/models", &own, Some(body)).code, 400, "its own pages may");
+
+    // Every invalid field, not the first.
+    let bad = json!({
+        "name": "<img src=x onerror=alert(1)>",
+        "description": "commas, are not allowed",
+        "tracks": ["reinvent_base", "no_such_track", 3],
+        "reward_function": "import os\n\ndef reward_function(params):\n    return float(speed)\n",
+        "model_metadata": {"action_space": [], "sensor": ["EYES"]},
+        "hyperparameters": {"batch_size": "many"},
+        "stop": {"minutes": -1},
+        "race": {"race_type": "drag_race"},
+        "colour": "red",
+    });
+    let r = c.api("POST", "/api/v1/models", Some(&bad));
+    assert_eq!(r.code, 400);
+    let v = r.json();
+    let fields: Vec<&str> = v["errors"].as_array().unwrap().iter().map(|e| e["field"].as_str().unwrap()).collect();
+    for want in
+        ["colour", "name", "description", "tracks[1]", "tracks[2]", "model_metadata", "hyperparameters", "stop", "race"]
+    {
+        assert!(fields.contains(&want), "{want} is named: {v:#}");
+    }
+    assert!(!r.body.windows(4).any(|w| w == b"<img"), "the name is not echoed");
+    // The reward's error is on its line (the metadata was bad, so it ran on DeepRacer's widest
+    // actions); the import of os is only DeepRacer's warning, not an error.
+    let reward: Vec<&serde_json::Value> =
+        v["errors"].as_array().unwrap().iter().filter(|e| e["field"] == "reward_function").collect();
+    assert_eq!(reward.len(), 1, "{v:#}");
+    assert_eq!(reward[0]["line"], 4, "{v:#}");
+    assert!(reward[0]["message"].as_str().unwrap().contains("speed"));
+    assert_eq!(c.api("POST", "/api/v1/models", None).code, 400, "no body");
+    let r =
+        http(&c.addr, "POST", "/api/v1/models", &[("Authorization", &format!("Bearer {TOKEN}"))], Some(b"{not json"));
+    assert_eq!(r.code, 400);
+    assert!(r.json()["error"].as_str().unwrap().contains("not JSON"));
+    let big = "#".repeat(2 << 20);
+    let r = c.api("POST", "/api/v1/rewards/validate", Some(&json!({"reward_function": big})));
+    assert_eq!(r.code, 413, "a body over the limit is refused");
+
+    // Validate: every finding on its line.
+    let r = c.api(
+        "POST",
+        "/api/v1/rewards/validate",
+        Some(&json!({"reward_function": "import os\n\ndef reward_function(params):\n    return float(speeed)\n", "track": "reinvent_wood"})),
+    );
+    assert_eq!(r.code, 200);
+    let v = r.json();
+    assert_eq!(v["ok"], false);
+    assert_eq!(v["errors"][0]["line"], 4, "{v}");
+    assert_eq!(v["warnings"][0]["line"], 1, "{v}");
+    let ok = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../examples/rewards/follow_center_line.py"))
+        .unwrap();
+    let v = c.api("POST", "/api/v1/rewards/validate", Some(&json!({"reward_function": ok}))).json();
+    assert_eq!(v["ok"], true, "{v}");
+    assert!(v["rewards"]["calls"].as_u64().unwrap() > 0, "{v}");
+    let r = c.api("POST", "/api/v1/rewards/validate", Some(&json!({"reward_function": ok, "track": "mars"})));
+    assert_eq!((r.code, r.json()["errors"][0]["field"].as_str()), (400, Some("track")));
+
+    // Unknown models and routes; names that would leave the data folder.
+    assert_eq!(c.api("GET", "/api/v1/models/nobody", None).code, 404);
+    assert_eq!(c.api("GET", "/api/v1/models/..%2F..%2Fetc/metrics", None).code, 404);
+    assert_eq!(c.api("POST", "/api/v1/models/nobody/stop", None).code, 404);
+    assert_eq!(c.api("DELETE", "/api/v1/models/nobody", None).code, 404);
+    assert_eq!(c.api("GET", "/api/v1/nothing", None).code, 404);
+    assert_eq!(c.api("GET", "/assets/../Cargo.toml", None).code, 404);
+    assert_eq!(c.api("GET", "/assets/..%2FCargo.toml", None).code, 404);
+    // Each refusal is counted.
+    let health = c.api("GET", "/api/v1/health", None).json();
+    assert!(health["refused"]["no token"].as_u64().unwrap() >= 2, "{health}");
+    assert!(health["refused"]["invalid fields"].as_u64().unwrap() >= 3, "{health}");
+    assert!(health["refused"]["a cross-origin request"].as_u64().unwrap() >= 1, "{health}");
+    c.stop();
+}
+
+/// Issue 51: a model made through the API trains to a verified model; `coordinator job
+/// status` sees its job; the graph's figures, the events and the status come back; a console
+/// restarted on the same data folder finds it all; then it is deleted.
+#[test]
+fn a_model_created_through_the_api_trains_to_a_verified_model_and_survives_a_restart() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    let c = Console::start(&data);
+    // The OpenAPI document is JSON and names every route the console answers.
+    let doc = c.api("GET", "/api/v1/openapi.json", None).json();
+    assert_eq!(doc["openapi"], "3.1.0");
+    let tracks = c.api("GET", "/api/v1/tracks", None).json();
+    assert!(tracks.as_array().unwrap().iter().any(|t| t["name"] == "reinvent_wood" && t["surface"] == "wood"));
+    let svg = c.api("GET", "/api/v1/tracks/reinvent_base/picture.svg", None);
+    assert!(svg.code == 200 && svg.body.starts_with(b"<svg"));
+
+    let model = json!({
+        "name": "state-1",
+        "description": "A quick model",
+        "tracks": ["reinvent_base"],
+        "reward_function": "builtin:center_line",
+        "model_metadata": state_metadata(),
+        "stop": {"minutes": 3, "target_laps": 3, "target_evals": 1, "verify_trials": 10},
+    });
+    let r = c.api("POST", "/api/v1/models", Some(&model));
+    assert_eq!(r.code, 201, "{}", String::from_utf8_lossy(&r.body));
+    let made = r.json();
+    assert_eq!(made["status"], "training");
+    let job = made["job_id"].as_str().unwrap().to_string();
+    assert_eq!(c.api("POST", "/api/v1/models", Some(&model)).code, 409, "the name is taken");
+    // The CLI sees the job the console started (one job-control protocol).
+    let o = Command::new(bin("coordinator")).args(["job", "status", &job, "--connect", &c.endpoint]).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(String::from_utf8_lossy(&o.stdout).contains(&format!("job {job}")));
+    let status = wait_for(120, "a verified model", || {
+        let v = c.api("GET", "/api/v1/models/state-1", None).json();
+        (v["status"] != "training" && v["status"] != "stopping").then_some(v)
+    });
+    assert_eq!(status["status"], "ready", "{status:#}");
+    assert!(status["training"]["stop_reason"].as_str().unwrap().contains("verified"), "{status:#}");
+    assert!(status["best_lap_s"].as_f64().unwrap() > 5.0, "{status:#}");
+    let metrics = c.api("GET", "/api/v1/models/state-1/metrics", None).json();
+    assert!(!metrics["updates"].as_array().unwrap().is_empty());
+    assert!(
+        metrics["evaluations"].as_array().unwrap().iter().any(|e| e["best"] == true && e["min_laps"] == 3),
+        "{metrics}"
+    );
+    // Every path of the OpenAPI document is a route (none answers "no such route"); its stop
+    // comes after training, when there is nothing left to stop.
+    for path in doc["paths"].as_object().unwrap().keys() {
+        let p = path.replace("{name}", if path.contains("tracks") { "reinvent_base" } else { "state-1" });
+        let r = if p.ends_with("/validate") || p.ends_with("/stop") {
+            c.api("POST", &p, Some(&json!({})))
+        } else if p.ends_with("/events") {
+            continue;
+        } else {
+            c.api("GET", &p, None)
+        };
+        assert!(!String::from_utf8_lossy(&r.body).contains("no such page or API route"), "{path} is served");
+    }
+    // A state-vector model cannot go to a car, and says why.
+    let r = c.api("GET", "/api/v1/models/state-1/car.tar.gz", None);
+    assert_eq!(r.code, 422);
+    assert!(r.json()["error"].as_str().unwrap().contains("STATE_VECTOR"));
+    // The events stream opens with the status.
+    let list = c.api("GET", "/api/v1/models", None).json();
+    assert_eq!(list[0]["name"], "state-1");
+    c.stop();
+
+    // A new console on the same data folder: the model, its status and its figures are there.
+    let c = Console::start(&data);
+    let v = wait_for(30, "the restarted coordinator's job list", || {
+        let v = c.api("GET", "/api/v1/models/state-1", None).json();
+        (v["status"] == "ready").then_some(v)
+    });
+    assert_eq!(v["description"], "A quick model");
+    assert_eq!(c.api("GET", "/api/v1/models/state-1/metrics", None).json(), metrics);
+    let page = http(&c.addr, "GET", "/", &[("Authorization", &format!("Bearer {TOKEN}"))], None);
+    assert!(String::from_utf8_lossy(&page.body).contains("/models/state-1"));
+    assert_eq!(c.api("DELETE", "/api/v1/models/state-1", None).code, 204);
+    assert_eq!(c.api("GET", "/api/v1/models/state-1", None).code, 404);
+    assert!(!data.join("models/state-1").exists());
+    c.stop();
+}
