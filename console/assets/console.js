@@ -283,6 +283,8 @@ var Paddock = (function () {
       axes: [{ label: "Iteration" }, { label: "Entropy" }, { side: 1, scale: "sps", label: "Samples/s", grid: { show: false } }],
       series: [{ label: "Iteration" }, { label: "Entropy", stroke: "#9467bd" }, { label: "Samples/s (update)", stroke: "#8c564b", scale: "sps" }],
     }, [[], [], []], $("#entropy-graph"));
+    // For the tests (and the curious, in the browser's console): the graphs.
+    window.paddockGraphs = [graph, second];
     function redraw() {
       graph.setData([data.it, data.reward, data.progress, data.eval]);
       second.setData([data.it, data.entropy, data.sps]);

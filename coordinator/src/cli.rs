@@ -69,17 +69,6 @@ pub enum Command {
         #[arg(long)]
         out: Option<PathBuf>,
     },
-    /// A local web page that shows a job live: the training graph, one agent's camera, the
-    /// job's status (open the address it prints).
-    Dashboard {
-        /// Job id.
-        job: String,
-        /// Where the page is served (loopback by default; port 0 picks a free one).
-        #[arg(long, default_value = "127.0.0.1:8100")]
-        bind: String,
-        #[command(flatten)]
-        net: NetCli,
-    },
     /// Render the car's camera view (160x120) to a PNG; --grid for several worlds side by side.
     Render(RenderArgs),
     /// Write a model's policy tower for a car or another runtime: `export MODEL_DIR --car

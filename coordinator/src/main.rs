@@ -11,7 +11,6 @@ mod cars;
 mod certs;
 mod cli;
 mod client;
-mod dashboard;
 mod drive;
 mod fuzz_bench;
 mod local;
@@ -56,7 +55,6 @@ fn main() {
         cli::Command::Agents { net } => client::run(cli::JobCommand::Agents { net }),
         cli::Command::Up(args) => up::up(args),
         cli::Command::Render(args) => render_cmd::render(args),
-        cli::Command::Dashboard { job, bind, net } => dashboard::dashboard(job, bind, net),
         cli::Command::Report { run, out } => (|| -> anyhow::Result<i32> {
             let title = format!("Paddock run {}", run.display());
             let page = report::write(&run, out.as_deref(), &title)?;

@@ -1,2 +1,166 @@
-//! The console in a real browser: headless Chromium (Debian's) driven through WebDriver by
-//! Selenium's Python client.
+//! The console in a real browser: Debian's Chromium, headless, driven through WebDriver
+//! (chromedriver) by Selenium's Python client. A racer's path: a reward whose error the editor
+//! shows on its line, fixed; a camera model trained from the wizard; its page's graph drawing
+//! points and its camera updating; the car's archive downloaded, and `coordinator import`
+//! taking it; the run's MCAP holding the camera frames of its evaluation laps (Foxglove's
+//! `mcap` reader).
+
+use crate::support::{Console, TOKEN, bin};
+use std::path::PathBuf;
+use std::process::Command;
+
+fn python() -> PathBuf {
+    std::env::var_os("PADDOCK_PYTHON").map(PathBuf::from).unwrap_or_else(|| {
+        panic!("PADDOCK_PYTHON is not set: run `./paddock test`, which makes target/pyenv with Selenium")
+    })
+}
+
+/// Issue 51: a model made in the browser, from a reward's error on its line to the car's archive.
+#[test]
+fn a_racer_makes_a_camera_model_in_chromium_from_a_reward_error_to_the_cars_archive() {
+    assert!(
+        std::path::Path::new("/usr/bin/chromedriver").exists(),
+        "no chromedriver: run `./paddock test`, which installs Debian's chromium-driver"
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    let c = Console::start(&data);
+    let o = Command::new(python()).arg("-c").arg(RACER).args([&c.addr, TOKEN]).arg(dir.path()).output().unwrap();
+    let out = String::from_utf8_lossy(&o.stdout).to_string();
+    assert!(o.status.success(), "the browser's run failed:\n{out}\n{}", String::from_utf8_lossy(&o.stderr));
+    let v: serde_json::Value = serde_json::from_str(out.lines().last().unwrap_or("")).unwrap();
+    // The error was marked on its line, then the fixed file passed.
+    assert_eq!(v["marked_lines"], serde_json::json!([6]), "{v}");
+    assert!(v["validation_error"].as_str().unwrap().contains("line 6"), "{v}");
+    assert!(v["validation_fixed"].as_str().unwrap().contains("passed"), "{v}");
+    assert!(v["submit_error"].as_str().unwrap().contains("reward_function: line 6"), "{v}");
+    // The graph drew points as updates came, and the camera's picture changed.
+    assert!(v["graph_points"].as_u64().unwrap() >= 2, "{v}");
+    assert!(v["camera_frames"].as_array().unwrap().len() >= 2, "{v}");
+    assert_eq!(v["status"], "ready", "{v}");
+
+    // The car's archive, as the page's link downloads it, is one `coordinator import` takes.
+    let r = c.api("GET", "/api/v1/models/camera-1/car.tar.gz", None);
+    assert_eq!(r.code, 200);
+    assert!(r.header("content-disposition").unwrap().contains("physicalmodel-camera-1.tar.gz"));
+    let archive = dir.path().join("physicalmodel-camera-1.tar.gz");
+    std::fs::write(&archive, &r.body).unwrap();
+    let o = Command::new(bin("coordinator"))
+        .arg("import")
+        .arg(&archive)
+        .arg("--out")
+        .arg(dir.path().join("imported"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("DEEP_CONVOLUTIONAL_NETWORK_SHALLOW"));
+    c.stop();
+
+    // The run's MCAP holds what the car saw in its evaluation laps, read by Foxglove's reader.
+    let mcap = data.join("models/camera-1/run/trace.mcap");
+    let o = Command::new(python()).arg("-c").arg(FRAMES).arg(&mcap).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert!(v["frames"].as_u64().unwrap() > 10, "{v}");
+    assert_eq!(v["schema"], "foxglove.RawImage");
+    assert_eq!(v["pixels"], 160 * 120);
+    assert!(v["levels"].as_u64().unwrap() > 20, "a picture, not a flat frame: {v}");
+}
+
+/// Counts the MCAP's evaluation camera frames with Foxglove's `mcap` package.
+const FRAMES: &str = r#"
+import base64, json, sys
+from mcap.reader import make_reader
+n, schema, pixels, levels = 0, None, 0, 0
+with open(sys.argv[1], "rb") as f:
+    for s, c, m in make_reader(f).iter_messages(topics=["/evaluation/camera"]):
+        d = json.loads(m.data)
+        data = base64.b64decode(d["data"])
+        n, schema, pixels = n + 1, s.name, len(data)
+        assert d["width"] * d["height"] == len(data) and d["encoding"] == "mono8"
+        levels = max(levels, len(set(data)))
+print(json.dumps({"frames": n, "schema": schema, "pixels": pixels, "levels": levels}))
+"#;
+
+/// The racer, in Chromium: prints one JSON line of what the pages showed.
+const RACER: &str = r###"
+import json, sys, time
+from selenium import webdriver
+from selenium.webdriver.chrome.service import Service
+from selenium.webdriver.common.by import By
+
+addr, token, tmp = sys.argv[1], sys.argv[2], sys.argv[3]
+opts = webdriver.ChromeOptions()
+for a in ["--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--no-first-run",
+          "--disable-background-networking", "--disable-component-update", "--disable-sync",
+          "--window-size=1300,1000", "--user-data-dir=" + tmp + "/chromium"]:
+    opts.add_argument(a)
+opts.binary_location = "/usr/bin/chromium"
+d = webdriver.Chrome(service=Service("/usr/bin/chromedriver"), options=opts)
+out = {}
+
+def wait(what, f, secs=60):
+    end = time.time() + secs
+    while time.time() < end:
+        v = f()
+        if v:
+            return v
+        time.sleep(0.3)
+    d.save_screenshot(tmp + "/timeout.png")
+    raise SystemExit("not within %ds: %s (page: %s)" % (secs, what, d.current_url))
+
+def click(css):
+    d.find_element(By.CSS_SELECTOR, css).click()
+
+BAD = '''def reward_function(params):
+    track_width = params["track_width"]
+    distance = params["distance_from_center"]
+    if distance <= 0.25 * track_width:
+        return 1.0
+    return float(1e-3 * speeed)
+'''
+GOOD = BAD.replace("speeed", "params['speed']")
+try:
+    d.get("http://%s/?token=%s" % (addr, token))
+    assert "Your models" in d.title, d.title
+    assert "token=" not in d.current_url, d.current_url
+    d.get("http://%s/models/new" % addr)
+    d.find_element(By.ID, "name").send_keys("camera-1")
+    click("#next")
+    click("#next")
+    click("#next")
+    click('[name="stop_kind"][value="time"]')
+    d.execute_script("document.querySelector('[name=minutes]').value = '0.5'")
+    click("#next")
+    d.execute_script("document.querySelector('.CodeMirror').CodeMirror.setValue(arguments[0])", BAD)
+    click("#validate")
+    out["validation_error"] = wait("the validation's errors", lambda: "error" in d.find_element(By.ID, "validation").text and d.find_element(By.ID, "validation").text)
+    out["marked_lines"] = d.execute_script(
+        "var cm = document.querySelector('.CodeMirror').CodeMirror, out = [];"
+        "for (var i = 0; i < cm.lineCount(); i++) { var b = cm.lineInfo(i).bgClass || ''; if (b.indexOf('error-line') >= 0) out.push(i + 1); }"
+        "return out;")
+    click("#submit")
+    out["submit_error"] = wait("the refusal", lambda: d.find_element(By.ID, "errors").text)
+    d.execute_script("document.querySelector('.CodeMirror').CodeMirror.setValue(arguments[0])", GOOD)
+    click("#validate")
+    out["validation_fixed"] = wait("a passed validation", lambda: "passed" in d.find_element(By.ID, "validation").text and d.find_element(By.ID, "validation").text)
+    click("#submit")
+    wait("the model's page", lambda: d.current_url.endswith("/models/camera-1"))
+    frames = []
+    def camera_changed():
+        img = d.find_element(By.ID, "camera")
+        src = img.get_attribute("src") or ""
+        if img.is_displayed() and src and (not frames or frames[-1] != src):
+            ok = d.execute_script("return arguments[0].complete && arguments[0].naturalWidth", img)
+            if ok:
+                frames.append(src)
+        return len(frames) >= 2
+    wait("two camera frames", camera_changed, 90)
+    out["camera_frames"] = frames
+    out["graph_points"] = wait("points on the graph", lambda: d.execute_script("return window.paddockGraphs[0].data[0].length") >= 2 and d.execute_script("return window.paddockGraphs[0].data[0].length"), 90)
+    out["status"] = wait("a ready model", lambda: d.find_element(By.ID, "status").text == "ready" and "ready", 120)
+    d.save_screenshot(tmp + "/model.png")
+finally:
+    d.quit()
+print(json.dumps(out))
+"###;

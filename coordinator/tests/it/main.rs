@@ -6,7 +6,6 @@ mod support;
 mod car_in_the_loop;
 mod cli;
 mod cluster;
-mod dashboard;
 mod docs;
 mod fidelity;
 mod identity;
