@@ -320,6 +320,70 @@ var Paddock = (function () {
       $("#camera-note").hidden = true;
       text($("#camera-caption"), c.agent + " on " + c.world + ", policy v" + c.policy_version);
     });
+    // Evaluations: start one, list them, show one's trials, lap and frames.
+    function cell(tr, s) { tr.appendChild(text(document.createElement("td"), s)); }
+    function secs(s) {
+      if (s === null || s === undefined) return "–";
+      var m = Math.floor(s / 60), r = s - 60 * m;
+      return (m < 10 ? "0" : "") + m + ":" + (r < 10 ? "0" : "") + r.toFixed(3);
+    }
+    function showEvaluation(id) {
+      fetch(base + "/evaluations/" + encodeURIComponent(id)).then(function (r) { return r.json(); }).then(function (v) {
+        $("#evaluation").hidden = false;
+        text($("#evaluation-title"), v.name + " on " + v.track + (v.reversed ? " (reversed)" : "") + ", policy v" + v.policy_version);
+        var rows = $("#trials tbody");
+        while (rows.firstChild) rows.removeChild(rows.firstChild);
+        (v.results || []).forEach(function (t) {
+          var tr = document.createElement("tr");
+          cell(tr, String(t.trial)); cell(tr, secs(t.time_s)); cell(tr, t.progress.toFixed(1) + " %"); cell(tr, t.status);
+          cell(tr, String(t.resets)); cell(tr, String(t.off_tracks)); cell(tr, t.off_track_penalty_s ? t.off_track_penalty_s + " s" : "--");
+          cell(tr, String(t.crashes)); cell(tr, t.crash_penalty_s ? t.crash_penalty_s + " s" : "--");
+          rows.appendChild(tr);
+        });
+        $("#lap").src = base + "/evaluations/" + encodeURIComponent(id) + "/lap.svg";
+        $("#frames").hidden = !v.frames;
+        if (v.frames) $("#frames").src = base + "/evaluations/" + encodeURIComponent(id) + "/frames.png";
+      });
+    }
+    function listEvaluations() {
+      return fetch(base + "/evaluations").then(function (r) { return r.json(); }).then(function (list) {
+        var rows = $("#evaluations tbody");
+        while (rows.firstChild) rows.removeChild(rows.firstChild);
+        list.forEach(function (e) {
+          var tr = document.createElement("tr");
+          cell(tr, e.name); cell(tr, new Date(e.created * 1000).toLocaleString()); cell(tr, e.status);
+          cell(tr, secs(e.best_lap_s)); cell(tr, e.laps === undefined ? "–" : e.laps + "/" + e.trials); cell(tr, e.track); cell(tr, e.race_type);
+          var td = document.createElement("td"), b = text(document.createElement("button"), "Show");
+          b.type = "button";
+          b.disabled = e.status !== "done";
+          b.onclick = function () { showEvaluation(e.id); };
+          td.appendChild(b);
+          tr.appendChild(td);
+          rows.appendChild(tr);
+        });
+        if (list.some(function (e) { return e.status === "running"; })) setTimeout(listEvaluations, 1000);
+        else if (list.length && list[0].status === "done" && $("#evaluation").hidden) showEvaluation(list[0].id);
+      });
+    }
+    $("#evaluate").onsubmit = function (ev) {
+      ev.preventDefault();
+      var race = val("eval_race"), n = num("eval_objects"), r = { race_type: race };
+      if (race === "object_avoidance") { r.number_of_obstacles = n; r.randomize_obstacle_locations = true; }
+      if (race === "head_to_bot") r.number_of_bot_cars = n;
+      var body = { track: val("eval_track"), reversed: val("eval_reversed") === "true", trials: num("eval_trials"), race: r,
+                   off_track_penalty: num("eval_off_track"), crash_penalty: num("eval_crash") };
+      if ($('[name="eval_name"]').value) body.name = $('[name="eval_name"]').value;
+      var box = $("#evaluation-error");
+      box.hidden = true;
+      fetch(base + "/evaluations", { method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body) })
+        .then(function (r) { return r.json().then(function (v) { return [r.status, v]; }); })
+        .then(function (rv) {
+          if (rv[0] !== 202) { text(box, rv[1].error); box.hidden = false; return; }
+          $("#evaluation").hidden = true;
+          listEvaluations();
+        });
+    };
+    listEvaluations();
     document.body.addEventListener("htmx:responseError", function (e) {
       var box = $("#action-error");
       try { text(box, JSON.parse(e.detail.xhr.responseText).error); } catch (_) { text(box, e.detail.xhr.statusText); }

@@ -28,6 +28,8 @@ pub struct App {
     pub hub: Hub,
     /// The secret.
     pub token: Arc<String>,
+    /// The evaluations running in this process (their ids).
+    pub running: Arc<std::sync::Mutex<std::collections::BTreeSet<String>>>,
 }
 
 /// A JSON error answer: `{"error": message}`.
@@ -279,6 +281,18 @@ impl From<StoreError> for Created {
     }
 }
 
+/// The state of a model's job as the coordinator answers now (the hub's list may be a second
+/// old); the list's when the coordinator does not answer.
+async fn state_now(app: &App, rec: &ModelRecord) -> Option<JobState> {
+    match app.hub.request(Kind::StatusJobId(rec.job_id.clone()), Duration::from_secs(3)).await {
+        Ok(r) => coordinator::control::status_of(&r)
+            .and_then(|s| s.record.as_ref())
+            .filter(|j| j.job.is_some())
+            .map(|j| j.state()),
+        Err(_) => app.hub.job(&rec.job_id).map(|j| j.state()),
+    }
+}
+
 /// A model's record and its job's status as the coordinator answers now.
 async fn fresh(app: &App, name: &str) -> Result<(ModelRecord, Option<JobReply>), Response> {
     let rec = app.store.get(name).map_err(store_error)?;
@@ -336,7 +350,7 @@ pub async fn delete_model(State(app): State<App>, Path(name): Path<String>) -> R
         Ok(r) => r,
         Err(e) => return store_error(e),
     };
-    let status = status_of(app.hub.job(&rec.job_id).map(|j| j.state()), &rec, &app.store);
+    let status = status_of(state_now(&app, &rec).await, &rec, &app.store);
     if matches!(status, "training" | "stopping") {
         crate::counters::refused("deleting a training model");
         return error(StatusCode::CONFLICT, &format!("model '{name}' is {status}: stop it first"));
@@ -484,6 +498,108 @@ pub async fn car_archive(State(app): State<App>, Path(name): Path<String>) -> Re
             .into_response(),
         Ok(Err((code, e))) => error(code, &format!("model '{name}': {e}")),
         Err(e) => error(StatusCode::INTERNAL_SERVER_ERROR, &e.to_string()),
+    }
+}
+
+/// `POST /api/v1/models/NAME/evaluations`: start an evaluation of the model's best model
+/// (202 with its record; it runs in the background).
+pub async fn start_evaluation(State(app): State<App>, Path(name): Path<String>, body: Bytes) -> Response {
+    let rec = match app.store.get(&name) {
+        Ok(r) => r,
+        Err(e) => return store_error(e),
+    };
+    let v = match json_body(&body) {
+        Ok(v) => v,
+        Err(f) => return invalid(&[f]),
+    };
+    let status = status_of(state_now(&app, &rec).await, &rec, &app.store);
+    let model_dir = app.store.dir(&name).expect("a stored model's name is valid").join("run/model");
+    if status == "training" || status == "stopping" || !model_dir.join("manifest.json").exists() {
+        crate::counters::refused("evaluating a model that is not ready");
+        return error(
+            StatusCode::CONFLICT,
+            &format!("model '{name}' is {status}: it can be evaluated once it is ready"),
+        );
+    }
+    let now = protocol::job::now_unix();
+    let id = format!("eval-{}", (now * 1000.0) as u64);
+    let checked = match crate::evaluations::check(&v, &id, now) {
+        Ok(c) => c,
+        Err(e) => return invalid(&e),
+    };
+    let dir = match crate::evaluations::dir(&app.store, &name) {
+        Ok(d) => d,
+        Err(e) => return store_error(e),
+    };
+    if let Err(e) = crate::evaluations::save(&dir, &checked.record) {
+        return error(StatusCode::INTERNAL_SERVER_ERROR, &format!("{}: {e}", dir.display()));
+    }
+    let record = checked.record.clone();
+    app.running.lock().expect("running").insert(id.clone());
+    let running = app.running.clone();
+    tokio::task::spawn_blocking(move || {
+        tracing::info!(model = %name, evaluation = %id, "evaluation started");
+        crate::evaluations::run(&dir, &model_dir, checked);
+        running.lock().expect("running").remove(&id);
+        tracing::info!(model = %name, evaluation = %id, "evaluation done");
+    });
+    (StatusCode::ACCEPTED, axum::Json(record)).into_response()
+}
+
+/// `GET /api/v1/models/NAME/evaluations`: newest first.
+pub async fn list_evaluations(State(app): State<App>, Path(name): Path<String>) -> Response {
+    match app.store.get(&name).and_then(|r| crate::evaluations::dir(&app.store, &r.name)) {
+        Ok(dir) => {
+            let running = app.running.lock().expect("running").clone();
+            axum::Json(crate::evaluations::list(&dir, &running)).into_response()
+        }
+        Err(e) => store_error(e),
+    }
+}
+
+fn evaluation_of(app: &App, name: &str, id: &str) -> Result<(std::path::PathBuf, Value), Box<Response>> {
+    let dir = app
+        .store
+        .get(name)
+        .and_then(|r| crate::evaluations::dir(&app.store, &r.name))
+        .map_err(|e| Box::new(store_error(e)))?;
+    let v = crate::evaluations::get(&dir, id).ok_or_else(|| {
+        crate::counters::refused("an unknown evaluation");
+        Box::new(error(StatusCode::NOT_FOUND, &format!("model '{name}' has no evaluation '{id}'")))
+    })?;
+    Ok((dir, v))
+}
+
+/// `GET /api/v1/models/NAME/evaluations/ID`: its trials and its fastest lap's path.
+pub async fn get_evaluation(State(app): State<App>, Path((name, id)): Path<(String, String)>) -> Response {
+    match evaluation_of(&app, &name, &id) {
+        Ok((_, v)) => axum::Json(v).into_response(),
+        Err(r) => *r,
+    }
+}
+
+/// `GET /api/v1/models/NAME/evaluations/ID/lap.svg`: the fastest lap, coloured by speed.
+pub async fn evaluation_lap(State(app): State<App>, Path((name, id)): Path<(String, String)>) -> Response {
+    let v = match evaluation_of(&app, &name, &id) {
+        Ok((_, v)) => v,
+        Err(r) => return *r,
+    };
+    let path: Vec<[f64; 3]> = serde_json::from_value(v["path"].clone()).unwrap_or_default();
+    match tracks::world(v["track"].as_str().unwrap_or("")) {
+        Ok(w) => ([(header::CONTENT_TYPE, "image/svg+xml")], crate::pictures::lap_svg(&w, &path)).into_response(),
+        Err(e) => error(StatusCode::NOT_FOUND, &e.to_string()),
+    }
+}
+
+/// `GET /api/v1/models/NAME/evaluations/ID/frames.png`: what the car saw in its first trial.
+pub async fn evaluation_frames(State(app): State<App>, Path((name, id)): Path<(String, String)>) -> Response {
+    let dir = match evaluation_of(&app, &name, &id) {
+        Ok((d, _)) => d,
+        Err(r) => return *r,
+    };
+    match std::fs::read(dir.join(format!("{id}-frames.png"))) {
+        Ok(png) => ([(header::CONTENT_TYPE, "image/png")], png).into_response(),
+        Err(_) => error(StatusCode::NOT_FOUND, "this evaluation kept no camera frames (camera models only)"),
     }
 }
 

@@ -15,6 +15,7 @@
 pub mod api;
 pub mod auth;
 pub mod counters;
+pub mod evaluations;
 pub mod hub;
 pub mod models;
 pub mod pages;
@@ -76,6 +77,10 @@ pub fn router(app: api::App) -> Router {
         .route("/api/v1/models/{name}/events", get(api::events))
         .route("/api/v1/models/{name}/camera.png", get(api::camera))
         .route("/api/v1/models/{name}/car.tar.gz", get(api::car_archive))
+        .route("/api/v1/models/{name}/evaluations", get(api::list_evaluations).post(api::start_evaluation))
+        .route("/api/v1/models/{name}/evaluations/{id}", get(api::get_evaluation))
+        .route("/api/v1/models/{name}/evaluations/{id}/lap.svg", get(api::evaluation_lap))
+        .route("/api/v1/models/{name}/evaluations/{id}/frames.png", get(api::evaluation_frames))
         .fallback(|| async {
             counters::refused("an unknown address");
             api::error(axum::http::StatusCode::NOT_FOUND, "no such page or API route")
@@ -93,7 +98,7 @@ pub fn router(app: api::App) -> Router {
 pub fn serve(opts: Options, store: store::Store, hub: hub::Hub) -> Result<()> {
     check_listen(&opts.listen, opts.insecure)?;
     let token = Arc::new(opts.token.unwrap_or_else(auth::new_token));
-    let app = api::App { store, hub, token: token.clone() };
+    let app = api::App { store, hub, token: token.clone(), running: Default::default() };
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()

@@ -225,7 +225,8 @@ pub async fn model(State(app): State<App>, Path(name): Path<String>) -> Response
     let m = json!({"name": rec.name, "description": rec.description, "status": status, "tracks": rec.tracks,
                    "sensors": rec.sensors, "algorithm": rec.algorithm, "reward": rec.reward, "stop": rec.stop,
                    "job_id": rec.job_id});
-    render("model.html", json!({"m": m, "created_text": when(rec.created), "status_text": ""}))
+    let tracks: Vec<String> = tracks::world_names().map(String::from).collect();
+    render("model.html", json!({"m": m, "created_text": when(rec.created), "status_text": "", "tracks": tracks}))
 }
 
 #[cfg(test)]
@@ -260,7 +261,7 @@ mod tests {
                        "sensors": ["FRONT_FACING_CAMERA"], "algorithm": "clipped_ppo", "reward": evil,
                        "stop": {"minutes": 10}, "job_id": "m1-1"});
         for (page, ctx) in [
-            ("model.html", json!({"m": m, "created_text": "now", "status_text": evil})),
+            ("model.html", json!({"m": m, "created_text": "now", "status_text": evil, "tracks": ["reinvent_base"]})),
             (
                 "new.html",
                 json!({"tracks": [{"name": "reinvent_base", "surface": "asphalt", "length": 17.7}],

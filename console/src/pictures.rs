@@ -1,10 +1,12 @@
-//! Pictures Paddock draws itself: a track as SVG from its own lines (the picker's tiles and
-//! the model page), in the track's coordinates, so the browser scales it.
+//! Pictures Paddock draws itself, as SVG in the track's own coordinates (the browser scales
+//! them): a track from its lines (the picker's tiles), and an evaluation's lap over it,
+//! coloured by speed.
 
 use std::fmt::Write as _;
 
-/// The track's road (between its borders) and its centre line, as an SVG document.
-pub fn track_svg(world: &tracks::World) -> String {
+/// The track's road (between its borders) and its centre line, with `over` drawn on top; `over`
+/// gets the function from track coordinates (m) to the picture's.
+fn drawing(world: &tracks::World, over: impl Fn(&dyn Fn(f64, f64) -> (f64, f64)) -> String) -> String {
     let t = world.track(tracks::Direction::Forward);
     let all: Vec<_> = t.inner().points().iter().chain(t.outer().points()).copied().collect();
     let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
@@ -16,22 +18,54 @@ pub fn track_svg(world: &tracks::World) -> String {
     }
     let pad = 0.3;
     // SVG's y grows downwards: flip it so the track reads as seen from above.
+    let at = move |x: f64, y: f64| (x - x0 + pad, y1 - y + pad);
     let path = |pts: &[tracks::P2]| -> String {
         let mut d = String::new();
         for (i, p) in pts.iter().enumerate() {
-            let _ = write!(d, "{}{:.3},{:.3}", if i == 0 { "M" } else { "L" }, p.x - x0 + pad, y1 - p.y + pad);
+            let (x, y) = at(p.x, p.y);
+            let _ = write!(d, "{}{x:.3},{y:.3}", if i == 0 { "M" } else { "L" });
         }
         d
     };
     format!(
         "<svg xmlns=\"http://www.w3.org/2000/svg\" viewBox=\"0 0 {w:.3} {h:.3}\" role=\"img\" aria-label=\"{name}\">\
          <path d=\"{outer}Z{inner}Z\" fill=\"#555\" fill-rule=\"evenodd\" stroke=\"#fff\" stroke-width=\"0.05\"/>\
-         <path d=\"{centre}\" fill=\"none\" stroke=\"#f5c400\" stroke-width=\"0.03\" stroke-dasharray=\"0.15 0.1\"/></svg>",
+         <path d=\"{centre}\" fill=\"none\" stroke=\"#f5c400\" stroke-width=\"0.03\" stroke-dasharray=\"0.15 0.1\"/>{over}</svg>",
         w = x1 - x0 + 2.0 * pad,
         h = y1 - y0 + 2.0 * pad,
         name = world.name,
         outer = path(t.outer().points()),
         inner = path(t.inner().points()),
         centre = path(t.center().points()),
+        over = over(&at),
     )
+}
+
+/// The track alone.
+pub fn track_svg(world: &tracks::World) -> String {
+    drawing(world, |_| String::new())
+}
+
+/// A lap over the track: each step's segment coloured from blue (its slowest) to red (its
+/// fastest); `path` is `[x, y, speed]` a step.
+pub fn lap_svg(world: &tracks::World, path: &[[f64; 3]]) -> String {
+    drawing(world, |at| {
+        let (lo, hi) = path.iter().fold((f64::MAX, f64::MIN), |(lo, hi), p| (lo.min(p[2]), hi.max(p[2])));
+        let span = (hi - lo).max(1e-9);
+        let mut out = String::new();
+        for w in path.windows(2) {
+            let f = ((w[1][2] - lo) / span).clamp(0.0, 1.0);
+            let (r, b) = ((255.0 * f) as u8, (255.0 * (1.0 - f)) as u8);
+            let (a, c) = (at(w[0][0], w[0][1]), at(w[1][0], w[1][1]));
+            let _ = write!(
+                out,
+                "<line x1=\"{:.3}\" y1=\"{:.3}\" x2=\"{:.3}\" y2=\"{:.3}\" stroke=\"rgb({r},40,{b})\" stroke-width=\"0.06\" stroke-linecap=\"round\"/>",
+                a.0, a.1, c.0, c.1
+            );
+        }
+        if !path.is_empty() {
+            let _ = write!(out, "<desc>speed from {lo:.2} (blue) to {hi:.2} m/s (red)</desc>");
+        }
+        out
+    })
 }

@@ -19,7 +19,6 @@ use policy::ModelMetadata;
 use policy::exchange::{Trial, summarise};
 use policy::folder::{self, Manifest, Parent};
 use sim_agent::obs::obs_dim;
-use sim_agent::rollout::{EvalPlan, evaluate};
 use sim_agent::worker::{Worker, WorkerSetup};
 use sim_agent::{EnvSpec, EvalRules, RewardFn, SimConfig};
 use std::path::{Path, PathBuf};
@@ -298,50 +297,37 @@ pub fn train(mut args: TrainArgs) -> Result<i32> {
 }
 
 pub fn evaluate_cmd(args: EvaluateArgs) -> Result<i32> {
-    let f = folder::load(&args.model_dir)?;
     let race: SimConfig = args.race.sim_config(None, &[])?;
-    let cfg = SimConfig {
-        race: race.race,
-        observation: serde_json::from_value(f.manifest.observation.clone())
-            .with_context(|| format!("{}: manifest.json's observation settings", args.model_dir.display()))?,
-        ..SimConfig::default()
-    };
-    if obs_dim(&cfg.observation) != f.manifest.obs_size {
-        bail!(
-            "{}: the observation settings give {} inputs, the model takes {}",
-            args.model_dir.display(),
-            obs_dim(&cfg.observation),
-            f.manifest.obs_size
-        );
-    }
     let rules =
         if args.reset_rules { EvalRules { max_resets: 100, ..EvalRules::default() } } else { EvalRules::default() };
-    let cfg = Arc::new(cfg);
     let names = if args.world.is_empty() { vec!["reinvent_base".to_string()] } else { args.world.clone() };
-    let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
+    let worlds = names.iter().map(|n| resolve_world(n)).collect::<Result<Vec<_>>>()?;
+    let req = coordinator::evaluation::Request {
+        worlds,
+        reversed: args.reversed,
+        trials: args.trials,
+        seed: args.seed,
+        race: race.race,
+        rules,
+        record: false,
+    };
+    let version = folder::load(&args.model_dir).map(|f| f.manifest.policy_version).unwrap_or(0);
     println!(
-        "evaluating {} (policy v{}) on {}: {} trials each, argmax actions",
+        "evaluating {} (policy v{version}) on {}: {} trials each, argmax actions",
         args.model_dir.display(),
-        f.manifest.policy_version,
         names.join(", "),
         args.trials
     );
+    let done = coordinator::evaluation::run(&args.model_dir, &req)?;
     let mut table = Vec::new();
     let mut crashes = 0;
-    let model = Arc::new(f.model.clone());
-    for name in &names {
-        let world = resolve_world(name)?;
-        let spec = EnvSpec::from_world(&world, if args.reversed { Direction::Reversed } else { Direction::Forward });
-        let plan = EvalPlan { rules: rules.clone(), count: args.trials, seed: args.seed, threads };
-        let trials: Vec<Trial> = evaluate(&model, &f.metadata.action_space, &spec, &cfg, &plan, None)?
-            .into_iter()
-            .map(Trial::from)
-            .collect();
+    for w in done.worlds {
+        let trials: Vec<Trial> = w.trials.into_iter().map(Trial::from).collect();
         for (i, t) in trials.iter().enumerate() {
             println!(
                 "trial {}: {:<20} {:<12} progress {:>6.1} %  lap time {:>8}  off-track {:>2}  crashes {:>2}  steps {:>5}",
                 i + 1,
-                world.name,
+                w.world,
                 t.status,
                 t.progress,
                 t.lap_time.map(|l| format!("{l:.2} s")).unwrap_or_else(|| "-".into()),
@@ -352,7 +338,7 @@ pub fn evaluate_cmd(args: EvaluateArgs) -> Result<i32> {
         }
         let (progress, lap, laps) = summarise(&trials);
         crashes += trials.iter().map(|t| t.crashes).sum::<u32>();
-        table.push((world.name.clone(), laps, trials.len(), progress, lap));
+        table.push((w.world.clone(), laps, trials.len(), progress, lap));
     }
     println!();
     println!("{:<24} {:>6} {:>10} {:>10}", "WORLD", "LAPS", "PROGRESS", "MEAN LAP");

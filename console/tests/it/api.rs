@@ -167,6 +167,34 @@ fn a_model_created_through_the_api_trains_to_a_verified_model_and_survives_a_res
         };
         assert!(!String::from_utf8_lossy(&r.body).contains("no such page or API route"), "{path} is served");
     }
+    // An evaluation: 3 trials on another world, DeepRacer's columns, the lap drawn.
+    let bad =
+        c.api("POST", "/api/v1/models/state-1/evaluations", Some(&json!({"track": "mars", "trials": 50, "colour": 1})));
+    assert_eq!(bad.code, 400);
+    let fields: Vec<String> =
+        bad.json()["errors"].as_array().unwrap().iter().map(|e| e["field"].as_str().unwrap().to_string()).collect();
+    assert_eq!(fields, ["colour", "track", "trials"], "{}", bad.json());
+    let r = c.api("POST", "/api/v1/models/state-1/evaluations", Some(&json!({"track": "reinvent_wood", "trials": 3})));
+    assert_eq!(r.code, 202, "{}", String::from_utf8_lossy(&r.body));
+    let id = r.json()["id"].as_str().unwrap().to_string();
+    let done = wait_for(60, "the evaluation", || {
+        let v = c.api("GET", &format!("/api/v1/models/state-1/evaluations/{id}"), None).json();
+        (v["status"] != "running").then_some(v)
+    });
+    assert_eq!(done["status"], "done", "{done:#}");
+    let rows = done["results"].as_array().unwrap();
+    assert_eq!(rows.len(), 3);
+    for key in
+        ["time_s", "progress", "status", "resets", "off_tracks", "off_track_penalty_s", "crashes", "crash_penalty_s"]
+    {
+        assert!(rows.iter().all(|t| !t[key].is_null()), "{key} in every trial: {done:#}");
+    }
+    assert!(done["path"].as_array().unwrap().len() > 50, "the fastest lap's path");
+    let lap = c.api("GET", &format!("/api/v1/models/state-1/evaluations/{id}/lap.svg"), None);
+    assert!(String::from_utf8_lossy(&lap.body).matches("<line").count() > 50);
+    let listed = c.api("GET", "/api/v1/models/state-1/evaluations", None).json();
+    assert_eq!(listed[0]["id"], id.as_str());
+    assert_eq!(c.api("GET", "/api/v1/models/state-1/evaluations/nope", None).code, 404);
     // A state-vector model cannot go to a car, and says why.
     let r = c.api("GET", "/api/v1/models/state-1/car.tar.gz", None);
     assert_eq!(r.code, 422);

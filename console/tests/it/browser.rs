@@ -2,7 +2,7 @@
 //! (chromedriver) by Selenium's Python client. A racer's path: a reward whose error the editor
 //! shows on its line, fixed; a camera model trained from the wizard; its page's graph drawing
 //! points and its camera updating; the car's archive downloaded, and `coordinator import`
-//! taking it; the run's MCAP holding the camera frames of its evaluation laps (Foxglove's
+//! taking it; an evaluation from the page with its trials, lap and frames; the run's MCAP holding the camera frames of its evaluation laps (Foxglove's
 //! `mcap` reader).
 
 use crate::support::{Console, TOKEN, bin};
@@ -38,6 +38,10 @@ fn a_racer_makes_a_camera_model_in_chromium_from_a_reward_error_to_the_cars_arch
     assert!(v["graph_points"].as_u64().unwrap() >= 2, "{v}");
     assert!(v["camera_frames"].as_array().unwrap().len() >= 2, "{v}");
     assert_eq!(v["status"], "ready", "{v}");
+    // An evaluation from the page: DeepRacer's columns a trial, the lap drawn, the frames.
+    assert_eq!(v["trial_rows"], 3, "{v}");
+    assert!(v["trial_text"].as_str().unwrap().contains("Off-track penalty"), "{v}");
+    assert_eq!((&v["lap_drawn"], &v["frames_shown"]), (&serde_json::json!(true), &serde_json::json!(true)), "{v}");
 
     // The car's archive, as the page's link downloads it, is one `coordinator import` takes.
     let r = c.api("GET", "/api/v1/models/camera-1/car.tar.gz", None);
@@ -159,6 +163,11 @@ try:
     out["camera_frames"] = frames
     out["graph_points"] = wait("points on the graph", lambda: d.execute_script("return window.paddockGraphs[0].data[0].length") >= 2 and d.execute_script("return window.paddockGraphs[0].data[0].length"), 90)
     out["status"] = wait("a ready model", lambda: d.find_element(By.ID, "status").text == "ready" and "ready", 120)
+    click("#start-evaluation")
+    out["trial_rows"] = wait("the evaluation's trials", lambda: len(d.find_elements(By.CSS_SELECTOR, "#trials tbody tr")), 120)
+    out["lap_drawn"] = wait("the lap's picture", lambda: d.execute_script("var i = document.getElementById('lap'); return i.complete && i.naturalWidth > 0"))
+    out["frames_shown"] = wait("the evaluation's frames", lambda: d.execute_script("var i = document.getElementById('frames'); return !i.hidden && i.complete && i.naturalWidth > 0"))
+    out["trial_text"] = d.find_element(By.ID, "trials").text
     d.save_screenshot(tmp + "/model.png")
 finally:
     d.quit()
