@@ -390,5 +390,30 @@ var Paddock = (function () {
       box.hidden = false;
     });
   }
-  return { wizard: wizard, model: model };
+  // ---- Import -------------------------------------------------------------------------
+  function importer() {
+    $("#archive").onchange = function () {
+      var f = this.files[0];
+      if (f && !$("#import-name").value) {
+        $("#import-name").value = f.name.replace(/\.tar\.gz$|\.tgz$|\.tar$/, "").replace(/^physicalmodel-/, "").replace(/[^A-Za-z0-9-]/g, "-").slice(0, 64);
+      }
+    };
+    $("#import").onsubmit = function (ev) {
+      ev.preventDefault();
+      var out = $("#import-errors"), f = $("#archive").files[0];
+      while (out.firstChild) out.removeChild(out.firstChild);
+      var q = "?name=" + encodeURIComponent($("#import-name").value) + "&description=" + encodeURIComponent($("#import-description").value);
+      $("#import-submit").disabled = true;
+      fetch("/api/v1/models/import" + q, { method: "POST", headers: { "Content-Type": "application/gzip" }, body: f || new Blob([]) })
+        .then(function (r) { return r.json().then(function (v) { return [r.status, v]; }); })
+        .then(function (rv) {
+          if (rv[0] === 201) { location.href = "/models/" + encodeURIComponent(rv[1].name); return; }
+          var list = document.createElement("ul");
+          (rv[1].errors || [{ field: "", message: rv[1].error }]).forEach(function (e) { list.appendChild(li((e.field ? e.field + ": " : "") + e.message)); });
+          out.appendChild(list);
+        })
+        .finally(function () { $("#import-submit").disabled = false; });
+    };
+  }
+  return { wizard: wizard, model: model, importer: importer };
 })();

@@ -603,6 +603,150 @@ pub async fn evaluation_frames(State(app): State<App>, Path((name, id)): Path<(S
     }
 }
 
+fn attachment(kind: &str, file: &str, bytes: Vec<u8>) -> Response {
+    (
+        [
+            (header::CONTENT_TYPE, kind.to_string()),
+            (header::CONTENT_DISPOSITION, format!("attachment; filename=\"{file}\"")),
+        ],
+        bytes,
+    )
+        .into_response()
+}
+
+/// `GET /api/v1/models/NAME/policy.onnx`: the best model's policy as ONNX.
+pub async fn onnx(State(app): State<App>, Path(name): Path<String>) -> Response {
+    let dir = match app.store.get(&name).and_then(|r| app.store.dir(&r.name)) {
+        Ok(d) => d,
+        Err(e) => return store_error(e),
+    };
+    let label = name.clone();
+    let made = tokio::task::spawn_blocking(move || {
+        policy::folder::load(&dir.join("run/model")).map(|f| coordinator::onnx::policy_to_onnx(&f.model, &label))
+    })
+    .await;
+    match made {
+        Ok(Ok(bytes)) => attachment("application/octet-stream", &format!("{name}.onnx"), bytes),
+        Ok(Err(e)) => error(StatusCode::CONFLICT, &format!("model '{name}' has no trained model yet ({e})")),
+        Err(e) => error(StatusCode::INTERNAL_SERVER_ERROR, &e.to_string()),
+    }
+}
+
+/// `GET /api/v1/models/NAME/run.tar.gz`: the run folder (DeepRacer's metrics, sim-traces and
+/// logs, the model), without its checkpoints, for the log-analysis notebooks.
+pub async fn run_archive(State(app): State<App>, Path(name): Path<String>) -> Response {
+    let dir = match app.store.get(&name).and_then(|r| app.store.dir(&r.name)) {
+        Ok(d) => d.join("run"),
+        Err(e) => return store_error(e),
+    };
+    if !dir.is_dir() {
+        return error(StatusCode::CONFLICT, &format!("model '{name}' has no run folder yet"));
+    }
+    let label = name.clone();
+    let made = tokio::task::spawn_blocking(move || -> std::io::Result<Vec<u8>> {
+        let gz = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
+        let mut tar = tar::Builder::new(gz);
+        tar.follow_symlinks(false);
+        let mut stack = vec![dir.clone()];
+        while let Some(d) = stack.pop() {
+            let mut entries: Vec<_> = std::fs::read_dir(&d)?.flatten().collect();
+            entries.sort_by_key(|e| e.file_name());
+            for e in entries {
+                let p = e.path();
+                let rel = p.strip_prefix(&dir).expect("under the run folder");
+                let kind = e.file_type()?;
+                if kind.is_dir() && rel.components().next().is_some_and(|c| c.as_os_str() != "checkpoints") {
+                    stack.push(p);
+                } else if kind.is_file() {
+                    tar.append_path_with_name(&p, std::path::Path::new(&label).join(rel))?;
+                }
+            }
+        }
+        tar.into_inner()?.finish()
+    })
+    .await;
+    match made {
+        Ok(Ok(bytes)) => attachment("application/gzip", &format!("{name}-run.tar.gz"), bytes),
+        Ok(Err(e)) => error(StatusCode::INTERNAL_SERVER_ERROR, &format!("packing the run folder: {e}")),
+        Err(e) => error(StatusCode::INTERNAL_SERVER_ERROR, &e.to_string()),
+    }
+}
+
+/// The largest car archive `POST /api/v1/models/import` takes.
+pub const MAX_IMPORT: usize = 256 << 20;
+
+/// `POST /api/v1/models/import?name=NAME[&description=TEXT]` with a car archive
+/// (`physicalmodel-*.tar.gz`, DeepRacer's model.pb and model_metadata.json) as the body: a new
+/// ready model, checked as `coordinator import` checks it.
+pub async fn import(
+    State(app): State<App>,
+    axum::extract::Query(q): axum::extract::Query<std::collections::HashMap<String, String>>,
+    body: Bytes,
+) -> Response {
+    let name = q.get("name").cloned().unwrap_or_default();
+    let description = q.get("description").cloned().unwrap_or_default();
+    let mut errors = Vec::new();
+    if let Some(p) = crate::store::name_problem(&name) {
+        errors.push(field("name", p));
+    }
+    if let Some(p) = crate::store::description_problem(&description) {
+        errors.push(field("description", p));
+    }
+    if body.is_empty() {
+        errors.push(field("body", "the car archive (a .tar.gz) is the request's body".into()));
+    }
+    if !errors.is_empty() {
+        return invalid(&errors);
+    }
+    if app.store.get(&name).is_ok() {
+        return store_error(StoreError::Taken(name));
+    }
+    let store = app.store.clone();
+    let made = tokio::task::spawn_blocking(move || -> Result<ModelRecord, Created> {
+        let origin = format!("the uploaded archive for '{name}'");
+        let pkg =
+            policy::carpkg::unpack(&body, &origin).map_err(|e| Created::Invalid(vec![field("body", e.to_string())]))?;
+        let f = pkg.to_folder(&origin, 1).map_err(|e| Created::Invalid(vec![field("body", e.to_string())]))?;
+        let record = ModelRecord {
+            name: name.clone(),
+            description,
+            created: protocol::job::now_unix(),
+            job_id: String::new(),
+            tracks: Vec::new(),
+            algorithm: match f.metadata.training_algorithm {
+                policy::TrainingAlgorithm::ClippedPpo => "clipped_ppo".into(),
+                policy::TrainingAlgorithm::Sac => "sac".into(),
+            },
+            sensors: f.metadata.sensor.iter().map(|s| s.name().to_string()).collect(),
+            reward: String::new(),
+            stop: toml::Table::new(),
+            clone_of: None,
+        };
+        let files = crate::store::NewFiles {
+            record: record.clone(),
+            reward_source: None,
+            model_metadata: pkg.metadata_text.clone(),
+            hyperparameters: learner::Hyperparameters::default().to_json(),
+        };
+        store.create(&files, |tmp| -> Result<(), Created> {
+            policy::folder::save(&tmp.join("run/model"), &f.metadata, &f.model, &f.manifest)
+                .map(|_| ())
+                .map_err(|e| Created::Store(StoreError::Io { path: "run/model".into(), msg: e.to_string() }))
+        })?;
+        Ok(record)
+    })
+    .await;
+    match made {
+        Ok(Ok(rec)) => {
+            tracing::info!(model = %rec.name, "model imported from a car archive");
+            (StatusCode::CREATED, axum::Json(model_json(&app, &rec, None))).into_response()
+        }
+        Ok(Err(Created::Store(e))) => store_error(e),
+        Ok(Err(Created::Invalid(e))) => invalid(&e),
+        Err(e) => error(StatusCode::INTERNAL_SERVER_ERROR, &e.to_string()),
+    }
+}
+
 /// `GET /api/v1/openapi.json`.
 pub async fn openapi() -> Response {
     ([(header::CONTENT_TYPE, "application/json")], crate::OPENAPI).into_response()

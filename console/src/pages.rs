@@ -20,6 +20,7 @@ static TEMPLATES: LazyLock<Environment<'static>> = LazyLock::new(|| {
         ("new.html", include_str!("../templates/new.html")),
         ("model.html", include_str!("../templates/model.html")),
         ("licences.html", include_str!("../templates/licences.html")),
+        ("import.html", include_str!("../templates/import.html")),
     ] {
         env.add_template(name, text).expect("the console's templates parse");
     }
@@ -212,6 +213,11 @@ fn not_found(message: &str) -> Response {
     let mut r = render("licences.html", json!({"error": message}));
     *r.status_mut() = StatusCode::NOT_FOUND;
     r
+}
+
+/// `/models/import`.
+pub async fn import() -> Response {
+    render("import.html", json!({}))
 }
 
 /// `/models/NAME`.

@@ -70,6 +70,9 @@ fn io(path: &Path) -> impl Fn(std::io::Error) -> StoreError + '_ {
     move |e| StoreError::Io { path: path.display().to_string(), msg: e.to_string() }
 }
 
+/// Names the console's own addresses take (`/models/new`, `/api/v1/models/import`, …).
+pub const RESERVED: [&str; 3] = ["new", "import", "rows"];
+
 /// DeepRacer's model name rule: `^[A-Za-z0-9-]+$`, at most 64 characters.
 pub fn name_problem(name: &str) -> Option<String> {
     if name.is_empty() {
@@ -78,6 +81,8 @@ pub fn name_problem(name: &str) -> Option<String> {
         Some(format!("at most 64 characters, not {}", name.chars().count()))
     } else if !name.chars().all(|c| c.is_ascii_alphanumeric() || c == '-') {
         Some("letters, digits and hyphens only (DeepRacer's rule: ^[A-Za-z0-9-]+$)".into())
+    } else if RESERVED.contains(&name) {
+        Some(format!("'{name}' names a page of the console; choose another"))
     } else {
         None
     }
@@ -228,6 +233,8 @@ mod tests {
             ("has space", false),
             ("../etc", false),
             ("<img src=x onerror=alert(1)>", false),
+            ("import", false),
+            ("new", false),
             (&"x".repeat(64), true),
             (&"x".repeat(65), false),
         ] {

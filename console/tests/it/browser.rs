@@ -43,6 +43,44 @@ fn a_racer_makes_a_camera_model_in_chromium_from_a_reward_error_to_the_cars_arch
     assert!(v["trial_text"].as_str().unwrap().contains("Off-track penalty"), "{v}");
     assert_eq!((&v["lap_drawn"], &v["frames_shown"]), (&serde_json::json!(true), &serde_json::json!(true)), "{v}");
 
+    assert_eq!(v["imported_status"], "ready", "{v}");
+    let r = c.api("POST", "/api/v1/models/import?name=junk", None);
+    assert_eq!(r.code, 400, "an empty upload");
+    let auth = format!("Bearer {TOKEN}");
+    let r = crate::support::http(
+        &c.addr,
+        "POST",
+        "/api/v1/models/import?name=junk",
+        &[("Authorization", &auth)],
+        Some(b"not a tar.gz"),
+    );
+    assert_eq!(r.code, 400);
+    assert_eq!(r.json()["errors"][0]["field"], "body", "{}", r.json());
+    assert_eq!(c.api("GET", "/api/v1/models/junk", None).code, 404, "nothing half-made");
+    // ONNX, checked by onnx's own checker; the run folder for the notebooks.
+    let r = c.api("GET", "/api/v1/models/camera-1/policy.onnx", None);
+    assert_eq!(r.code, 200);
+    let onnx = dir.path().join("camera-1.onnx");
+    std::fs::write(&onnx, &r.body).unwrap();
+    let o = Command::new(python())
+        .args([
+            "-c",
+            "import onnx, sys; m = onnx.load(sys.argv[1]); onnx.checker.check_model(m); print(len(m.graph.node))",
+        ])
+        .arg(&onnx)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r = c.api("GET", "/api/v1/models/camera-1/run.tar.gz", None);
+    assert_eq!(r.code, 200);
+    let names: Vec<String> = tar::Archive::new(flate2::read::GzDecoder::new(&r.body[..]))
+        .entries()
+        .unwrap()
+        .map(|e| e.unwrap().path().unwrap().display().to_string())
+        .collect();
+    assert!(names.iter().any(|n| n.starts_with("camera-1/metrics/TrainingMetrics")), "{names:?}");
+    assert!(names.iter().any(|n| n.starts_with("camera-1/model/")), "{names:?}");
+    assert!(!names.iter().any(|n| n.contains("checkpoints/")), "{names:?}");
     // The car's archive, as the page's link downloads it, is one `coordinator import` takes.
     let r = c.api("GET", "/api/v1/models/camera-1/car.tar.gz", None);
     assert_eq!(r.code, 200);
@@ -169,6 +207,20 @@ try:
     out["frames_shown"] = wait("the evaluation's frames", lambda: d.execute_script("var i = document.getElementById('frames'); return !i.hidden && i.complete && i.naturalWidth > 0"))
     out["trial_text"] = d.find_element(By.ID, "trials").text
     d.save_screenshot(tmp + "/model.png")
+    # The car's archive, downloaded as a program would, then uploaded on the import page.
+    import urllib.request
+    req = urllib.request.Request("http://%s/api/v1/models/camera-1/car.tar.gz" % addr, headers={"Authorization": "Bearer " + token})
+    archive = tmp + "/physicalmodel-camera-1.tar.gz"
+    with urllib.request.urlopen(req) as r, open(archive, "wb") as f:
+        f.write(r.read())
+    d.get("http://%s/models/import" % addr)
+    d.find_element(By.ID, "archive").send_keys(archive)
+    assert d.find_element(By.ID, "import-name").get_attribute("value") == "camera-1"
+    d.find_element(By.ID, "import-name").clear()
+    d.find_element(By.ID, "import-name").send_keys("camera-1-imported")
+    click("#import-submit")
+    wait("the imported model's page", lambda: d.current_url.endswith("/models/camera-1-imported"))
+    out["imported_status"] = wait("its status", lambda: d.find_element(By.ID, "status").text)
 finally:
     d.quit()
 print(json.dumps(out))
