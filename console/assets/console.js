@@ -64,7 +64,9 @@ var Paddock = (function () {
     }
     $$('[name="training_algorithm"]').forEach(function (r) { r.onchange = algorithmChanged; });
 
+    var lineActions = null;
     function discreteActions() {
+      if (lineActions) return lineActions;
       var n = num("steer_n"), max = num("steer_max"), k = num("speed_n"), vmax = num("speed_max"), out = [];
       for (var i = 0; i < n; i++) {
         var steer = n === 1 ? 0 : -max + (2 * max * i) / (n - 1);
@@ -118,7 +120,38 @@ var Paddock = (function () {
       drawActions();
     }
     $$('[name="action_type"]').forEach(function (r) { r.onchange = actionChanged; });
-    $$("#continuous input, #discrete input, #discrete select").forEach(function (e) { e.oninput = drawActions; e.onchange = drawActions; });
+    function generatorChanged() { lineActions = null; text($("#actions-note"), ""); drawActions(); }
+    $$("#continuous input, #discrete input, #discrete select").forEach(function (e) { e.oninput = generatorChanged; e.onchange = generatorChanged; });
+    function firstTrack() { var c = $('[name="tracks"]:checked'); return c ? c.value : null; }
+    $("#actions-from-line").onclick = function () {
+      var t = firstTrack();
+      if (!t) return;
+      fetch("/api/v1/tracks/" + encodeURIComponent(t) + "/race_line?actions=" + (num("steer_n") * num("speed_n")))
+        .then(function (r) { return r.json(); }).then(function (v) {
+          if (!v.actions) { text($("#actions-note"), v.error); return; }
+          lineActions = v.actions;
+          text($("#actions-note"), v.actions.length + " actions that drive " + t + "'s racing line");
+          drawActions();
+        });
+    };
+    var shownLine = null;
+    function showRaceLine() {
+      var t = firstTrack();
+      $("#race-line-box").hidden = !t;
+      if (!t || t === shownLine) return;
+      shownLine = t;
+      text($("#race-line-track"), t);
+      fetch("/api/v1/tracks/" + encodeURIComponent(t) + "/race_line").then(function (r) { return r.json(); }).then(function (v) {
+        if (shownLine !== t) return;
+        var box = $("#race-line");
+        while (box.firstChild) box.removeChild(box.firstChild);
+        if (!v.svg) { text($("#race-line-time"), v.error || ""); return; }
+        var doc = new DOMParser().parseFromString(v.svg, "image/svg+xml");
+        box.appendChild(document.importNode(doc.documentElement, true));
+        text($("#race-line-time"), "(a lap in " + v.lap_time_s.toFixed(2) + " s)");
+      });
+    }
+    $$('[name="tracks"]').forEach(function (c) { c.addEventListener("change", showRaceLine); });
 
     $("#find-track").oninput = function () {
       var q = this.value.toLowerCase();
@@ -205,6 +238,22 @@ var Paddock = (function () {
       }).finally(function () { button.disabled = false; text(button, "Validate"); });
     };
 
+    $("#dry-run").onclick = function () {
+      var button = this;
+      button.disabled = true;
+      fetch("/api/v1/rewards/dry_run", {
+        method: "POST", headers: { "Content-Type": "application/json" },
+        body: JSON.stringify({ reward_function: editor.getValue(), track: $("#validate-track").value }),
+      }).then(function (r) { return r.json(); }).then(function (v) {
+        if (!v.svg) { showValidation({ ok: false, errors: v.errors || [{ message: v.error }], warnings: [] }); return; }
+        var box = $("#dry-run-lap");
+        while (box.firstChild) box.removeChild(box.firstChild);
+        var doc = new DOMParser().parseFromString(v.svg, "image/svg+xml");
+        box.appendChild(document.importNode(doc.documentElement, true));
+        text($("#dry-run-note"), "(" + v.track + ": " + v.status + " after " + v.steps + " steps, total reward " + v.total_reward.toFixed(1) + "; blue low, red high)");
+        $("#dry-run-box").hidden = false;
+      }).finally(function () { button.disabled = false; });
+    };
     $("#wizard").onsubmit = function (ev) {
       ev.preventDefault();
       var errors = $("#errors");
@@ -245,6 +294,7 @@ var Paddock = (function () {
     }
     raceChanged();
     algorithmChanged();
+    showRaceLine();
     show(1);
   }
 

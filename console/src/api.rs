@@ -146,6 +146,108 @@ pub async fn track_picture(Path(name): Path<String>) -> Response {
     }
 }
 
+/// `GET /api/v1/tracks/NAME/race_line?actions=N`: the track's racing line (`[x, y, speed]` a
+/// point, its lap time) for DeepRacer's car on the track's surface, and N discrete actions that
+/// drive it (`--action-space-from-line`'s), 10 by default.
+pub async fn race_line(
+    Path(name): Path<String>,
+    axum::extract::Query(q): axum::extract::Query<std::collections::HashMap<String, String>>,
+) -> Response {
+    let n = match q.get("actions").map(|a| a.parse::<usize>()) {
+        None => 10,
+        Some(Ok(n)) if (2..=30).contains(&n) => n,
+        _ => {
+            return invalid(&[field(
+                "actions",
+                "expected a number of actions from 2 to 30 (DeepRacer's range)".into(),
+            )]);
+        }
+    };
+    let world = match tracks::world(&name) {
+        Ok(w) => w,
+        Err(e) => {
+            crate::counters::refused("an unknown track");
+            return error(StatusCode::NOT_FOUND, &e.to_string());
+        }
+    };
+    let made = tokio::task::spawn_blocking(move || {
+        let car = sim_agent::SimConfig::default().car;
+        sim_agent::race_line::LinePlan::new(&world.track(tracks::Direction::Forward), &car, world.surface).map(|plan| {
+            let actions = plan.action_space(&car, n, 30.0, 4.0);
+            let points: Vec<[f64; 3]> = plan.points.iter().zip(&plan.speed).map(|(p, v)| [p.x, p.y, *v]).collect();
+            let svg = crate::pictures::lap_svg(&world, &points, "speed (m/s)");
+            json!({"track": world.name, "lap_time_s": plan.lap_time, "points": points, "svg": svg,
+                   "actions": actions.iter().map(|a| json!({"steering_angle": a.steering_angle, "speed": a.speed})).collect::<Vec<_>>()})
+        })
+    })
+    .await;
+    match made {
+        Ok(Ok(v)) => axum::Json(v).into_response(),
+        Ok(Err(e)) => error(StatusCode::UNPROCESSABLE_ENTITY, &format!("{name}: no racing line: {e}")),
+        Err(e) => error(StatusCode::INTERNAL_SERVER_ERROR, &e.to_string()),
+    }
+}
+
+/// `POST /api/v1/rewards/dry_run` `{"reward_function", "track"?}`: the reward along one lap of
+/// Paddock's scripted driver, `[x, y, reward]` a step, and the lap drawn on the track coloured by
+/// reward (blue low, red high). A file with errors gets the validation's answer instead (400).
+pub async fn dry_run(body: Bytes) -> Response {
+    let v = match json_body(&body) {
+        Ok(v) => v,
+        Err(f) => return invalid(&[f]),
+    };
+    let mut errors = Vec::new();
+    let source = match v.get("reward_function").and_then(Value::as_str) {
+        Some(s) if s.chars().count() <= models::MAX_REWARD_CHARS => s.to_string(),
+        _ => {
+            errors
+                .push(field("reward_function", "required: the reward file's text (at most 140,000 characters)".into()));
+            String::new()
+        }
+    };
+    let track = v.get("track").and_then(Value::as_str).unwrap_or("reinvent_base");
+    let world = tracks::world(track).map_err(|e| errors.push(field("track", e.to_string()))).ok();
+    if !errors.is_empty() {
+        return invalid(&errors);
+    }
+    let world = world.expect("checked");
+    let done = tokio::task::spawn_blocking(move || -> Result<Value, Vec<FieldError>> {
+        let input = if source.starts_with("builtin:") {
+            sim_agent::reward_check::RewardInput::Builtin(&source)
+        } else {
+            sim_agent::reward_check::RewardInput::Source { name: "reward_function.py", text: &source }
+        };
+        let checked = models::validate(input, &world, None).map_err(|e| vec![field("reward_function", e)])?;
+        if !checked.ok() {
+            return Err(checked
+                .findings
+                .iter()
+                .filter(|f| f.severity == sim_agent::reward_check::Severity::Error)
+                .map(|f| FieldError { field: "reward_function".into(), message: f.message.clone(), line: f.line })
+                .collect());
+        }
+        let cfg = std::sync::Arc::new(sim_agent::SimConfig::default());
+        let mut reward = if source.starts_with("builtin:") {
+            sim_agent::RewardFn::from_spec(&source)
+        } else {
+            sim_agent::RewardFn::from_file_text(std::path::Path::new("reward_function.py"), &source)
+        }
+        .map_err(|e| vec![field("reward_function", e.to_string())])?
+        .with_time_limit(cfg.reward_time_limit());
+        let (points, status) = sim_agent::driver::lap_rewards(&world, &mut reward, cfg)
+            .map_err(|e| vec![field("reward_function", e.to_string())])?;
+        let total: f64 = points.iter().map(|p| p[2]).sum();
+        Ok(json!({"track": world.name, "status": status.label(), "steps": points.len(), "total_reward": total,
+                  "svg": crate::pictures::lap_svg(&world, &points, "reward"), "points": points}))
+    })
+    .await;
+    match done {
+        Ok(Ok(v)) => axum::Json(v).into_response(),
+        Ok(Err(e)) => invalid(&e),
+        Err(e) => error(StatusCode::INTERNAL_SERVER_ERROR, &e.to_string()),
+    }
+}
+
 /// `POST /api/v1/rewards/validate` `{"reward_function", "track"?, "model_metadata"?}`.
 pub async fn validate_reward(body: Bytes) -> Response {
     let v = match json_body(&body) {
@@ -586,7 +688,8 @@ pub async fn evaluation_lap(State(app): State<App>, Path((name, id)): Path<(Stri
     };
     let path: Vec<[f64; 3]> = serde_json::from_value(v["path"].clone()).unwrap_or_default();
     match tracks::world(v["track"].as_str().unwrap_or("")) {
-        Ok(w) => ([(header::CONTENT_TYPE, "image/svg+xml")], crate::pictures::lap_svg(&w, &path)).into_response(),
+        Ok(w) => ([(header::CONTENT_TYPE, "image/svg+xml")], crate::pictures::lap_svg(&w, &path, "speed (m/s)"))
+            .into_response(),
         Err(e) => error(StatusCode::NOT_FOUND, &e.to_string()),
     }
 }

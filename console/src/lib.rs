@@ -14,6 +14,7 @@
 
 pub mod api;
 pub mod auth;
+pub mod bench;
 pub mod counters;
 pub mod evaluations;
 pub mod hub;
@@ -70,7 +71,9 @@ pub fn router(app: api::App) -> Router {
         .route("/api/v1/health", get(api::health))
         .route("/api/v1/tracks", get(api::tracks))
         .route("/api/v1/tracks/{name}/picture.svg", get(api::track_picture))
+        .route("/api/v1/tracks/{name}/race_line", get(api::race_line))
         .route("/api/v1/rewards/validate", post(api::validate_reward))
+        .route("/api/v1/rewards/dry_run", post(api::dry_run))
         .route("/api/v1/models", get(api::list_models).post(api::create_model))
         .route("/api/v1/models/{name}", get(api::get_model).delete(api::delete_model))
         .route("/api/v1/models/{name}/stop", post(api::stop_model))

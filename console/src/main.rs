@@ -13,8 +13,10 @@ use std::time::Duration;
 
 /// Paddock's web console: create, train, watch, evaluate and download models in a browser.
 #[derive(Parser)]
-#[command(name = "console", version)]
+#[command(name = "console", version, args_conflicts_with_subcommands = true)]
 struct Cli {
+    #[command(subcommand)]
+    command: Option<Sub>,
     /// Where the console listens (loopback unless --insecure; port 0 picks a free one).
     #[arg(long, default_value = "127.0.0.1:8100")]
     listen: SocketAddr,
@@ -48,10 +50,21 @@ struct Cli {
     token: Option<String>,
 }
 
+#[derive(clap::Subcommand)]
+enum Sub {
+    /// The console's figures: Submit to the first point on the graph, the page's weight and
+    /// first paint, and what N viewers of the live page cost the training (with a verdict).
+    Bench(paddock_console::bench::BenchArgs),
+}
+
 fn main() {
     protocol::secure::init_logging("warn,zenoh=error,console=info,coordinator=info");
     let cli = Cli::parse();
-    protocol::exit::exit(run(cli).map(|()| 0))
+    let result = match &cli.command {
+        Some(Sub::Bench(args)) => paddock_console::bench::run(args),
+        None => run(cli).map(|()| 0),
+    };
+    protocol::exit::exit(result)
 }
 
 fn run(cli: Cli) -> Result<()> {

@@ -46,9 +46,9 @@ pub fn track_svg(world: &tracks::World) -> String {
     drawing(world, |_| String::new())
 }
 
-/// A lap over the track: each step's segment coloured from blue (its slowest) to red (its
-/// fastest); `path` is `[x, y, speed]` a step.
-pub fn lap_svg(world: &tracks::World, path: &[[f64; 3]]) -> String {
+/// A lap over the track: each step's segment coloured by its value, from blue (the lap's
+/// lowest) to red (its highest); `path` is `[x, y, value]` a step, `what` names the value.
+pub fn lap_svg(world: &tracks::World, path: &[[f64; 3]], what: &str) -> String {
     drawing(world, |at| {
         let (lo, hi) = path.iter().fold((f64::MAX, f64::MIN), |(lo, hi), p| (lo.min(p[2]), hi.max(p[2])));
         let span = (hi - lo).max(1e-9);
@@ -64,7 +64,7 @@ pub fn lap_svg(world: &tracks::World, path: &[[f64; 3]]) -> String {
             );
         }
         if !path.is_empty() {
-            let _ = write!(out, "<desc>speed from {lo:.2} (blue) to {hi:.2} m/s (red)</desc>");
+            let _ = write!(out, "<desc>{what} from {lo:.2} (blue) to {hi:.2} (red)</desc>");
         }
         out
     })

@@ -66,3 +66,28 @@ impl PurePursuit {
         Action { steering_angle: steer, speed: speed.clamp(self.min_speed, self.max_speed) }
     }
 }
+
+/// One lap of the scripted driver on `world` with `reward`: each step's `[x, y, reward]`, and
+/// how the lap ended. The console's dry run of a reward file draws it on the track.
+pub fn lap_rewards(
+    world: &tracks::World,
+    reward: &mut crate::RewardFn,
+    cfg: std::sync::Arc<crate::SimConfig>,
+) -> Result<(Vec<[f64; 3]>, crate::EpisodeStatus), crate::RewardError> {
+    let spec = crate::EnvSpec::from_world(world, tracks::Direction::Forward);
+    let mut env = Env::new(spec, cfg, crate::Mode::Evaluation(crate::EvalRules::default()), 1, 0.0)
+        .map_err(|e| crate::RewardError::Load { origin: world.name.clone(), msg: e.to_string() })?;
+    let driver = PurePursuit::default();
+    env.reset();
+    let mut out = Vec::new();
+    loop {
+        let action = driver.act(&env);
+        env.advance(action);
+        let r = env.reward_with(reward)?;
+        let o = env.finish(r);
+        out.push([o.trace.x, o.trace.y, o.reward]);
+        if o.done {
+            return Ok((out, o.status));
+        }
+    }
+}

@@ -91,6 +91,26 @@ fn the_api_refuses_requests_without_the_token_from_elsewhere_or_with_invalid_fie
     let r = c.api("POST", "/api/v1/rewards/validate", Some(&json!({"reward_function": ok, "track": "mars"})));
     assert_eq!((r.code, r.json()["errors"][0]["field"].as_str()), (400, Some("track")));
 
+    // The dry run: the reward along a lap of the scripted driver, drawn; a broken file's errors.
+    let v = c
+        .api("POST", "/api/v1/rewards/dry_run", Some(&json!({"reward_function": ok, "track": "reinvent_base"})))
+        .json();
+    assert_eq!(v["status"], "lap_complete", "{v}");
+    assert!(v["points"].as_array().unwrap().len() > 100, "{v}");
+    assert!(v["svg"].as_str().unwrap().matches("<line").count() > 100);
+    let r = c.api(
+        "POST",
+        "/api/v1/rewards/dry_run",
+        Some(&json!({"reward_function": "def reward_function(params):\n    return float(nope)\n"})),
+    );
+    assert_eq!((r.code, r.json()["errors"][0]["line"].as_u64()), (400, Some(2)), "{}", r.json());
+    // The racing line and an action space that drives it.
+    let v = c.api("GET", "/api/v1/tracks/reinvent_base/race_line?actions=7", None).json();
+    assert_eq!(v["actions"].as_array().unwrap().len(), 7, "{v}");
+    assert!(v["lap_time_s"].as_f64().unwrap() > 3.0, "{v}");
+    assert_eq!(c.api("GET", "/api/v1/tracks/reinvent_base/race_line?actions=1", None).code, 400);
+    assert_eq!(c.api("GET", "/api/v1/tracks/mars/race_line", None).code, 404);
+
     // Unknown models and routes; names that would leave the data folder.
     assert_eq!(c.api("GET", "/api/v1/models/nobody", None).code, 404);
     assert_eq!(c.api("GET", "/api/v1/models/..%2F..%2Fetc/metrics", None).code, 404);

@@ -34,6 +34,9 @@ fn a_racer_makes_a_camera_model_in_chromium_from_a_reward_error_to_the_cars_arch
     assert!(v["validation_error"].as_str().unwrap().contains("line 6"), "{v}");
     assert!(v["validation_fixed"].as_str().unwrap().contains("passed"), "{v}");
     assert!(v["submit_error"].as_str().unwrap().contains("reward_function: line 6"), "{v}");
+    // The fixed reward's dry run, and the picked track's racing line, drawn.
+    assert!(v["dry_run"].as_u64().unwrap() > 100, "{v}");
+    assert!(v["race_line"].as_u64().unwrap() > 50, "{v}");
     // The graph drew points as updates came, and the camera's picture changed.
     assert!(v["graph_points"].as_u64().unwrap() >= 2, "{v}");
     assert!(v["camera_frames"].as_array().unwrap().len() >= 2, "{v}");
@@ -186,6 +189,9 @@ try:
     d.execute_script("document.querySelector('.CodeMirror').CodeMirror.setValue(arguments[0])", GOOD)
     click("#validate")
     out["validation_fixed"] = wait("a passed validation", lambda: "passed" in d.find_element(By.ID, "validation").text and d.find_element(By.ID, "validation").text)
+    click("#dry-run")
+    out["dry_run"] = wait("the dry run's lap", lambda: len(d.find_elements(By.CSS_SELECTOR, "#dry-run-lap svg line")))
+    out["race_line"] = len(d.find_elements(By.CSS_SELECTOR, "#race-line svg line"))
     click("#submit")
     wait("the model's page", lambda: d.current_url.endswith("/models/camera-1"))
     frames = []
