@@ -524,6 +524,15 @@ fn handle(st: &Arc<Mutex<State>>, db: &Db, _session: &zenoh::Session, req: JobRe
             reply(ok, text, body)
         }
         Some(Kind::StopJobId(id)) => match st.jobs.get_mut(&id) {
+            // No learner has taken it: there is no checkpoint to wait for, and none would come.
+            Some(j) if j.state() == JobState::Running && j.learner.is_none() => {
+                j.set_state(JobState::Failed);
+                j.ended = Some(now_unix());
+                j.stop_reason = Some("stopped by the user before a learner took it: no model".into());
+                j.event("stopped: asked by the user before a learner took the job (no model)".into());
+                db.save_or_log(j);
+                reply(true, format!("job {id} stopped before a learner took it: no model"), Some(Body::Job(summary(j))))
+            }
             Some(j) if j.state() == JobState::Running => {
                 j.set_state(JobState::Stopping);
                 j.stop_reason = Some("stopped by the user".into());
@@ -537,15 +546,25 @@ fn handle(st: &Arc<Mutex<State>>, db: &Db, _session: &zenoh::Session, req: JobRe
             }
             // A retried stop (its first reply lost) finds the job stopping or stopped: that is
             // what was asked, so it succeeds and says why the job stops.
-            Some(j) if matches!(j.state(), JobState::Stopping | JobState::Finished) => reply(
-                true,
-                format!(
-                    "job {id} is already {}: {}",
-                    if j.state() == JobState::Stopping { "stopping" } else { "finished" },
-                    j.stop_reason.as_deref().unwrap_or("its stop condition")
-                ),
-                Some(Body::Job(summary(j))),
-            ),
+            Some(j)
+                if matches!(j.state(), JobState::Stopping | JobState::Finished)
+                    || (j.state() == JobState::Failed
+                        && j.stop_reason.as_deref().is_some_and(|r| r.starts_with("stopped by the user"))) =>
+            {
+                reply(
+                    true,
+                    format!(
+                        "job {id} is already {}: {}",
+                        match j.state() {
+                            JobState::Stopping => "stopping",
+                            JobState::Finished => "finished",
+                            _ => "stopped",
+                        },
+                        j.stop_reason.as_deref().unwrap_or("its stop condition")
+                    ),
+                    Some(Body::Job(summary(j))),
+                )
+            }
             Some(j) => reply(false, format!("job {id} is {:?}, not running", j.state()), None),
             None => reply(false, format!("no job '{id}'"), None),
         },

@@ -119,6 +119,17 @@ fn the_api_refuses_requests_without_the_token_from_elsewhere_or_with_invalid_fie
     assert_eq!(c.api("GET", "/api/v1/nothing", None).code, 404);
     assert_eq!(c.api("GET", "/assets/../Cargo.toml", None).code, 404);
     assert_eq!(c.api("GET", "/assets/..%2FCargo.toml", None).code, 404);
+    // A model stopped before its job's learner took it stops at once (no checkpoint to wait
+    // for), not "stopping" for ever.
+    let quick = json!({"name": "quick-stop", "tracks": ["reinvent_base"], "reward_function": "builtin:center_line",
+                       "model_metadata": crate::support::state_metadata()});
+    assert_eq!(c.api("POST", "/api/v1/models", Some(&quick)).code, 201);
+    assert_eq!(c.api("POST", "/api/v1/models/quick-stop/stop", None).code, 200);
+    let v = crate::support::wait_for(60, "the stopped model", || {
+        let v = c.api("GET", "/api/v1/models/quick-stop", None).json();
+        (v["status"] != "training" && v["status"] != "stopping").then_some(v)
+    });
+    assert!(v["status"] == "failed" || v["status"] == "ready", "{v:#}");
     // Each refusal is counted.
     let health = c.api("GET", "/api/v1/health", None).json();
     assert!(health["refused"]["no token"].as_u64().unwrap() >= 2, "{health}");

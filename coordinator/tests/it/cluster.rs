@@ -257,13 +257,14 @@ fn a_retried_job_start_or_stop_is_the_same_job_and_another_spec_cannot_take_its_
     assert!(!other.status.success() && text.contains("is taken"), "{text}");
     let stop = c.status(&id)["job"]["stop"].clone();
     assert_eq!(stop["minutes"], 5.0, "the first spec's job is untouched: {stop}");
-    // Likewise a retried `job stop`: the job is stopping, which is what was asked.
-    for attempt in ["stopping: the learner writes", "already stopping: stopped by the user"] {
+    // Likewise a retried `job stop`: the job is stopped, which is what was asked. No learner
+    // has taken it, so it stops at once (no checkpoint will come) rather than wait forever.
+    for attempt in ["stopped before a learner took it", "already stopped: stopped by the user"] {
         let o = c.cli(&["job", "stop", &id]);
         let text = String::from_utf8_lossy(&o.stdout).to_string() + &String::from_utf8_lossy(&o.stderr);
         assert!(o.status.success() && text.contains(attempt), "{attempt}: {text}");
     }
-    assert_eq!(c.status(&id)["state"], "stopping");
+    assert_eq!(c.status(&id)["state"], "failed");
 }
 
 const SPEC: &str =
