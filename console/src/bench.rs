@@ -272,6 +272,19 @@ pub fn run(args: &BenchArgs) -> Result<i32> {
         mean(&shares[1]),
         mean(&shares[0])
     );
+    if let Ok(v) = json_of(&addr, "/api/v1/models/bench") {
+        println!(
+            "the model  {} after {} updates, {} env steps{}",
+            v["status"].as_str().unwrap_or("?"),
+            v["training"]["iteration"],
+            v["training"]["env_steps"],
+            v["training"]["stop_reason"]
+                .as_str()
+                .filter(|r| !r.is_empty())
+                .map(|r| format!("; stop: {r}"))
+                .unwrap_or_default()
+        );
+    }
     drop(console);
     let _ = std::fs::remove_dir_all(&data);
     let ok = cost < args.budget;
