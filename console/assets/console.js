@@ -282,8 +282,29 @@ var Paddock = (function () {
       if (prefill.reward_source) editor.setValue(prefill.reward_source);
       if (prefill.tracks) $$('[name="tracks"]').forEach(function (c) { c.checked = prefill.tracks.indexOf(c.value) >= 0; });
       var m = prefill.model_metadata || {};
-      if (m.training_algorithm) $('[name="training_algorithm"][value="' + m.training_algorithm + '"]').checked = true;
-      if (Array.isArray(m.action_space)) $('[name="action_type"][value="discrete"]').checked = true;
+      function set(name, v) { var e = $('[name="' + name + '"]'); if (e && v !== undefined && v !== null) e.value = v; }
+      function pick(name, v) { var e = $('[name="' + name + '"][value="' + v + '"]'); if (e) e.checked = true; }
+      if (m.training_algorithm) pick("training_algorithm", m.training_algorithm);
+      if (m.neural_network) set("neural_network", m.neural_network);
+      if (Array.isArray(m.action_space)) {
+        // A clone keeps the number of actions (DeepRacer's lock): its own list, to edit by generator or line.
+        pick("action_type", "discrete");
+        lineActions = m.action_space.map(function (a) { return { steering_angle: Number(a.steering_angle), speed: Number(a.speed) }; });
+        text($("#actions-note"), lineActions.length + " actions of " + prefill.clone_from);
+      } else if (m.action_space) {
+        set("steer_low", m.action_space.steering_angle && m.action_space.steering_angle.low);
+        set("steer_high", m.action_space.steering_angle && m.action_space.steering_angle.high);
+        set("speed_low", m.action_space.speed && m.action_space.speed.low);
+        set("speed_high", m.action_space.speed && m.action_space.speed.high);
+      }
+      var h = prefill.hyperparameters || {};
+      if (h.batch_size) pick("batch_size", h.batch_size);
+      if (h.loss_type) pick("loss_type", h.loss_type);
+      ["num_epochs", "lr", "beta_entropy", "sac_alpha", "discount_factor", "num_episodes_between_training"].forEach(function (k) { set(k, h[k]); });
+      var st = prefill.stop || {};
+      if (st.minutes) set("minutes", st.minutes);
+      if (st.env_steps_budget) { pick("stop_kind", "steps"); set("env_steps_budget", st.env_steps_budget); }
+      else if (!st.target_laps) pick("stop_kind", "time");
       (m.sensor || []).forEach(function (s) {
         var c = $('[name="camera"][value="' + s + '"]');
         if (c) c.checked = true;
@@ -302,7 +323,11 @@ var Paddock = (function () {
   function model() {
     var m = JSON.parse($("#model-json").textContent);
     var base = "/api/v1/models/" + encodeURIComponent(m.name);
-    var data = { it: [], reward: [], progress: [], eval: [], entropy: [], sps: [] };
+    var data = { it: [], reward: [], progress: [], eval: [], entropy: [], sps: [], world: {} };
+    // A model of several worlds: each world's evaluation completion too.
+    var worlds = m.tracks.length > 1 ? m.tracks : [];
+    var palette = ["#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22", "#17becf"];
+    worlds.forEach(function (w) { data.world[w] = []; });
     var best = null;
     function bestMarker(u) {
       if (best === null) return;
@@ -326,8 +351,10 @@ var Paddock = (function () {
         { label: "Average reward (training)", stroke: "#ff7f0e" },
         { label: "Average completion (training)", stroke: "#1f77b4", scale: "%" },
         { label: "Average completion (evaluation)", stroke: "#d62728", scale: "%", points: { show: true } },
-      ],
-    }, [[], [], [], []], $("#graph"));
+      ].concat(worlds.map(function (w, i) {
+        return { label: "Evaluation: " + w, stroke: palette[i % palette.length], dash: [4, 4], scale: "%", points: { show: true } };
+      })),
+    }, [[], [], [], []].concat(worlds.map(function () { return []; })), $("#graph"));
     var second = new uPlot({
       width: width, height: 160, scales: { x: { time: false } },
       axes: [{ label: "Iteration" }, { label: "Entropy" }, { side: 1, scale: "sps", label: "Samples/s", grid: { show: false } }],
@@ -336,17 +363,21 @@ var Paddock = (function () {
     // For the tests (and the curious, in the browser's console): the graphs.
     window.paddockGraphs = [graph, second];
     function redraw() {
-      graph.setData([data.it, data.reward, data.progress, data.eval]);
+      graph.setData([data.it, data.reward, data.progress, data.eval].concat(worlds.map(function (w) { return data.world[w]; })));
       second.setData([data.it, data.entropy, data.sps]);
     }
     function addMetrics(v) {
       v.updates.forEach(function (u) {
         data.it.push(u.iteration); data.reward.push(u.reward); data.progress.push(u.progress);
         data.eval.push(null); data.entropy.push(u.entropy === undefined ? null : u.entropy); data.sps.push(u.samples_per_s);
+        worlds.forEach(function (w) { data.world[w].push(null); });
       });
       v.evaluations.forEach(function (e) {
         var i = data.it.lastIndexOf(e.iteration);
-        if (i >= 0 && !e.verification) data.eval[i] = e.progress;
+        if (i >= 0 && !e.verification) {
+          data.eval[i] = e.progress;
+          (e.worlds || []).forEach(function (w) { if (data.world[w[0]]) data.world[w[0]][i] = w[1]; });
+        }
         if (e.best) best = e.iteration;
       });
       redraw();
@@ -364,11 +395,27 @@ var Paddock = (function () {
     });
     events.addEventListener("metrics", function (e) { addMetrics(JSON.parse(e.data)); });
     events.addEventListener("camera", function (e) {
-      var c = JSON.parse(e.data), img = $("#camera");
-      img.src = base + "/camera.png?n=" + c.count;
-      img.hidden = false;
+      var c = JSON.parse(e.data), box = $("#cameras");
+      c.agents.forEach(function (a) {
+        var fig = box.querySelector('[data-agent="' + CSS.escape(a.agent) + '"]');
+        if (!fig) {
+          fig = document.createElement("figure");
+          fig.dataset.agent = a.agent;
+          var img = document.createElement("img");
+          img.width = 320;
+          img.height = 240;
+          img.alt = "The camera of " + a.agent;
+          fig.appendChild(img);
+          fig.appendChild(document.createElement("figcaption"));
+          box.appendChild(fig);
+        }
+        if (fig.dataset.count !== String(a.count)) {
+          fig.dataset.count = String(a.count);
+          fig.querySelector("img").src = base + "/camera.png?agent=" + encodeURIComponent(a.agent) + "&n=" + a.count;
+          text(fig.querySelector("figcaption"), a.agent + " on " + a.world + ", policy v" + a.policy_version);
+        }
+      });
       $("#camera-note").hidden = true;
-      text($("#camera-caption"), c.agent + " on " + c.world + ", policy v" + c.policy_version);
     });
     // Evaluations: start one, list them, show one's trials, lap and frames.
     function cell(tr, s) { tr.appendChild(text(document.createElement("td"), s)); }

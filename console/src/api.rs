@@ -505,14 +505,24 @@ pub async fn model_metrics(State(app): State<App>, Path(name): Path<String>) -> 
     axum::Json(json!({"updates": updates, "evaluations": evaluations})).into_response()
 }
 
-/// `GET /api/v1/models/NAME/camera.png`: the latest frame of one of its agents.
-pub async fn camera(State(app): State<App>, Path(name): Path<String>) -> Response {
+/// `GET /api/v1/models/NAME/camera.png?agent=ID`: the latest frame of one of its agents (the
+/// most recent of any agent without `agent`).
+pub async fn camera(
+    State(app): State<App>,
+    Path(name): Path<String>,
+    axum::extract::Query(q): axum::extract::Query<std::collections::HashMap<String, String>>,
+) -> Response {
     let rec = match app.store.get(&name) {
         Ok(r) => r,
         Err(e) => return store_error(e),
     };
     app.hub.watch(&rec.job_id);
-    match app.hub.frame(&rec.job_id) {
+    let frames = app.hub.frames(&rec.job_id);
+    let frame = match q.get("agent") {
+        Some(a) => frames.get(a),
+        None => frames.values().max_by_key(|f| f.count),
+    };
+    match frame {
         Some(f) => {
             ([(header::CONTENT_TYPE, "image/png"), (header::CACHE_CONTROL, "no-store")], f.png.to_vec()).into_response()
         }
@@ -522,7 +532,7 @@ pub async fn camera(State(app): State<App>, Path(name): Path<String>) -> Respons
 
 /// `GET /api/v1/models/NAME/events`: server-sent events, once a second when something is new:
 /// `status` (the model's status and job figures), `metrics` (new updates and evaluations),
-/// `camera` (a new frame: its agent, world and number).
+/// `camera` (new frames: each agent's latest, its world and how many it has sent).
 pub async fn events(State(app): State<App>, Path(name): Path<String>) -> Response {
     let rec = match app.store.get(&name) {
         Ok(r) => r,
@@ -559,14 +569,15 @@ pub async fn events(State(app): State<App>, Path(name): Path<String>) -> Respons
                 .event("metrics")
                 .data(json!({"updates": updates, "evaluations": evaluations}).to_string())));
         }
-        if let Some(f) = app.hub.frame(&rec.job_id)
-            && f.count != seen.frames
-        {
-            seen.frames = f.count;
-            out.push(Ok(Event::default().event("camera").data(
-                json!({"agent": f.agent, "world": f.world, "policy_version": f.policy_version, "count": f.count})
-                    .to_string(),
-            )));
+        let frames = app.hub.frames(&rec.job_id);
+        let total: u64 = frames.values().map(|f| f.count).sum();
+        if total != seen.frames {
+            seen.frames = total;
+            let agents: Vec<Value> = frames
+                .values()
+                .map(|f| json!({"agent": f.agent, "world": f.world, "policy_version": f.policy_version, "count": f.count}))
+                .collect();
+            out.push(Ok(Event::default().event("camera").data(json!({"agents": agents, "count": total}).to_string())));
         }
         Some((futures_util::stream::iter(out), (app, rec, seen)))
     });

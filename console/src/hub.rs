@@ -15,7 +15,7 @@ use std::sync::{Arc, Mutex, mpsc};
 use std::time::{Duration, Instant};
 use tokio::sync::oneshot;
 
-/// The latest camera frame of a job: which agent, which world, the picture as PNG.
+/// The latest camera frame of one agent of a job: which world, the picture as PNG.
 #[derive(Clone, Debug)]
 pub struct Frame {
     /// The agent that sent it.
@@ -26,7 +26,7 @@ pub struct Frame {
     pub policy_version: u64,
     /// A grey PNG.
     pub png: Arc<Vec<u8>>,
-    /// Frames received so far for this job.
+    /// Frames received so far from this agent for this job.
     pub count: u64,
 }
 
@@ -39,8 +39,8 @@ pub struct Seen {
     pub listed: Option<Instant>,
     /// The last refusal or silence, when the coordinator did not answer.
     pub error: Option<String>,
-    /// The latest frame of each watched job.
-    pub frames: BTreeMap<String, Frame>,
+    /// The latest frame of each agent of each watched job (job, then agent).
+    pub frames: BTreeMap<String, BTreeMap<String, Frame>>,
 }
 
 enum Ask {
@@ -98,9 +98,9 @@ impl Hub {
         self.seen.lock().expect("hub state").jobs.get(id).cloned()
     }
 
-    /// The latest camera frame of `job`.
-    pub fn frame(&self, job: &str) -> Option<Frame> {
-        self.seen.lock().expect("hub state").frames.get(job).cloned()
+    /// The latest camera frame of each agent of `job`, by agent.
+    pub fn frames(&self, job: &str) -> BTreeMap<String, Frame> {
+        self.seen.lock().expect("hub state").frames.get(job).cloned().unwrap_or_default()
     }
 }
 
@@ -136,9 +136,10 @@ fn run(session: &zenoh::Session, asks: &mpsc::Receiver<Ask>, seen: &Mutex<Seen>)
                         let mut png = std::io::Cursor::new(Vec::new());
                         if img.write_to(&mut png, image::ImageFormat::Png).is_ok() {
                             let mut s = seen.lock().expect("hub state");
-                            let count = s.frames.get(job).map_or(0, |f| f.count) + 1;
-                            s.frames.insert(
-                                job.clone(),
+                            let agents = s.frames.entry(job.clone()).or_default();
+                            let count = agents.get(&agent).map_or(0, |f| f.count) + 1;
+                            agents.insert(
+                                agent.clone(),
                                 Frame {
                                     agent,
                                     world: f.world,

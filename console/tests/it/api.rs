@@ -250,3 +250,62 @@ fn a_model_created_through_the_api_trains_to_a_verified_model_and_survives_a_res
     assert!(!data.join("models/state-1").exists());
     c.stop();
 }
+
+/// Issue 51: a console stopped while a model trains (its roles with it) and started again on
+/// the same data folder shows the model training; it goes on from its last checkpoint to a
+/// verified model, and its graph runs on without a gap or a repeat.
+#[test]
+fn a_console_restarted_while_a_model_trains_shows_it_training_and_nothing_is_lost() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    let c = Console::start(&data);
+    let model = json!({
+        "name": "two-worlds",
+        "tracks": ["reinvent_base", "reinvent_wood"],
+        "reward_function": "builtin:center_line",
+        "model_metadata": state_metadata(),
+        "stop": {"minutes": 4, "target_laps": 3, "target_evals": 1, "verify_trials": 10},
+    });
+    assert_eq!(c.api("POST", "/api/v1/models", Some(&model)).code, 201);
+    let before = wait_for(60, "two updates", || {
+        let m = c.api("GET", "/api/v1/models/two-worlds/metrics", None).json();
+        (m["updates"].as_array().unwrap().len() >= 2).then_some(m)
+    });
+    c.stop();
+    let c = Console::start(&data);
+    let v = c.api("GET", "/api/v1/models/two-worlds", None).json();
+    assert_eq!(v["status"], "training", "{v:#}");
+    let v = wait_for(150, "a verified model after the restart", || {
+        let v = c.api("GET", "/api/v1/models/two-worlds", None).json();
+        (v["status"] != "training" && v["status"] != "stopping").then_some(v)
+    });
+    assert_eq!(v["status"], "ready", "{v:#}");
+    let after = c.api("GET", "/api/v1/models/two-worlds/metrics", None).json();
+    let (b, a) = (before["updates"].as_array().unwrap(), after["updates"].as_array().unwrap());
+    assert!(a.len() > b.len(), "training went on: {} updates before, {} after", b.len(), a.len());
+    // The learner resumed from its last checkpoint: the points up to it are kept, those after
+    // it were trained again, and the graph runs 1, 2, 3, … without a gap or a repeat.
+    assert_eq!(a[0], b[0], "the first point is kept");
+    let its: Vec<u64> = a.iter().map(|u| u["iteration"].as_u64().unwrap()).collect();
+    assert_eq!(its, (1..=its.len() as u64).collect::<Vec<_>>(), "one point an iteration");
+    // Each world's evaluation is there for the graph's per-world series.
+    let last = after["evaluations"].as_array().unwrap().last().unwrap().clone();
+    assert_eq!(last["worlds"].as_array().unwrap().len(), 2, "{last}");
+    c.stop();
+}
+
+/// Issue 51: beyond loopback the console has no TLS or login yet, so it refuses to listen
+/// there unless told `--insecure`.
+#[test]
+fn the_console_refuses_to_listen_beyond_loopback_without_insecure() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = Command::new(env!("CARGO_BIN_EXE_console"))
+        .args(["--listen", "0.0.0.0:0", "--data"])
+        .arg(dir.path().join("data"))
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("beyond loopback") && err.contains("--insecure"), "{err}");
+    assert!(!dir.path().join("data/logs").exists(), "no role was started");
+}

@@ -196,7 +196,10 @@ try:
     wait("the model's page", lambda: d.current_url.endswith("/models/camera-1"))
     frames = []
     def camera_changed():
-        img = d.find_element(By.ID, "camera")
+        imgs = d.find_elements(By.CSS_SELECTOR, "#cameras img")
+        if not imgs:
+            return False
+        img = imgs[0]
         src = img.get_attribute("src") or ""
         if img.is_displayed() and src and (not frames or frames[-1] != src):
             ok = d.execute_script("return arguments[0].complete && arguments[0].naturalWidth", img)
