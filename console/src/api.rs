@@ -212,11 +212,7 @@ pub async fn dry_run(body: Bytes) -> Response {
     }
     let world = world.expect("checked");
     let done = tokio::task::spawn_blocking(move || -> Result<Value, Vec<FieldError>> {
-        let input = if source.starts_with("builtin:") {
-            sim_agent::reward_check::RewardInput::Builtin(&source)
-        } else {
-            sim_agent::reward_check::RewardInput::Source { name: "reward_function.py", text: &source }
-        };
+        let input = models::reward_input(&source);
         let checked = models::validate(input, &world, None).map_err(|e| vec![field("reward_function", e)])?;
         if !checked.ok() {
             return Err(checked
@@ -279,11 +275,7 @@ pub async fn validate_reward(body: Bytes) -> Response {
     }
     let world = world.expect("checked");
     let done = tokio::task::spawn_blocking(move || {
-        let input = if source.starts_with("builtin:") {
-            sim_agent::reward_check::RewardInput::Builtin(&source)
-        } else {
-            sim_agent::reward_check::RewardInput::Source { name: "reward_function.py", text: &source }
-        };
+        let input = models::reward_input(&source);
         models::validate(input, &world, metadata.as_ref()).map(|v| v.to_json())
     })
     .await;
@@ -827,10 +819,7 @@ pub async fn import(
             created: protocol::job::now_unix(),
             job_id: String::new(),
             tracks: Vec::new(),
-            algorithm: match f.metadata.training_algorithm {
-                policy::TrainingAlgorithm::ClippedPpo => "clipped_ppo".into(),
-                policy::TrainingAlgorithm::Sac => "sac".into(),
-            },
+            algorithm: models::algorithm_name(f.metadata.training_algorithm).into(),
             sensors: f.metadata.sensor.iter().map(|s| s.name().to_string()).collect(),
             reward: String::new(),
             stop: toml::Table::new(),

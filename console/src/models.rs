@@ -27,6 +27,24 @@ fn problem(field: &str, message: impl Into<String>) -> FieldError {
     FieldError { field: field.into(), message: message.into(), line: None }
 }
 
+/// A reward the console was given: `builtin:NAME`, or a Python file's text (which tracebacks
+/// call `reward_function.py`, its name in the model's folder).
+pub fn reward_input(reward: &str) -> RewardInput<'_> {
+    if reward.starts_with("builtin:") {
+        RewardInput::Builtin(reward)
+    } else {
+        RewardInput::Source { name: "reward_function.py", text: reward }
+    }
+}
+
+/// `training_algorithm` as `model_metadata.json` writes it.
+pub fn algorithm_name(a: policy::TrainingAlgorithm) -> &'static str {
+    match a {
+        policy::TrainingAlgorithm::ClippedPpo => "clipped_ppo",
+        policy::TrainingAlgorithm::Sac => "sac",
+    }
+}
+
 /// DeepRacer's limit on a reward file (its editor's and API's).
 pub const MAX_REWARD_CHARS: usize = 140_000;
 
@@ -197,13 +215,10 @@ pub fn check(
     } else if reward.chars().count() > MAX_REWARD_CHARS {
         errors.push(problem("reward_function", format!("at most {MAX_REWARD_CHARS} characters (DeepRacer's limit)")));
     } else if let Some(world) = worlds.first() {
-        let input = if reward.starts_with("builtin:") {
-            RewardInput::Builtin(&reward)
-        } else {
+        if !reward.starts_with("builtin:") {
             reward_source = Some(reward.clone());
-            RewardInput::Source { name: "reward_function.py", text: &reward }
-        };
-        errors.extend(reward_errors(input, world, metadata.as_ref()));
+        }
+        errors.extend(reward_errors(reward_input(&reward), world, metadata.as_ref()));
     }
     if !errors.is_empty() {
         return Err(errors);
@@ -215,10 +230,7 @@ pub fn check(
         description,
         created: now,
         tracks: worlds.iter().map(|w| w.name.clone()).collect(),
-        algorithm: match metadata.training_algorithm {
-            policy::TrainingAlgorithm::ClippedPpo => "clipped_ppo".into(),
-            policy::TrainingAlgorithm::Sac => "sac".into(),
-        },
+        algorithm: algorithm_name(metadata.training_algorithm).into(),
         sensors: metadata.sensor.iter().map(|s| s.name().to_string()).collect(),
         reward: if reward_source.is_some() { "reward_function.py".into() } else { reward },
         stop,
