@@ -123,10 +123,19 @@ var Paddock = (function () {
     function generatorChanged() { lineActions = null; text($("#actions-note"), ""); drawActions(); }
     $$("#continuous input, #discrete input, #discrete select").forEach(function (e) { e.oninput = generatorChanged; e.onchange = generatorChanged; });
     function firstTrack() { var c = $('[name="tracks"]:checked'); return c ? c.value : null; }
+    function reversed() { return val("direction") === "reversed"; }
+    // DRoA's names for the two ways round, from the first picked track's own.
+    function directionChanged() {
+      var c = $('[name="tracks"]:checked'), ccw = !c || c.dataset.forward !== "clockwise";
+      text($("#dir-forward"), ccw ? "Counterclockwise" : "Clockwise");
+      text($("#dir-reversed"), ccw ? "Clockwise" : "Counterclockwise");
+      showRaceLine();
+    }
+    $$('[name="direction"]').forEach(function (r) { r.onchange = directionChanged; });
     $("#actions-from-line").onclick = function () {
       var t = firstTrack();
       if (!t) return;
-      fetch("/api/v1/tracks/" + encodeURIComponent(t) + "/race_line?actions=" + (num("steer_n") * num("speed_n")))
+      fetch("/api/v1/tracks/" + encodeURIComponent(t) + "/race_line?actions=" + (num("steer_n") * num("speed_n")) + "&reversed=" + reversed())
         .then(function (r) { return r.json(); }).then(function (v) {
           if (!v.actions) { text($("#actions-note"), v.error); return; }
           lineActions = v.actions;
@@ -136,13 +145,13 @@ var Paddock = (function () {
     };
     var shownLine = null;
     function showRaceLine() {
-      var t = firstTrack();
+      var t = firstTrack(), key = t + (reversed() ? " (reversed)" : "");
       $("#race-line-box").hidden = !t;
-      if (!t || t === shownLine) return;
-      shownLine = t;
-      text($("#race-line-track"), t);
-      fetch("/api/v1/tracks/" + encodeURIComponent(t) + "/race_line").then(function (r) { return r.json(); }).then(function (v) {
-        if (shownLine !== t) return;
+      if (!t || key === shownLine) return;
+      shownLine = key;
+      text($("#race-line-track"), key);
+      fetch("/api/v1/tracks/" + encodeURIComponent(t) + "/race_line?reversed=" + reversed()).then(function (r) { return r.json(); }).then(function (v) {
+        if (shownLine !== key) return;
         var box = $("#race-line");
         while (box.firstChild) box.removeChild(box.firstChild);
         if (!v.svg) { text($("#race-line-time"), v.error || ""); return; }
@@ -151,7 +160,7 @@ var Paddock = (function () {
         text($("#race-line-time"), "(a lap in " + v.lap_time_s.toFixed(2) + " s)");
       });
     }
-    $$('[name="tracks"]').forEach(function (c) { c.addEventListener("change", showRaceLine); });
+    $$('[name="tracks"]').forEach(function (c) { c.addEventListener("change", directionChanged); });
 
     $("#find-track").oninput = function () {
       var q = this.value.toLowerCase();
@@ -203,8 +212,9 @@ var Paddock = (function () {
         name: $("#name").value, description: $("#description").value,
         tracks: $$('[name="tracks"]:checked').map(function (c) { return c.value; }),
         reward_function: editor.getValue(), model_metadata: metadata(), hyperparameters: hyperparameters(),
-        stop: stop(), race: race(),
+        stop: stop(), race: race(), reversed: reversed(),
       };
+      if ($('[name="agents"]').value) b.agents = num("agents");
       if (prefill && prefill.clone_from) b.clone_from = prefill.clone_from;
       return b;
     }
@@ -231,7 +241,7 @@ var Paddock = (function () {
       text(button, "Validating…");
       fetch("/api/v1/rewards/validate", {
         method: "POST", headers: { "Content-Type": "application/json" },
-        body: JSON.stringify({ reward_function: editor.getValue(), track: $("#validate-track").value, model_metadata: metadata() }),
+        body: JSON.stringify({ reward_function: editor.getValue(), track: $("#validate-track").value, reversed: reversed(), model_metadata: metadata() }),
       }).then(function (r) { return r.json(); }).then(function (v) {
         if (v.errors && v.ok === undefined) v = { ok: false, errors: v.errors, warnings: [] };
         showValidation(v);
@@ -243,7 +253,7 @@ var Paddock = (function () {
       button.disabled = true;
       fetch("/api/v1/rewards/dry_run", {
         method: "POST", headers: { "Content-Type": "application/json" },
-        body: JSON.stringify({ reward_function: editor.getValue(), track: $("#validate-track").value }),
+        body: JSON.stringify({ reward_function: editor.getValue(), track: $("#validate-track").value, reversed: reversed() }),
       }).then(function (r) { return r.json(); }).then(function (v) {
         if (!v.svg) { showValidation({ ok: false, errors: v.errors || [{ message: v.error }], warnings: [] }); return; }
         var box = $("#dry-run-lap");
@@ -284,6 +294,8 @@ var Paddock = (function () {
       var m = prefill.model_metadata || {};
       function set(name, v) { var e = $('[name="' + name + '"]'); if (e && v !== undefined && v !== null) e.value = v; }
       function pick(name, v) { var e = $('[name="' + name + '"][value="' + v + '"]'); if (e) e.checked = true; }
+      pick("direction", prefill.reversed ? "reversed" : "forward");
+      set("agents", prefill.agents);
       if (m.training_algorithm) pick("training_algorithm", m.training_algorithm);
       if (m.neural_network) set("neural_network", m.neural_network);
       if (Array.isArray(m.action_space)) {
@@ -315,7 +327,7 @@ var Paddock = (function () {
     }
     raceChanged();
     algorithmChanged();
-    showRaceLine();
+    directionChanged();
     show(1);
   }
 
@@ -323,7 +335,7 @@ var Paddock = (function () {
   function model() {
     var m = JSON.parse($("#model-json").textContent);
     var base = "/api/v1/models/" + encodeURIComponent(m.name);
-    var data = { it: [], reward: [], progress: [], eval: [], entropy: [], sps: [], world: {} };
+    var data = { it: [], reward: [], progress: [], eval: [], evalReward: [], entropy: [], sps: [], world: {} };
     // A model of several worlds: each world's evaluation completion too.
     var worlds = m.tracks.length > 1 ? m.tracks : [];
     var palette = ["#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22", "#17becf"];
@@ -351,10 +363,11 @@ var Paddock = (function () {
         { label: "Average reward (training)", stroke: "#ff7f0e" },
         { label: "Average completion (training)", stroke: "#1f77b4", scale: "%" },
         { label: "Average completion (evaluation)", stroke: "#d62728", scale: "%", points: { show: true } },
+        { label: "Average reward (evaluation)", stroke: "#e6550d", dash: [2, 3], points: { show: true } },
       ].concat(worlds.map(function (w, i) {
         return { label: "Evaluation: " + w, stroke: palette[i % palette.length], dash: [4, 4], scale: "%", points: { show: true } };
       })),
-    }, [[], [], [], []].concat(worlds.map(function () { return []; })), $("#graph"));
+    }, [[], [], [], [], []].concat(worlds.map(function () { return []; })), $("#graph"));
     var second = new uPlot({
       width: width, height: 160, scales: { x: { time: false } },
       axes: [{ label: "Iteration" }, { label: "Entropy" }, { side: 1, scale: "sps", label: "Samples/s", grid: { show: false } }],
@@ -363,19 +376,21 @@ var Paddock = (function () {
     // For the tests (and the curious, in the browser's console): the graphs.
     window.paddockGraphs = [graph, second];
     function redraw() {
-      graph.setData([data.it, data.reward, data.progress, data.eval].concat(worlds.map(function (w) { return data.world[w]; })));
+      graph.setData([data.it, data.reward, data.progress, data.eval, data.evalReward].concat(worlds.map(function (w) { return data.world[w]; })));
       second.setData([data.it, data.entropy, data.sps]);
     }
     function addMetrics(v) {
       v.updates.forEach(function (u) {
         data.it.push(u.iteration); data.reward.push(u.reward); data.progress.push(u.progress);
-        data.eval.push(null); data.entropy.push(u.entropy === undefined ? null : u.entropy); data.sps.push(u.samples_per_s);
+        data.eval.push(null); data.evalReward.push(null); data.entropy.push(u.entropy === undefined ? null : u.entropy); data.sps.push(u.samples_per_s);
         worlds.forEach(function (w) { data.world[w].push(null); });
       });
       v.evaluations.forEach(function (e) {
         var i = data.it.lastIndexOf(e.iteration);
         if (i >= 0 && !e.verification) {
           data.eval[i] = e.progress;
+          // Runs from before evaluations carried their reward have none to draw.
+          data.evalReward[i] = e.reward === undefined ? null : e.reward;
           (e.worlds || []).forEach(function (w) { if (data.world[w[0]]) data.world[w[0]][i] = w[1]; });
         }
         if (e.best) best = e.iteration;

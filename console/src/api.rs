@@ -103,6 +103,8 @@ fn model_json(app: &App, rec: &ModelRecord, state: Option<JobState>) -> Value {
         "algorithm": rec.algorithm,
         "sensors": rec.sensors,
         "tracks": rec.tracks,
+        "reversed": rec.reversed,
+        "agents": rec.agents,
         "reward": rec.reward,
         "stop": rec.stop,
         "created": rec.created,
@@ -128,7 +130,9 @@ pub async fn tracks() -> Response {
         .iter()
         .map(|w| {
             let t = w.track(tracks::Direction::Forward);
-            json!({"name": w.name, "surface": w.surface.name(), "length_m": t.length(),
+            // DRoA's direction names: which way round the track's own order drives.
+            let forward = if t.is_ccw() { "counterclockwise" } else { "clockwise" };
+            json!({"name": w.name, "surface": w.surface.name(), "length_m": t.length(), "forward": forward,
                    "picture": format!("/api/v1/tracks/{}/picture.svg", w.name)})
         })
         .collect();
@@ -146,9 +150,10 @@ pub async fn track_picture(Path(name): Path<String>) -> Response {
     }
 }
 
-/// `GET /api/v1/tracks/NAME/race_line?actions=N`: the track's racing line (`[x, y, speed]` a
-/// point, its lap time) for DeepRacer's car on the track's surface, and N discrete actions that
-/// drive it (`--action-space-from-line`'s), 10 by default.
+/// `GET /api/v1/tracks/NAME/race_line?actions=N&reversed=B`: the track's racing line (`[x, y,
+/// speed]` a point, its lap time) for DeepRacer's car on the track's surface, driven the other
+/// way round when `reversed=true`, and N discrete actions that drive it
+/// (`--action-space-from-line`'s), 10 by default.
 pub async fn race_line(
     Path(name): Path<String>,
     axum::extract::Query(q): axum::extract::Query<std::collections::HashMap<String, String>>,
@@ -163,6 +168,11 @@ pub async fn race_line(
             )]);
         }
     };
+    let direction = match q.get("reversed").map(String::as_str) {
+        None | Some("false") => tracks::Direction::Forward,
+        Some("true") => tracks::Direction::Reversed,
+        Some(_) => return invalid(&[field("reversed", "expected true or false".into())]),
+    };
     let world = match tracks::world(&name) {
         Ok(w) => w,
         Err(e) => {
@@ -172,7 +182,7 @@ pub async fn race_line(
     };
     let made = tokio::task::spawn_blocking(move || {
         let car = sim_agent::SimConfig::default().car;
-        sim_agent::race_line::LinePlan::new(&world.track(tracks::Direction::Forward), &car, world.surface).map(|plan| {
+        sim_agent::race_line::LinePlan::new(&world.track(direction), &car, world.surface).map(|plan| {
             let actions = plan.action_space(&car, n, 30.0, 4.0);
             let points: Vec<[f64; 3]> = plan.points.iter().zip(&plan.speed).map(|(p, v)| [p.x, p.y, *v]).collect();
             let svg = crate::pictures::lap_svg(&world, &points, "speed (m/s)");
@@ -207,13 +217,14 @@ pub async fn dry_run(body: Bytes) -> Response {
     };
     let track = v.get("track").and_then(Value::as_str).unwrap_or("reinvent_base");
     let world = tracks::world(track).map_err(|e| errors.push(field("track", e.to_string()))).ok();
+    let reversed = reversed_field(&v, &mut errors);
     if !errors.is_empty() {
         return invalid(&errors);
     }
     let world = world.expect("checked");
     let done = tokio::task::spawn_blocking(move || -> Result<Value, Vec<FieldError>> {
         let input = models::reward_input(&source);
-        let checked = models::validate(input, &world, None).map_err(|e| vec![field("reward_function", e)])?;
+        let checked = models::validate(input, &world, reversed, None).map_err(|e| vec![field("reward_function", e)])?;
         if !checked.ok() {
             return Err(checked
                 .findings
@@ -230,7 +241,8 @@ pub async fn dry_run(body: Bytes) -> Response {
         }
         .map_err(|e| vec![field("reward_function", e.to_string())])?
         .with_time_limit(cfg.reward_time_limit());
-        let (points, status) = sim_agent::driver::lap_rewards(&world, &mut reward, cfg)
+        let direction = if reversed { tracks::Direction::Reversed } else { tracks::Direction::Forward };
+        let (points, status) = sim_agent::driver::lap_rewards(&world, direction, &mut reward, cfg)
             .map_err(|e| vec![field("reward_function", e.to_string())])?;
         let total: f64 = points.iter().map(|p| p[2]).sum();
         Ok(json!({"track": world.name, "status": status.label(), "steps": points.len(), "total_reward": total,
@@ -264,6 +276,7 @@ pub async fn validate_reward(body: Bytes) -> Response {
     };
     let track = v.get("track").and_then(Value::as_str).unwrap_or("reinvent_base");
     let world = tracks::world(track).map_err(|e| errors.push(field("track", e.to_string()))).ok();
+    let reversed = reversed_field(&v, &mut errors);
     let metadata = match v.get("model_metadata") {
         None | Some(Value::Null) => None,
         Some(m) => policy::ModelMetadata::parse(&m.to_string(), "model_metadata")
@@ -276,13 +289,25 @@ pub async fn validate_reward(body: Bytes) -> Response {
     let world = world.expect("checked");
     let done = tokio::task::spawn_blocking(move || {
         let input = models::reward_input(&source);
-        models::validate(input, &world, metadata.as_ref()).map(|v| v.to_json())
+        models::validate(input, &world, reversed, metadata.as_ref()).map(|v| v.to_json())
     })
     .await;
     match done {
         Ok(Ok(v)) => axum::Json(v).into_response(),
         Ok(Err(e)) => error(StatusCode::INTERNAL_SERVER_ERROR, &e),
         Err(e) => error(StatusCode::INTERNAL_SERVER_ERROR, &format!("the validation failed: {e}")),
+    }
+}
+
+/// A request's optional `"reversed"`: false when absent, an error unless a boolean.
+fn reversed_field(v: &Value, errors: &mut Vec<FieldError>) -> bool {
+    match v.get("reversed") {
+        None | Some(Value::Null) => false,
+        Some(Value::Bool(b)) => *b,
+        Some(_) => {
+            errors.push(field("reversed", "expected true or false".into()));
+            false
+        }
     }
 }
 
@@ -480,7 +505,7 @@ pub fn metrics(store: &Store, name: &str, skip: (usize, usize)) -> (Vec<Value>, 
     let evals = read("evaluations.jsonl", skip.1)
         .into_iter()
         .map(|e| {
-            json!({"iteration": e["iteration"], "progress": e["progress"], "lap_time": e["lap_time"],
+            json!({"iteration": e["iteration"], "progress": e["progress"], "reward": e.get("reward"), "lap_time": e["lap_time"],
                    "best": e["best"], "min_laps": e["min_laps"], "verification": e["verification"],
                    "worlds": e["worlds"]})
         })
@@ -819,6 +844,8 @@ pub async fn import(
             created: protocol::job::now_unix(),
             job_id: String::new(),
             tracks: Vec::new(),
+            reversed: false,
+            agents: None,
             algorithm: models::algorithm_name(f.metadata.training_algorithm).into(),
             sensors: f.metadata.sensor.iter().map(|s| s.name().to_string()).collect(),
             reward: String::new(),

@@ -45,14 +45,19 @@ pub fn algorithm_name(a: policy::TrainingAlgorithm) -> &'static str {
     }
 }
 
+/// The most agents a model may ask for (the roster's default agent slots).
+pub const MAX_AGENTS: u64 = 64;
+
 /// DeepRacer's limit on a reward file (its editor's and API's).
 pub const MAX_REWARD_CHARS: usize = 140_000;
 
 /// The fields `POST /api/v1/models` takes.
-pub const FIELDS: [&str; 9] = [
+pub const FIELDS: [&str; 11] = [
     "name",
     "description",
     "tracks",
+    "reversed",
+    "agents",
     "reward_function",
     "model_metadata",
     "hyperparameters",
@@ -135,6 +140,27 @@ pub fn check(
         }
         Some(other) => errors.push(problem("tracks", format!("expected a list of track names, not {}", kind(other)))),
     }
+    let reversed = match map.get("reversed") {
+        None | Some(Value::Null) => false,
+        Some(Value::Bool(b)) => *b,
+        Some(other) => {
+            errors.push(problem("reversed", format!("expected true or false, not {}", kind(other))));
+            false
+        }
+    };
+    let agents = match map.get("agents") {
+        None | Some(Value::Null) => None,
+        Some(v) => match v.as_u64() {
+            Some(n @ 1..=MAX_AGENTS) => Some(n as u32),
+            _ => {
+                errors.push(problem(
+                    "agents",
+                    format!("expected a whole number from 1 to {MAX_AGENTS}, or null for every agent"),
+                ));
+                None
+            }
+        },
+    };
     let file = |field: &str, errors: &mut Vec<FieldError>| -> Option<String> {
         match map.get(field) {
             None | Some(Value::Null) => None,
@@ -218,7 +244,7 @@ pub fn check(
         if !reward.starts_with("builtin:") {
             reward_source = Some(reward.clone());
         }
-        errors.extend(reward_errors(reward_input(&reward), world, metadata.as_ref()));
+        errors.extend(reward_errors(reward_input(&reward), world, reversed, metadata.as_ref()));
     }
     if !errors.is_empty() {
         return Err(errors);
@@ -230,6 +256,8 @@ pub fn check(
         description,
         created: now,
         tracks: worlds.iter().map(|w| w.name.clone()).collect(),
+        reversed,
+        agents,
         algorithm: algorithm_name(metadata.training_algorithm).into(),
         sensors: metadata.sensor.iter().map(|s| s.name().to_string()).collect(),
         reward: if reward_source.is_some() { "reward_function.py".into() } else { reward },
@@ -272,8 +300,13 @@ pub fn clone_problems(theirs: &ModelMetadata, ours: &ModelMetadata) -> Vec<Strin
 }
 
 /// The reward file's errors (warnings are DeepRacer's refusals, which Paddock runs: not errors).
-fn reward_errors(input: RewardInput<'_>, world: &tracks::World, metadata: Option<&ModelMetadata>) -> Vec<FieldError> {
-    let v = match validate(input, world, metadata) {
+fn reward_errors(
+    input: RewardInput<'_>,
+    world: &tracks::World,
+    reversed: bool,
+    metadata: Option<&ModelMetadata>,
+) -> Vec<FieldError> {
+    let v = match validate(input, world, reversed, metadata) {
         Ok(v) => v,
         Err(e) => return vec![problem("reward_function", e)],
     };
@@ -284,14 +317,16 @@ fn reward_errors(input: RewardInput<'_>, world: &tracks::World, metadata: Option
         .collect()
 }
 
-/// Validate a reward on `world` as `coordinator reward validate` does (60 places, the
-/// simulator's time limit a call, the model's actions or DeepRacer's widest).
+/// Validate a reward on `world` (driven the other way round when `reversed`) as `coordinator
+/// reward validate` does (60 places, the simulator's time limit a call, the model's actions or
+/// DeepRacer's widest).
 pub fn validate(
     input: RewardInput<'_>,
     world: &tracks::World,
+    reversed: bool,
     metadata: Option<&ModelMetadata>,
 ) -> Result<reward_check::Validation, String> {
-    let track = world.track(tracks::Direction::Forward);
+    let track = world.track(if reversed { tracks::Direction::Reversed } else { tracks::Direction::Forward });
     let space = metadata
         .map(|m| m.action_space.clone())
         .unwrap_or(policy::ActionSpace::Continuous { steering_angle: (-30.0, 30.0), speed: (0.5, 4.0) });
@@ -309,6 +344,12 @@ pub fn job_spec(checked: &Checked, run_dir: &std::path::Path) -> String {
     let mut t = toml::Table::new();
     t.insert("name".into(), Value::String(r.name.clone()));
     t.insert("worlds".into(), Value::Array(r.tracks.iter().cloned().map(Value::String).collect()));
+    if r.reversed {
+        t.insert("reversed".into(), Value::Boolean(true));
+    }
+    if let Some(n) = r.agents {
+        t.insert("agents".into(), Value::Integer(n.into()));
+    }
     t.insert("reward".into(), Value::String(r.reward.clone()));
     t.insert("model_metadata".into(), Value::String("model_metadata.json".into()));
     t.insert("hyperparameters".into(), Value::String("hyperparameters.json".into()));

@@ -126,7 +126,7 @@ fn rows(app: &App, q: &str, sort: &str) -> Vec<Value> {
         .map(|r| {
             let status = status_of(app.hub.job(&r.job_id).map(|j| j.state()), &r, &app.store);
             json!({"name": r.name, "description": r.description, "status": status, "algorithm": r.algorithm,
-                   "sensors": r.sensors, "tracks": r.tracks, "best_lap_s": best_lap(&app.store, &r.name),
+                   "sensors": r.sensors, "tracks": r.tracks, "reversed": r.reversed, "best_lap_s": best_lap(&app.store, &r.name),
                    "created": r.created, "created_text": when(r.created)})
         })
         .collect();
@@ -179,7 +179,11 @@ pub async fn model_rows(State(app): State<App>, Query(q): Query<HashMap<String, 
 pub async fn new_model(State(app): State<App>, Query(q): Query<HashMap<String, String>>) -> Response {
     let tracks: Vec<Value> = tracks::worlds()
         .iter()
-        .map(|w| json!({"name": w.name, "surface": w.surface.name(), "length": w.track(tracks::Direction::Forward).length()}))
+        .map(|w| {
+            let t = w.track(tracks::Direction::Forward);
+            let forward = if t.is_ccw() { "counterclockwise" } else { "clockwise" };
+            json!({"name": w.name, "surface": w.surface.name(), "length": t.length(), "forward": forward})
+        })
         .collect();
     let samples: Vec<Value> = SAMPLES.iter().map(|(t, c)| json!({"title": t, "code": c})).collect();
     let mut prefill = Value::Null;
@@ -195,7 +199,7 @@ pub async fn new_model(State(app): State<App>, Query(q): Query<HashMap<String, S
         prefill = json!({
             "name": format!("{}-clone", rec.name).chars().take(64).collect::<String>(),
             "description": format!("Clone of {}", rec.name).chars().take(255).collect::<String>(),
-            "tracks": rec.tracks, "stop": rec.stop, "clone_from": rec.name,
+            "tracks": rec.tracks, "reversed": rec.reversed, "agents": rec.agents, "stop": rec.stop, "clone_from": rec.name,
             "reward_source": read("reward_function.py").unwrap_or_else(|| rec.reward.clone()),
             "model_metadata": json_file("model_metadata.json"),
             "hyperparameters": json_file("hyperparameters.json"),
@@ -229,7 +233,7 @@ pub async fn model(State(app): State<App>, Path(name): Path<String>) -> Response
     app.hub.watch(&rec.job_id);
     let status = status_of(app.hub.job(&rec.job_id).map(|j| j.state()), &rec, &app.store);
     let m = json!({"name": rec.name, "description": rec.description, "status": status, "tracks": rec.tracks,
-                   "sensors": rec.sensors, "algorithm": rec.algorithm, "reward": rec.reward, "stop": rec.stop,
+                   "reversed": rec.reversed, "agents": rec.agents, "sensors": rec.sensors, "algorithm": rec.algorithm, "reward": rec.reward, "stop": rec.stop,
                    "job_id": rec.job_id});
     let tracks: Vec<String> = tracks::world_names().map(String::from).collect();
     render("model.html", json!({"m": m, "created_text": when(rec.created), "status_text": "", "tracks": tracks}))

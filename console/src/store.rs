@@ -34,6 +34,12 @@ pub struct ModelRecord {
     pub job_id: String,
     /// The worlds it trains on.
     pub tracks: Vec<String>,
+    /// Driven the other way round (DeepRacer's `is_reversed`).
+    #[serde(default)]
+    pub reversed: bool,
+    /// The most sim agents it trains on (none: every agent there is).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub agents: Option<u32>,
     /// `clipped_ppo` or `sac`.
     pub algorithm: String,
     /// DeepRacer's sensor names.
@@ -254,6 +260,8 @@ mod tests {
                 created: 1.0,
                 job_id: format!("{name}-1"),
                 tracks: vec!["reinvent_base".into()],
+                reversed: false,
+                agents: None,
                 algorithm: "clipped_ppo".into(),
                 sensors: vec!["FRONT_FACING_CAMERA".into()],
                 reward: "builtin:center_line".into(),

@@ -55,6 +55,19 @@ pub fn assign(
     out
 }
 
+/// The agents a job takes: every one, or at most `cap` (when not 0), those it already has
+/// first so that a new agent does not move one that is working.
+pub fn capped(agents: &[String], current: &BTreeMap<String, AgentWork>, cap: u32) -> Vec<String> {
+    if cap == 0 || agents.len() <= cap as usize {
+        return agents.to_vec();
+    }
+    let (mut kept, others): (Vec<String>, Vec<String>) = agents.iter().cloned().partition(|a| current.contains_key(a));
+    kept.extend(others);
+    kept.truncate(cap as usize);
+    kept.sort();
+    kept
+}
+
 /// One world's last evaluation, as the adaptive schedule reads it.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct WorldEval {
@@ -113,7 +126,7 @@ pub fn assignment(doc: &Job, agent: &str, work: &AgentWork, weights: &[f64]) -> 
             .iter()
             .map(|w| WorldSpec {
                 name: w.clone(),
-                reversed: false,
+                reversed: doc.reversed,
                 steering_noise_deg: sim.noise.steering_deg,
                 speed_noise_fraction: sim.noise.speed_fraction,
             })
@@ -137,6 +150,24 @@ mod tests {
 
     fn work(plan: &BTreeMap<String, Vec<String>>) -> BTreeMap<String, AgentWork> {
         plan.iter().map(|(a, w)| (a.clone(), AgentWork { worlds: w.clone(), offset: 0, generation: 1 })).collect()
+    }
+
+    /// Issue 51: a job capped at N agents takes N, those it has first; 0 is every agent.
+    #[test]
+    fn a_job_capped_at_n_agents_takes_n_keeping_those_it_has() {
+        let all = names(&["a1", "a2", "a3", "a4"]);
+        let has = |v: &[&str]| work(&v.iter().map(|a| (a.to_string(), names(&["w"]))).collect());
+        // (agents it has, cap, agents it takes)
+        for (current, cap, want) in [
+            (vec![], 0, vec!["a1", "a2", "a3", "a4"]),
+            (vec![], 2, vec!["a1", "a2"]),
+            (vec!["a3", "a4"], 2, vec!["a3", "a4"]),
+            (vec!["a4"], 2, vec!["a1", "a4"]),
+            (vec!["a2"], 9, vec!["a1", "a2", "a3", "a4"]),
+            (vec!["a2", "a3", "a4"], 1, vec!["a2"]),
+        ] {
+            assert_eq!(capped(&all, &has(&current), cap), names(&want), "{current:?} capped at {cap}");
+        }
     }
 
     #[test]

@@ -670,7 +670,7 @@ pub struct UpArgs {
     /// Run this job spec as it is (what `job start` takes) instead of one made from the flags
     /// below that describe a job (worlds, reward, files, stop conditions, --set, --seed).
     #[arg(long, value_name = "JOB.toml", conflicts_with_all = [
-        "world", "reward", "sensor", "hyperparameters", "model_metadata", "clone_from", "minutes",
+        "world", "reversed", "reward", "sensor", "hyperparameters", "model_metadata", "clone_from", "minutes",
         "max_episodes", "env_steps", "target_progress", "target_reward", "window", "target_laps",
         "target_evals", "verify_trials", "stop_on_plateau", "stop_on_collapse", "sets", "seed", "race", "obstacles", "bots",
         "bot_speed", "run_env", "schedule",
@@ -679,6 +679,9 @@ pub struct UpArgs {
     /// World (repeatable; default: reinvent_carpet and reinvent_concrete).
     #[arg(long)]
     pub world: Vec<String>,
+    /// Drive every world the other way round (DeepRacer's `is_reversed`).
+    #[arg(long)]
+    pub reversed: bool,
     /// How the environments spread over the worlds: `adaptive` (more where the last
     /// evaluations are weakest; the default with three worlds or more) or `even`.
     #[arg(long, value_parser = ["adaptive", "even"])]
@@ -795,6 +798,10 @@ pub struct TrainArgs {
     /// SECTOR_LIDAR, the console's LiDAR); 5 steering angles x 2 speeds.
     #[arg(long, default_value = "state")]
     pub sensor: String,
+    /// Drive every world the other way round (DeepRacer's `is_reversed`), in training and in
+    /// its evaluations.
+    #[arg(long)]
+    pub reversed: bool,
     /// Wall-clock budget in minutes.
     #[arg(long, default_value_t = 5.0)]
     pub minutes: f64,

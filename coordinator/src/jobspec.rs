@@ -3,6 +3,8 @@
 //!
 //! ```toml
 //! worlds = ["reinvent_carpet", "reinvent_concrete"]   # required
+//! reversed = false                   # optional: drive every world the other way round
+//! agents = 4                         # optional: the most sim agents it takes (default: all)
 //! reward = "reward_function.py"      # DeepRacer's file as it is, or "builtin:center_line"
 //! model_metadata = "model_metadata.json"   # optional, DeepRacer's file
 //! hyperparameters = "hyperparameters.json" # optional, DeepRacer's file
@@ -33,6 +35,12 @@ pub struct JobSpec {
     pub name: Option<String>,
     /// Worlds to train on.
     pub worlds: Vec<String>,
+    /// Drive every world the other way round (DeepRacer's `is_reversed`; DRoA's other
+    /// direction).
+    #[serde(default)]
+    pub reversed: bool,
+    /// The most sim agents the job takes (default: every agent there is).
+    pub agents: Option<u32>,
     /// Reward file or `builtin:NAME`.
     #[serde(default = "default_reward")]
     pub reward: String,
@@ -157,10 +165,14 @@ pub fn parse(text: &str, base: &Path, origin: &str, id: &str) -> Result<Job> {
     if spec.stop.minutes <= 0.0 || !spec.stop.minutes.is_finite() {
         bail!("{origin}: field 'stop.minutes' must be a positive number of minutes");
     }
+    if spec.agents == Some(0) {
+        bail!("{origin}: field 'agents' must be at least 1 (leave it out for every agent there is)");
+    }
+    let direction = if spec.reversed { tracks::Direction::Reversed } else { tracks::Direction::Forward };
     let tracks = spec
         .worlds
         .iter()
-        .map(|w| Ok(protocol::job::track_lines_to_wire(&sim_agent::track_lines(&tracks::world(w)?))))
+        .map(|w| Ok(protocol::job::track_lines_to_wire(&sim_agent::track_lines(&tracks::world(w)?, direction))))
         .collect::<Result<Vec<_>>>()?;
     Ok(Job {
         protocol_version: protocol::PROTOCOL_VERSION,
@@ -181,6 +193,8 @@ pub fn parse(text: &str, base: &Path, origin: &str, id: &str) -> Result<Job> {
         obs_size: sim_agent::obs::obs_dim(&sim.observation) as u64,
         adaptive: spec.schedule.adaptive.unwrap_or(spec.worlds.len() >= 3),
         schedule_floor: floor,
+        reversed: spec.reversed,
+        agents: spec.agents.unwrap_or(0),
         worlds: spec.worlds,
     })
 }
@@ -203,6 +217,8 @@ mod tests {
             ("worlds = [\"reinvent_wood\"]\n[schedule]\nadaptiv = true", "adaptiv"),
             ("worlds = [\"reinvent_wood\"]\n[sim]\ncontrol_hz = \"fast\"", "field 'sim'"),
             ("worlds = \"reinvent_wood\"", "worlds"),
+            ("worlds = [\"reinvent_wood\"]\nagents = 0", "field 'agents' must be at least 1"),
+            ("worlds = [\"reinvent_wood\"]\nreversed = \"yes\"", "reversed"),
         ] {
             let e = parse(text, &dir, "job.toml", "j").unwrap_err().to_string();
             assert!(e.contains("job.toml") && e.contains(want), "{text}: {e}");
@@ -213,6 +229,20 @@ mod tests {
         assert_eq!(ok.worlds.len(), 2);
         assert_eq!(ok.reward_source, "builtin:center_line");
         assert_eq!(ok.out, "runs/j");
+    }
+
+    /// Issue 51: `reversed` drives every world the other way round, its lines (for the
+    /// learner's logs) reversed too; `agents` caps the agents the job takes.
+    #[test]
+    fn reversed_and_agents_reach_the_job() {
+        let dir = std::env::temp_dir();
+        let plain = parse("worlds = [\"reinvent_base\"]", &dir, "job.toml", "j").unwrap();
+        assert_eq!((plain.reversed, plain.agents), (false, 0));
+        let other = parse("worlds = [\"reinvent_base\"]\nreversed = true\nagents = 3", &dir, "job.toml", "j").unwrap();
+        assert_eq!((other.reversed, other.agents), (true, 3));
+        let (a, b) = (&plain.tracks[0].centre, &other.tracks[0].centre);
+        assert_eq!(a.len(), b.len());
+        assert_ne!(a[2..4], b[2..4], "the reversed centre line runs the other way");
     }
 
     /// Issue 34: the adaptive schedule is on for three worlds or more unless turned off.

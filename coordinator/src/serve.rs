@@ -9,7 +9,7 @@
 //! wall-clock limit as a backstop should the learner be gone.
 
 use anyhow::{Context, Result};
-use coordinator::assign::{WorldEval, assign, assignment, weights};
+use coordinator::assign::{WorldEval, assign, assignment, capped, weights};
 use coordinator::jobs::{AgentWork, Db, JobRecord, JobState, now_unix};
 use protocol::job_reply::Body;
 use protocol::net::{self, DropCounters, NetArgs, decode_sample, zenoh};
@@ -321,6 +321,7 @@ fn schedule(st: &mut State, db: &Db, session: &zenoh::Session) {
         .map(|j| j.id().to_string());
     if let Some(id) = &active {
         let j = st.jobs.get_mut(id).expect("active");
+        let agents = capped(&agents, &j.assignments, j.job().agents);
         // The adaptive schedule: every agent drives every world, the weights split them.
         let plan = if j.job().adaptive {
             agents.iter().map(|a| (a.clone(), j.job().worlds.clone())).collect()
@@ -390,19 +391,22 @@ fn schedule(st: &mut State, db: &Db, session: &zenoh::Session) {
 /// ends, so small changes are not worth it); true when they were.
 fn reweigh(j: &mut JobRecord, line_laps: &mut BTreeMap<String, f64>) -> bool {
     let doc = j.job();
+    let direction = if doc.reversed { tracks::Direction::Reversed } else { tracks::Direction::Forward };
+    // Kept by world and direction: a track's line laps differently the other way round.
+    let key = |w: &str| if doc.reversed { format!("{w} reversed") } else { w.to_string() };
     for w in &doc.worlds {
-        if !line_laps.contains_key(w) {
+        if let std::collections::btree_map::Entry::Vacant(slot) = line_laps.entry(key(w)) {
             let lap = tracks::world(w)
                 .ok()
                 .and_then(|world| {
                     let car = sim_agent::SimConfig::default().car;
-                    sim_agent::race_line::LinePlan::new(&world.track(tracks::Direction::Forward), &car, world.surface)
+                    sim_agent::race_line::LinePlan::new(&world.track(direction), &car, world.surface)
                         .ok()
                         .map(|p| p.lap_time)
                 })
                 // No line fits: the centre line at 2 m/s stands in.
                 .unwrap_or_else(|| doc.tracks.iter().find(|t| &t.world == w).map_or(1.0, |t| t.length / 2.0));
-            line_laps.insert(w.clone(), lap);
+            slot.insert(lap);
         }
     }
     let evals: Vec<Option<WorldEval>> = doc
@@ -413,7 +417,7 @@ fn reweigh(j: &mut JobRecord, line_laps: &mut BTreeMap<String, f64>) -> bool {
             Some(WorldEval {
                 progress: s.eval_progress,
                 lap_time: (s.eval_lap_time > 0.0).then_some(s.eval_lap_time),
-                reference: line_laps[w],
+                reference: line_laps[&key(w)],
             })
         })
         .collect();

@@ -181,6 +181,7 @@ pub fn train(mut args: TrainArgs) -> Result<i32> {
     let mut cfg: SimConfig = args.race.sim_config(sim_path.as_deref(), &args.sets)?;
     check_sensors(&meta, &mut cfg)?;
     let worlds = worlds_arg.iter().map(|w| resolve_world(w)).collect::<Result<Vec<_>>>()?;
+    let direction = if args.reversed { Direction::Reversed } else { Direction::Forward };
     if let Some(n) = args.action_space_from_line {
         if let Some(p) = &meta_path {
             bail!(
@@ -192,7 +193,7 @@ pub fn train(mut args: TrainArgs) -> Result<i32> {
             bail!("--action-space-from-line 0: the action space needs at least one action");
         }
         let w = &worlds[0];
-        let plan = sim_agent::race_line::LinePlan::new(&w.track(Direction::Forward), &cfg.car, w.surface)
+        let plan = sim_agent::race_line::LinePlan::new(&w.track(direction), &cfg.car, w.surface)
             .with_context(|| format!("--action-space-from-line: {}'s racing line", w.name))?;
         let actions = plan.action_space(&cfg.car, n, 30.0, 4.0);
         let shown: Vec<String> =
@@ -205,7 +206,7 @@ pub fn train(mut args: TrainArgs) -> Result<i32> {
     for w in &worlds {
         sim_agent::validate::validate_reward(
             &mut reward,
-            &w.track(Direction::Forward),
+            &w.track(direction),
             w.surface,
             &meta.action_space,
             20,
@@ -238,11 +239,11 @@ pub fn train(mut args: TrainArgs) -> Result<i32> {
         gpu: gpu.clone(),
         adopt: None,
         signing_key: args.signing_key.clone(),
-        tracks: worlds.iter().map(sim_agent::track_lines).collect(),
+        tracks: worlds.iter().map(|w| sim_agent::track_lines(w, direction)).collect(),
     };
     let worker = Worker::new(WorkerSetup {
         id: "local".into(),
-        worlds: worlds.iter().map(|w| EnvSpec::from_world(w, Direction::Forward)).collect(),
+        worlds: worlds.iter().map(|w| EnvSpec::from_world(w, direction)).collect(),
         offset: 0,
         weights: Vec::new(),
         envs: args.envs.max(1),
@@ -256,7 +257,11 @@ pub fn train(mut args: TrainArgs) -> Result<i32> {
     })?;
     println!(
         "training on {} for up to {:.1} min, {} envs, reward {}, run folder {}",
-        worlds.iter().map(|w| format!("{} ({})", w.name, w.surface.name())).collect::<Vec<_>>().join(", "),
+        worlds
+            .iter()
+            .map(|w| format!("{} ({}{})", w.name, w.surface.name(), if args.reversed { ", reversed" } else { "" }))
+            .collect::<Vec<_>>()
+            .join(", "),
         args.minutes,
         args.envs,
         reward_spec,

@@ -216,6 +216,9 @@ fn job_spec(args: &UpArgs, out: &Path) -> Result<String> {
         args.world.clone()
     };
     t.insert("worlds".into(), Value::Array(worlds.into_iter().map(Value::String).collect()));
+    if args.reversed {
+        t.insert("reversed".into(), Value::Boolean(true));
+    }
     match &args.reward {
         Some(r) if r.starts_with("builtin:") => {
             t.insert("reward".into(), Value::String(r.clone()));

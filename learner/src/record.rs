@@ -129,6 +129,8 @@ pub struct EvalRecord {
     pub worlds: Vec<(String, f64, Option<f64>, usize, usize)>,
     /// Mean progress over every trial.
     pub progress: f64,
+    /// Mean reward over every trial (DeepRacer's evaluation reward).
+    pub reward: f64,
     /// Mean lap time when every trial completed.
     pub lap_time: Option<f64>,
     /// Laps completed on the world that completed fewest.

@@ -105,6 +105,8 @@ pub struct Trial {
     pub off_track: u32,
     /// Times the car crashed into an obstacle or a bot.
     pub crashes: u32,
+    /// The trial's reward: its steps' summed (whether or not the job records).
+    pub reward: f64,
     /// Steps taken.
     pub steps: u64,
     /// How the trial ended (DeepRacer's status label).

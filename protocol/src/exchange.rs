@@ -113,6 +113,7 @@ pub fn eval_report_to_wire(job: &str, r: &ex::EvalReport) -> crate::EvalReport {
                         lap_time: t.lap_time,
                         off_track: t.off_track,
                         crashes: t.crashes,
+                        reward: t.reward,
                         steps: t.steps,
                         status: t.status.clone(),
                         discrete_actions,
@@ -157,9 +158,10 @@ pub fn eval_report_from_wire(
         t.progress.is_finite()
             && crate::limits::PROGRESS.contains(&t.progress)
             && t.lap_time.is_none_or(|l| l.is_finite() && l >= 0.0)
+            && t.reward.is_finite()
     };
     if w.trials.len() as u64 > SANITY_LIMIT || !w.trials.iter().all(ok) {
-        return invalid("evaluation trials out of range (progress -100–100 %, finite lap times)".into());
+        return invalid("evaluation trials out of range (progress -100–100 %, finite lap times and rewards)".into());
     }
     let trials = if w.error.is_empty() {
         let mut trials = Vec::with_capacity(w.trials.len());
@@ -187,6 +189,7 @@ pub fn eval_report_from_wire(
                 lap_time: t.lap_time,
                 off_track: t.off_track,
                 crashes: t.crashes,
+                reward: t.reward,
                 steps: t.steps,
                 status: t.status,
                 choices,
@@ -935,6 +938,7 @@ mod tests {
                 lap_time: Some(9.5),
                 off_track: 0,
                 crashes: 2,
+                reward: 1.5,
                 steps: 2,
                 status: "lap_complete".into(),
                 choices: vec![policy::Choice::Discrete(1), policy::Choice::Discrete(0)],

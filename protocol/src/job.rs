@@ -232,6 +232,8 @@ mod tests {
             })],
             adaptive: true,
             schedule_floor: 0.5,
+            reversed: true,
+            agents: 2,
         }
     }
 

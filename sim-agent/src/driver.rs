@@ -67,14 +67,16 @@ impl PurePursuit {
     }
 }
 
-/// One lap of the scripted driver on `world` with `reward`: each step's `[x, y, reward]`, and
-/// how the lap ended. The console's dry run of a reward file draws it on the track.
+/// One lap of the scripted driver on `world`, driven in `direction`, with `reward`: each
+/// step's `[x, y, reward]`, and how the lap ended. The console's dry run of a reward file
+/// draws it on the track.
 pub fn lap_rewards(
     world: &tracks::World,
+    direction: tracks::Direction,
     reward: &mut crate::RewardFn,
     cfg: std::sync::Arc<crate::SimConfig>,
 ) -> Result<(Vec<[f64; 3]>, crate::EpisodeStatus), crate::RewardError> {
-    let spec = crate::EnvSpec::from_world(world, tracks::Direction::Forward);
+    let spec = crate::EnvSpec::from_world(world, direction);
     let mut env = Env::new(spec, cfg, crate::Mode::Evaluation(crate::EvalRules::default()), 1, 0.0)
         .map_err(|e| crate::RewardError::Load { origin: world.name.clone(), msg: e.to_string() })?;
     let driver = PurePursuit::default();

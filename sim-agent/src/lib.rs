@@ -48,9 +48,9 @@ pub use env::{Env, EnvError, EnvSpec, EpisodeStatus, EvalRules, Mode, StepOutcom
 pub use reward::{BuiltinReward, RewardError, RewardFn};
 pub use vec_env::VecEnv;
 
-/// A world's track as lines (forward direction), for logs written where no simulator runs.
-pub fn track_lines(w: &tracks::World) -> policy::TrackLines {
-    let t = w.track(tracks::Direction::Forward);
+/// A world's track as lines, driven in `direction`, for logs written where no simulator runs.
+pub fn track_lines(w: &tracks::World, direction: tracks::Direction) -> policy::TrackLines {
+    let t = w.track(direction);
     let pts = |l: &[tracks::P2]| l.iter().map(|p| [p.x, p.y]).collect::<Vec<[f64; 2]>>();
     policy::TrackLines {
         world: w.name.clone(),

@@ -196,6 +196,8 @@ pub struct TrialResult {
     pub off_track: u32,
     /// Times the car crashed (resets, plus a final crash).
     pub crashes: u32,
+    /// The trial's reward (its steps' summed).
+    pub reward: f64,
     /// Steps taken.
     pub steps: u64,
     /// How the trial ended.
@@ -300,6 +302,7 @@ pub fn evaluate(
                     lap_time: o.lap_time,
                     off_track: o.off_track(),
                     crashes: o.crashes,
+                    reward: o.episode_reward,
                     steps: o.steps,
                     status: o.status,
                     log: std::mem::take(log),

@@ -352,7 +352,9 @@ impl Worker {
             None => {
                 let world = tracks::world(&r.world)
                     .map_err(|e| WorkerError::Env(EnvError::Config(format!("evaluation world: {e}"))))?;
-                EnvSpec::from_world(&world, tracks::Direction::Forward)
+                // A job drives all its worlds one way round: this worker's show which.
+                let direction = self.worlds.first().map_or(tracks::Direction::Forward, |w| w.track.direction());
+                EnvSpec::from_world(&world, direction)
             }
         };
         let plan = EvalPlan {
@@ -406,6 +408,7 @@ impl From<TrialResult> for Trial {
             lap_time: t.lap_time,
             off_track: t.off_track,
             crashes: t.crashes,
+            reward: t.reward,
             steps: t.steps,
             status: t.status.label().to_string(),
             choices: t.log.choices,

@@ -44,15 +44,27 @@ fn the_api_refuses_requests_without_the_token_from_elsewhere_or_with_invalid_fie
         "hyperparameters": {"batch_size": "many"},
         "stop": {"minutes": -1},
         "race": {"race_type": "drag_race"},
+        "reversed": "yes",
+        "agents": 0,
         "colour": "red",
     });
     let r = c.api("POST", "/api/v1/models", Some(&bad));
     assert_eq!(r.code, 400);
     let v = r.json();
     let fields: Vec<&str> = v["errors"].as_array().unwrap().iter().map(|e| e["field"].as_str().unwrap()).collect();
-    for want in
-        ["colour", "name", "description", "tracks[1]", "tracks[2]", "model_metadata", "hyperparameters", "stop", "race"]
-    {
+    for want in [
+        "colour",
+        "name",
+        "description",
+        "tracks[1]",
+        "tracks[2]",
+        "reversed",
+        "agents",
+        "model_metadata",
+        "hyperparameters",
+        "stop",
+        "race",
+    ] {
         assert!(fields.contains(&want), "{want} is named: {v:#}");
     }
     assert!(!r.body.windows(4).any(|w| w == b"<img"), "the name is not echoed");
@@ -138,14 +150,15 @@ fn the_api_refuses_requests_without_the_token_from_elsewhere_or_with_invalid_fie
     c.stop();
 }
 
-/// Issue 51: a model made through the API trains to a verified model; `coordinator job
-/// status` sees its job; the graph's figures, the events and the status come back; a console
+/// Issue 51: a model made through the API, driven the other way round on one of the two
+/// agents, trains to a verified model; `coordinator job status` sees its job; the graph's
+/// figures (evaluation rewards among them), the events and the status come back; a console
 /// restarted on the same data folder finds it all; then it is deleted.
 #[test]
 fn a_model_created_through_the_api_trains_to_a_verified_model_and_survives_a_restart() {
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("data");
-    let c = Console::start(&data);
+    let c = Console::with_agents(&data, 2);
     // The OpenAPI document is JSON and names every route the console answers.
     let doc = c.api("GET", "/api/v1/openapi.json", None).json();
     assert_eq!(doc["openapi"], "3.1.0");
@@ -161,11 +174,14 @@ fn a_model_created_through_the_api_trains_to_a_verified_model_and_survives_a_res
         "reward_function": "builtin:center_line",
         "model_metadata": state_metadata(),
         "stop": {"minutes": 3, "target_laps": 3, "target_evals": 1, "verify_trials": 10},
+        "reversed": true,
+        "agents": 1,
     });
     let r = c.api("POST", "/api/v1/models", Some(&model));
     assert_eq!(r.code, 201, "{}", String::from_utf8_lossy(&r.body));
     let made = r.json();
     assert_eq!(made["status"], "training");
+    assert_eq!((&made["reversed"], &made["agents"]), (&json!(true), &json!(1)), "{made}");
     let job = made["job_id"].as_str().unwrap().to_string();
     assert_eq!(c.api("POST", "/api/v1/models", Some(&model)).code, 409, "the name is taken");
     // The CLI sees the job the console started (one job-control protocol).
@@ -185,6 +201,21 @@ fn a_model_created_through_the_api_trains_to_a_verified_model_and_survives_a_res
         metrics["evaluations"].as_array().unwrap().iter().any(|e| e["best"] == true && e["min_laps"] == 3),
         "{metrics}"
     );
+    // DeepRacer's evaluation reward: the centre-line reward summed along each trial.
+    assert!(
+        metrics["evaluations"].as_array().unwrap().iter().all(|e| e["reward"].as_f64().unwrap() > 1.0),
+        "{metrics}"
+    );
+    // One agent of the two drove it, the other way round along the track.
+    let assigned: std::collections::BTreeSet<&str> = status["events"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|e| e.as_str()?.split_once("agent ")?.1.split_once(" assigned to ").map(|(a, _)| a))
+        .collect();
+    assert_eq!(assigned.len(), 1, "{status:#}");
+    let (along, against) = motion_along_the_track(&data.join("models/state-1/run"), "reinvent_base");
+    assert!(against > 10 * along.max(1), "{along} steps along the track's own direction, {against} against it");
     // Every path of the OpenAPI document is a route (none answers "no such route"); its stop
     // comes after training, when there is nothing left to stop.
     for path in doc["paths"].as_object().unwrap().keys() {
@@ -308,4 +339,32 @@ fn the_console_refuses_to_listen_beyond_loopback_without_insecure() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("beyond loopback") && err.contains("--insecure"), "{err}");
     assert!(!dir.path().join("data/logs").exists(), "no role was started");
+}
+
+/// Steps of the training sim-traces under `run` that moved along `world`'s own direction and
+/// against it (from each step's motion and the centre line's direction where it is).
+fn motion_along_the_track(run: &std::path::Path, world: &str) -> (usize, usize) {
+    let track = tracks::world(world).unwrap().track(tracks::Direction::Forward);
+    let (mut along, mut against) = (0, 0);
+    for worker in std::fs::read_dir(run).unwrap().flatten() {
+        let Ok(files) = std::fs::read_dir(worker.path().join("training-simtrace")) else { continue };
+        for csv in files.flatten() {
+            let text = std::fs::read_to_string(csv.path()).unwrap();
+            let rows: Vec<Vec<&str>> = text.lines().skip(1).map(|l| l.split(',').collect()).collect();
+            for w in rows.windows(2) {
+                let p = |r: &[&str]| tracks::P2::new(r[2].parse().unwrap(), r[3].parse().unwrap());
+                let (a, b) = (p(&w[0]), p(&w[1]));
+                if w[0][0] != w[1][0] || (b - a).norm() < 0.01 {
+                    continue;
+                }
+                let dir = track.center().direction_at(track.center().project(a).along);
+                if (b - a).dot(&tracks::P2::new(dir.cos(), dir.sin()).coords) > 0.0 {
+                    along += 1;
+                } else {
+                    against += 1;
+                }
+            }
+        }
+    }
+    (along, against)
 }

@@ -1,6 +1,7 @@
 //! The console in a real browser: Debian's Chromium, headless, driven through WebDriver
 //! (chromedriver) by Selenium's Python client. A racer's path: a reward whose error the editor
-//! shows on its line, fixed; a camera model trained from the wizard; its page's graph drawing
+//! shows on its line, fixed; a state-vector model driven the other way round, trained from the
+//! wizard to a verified model; a camera model trained from the wizard, its page's graph drawing
 //! points and its camera updating; the car's archive downloaded, and `coordinator import`
 //! taking it; an evaluation from the page with its trials, lap and frames; the run's MCAP holding the camera frames of its evaluation laps (Foxglove's
 //! `mcap` reader).
@@ -15,9 +16,10 @@ fn python() -> PathBuf {
     })
 }
 
-/// Issue 51: a model made in the browser, from a reward's error on its line to the car's archive.
+/// Issue 51: models made in the browser: a reward's error on its line, fixed; a state-vector
+/// model driven the other way round to a verified model; a camera model to the car's archive.
 #[test]
-fn a_racer_makes_a_camera_model_in_chromium_from_a_reward_error_to_the_cars_archive() {
+fn a_racer_makes_models_in_chromium_from_a_reward_error_to_a_verified_model_and_the_cars_archive() {
     assert!(
         std::path::Path::new("/usr/bin/chromedriver").exists(),
         "no chromedriver: run `./paddock test`, which installs Debian's chromium-driver"
@@ -37,7 +39,16 @@ fn a_racer_makes_a_camera_model_in_chromium_from_a_reward_error_to_the_cars_arch
     // The fixed reward's dry run, and the picked track's racing line, drawn.
     assert!(v["dry_run"].as_u64().unwrap() > 100, "{v}");
     assert!(v["race_line"].as_u64().unwrap() > 50, "{v}");
-    // The graph drew points as updates came, and the camera's picture changed.
+    // The state-vector model went the other way round on one agent to a verified model, its
+    // graph with the evaluations' rewards.
+    assert_eq!(v["state_status"], "ready", "{v}");
+    assert!(v["state_events"].as_str().unwrap().contains("verified"), "{v}");
+    assert!(v["state_graph_points"].as_u64().unwrap() >= 2, "{v}");
+    assert!(v["eval_reward_points"].as_u64().unwrap() >= 1, "{v}");
+    assert_eq!(v["reversed_label"], "Clockwise", "reinvent_base runs counterclockwise: {v}");
+    let state = c.api("GET", "/api/v1/models/state-1", None).json();
+    assert_eq!((&state["reversed"], &state["agents"]), (&serde_json::json!(true), &serde_json::json!(1)), "{state}");
+    // The camera model's graph drew points as updates came, and its camera's picture changed.
     assert!(v["graph_points"].as_u64().unwrap() >= 2, "{v}");
     assert!(v["camera_frames"].as_array().unwrap().len() >= 2, "{v}");
     assert_eq!(v["status"], "ready", "{v}");
@@ -165,17 +176,27 @@ BAD = '''def reward_function(params):
     return float(1e-3 * speeed)
 '''
 GOOD = BAD.replace("speeed", "params['speed']")
+def new_model(name):
+    d.get("http://%s/models/new" % addr)
+    d.find_element(By.ID, "name").send_keys(name)
+
+def graph_points():
+    return d.execute_script("return window.paddockGraphs[0].data[0].length")
+
 try:
     d.get("http://%s/?token=%s" % (addr, token))
     assert "Your models" in d.title, d.title
     assert "token=" not in d.current_url, d.current_url
-    d.get("http://%s/models/new" % addr)
-    d.find_element(By.ID, "name").send_keys("camera-1")
+    # A state-vector model, the other way round on one agent, to the verified model (the
+    # wizard's default stop).
+    new_model("state-1")
+    click('[name="direction"][value="reversed"]')
+    out["reversed_label"] = d.find_element(By.ID, "dir-reversed").text
+    click("#next")
+    click('[name="camera"][value="STATE_VECTOR"]')
+    d.find_element(By.CSS_SELECTOR, '[name="agents"]').send_keys("1")
     click("#next")
     click("#next")
-    click("#next")
-    click('[name="stop_kind"][value="time"]')
-    d.execute_script("document.querySelector('[name=minutes]').value = '0.5'")
     click("#next")
     d.execute_script("document.querySelector('.CodeMirror').CodeMirror.setValue(arguments[0])", BAD)
     click("#validate")
@@ -193,6 +214,23 @@ try:
     out["dry_run"] = wait("the dry run's lap", lambda: len(d.find_elements(By.CSS_SELECTOR, "#dry-run-lap svg line")))
     out["race_line"] = len(d.find_elements(By.CSS_SELECTOR, "#race-line svg line"))
     click("#submit")
+    wait("the model's page", lambda: d.current_url.endswith("/models/state-1"))
+    out["state_status"] = wait("a ready model", lambda: d.find_element(By.ID, "status").text == "ready" and "ready", 90)
+    out["state_events"] = wait("its events", lambda: "verified" in d.find_element(By.ID, "events").text and d.find_element(By.ID, "events").text)
+    out["state_graph_points"] = wait("points on the graph", lambda: graph_points() >= 2 and graph_points())
+    # DeepRacer's evaluation reward, drawn beside the completion.
+    out["eval_reward_points"] = d.execute_script("return window.paddockGraphs[0].data[4].filter(function (v) { return v !== null; }).length")
+
+    # A camera model, trained for half a minute: its camera, its evaluation, the car's archive.
+    new_model("camera-1")
+    click("#next")
+    click("#next")
+    click("#next")
+    click('[name="stop_kind"][value="time"]')
+    d.execute_script("document.querySelector('[name=minutes]').value = '0.5'")
+    click("#next")
+    d.execute_script("document.querySelector('.CodeMirror').CodeMirror.setValue(arguments[0])", GOOD)
+    click("#submit")
     wait("the model's page", lambda: d.current_url.endswith("/models/camera-1"))
     frames = []
     def camera_changed():
@@ -208,7 +246,7 @@ try:
         return len(frames) >= 2
     wait("two camera frames", camera_changed, 90)
     out["camera_frames"] = frames
-    out["graph_points"] = wait("points on the graph", lambda: d.execute_script("return window.paddockGraphs[0].data[0].length") >= 2 and d.execute_script("return window.paddockGraphs[0].data[0].length"), 90)
+    out["graph_points"] = wait("points on the graph", lambda: graph_points() >= 2 and graph_points(), 90)
     out["status"] = wait("a ready model", lambda: d.find_element(By.ID, "status").text == "ready" and "ready", 120)
     click("#start-evaluation")
     out["trial_rows"] = wait("the evaluation's trials", lambda: len(d.find_elements(By.CSS_SELECTOR, "#trials tbody tr")), 120)

@@ -26,8 +26,13 @@ pub struct Console {
 impl Console {
     /// Start `console` on one machine (one agent) with its data in `data`.
     pub fn start(data: &Path) -> Console {
+        Console::with_agents(data, 1)
+    }
+
+    /// Start `console` on one machine with `agents` sim agents.
+    pub fn with_agents(data: &Path, agents: usize) -> Console {
         let mut child = Command::new(env!("CARGO_BIN_EXE_console"))
-            .args(["--listen", "127.0.0.1:0", "--agents", "1", "--envs", "8", "--token", TOKEN])
+            .args(["--listen", "127.0.0.1:0", "--agents", &agents.to_string(), "--envs", "8", "--token", TOKEN])
             .arg("--data")
             .arg(data)
             .stdout(Stdio::piped())

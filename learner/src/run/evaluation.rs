@@ -308,6 +308,7 @@ impl Run<'_> {
             policy_version: p.version,
             worlds: per_world,
             progress,
+            reward: super::state::mean(all.iter().map(|t| t.reward)),
             lap_time,
             min_laps,
             trials: p.trials as usize,
