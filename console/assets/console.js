@@ -402,6 +402,8 @@ var Paddock = (function () {
       var s = JSON.parse(e.data), el = $("#status");
       text(el, s.status);
       el.className = "status " + s.status;
+      // A model waiting its turn says where it stands.
+      text($("#queue-note"), s.job && s.job.queued ? "waiting its turn: " + s.job.queued + " in the queue" : "");
       $("#stop").disabled = s.status !== "training";
       $("#delete").disabled = s.status === "training" || s.status === "stopping";
       fetch(base).then(function (r) { return r.json(); }).then(function (v) {
@@ -527,5 +529,60 @@ var Paddock = (function () {
         .finally(function () { $("#import-submit").disabled = false; });
     };
   }
-  return { wizard: wizard, model: model, importer: importer };
+  // ---- Logins and users ----------------------------------------------------------------
+  function showErrors(box, v) {
+    while (box.firstChild) box.removeChild(box.firstChild);
+    var list = document.createElement("ul");
+    (v.errors || [{ message: v.error || "failed" }]).forEach(function (e) {
+      list.appendChild(li((e.field ? e.field + ": " : "") + e.message));
+    });
+    box.appendChild(list);
+  }
+  function send(method, url, body) {
+    return fetch(url, { method: method, headers: { "Content-Type": "application/json" }, body: body === undefined ? undefined : JSON.stringify(body) })
+      .then(function (r) { return r.text().then(function (t) { return { ok: r.ok, v: t ? JSON.parse(t) : {} }; }); });
+  }
+  function login() {
+    var next = JSON.parse($("#next-json").textContent);
+    $("#login").onsubmit = function (ev) {
+      ev.preventDefault();
+      send("POST", "/api/v1/session", { user: $("#login-user").value, password: $("#login-password").value }).then(function (r) {
+        if (r.ok) location.assign(next); else showErrors($("#login-errors"), r.v);
+      });
+    };
+  }
+  function invite() {
+    var secret = JSON.parse($("#invitation-json").textContent);
+    $("#invite").onsubmit = function (ev) {
+      ev.preventDefault();
+      if ($("#invite-password").value !== $("#invite-again").value) { showErrors($("#invite-errors"), { error: "the two passwords differ" }); return; }
+      send("POST", "/api/v1/invitations", { invitation: secret, password: $("#invite-password").value }).then(function (r) {
+        if (r.ok) location.assign("/login"); else showErrors($("#invite-errors"), r.v);
+      });
+    };
+  }
+  function users() {
+    $$("#users tbody tr").forEach(function (tr) {
+      var name = tr.dataset.user, url = "/api/v1/users/" + encodeURIComponent(name);
+      function limit(sel) { var v = tr.querySelector(sel).value; return v === "" ? null : Number(v); }
+      tr.querySelector(".user-save").onclick = function () {
+        send("PATCH", url, { role: tr.querySelector(".user-role").value, quota: { models: limit(".user-models"), minutes: limit(".user-minutes") } })
+          .then(function (r) { if (r.ok) location.reload(); else showErrors($("#users-errors"), r.v); });
+      };
+      tr.querySelector(".user-remove").onclick = function () {
+        if (!confirm("Remove " + name + "? Their models stay.")) return;
+        send("DELETE", url).then(function (r) { if (r.ok) location.reload(); else showErrors($("#users-errors"), r.v); });
+      };
+    });
+    $("#add-user").onsubmit = function (ev) {
+      ev.preventDefault();
+      send("POST", "/api/v1/users", { name: $("#new-user").value, role: $("#new-role").value }).then(function (r) {
+        if (!r.ok) { showErrors($("#users-errors"), r.v); return; }
+        text($("#invitation-link"), location.origin + r.v.invitation);
+        $("#invitation").hidden = false;
+      });
+    };
+  }
+
+  return { wizard: wizard, model: model, importer: importer, login: login, invite: invite, users: users };
 })();

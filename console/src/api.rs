@@ -26,10 +26,50 @@ pub struct App {
     pub store: Store,
     /// The Zenoh side.
     pub hub: Hub,
-    /// The secret.
-    pub token: Arc<String>,
+    /// The token, the users and their sessions.
+    pub gate: Arc<crate::auth::Gate>,
+    /// Served over TLS (cookies are marked Secure).
+    pub https: bool,
     /// The evaluations running in this process (their ids).
     pub running: Arc<std::sync::Mutex<std::collections::BTreeSet<String>>>,
+}
+
+/// The middleware on a model's routes (`/models/NAME…`, `/api/v1/models/NAME…`): a model
+/// that is not the requester's is refused (403, naming the role that would do), to see it
+/// unless they are a facilitator or an admin, to change it unless they are an admin.
+pub async fn ownership(State(app): State<App>, req: axum::extract::Request, next: axum::middleware::Next) -> Response {
+    // The open routes (the login's) carry no principal, and name no model.
+    let Some(p) = req.extensions().get::<crate::auth::Principal>().cloned() else { return next.run(req).await };
+    let path = req.uri().path();
+    let name = path
+        .strip_prefix("/api/v1/models/")
+        .or_else(|| path.strip_prefix("/models/"))
+        .and_then(|rest| rest.split('/').next())
+        .filter(|n| !crate::store::RESERVED.contains(n));
+    if let Some(rec) = name.and_then(|n| app.store.get(n).ok()) {
+        let owner = rec.owner.as_deref();
+        let reading = matches!(*req.method(), axum::http::Method::GET | axum::http::Method::HEAD);
+        if !p.may_see(owner) {
+            crate::counters::refused("another user's model");
+            return error(
+                StatusCode::FORBIDDEN,
+                &format!("model '{}' is another user's: seeing it needs the facilitator role", rec.name),
+            );
+        }
+        if !reading && !p.may_change(owner) {
+            crate::counters::refused("another user's model");
+            return error(
+                StatusCode::FORBIDDEN,
+                &format!("model '{}' is another user's: changing it needs the admin role", rec.name),
+            );
+        }
+    }
+    next.run(req).await
+}
+
+/// The models `p` may see.
+pub fn visible_models(app: &App, p: &crate::auth::Principal) -> Vec<ModelRecord> {
+    app.store.list().into_iter().filter(|r| p.may_see(r.owner.as_deref())).collect()
 }
 
 /// A JSON error answer: `{"error": message}`.
@@ -105,6 +145,9 @@ fn model_json(app: &App, rec: &ModelRecord, state: Option<JobState>) -> Value {
         "tracks": rec.tracks,
         "reversed": rec.reversed,
         "agents": rec.agents,
+        "owner": rec.owner,
+        // Its place among the jobs waiting their turn (0: not waiting).
+        "queued": app.hub.job(&rec.job_id).map_or(0, |j| j.queued),
         "reward": rec.reward,
         "stop": rec.stop,
         "created": rec.created,
@@ -316,14 +359,23 @@ fn field(name: &str, message: String) -> FieldError {
 }
 
 /// `GET /api/v1/models`.
-pub async fn list_models(State(app): State<App>) -> Response {
-    let list: Vec<Value> =
-        app.store.list().iter().map(|r| model_json(&app, r, app.hub.job(&r.job_id).map(|j| j.state()))).collect();
+pub async fn list_models(
+    State(app): State<App>,
+    axum::Extension(p): axum::Extension<crate::auth::Principal>,
+) -> Response {
+    let list: Vec<Value> = visible_models(&app, &p)
+        .iter()
+        .map(|r| model_json(&app, r, app.hub.job(&r.job_id).map(|j| j.state())))
+        .collect();
     axum::Json(list).into_response()
 }
 
 /// `POST /api/v1/models`: check, store, start the job; 201 with the model.
-pub async fn create_model(State(app): State<App>, body: Bytes) -> Response {
+pub async fn create_model(
+    State(app): State<App>,
+    axum::Extension(p): axum::Extension<crate::auth::Principal>,
+    body: Bytes,
+) -> Response {
     let v = match json_body(&body) {
         Ok(v) => v,
         Err(f) => return invalid(&[f]),
@@ -333,11 +385,30 @@ pub async fn create_model(State(app): State<App>, body: Bytes) -> Response {
     {
         return store_error(StoreError::Taken(r.name));
     }
+    // A model spends a model and its stop's minutes (10 when it names none), of its maker's
+    // quota and the instance's.
+    let minutes = v
+        .get("stop")
+        .and_then(|s| s.get("minutes"))
+        .and_then(Value::as_f64)
+        .unwrap_or_else(|| crate::quota::stop_minutes(&models::default_stop()));
+    let (quota_app, quota_p) = (app.clone(), p.clone());
+    let fits = tokio::task::spawn_blocking(move || {
+        crate::quota::check(&quota_app, &quota_p, crate::quota::Ask { models: 1, minutes: Some(minutes) })
+    })
+    .await
+    .unwrap_or(Ok(()));
+    if let Err(r) = fits {
+        return r.into_response();
+    }
     let store = app.store.clone();
     let made = tokio::task::spawn_blocking(move || -> Result<(ModelRecord, protocol::Job), Created> {
         let now = protocol::job::now_unix();
         let source = |from: &str| -> Result<(policy::ModelMetadata, std::path::PathBuf), String> {
             let rec = store.get(from).map_err(|e| e.to_string())?;
+            if !p.may_see(rec.owner.as_deref()) {
+                return Err(format!("model '{from}' is another user's: cloning it needs the facilitator role"));
+            }
             let dir = store.dir(&rec.name).map_err(|e| e.to_string())?;
             let model = dir.join("run/model");
             if !model.join("manifest.json").exists() {
@@ -348,7 +419,8 @@ pub async fn create_model(State(app): State<App>, body: Bytes) -> Response {
             Ok((meta, model))
         };
         let job_id = |name: &str| format!("{name}-{}", (now * 1000.0) as u64 % 100_000_000);
-        let checked = models::check(&v, now, job_id, &source).map_err(Created::Invalid)?;
+        let mut checked = models::check(&v, now, job_id, &source).map_err(Created::Invalid)?;
+        checked.files.record.owner = p.user.clone();
         let record = checked.files.record.clone();
         let run = store.dir(&record.name)?.join("run");
         let job = store.create(&checked.files, |tmp| -> Result<protocol::Job, Created> {
@@ -571,7 +643,8 @@ pub async fn events(State(app): State<App>, Path(name): Path<String>) -> Respons
         let mut out: Vec<Result<Event, std::convert::Infallible>> = Vec::new();
         let job = app.hub.job(&rec.job_id);
         let summary = job.as_ref().map(|j| {
-            json!({"state": j.state().name(), "minutes": j.minutes, "episodes": j.episodes, "progress": j.progress})
+            json!({"state": j.state().name(), "minutes": j.minutes, "episodes": j.episodes, "progress": j.progress,
+                   "queued": j.queued})
         });
         let status = json!({"status": status_of(job.map(|j| j.state()), &rec, &app.store), "job": summary});
         if seen.status.as_ref() != Some(&status) {
@@ -633,7 +706,12 @@ pub async fn car_archive(State(app): State<App>, Path(name): Path<String>) -> Re
 
 /// `POST /api/v1/models/NAME/evaluations`: start an evaluation of the model's best model
 /// (202 with its record; it runs in the background).
-pub async fn start_evaluation(State(app): State<App>, Path(name): Path<String>, body: Bytes) -> Response {
+pub async fn start_evaluation(
+    State(app): State<App>,
+    axum::Extension(p): axum::Extension<crate::auth::Principal>,
+    Path(name): Path<String>,
+    body: Bytes,
+) -> Response {
     let rec = match app.store.get(&name) {
         Ok(r) => r,
         Err(e) => return store_error(e),
@@ -642,6 +720,14 @@ pub async fn start_evaluation(State(app): State<App>, Path(name): Path<String>, 
         Ok(v) => v,
         Err(f) => return invalid(&[f]),
     };
+    // An evaluation spends minutes: some must be left, of the evaluator's and the instance's.
+    let quota_app = app.clone();
+    let fits = tokio::task::spawn_blocking(move || crate::quota::check(&quota_app, &p, crate::quota::Ask::EVALUATION))
+        .await
+        .unwrap_or(Ok(()));
+    if let Err(r) = fits {
+        return r.into_response();
+    }
     let status = status_of(state_now(&app, &rec).await, &rec, &app.store);
     let model_dir = app.store.dir(&name).expect("a stored model's name is valid").join("run/model");
     if status == "training" || status == "stopping" || !model_dir.join("manifest.json").exists() {
@@ -811,9 +897,11 @@ pub const MAX_IMPORT: usize = 256 << 20;
 /// ready model, checked as `coordinator import` checks it.
 pub async fn import(
     State(app): State<App>,
+    axum::Extension(principal): axum::Extension<crate::auth::Principal>,
     axum::extract::Query(q): axum::extract::Query<std::collections::HashMap<String, String>>,
     body: Bytes,
 ) -> Response {
+    let owner = principal.user.clone();
     let name = q.get("name").cloned().unwrap_or_default();
     let description = q.get("description").cloned().unwrap_or_default();
     let mut errors = Vec::new();
@@ -832,6 +920,9 @@ pub async fn import(
     if app.store.get(&name).is_ok() {
         return store_error(StoreError::Taken(name));
     }
+    if let Err(r) = crate::quota::check(&app, &principal, crate::quota::Ask::IMPORT) {
+        return r.into_response();
+    }
     let store = app.store.clone();
     let made = tokio::task::spawn_blocking(move || -> Result<ModelRecord, Created> {
         let origin = format!("the uploaded archive for '{name}'");
@@ -846,6 +937,7 @@ pub async fn import(
             tracks: Vec::new(),
             reversed: false,
             agents: None,
+            owner: owner.clone(),
             algorithm: models::algorithm_name(f.metadata.training_algorithm).into(),
             sensors: f.metadata.sensor.iter().map(|s| s.name().to_string()).collect(),
             reward: String::new(),

@@ -188,6 +188,8 @@ pub fn run(dir: &Path, model_dir: &Path, mut checked: Checked) {
             checked.record["error"] = json!(format!("{e:#}"));
         }
     }
+    // Its time counts against the quotas.
+    checked.record["finished"] = json!(protocol::job::now_unix());
     if let Err(e) = save(dir, &checked.record) {
         tracing::error!("{}: the evaluation's record was not written: {e}", dir.display());
     }

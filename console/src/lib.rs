@@ -12,6 +12,7 @@
 //!                   data folder ◄┘ (models/NAME: DeepRacer's files, job.toml, run/)
 //! ```
 
+pub mod accounts;
 pub mod api;
 pub mod auth;
 pub mod bench;
@@ -21,11 +22,13 @@ pub mod hub;
 pub mod models;
 pub mod pages;
 pub mod pictures;
+pub mod quota;
 pub mod store;
+pub mod users;
 
 use anyhow::{Context, Result, bail};
 use axum::Router;
-use axum::routing::{get, post};
+use axum::routing::{get, patch, post};
 use std::net::SocketAddr;
 use std::sync::Arc;
 
@@ -44,6 +47,27 @@ pub struct Options {
     pub insecure: bool,
     /// The secret (a new one when `None`).
     pub token: Option<String>,
+}
+
+/// The first admin, made when the data folder has no user yet: `--admin NAME` with the
+/// password of `--admin-password-file` or, without it, a new one printed once.
+pub fn first_admin(users: &users::Users, name: &str, password_file: Option<&std::path::Path>) -> Result<()> {
+    if users.any() {
+        return Ok(());
+    }
+    let (password, printed) = match password_file {
+        Some(f) => {
+            let text = std::fs::read_to_string(f).with_context(|| format!("--admin-password-file {}", f.display()))?;
+            (text.trim_end_matches(['\n', '\r']).to_string(), false)
+        }
+        None => (users::new_password(), true),
+    };
+    users.add(name, users::Role::Admin, &password).with_context(|| format!("--admin {name}"))?;
+    if printed {
+        println!("admin        {name}, password {password} (shown once: keep it)");
+    }
+    tracing::info!(user = %name, "the first admin made");
+    Ok(())
 }
 
 /// Refuse to listen beyond loopback without `--insecure`: the console has no TLS or login yet,
@@ -67,6 +91,14 @@ pub fn router(app: api::App) -> Router {
         .route("/models/import", get(pages::import))
         .route("/models/{name}", get(pages::model))
         .route("/licences", get(pages::licences))
+        .route("/login", get(pages::login))
+        .route("/invite/{secret}", get(pages::invite))
+        .route("/users", get(pages::users))
+        .route("/api/v1/session", post(accounts::login).get(accounts::whoami).delete(accounts::logout))
+        .route("/api/v1/invitations", post(accounts::accept_invitation))
+        .route("/api/v1/quota", get(accounts::quota).put(accounts::set_instance_quota))
+        .route("/api/v1/users", get(accounts::list_users).post(accounts::add_user))
+        .route("/api/v1/users/{name}", patch(accounts::change_user).delete(accounts::remove_user))
         .route("/api/v1/openapi.json", get(api::openapi))
         .route("/api/v1/health", get(api::health))
         .route("/api/v1/tracks", get(api::tracks))
@@ -92,8 +124,9 @@ pub fn router(app: api::App) -> Router {
             counters::refused("an unknown address");
             api::error(axum::http::StatusCode::NOT_FOUND, "no such page or API route")
         })
+        .layer(axum::middleware::from_fn_with_state(app.clone(), api::ownership))
         .with_state(app.clone())
-        .layer(axum::middleware::from_fn_with_state(app.token.clone(), auth::guard));
+        .layer(axum::middleware::from_fn_with_state(app.gate.clone(), auth::guard));
     Router::new()
         .route("/assets/{name}", get(pages::asset))
         .merge(guarded)
@@ -104,8 +137,10 @@ pub fn router(app: api::App) -> Router {
 /// `console      http://ADDR/?token=…`).
 pub fn serve(opts: Options, store: store::Store, hub: hub::Hub) -> Result<()> {
     check_listen(&opts.listen, opts.insecure)?;
-    let token = Arc::new(opts.token.unwrap_or_else(auth::new_token));
-    let app = api::App { store, hub, token: token.clone(), running: Default::default() };
+    let token = opts.token.unwrap_or_else(auth::new_token);
+    let users = users::Users::open(store.root())?;
+    let gate = Arc::new(auth::Gate::new(token.clone(), users));
+    let app = api::App { store, hub, gate: gate.clone(), https: false, running: Default::default() };
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
@@ -117,13 +152,19 @@ pub fn serve(opts: Options, store: store::Store, hub: hub::Hub) -> Result<()> {
             .await
             .with_context(|| format!("listening on {}", opts.listen))?;
         let addr = listener.local_addr()?;
-        println!("console      http://{addr}/?token={token}");
+        if gate.logins() {
+            println!("console      http://{addr}/login");
+        } else {
+            println!("console      http://{addr}/?token={token}");
+        }
         use std::io::Write as _;
         std::io::stdout().flush()?;
         tracing::info!(%addr, data = %app.store.root().display(), "console serving");
         // Live pages keep their event streams open: at a stop the server is dropped, not
         // drained.
-        let server = tokio::spawn(async move { axum::serve(listener, router(app)).await });
+        let server = tokio::spawn(async move {
+            axum::serve(listener, router(app).into_make_service_with_connect_info::<SocketAddr>()).await
+        });
         match futures_util::future::select(server, std::pin::pin!(stopped())).await {
             futures_util::future::Either::Left((done, _)) => {
                 done.context("the web server")?.context("serving the console")

@@ -46,8 +46,16 @@ struct Cli {
     #[arg(long)]
     insecure: bool,
     /// The token (a new random one when not given). For scripts; the printed address carries it.
+    /// Only while the data folder has no users: with users, the console asks for a login.
     #[arg(long)]
     token: Option<String>,
+    /// Make this user the first admin when the data folder has no user (the console then asks
+    /// for a login); its password is printed once unless --admin-password-file gives it.
+    #[arg(long, value_name = "NAME")]
+    admin: Option<String>,
+    /// The first admin's password (the file's first line).
+    #[arg(long, value_name = "FILE", requires = "admin")]
+    admin_password_file: Option<PathBuf>,
 }
 
 #[derive(clap::Subcommand)]
@@ -55,6 +63,148 @@ enum Sub {
     /// The console's figures: Submit to the first point on the graph, the page's weight and
     /// first paint, and what N viewers of the live page cost the training (with a verdict).
     Bench(paddock_console::bench::BenchArgs),
+    /// The console's users (`coordinator users` runs this): add, invite, role, quota, remove, list.
+    Users(UsersArgs),
+}
+
+#[derive(clap::Args)]
+struct UsersArgs {
+    #[command(subcommand)]
+    command: UsersCommand,
+    /// The console's data folder.
+    #[arg(long, global = true, default_value = "paddock-data")]
+    data: PathBuf,
+}
+
+#[derive(clap::Subcommand)]
+enum UsersCommand {
+    /// Add a user with a password (the file's first line; without one, a new password is
+    /// printed once).
+    Add {
+        name: String,
+        #[arg(long, default_value = "racer", value_parser = ["admin", "facilitator", "racer"])]
+        role: String,
+        #[arg(long, value_name = "FILE")]
+        password_file: Option<PathBuf>,
+    },
+    /// Invite a user: prints the link at which they set their password.
+    Invite {
+        name: String,
+        #[arg(long, default_value = "racer", value_parser = ["admin", "facilitator", "racer"])]
+        role: String,
+        /// Hours the invitation lasts.
+        #[arg(long, default_value_t = 168.0)]
+        hours: f64,
+        /// The console's address, for the link.
+        #[arg(long, default_value = "http://127.0.0.1:8100")]
+        url: String,
+    },
+    /// Change a user's role.
+    Role {
+        name: String,
+        #[arg(value_parser = ["admin", "facilitator", "racer"])]
+        role: String,
+    },
+    /// Set a user's quota, or with --instance every user's together: models and minutes of
+    /// training and evaluation (`unlimited` lifts one).
+    Quota {
+        #[arg(required_unless_present = "instance")]
+        name: Option<String>,
+        #[arg(long, conflicts_with = "name")]
+        instance: bool,
+        #[arg(long)]
+        models: Option<String>,
+        #[arg(long)]
+        minutes: Option<String>,
+    },
+    /// Remove a user (their models stay).
+    Remove { name: String },
+    /// List the users.
+    List,
+}
+
+fn users_cmd(args: &UsersArgs) -> Result<i32> {
+    use paddock_console::users::{Role, Users, new_password};
+    std::fs::create_dir_all(&args.data).with_context(|| format!("--data {}", args.data.display()))?;
+    let users = Users::open(&args.data)?;
+    let role = |r: &str| Role::parse(r).map_err(anyhow::Error::from);
+    match &args.command {
+        UsersCommand::Add { name, role: r, password_file } => {
+            let (password, printed) = match password_file {
+                Some(f) => {
+                    let text =
+                        std::fs::read_to_string(f).with_context(|| format!("--password-file {}", f.display()))?;
+                    (text.lines().next().unwrap_or("").to_string(), false)
+                }
+                None => (new_password(), true),
+            };
+            let u = users.add(name, role(r)?, &password)?;
+            println!("added {} ({})", u.name, u.role.name());
+            if printed {
+                println!("password {password} (shown once: give it to {name})");
+            }
+        }
+        UsersCommand::Invite { name, role: r, hours, url } => {
+            let secret = users.invite(name, role(r)?, hours * 3600.0)?;
+            println!("{}/invite/{secret}", url.trim_end_matches('/'));
+        }
+        UsersCommand::Role { name, role: r } => {
+            let u = users.set_role(name, role(r)?)?;
+            println!("{} is now {}", u.name, u.role.name());
+        }
+        UsersCommand::Quota { name, instance, models, minutes } => {
+            let name = name.as_deref().filter(|_| !instance);
+            let mut q = match name {
+                Some(n) => users.get(n).ok_or_else(|| paddock_console::users::UsersError::NotFound(n.into()))?.quota,
+                None => users.instance_quota(),
+            };
+            let limit = |flag: &str, v: &str| -> Result<Option<f64>> {
+                if v == "unlimited" {
+                    return Ok(None);
+                }
+                v.parse::<f64>()
+                    .ok()
+                    .filter(|x| x.is_finite() && *x >= 0.0)
+                    .map(Some)
+                    .with_context(|| format!("--{flag} {v}: expected a number, 0 or more, or 'unlimited'"))
+            };
+            if let Some(m) = models {
+                q.models = limit("models", m)?.map(|x| x as u32);
+            }
+            if let Some(m) = minutes {
+                q.minutes = limit("minutes", m)?;
+            }
+            let (who, q) = match name {
+                Some(n) => (n.to_string(), users.set_quota(n, q)?.quota),
+                None => ("the instance".to_string(), users.set_instance_quota(q)?),
+            };
+            let show = |x: Option<String>| x.unwrap_or_else(|| "unlimited".into());
+            println!(
+                "{who}: models {}, minutes {}",
+                show(q.models.map(|m| m.to_string())),
+                show(q.minutes.map(|m| m.to_string()))
+            );
+        }
+        UsersCommand::Remove { name } => {
+            users.remove(name)?;
+            println!("removed {name}");
+        }
+        UsersCommand::List => {
+            println!("{:<24} {:<12} {:>7} {:>9}  STATE", "USER", "ROLE", "MODELS", "MINUTES");
+            for u in users.list() {
+                let q = |x: Option<String>| x.unwrap_or_else(|| "-".into());
+                println!(
+                    "{:<24} {:<12} {:>7} {:>9}  {}",
+                    u.name,
+                    u.role.name(),
+                    q(u.quota.models.map(|m| m.to_string())),
+                    q(u.quota.minutes.map(|m| m.to_string())),
+                    if u.password.is_some() { "active" } else { "invited" }
+                );
+            }
+        }
+    }
+    Ok(0)
 }
 
 fn main() {
@@ -62,6 +212,7 @@ fn main() {
     let cli = Cli::parse();
     let result = match &cli.command {
         Some(Sub::Bench(args)) => paddock_console::bench::run(args),
+        Some(Sub::Users(args)) => users_cmd(args),
         None => run(cli).map(|()| 0),
     };
     protocol::exit::exit(result)
@@ -70,6 +221,10 @@ fn main() {
 fn run(cli: Cli) -> Result<()> {
     paddock_console::check_listen(&cli.listen, cli.insecure)?;
     let store = paddock_console::store::Store::open(&cli.data)?;
+    if let Some(name) = &cli.admin {
+        let users = paddock_console::users::Users::open(store.root())?;
+        paddock_console::first_admin(&users, name, cli.admin_password_file.as_deref())?;
+    }
     let certs = cli
         .certs
         .as_deref()

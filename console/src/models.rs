@@ -263,6 +263,7 @@ pub fn check(
         reward: if reward_source.is_some() { "reward_function.py".into() } else { reward },
         stop,
         clone_of,
+        owner: None,
     };
     Ok(Checked {
         files: NewFiles {
@@ -349,6 +350,9 @@ pub fn job_spec(checked: &Checked, run_dir: &std::path::Path) -> String {
     }
     if let Some(n) = r.agents {
         t.insert("agents".into(), Value::Integer(n.into()));
+    }
+    if let Some(o) = &r.owner {
+        t.insert("owner".into(), Value::String(o.clone()));
     }
     t.insert("reward".into(), Value::String(r.reward.clone()));
     t.insert("model_metadata".into(), Value::String("model_metadata.json".into()));

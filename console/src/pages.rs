@@ -3,6 +3,9 @@
 //! the same functions the API answers with.
 
 use crate::api::{App, best_lap, status_of};
+use crate::auth::Principal;
+use crate::users::Role;
+use axum::Extension;
 use axum::extract::{Path, Query, State};
 use axum::http::{StatusCode, header};
 use axum::response::{Html, IntoResponse, Response};
@@ -21,6 +24,9 @@ static TEMPLATES: LazyLock<Environment<'static>> = LazyLock::new(|| {
         ("model.html", include_str!("../templates/model.html")),
         ("licences.html", include_str!("../templates/licences.html")),
         ("import.html", include_str!("../templates/import.html")),
+        ("login.html", include_str!("../templates/login.html")),
+        ("invite.html", include_str!("../templates/invite.html")),
+        ("users.html", include_str!("../templates/users.html")),
     ] {
         env.add_template(name, text).expect("the console's templates parse");
     }
@@ -116,11 +122,14 @@ fn when(unix: f64) -> String {
     format!("{y:04}-{m:02}-{d:02} {:02}:{:02} UTC", rest / 3600, rest % 3600 / 60)
 }
 
-fn rows(app: &App, q: &str, sort: &str) -> Vec<Value> {
+/// The principal as the pages show it (the header's name, role and links).
+fn me(p: &Principal) -> Value {
+    json!({"user": p.user, "role": p.role.name()})
+}
+
+fn rows(app: &App, p: &Principal, q: &str, sort: &str) -> Vec<Value> {
     let q = q.to_lowercase();
-    let mut list: Vec<Value> = app
-        .store
-        .list()
+    let mut list: Vec<Value> = crate::api::visible_models(app, p)
         .into_iter()
         .filter(|r| q.is_empty() || r.name.to_lowercase().contains(&q) || r.description.to_lowercase().contains(&q))
         .map(|r| {
@@ -149,15 +158,17 @@ fn rows(app: &App, q: &str, sort: &str) -> Vec<Value> {
 }
 
 /// `/`: the models.
-pub async fn models(State(app): State<App>) -> Response {
-    let list = rows(&app, "", "created");
+pub async fn models(State(app): State<App>, Extension(p): Extension<Principal>) -> Response {
+    let list = rows(&app, &p, "", "created");
     let owned: std::collections::BTreeSet<String> = app.store.list().into_iter().map(|r| r.job_id).collect();
+    // Jobs started elsewhere (the CLI) are nobody's: facilitators and admins see them.
+    let others_shown = p.role >= Role::Facilitator;
     let (other, error) = {
         let s = app.hub.seen.lock().expect("hub state");
         let other: Vec<Value> = s
             .jobs
             .values()
-            .filter(|j| !owned.contains(&j.id))
+            .filter(|j| others_shown && !owned.contains(&j.id))
             .map(|j| {
                 json!({"id": j.id, "state": j.state().name(), "worlds": j.worlds, "minutes": j.minutes,
                             "episodes": j.episodes, "progress": j.progress})
@@ -165,18 +176,26 @@ pub async fn models(State(app): State<App>) -> Response {
             .collect();
         (other, s.error.clone())
     };
-    render("models.html", json!({"models": list, "other_jobs": other, "coordinator_error": error}))
+    render("models.html", json!({"models": list, "other_jobs": other, "coordinator_error": error, "me": me(&p)}))
 }
 
 /// `/models/rows?q=&sort=`: the table's rows (htmx swaps them in).
-pub async fn model_rows(State(app): State<App>, Query(q): Query<HashMap<String, String>>) -> Response {
+pub async fn model_rows(
+    State(app): State<App>,
+    Extension(p): Extension<Principal>,
+    Query(q): Query<HashMap<String, String>>,
+) -> Response {
     let text = q.get("q").map(String::as_str).unwrap_or("");
     let sort = q.get("sort").map(String::as_str).unwrap_or("created");
-    render("rows.html", json!({"models": rows(&app, text, sort), "q": text}))
+    render("rows.html", json!({"models": rows(&app, &p, text, sort), "q": text}))
 }
 
 /// `/models/new` (`?clone=NAME`: the wizard filled in from that model).
-pub async fn new_model(State(app): State<App>, Query(q): Query<HashMap<String, String>>) -> Response {
+pub async fn new_model(
+    State(app): State<App>,
+    Extension(p): Extension<Principal>,
+    Query(q): Query<HashMap<String, String>>,
+) -> Response {
     let tracks: Vec<Value> = tracks::worlds()
         .iter()
         .map(|w| {
@@ -190,7 +209,8 @@ pub async fn new_model(State(app): State<App>, Query(q): Query<HashMap<String, S
     let mut clone_of = Value::Null;
     if let Some(from) = q.get("clone") {
         let rec = match app.store.get(from) {
-            Ok(r) => r,
+            Ok(r) if p.may_see(r.owner.as_deref()) => r,
+            Ok(r) => return not_found(&format!("model '{}' is another user's", r.name)),
             Err(e) => return not_found(&e.to_string()),
         };
         let dir = app.store.dir(&rec.name).expect("a stored model's name is valid");
@@ -208,7 +228,8 @@ pub async fn new_model(State(app): State<App>, Query(q): Query<HashMap<String, S
     }
     render(
         "new.html",
-        json!({"tracks": tracks, "samples": samples, "default_track": "reinvent_base", "prefill": prefill, "clone_of": clone_of}),
+        json!({"tracks": tracks, "samples": samples, "default_track": "reinvent_base", "prefill": prefill,
+               "clone_of": clone_of, "me": me(&p)}),
     )
 }
 
@@ -219,13 +240,46 @@ fn not_found(message: &str) -> Response {
     r
 }
 
+/// `/login?next=PATH`.
+pub async fn login(Query(q): Query<HashMap<String, String>>) -> Response {
+    // Only a path of this console: never an address elsewhere.
+    let next = q.get("next").filter(|n| n.starts_with('/') && !n.starts_with("//")).cloned().unwrap_or("/".into());
+    render("login.html", json!({"next": next}))
+}
+
+/// `/invite/SECRET`: set the password of an invitation.
+pub async fn invite(Path(secret): Path<String>) -> Response {
+    render("invite.html", json!({"invitation": secret}))
+}
+
+/// `/users` (admin): the users, their roles and quotas; invite one.
+pub async fn users(State(app): State<App>, Extension(p): Extension<Principal>) -> Response {
+    if let Err(r) = p.require(Role::Admin, "managing users") {
+        return r.into_response();
+    }
+    let models = app.store.list();
+    let list: Vec<Value> = app
+        .gate
+        .users
+        .list()
+        .iter()
+        .map(|u| {
+            let mut v = u.to_json();
+            v["models"] = json!(models.iter().filter(|m| m.owner.as_deref() == Some(u.name.as_str())).count());
+            v["created_text"] = json!(when(u.created));
+            v
+        })
+        .collect();
+    render("users.html", json!({"users": list, "me": me(&p)}))
+}
+
 /// `/models/import`.
 pub async fn import() -> Response {
     render("import.html", json!({}))
 }
 
 /// `/models/NAME`.
-pub async fn model(State(app): State<App>, Path(name): Path<String>) -> Response {
+pub async fn model(State(app): State<App>, Extension(p): Extension<Principal>, Path(name): Path<String>) -> Response {
     let rec = match app.store.get(&name) {
         Ok(r) => r,
         Err(e) => return not_found(&e.to_string()),
@@ -236,7 +290,10 @@ pub async fn model(State(app): State<App>, Path(name): Path<String>) -> Response
                    "reversed": rec.reversed, "agents": rec.agents, "sensors": rec.sensors, "algorithm": rec.algorithm, "reward": rec.reward, "stop": rec.stop,
                    "job_id": rec.job_id});
     let tracks: Vec<String> = tracks::world_names().map(String::from).collect();
-    render("model.html", json!({"m": m, "created_text": when(rec.created), "status_text": "", "tracks": tracks}))
+    render(
+        "model.html",
+        json!({"m": m, "created_text": when(rec.created), "status_text": "", "tracks": tracks, "me": me(&p)}),
+    )
 }
 
 #[cfg(test)]

@@ -51,6 +51,9 @@ pub struct ModelRecord {
     /// The model it was cloned from.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub clone_of: Option<String>,
+    /// The user who made it (none: made on the console's token, or before it had users).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub owner: Option<String>,
 }
 
 /// Why a store operation failed.
@@ -262,6 +265,7 @@ mod tests {
                 tracks: vec!["reinvent_base".into()],
                 reversed: false,
                 agents: None,
+                owner: None,
                 algorithm: "clipped_ppo".into(),
                 sensors: vec!["FRONT_FACING_CAMERA".into()],
                 reward: "builtin:center_line".into(),

@@ -68,6 +68,51 @@ pub fn capped(agents: &[String], current: &BTreeMap<String, AgentWork>, cap: u32
     kept
 }
 
+/// A job that runs or waits, as the queue reads it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Queued {
+    /// The job.
+    pub id: String,
+    /// Who made it (empty: the CLI, or a console without users).
+    pub owner: String,
+    /// When it was started (Unix seconds).
+    pub started: f64,
+    /// It has begun (it has the agents, or had them): it keeps them until it ends.
+    pub began: bool,
+}
+
+/// The order in which jobs get the cluster: those that have begun first (oldest first), then
+/// the waiting ones round-robin by owner: the owner served longest ago first (never served:
+/// before any), each owner's jobs oldest first. `served` holds when each owner last got the
+/// cluster. One job at a time has the agents and the learners; the rest wait their turn.
+pub fn queue(jobs: &[Queued], served: &BTreeMap<String, f64>) -> Vec<String> {
+    let mut begun: Vec<&Queued> = jobs.iter().filter(|j| j.began).collect();
+    begun.sort_by(|a, b| a.started.total_cmp(&b.started));
+    let mut out: Vec<String> = begun.iter().map(|j| j.id.clone()).collect();
+    let mut waiting: Vec<&Queued> = jobs.iter().filter(|j| !j.began).collect();
+    waiting.sort_by(|a, b| a.started.total_cmp(&b.started));
+    let mut last: BTreeMap<&str, f64> = served.iter().map(|(k, v)| (k.as_str(), *v)).collect();
+    for j in &begun {
+        last.insert(j.owner.as_str(), f64::INFINITY);
+    }
+    // Virtual times after every real one: each turn given moves its owner to the back.
+    let mut turn = f64::MAX / 2.0;
+    while !waiting.is_empty() {
+        let next = (0..waiting.len())
+            .min_by(|&a, &b| {
+                let key =
+                    |i: usize| (last.get(waiting[i].owner.as_str()).copied().unwrap_or(f64::MIN), waiting[i].started);
+                key(a).partial_cmp(&key(b)).unwrap_or(std::cmp::Ordering::Equal)
+            })
+            .expect("not empty");
+        let j = waiting.remove(next);
+        turn += 1.0;
+        last.insert(j.owner.as_str(), turn);
+        out.push(j.id.clone());
+    }
+    out
+}
+
 /// One world's last evaluation, as the adaptive schedule reads it.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct WorldEval {
@@ -150,6 +195,50 @@ mod tests {
 
     fn work(plan: &BTreeMap<String, Vec<String>>) -> BTreeMap<String, AgentWork> {
         plan.iter().map(|(a, w)| (a.clone(), AgentWork { worlds: w.clone(), offset: 0, generation: 1 })).collect()
+    }
+
+    /// Issue 52: waiting jobs take turns by owner, the owner served longest ago first; a job
+    /// that has begun keeps the cluster.
+    #[test]
+    fn waiting_jobs_take_turns_by_owner() {
+        let j = |id: &str, owner: &str, started: f64, began: bool| Queued {
+            id: id.into(),
+            owner: owner.into(),
+            started,
+            began,
+        };
+        let served = |v: &[(&str, f64)]| v.iter().map(|(k, t)| (k.to_string(), *t)).collect::<BTreeMap<_, _>>();
+        // (jobs, when each owner was last served, the order)
+        for (jobs, last, want) in [
+            // Ann's three jobs came first; Bob's and Cy's still go second and third.
+            (
+                vec![
+                    j("a1", "ann", 1.0, false),
+                    j("a2", "ann", 2.0, false),
+                    j("a3", "ann", 3.0, false),
+                    j("b1", "bob", 4.0, false),
+                    j("c1", "cy", 5.0, false),
+                ],
+                served(&[]),
+                vec!["a1", "b1", "c1", "a2", "a3"],
+            ),
+            // Ann's job runs: it keeps the cluster; Bob goes next though Ann's second is older.
+            (
+                vec![j("a1", "ann", 1.0, true), j("a2", "ann", 2.0, false), j("b1", "bob", 3.0, false)],
+                served(&[("ann", 100.0)]),
+                vec!["a1", "b1", "a2"],
+            ),
+            // Bob was served last: Ann's waiting job goes before his.
+            (
+                vec![j("b2", "bob", 1.0, false), j("a2", "ann", 2.0, false)],
+                served(&[("ann", 100.0), ("bob", 200.0)]),
+                vec!["a2", "b2"],
+            ),
+            // One owner: oldest first.
+            (vec![j("x2", "", 2.0, false), j("x1", "", 1.0, false)], served(&[]), vec!["x1", "x2"]),
+        ] {
+            assert_eq!(queue(&jobs, &last), want, "{jobs:?}");
+        }
     }
 
     /// Issue 51: a job capped at N agents takes N, those it has first; 0 is every agent.

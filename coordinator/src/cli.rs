@@ -48,6 +48,15 @@ pub enum Command {
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
+    /// The console's users (admin, facilitator, racer): `users add NAME --role ROLE
+    /// [--password-file F] --data DIR`, `invite`, `role`, `quota`, `remove`, `list`. Runs
+    /// `console users`: `console users --help` lists its flags.
+    #[command(disable_help_flag = true)]
+    Users {
+        /// The subcommand and its flags.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
     /// Job control: start, list, status, stop, logs.
     Job {
         #[command(subcommand)]

@@ -5,6 +5,7 @@
 //! worlds = ["reinvent_carpet", "reinvent_concrete"]   # required
 //! reversed = false                   # optional: drive every world the other way round
 //! agents = 4                         # optional: the most sim agents it takes (default: all)
+//! owner = "rita"                     # optional: who made it (waiting jobs take turns by owner)
 //! reward = "reward_function.py"      # DeepRacer's file as it is, or "builtin:center_line"
 //! model_metadata = "model_metadata.json"   # optional, DeepRacer's file
 //! hyperparameters = "hyperparameters.json" # optional, DeepRacer's file
@@ -41,6 +42,9 @@ pub struct JobSpec {
     pub reversed: bool,
     /// The most sim agents the job takes (default: every agent there is).
     pub agents: Option<u32>,
+    /// Who made it (a console's user): waiting jobs take turns by owner.
+    #[serde(default)]
+    pub owner: String,
     /// Reward file or `builtin:NAME`.
     #[serde(default = "default_reward")]
     pub reward: String,
@@ -165,6 +169,9 @@ pub fn parse(text: &str, base: &Path, origin: &str, id: &str) -> Result<Job> {
     if spec.stop.minutes <= 0.0 || !spec.stop.minutes.is_finite() {
         bail!("{origin}: field 'stop.minutes' must be a positive number of minutes");
     }
+    if spec.owner.chars().count() > 64 || spec.owner.chars().any(char::is_control) {
+        bail!("{origin}: field 'owner' must be a name of at most 64 characters");
+    }
     if spec.agents == Some(0) {
         bail!("{origin}: field 'agents' must be at least 1 (leave it out for every agent there is)");
     }
@@ -195,6 +202,7 @@ pub fn parse(text: &str, base: &Path, origin: &str, id: &str) -> Result<Job> {
         schedule_floor: floor,
         reversed: spec.reversed,
         agents: spec.agents.unwrap_or(0),
+        owner: spec.owner,
         worlds: spec.worlds,
     })
 }

@@ -51,6 +51,7 @@ fn main() {
             Ok(0)
         })(),
         cli::Command::Console { args } => console(&args),
+        cli::Command::Users { args } => console(&[vec!["users".to_string()], args].concat()),
         cli::Command::Job { command } => client::run(command),
         cli::Command::Agents { net } => client::run(cli::JobCommand::Agents { net }),
         cli::Command::Up(args) => up::up(args),
@@ -146,7 +147,8 @@ fn main() {
     protocol::exit::exit(result)
 }
 
-/// `coordinator console …`: the `console` binary in this process's place.
+/// `coordinator console …` and `coordinator users …`: the `console` binary in this process's
+/// place.
 fn console(args: &[String]) -> anyhow::Result<i32> {
     use std::os::unix::process::CommandExt as _;
     let bin = coordinator::supervise::sibling("console")?;

@@ -9,7 +9,7 @@
 //! wall-clock limit as a backstop should the learner be gone.
 
 use anyhow::{Context, Result};
-use coordinator::assign::{WorldEval, assign, assignment, capped, weights};
+use coordinator::assign::{Queued, WorldEval, assign, assignment, capped, queue, weights};
 use coordinator::jobs::{AgentWork, Db, JobRecord, JobState, now_unix};
 use protocol::job_reply::Body;
 use protocol::net::{self, DropCounters, NetArgs, decode_sample, zenoh};
@@ -39,6 +39,8 @@ struct State {
     learners: BTreeMap<String, Instant>,
     /// Each world's racing-line lap (s), the adaptive schedule's yardstick, worked out once.
     line_laps: BTreeMap<String, f64>,
+    /// When each owner's job last got the cluster (the queue's round-robin).
+    served: BTreeMap<String, f64>,
 }
 
 /// How often the revocation list is re-sent (nodes that joined since take it).
@@ -127,6 +129,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         agents: BTreeMap::new(),
         learners: BTreeMap::new(),
         line_laps: BTreeMap::new(),
+        served: BTreeMap::new(),
     }));
     let drops = Arc::new(DropCounters::default());
 
@@ -300,9 +303,11 @@ fn on_status(st: &mut State, db: &Db, ls: LearnerStatus) {
 
 fn schedule(st: &mut State, db: &Db, session: &zenoh::Session) {
     let agents: Vec<String> = st.agents.keys().cloned().collect();
-    // The backstop: a job past its time limit (plus grace) stops even without the learner.
+    // The backstop: a job past its time limit (plus grace) stops even without the learner;
+    // its time counts from when it got the cluster.
     for j in st.jobs.values_mut().filter(|j| j.state() == JobState::Running) {
-        let elapsed_s = now_unix() - j.started;
+        let Some(began) = j.began else { continue };
+        let elapsed_s = now_unix() - began;
         if elapsed_s >= j.job().stop().minutes * 60.0 + GRACE_S {
             let r = format!("time limit of {} min reached (no word from the learner)", j.job().stop().minutes);
             j.event(format!("stopping: {r}"));
@@ -311,14 +316,42 @@ fn schedule(st: &mut State, db: &Db, session: &zenoh::Session) {
             db.save_or_log(j);
         }
     }
-    // The oldest job that is running (or finishing: its final evaluation runs on the agents)
-    // gets the agents.
-    let active = st
+    // One job at a time has the cluster (the agents and the learners): the first of the queue,
+    // which a job that has begun (running, or finishing its final evaluation) heads until it
+    // ends; the others wait their turn, round-robin by owner.
+    let live: Vec<Queued> = st
         .jobs
         .values()
         .filter(|j| matches!(j.state(), JobState::Running | JobState::Stopping))
-        .min_by(|a, b| a.started.total_cmp(&b.started))
-        .map(|j| j.id().to_string());
+        .map(|j| Queued {
+            id: j.id().to_string(),
+            owner: j.job().owner.clone(),
+            started: j.started,
+            // A job from before the queue existed, or one a learner already took, has begun.
+            began: j.began.is_some() || j.learner.is_some() || !j.assignments.is_empty(),
+        })
+        .collect();
+    let order = queue(&live, &st.served);
+    let active = order.first().cloned();
+    for (place, id) in order.iter().enumerate() {
+        let j = st.jobs.get_mut(id).expect("listed");
+        let queued = place as u32;
+        if place == 0 && j.began.is_none() {
+            let now = now_unix();
+            j.began = Some(now);
+            st.served.insert(j.job().owner.clone(), now);
+            if j.queued > 0 {
+                j.event("its turn: it has the cluster".into());
+            }
+        }
+        if j.queued != queued {
+            if queued > 0 {
+                j.event(format!("waiting its turn: {queued} in the queue (another job has the cluster)"));
+            }
+            j.queued = queued;
+            db.save_or_log(j);
+        }
+    }
     if let Some(id) = &active {
         let j = st.jobs.get_mut(id).expect("active");
         let agents = capped(&agents, &j.assignments, j.job().agents);
@@ -354,8 +387,13 @@ fn schedule(st: &mut State, db: &Db, session: &zenoh::Session) {
             db.save_or_log(j);
         }
     }
-    // Publish assignments and the job tables.
-    for j in st.jobs.values().filter(|j| matches!(j.state(), JobState::Running | JobState::Stopping)) {
+    // Publish the job tables of the job that has the cluster and of those finishing; a job
+    // waiting its turn has none (no learner takes it before its turn).
+    for j in st
+        .jobs
+        .values()
+        .filter(|j| j.state() == JobState::Stopping || (j.state() == JobState::Running && j.queued == 0))
+    {
         let mut table = AssignmentTable {
             protocol_version: PROTOCOL_VERSION,
             job_id: j.id().to_string(),
@@ -447,10 +485,12 @@ fn summary(j: &JobRecord) -> JobSummary {
     JobSummary {
         id: j.id().to_string(),
         state: j.state,
-        minutes: (j.ended.unwrap_or_else(now_unix) - j.started) / 60.0,
+        // Its time on the cluster: none while it waits its turn.
+        minutes: j.began.map_or(0.0, |b| (j.ended.unwrap_or_else(now_unix) - b).max(0.0) / 60.0),
         episodes: l.map_or(0, |l| l.episodes),
         progress: l.map_or(0.0, |l| l.window_progress),
         worlds: j.job().worlds.clone(),
+        queued: j.queued,
     }
 }
 

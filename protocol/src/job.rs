@@ -234,6 +234,7 @@ mod tests {
             schedule_floor: 0.5,
             reversed: true,
             agents: 2,
+            owner: "rita".into(),
         }
     }
 

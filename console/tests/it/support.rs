@@ -31,8 +31,14 @@ impl Console {
 
     /// Start `console` on one machine with `agents` sim agents.
     pub fn with_agents(data: &Path, agents: usize) -> Console {
+        Console::with_args(data, agents, &[])
+    }
+
+    /// Start `console` on one machine with `agents` sim agents and more flags.
+    pub fn with_args(data: &Path, agents: usize, extra: &[&str]) -> Console {
         let mut child = Command::new(env!("CARGO_BIN_EXE_console"))
             .args(["--listen", "127.0.0.1:0", "--agents", &agents.to_string(), "--envs", "8", "--token", TOKEN])
+            .args(extra)
             .arg("--data")
             .arg(data)
             .stdout(Stdio::piped())
@@ -47,9 +53,14 @@ impl Console {
                 endpoint = Some(rest.split(',').next().unwrap().to_string());
             }
             if let Some(rest) = l.strip_prefix("console      http://") {
-                let (a, t) = rest.split_once("/?token=").expect("the address carries the token");
-                assert_eq!(t, TOKEN);
-                addr = Some(a.to_string());
+                // With users the console asks for a login; without, the address carries the token.
+                match rest.split_once("/?token=") {
+                    Some((a, t)) => {
+                        assert_eq!(t, TOKEN);
+                        addr = Some(a.to_string());
+                    }
+                    None => addr = Some(rest.strip_suffix("/login").expect("the login page's address").to_string()),
+                }
             }
         }
         std::thread::spawn(move || for _ in lines {});
