@@ -272,3 +272,106 @@ finally:
     d.quit()
 print(json.dumps(out))
 "###;
+
+/// Issue 52: in Chromium, an admin logs in, invites a racer from the Users page and logs out;
+/// the racer sets her password at the invitation's link and logs in, and sees no Users page.
+#[test]
+fn an_admin_invites_a_racer_in_chromium_who_sets_her_password_and_logs_in() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    std::fs::create_dir_all(&data).unwrap();
+    let pw = dir.path().join("ada.pw");
+    std::fs::write(&pw, "Admin-pass-1\n").unwrap();
+    let o = Command::new(bin("coordinator"))
+        .args(["users", "add", "ada", "--role", "admin", "--password-file"])
+        .arg(&pw)
+        .arg("--data")
+        .arg(&data)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let c = Console::start(&data);
+    let o = Command::new(python()).arg("-c").arg(INVITE).arg(&c.addr).arg(dir.path()).output().unwrap();
+    let out = String::from_utf8_lossy(&o.stdout).to_string();
+    assert!(o.status.success(), "the browser's run failed:\n{out}\n{}", String::from_utf8_lossy(&o.stderr));
+    let v: serde_json::Value = serde_json::from_str(out.lines().last().unwrap_or("")).unwrap();
+    assert!(v["first_page"].as_str().unwrap().contains("/login?next=/"), "{v}");
+    assert_eq!(v["wrong_password"], "wrong user name or password", "{v}");
+    assert!(v["admin_header"].as_str().unwrap().contains("ada (admin)"), "{v}");
+    assert!(v["link"].as_str().unwrap().contains("/invite/"), "{v}");
+    assert!(v["after_logout"].as_str().unwrap().ends_with("/login"), "{v}");
+    assert!(v["weak_password"].as_str().unwrap().contains("upper-case"), "{v}");
+    assert!(v["racer_header"].as_str().unwrap().contains("rita (racer)"), "{v}");
+    assert_eq!(v["racer_sees_users_link"], false, "{v}");
+    let users = std::fs::read_to_string(data.join("users.json")).unwrap();
+    assert!(users.contains("\"rita\"") && users.contains("$argon2id$"), "{users}");
+}
+
+/// The admin and the racer, in Chromium: prints one JSON line of what the pages showed.
+const INVITE: &str = r###"
+import json, sys, time
+from selenium import webdriver
+from selenium.webdriver.chrome.service import Service
+from selenium.webdriver.common.by import By
+
+addr, tmp = sys.argv[1], sys.argv[2]
+opts = webdriver.ChromeOptions()
+for a in ["--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--no-first-run",
+          "--disable-background-networking", "--disable-component-update", "--disable-sync",
+          "--window-size=1300,1000", "--user-data-dir=" + tmp + "/chromium-users"]:
+    opts.add_argument(a)
+opts.binary_location = "/usr/bin/chromium"
+d = webdriver.Chrome(service=Service("/usr/bin/chromedriver"), options=opts)
+out = {}
+
+def wait(what, f, secs=30):
+    end = time.time() + secs
+    while time.time() < end:
+        v = f()
+        if v:
+            return v
+        time.sleep(0.2)
+    d.save_screenshot(tmp + "/timeout.png")
+    raise SystemExit("not within %ds: %s (page: %s)" % (secs, what, d.current_url))
+
+def log_in(user, password):
+    d.find_element(By.ID, "login-user").clear()
+    d.find_element(By.ID, "login-user").send_keys(user)
+    d.find_element(By.ID, "login-password").clear()
+    d.find_element(By.ID, "login-password").send_keys(password)
+    d.find_element(By.ID, "login-submit").click()
+
+try:
+    d.get("http://%s/" % addr)
+    out["first_page"] = d.current_url
+    log_in("ada", "Not-her-pass-1")
+    out["wrong_password"] = wait("the refusal", lambda: d.find_element(By.ID, "login-errors").text)
+    log_in("ada", "Admin-pass-1")
+    wait("the models page", lambda: "Your models" in d.title)
+    out["admin_header"] = d.find_element(By.CSS_SELECTOR, "header .who").text
+    d.find_element(By.LINK_TEXT, "Users").click()
+    wait("the users page", lambda: d.current_url.endswith("/users"))
+    d.find_element(By.ID, "new-user").send_keys("rita")
+    d.find_element(By.ID, "add-user-submit").click()
+    out["link"] = wait("the invitation's link", lambda: d.find_element(By.ID, "invitation-link").text)
+    d.find_element(By.ID, "logout").click()
+    out["after_logout"] = wait("the login page", lambda: d.current_url.split("?")[0].endswith("/login") and d.current_url)
+    d.get(out["link"])
+    d.find_element(By.ID, "invite-password").send_keys("weakpass")
+    d.find_element(By.ID, "invite-again").send_keys("weakpass")
+    d.find_element(By.ID, "invite-submit").click()
+    out["weak_password"] = wait("the password rule", lambda: d.find_element(By.ID, "invite-errors").text)
+    for f in ["invite-password", "invite-again"]:
+        d.find_element(By.ID, f).clear()
+        d.find_element(By.ID, f).send_keys("Racer-pass-1")
+    d.find_element(By.ID, "invite-submit").click()
+    wait("the login page", lambda: d.current_url.endswith("/login"))
+    log_in("rita", "Racer-pass-1")
+    wait("the models page", lambda: "Your models" in d.title)
+    out["racer_header"] = d.find_element(By.CSS_SELECTOR, "header .who").text
+    out["racer_sees_users_link"] = len(d.find_elements(By.LINK_TEXT, "Users")) > 0
+    d.save_screenshot(tmp + "/racer.png")
+finally:
+    d.quit()
+print(json.dumps(out))
+"###;
