@@ -41,12 +41,21 @@ pub async fn ownership(State(app): State<App>, req: axum::extract::Request, next
     // The open routes (the login's) carry no principal, and name no model.
     let Some(p) = req.extensions().get::<crate::auth::Principal>().cloned() else { return next.run(req).await };
     let path = req.uri().path();
+    // The name as the route's `{name}` reads it: percent-decoded (`rita%2D1` is `rita-1`).
     let name = path
         .strip_prefix("/api/v1/models/")
         .or_else(|| path.strip_prefix("/models/"))
         .and_then(|rest| rest.split('/').next())
-        .filter(|n| !crate::store::RESERVED.contains(n));
-    if let Some(rec) = name.and_then(|n| app.store.get(n).ok()) {
+        .map(|n| percent_encoding::percent_decode_str(n).decode_utf8().map(|d| d.into_owned()));
+    let name = match name {
+        Some(Ok(n)) => Some(n).filter(|n| !crate::store::RESERVED.contains(&n.as_str())),
+        Some(Err(_)) => {
+            crate::counters::refused("an unknown model");
+            return error(StatusCode::NOT_FOUND, "no such model");
+        }
+        None => None,
+    };
+    if let Some(rec) = name.and_then(|n| app.store.get(&n).ok()) {
         let owner = rec.owner.as_deref();
         let reading = matches!(*req.method(), axum::http::Method::GET | axum::http::Method::HEAD);
         if !p.may_see(owner) {

@@ -336,6 +336,10 @@ fn schedule(st: &mut State, db: &Db, session: &zenoh::Session) {
     for (place, id) in order.iter().enumerate() {
         let j = st.jobs.get_mut(id).expect("listed");
         let queued = place as u32;
+        // A job kept from before the queue, already under way: its time ran from its start.
+        if j.began.is_none() && (j.learner.is_some() || !j.assignments.is_empty()) {
+            j.began = Some(j.started);
+        }
         if place == 0 && j.began.is_none() {
             let now = now_unix();
             j.began = Some(now);

@@ -121,6 +121,8 @@ fn users_log_in_and_do_only_what_their_role_and_quota_allow() {
     assert_eq!(r.code, 403);
     assert!(r.json()["error"].as_str().unwrap().contains("facilitator role"), "{}", r.json());
     assert_eq!(rex.call("DELETE", "/api/v1/models/rita-1", None).code, 403);
+    assert_eq!(rex.call("GET", "/api/v1/models/rita%2D1", None).code, 403, "the name as the router decodes it");
+    assert_eq!(rex.call("GET", "/api/v1/models/rita%2D1/metrics", None).code, 403);
     assert_eq!(rex.call("GET", "/models/rita-1", None).code, 403, "the page too");
     assert_eq!(rex.call("GET", "/api/v1/models/rita-1/car.tar.gz", None).code, 403);
     let (_, fay) = login(&c, "fay", RITA, &[]);
