@@ -118,10 +118,8 @@ pub async fn logout(State(app): State<App>, headers: HeaderMap) -> Response {
     if let Some(id) = crate::auth::cookie(&headers, SESSION_COOKIE) {
         app.gate.close_session(&id);
     }
-    if let Some(v) = headers.get(header::AUTHORIZATION).and_then(|v| v.to_str().ok())
-        && let Some(id) = v.strip_prefix("Bearer ")
-    {
-        app.gate.close_session(id.trim());
+    if let Some(id) = crate::auth::bearer(&headers) {
+        app.gate.close_session(id);
     }
     let cookie = format!("{SESSION_COOKIE}=; Path=/; HttpOnly; SameSite=Strict; Max-Age=0");
     // htmx (the header's Log out) follows HX-Redirect.

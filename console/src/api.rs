@@ -401,13 +401,8 @@ pub async fn create_model(
         .and_then(|s| s.get("minutes"))
         .and_then(Value::as_f64)
         .unwrap_or_else(|| crate::quota::stop_minutes(&models::default_stop()));
-    let (quota_app, quota_p) = (app.clone(), p.clone());
-    let fits = tokio::task::spawn_blocking(move || {
-        crate::quota::check(&quota_app, &quota_p, crate::quota::Ask { models: 1, minutes: Some(minutes) })
-    })
-    .await
-    .unwrap_or(Ok(()));
-    if let Err(r) = fits {
+    let ask = crate::quota::Ask { models: 1, minutes: Some(minutes) };
+    if let Err(r) = crate::quota::check_off_thread(&app, &p, ask).await {
         return r.into_response();
     }
     let store = app.store.clone();
@@ -730,11 +725,7 @@ pub async fn start_evaluation(
         Err(f) => return invalid(&[f]),
     };
     // An evaluation spends minutes: some must be left, of the evaluator's and the instance's.
-    let quota_app = app.clone();
-    let fits = tokio::task::spawn_blocking(move || crate::quota::check(&quota_app, &p, crate::quota::Ask::EVALUATION))
-        .await
-        .unwrap_or(Ok(()));
-    if let Err(r) = fits {
+    if let Err(r) = crate::quota::check_off_thread(&app, &p, crate::quota::Ask::EVALUATION).await {
         return r.into_response();
     }
     let status = status_of(state_now(&app, &rec).await, &rec, &app.store);
@@ -929,7 +920,7 @@ pub async fn import(
     if app.store.get(&name).is_ok() {
         return store_error(StoreError::Taken(name));
     }
-    if let Err(r) = crate::quota::check(&app, &principal, crate::quota::Ask::IMPORT) {
+    if let Err(r) = crate::quota::check_off_thread(&app, &principal, crate::quota::Ask::IMPORT).await {
         return r.into_response();
     }
     let store = app.store.clone();

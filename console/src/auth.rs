@@ -56,24 +56,23 @@ pub enum Proof {
 
 /// The request's proof of the token, if it has one.
 pub fn proof(headers: &HeaderMap, token: &str) -> Option<Proof> {
-    if let Some(v) = headers.get(header::AUTHORIZATION).and_then(|v| v.to_str().ok())
-        && let Some(t) = v.strip_prefix("Bearer ")
-        && same(t.trim(), token)
-    {
+    if bearer(headers).is_some_and(|t| same(t, token)) {
         return Some(Proof::Bearer);
     }
-    let cookies = headers.get_all(header::COOKIE);
-    for c in cookies.iter().filter_map(|v| v.to_str().ok()) {
-        for part in c.split(';') {
-            if let Some((k, v)) = part.trim().split_once('=')
-                && k == COOKIE
-                && same(v, token)
-            {
-                return Some(Proof::Cookie);
-            }
-        }
-    }
-    None
+    cookies(headers, COOKIE).any(|v| same(&v, token)).then_some(Proof::Cookie)
+}
+
+/// The credential of `Authorization: Bearer …`, if the request has one.
+pub fn bearer(headers: &HeaderMap) -> Option<&str> {
+    headers.get(header::AUTHORIZATION)?.to_str().ok()?.strip_prefix("Bearer ").map(str::trim)
+}
+
+/// The values of every cookie named `name` in the request.
+fn cookies<'a>(headers: &'a HeaderMap, name: &'a str) -> impl Iterator<Item = String> + 'a {
+    headers.get_all(header::COOKIE).iter().filter_map(|v| v.to_str().ok()).flat_map(move |c| {
+        c.split(';')
+            .filter_map(move |part| part.trim().split_once('=').filter(|(k, _)| *k == name).map(|(_, v)| v.to_string()))
+    })
 }
 
 /// Whether a browser's request comes from the console's own pages: its `Origin` (or, without
@@ -283,18 +282,13 @@ fn digest(id: &str) -> String {
 
 /// A cookie's value in the request.
 pub fn cookie(headers: &HeaderMap, name: &str) -> Option<String> {
-    headers.get_all(header::COOKIE).iter().filter_map(|v| v.to_str().ok()).find_map(|c| {
-        c.split(';')
-            .find_map(|part| part.trim().split_once('=').filter(|(k, _)| *k == name).map(|(_, v)| v.to_string()))
-    })
+    cookies(headers, name).next()
 }
 
 /// The session id a request carries: `Authorization: Bearer ID` (a program) or the cookie.
 fn session_id(headers: &HeaderMap) -> Option<(String, Proof)> {
-    if let Some(v) = headers.get(header::AUTHORIZATION).and_then(|v| v.to_str().ok())
-        && let Some(t) = v.strip_prefix("Bearer ")
-    {
-        return Some((t.trim().to_string(), Proof::Bearer));
+    if let Some(t) = bearer(headers) {
+        return Some((t.to_string(), Proof::Bearer));
     }
     cookie(headers, SESSION_COOKIE).map(|c| (c, Proof::Cookie))
 }

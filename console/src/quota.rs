@@ -127,6 +127,13 @@ pub fn check(app: &App, p: &Principal, ask: Ask) -> Result<(), Forbidden> {
     Ok(())
 }
 
+/// [`check`] from a request's handler: on a blocking thread (it reads every model's
+/// evaluations).
+pub async fn check_off_thread(app: &App, p: &Principal, ask: Ask) -> Result<(), Forbidden> {
+    let (app, p) = (app.clone(), p.clone());
+    tokio::task::spawn_blocking(move || check(&app, &p, ask)).await.unwrap_or(Ok(()))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -27,7 +27,13 @@ fn a_racer_makes_models_in_chromium_from_a_reward_error_to_a_verified_model_and_
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("data");
     let c = Console::start(&data);
-    let o = Command::new(python()).arg("-c").arg(RACER).args([&c.addr, TOKEN]).arg(dir.path()).output().unwrap();
+    let o = Command::new(python())
+        .arg("-c")
+        .arg(format!("{CHROMIUM}{RACER}"))
+        .args([&c.addr, TOKEN])
+        .arg(dir.path())
+        .output()
+        .unwrap();
     let out = String::from_utf8_lossy(&o.stdout).to_string();
     assert!(o.status.success(), "the browser's run failed:\n{out}\n{}", String::from_utf8_lossy(&o.stderr));
     let v: serde_json::Value = serde_json::from_str(out.lines().last().unwrap_or("")).unwrap();
@@ -138,14 +144,15 @@ with open(sys.argv[1], "rb") as f:
 print(json.dumps({"frames": n, "schema": schema, "pixels": pixels, "levels": levels}))
 "#;
 
-/// The racer, in Chromium: prints one JSON line of what the pages showed.
-const RACER: &str = r###"
+/// What each browser script starts with: Debian's Chromium, headless, through chromedriver;
+/// `addr` (the first argument), `tmp` (the last), `out` (printed at the end) and `wait`.
+const CHROMIUM: &str = r###"
 import json, sys, time
 from selenium import webdriver
 from selenium.webdriver.chrome.service import Service
 from selenium.webdriver.common.by import By
 
-addr, token, tmp = sys.argv[1], sys.argv[2], sys.argv[3]
+addr, tmp = sys.argv[1], sys.argv[-1]
 opts = webdriver.ChromeOptions()
 for a in ["--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--no-first-run",
           "--disable-background-networking", "--disable-component-update", "--disable-sync",
@@ -164,6 +171,12 @@ def wait(what, f, secs=60):
         time.sleep(0.3)
     d.save_screenshot(tmp + "/timeout.png")
     raise SystemExit("not within %ds: %s (page: %s)" % (secs, what, d.current_url))
+
+"###;
+
+/// The racer, in Chromium (after [`CHROMIUM`]): prints one JSON line of what the pages showed.
+const RACER: &str = r###"
+token = sys.argv[2]
 
 def click(css):
     d.find_element(By.CSS_SELECTOR, css).click()
@@ -291,7 +304,13 @@ fn an_admin_invites_a_racer_in_chromium_who_sets_her_password_and_logs_in() {
         .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let c = Console::start(&data);
-    let o = Command::new(python()).arg("-c").arg(INVITE).arg(&c.addr).arg(dir.path()).output().unwrap();
+    let o = Command::new(python())
+        .arg("-c")
+        .arg(format!("{CHROMIUM}{INVITE}"))
+        .arg(&c.addr)
+        .arg(dir.path())
+        .output()
+        .unwrap();
     let out = String::from_utf8_lossy(&o.stdout).to_string();
     assert!(o.status.success(), "the browser's run failed:\n{out}\n{}", String::from_utf8_lossy(&o.stderr));
     let v: serde_json::Value = serde_json::from_str(out.lines().last().unwrap_or("")).unwrap();
@@ -307,33 +326,9 @@ fn an_admin_invites_a_racer_in_chromium_who_sets_her_password_and_logs_in() {
     assert!(users.contains("\"rita\"") && users.contains("$argon2id$"), "{users}");
 }
 
-/// The admin and the racer, in Chromium: prints one JSON line of what the pages showed.
+/// The admin and the racer, in Chromium (after [`CHROMIUM`]): prints one JSON line of what the
+/// pages showed.
 const INVITE: &str = r###"
-import json, sys, time
-from selenium import webdriver
-from selenium.webdriver.chrome.service import Service
-from selenium.webdriver.common.by import By
-
-addr, tmp = sys.argv[1], sys.argv[2]
-opts = webdriver.ChromeOptions()
-for a in ["--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--no-first-run",
-          "--disable-background-networking", "--disable-component-update", "--disable-sync",
-          "--window-size=1300,1000", "--user-data-dir=" + tmp + "/chromium-users"]:
-    opts.add_argument(a)
-opts.binary_location = "/usr/bin/chromium"
-d = webdriver.Chrome(service=Service("/usr/bin/chromedriver"), options=opts)
-out = {}
-
-def wait(what, f, secs=30):
-    end = time.time() + secs
-    while time.time() < end:
-        v = f()
-        if v:
-            return v
-        time.sleep(0.2)
-    d.save_screenshot(tmp + "/timeout.png")
-    raise SystemExit("not within %ds: %s (page: %s)" % (secs, what, d.current_url))
-
 def log_in(user, password):
     d.find_element(By.ID, "login-user").clear()
     d.find_element(By.ID, "login-user").send_keys(user)
