@@ -584,5 +584,108 @@ var Paddock = (function () {
     };
   }
 
-  return { wizard: wizard, model: model, importer: importer, login: login, invite: invite, users: users };
+  // ---- Races ---------------------------------------------------------------------------
+  function races() {
+    var form = $("#new-race");
+    if (!form) return;
+    var off = -new Date().getTimezoneOffset(), sign = off >= 0 ? "+" : "-";
+    $$(".tz").forEach(function (el) {
+      text(el, "your time (UTC" + sign + String(Math.floor(Math.abs(off) / 60)).padStart(2, "0") + ":" + String(Math.abs(off) % 60).padStart(2, "0") + ")");
+    });
+    function local(d) { return new Date(d.getTime() - d.getTimezoneOffset() * 60000).toISOString().slice(0, 16); }
+    var now = new Date();
+    $("#race-opens").value = local(now);
+    $("#race-closes").value = local(new Date(now.getTime() + 7 * 86400000));
+    function kind() {
+      $("#race-objects-row").hidden = $("#race-type").value !== "object_avoidance";
+      $("#race-bots-row").hidden = $("#race-type").value !== "head_to_bot";
+    }
+    $("#race-type").onchange = kind;
+    $("#race-ranking").onchange = function () {
+      if ($("#race-ranking").value === "total_time") $("#race-min-laps").value = $("#race-max-laps").value;
+    };
+    $("#race-max-laps").oninput = function () {
+      if ($("#race-ranking").value === "total_time") $("#race-min-laps").value = $("#race-max-laps").value;
+    };
+    kind();
+    form.onsubmit = function (ev) {
+      ev.preventDefault();
+      var type = $("#race-type").value, race = { race_type: type };
+      if (type === "object_avoidance") race.number_of_obstacles = Number($("#race-objects").value);
+      if (type === "head_to_bot") race.number_of_bot_cars = Number($("#race-bots").value);
+      var when = function (sel) { var v = $(sel).value; return v ? new Date(v).getTime() / 1000 : null; };
+      var body = {
+        name: $("#race-name").value, description: $("#race-description").value, track: $("#race-track").value,
+        reversed: val("race-direction") === "reversed", race: race, ranking: $("#race-ranking").value,
+        min_laps: Number($("#race-min-laps").value), max_laps: Number($("#race-max-laps").value),
+        off_track_penalty: Number($("#race-off-track").value), crash_penalty: Number($("#race-crash").value),
+        max_submissions: Number($("#race-submissions").value), opens: when("#race-opens"), closes: when("#race-closes"),
+      };
+      // A window opening in the past minute opens now.
+      if (body.opens !== null && body.opens < Date.now() / 1000) body.opens = null;
+      send("POST", "/api/v1/races", body).then(function (r) {
+        if (r.ok) location.assign("/races/" + encodeURIComponent(r.v.name)); else showErrors($("#race-errors"), r.v);
+      });
+    };
+  }
+  function race() {
+    var name = JSON.parse($("#race-json").textContent), base = "/api/v1/races/" + encodeURIComponent(name);
+    function cell(tr, s) { tr.appendChild(text(document.createElement("td"), s)); return tr.lastChild; }
+    function clock(ms) {
+      if (ms === null || ms === undefined) return "—";
+      var m = Math.floor(ms / 60000), s = Math.floor(ms / 1000) % 60;
+      return String(m).padStart(2, "0") + ":" + String(s).padStart(2, "0") + "." + String(ms % 1000).padStart(3, "0");
+    }
+    function refresh() {
+      fetch(base + "/leaderboard", { credentials: "same-origin" }).then(function (r) { return r.json(); }).then(function (b) {
+        var body = $("#leaderboard tbody");
+        body.textContent = "";
+        (b.rows || []).forEach(function (row) {
+          var tr = document.createElement("tr");
+          tr.dataset.racer = row.racer;
+          cell(tr, String(row.rank)); cell(tr, row.racer); cell(tr, row.time); cell(tr, row.gap); cell(tr, String(row.off_tracks));
+          var img = document.createElement("img");
+          img.className = "lap";
+          img.alt = "fastest lap of " + row.racer;
+          img.src = base + "/entries/" + encodeURIComponent(row.entry) + "/lap.svg";
+          cell(tr, "").appendChild(img);
+          body.appendChild(tr);
+        });
+        if (!body.children.length) body.innerHTML = '<tr><td colspan="6" class="empty">No ranked entries yet.</td></tr>';
+        text($("#evaluating"), b.evaluating ? b.evaluating + " entries being evaluated…" : "");
+      });
+      fetch(base + "/entries", { credentials: "same-origin" }).then(function (r) { return r.json(); }).then(function (list) {
+        var body = $("#entries tbody");
+        body.textContent = "";
+        list.slice().reverse().forEach(function (e) {
+          var tr = document.createElement("tr");
+          tr.dataset.entry = e.id;
+          cell(tr, e.model + (e.racer && e.racer !== e.model ? " (" + e.racer + ")" : ""));
+          cell(tr, e.status === "done" ? (e.ranked ? clock(e.time_ms) : "not ranked") : "—");
+          cell(tr, e.completed_laps === undefined ? "—" : String(e.completed_laps));
+          var st = cell(tr, e.status === "failed" ? "failed: " + e.error : e.status);
+          st.className = "entry-status";
+          cell(tr, new Date(e.created * 1000).toLocaleString());
+          body.appendChild(tr);
+        });
+        text($("#entry-count"), "(" + list.length + ")");
+      });
+    }
+    refresh();
+    setInterval(refresh, 3000);
+    var form = $("#enter-race");
+    if (form) form.onsubmit = function (ev) {
+      ev.preventDefault();
+      send("POST", base + "/entries", { model: $("#enter-model").value }).then(function (r) {
+        if (r.ok) { $("#enter-errors").textContent = ""; refresh(); } else showErrors($("#enter-errors"), r.v);
+      });
+    };
+    var del = $("#race-delete");
+    if (del) del.onclick = function () {
+      if (!confirm("Delete race " + name + " and its entries?")) return;
+      send("DELETE", base).then(function (r) { if (r.ok) location.assign("/races"); else showErrors($("#enter-errors") || $("#evaluating"), r.v); });
+    };
+  }
+
+  return { wizard: wizard, model: model, importer: importer, login: login, invite: invite, users: users, races: races, race: race };
 })();

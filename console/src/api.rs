@@ -32,6 +32,10 @@ pub struct App {
     pub https: bool,
     /// The evaluations running in this process (their ids).
     pub running: Arc<std::sync::Mutex<std::collections::BTreeSet<String>>>,
+    /// The races.
+    pub races: crate::races::Races,
+    /// Race entries evaluated at once: one permit each.
+    pub race_slots: Arc<tokio::sync::Semaphore>,
 }
 
 /// The middleware on a model's routes (`/models/NAME…`, `/api/v1/models/NAME…`): a model
@@ -478,7 +482,7 @@ impl From<StoreError> for Created {
 
 /// The state of a model's job as the coordinator answers now (the hub's list may be a second
 /// old); the list's when the coordinator does not answer.
-async fn state_now(app: &App, rec: &ModelRecord) -> Option<JobState> {
+pub async fn state_now(app: &App, rec: &ModelRecord) -> Option<JobState> {
     match app.hub.request(Kind::StatusJobId(rec.job_id.clone()), Duration::from_secs(3)).await {
         Ok(r) => coordinator::control::status_of(&r)
             .and_then(|s| s.record.as_ref())

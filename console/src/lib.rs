@@ -23,6 +23,8 @@ pub mod models;
 pub mod pages;
 pub mod pictures;
 pub mod quota;
+pub mod race_api;
+pub mod races;
 pub mod store;
 pub mod users;
 
@@ -47,6 +49,8 @@ pub struct Options {
     pub insecure: bool,
     /// The secret (a new one when `None`).
     pub token: Option<String>,
+    /// Race entries evaluated at once.
+    pub race_workers: usize,
 }
 
 /// The first admin, made when the data folder has no user yet: `--admin NAME` with the
@@ -99,6 +103,14 @@ pub fn router(app: api::App) -> Router {
         .route("/api/v1/quota", get(accounts::quota).put(accounts::set_instance_quota))
         .route("/api/v1/users", get(accounts::list_users).post(accounts::add_user))
         .route("/api/v1/users/{name}", patch(accounts::change_user).delete(accounts::remove_user))
+        .route("/races", get(pages::races))
+        .route("/races/{race}", get(pages::race))
+        .route("/api/v1/races", get(race_api::list).post(race_api::create))
+        .route("/api/v1/races/{race}", get(race_api::get).patch(race_api::change).delete(race_api::remove))
+        .route("/api/v1/races/{race}/leaderboard", get(race_api::board))
+        .route("/api/v1/races/{race}/entries", get(race_api::entries).post(race_api::enter))
+        .route("/api/v1/races/{race}/entries/{id}", get(race_api::entry))
+        .route("/api/v1/races/{race}/entries/{id}/lap.svg", get(race_api::lap))
         .route("/api/v1/openapi.json", get(api::openapi))
         .route("/api/v1/health", get(api::health))
         .route("/api/v1/tracks", get(api::tracks))
@@ -140,7 +152,16 @@ pub fn serve(opts: Options, store: store::Store, hub: hub::Hub) -> Result<()> {
     let token = opts.token.unwrap_or_else(auth::new_token);
     let users = users::Users::open(store.root())?;
     let gate = Arc::new(auth::Gate::new(token.clone(), users));
-    let app = api::App { store, hub, gate: gate.clone(), https: false, running: Default::default() };
+    let races = races::Races::open(store.root());
+    let app = api::App {
+        store,
+        hub,
+        gate: gate.clone(),
+        https: false,
+        running: Default::default(),
+        races,
+        race_slots: Arc::new(tokio::sync::Semaphore::new(opts.race_workers.max(1))),
+    };
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
@@ -160,6 +181,7 @@ pub fn serve(opts: Options, store: store::Store, hub: hub::Hub) -> Result<()> {
         use std::io::Write as _;
         std::io::stdout().flush()?;
         tracing::info!(%addr, data = %app.store.root().display(), "console serving");
+        race_api::resume(&app);
         // Live pages keep their event streams open: at a stop the server is dropped, not
         // drained.
         let server = tokio::spawn(async move {
@@ -187,4 +209,30 @@ async fn stopped() {
     };
     futures_util::future::select(std::pin::pin!(tokio::signal::ctrl_c()), std::pin::pin!(term)).await;
     tracing::info!("console stopping");
+}
+
+#[cfg(test)]
+mod tests {
+    /// Every API route the router answers is in the OpenAPI document.
+    #[test]
+    fn the_openapi_document_names_every_api_route() {
+        let doc: serde_json::Value = serde_json::from_str(super::OPENAPI).expect("openapi.json is JSON");
+        let paths = doc["paths"].as_object().expect("paths");
+        let source = include_str!("lib.rs");
+        let routes: Vec<&str> = source
+            .split(".route(\"")
+            .skip(1)
+            .filter_map(|s| s.split('"').next())
+            .filter(|r| r.starts_with("/api/"))
+            .collect();
+        assert!(routes.len() > 30, "{routes:?}");
+        // The document names a path's parameters as the router does, but any name will do.
+        let shape = |p: &str| -> String {
+            p.split('/').map(|s| if s.starts_with('{') { "{}" } else { s }).collect::<Vec<_>>().join("/")
+        };
+        let documented: Vec<String> = paths.keys().map(|k| shape(k)).collect();
+        for r in routes {
+            assert!(documented.contains(&shape(r)), "{r} is not in openapi.json");
+        }
+    }
 }

@@ -53,6 +53,9 @@ struct Cli {
     /// for a login); its password is printed once unless --admin-password-file gives it.
     #[arg(long, value_name = "NAME")]
     admin: Option<String>,
+    /// Race entries evaluated at once (each drives its laps side by side on every core).
+    #[arg(long, default_value_t = 2)]
+    race_workers: usize,
     /// The first admin's password (the file's first line).
     #[arg(long, value_name = "FILE", requires = "admin")]
     admin_password_file: Option<PathBuf>,
@@ -270,7 +273,12 @@ fn run(cli: Cli) -> Result<()> {
             }
         });
     }
-    let opts = paddock_console::Options { listen: cli.listen, insecure: cli.insecure, token: cli.token };
+    let opts = paddock_console::Options {
+        listen: cli.listen,
+        insecure: cli.insecure,
+        token: cli.token,
+        race_workers: cli.race_workers,
+    };
     let served = paddock_console::serve(opts, store, hub);
     // The roles stop with the console.
     drop(std::mem::replace(&mut *supervised.lock().expect("roles"), Children(Vec::new())));

@@ -27,6 +27,8 @@ static TEMPLATES: LazyLock<Environment<'static>> = LazyLock::new(|| {
         ("login.html", include_str!("../templates/login.html")),
         ("invite.html", include_str!("../templates/invite.html")),
         ("users.html", include_str!("../templates/users.html")),
+        ("races.html", include_str!("../templates/races.html")),
+        ("race.html", include_str!("../templates/race.html")),
     ] {
         env.add_template(name, text).expect("the console's templates parse");
     }
@@ -296,6 +298,60 @@ pub async fn model(State(app): State<App>, Extension(p): Extension<Principal>, P
     )
 }
 
+/// A race as the pages show it.
+fn race_view(app: &App, r: &crate::races::Race, now: f64) -> Value {
+    let entries = app.races.entries(&r.name);
+    let mut v = r.to_json(now);
+    v["opens_text"] = json!(when(r.opens));
+    v["closes_text"] = json!(when(r.closes));
+    v["ranking_title"] = json!(r.ranking.title());
+    v["type_title"] = json!(match r.race.race_type {
+        sim_agent::race::RaceType::TimeTrial => "Time trial".to_string(),
+        sim_agent::race::RaceType::ObjectAvoidance =>
+            format!("Object avoidance ({} objects)", r.race.number_of_obstacles),
+        sim_agent::race::RaceType::HeadToBot => format!("Head-to-bot ({} bots)", r.race.number_of_bot_cars),
+    });
+    v["entries"] = json!(entries.len());
+    v["leader"] = crate::race_api::board_json(r, &entries).into_iter().next().unwrap_or(Value::Null);
+    v
+}
+
+/// `/races`: open and closed races; a facilitator's form to make one.
+pub async fn races(State(app): State<App>, Extension(p): Extension<Principal>) -> Response {
+    let now = protocol::job::now_unix();
+    let list: Vec<Value> = app.races.list().iter().map(|r| race_view(&app, r, now)).collect();
+    let tracks: Vec<String> = tracks::world_names().map(String::from).collect();
+    render(
+        "races.html",
+        json!({"races": list, "tracks": tracks, "may_make": p.role >= Role::Facilitator, "me": me(&p)}),
+    )
+}
+
+/// `/races/NAME`: the race's details, rules and live leaderboard; the requester's entries and
+/// their ready models to enter.
+pub async fn race(State(app): State<App>, Extension(p): Extension<Principal>, Path(name): Path<String>) -> Response {
+    let r = match app.races.get(&name) {
+        Ok(r) => r,
+        Err(e) => {
+            crate::counters::refused("an unknown race");
+            let mut page = render("licences.html", json!({"error": e.to_string()}));
+            *page.status_mut() = StatusCode::NOT_FOUND;
+            return page;
+        }
+    };
+    let models: Vec<String> = crate::api::visible_models(&app, &p)
+        .into_iter()
+        .filter(|m| p.may_change(m.owner.as_deref()))
+        .filter(|m| status_of(app.hub.job(&m.job_id).map(|j| j.state()), m, &app.store) == "ready")
+        .map(|m| m.name)
+        .collect();
+    render(
+        "race.html",
+        json!({"r": race_view(&app, &r, protocol::job::now_unix()), "models": models,
+               "may_manage": p.role >= Role::Facilitator, "me": me(&p)}),
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -342,6 +398,19 @@ mod tests {
             ),
             ("licences.html", json!({"licences": [{"name": "x", "url": "https://x", "text": evil}]})),
             ("licences.html", json!({"error": evil})),
+            (
+                "races.html",
+                json!({"races": [{"name": evil, "status": "open", "type_title": evil, "track": evil, "opens_text": evil,
+                                  "closes_text": evil, "ranking_title": evil, "entries": 1,
+                                  "leader": {"racer": evil, "time": "00:09.000"}}],
+                       "tracks": [evil], "may_make": true}),
+            ),
+            (
+                "race.html",
+                json!({"r": {"name": evil, "description": evil, "status": "open", "type_title": evil, "track": evil,
+                             "race_type": "object_avoidance", "opens_text": evil, "closes_text": evil},
+                       "models": [evil], "may_manage": true}),
+            ),
         ] {
             let html = TEMPLATES.get_template(page).unwrap().render(ctx).unwrap_or_else(|e| panic!("{page}: {e:#}"));
             assert!(!html.contains(evil) && !html.contains("<img src=x"), "{page} shows the text as HTML:\n{html}");

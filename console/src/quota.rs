@@ -65,7 +65,7 @@ pub fn model_minutes(app: &App, rec: &ModelRecord) -> f64 {
             (e["finished"].as_f64().unwrap_or(now) - start).max(0.0) / 60.0
         })
         .sum();
-    training + evaluations
+    training + evaluations + app.races.minutes_of(&rec.name, now)
 }
 
 /// What the models of `owner` use (every model: `None`).

@@ -193,9 +193,84 @@ fn users_log_in_and_do_only_what_their_role_and_quota_allow() {
     wait_for(60, "rita-1 trained", || {
         (rita.call("GET", "/api/v1/models/rita-1", None).json()["status"] == "ready").then_some(())
     });
+    let minutes_before = rita.call("GET", "/api/v1/quota", None).json()["user"]["used"]["minutes"].as_f64().unwrap();
+
+    // Races: a facilitator makes them, a racer may not; a racer enters her own ready model
+    // while the race is open, as many times as it allows; each entry is evaluated as it
+    // arrives and ranked, one row per racer.
+    let newbie = login(&c, "newbie", "Newbie-pass-1", &[]).1.unwrap();
+    let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_secs_f64();
+    let cup = json!({"name": "cup", "track": "reinvent_base", "ranking": "best_lap", "min_laps": 1, "max_laps": 2,
+                     "max_submissions": 2, "closes": now + 3600.0});
+    let r = rita.call("POST", "/api/v1/races", Some(cup.clone()));
+    assert_eq!(r.code, 403);
+    assert!(r.json()["error"].as_str().unwrap().contains("needs the facilitator role"), "{}", r.json());
+    assert_eq!(fay.call("POST", "/api/v1/races", Some(cup.clone())).code, 201);
+    assert_eq!(fay.call("POST", "/api/v1/races", Some(cup)).code, 409, "the name is taken");
+    let later = json!({"name": "later", "track": "reinvent_base", "opens": now + 3600.0, "closes": now + 7200.0});
+    assert_eq!(fay.call("POST", "/api/v1/races", Some(later)).code, 201);
+    assert_eq!(rita.call("PATCH", "/api/v1/races/later", Some(json!({"max_laps": 3}))).code, 403);
+    let r = fay.call("PATCH", "/api/v1/races/later", Some(json!({"max_laps": 3})));
+    assert_eq!((r.code, r.json()["min_laps"].as_u64()), (200, Some(3)), "{}", r.json());
+    let r = rita.call("POST", "/api/v1/races/later/entries", Some(json!({"model": "rita-1"})));
+    assert_eq!(r.code, 409, "not open yet: {}", r.json());
+    let r = rita.call("POST", "/api/v1/races/cup/entries", Some(json!({"model": "rex-1"})));
+    assert_eq!(r.code, 404, "rex's model is not rita's to see: {}", r.json());
+    let r = rita.call("POST", "/api/v1/races/cup/entries", Some(json!({"model": "rita-1", "car": 1})));
+    assert_eq!(r.code, 400);
+    for _ in 0..2 {
+        let r = rita.call("POST", "/api/v1/races/cup/entries", Some(json!({"model": "rita-1"})));
+        assert_eq!(r.code, 202, "{}", String::from_utf8_lossy(&r.body));
+        assert_eq!((r.json()["racer"].as_str(), r.json()["status"].as_str()), (Some("rita"), Some("queued")));
+    }
+    let r = rita.call("POST", "/api/v1/races/cup/entries", Some(json!({"model": "rita-1"})));
+    assert_eq!(r.code, 403);
+    assert!(r.json()["error"].as_str().unwrap().contains("at most 2 entries"), "{}", r.json());
+    let entries = wait_for(60, "both entries evaluated", || {
+        let list = rita.call("GET", "/api/v1/races/cup/entries", None).json();
+        list.as_array().unwrap().iter().all(|e| e["status"] == "done").then_some(list)
+    });
+    let entries = entries.as_array().unwrap();
+    assert_eq!(entries.len(), 2);
+    for e in entries {
+        assert_eq!(e["laps"].as_array().unwrap().len(), 2, "{e}");
+        assert!(e["laps"][0]["progress"].as_f64().unwrap() > 0.0, "{e}");
+    }
+    // One row for rita however many of her entries are ranked: the better one.
+    let board = newbie.call("GET", "/api/v1/races/cup/leaderboard", None).json();
+    let ranked: Vec<u64> =
+        entries.iter().filter(|e| e["ranked"] == true).map(|e| e["time_ms"].as_u64().unwrap()).collect();
+    let rows = board["rows"].as_array().unwrap();
+    assert_eq!(rows.len(), usize::from(!ranked.is_empty()), "{board}");
+    if let Some(row) = rows.first() {
+        assert_eq!((row["rank"].as_u64(), row["racer"].as_str()), (Some(1), Some("rita")), "{board}");
+        assert_eq!(row["time_ms"].as_u64(), ranked.iter().min().copied(), "{board}");
+        // Her fastest lap, drawn on the track, is everyone's to see.
+        let lap =
+            newbie.call("GET", &format!("/api/v1/races/cup/entries/{}/lap.svg", row["entry"].as_str().unwrap()), None);
+        assert_eq!(lap.code, 200);
+        assert!(String::from_utf8_lossy(&lap.body).contains("<line"), "the lap is drawn");
+    }
+    // Each racer sees their own entries; a facilitator sees all.
+    assert_eq!(newbie.call("GET", "/api/v1/races/cup/entries", None).json(), json!([]));
+    assert_eq!(fay.call("GET", "/api/v1/races/cup/entries", None).json().as_array().unwrap().len(), 2);
+    assert_eq!(rita.call("GET", "/races/cup", None).code, 200);
+    assert_eq!(newbie.call("GET", "/races", None).code, 200);
+    // An open race stays; one not open goes, by a facilitator.
+    assert_eq!(fay.call("DELETE", "/api/v1/races/cup", None).code, 409);
+    assert_eq!(newbie.call("DELETE", "/api/v1/races/later", None).code, 403);
+    assert_eq!(fay.call("DELETE", "/api/v1/races/later", None).code, 204);
+    // The entries' time is counted against rita's minutes.
+    let minutes_after = rita.call("GET", "/api/v1/quota", None).json()["user"]["used"]["minutes"].as_f64().unwrap();
+    assert!(minutes_after > minutes_before, "{minutes_before} → {minutes_after}");
+
     assert_eq!(ada.call("PUT", "/api/v1/quota", Some(json!({"models": null, "minutes": 0.0}))).code, 200);
     let r =
         rita.call("POST", "/api/v1/models/rita-1/evaluations", Some(json!({"track": "reinvent_base", "trials": 1})));
+    assert_eq!(r.code, 403, "{}", String::from_utf8_lossy(&r.body));
+    assert!(r.json()["error"].as_str().unwrap().contains("none left"), "{}", r.json());
+    // A race entry spends minutes too.
+    let r = rita.call("POST", "/api/v1/races/cup/entries", Some(json!({"model": "rita-1"})));
     assert_eq!(r.code, 403, "{}", String::from_utf8_lossy(&r.body));
     assert!(r.json()["error"].as_str().unwrap().contains("none left"), "{}", r.json());
 
@@ -221,6 +296,9 @@ fn users_log_in_and_do_only_what_their_role_and_quota_allow() {
         "another user's model",
         "a role too low",
         "a quota",
+        "a racer's submissions spent",
+        "an entry outside the race's window",
+        "removing an open race",
     ] {
         assert!(health["refused"][reason].as_u64().unwrap_or(0) >= 1, "{reason}: {health}");
     }
