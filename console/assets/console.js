@@ -601,6 +601,14 @@ var Paddock = (function () {
       $("#race-bots-row").hidden = $("#race-type").value !== "head_to_bot";
     }
     $("#race-type").onchange = kind;
+    function mode() {
+      var live = val("race-mode") === "live";
+      $("#race-opens-row").hidden = live;
+      $("#race-resets-row").hidden = !live;
+      text($("#race-closes-label"), live ? "Live event time" : "Closes");
+      if (live) $("#race-closes").value = local(new Date(Date.now() + 3600000));
+    }
+    $$('[name="race-mode"]').forEach(function (r) { r.onchange = mode; });
     $("#race-ranking").onchange = function () {
       if ($("#race-ranking").value === "total_time") $("#race-min-laps").value = $("#race-max-laps").value;
     };
@@ -614,15 +622,17 @@ var Paddock = (function () {
       if (type === "object_avoidance") race.number_of_obstacles = Number($("#race-objects").value);
       if (type === "head_to_bot") race.number_of_bot_cars = Number($("#race-bots").value);
       var when = function (sel) { var v = $(sel).value; return v ? new Date(v).getTime() / 1000 : null; };
+      var live = val("race-mode") === "live";
       var body = {
-        name: $("#race-name").value, description: $("#race-description").value, track: $("#race-track").value,
+        mode: live ? "live" : "community", name: $("#race-name").value, description: $("#race-description").value, track: $("#race-track").value,
         reversed: val("race-direction") === "reversed", race: race, ranking: $("#race-ranking").value,
         min_laps: Number($("#race-min-laps").value), max_laps: Number($("#race-max-laps").value),
         off_track_penalty: Number($("#race-off-track").value), crash_penalty: Number($("#race-crash").value),
         max_submissions: Number($("#race-submissions").value), opens: when("#race-opens"), closes: when("#race-closes"),
       };
-      // A window opening in the past minute opens now.
-      if (body.opens !== null && body.opens < Date.now() / 1000) body.opens = null;
+      // A window opening in the past minute opens now; a live race opens when it is made.
+      if (live || (body.opens !== null && body.opens < Date.now() / 1000)) delete body.opens;
+      if (live) body.max_resets = Number($("#race-resets").value);
       send("POST", "/api/v1/races", body).then(function (r) {
         if (r.ok) location.assign("/races/" + encodeURIComponent(r.v.name)); else showErrors($("#race-errors"), r.v);
       });
@@ -631,11 +641,7 @@ var Paddock = (function () {
   function race() {
     var name = JSON.parse($("#race-json").textContent), base = "/api/v1/races/" + encodeURIComponent(name);
     function cell(tr, s) { tr.appendChild(text(document.createElement("td"), s)); return tr.lastChild; }
-    function clock(ms) {
-      if (ms === null || ms === undefined) return "—";
-      var m = Math.floor(ms / 60000), s = Math.floor(ms / 1000) % 60;
-      return String(m).padStart(2, "0") + ":" + String(s).padStart(2, "0") + "." + String(ms % 1000).padStart(3, "0");
-    }
+    var clock = clockOf;
     function refresh() {
       fetch(base + "/leaderboard", { credentials: "same-origin" }).then(function (r) { return r.json(); }).then(function (b) {
         var body = $("#leaderboard tbody");
@@ -687,5 +693,109 @@ var Paddock = (function () {
     };
   }
 
-  return { wizard: wizard, model: model, importer: importer, login: login, invite: invite, users: users, races: races, race: race };
+  function clockOf(ms) {
+    if (ms === null || ms === undefined) return "—";
+    var m = Math.floor(ms / 60000), s = Math.floor(ms / 1000) % 60;
+    return String(m).padStart(2, "0") + ":" + String(s).padStart(2, "0") + "." + String(ms % 1000).padStart(3, "0");
+  }
+  // ---- A live race: every viewer's page, and the facilitator's controls ----------------
+  function live(manage) {
+    var name = JSON.parse($("#race-json").textContent), base = "/api/v1/races/" + encodeURIComponent(name);
+    var track = JSON.parse($("#track-json").textContent), car = null, last = null;
+    fetch("/api/v1/tracks/" + encodeURIComponent(track) + "/picture.svg").then(function (r) { return r.text(); }).then(function (svg) {
+      $("#live-track").innerHTML = svg;
+      var s = $("#live-track svg");
+      car = document.createElementNS("http://www.w3.org/2000/svg", "circle");
+      car.setAttribute("r", "0.12"); car.setAttribute("fill", "#ec7211"); car.setAttribute("stroke", "#fff");
+      car.setAttribute("stroke-width", "0.03"); car.setAttribute("id", "live-car"); car.style.display = "none";
+      s.appendChild(car);
+    });
+    function act(body) {
+      send("POST", base + "/live", body).then(function (r) {
+        if (r.ok) { $("#live-errors").textContent = ""; show(r.v); } else showErrors($("#live-errors"), r.v);
+      });
+    }
+    if (manage) {
+      $("#live-launch").onclick = function () { act({ action: "launch" }); };
+      $("#live-autolaunch").onchange = function () { act({ action: "autolaunch", on: this.checked }); };
+      $("#live-submissions").onchange = function () { act({ action: "submissions", open: this.checked }); };
+      $("#live-clear").onclick = function () { if (confirm("Clear the leaderboard?")) act({ action: "clear" }); };
+      $("#live-winner").onclick = function () { act({ action: "winner" }); };
+    }
+    function show(v) {
+      last = v;
+      var c = v.current;
+      var banner = v.phase === "completed" ? "The race is over" : c ? "Live" :
+        v.phase === "scheduled" ? "Waiting for the facilitator to start the race" : "Waiting for the next racer";
+      if (!v.submissions_open && v.phase !== "completed") banner += " · Submissions are closed";
+      text($("#live-banner"), banner);
+      text($("#now-racing"), c ? c.racer : "—");
+      text($("#now-model"), c ? (c.model !== c.racer ? c.model + " " : "") + "(" + c.place + " of " + v.total + ")" : "");
+      text($("#now-lap"), c && c.lap ? c.lap + " of " + c.laps : c && c.evaluating ? "starting…" : "—");
+      text($("#now-time"), c && c.lap_s !== undefined ? c.lap_s.toFixed(1) + " s" : "—");
+      text($("#now-progress"), c && c.progress !== undefined ? Math.round(c.progress) + " %" : "—");
+      var laps = $("#now-laps");
+      laps.textContent = "";
+      ((c && c.lap_times) || []).forEach(function (t, i) { laps.appendChild(li("Lap " + (i + 1) + ": " + t)); });
+      text($("#up-next"), v.up_next ? v.up_next.racer + " (" + v.up_next.model + ")" : "—");
+      $("#race-progress").max = Math.max(1, v.total);
+      $("#race-progress").value = v.evaluated;
+      text($("#race-progress-text"), v.evaluated + " of " + v.total + " models evaluated");
+      if (car) {
+        if (c && c.at) { car.style.display = ""; car.setAttribute("cx", c.at[0]); car.setAttribute("cy", c.at[1]); }
+        else car.style.display = "none";
+      }
+      var cam = $("#live-camera");
+      if (c && c.camera) { cam.hidden = false; cam.src = base + "/live/camera.png?t=" + Date.now(); } else cam.hidden = true;
+      var w = $("#winner");
+      w.hidden = !v.winner;
+      if (v.winner) { text($("#winner-name"), v.winner.racer + (v.winner.model !== v.winner.racer ? " (" + v.winner.model + ")" : "")); text($("#winner-time"), clockOf(v.winner.time_ms)); }
+      var board = $("#live-board tbody");
+      if (board) {
+        board.textContent = "";
+        v.leaderboard.slice(0, 10).forEach(function (row) {
+          var tr = document.createElement("tr");
+          [String(row.rank), row.racer, row.time, row.gap].forEach(function (s) { tr.appendChild(text(document.createElement("td"), s)); });
+          board.appendChild(tr);
+        });
+      }
+      var q = $("#queue tbody");
+      if (q) {
+        q.textContent = "";
+        v.queue.forEach(function (e, i) {
+          var tr = document.createElement("tr");
+          tr.dataset.entry = e.entry;
+          [String(e.place), e.racer, e.model, e.status.replace("_", " "), String(e.resets)].forEach(function (s) {
+            tr.appendChild(text(document.createElement("td"), s));
+          });
+          if (manage) {
+            var td = document.createElement("td");
+            [["↑", { action: "move", entry: e.entry, to: Math.max(0, i - 1) }], ["↓", { action: "move", entry: e.entry, to: i + 1 }],
+             ["Reset", { action: "reset", entry: e.entry }], ["Remove", { action: "remove", entry: e.entry }]].forEach(function (b) {
+              var btn = text(document.createElement("button"), b[0]);
+              btn.type = "button";
+              btn.className = "queue-" + b[1].action + (b[0] === "↓" ? "-down" : b[0] === "↑" ? "-up" : "");
+              btn.onclick = function () { if (b[1].action !== "remove" || confirm("Remove " + e.model + "?")) act(b[1]); };
+              td.appendChild(btn);
+            });
+            tr.appendChild(td);
+          }
+          q.appendChild(tr);
+        });
+      }
+      if (manage) {
+        $("#live-autolaunch").checked = v.autolaunch;
+        $("#live-submissions").checked = v.submissions_open;
+        $("#live-launch").disabled = !!c || v.phase === "completed";
+      }
+    }
+    function poll() {
+      fetch(base + "/live", { credentials: "same-origin" }).then(function (r) { return r.json(); }).then(show).catch(function () {});
+    }
+    poll();
+    setInterval(poll, 500);
+    return function () { return last; };
+  }
+
+  return { wizard: wizard, model: model, importer: importer, login: login, invite: invite, users: users, races: races, race: race, live: live };
 })();

@@ -36,6 +36,8 @@ pub struct App {
     pub races: crate::races::Races,
     /// Race entries evaluated at once: one permit each.
     pub race_slots: Arc<tokio::sync::Semaphore>,
+    /// Live races replay at this many simulator seconds a second.
+    pub live_speed: f64,
 }
 
 /// The middleware on a model's routes (`/models/NAME…`, `/api/v1/models/NAME…`): a model

@@ -122,6 +122,7 @@ pub fn check(body: &Value, id: &str, now: f64) -> Result<Checked, Vec<FieldError
         race,
         rules,
         record: true,
+        all_frames: false,
     };
     Ok(Checked { record, request })
 }

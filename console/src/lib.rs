@@ -19,6 +19,7 @@ pub mod bench;
 pub mod counters;
 pub mod evaluations;
 pub mod hub;
+pub mod live;
 pub mod models;
 pub mod pages;
 pub mod pictures;
@@ -51,6 +52,8 @@ pub struct Options {
     pub token: Option<String>,
     /// Race entries evaluated at once.
     pub race_workers: usize,
+    /// Live races replay at this many simulator seconds a second (1: as driven).
+    pub live_speed: f64,
 }
 
 /// The first admin, made when the data folder has no user yet: `--admin NAME` with the
@@ -108,6 +111,9 @@ pub fn router(app: api::App) -> Router {
         .route("/api/v1/races", get(race_api::list).post(race_api::create))
         .route("/api/v1/races/{race}", get(race_api::get).patch(race_api::change).delete(race_api::remove))
         .route("/api/v1/races/{race}/leaderboard", get(race_api::board))
+        .route("/api/v1/races/{race}/live", get(race_api::live).post(race_api::live_action))
+        .route("/api/v1/races/{race}/live/camera.png", get(race_api::live_camera))
+        .route("/races/{race}/broadcast", get(pages::broadcast))
         .route("/api/v1/races/{race}/entries", get(race_api::entries).post(race_api::enter))
         .route("/api/v1/races/{race}/entries/{id}", get(race_api::entry))
         .route("/api/v1/races/{race}/entries/{id}/lap.svg", get(race_api::lap))
@@ -161,6 +167,7 @@ pub fn serve(opts: Options, store: store::Store, hub: hub::Hub) -> Result<()> {
         running: Default::default(),
         races,
         race_slots: Arc::new(tokio::sync::Semaphore::new(opts.race_workers.max(1))),
+        live_speed: opts.live_speed,
     };
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
@@ -182,6 +189,7 @@ pub fn serve(opts: Options, store: store::Store, hub: hub::Hub) -> Result<()> {
         std::io::stdout().flush()?;
         tracing::info!(%addr, data = %app.store.root().display(), "console serving");
         race_api::resume(&app);
+        race_api::tick(&app);
         // Live pages keep their event streams open: at a stop the server is dropped, not
         // drained.
         let server = tokio::spawn(async move {

@@ -56,6 +56,9 @@ struct Cli {
     /// Race entries evaluated at once (each drives its laps side by side on every core).
     #[arg(long, default_value_t = 2)]
     race_workers: usize,
+    /// Live races replay each entry at this many simulator seconds a second (1: as driven).
+    #[arg(long, default_value_t = 1.0, value_parser = speed)]
+    live_speed: f64,
     /// The first admin's password (the file's first line).
     #[arg(long, value_name = "FILE", requires = "admin")]
     admin_password_file: Option<PathBuf>,
@@ -278,6 +281,7 @@ fn run(cli: Cli) -> Result<()> {
         insecure: cli.insecure,
         token: cli.token,
         race_workers: cli.race_workers,
+        live_speed: cli.live_speed,
     };
     let served = paddock_console::serve(opts, store, hub);
     // The roles stop with the console.
@@ -360,4 +364,11 @@ fn start_roles(
         logs.display()
     );
     Ok(endpoint)
+}
+
+fn speed(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(x) if (0.1..=100.0).contains(&x) => Ok(x),
+        _ => Err(format!("'{s}': expected a number from 0.1 to 100")),
+    }
 }

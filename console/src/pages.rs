@@ -29,6 +29,7 @@ static TEMPLATES: LazyLock<Environment<'static>> = LazyLock::new(|| {
         ("users.html", include_str!("../templates/users.html")),
         ("races.html", include_str!("../templates/races.html")),
         ("race.html", include_str!("../templates/race.html")),
+        ("broadcast.html", include_str!("../templates/broadcast.html")),
     ] {
         env.add_template(name, text).expect("the console's templates parse");
     }
@@ -312,7 +313,8 @@ fn race_view(app: &App, r: &crate::races::Race, now: f64) -> Value {
         sim_agent::race::RaceType::HeadToBot => format!("Head-to-bot ({} bots)", r.race.number_of_bot_cars),
     });
     v["entries"] = json!(entries.len());
-    v["leader"] = crate::race_api::board_json(r, &entries).into_iter().next().unwrap_or(Value::Null);
+    let ranked = crate::race_api::ranked(app, r, &entries, now);
+    v["leader"] = crate::race_api::board_json(r, &ranked).into_iter().next().unwrap_or(Value::Null);
     v
 }
 
@@ -350,6 +352,24 @@ pub async fn race(State(app): State<App>, Extension(p): Extension<Principal>, Pa
         json!({"r": race_view(&app, &r, protocol::job::now_unix()), "models": models,
                "may_manage": p.role >= Role::Facilitator, "me": me(&p)}),
     )
+}
+
+/// `/races/NAME/broadcast`: a live race full screen, for the big screen and the stream.
+pub async fn broadcast(State(app): State<App>, Path(name): Path<String>) -> Response {
+    match app.races.get(&name) {
+        Ok(r) if r.live() => render("broadcast.html", json!({"r": race_view(&app, &r, protocol::job::now_unix())})),
+        Ok(_) => {
+            let mut page = render("licences.html", json!({"error": format!("race '{name}' is a community race")}));
+            *page.status_mut() = StatusCode::NOT_FOUND;
+            page
+        }
+        Err(e) => {
+            crate::counters::refused("an unknown race");
+            let mut page = render("licences.html", json!({"error": e.to_string()}));
+            *page.status_mut() = StatusCode::NOT_FOUND;
+            page
+        }
+    }
 }
 
 #[cfg(test)]
@@ -411,6 +431,13 @@ mod tests {
                              "race_type": "object_avoidance", "opens_text": evil, "closes_text": evil},
                        "models": [evil], "may_manage": true}),
             ),
+            (
+                "race.html",
+                json!({"r": {"name": evil, "mode": "live", "status": "open", "type_title": evil, "track": evil,
+                             "race_type": "time_trial", "closes_text": evil, "max_resets": 3},
+                       "models": [evil], "may_manage": true}),
+            ),
+            ("broadcast.html", json!({"r": {"name": evil, "track": evil}})),
         ] {
             let html = TEMPLATES.get_template(page).unwrap().render(ctx).unwrap_or_else(|e| panic!("{page}: {e:#}"));
             assert!(!html.contains(evil) && !html.contains("<img src=x"), "{page} shows the text as HTML:\n{html}");

@@ -4,21 +4,36 @@
 
 use std::fmt::Write as _;
 
-/// The track's road (between its borders) and its centre line, with `over` drawn on top; `over`
-/// gets the function from track coordinates (m) to the picture's.
-fn drawing(world: &tracks::World, over: impl Fn(&dyn Fn(f64, f64) -> (f64, f64)) -> String) -> String {
+const PAD: f64 = 0.3;
+
+/// The track's bounds: `(x0, y0, x1, y1)` (m).
+fn bounds(world: &tracks::World) -> (f64, f64, f64, f64) {
     let t = world.track(tracks::Direction::Forward);
-    let all: Vec<_> = t.inner().points().iter().chain(t.outer().points()).copied().collect();
     let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
-    for p in &all {
+    for p in t.inner().points().iter().chain(t.outer().points()) {
         x0 = x0.min(p.x);
         y0 = y0.min(p.y);
         x1 = x1.max(p.x);
         y1 = y1.max(p.y);
     }
-    let pad = 0.3;
+    (x0, y0, x1, y1)
+}
+
+/// The function from track coordinates (m) to the pictures' (a live race's car is drawn over
+/// the track's picture with it).
+pub fn to_picture(world: &tracks::World) -> impl Fn(f64, f64) -> (f64, f64) + use<> {
+    let (x0, _, _, y1) = bounds(world);
     // SVG's y grows downwards: flip it so the track reads as seen from above.
-    let at = move |x: f64, y: f64| (x - x0 + pad, y1 - y + pad);
+    move |x: f64, y: f64| (x - x0 + PAD, y1 - y + PAD)
+}
+
+/// The track's road (between its borders) and its centre line, with `over` drawn on top; `over`
+/// gets the function from track coordinates (m) to the picture's.
+fn drawing(world: &tracks::World, over: impl Fn(&dyn Fn(f64, f64) -> (f64, f64)) -> String) -> String {
+    let t = world.track(tracks::Direction::Forward);
+    let (x0, y0, x1, y1) = bounds(world);
+    let pad = PAD;
+    let at = to_picture(world);
     let path = |pts: &[tracks::P2]| -> String {
         let mut d = String::new();
         for (i, p) in pts.iter().enumerate() {

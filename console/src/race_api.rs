@@ -56,12 +56,27 @@ pub fn board_json(race: &Race, entries: &[Entry]) -> Vec<Value> {
         .collect()
 }
 
+/// The entries a race ranks at `now`: every one of a community race; a live race's shown to
+/// their end since its leaderboard was cleared.
+pub fn ranked(app: &App, race: &Race, entries: &[Entry], now: f64) -> Vec<Entry> {
+    if race.live() {
+        crate::live::ranked_entries(&app.races.live(&race.name), entries, now, app.live_speed)
+    } else {
+        entries.to_vec()
+    }
+}
+
 /// A race with its count of entries and its leader.
-fn summary(app: &App, race: &Race, now: f64) -> Value {
+pub fn summary(app: &App, race: &Race, now: f64) -> Value {
     let entries = app.races.entries(&race.name);
     let mut v = race.to_json(now);
     v["entries"] = json!(entries.len());
-    v["leader"] = board_json(race, &entries).into_iter().next().unwrap_or(Value::Null);
+    v["leader"] = board_json(race, &ranked(app, race, &entries, now)).into_iter().next().unwrap_or(Value::Null);
+    if race.live() {
+        let s = app.races.live(&race.name);
+        v["phase"] = json!(s.phase);
+        v["submissions_open"] = json!(s.submissions_open);
+    }
     v
 }
 
@@ -166,9 +181,9 @@ pub async fn board(State(app): State<App>, Path(name): Path<String>) -> Response
             let entries = app.races.entries(&name);
             let running =
                 entries.iter().filter(|e| matches!(e.status, EntryStatus::Queued | EntryStatus::Running)).count();
-            axum::Json(json!({"race": name, "ranking": r.ranking.name(), "evaluating": running,
-                              "rows": board_json(&r, &entries)}))
-            .into_response()
+            let rows = board_json(&r, &ranked(&app, &r, &entries, now_unix()));
+            axum::Json(json!({"race": name, "ranking": r.ranking.name(), "evaluating": running, "rows": rows}))
+                .into_response()
         }
         Err(e) => race_error(e),
     }
@@ -198,7 +213,8 @@ fn entry_of(app: &App, p: &Principal, race: &str, id: &str) -> Result<(Race, Ent
         Box::new(error(StatusCode::NOT_FOUND, &format!("race '{race}' has no entry '{id}'")))
     })?;
     // An entry on the leaderboard is everyone's to see; others are their racer's.
-    let shown = leaderboard(&r, &app.races.entries(race)).iter().any(|row| row.entry == e.id);
+    let entries = app.races.entries(race);
+    let shown = leaderboard(&r, &ranked(app, &r, &entries, now_unix())).iter().any(|row| row.entry == e.id);
     if !shown && !may_see_entry(p, &e) {
         crate::counters::refused("another racer's entry");
         return Err(Box::new(error(
@@ -255,7 +271,13 @@ pub async fn enter(
         Err(e) => return race_error(e),
     };
     let now = now_unix();
-    if race.status(now) != "open" {
+    if race.live() {
+        let s = app.races.live(&name);
+        if s.phase == crate::live::Phase::Completed || !s.submissions_open {
+            crate::counters::refused("an entry outside the race's window");
+            return error(StatusCode::CONFLICT, &format!("race '{name}': submissions are closed"));
+        }
+    } else if race.status(now) != "open" {
         crate::counters::refused("an entry outside the race's window");
         return error(
             StatusCode::CONFLICT,
@@ -317,23 +339,20 @@ pub async fn enter(
         error: None,
         laps: vec![],
         path: vec![],
+        launched: None,
+        resets: 0,
+        replay_s: None,
     };
     let races = app.races.clone();
     let (r2, e2) = (race.clone(), entry.clone());
     let entered = tokio::task::spawn_blocking(move || races.enter(&r2, &e2, &model_dir)).await;
     match entered {
         Ok(Ok(())) => {}
-        Ok(Err(None)) => {
+        Ok(Err(Ok(why))) => {
             crate::counters::refused("a racer's submissions spent");
-            return error(
-                StatusCode::FORBIDDEN,
-                &format!(
-                    "race '{name}' takes at most {} entries a racer: {} has made them all",
-                    race.max_submissions, entry.racer
-                ),
-            );
+            return error(StatusCode::FORBIDDEN, &why);
         }
-        Ok(Err(Some(e))) => return race_error(e),
+        Ok(Err(Err(e))) => return race_error(e),
         Err(e) => return error(StatusCode::INTERNAL_SERVER_ERROR, &e.to_string()),
     }
     tracing::info!(race = %name, entry = %entry.id, model = %entry.model, racer = %entry.racer, "entry made");
@@ -365,4 +384,113 @@ pub fn resume(app: &App) {
             Err(e) => tracing::warn!("{e}"),
         }
     }
+}
+
+/// `GET /api/v1/races/RACE/live`: a live race as every viewer sees it now.
+pub async fn live(State(app): State<App>, Path(name): Path<String>) -> Response {
+    match app.races.get(&name) {
+        Ok(r) if r.live() => {
+            let (races, speed) = (app.races.clone(), app.live_speed);
+            let snap = tokio::task::spawn_blocking(move || crate::live::snapshot(&races, &r, now_unix(), speed)).await;
+            match snap {
+                Ok(v) => axum::Json(v).into_response(),
+                Err(e) => error(StatusCode::INTERNAL_SERVER_ERROR, &e.to_string()),
+            }
+        }
+        Ok(_) => not_live(&name),
+        Err(e) => race_error(e),
+    }
+}
+
+fn not_live(name: &str) -> Response {
+    crate::counters::refused("a live race's route on a community race");
+    error(StatusCode::NOT_FOUND, &format!("race '{name}' is a community race, not a live one"))
+}
+
+/// `POST /api/v1/races/RACE/live` (facilitator) with `{"action", …}`: launch, autolaunch,
+/// submissions, move, remove, reset, clear, winner. Answers the race as viewers see it.
+pub async fn live_action(
+    State(app): State<App>,
+    Extension(p): Extension<Principal>,
+    Path(name): Path<String>,
+    body: Bytes,
+) -> Response {
+    if let Err(r) = p.require(Role::Facilitator, "running a live race") {
+        return r.into_response();
+    }
+    let race = match app.races.get(&name) {
+        Ok(r) if r.live() => r,
+        Ok(_) => return not_live(&name),
+        Err(e) => return race_error(e),
+    };
+    let v = match body_json(&body) {
+        Ok(v) => v,
+        Err(r) => return *r,
+    };
+    let action = match crate::live::Action::parse(&v) {
+        Ok(a) => a,
+        Err(why) => {
+            return invalid(&[crate::models::FieldError { field: "action".into(), message: why, line: None }]);
+        }
+    };
+    let (races, speed, r2) = (app.races.clone(), app.live_speed, race.clone());
+    let done = tokio::task::spawn_blocking(move || races.act(&r2, &action, now_unix(), speed)).await;
+    match done {
+        Ok(Ok(Ok(after))) => {
+            for e in after.evaluate {
+                start(&app, race.clone(), e);
+            }
+            tracing::info!(race = %name, by = ?p.user, action = %v["action"], "live race action");
+            let (races, speed) = (app.races.clone(), app.live_speed);
+            let snap =
+                tokio::task::spawn_blocking(move || crate::live::snapshot(&races, &race, now_unix(), speed)).await;
+            axum::Json(snap.unwrap_or(Value::Null)).into_response()
+        }
+        Ok(Ok(Err(crate::live::Refused(why)))) => {
+            crate::counters::refused("a live race action out of turn");
+            error(StatusCode::CONFLICT, &why)
+        }
+        Ok(Err(e)) => race_error(e),
+        Err(e) => error(StatusCode::INTERNAL_SERVER_ERROR, &e.to_string()),
+    }
+}
+
+/// `GET /api/v1/races/RACE/live/camera.png`: what the racing car sees now (camera models).
+pub async fn live_camera(State(app): State<App>, Path(name): Path<String>) -> Response {
+    let race = match app.races.get(&name) {
+        Ok(r) if r.live() => r,
+        Ok(_) => return not_live(&name),
+        Err(e) => return race_error(e),
+    };
+    let (races, speed) = (app.races.clone(), app.live_speed);
+    let png = tokio::task::spawn_blocking(move || {
+        let now = now_unix();
+        let entries = races.entries(&race.name);
+        let (e, start) = entries.iter().find_map(|e| match crate::live::shown(e, now, speed) {
+            crate::live::Shown::Racing { start } => Some((e, start)),
+            _ => None,
+        })?;
+        let replay = races.replay(&race.name, &e.id)?;
+        let frame = replay.at((now - start) * speed)?.frame?;
+        replay.frame_png(&races.frames_file(&race.name, &e.id).ok()?, frame)
+    })
+    .await
+    .ok()
+    .flatten();
+    match png {
+        Some(png) => ([(header::CONTENT_TYPE, "image/png"), (header::CACHE_CONTROL, "no-store")], png).into_response(),
+        None => error(StatusCode::NOT_FOUND, "no camera now: no car is racing, or it has no camera"),
+    }
+}
+
+/// Launch live races' next entries (autolaunch) every half second while the console serves.
+pub fn tick(app: &App) {
+    let (races, speed) = (app.races.clone(), app.live_speed);
+    tokio::spawn(async move {
+        loop {
+            tokio::time::sleep(std::time::Duration::from_millis(500)).await;
+            let r = races.clone();
+            let _ = tokio::task::spawn_blocking(move || r.autolaunch(now_unix(), speed)).await;
+        }
+    });
 }

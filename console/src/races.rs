@@ -64,7 +64,8 @@ pub struct Race {
     pub name: String,
     /// What it is about.
     pub description: String,
-    /// `community` (entries at any time in the window).
+    /// `community` (entries evaluated and ranked at any time in the window) or `live` (a
+    /// facilitator's queue, each entry shown in turn; `closes` is the event's time).
     pub mode: String,
     /// The track.
     pub track: String,
@@ -92,10 +93,23 @@ pub struct Race {
     pub created: f64,
     /// Who made it (none: the console's token).
     pub creator: Option<String>,
+    /// Live races: the times a facilitator may reset an entry.
+    #[serde(default = "default_resets")]
+    pub max_resets: u32,
+}
+
+fn default_resets() -> u32 {
+    3
 }
 
 impl Race {
-    /// `upcoming`, `open` or `closed` at `now`.
+    /// A live race.
+    pub fn live(&self) -> bool {
+        self.mode == "live"
+    }
+
+    /// `upcoming`, `open` or `closed` at `now` (a live race: `open` until its event time,
+    /// then `closed`; its own state is in [`LiveState`]).
     pub fn status(&self, now: f64) -> &'static str {
         if now < self.opens {
             "upcoming"
@@ -116,7 +130,7 @@ impl Race {
 }
 
 /// The fields a race takes.
-pub const FIELDS: [&str; 14] = [
+pub const FIELDS: [&str; 15] = [
     "name",
     "description",
     "mode",
@@ -131,6 +145,7 @@ pub const FIELDS: [&str; 14] = [
     "max_submissions",
     "opens",
     "closes",
+    "max_resets",
 ];
 
 fn problem(field: &str, message: impl Into<String>) -> FieldError {
@@ -178,8 +193,10 @@ pub fn check(body: &Value, base: Option<&Race>, now: f64, creator: Option<&str>)
         errors.push(problem("description", p));
     }
     let mode = text("mode", &mut errors).or(base.map(|b| b.mode.clone())).unwrap_or_else(|| "community".into());
-    if mode != "community" {
-        errors.push(problem("mode", format!("'{mode}': expected community")));
+    if mode != "community" && mode != "live" {
+        errors.push(problem("mode", format!("'{mode}': expected community or live")));
+    } else if base.is_some_and(|b| b.mode != mode) {
+        errors.push(problem("mode", "a race's mode stays as it was made"));
     }
     let track = match text("track", &mut errors).or(base.map(|b| b.track.clone())) {
         Some(t) => match tracks::world(&t) {
@@ -267,7 +284,12 @@ pub fn check(body: &Value, base: Option<&Race>, now: f64, creator: Option<&str>)
         true,
         &mut errors,
     ) as u32;
+    let max_resets =
+        number("max_resets", base.map_or(3.0, |b| f64::from(b.max_resets)), 0.0, 10.0, true, &mut errors) as u32;
     let opens = number("opens", base.map_or(now, |b| b.opens), 0.0, 1e11, false, &mut errors);
+    if mode == "live" && given("opens").is_some() {
+        errors.push(problem("opens", "a live race takes entries from when it is made until its event time (closes)"));
+    }
     let closes = match (given("closes"), base) {
         (None, Some(b)) => b.closes,
         (None, None) => {
@@ -303,6 +325,7 @@ pub fn check(body: &Value, base: Option<&Race>, now: f64, creator: Option<&str>)
         closes,
         created: base.map_or(now, |b| b.created),
         creator: base.map_or(creator.map(String::from), |b| b.creator.clone()),
+        max_resets,
     })
 }
 
@@ -418,6 +441,15 @@ pub struct Entry {
     pub laps: Vec<Lap>,
     /// The fastest completed lap (or the farthest lap): `[x, y, speed]` a step.
     pub path: Vec<[f64; 3]>,
+    /// Live races: when the facilitator launched it.
+    #[serde(default)]
+    pub launched: Option<f64>,
+    /// Live races: the times it was reset.
+    #[serde(default)]
+    pub resets: u32,
+    /// Live races: its replay's length (the simulator's seconds).
+    #[serde(default)]
+    pub replay_s: Option<f64>,
 }
 
 impl Entry {
@@ -441,7 +473,7 @@ impl Entry {
 }
 
 /// One line of a leaderboard.
-#[derive(Clone, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Row {
     /// 1 for the fastest.
     pub rank: usize,
@@ -519,7 +551,7 @@ fn io(path: &Path) -> impl Fn(std::io::Error) -> RaceError + '_ {
     move |source| RaceError::Io { path: path.to_path_buf(), source }
 }
 
-fn write_whole(path: &Path, bytes: &[u8]) -> Result<(), RaceError> {
+pub(crate) fn write_whole(path: &Path, bytes: &[u8]) -> Result<(), RaceError> {
     let tmp = path.with_extension("tmp");
     std::fs::write(&tmp, bytes).map_err(io(&tmp))?;
     std::fs::rename(&tmp, path).map_err(io(path))
@@ -544,7 +576,7 @@ fn copy_dir(from: &Path, to: &Path) -> Result<(), RaceError> {
 #[derive(Clone)]
 pub struct Races {
     root: PathBuf,
-    lock: Arc<Mutex<()>>,
+    pub(crate) lock: Arc<Mutex<()>>,
 }
 
 impl Races {
@@ -558,6 +590,44 @@ impl Races {
             return Err(RaceError::NotFound(name.to_string()));
         }
         Ok(self.root.join(name))
+    }
+
+    /// A file of a race's folder.
+    pub(crate) fn race_file(&self, race: &str, file: &str) -> Result<PathBuf, RaceError> {
+        Ok(self.dir(race)?.join(file))
+    }
+
+    fn entry_file(&self, race: &str, id: &str, suffix: &str) -> Result<PathBuf, RaceError> {
+        if crate::store::name_problem(id).is_some() {
+            return Err(RaceError::NotFound(format!("{race}/{id}")));
+        }
+        Ok(self.dir(race)?.join("entries").join(format!("{id}{suffix}")))
+    }
+
+    /// A live race entry's replay.
+    pub fn replay(&self, race: &str, id: &str) -> Option<crate::live::Replay> {
+        let text = std::fs::read_to_string(self.entry_file(race, id, "-replay.json").ok()?).ok()?;
+        serde_json::from_str(&text).ok()
+    }
+
+    /// A live race entry's camera frames file.
+    pub fn frames_file(&self, race: &str, id: &str) -> Result<PathBuf, RaceError> {
+        self.entry_file(race, id, "-frames.bin")
+    }
+
+    /// Remove an entry with its model and replay.
+    pub(crate) fn remove_entry(&self, race: &str, id: &str) -> Result<(), RaceError> {
+        for suffix in [".json", "-replay.json", "-frames.bin"] {
+            let f = self.entry_file(race, id, suffix)?;
+            if f.exists() {
+                std::fs::remove_file(&f).map_err(io(&f))?;
+            }
+        }
+        let model = self.entry_file(race, id, "-model")?;
+        if model.exists() {
+            std::fs::remove_dir_all(&model).map_err(io(&model))?;
+        }
+        Ok(())
     }
 
     /// A race.
@@ -643,18 +713,36 @@ impl Races {
         Ok(self.dir(race)?.join("entries").join(format!("{id}-model")))
     }
 
-    /// Enter the model folder `model_dir` as `entry` in `race`, unless the racer has made
-    /// `race.max_submissions` entries already (`Err(Some(why))`). The model is copied, so a
-    /// model trained on afterwards races as it was entered.
-    pub fn enter(&self, race: &Race, entry: &Entry, model_dir: &Path) -> Result<(), Option<RaceError>> {
+    /// Enter the model folder `model_dir` as `entry` in `race` (a live race: at the end of its
+    /// queue), unless the racer has made `race.max_submissions` entries already, or (a live
+    /// race) the model is entered already: `Err(Ok(why))`. The model is copied, so a model
+    /// trained on afterwards races as it was entered.
+    pub fn enter(&self, race: &Race, entry: &Entry, model_dir: &Path) -> Result<(), Result<String, RaceError>> {
         let _held = self.lock.lock().expect("races");
-        let made = self.entries(&race.name).iter().filter(|e| e.racer == entry.racer).count();
+        let entries = self.entries(&race.name);
+        let made = entries.iter().filter(|e| e.racer == entry.racer).count();
         if made >= race.max_submissions as usize {
-            return Err(None);
+            return Err(Ok(format!(
+                "race '{}' takes at most {} entries a racer: {} has made them all",
+                race.name, race.max_submissions, entry.racer
+            )));
         }
-        let to = self.entry_model(&race.name, &entry.id).map_err(Some)?;
-        copy_dir(model_dir, &to).map_err(Some)?;
-        self.save_entry(&race.name, entry).map_err(Some)
+        if race.live() && entries.iter().any(|e| e.model == entry.model) {
+            return Err(Ok(format!("model '{}' is in the live race's queue already", entry.model)));
+        }
+        let to = self.entry_model(&race.name, &entry.id).map_err(Err)?;
+        copy_dir(model_dir, &to).map_err(Err)?;
+        self.save_entry(&race.name, entry).map_err(Err)?;
+        if race.live() {
+            let mut s = self.live(&race.name);
+            s.queue.push(entry.id.clone());
+            crate::races::write_whole(
+                &self.race_file(&race.name, "live.json").map_err(Err)?,
+                serde_json::to_string_pretty(&s).expect("JSON").as_bytes(),
+            )
+            .map_err(Err)?;
+        }
+        Ok(())
     }
 
     /// Minutes spent evaluating the entries of `model` (its owner's quota counts them), at `now`.
@@ -697,7 +785,7 @@ pub fn evaluate(races: &Races, race: &Race, mut entry: Entry) {
             worlds: vec![world],
             reversed: race.reversed,
             trials: race.max_laps as usize,
-            seed: entry.created as u64,
+            seed: entry.created as u64 + u64::from(entry.resets),
             race: race.race.clone(),
             rules: sim_agent::EvalRules {
                 max_resets: 100,
@@ -706,6 +794,7 @@ pub fn evaluate(races: &Races, race: &Race, mut entry: Entry) {
                 time_limit_s: None,
             },
             record: true,
+            all_frames: race.live(),
         };
         coordinator::evaluation::run(&races.entry_model(&race.name, &entry.id)?, &request)
     });
@@ -713,6 +802,19 @@ pub fn evaluate(races: &Races, race: &Race, mut entry: Entry) {
         Ok(done) => {
             let trials = done.worlds.into_iter().next().map(|w| w.trials).unwrap_or_default();
             entry.policy_version = Some(done.policy_version);
+            if race.live() {
+                let kept = races.frames_file(&race.name, &entry.id).and_then(|frames| {
+                    let replay = crate::live::Replay::keep(&trials, control_hz, &frames)
+                        .map_err(|e| RaceError::Io { path: frames.clone(), source: e })?;
+                    let path = races.entry_file(&race.name, &entry.id, "-replay.json")?;
+                    write_whole(&path, serde_json::to_string(&replay).expect("JSON").as_bytes())?;
+                    Ok(replay.duration_s())
+                });
+                match kept {
+                    Ok(s) => entry.replay_s = Some(s),
+                    Err(e) => tracing::error!("the entry's replay was not kept: {e}"),
+                }
+            }
             entry.laps = trials
                 .iter()
                 .map(|t| Lap {
@@ -821,6 +923,9 @@ mod tests {
             error: None,
             laps: laps(spec),
             path: vec![],
+            launched: None,
+            resets: 0,
+            replay_s: None,
         }
     }
 
@@ -904,7 +1009,11 @@ mod tests {
                 "max_laps",
                 "whole",
             ),
-            (json!({"name": "c", "track": "reinvent_base", "closes": now + 60.0, "mode": "live"}), "mode", "community"),
+            (
+                json!({"name": "c", "track": "reinvent_base", "closes": now + 60.0, "mode": "drag"}),
+                "mode",
+                "community or live",
+            ),
             (
                 json!({"name": "c", "track": "reinvent_base", "closes": now + 60.0, "race": {"race_type": "drag"}}),
                 "race",

@@ -28,6 +28,8 @@ pub struct Request {
     pub rules: EvalRules,
     /// Keep each step's pose and what the car saw (the first trial's frames, camera models).
     pub record: bool,
+    /// Recording, keep every trial's frames (a live race replays each lap).
+    pub all_frames: bool,
 }
 
 /// One world's trials.
@@ -71,7 +73,13 @@ pub fn run(model_dir: &Path, req: &Request) -> Result<Evaluation> {
     let mut worlds = Vec::new();
     for world in &req.worlds {
         let spec = EnvSpec::from_world(world, direction);
-        let plan = EvalPlan { rules: req.rules.clone(), count: req.trials, seed: req.seed, threads };
+        let plan = EvalPlan {
+            rules: req.rules.clone(),
+            count: req.trials,
+            seed: req.seed,
+            threads,
+            all_frames: req.all_frames,
+        };
         let trials = evaluate(&model, &f.metadata.action_space, &spec, &cfg, &plan, None)?;
         worlds.push(WorldTrials { world: world.name.clone(), trials });
     }

@@ -315,6 +315,7 @@ pub fn evaluate_cmd(args: EvaluateArgs) -> Result<i32> {
         race: race.race,
         rules,
         record: false,
+        all_frames: false,
     };
     let version = folder::load(&args.model_dir).map(|f| f.manifest.policy_version).unwrap_or(0);
     println!(

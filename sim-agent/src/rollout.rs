@@ -232,6 +232,9 @@ pub struct EvalPlan {
     pub seed: u64,
     /// Threads stepping the environments.
     pub threads: usize,
+    /// With a recording configuration, keep what the car saw in every trial (a live race
+    /// replays each lap's); otherwise in the first only.
+    pub all_frames: bool,
 }
 
 /// Run `plan.count` evaluation trials in parallel from the start line, with the policy's
@@ -245,7 +248,7 @@ pub fn evaluate(
     plan: &EvalPlan,
     mut gpu: Option<&mut gpu::Acting>,
 ) -> Result<Vec<TrialResult>, RewardError> {
-    let EvalPlan { ref rules, count: trials, seed, threads } = *plan;
+    let EvalPlan { ref rules, count: trials, seed, threads, all_frames } = *plan;
     let reward = RewardFn::Builtin(crate::BuiltinReward::CenterLine);
     let mut vec = VecEnv::with_mode(
         vec![spec.clone(); trials],
@@ -267,15 +270,22 @@ pub fn evaluate(
     let channels = dim / pixels;
     let camera = cfg.record_trace && vec.renderer().is_some() && dim.is_multiple_of(pixels) && channels >= 1;
     while results.iter().any(|r| r.is_none()) && steps < cap {
-        if camera && results[0].is_none() && steps.is_multiple_of(2) {
-            logs[0].frames.push(policy::exchange::Frame {
-                world: spec.name.clone(),
-                width: crate::camera::WIDTH,
-                height: crate::camera::HEIGHT,
-                gray: vec.observations()[..dim].iter().step_by(channels).map(|&p| p.clamp(0.0, 255.0) as u8).collect(),
-                policy_version: 0,
-                step: steps + 1,
-            });
+        if camera && steps.is_multiple_of(2) {
+            let kept = if all_frames { trials } else { 1 };
+            for (i, log) in logs.iter_mut().enumerate().take(kept).filter(|(i, _)| results[*i].is_none()) {
+                log.frames.push(policy::exchange::Frame {
+                    world: spec.name.clone(),
+                    width: crate::camera::WIDTH,
+                    height: crate::camera::HEIGHT,
+                    gray: vec.observations()[i * dim..(i + 1) * dim]
+                        .iter()
+                        .step_by(channels)
+                        .map(|&p| p.clamp(0.0, 255.0) as u8)
+                        .collect(),
+                    policy_version: 0,
+                    step: steps + 1,
+                });
+            }
         }
         let obs = vec.observations();
         let acts = match gpu.as_deref_mut().map(|g| g.outputs(model, obs, trials)) {

@@ -362,6 +362,7 @@ impl Worker {
             count: r.trials.max(1) as usize,
             seed: r.seed,
             threads: self.threads,
+            all_frames: false,
         };
         let trials = evaluate(&p.model, &p.metadata.action_space, &spec, &self.cfg, &plan, self.collector.gpu_mut())?;
         let track_len = spec.track.length();

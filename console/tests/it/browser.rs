@@ -26,7 +26,7 @@ fn a_racer_makes_models_in_chromium_from_a_reward_error_to_a_verified_model_and_
     );
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("data");
-    let c = Console::start(&data);
+    let c = Console::with_args(&data, 1, &["--live-speed", "3"]);
     let o = Command::new(python())
         .arg("-c")
         .arg(format!("{CHROMIUM}{RACER}"))
@@ -64,6 +64,26 @@ fn a_racer_makes_models_in_chromium_from_a_reward_error_to_a_verified_model_and_
     assert_eq!((&v["lap_drawn"], &v["frames_shown"]), (&serde_json::json!(true), &serde_json::json!(true)), "{v}");
 
     assert_eq!(v["imported_status"], "ready", "{v}");
+    // The live race: reordered, refused a launch with submissions open, then each entry shown
+    // in turn on both pages (the car moving; camera-1's camera), the winner on both.
+    assert_eq!(v["queue"], serde_json::json!(["state-1", "camera-1"]), "{v}");
+    assert!(v["launch_early"].as_str().unwrap().contains("close submissions"), "{v}");
+    assert!(v["broadcast_waiting"].as_str().unwrap().contains("Waiting for the facilitator"), "{v}");
+    assert_eq!(v["camera_on_broadcast"], true, "{v}");
+    assert!(v["live_board"].as_str().unwrap().contains("state-1"), "{v}");
+    for page in ["winner_organiser", "winner_broadcast"] {
+        assert!(v[page].as_str().unwrap().starts_with("Winner!"), "{page}: {v}");
+    }
+    let winner = c.api("GET", "/api/v1/races/final/live", None).json();
+    assert_eq!(winner["phase"], "completed", "{winner}");
+    assert!(v["winner_broadcast"].as_str().unwrap().contains(winner["winner"]["racer"].as_str().unwrap()), "{v}");
+    let shot = std::fs::metadata(dir.path().join("broadcast.png")).map(|m| m.len()).unwrap_or(0);
+    assert!(shot > 10_000, "the broadcast page's screenshot: {shot} bytes");
+    if let Ok(keep) = std::env::var("PADDOCK_KEEP_SCREENSHOTS") {
+        for shot in ["broadcast.png", "racing.png"] {
+            std::fs::copy(dir.path().join(shot), std::path::Path::new(&keep).join(shot)).unwrap();
+        }
+    }
     let r = c.api("POST", "/api/v1/models/import?name=junk", None);
     assert_eq!(r.code, 400, "an empty upload");
     let auth = format!("Bearer {TOKEN}");
@@ -281,6 +301,70 @@ try:
     click("#import-submit")
     wait("the imported model's page", lambda: d.current_url.endswith("/models/camera-1-imported"))
     out["imported_status"] = wait("its status", lambda: d.find_element(By.ID, "status").text)
+
+    # A live race: made on the races page, entered from its page, run from the organiser's
+    # controls while a second viewer watches the broadcast page.
+    d.get("http://%s/races" % addr)
+    click('[name="race-mode"][value="live"]')
+    d.find_element(By.ID, "race-name").send_keys("final")
+    click('[name="race-direction"][value="reversed"]')
+    event = time.time() + 3
+    d.execute_script("var t = new Date(arguments[0] * 1000 - new Date().getTimezoneOffset() * 60000);"
+                     "document.getElementById('race-closes').value = t.toISOString().slice(0, 19);", event)
+    d.find_element(By.CSS_SELECTOR, '#race-ranking option[value="best_lap"]').click()
+    for f, v in [("race-min-laps", "1"), ("race-max-laps", "1")]:
+        d.find_element(By.ID, f).clear()
+        d.find_element(By.ID, f).send_keys(v)
+    click("#race-submit")
+    wait("the race's page", lambda: d.current_url.endswith("/races/final"))
+    for m in ["camera-1", "state-1"]:
+        d.find_element(By.CSS_SELECTOR, '#enter-model option[value="%s"]' % m).click()
+        click("#enter-submit")
+        wait(m + " in the queue", lambda: m in d.find_element(By.ID, "queue").text)
+    def queue():
+        return [r.text for r in d.find_elements(By.CSS_SELECTOR, "#queue tbody tr td:nth-child(3)")]
+    wait("both in the queue", lambda: len(queue()) == 2)
+    d.find_element(By.CSS_SELECTOR, '#queue tr[data-entry]:nth-child(2) .queue-move-up').click()
+    out["queue"] = wait("state-1 moved up", lambda: queue()[0] == "state-1" and queue())
+    time.sleep(max(0, event + 1 - time.time()))
+    click("#live-launch")
+    out["launch_early"] = wait("the refusal", lambda: d.find_element(By.ID, "live-errors").text)
+    click("#live-submissions")
+    wait("submissions closed", lambda: "closed" in d.find_element(By.ID, "live-banner").text)
+    organiser = d.current_window_handle
+    d.switch_to.new_window("window")
+    d.get("http://%s/races/final/broadcast" % addr)
+    broadcaster = d.current_window_handle
+    out["broadcast_waiting"] = wait("the broadcast's banner", lambda: d.find_element(By.ID, "live-banner").text)
+    d.switch_to.window(organiser)
+    click("#live-launch")
+    wait("state-1 launched", lambda: d.find_element(By.ID, "now-racing").text == "state-1", 20)
+    click("#live-autolaunch")
+    def car(handle):
+        d.switch_to.window(handle)
+        return d.execute_script("var c = document.getElementById('live-car'); return c && c.style.display !== 'none' ? c.getAttribute('cx') + ',' + c.getAttribute('cy') : null")
+    seen = {}
+    def both_see_the_car_move():
+        for h in [organiser, broadcaster]:
+            at = car(h)
+            if at:
+                seen.setdefault(h, set()).add(at)
+        return all(len(seen.get(h, ())) >= 2 for h in [organiser, broadcaster])
+    wait("the car moving on both pages", both_see_the_car_move, 60)
+    out["car_positions"] = {("organiser" if h == organiser else "broadcast"): len(v) for h, v in seen.items()}
+    d.switch_to.window(broadcaster)
+    out["broadcast_racing"] = d.find_element(By.ID, "now-racing").text
+    out["camera_on_broadcast"] = wait("camera-1's camera", lambda: d.find_element(By.ID, "now-racing").text == "camera-1" and d.execute_script("var i = document.getElementById('live-camera'); return !i.hidden && i.complete && i.naturalWidth > 0"), 90)
+    d.save_screenshot(tmp + "/racing.png")
+    d.switch_to.window(organiser)
+    wait("both shown", lambda: d.find_element(By.ID, "race-progress-text").text.startswith("2 of 2"), 120)
+    out["live_board"] = wait("the leaderboard", lambda: d.find_element(By.CSS_SELECTOR, "#leaderboard tbody").text)
+    click("#live-winner")
+    out["winner_organiser"] = wait("the winner", lambda: d.find_element(By.ID, "winner").is_displayed() and d.find_element(By.ID, "winner").text)
+    d.switch_to.window(broadcaster)
+    out["winner_broadcast"] = wait("the winner on the broadcast", lambda: d.find_element(By.ID, "winner").is_displayed() and d.find_element(By.ID, "winner").text)
+    out["broadcast_board"] = d.find_element(By.ID, "live-board").text
+    d.save_screenshot(tmp + "/broadcast.png")
 finally:
     d.quit()
 print(json.dumps(out))

@@ -206,6 +206,8 @@ fn users_log_in_and_do_only_what_their_role_and_quota_allow() {
     assert_eq!(r.code, 403);
     assert!(r.json()["error"].as_str().unwrap().contains("needs the facilitator role"), "{}", r.json());
     assert_eq!(fay.call("POST", "/api/v1/races", Some(cup.clone())).code, 201);
+    let r = rita.call("POST", "/api/v1/races/cup/live", Some(json!({"action": "launch"})));
+    assert_eq!(r.code, 403, "running a live race is a facilitator's");
     assert_eq!(fay.call("POST", "/api/v1/races", Some(cup)).code, 409, "the name is taken");
     let later = json!({"name": "later", "track": "reinvent_base", "opens": now + 3600.0, "closes": now + 7200.0});
     assert_eq!(fay.call("POST", "/api/v1/races", Some(later)).code, 201);

@@ -54,7 +54,7 @@ fn evaluation_trials_on_the_gpu_are_the_ones_on_faer() {
     let model = Arc::new(ActorCritic::new(&meta, obs, &mut rand_chacha::ChaCha8Rng::seed_from_u64(9)));
     let rules = sim_agent::EvalRules::default();
     let space = &meta.action_space;
-    let plan = EvalPlan { rules, count: 3, seed: 4, threads: 1 };
+    let plan = EvalPlan { rules, count: 3, seed: 4, threads: 1, all_frames: false };
     let cpu = evaluate(&model, space, &spec, &cfg, &plan, None).unwrap();
     let mut acting = gpu::Acting::new(gpu);
     let on_gpu = evaluate(&model, space, &spec, &cfg, &plan, Some(&mut acting)).unwrap();
