@@ -797,5 +797,68 @@ var Paddock = (function () {
     return function () { return last; };
   }
 
-  return { wizard: wizard, model: model, importer: importer, login: login, invite: invite, users: users, races: races, race: race, live: live };
+  // ---- The fleet -----------------------------------------------------------------------
+  function cars() {
+    var cfg = JSON.parse($("#cars-json").textContent), body = $("#cars tbody"), built = {};
+    function order(car, o) {
+      send("POST", "/api/v1/cars/" + encodeURIComponent(car), o).then(function (r) {
+        if (r.ok) $("#car-errors").textContent = ""; else showErrors($("#car-errors"), r.v);
+      });
+    }
+    function row(c) {
+      var tr = document.createElement("tr");
+      tr.dataset.car = c.car;
+      for (var i = 0; i < 7; i++) tr.appendChild(document.createElement("td"));
+      if (cfg.may_drive) {
+        var td = document.createElement("td"), sel = document.createElement("select");
+        sel.className = "car-model";
+        sel.setAttribute("aria-label", "Model for " + c.car);
+        cfg.models.forEach(function (m) { var o = text(document.createElement("option"), m); o.value = "model:" + m; sel.appendChild(o); });
+        cfg.races.forEach(function (r) { var o = text(document.createElement("option"), "Live race " + r + ": the entry racing"); o.value = "race:" + r; sel.appendChild(o); });
+        var go = text(document.createElement("button"), "Assign");
+        go.type = "button"; go.className = "car-assign";
+        go.onclick = function () {
+          var v = sel.value, k = v.indexOf(":"), o = {};
+          o[v.slice(0, k)] = v.slice(k + 1);
+          order(c.car, o);
+        };
+        td.appendChild(sel); td.appendChild(go); tr.appendChild(td);
+        var td2 = document.createElement("td");
+        var stop = text(document.createElement("button"), "E-stop");
+        stop.type = "button"; stop.className = "car-estop danger";
+        stop.onclick = function () { order(c.car, { estop: true }); };
+        var go2 = text(document.createElement("button"), "Release");
+        go2.type = "button"; go2.className = "car-release";
+        go2.onclick = function () { order(c.car, { estop: false }); };
+        td2.appendChild(stop); td2.appendChild(go2); tr.appendChild(td2);
+      }
+      return tr;
+    }
+    function refresh() {
+      fetch("/api/v1/cars", { credentials: "same-origin" }).then(function (r) { return r.json(); }).then(function (list) {
+        var seen = {};
+        if (list.length && !body.querySelector("tr[data-car]")) body.textContent = "";
+        list.forEach(function (c) {
+          seen[c.car] = true;
+          var tr = built[c.car];
+          if (!tr) { tr = built[c.car] = row(c); body.appendChild(tr); }
+          var td = tr.children;
+          text(td[0], c.car);
+          text(td[1], c.model || c.job || "—");
+          text(td[2], c.policy_version === null ? "—" : "v" + c.policy_version);
+          text(td[3], c.frames_per_s.toFixed(1));
+          text(td[4], c.latency_ms_p50.toFixed(2) + " / " + c.latency_ms_p99.toFixed(2) + " ms");
+          text(td[5], String(c.refused) + (c.last_refusal ? " (" + c.last_refusal + ")" : ""));
+          text(td[6], c.state);
+          td[6].className = "car-state";
+        });
+        Object.keys(built).forEach(function (k) { if (!seen[k]) { built[k].remove(); delete built[k]; } });
+        text($("#car-count"), "(" + list.length + ")");
+      }).catch(function () {});
+    }
+    refresh();
+    setInterval(refresh, 1000);
+  }
+
+  return { wizard: wizard, model: model, importer: importer, login: login, invite: invite, users: users, races: races, race: race, live: live, cars: cars };
 })();

@@ -1,7 +1,9 @@
 //! The console's one Zenoh session, on a thread of its own (Zenoh's blocking calls stay off
 //! the web server's runtime): job-control requests from the pages and the API, answered one
 //! at a time through a channel, and every second the coordinator's job list, kept for the
-//! pages to read; the camera frames of the jobs someone is watching, kept as PNG.
+//! pages to read; the camera frames of the jobs someone is watching, kept as PNG; the cars on
+//! the network (their status, once a second each) and what an organiser tells them (a job's
+//! model to drive, the e-stop).
 //!
 //! Every request is the CLI's own (`coordinator::control::request`): a job started here is
 //! the job `coordinator job status` shows, and the reverse.
@@ -9,7 +11,7 @@
 use protocol::job_reply::Body;
 use protocol::job_request::Kind;
 use protocol::net::{self, DropCounters, NetArgs, Sub, try_next, zenoh};
-use protocol::{CameraFrame, JobReply, JobSummary, keys};
+use protocol::{CameraFrame, CarAssign, CarControl, CarStatus, JobReply, JobSummary, PROTOCOL_VERSION, keys};
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex, mpsc};
 use std::time::{Duration, Instant};
@@ -41,11 +43,27 @@ pub struct Seen {
     pub error: Option<String>,
     /// The latest frame of each agent of each watched job (job, then agent).
     pub frames: BTreeMap<String, BTreeMap<String, Frame>>,
+    /// Each car's latest status and when it came.
+    pub cars: BTreeMap<String, (CarStatus, Instant)>,
 }
+
+/// A car is on the network while its status keeps coming (once a second): this long at most
+/// since the last.
+pub const CAR_SILENCE: Duration = Duration::from_secs(3);
 
 enum Ask {
     Request(Box<Kind>, Duration, oneshot::Sender<Result<JobReply, String>>),
     Watch(String),
+    Car(String, CarOrder, oneshot::Sender<Result<(), String>>),
+}
+
+/// What an organiser tells a car.
+#[derive(Debug)]
+pub enum CarOrder {
+    /// Follow this job's models and drive this one (a PolicyUpdate of the job).
+    Assign(String, Vec<u8>),
+    /// Hold (true) or release the e-stop.
+    Estop(bool),
 }
 
 /// The handle the web server holds.
@@ -93,6 +111,21 @@ impl Hub {
         false
     }
 
+    /// Tell a car something (on its own key; the car checks what it gets).
+    pub async fn order(&self, car: &str, order: CarOrder) -> Result<(), String> {
+        let (tx, rx) = oneshot::channel();
+        self.asks
+            .send(Ask::Car(car.to_string(), order, tx))
+            .map_err(|_| "the console's hub has stopped".to_string())?;
+        rx.await.map_err(|_| "the console's hub has stopped".to_string())?
+    }
+
+    /// The cars heard from within [`CAR_SILENCE`], by id.
+    pub fn cars(&self) -> Vec<CarStatus> {
+        let s = self.seen.lock().expect("hub state");
+        s.cars.values().filter(|(_, at)| at.elapsed() <= CAR_SILENCE).map(|(c, _)| c.clone()).collect()
+    }
+
     /// The job's summary as last listed.
     pub fn job(&self, id: &str) -> Option<JobSummary> {
         self.seen.lock().expect("hub state").jobs.get(id).cloned()
@@ -107,6 +140,9 @@ impl Hub {
 fn run(session: &zenoh::Session, asks: &mpsc::Receiver<Ask>, seen: &Mutex<Seen>) {
     let drops = DropCounters::default();
     let mut cameras: BTreeMap<String, Sub> = BTreeMap::new();
+    let cars = net::subscribe(session, keys::ALL_CAR_STATUS)
+        .map_err(|e| tracing::warn!("cannot hear the cars' status: {e}"))
+        .ok();
     let mut last_list = Instant::now() - Duration::from_secs(10);
     loop {
         match asks.recv_timeout(Duration::from_millis(100)) {
@@ -124,8 +160,33 @@ fn run(session: &zenoh::Session, asks: &mpsc::Receiver<Ask>, seen: &Mutex<Seen>)
                     }
                 }
             }
+            Ok(Ask::Car(car, order, reply)) => {
+                let r = match order {
+                    CarOrder::Assign(job, model) => {
+                        let m =
+                            CarAssign { protocol_version: PROTOCOL_VERSION, car_id: car.clone(), job_id: job, model };
+                        net::put(session, &keys::car_assign(&car), &m)
+                    }
+                    CarOrder::Estop(hold) => {
+                        let m = CarControl { protocol_version: PROTOCOL_VERSION, car_id: car.clone(), estop: hold };
+                        // Sent a few times: a car that misses one still gets it.
+                        (0..3).try_for_each(|_| net::put(session, &keys::car_control(&car), &m))
+                    }
+                };
+                let _ = reply.send(r.map_err(|e| format!("{e:#}")));
+            }
             Err(mpsc::RecvTimeoutError::Timeout) => {}
             Err(mpsc::RecvTimeoutError::Disconnected) => return,
+        }
+        if let Some(sub) = &cars {
+            while let Some((key, c)) = try_next::<CarStatus>(sub, &drops) {
+                // A status on another car's key is someone else's word about that car: refused.
+                if key.split('/').nth_back(1) != Some(c.car_id.as_str()) {
+                    tracing::warn!("dropped a status of car '{}' sent on {key}", c.car_id);
+                    continue;
+                }
+                seen.lock().expect("hub state").cars.insert(c.car_id.clone(), (c, Instant::now()));
+            }
         }
         for (job, sub) in &cameras {
             while let Some((key, f)) = try_next::<CameraFrame>(sub, &drops) {

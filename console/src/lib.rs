@@ -18,6 +18,7 @@ pub mod auth;
 pub mod bench;
 pub mod counters;
 pub mod evaluations;
+pub mod fleet;
 pub mod hub;
 pub mod live;
 pub mod models;
@@ -106,6 +107,9 @@ pub fn router(app: api::App) -> Router {
         .route("/api/v1/quota", get(accounts::quota).put(accounts::set_instance_quota))
         .route("/api/v1/users", get(accounts::list_users).post(accounts::add_user))
         .route("/api/v1/users/{name}", patch(accounts::change_user).delete(accounts::remove_user))
+        .route("/cars", get(pages::cars))
+        .route("/api/v1/cars", get(fleet::list))
+        .route("/api/v1/cars/{car}", post(fleet::order))
         .route("/races", get(pages::races))
         .route("/races/{race}", get(pages::race))
         .route("/api/v1/races", get(race_api::list).post(race_api::create))

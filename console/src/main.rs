@@ -53,6 +53,11 @@ struct Cli {
     /// for a login); its password is printed once unless --admin-password-file gives it.
     #[arg(long, value_name = "NAME")]
     admin: Option<String>,
+    /// The key the learner signs models with (on one machine; `coordinator keys new NAME`
+    /// writes NAME.key): cars drive only signed models. With --certs, the cluster's models key
+    /// there is used.
+    #[arg(long, value_name = "FILE")]
+    signing_key: Option<PathBuf>,
     /// Race entries evaluated at once (each drives its laps side by side on every core).
     #[arg(long, default_value_t = 2)]
     race_workers: usize,
@@ -314,24 +319,22 @@ fn start_roles(
         &logs.join("coordinator.log"),
     )?;
     let checkpoint = cli.checkpoint_seconds.to_string();
-    spawn(
-        children,
-        "learner",
-        &sibling("learner")?,
-        &s(&[
-            "serve",
-            "--connect",
-            &endpoint,
-            "--id",
-            "learner-1",
-            "--checkpoint-seconds",
-            &checkpoint,
-            "--device",
-            &cli.device,
-        ]),
-        &common,
-        &logs.join("learner.log"),
-    )?;
+    let mut learner = s(&[
+        "serve",
+        "--connect",
+        &endpoint,
+        "--id",
+        "learner-1",
+        "--checkpoint-seconds",
+        &checkpoint,
+        "--device",
+        &cli.device,
+    ]);
+    if let Some(k) = &cli.signing_key {
+        let k = k.canonicalize().with_context(|| format!("--signing-key {}", k.display()))?;
+        learner.extend(["--signing-key".to_string(), k.display().to_string()]);
+    }
+    spawn(children, "learner", &sibling("learner")?, &learner, &common, &logs.join("learner.log"))?;
     let threads = (std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1) / cli.agents.max(1)).max(1);
     for i in 1..=cli.agents {
         let id = format!("agent-{i}");

@@ -30,6 +30,7 @@ static TEMPLATES: LazyLock<Environment<'static>> = LazyLock::new(|| {
         ("races.html", include_str!("../templates/races.html")),
         ("race.html", include_str!("../templates/race.html")),
         ("broadcast.html", include_str!("../templates/broadcast.html")),
+        ("cars.html", include_str!("../templates/cars.html")),
     ] {
         env.add_template(name, text).expect("the console's templates parse");
     }
@@ -354,6 +355,21 @@ pub async fn race(State(app): State<App>, Extension(p): Extension<Principal>, Pa
     )
 }
 
+/// `/cars`: the cars on the network, live; an organiser assigns each a model or a live race's
+/// entry, and holds or releases its e-stop.
+pub async fn cars(State(app): State<App>, Extension(p): Extension<Principal>) -> Response {
+    let models: Vec<String> = crate::api::visible_models(&app, &p)
+        .into_iter()
+        .filter(|m| status_of(app.hub.job(&m.job_id).map(|j| j.state()), m, &app.store) != "unknown")
+        .map(|m| m.name)
+        .collect();
+    let races: Vec<String> = app.races.list().into_iter().filter(|r| r.live()).map(|r| r.name).collect();
+    render(
+        "cars.html",
+        json!({"models": models, "races": races, "may_drive": p.role >= Role::Facilitator, "me": me(&p)}),
+    )
+}
+
 /// `/races/NAME/broadcast`: a live race full screen, for the big screen and the stream.
 pub async fn broadcast(State(app): State<App>, Path(name): Path<String>) -> Response {
     match app.races.get(&name) {
@@ -438,6 +454,7 @@ mod tests {
                        "models": [evil], "may_manage": true}),
             ),
             ("broadcast.html", json!({"r": {"name": evil, "track": evil}})),
+            ("cars.html", json!({"models": [evil], "races": [evil], "may_drive": true})),
         ] {
             let html = TEMPLATES.get_template(page).unwrap().render(ctx).unwrap_or_else(|e| panic!("{page}: {e:#}"));
             assert!(!html.contains(evil) && !html.contains("<img src=x"), "{page} shows the text as HTML:\n{html}");

@@ -114,6 +114,11 @@ impl ModelSlot {
         self.current.load_full()
     }
 
+    /// Drive no model (throttle 0) until the next is taken: the car was assigned another job.
+    pub fn clear(&self) {
+        self.current.store(None);
+    }
+
     /// Verify a model and, when it is one to follow, make it the one that drives.
     pub fn offer(
         &self,

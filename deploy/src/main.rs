@@ -17,7 +17,7 @@ use policy::car::{CarConfig, Layout};
 use policy::signature::TrustedKeys;
 use protocol::net::{self, NetCli, zenoh};
 use protocol::ros::{self, CarKeys, Time};
-use protocol::{CarControl, CarStatus, PROTOCOL_VERSION, PolicyUpdate, keys};
+use protocol::{CarAssign, CarControl, CarStatus, PROTOCOL_VERSION, PolicyUpdate, keys};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc::{Receiver, Sender, channel};
@@ -142,10 +142,14 @@ fn run(cli: Cli) -> Result<()> {
             _ => {}
         }
     }
-    if cli.job.is_none() && cli.model_dir.is_none() {
-        bail!("give --job (and --connect) to follow a job's models, or --model-dir to drive a saved model offline");
+    // With --connect alone the car waits for an organiser's assignment (the console's cars page).
+    let waits = cli.job.is_none() && cli.model_dir.is_none() && !cli.net.connect.is_empty();
+    if cli.job.is_none() && cli.model_dir.is_none() && !waits {
+        bail!(
+            "give --job (and --connect) to follow a job's models, --connect alone to wait for an assignment, or --model-dir to drive a saved model offline"
+        );
     }
-    if cli.job.is_none() && slot.current().is_none() {
+    if cli.job.is_none() && !waits && slot.current().is_none() {
         bail!("{}: no model saved there", cli.model_dir.as_ref().expect("checked").display());
     }
     let session =
@@ -167,35 +171,57 @@ fn run(cli: Cli) -> Result<()> {
         .wait()
         .map_err(|e| anyhow::anyhow!("{e}"))?;
 
-    // Models in, verified on the loader thread.
+    // Models in, verified on the loader thread; the job followed changes with an assignment.
     let (model_tx, model_rx) = channel::<(Vec<u8>, &'static str)>();
-    let mut _model_subs = Vec::new();
+    let following = Arc::new(Mutex::new(cli.job.clone().unwrap_or_default()));
+    let model_subs = Arc::new(Mutex::new(Vec::new()));
     if let Some(job) = &cli.job {
-        let (key, source) = match cli.follow {
-            Follow::Best => (keys::best(job), "best"),
-            _ => (keys::policy(job), "latest"),
-        };
-        let tx = model_tx.clone();
-        _model_subs.push(
-            session
-                .declare_subscriber(&key)
-                .callback(move |s| {
-                    let _ = tx.send((s.payload().to_bytes().into_owned(), source));
-                })
-                .wait()
-                .map_err(|e| anyhow::anyhow!("{e}"))?,
+        *model_subs.lock().expect("subscriptions") = follow_job(&session, &car.id, job, &cli.follow, &model_tx)?;
+    } else if waits {
+        tracing::info!(car = %car.id, "waiting for an organiser to assign a model");
+    }
+    let (assign_tx, assign_rx) = channel::<CarAssign>();
+    let id2 = car.id.clone();
+    let _assign = session
+        .declare_subscriber(keys::car_assign(&car.id))
+        .callback(move |s| match protocol::decode::<CarAssign>(&s.payload().to_bytes()) {
+            Ok(a) if a.car_id == id2 && keys::is_valid_name(&a.job_id) => {
+                let _ = assign_tx.send(a);
+            }
+            Ok(a) => tracing::warn!(car = %id2, "dropped an assignment for car '{}', job '{}'", a.car_id, a.job_id),
+            Err(e) => tracing::warn!(car = %id2, "dropped an assignment: {e}"),
+        })
+        .wait()
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    {
+        let (session, car_id, following, subs, slot, tx, follow) = (
+            session.clone(),
+            car.id.clone(),
+            following.clone(),
+            model_subs.clone(),
+            slot.clone(),
+            model_tx.clone(),
+            cli.follow.clone(),
         );
-        // A car that starts late gets the current model at once.
-        let tx = model_tx.clone();
-        let session2 = session.clone();
-        let key2 = key.clone();
-        std::thread::spawn(move || ask_current(&session2, &key2, source, &tx));
-        tracing::info!(car = %car.id, job, follow = %cli.follow, key, "following the job's models");
+        std::thread::spawn(move || {
+            while let Ok(a) = assign_rx.recv() {
+                tracing::info!(car = %car_id, job = %a.job_id, "assigned a job's models: the current model stops driving until the new one is checked");
+                *following.lock().expect("the job followed") = a.job_id.clone();
+                slot.clear();
+                match follow_job(&session, &car_id, &a.job_id, &follow, &tx) {
+                    Ok(s) => *subs.lock().expect("subscriptions") = s,
+                    Err(e) => tracing::error!(car = %car_id, "cannot follow job '{}': {e:#}", a.job_id),
+                }
+                if !a.model.is_empty() {
+                    let _ = tx.send((a.model, "assigned"));
+                }
+            }
+        });
     }
     drop(model_tx);
     let loader = {
         let (slot, car, dir, job, follow) =
-            (slot.clone(), car.clone(), cli.model_dir.clone(), cli.job.clone().unwrap_or_default(), cli.follow.clone());
+            (slot.clone(), car.clone(), cli.model_dir.clone(), following.clone(), cli.follow.clone());
         std::thread::spawn(move || {
             if let Err(e) = deploy::driver::background_thread() {
                 tracing::warn!("{e}; models load at the drive loop's priority");
@@ -263,20 +289,48 @@ fn run(cli: Cli) -> Result<()> {
         }
         if last_status.elapsed() >= Duration::from_secs(1) {
             last_status = Instant::now();
-            let status = status(&car, &cli, &driver, &slot, mailbox.replaced.load(Ordering::Relaxed));
+            let job = following.lock().expect("the job followed").clone();
+            let status = status(&car, &cli, &job, &driver, &slot, mailbox.replaced.load(Ordering::Relaxed));
             let _ = net::put(&session, &keys::car_status(&car.id), &status);
         }
     }
     // Leave the car stopped.
     publish(&deploy::Command { servo: ros::Servo::default(), correlation: Default::default(), version: None }, seq + 1);
     tracing::info!(car = %car.id, "stopped; throttle 0 sent");
-    drop(_model_subs);
+    drop(model_subs);
     drop(loader);
     Ok(())
 }
 
 fn now_stamp() -> Time {
     Time::from_secs_f64(SystemTime::now().duration_since(UNIX_EPOCH).map(|d| d.as_secs_f64()).unwrap_or(0.0))
+}
+
+/// Subscribe to `job`'s models (latest or best, as `follow` says) and ask for the current one.
+fn follow_job(
+    session: &zenoh::Session,
+    car: &str,
+    job: &str,
+    follow: &Follow,
+    model_tx: &Sender<(Vec<u8>, &'static str)>,
+) -> Result<Vec<zenoh::pubsub::Subscriber<()>>> {
+    let (key, source) = match follow {
+        Follow::Best => (keys::best(job), "best"),
+        _ => (keys::policy(job), "latest"),
+    };
+    let tx = model_tx.clone();
+    let sub = session
+        .declare_subscriber(&key)
+        .callback(move |s| {
+            let _ = tx.send((s.payload().to_bytes().into_owned(), source));
+        })
+        .wait()
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    // A car that starts late gets the current model at once.
+    let (tx, session2, key2) = (model_tx.clone(), session.clone(), key.clone());
+    std::thread::spawn(move || ask_current(&session2, &key2, source, &tx));
+    tracing::info!(car, job, %follow, key, "following the job's models");
+    Ok(vec![sub])
 }
 
 /// Ask the learner's queryable for its current model, a few times until it answers.
@@ -302,10 +356,11 @@ fn load_models(
     trust: &TrustedKeys,
     car: &CarConfig,
     dir: Option<&Path>,
-    job: &str,
+    job: &Mutex<String>,
     follow: &Follow,
 ) {
     while let Ok((bytes, source)) = rx.recv() {
+        let job = job.lock().map(|j| j.clone()).unwrap_or_default();
         let u = match protocol::decode::<PolicyUpdate>(&bytes) {
             Ok(u) if u.job_id == job => u,
             Ok(u) => {
@@ -328,6 +383,8 @@ fn load_models(
                 continue;
             }
         };
+        // An assigned model drives whatever its version; the job's own follow as asked.
+        let follow = if source == "assigned" { &Follow::Best } else { follow };
         if let Offer::Taken(v) = slot.offer(parts, trust, car, source, follow)
             && let Some(dir) = dir
             && let Some(m) = slot.current()
@@ -340,14 +397,14 @@ fn load_models(
     }
 }
 
-fn status(car: &CarConfig, cli: &Cli, d: &Driver, slot: &ModelSlot, replaced: u64) -> CarStatus {
+fn status(car: &CarConfig, cli: &Cli, job: &str, d: &Driver, slot: &ModelSlot, replaced: u64) -> CarStatus {
     let f = d.figures();
     let m = slot.current();
     let (refused, last_refusal) = slot.refusals();
     CarStatus {
         protocol_version: PROTOCOL_VERSION,
         car_id: car.id.clone(),
-        job_id: cli.job.clone().unwrap_or_default(),
+        job_id: job.to_string(),
         follow: cli.follow.to_string(),
         has_model: m.is_some(),
         policy_version: m.as_ref().map(|m| m.version).unwrap_or(0),

@@ -39,6 +39,7 @@
 //! | `team_memory` | `job/{job}/team/memory` | [`TeamMemory`] (SAC's replay memory in parts, for a joiner) | a learner team's leader |
 //! | `car_status`, `ALL_CAR_STATUS` | `car/{car}/status` | [`CarStatus`] (once a second) | on-car agent |
 //! | `car_control` | `car/{car}/control` | [`CarControl`] (the e-stop) | a person (`coordinator cars`) |
+//! | `car_assign` | `car/{car}/assign` | [`CarAssign`] (the job to follow, its model) | an organiser (the console) |
 //!
 //! [`keys`] also has helpers: `job_of` (the job id in a key), `last` (a key's last chunk) and
 //! `is_valid_name` (what a name in a key may hold). The car's own ROS 2 topics are outside
@@ -155,6 +156,10 @@ pub mod keys {
     }
     /// Every car's status.
     pub const ALL_CAR_STATUS: &str = "paddock/v1/car/*/status";
+    /// A car's assignment (the job whose models it follows).
+    pub fn car_assign(car: &str) -> String {
+        format!("{ROOT}/car/{car}/assign")
+    }
     /// A car's control (the e-stop).
     pub fn car_control(car: &str) -> String {
         format!("{ROOT}/car/{car}/control")
@@ -277,6 +282,7 @@ versioned!(
     Job,
     CarStatus,
     CarControl,
+    CarAssign,
     JobPromote
 );
 

@@ -348,6 +348,7 @@ fn role_rules(role: Role, id: &str) -> Vec<RuleSpec> {
                     job("policy"),
                     job("best"),
                     "paddock/v1/car/*/control".into(),
+                    "paddock/v1/car/*/assign".into(),
                     ROS_SENSOR.into(),
                     ROS_SERVO.into(),
                     revoked(),
@@ -358,7 +359,7 @@ fn role_rules(role: Role, id: &str) -> Vec<RuleSpec> {
         ],
         Role::Operator => vec![
             ("control", vec!["query"], s(&["paddock/v1/control".into(), job("promote"), revoked()])),
-            ("estop", vec!["put"], vec!["paddock/v1/car/*/control".into()]),
+            ("estop", vec!["put"], vec!["paddock/v1/car/*/control".into(), "paddock/v1/car/*/assign".into()]),
             ("watch", vec!["declare_subscriber"], vec!["paddock/v1/**".into()]),
             ("alive", vec!["declare_liveliness_subscriber", "liveliness_query"], vec!["paddock/v1/alive/**".into()]),
         ],

@@ -70,6 +70,7 @@ pub fn protobuf(data: &[u8]) {
     let _ = decode::<protocol::TeamMemory>(data);
     let _ = decode::<protocol::CarStatus>(data);
     let _ = decode::<protocol::CarControl>(data);
+    let _ = decode::<protocol::CarAssign>(data);
     let _ = decode::<protocol::JobPromote>(data);
     if let Ok(m) = decode::<protocol::ExperienceBatch>(data) {
         let _ = ex::experience_from_wire(m, &view, "a1");

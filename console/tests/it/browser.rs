@@ -10,7 +10,7 @@ use crate::support::{Console, TOKEN, bin};
 use std::path::PathBuf;
 use std::process::Command;
 
-fn python() -> PathBuf {
+pub(crate) fn python() -> PathBuf {
     std::env::var_os("PADDOCK_PYTHON").map(PathBuf::from).unwrap_or_else(|| {
         panic!("PADDOCK_PYTHON is not set: run `./paddock test`, which makes target/pyenv with Selenium")
     })
@@ -166,7 +166,7 @@ print(json.dumps({"frames": n, "schema": schema, "pixels": pixels, "levels": lev
 
 /// What each browser script starts with: Debian's Chromium, headless, through chromedriver;
 /// `addr` (the first argument), `tmp` (the last), `out` (printed at the end) and `wait`.
-const CHROMIUM: &str = r###"
+pub(crate) const CHROMIUM: &str = r###"
 import json, sys, time
 from selenium import webdriver
 from selenium.webdriver.chrome.service import Service

@@ -4,5 +4,6 @@
 
 mod api;
 mod browser;
+mod fleet;
 mod support;
 mod users;
