@@ -28,6 +28,7 @@ pub mod quota;
 pub mod race_api;
 pub mod races;
 pub mod store;
+pub mod tls;
 pub mod users;
 
 use anyhow::{Context, Result, bail};
@@ -55,6 +56,8 @@ pub struct Options {
     pub race_workers: usize,
     /// Live races replay at this many simulator seconds a second (1: as driven).
     pub live_speed: f64,
+    /// Serve HTTPS with this certificate chain and key (PEM files).
+    pub tls: Option<(std::path::PathBuf, std::path::PathBuf)>,
 }
 
 /// The first admin, made when the data folder has no user yet: `--admin NAME` with the
@@ -78,13 +81,24 @@ pub fn first_admin(users: &users::Users, name: &str, password_file: Option<&std:
     Ok(())
 }
 
-/// Refuse to listen beyond loopback without `--insecure`: the console has no TLS or login yet,
-/// and its token would cross the network in the clear.
-pub fn check_listen(listen: &SocketAddr, insecure: bool) -> Result<()> {
-    if !listen.ip().is_loopback() && !insecure {
+/// Refuse to listen beyond loopback unless the console serves HTTPS (`tls`) and asks for a
+/// login (`logins`: the data folder has users), or `--insecure` says to: otherwise its token,
+/// or its users' passwords, would cross the network in the clear, or anyone there could use it.
+pub fn check_listen(listen: &SocketAddr, insecure: bool, tls: bool, logins: bool) -> Result<()> {
+    if listen.ip().is_loopback() || insecure {
+        return Ok(());
+    }
+    if !tls {
         bail!(
-            "--listen {listen} is beyond loopback: the console serves plain HTTP with a token and no login, so anyone \
-             on the network who sees the token controls your training; listen on 127.0.0.1, or pass --insecure"
+            "--listen {listen} is beyond loopback: serve HTTPS there (--tls-cert and --tls-key; \
+             `coordinator certs issue DIR console NAME` makes a certificate from the cluster's CA), \
+             listen on 127.0.0.1, or pass --insecure"
+        );
+    }
+    if !logins {
+        bail!(
+            "--listen {listen} is beyond loopback: there the console asks for a login, and the data folder has no \
+             user yet: make the first admin (--admin NAME, or `coordinator users add NAME --role admin --data DIR`)"
         );
     }
     Ok(())
@@ -158,16 +172,18 @@ pub fn router(app: api::App) -> Router {
 /// Serve until Ctrl-C or SIGTERM. Prints the address with the token first (one line,
 /// `console      http://ADDR/?token=…`).
 pub fn serve(opts: Options, store: store::Store, hub: hub::Hub) -> Result<()> {
-    check_listen(&opts.listen, opts.insecure)?;
-    let token = opts.token.unwrap_or_else(auth::new_token);
     let users = users::Users::open(store.root())?;
+    check_listen(&opts.listen, opts.insecure, opts.tls.is_some(), users.any())?;
+    let tls = opts.tls.as_ref().map(|(cert, key)| tls::server_config(cert, key)).transpose()?;
+    let scheme = if tls.is_some() { "https" } else { "http" };
+    let token = opts.token.unwrap_or_else(auth::new_token);
     let gate = Arc::new(auth::Gate::new(token.clone(), users));
     let races = races::Races::open(store.root());
     let app = api::App {
         store,
         hub,
         gate: gate.clone(),
-        https: false,
+        https: tls.is_some(),
         running: Default::default(),
         races,
         race_slots: Arc::new(tokio::sync::Semaphore::new(opts.race_workers.max(1))),
@@ -185,9 +201,9 @@ pub fn serve(opts: Options, store: store::Store, hub: hub::Hub) -> Result<()> {
             .with_context(|| format!("listening on {}", opts.listen))?;
         let addr = listener.local_addr()?;
         if gate.logins() {
-            println!("console      http://{addr}/login");
+            println!("console      {scheme}://{addr}/login");
         } else {
-            println!("console      http://{addr}/?token={token}");
+            println!("console      {scheme}://{addr}/?token={token}");
         }
         use std::io::Write as _;
         std::io::stdout().flush()?;
@@ -196,9 +212,19 @@ pub fn serve(opts: Options, store: store::Store, hub: hub::Hub) -> Result<()> {
         race_api::tick(&app);
         // Live pages keep their event streams open: at a stop the server is dropped, not
         // drained.
-        let server = tokio::spawn(async move {
-            axum::serve(listener, router(app).into_make_service_with_connect_info::<SocketAddr>()).await
-        });
+        let server = match tls {
+            Some(config) => {
+                let listener = tls::TlsListener::new(listener, config)?;
+                let service = router(app)
+                    .layer(axum::middleware::map_request(tls::peer_address))
+                    .into_make_service_with_connect_info::<tls::Peer>();
+                tokio::spawn(async move { axum::serve(listener, service).await })
+            }
+            None => {
+                let service = router(app).into_make_service_with_connect_info::<SocketAddr>();
+                tokio::spawn(async move { axum::serve(listener, service).await })
+            }
+        };
         match futures_util::future::select(server, std::pin::pin!(stopped())).await {
             futures_util::future::Either::Left((done, _)) => {
                 done.context("the web server")?.context("serving the console")

@@ -17,7 +17,8 @@ use std::time::Duration;
 struct Cli {
     #[command(subcommand)]
     command: Option<Sub>,
-    /// Where the console listens (loopback unless --insecure; port 0 picks a free one).
+    /// Where the console listens (beyond loopback only with --tls-cert and users, or --insecure;
+    /// port 0 picks a free one).
     #[arg(long, default_value = "127.0.0.1:8100")]
     listen: SocketAddr,
     /// The data folder: models, their files and runs, and (on one machine) the job database
@@ -45,6 +46,13 @@ struct Cli {
     /// Listen beyond loopback without TLS and login (anyone who sees the token can use it).
     #[arg(long)]
     insecure: bool,
+    /// Serve HTTPS with this certificate (PEM, the chain; `coordinator certs issue DIR console
+    /// NAME` writes DIR/console-NAME.pem from the cluster's CA). Needed beyond loopback.
+    #[arg(long, value_name = "FILE", requires = "tls_key")]
+    tls_cert: Option<PathBuf>,
+    /// The certificate's private key (PEM).
+    #[arg(long, value_name = "FILE", requires = "tls_cert")]
+    tls_key: Option<PathBuf>,
     /// The token (a new random one when not given). For scripts; the printed address carries it.
     /// Only while the data folder has no users: with users, the console asks for a login.
     #[arg(long)]
@@ -230,11 +238,14 @@ fn main() {
 }
 
 fn run(cli: Cli) -> Result<()> {
-    paddock_console::check_listen(&cli.listen, cli.insecure)?;
     let store = paddock_console::store::Store::open(&cli.data)?;
+    let users = paddock_console::users::Users::open(store.root())?;
     if let Some(name) = &cli.admin {
-        let users = paddock_console::users::Users::open(store.root())?;
         paddock_console::first_admin(&users, name, cli.admin_password_file.as_deref())?;
+    }
+    paddock_console::check_listen(&cli.listen, cli.insecure, cli.tls_cert.is_some(), users.any())?;
+    if let (Some(cert), Some(key)) = (&cli.tls_cert, &cli.tls_key) {
+        paddock_console::tls::server_config(cert, key)?;
     }
     let certs = cli
         .certs
@@ -287,6 +298,7 @@ fn run(cli: Cli) -> Result<()> {
         token: cli.token,
         race_workers: cli.race_workers,
         live_speed: cli.live_speed,
+        tls: cli.tls_cert.clone().zip(cli.tls_key.clone()),
     };
     let served = paddock_console::serve(opts, store, hub);
     // The roles stop with the console.

@@ -157,6 +157,41 @@ fn revoked_in(dir: &Path) -> Result<(u64, RevokedList)> {
     Ok((number, list))
 }
 
+/// `certs issue DIR console NAME...`: the console's web certificate for each name it is
+/// reached by (a host name or an IP address: the certificate's subject alternative name),
+/// `console-NAME.pem` with the CA's certificate after its own (the chain a browser needs) and
+/// `console-NAME.key`, valid `days`. Not a cluster role: the roster is left as it is.
+pub fn issue_console(dir: &Path, names: &[String], days: u32) -> Result<Vec<String>> {
+    anyhow::ensure!(days > 0, "--days: expected at least 1");
+    anyhow::ensure!(!names.is_empty(), "expected the names the console is reached by (a host name or an IP address)");
+    let issuer = issuer(dir)?;
+    let ca = std::fs::read_to_string(dir.join(CA_FILE)).with_context(|| dir.join(CA_FILE).display().to_string())?;
+    let now = time::OffsetDateTime::now_utc();
+    let mut written = Vec::new();
+    for name in names {
+        anyhow::ensure!(
+            protocol::keys::is_valid_name(name) && !name.starts_with('.'),
+            "'{name}': expected a host name or an IP address (letters, digits, '-', '_' and '.')"
+        );
+        let (pem, key) = (dir.join(format!("console-{name}.pem")), dir.join(format!("console-{name}.key")));
+        anyhow::ensure!(!pem.exists(), "{}: already there; remove it (and its .key) to issue it again", pem.display());
+        let k = KeyPair::generate().context("generating a key")?;
+        let mut p = CertificateParams::new(vec![name.clone()]).with_context(|| format!("'{name}': not a host name"))?;
+        p.distinguished_name = DistinguishedName::new();
+        p.distinguished_name.push(DnType::CommonName, format!("paddock-console {name}"));
+        p.key_usages = vec![KeyUsagePurpose::DigitalSignature];
+        p.extended_key_usages = vec![ExtendedKeyUsagePurpose::ServerAuth];
+        p.not_before = now - time::Duration::hours(1);
+        p.not_after = now + time::Duration::days(days.into());
+        let cert = p.signed_by(&k, &issuer).with_context(|| format!("signing {name}'s certificate"))?;
+        write_file(&pem, &format!("{}{ca}", cert.pem()), false)?;
+        write_file(&key, &k.serialize_pem(), true)?;
+        written.push(format!("console-{name}.pem"));
+        written.push(format!("console-{name}.key"));
+    }
+    Ok(written)
+}
+
 /// `certs issue DIR ROLE ID...`: a certificate of its own for each machine (common name
 /// `paddock-<role>.<id>`, files `<role>-<id>.pem`/`.key`), valid `days`, and the ids added to
 /// the folder's roster (`ids.toml`). An id whose certificate is revoked may be issued anew.

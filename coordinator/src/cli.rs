@@ -140,13 +140,16 @@ pub enum CertsCommand {
     /// machine's two files to it; give every node the new ids.toml and restart those that
     /// should hear the new machine (access rules are read when a node joins). Role-wide
     /// certificates keep working, each able to speak for any id of its role: enough for a
-    /// small cluster on a network you trust.
+    /// small cluster on a network you trust. `certs issue DIR console NAME` instead writes the
+    /// console's web certificate for the host name or address NAME (DIR/console-NAME.pem and
+    /// .key, for the console's --tls-cert and --tls-key).
     Issue {
         /// The credentials folder (with ca.pem and ca.key).
         dir: PathBuf,
-        /// agent, learner, car, operator or coordinator.
+        /// agent, learner, car, operator or coordinator; or console (its web certificate).
         role: String,
-        /// The machines' ids (an agent's or learner's --id, a car's id).
+        /// The machines' ids (an agent's or learner's --id, a car's id; the console's host names
+        /// or addresses).
         #[arg(required = true)]
         ids: Vec<String>,
         /// Days the certificates are valid.

@@ -71,6 +71,13 @@ fn main() {
             );
             0
         }),
+        cli::Command::Certs { command: cli::CertsCommand::Issue { dir, role, ids, days } } if role == "console" => {
+            certs::issue_console(&dir, &ids, days).map(|names| {
+                println!("wrote {} in {}", names.join(", "), dir.display());
+                println!("give the console --tls-cert DIR/console-NAME.pem --tls-key DIR/console-NAME.key; browsers trust it once they trust ca.pem");
+                0
+            })
+        }
         cli::Command::Certs { command: cli::CertsCommand::Issue { dir, role, ids, days } } => {
             certs::issue(&dir, &role, &ids, days).map(|names| {
                 println!("wrote {} and ids.toml in {}", names.join(", "), dir.display());

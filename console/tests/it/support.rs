@@ -36,8 +36,11 @@ impl Console {
 
     /// Start `console` on one machine with `agents` sim agents and more flags.
     pub fn with_args(data: &Path, agents: usize, extra: &[&str]) -> Console {
+        // Loopback unless the test names where.
+        let listen: &[&str] = if extra.contains(&"--listen") { &[] } else { &["--listen", "127.0.0.1:0"] };
         let mut child = Command::new(env!("CARGO_BIN_EXE_console"))
-            .args(["--listen", "127.0.0.1:0", "--agents", &agents.to_string(), "--envs", "8", "--token", TOKEN])
+            .args(listen)
+            .args(["--agents", &agents.to_string(), "--envs", "8", "--token", TOKEN])
             .args(extra)
             .arg("--data")
             .arg(data)
@@ -52,7 +55,9 @@ impl Console {
             if let Some(rest) = l.strip_prefix("roles        coordinator on ") {
                 endpoint = Some(rest.split(',').next().unwrap().to_string());
             }
-            if let Some(rest) = l.strip_prefix("console      http://") {
+            if let Some(rest) =
+                l.strip_prefix("console      http://").or_else(|| l.strip_prefix("console      https://"))
+            {
                 // With users the console asks for a login; without, the address carries the token.
                 match rest.split_once("/?token=") {
                     Some((a, t)) => {

@@ -341,3 +341,83 @@ fn coordinator_users_adds_invites_changes_and_removes_users() {
     let (ok, _) = out(users(&data, &["remove", "rex"]));
     assert!(ok);
 }
+
+fn curl(args: &[&str]) -> (bool, String) {
+    let o = Command::new("curl").args(["-sS", "--max-time", "10"]).args(args).output().unwrap();
+    (o.status.success(), format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr)))
+}
+
+/// Issue 52: beyond loopback the console serves HTTPS with a certificate from the cluster's CA
+/// and asks for a login; without either it does not start. OpenSSL's client verifies the
+/// certificate; curl logs in (the cookie Secure); a plain-HTTP request is refused and counted.
+#[test]
+fn the_console_beyond_loopback_serves_https_and_asks_for_a_login() {
+    let dir = tempfile::tempdir().unwrap();
+    let (data, certs) = (dir.path().join("data"), dir.path().join("certs"));
+    let coordinator = |args: &[&str]| {
+        let o = Command::new(bin("coordinator")).args(args).output().unwrap();
+        assert!(o.status.success(), "{args:?}: {}", String::from_utf8_lossy(&o.stderr));
+    };
+    let c = certs.to_str().unwrap();
+    coordinator(&["certs", "new", c]);
+    coordinator(&["certs", "issue", c, "console", "127.0.0.1"]);
+    let (cert, key) = (certs.join("console-127.0.0.1.pem"), certs.join("console-127.0.0.1.key"));
+    let tls = ["--tls-cert", cert.to_str().unwrap(), "--tls-key", key.to_str().unwrap()];
+    // Beyond loopback: refused without HTTPS, then without a user.
+    let start = |extra: &[&str]| {
+        Command::new(bin("console")).args(["--listen", "0.0.0.0:0", "--data"]).arg(&data).args(extra).output().unwrap()
+    };
+    let o = start(&[]);
+    assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("--tls-cert"), "{o:?}");
+    let o = start(&tls);
+    assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("no user yet"), "{o:?}");
+    add(&data, dir.path(), "ada", "admin", ADA);
+    let mut args = vec!["--listen", "0.0.0.0:0"];
+    args.extend(tls);
+    let console = Console::with_args(&data, 1, &args);
+    let port = console.addr.rsplit(':').next().unwrap().to_string();
+    let base = format!("https://127.0.0.1:{port}");
+    let ca = certs.join("ca.pem");
+    let ca = ca.to_str().unwrap();
+    // OpenSSL's own client checks the chain against the CA and the name.
+    let o = Command::new("openssl")
+        .args(["s_client", "-connect", &format!("127.0.0.1:{port}"), "-CAfile", ca, "-verify_ip", "127.0.0.1"])
+        .args(["-verify_return_error", "-brief"])
+        .stdin(std::process::Stdio::null())
+        .output()
+        .unwrap();
+    let text = format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    assert!(text.contains("Verification: OK"), "{text}");
+    // Not trusted without the CA; the login page with it.
+    let (ok, text) = curl(&[&format!("{base}/login")]);
+    assert!(!ok && text.contains("certificate"), "{text}");
+    let (ok, text) = curl(&["--cacert", ca, &format!("{base}/login")]);
+    assert!(ok && text.contains("login-password"), "{text}");
+    let (ok, text) = curl(&["--cacert", ca, &format!("{base}/api/v1/models")]);
+    assert!(ok && text.contains("a login is needed"), "the API asks for a login: {text}");
+    // Logged in over HTTPS, the session cookie is Secure and HttpOnly.
+    let body = json!({"user": "ada", "password": ADA}).to_string();
+    let (ok, text) = curl(&[
+        "--cacert",
+        ca,
+        "-D",
+        "-",
+        "-H",
+        "Content-Type: application/json",
+        "-H",
+        &format!("Origin: {base}"),
+        "--data",
+        &body,
+        &format!("{base}/api/v1/session"),
+    ]);
+    let cookie = text.lines().find(|l| l.to_lowercase().starts_with("set-cookie:")).unwrap_or("").to_string();
+    assert!(ok && cookie.contains("Secure") && cookie.contains("HttpOnly"), "{text}");
+    let session = cookie.split_once(':').unwrap().1.trim().split(';').next().unwrap().to_string();
+    // A plain-HTTP request to the HTTPS port gets no page: refused and counted.
+    let plain = std::panic::catch_unwind(|| http(&format!("127.0.0.1:{port}"), "GET", "/login", &[], None));
+    assert!(plain.is_err() || plain.as_ref().is_ok_and(|r| r.code != 200), "plain HTTP was served");
+    let (ok, text) = curl(&["--cacert", ca, "-H", &format!("Cookie: {session}"), &format!("{base}/api/v1/health")]);
+    let health: serde_json::Value = serde_json::from_str(&text).unwrap_or_else(|_| panic!("{ok} {text}"));
+    assert!(health["refused"]["a failed TLS handshake"].as_u64().unwrap_or(0) >= 1, "{health}");
+    console.stop();
+}
