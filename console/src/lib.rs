@@ -167,6 +167,15 @@ pub fn router(app: api::App) -> Router {
         .route("/assets/{name}", get(pages::asset))
         .merge(guarded)
         .layer(axum::extract::DefaultBodyLimit::max(MAX_BODY))
+        .layer(axum::middleware::map_response(count_oversized))
+}
+
+/// A body over its route's limit is answered 413 by the extractor: counted here.
+async fn count_oversized(r: axum::response::Response) -> axum::response::Response {
+    if r.status() == axum::http::StatusCode::PAYLOAD_TOO_LARGE {
+        counters::refused("an oversized request");
+    }
+    r
 }
 
 /// Serve until Ctrl-C or SIGTERM. Prints the address with the token first (one line,

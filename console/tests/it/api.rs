@@ -83,6 +83,8 @@ fn the_api_refuses_requests_without_the_token_from_elsewhere_or_with_invalid_fie
     let big = "#".repeat(2 << 20);
     let r = c.api("POST", "/api/v1/rewards/validate", Some(&json!({"reward_function": big})));
     assert_eq!(r.code, 413, "a body over the limit is refused");
+    let health = c.api("GET", "/api/v1/health", None).json();
+    assert!(health["refused"]["an oversized request"].as_u64() >= Some(1), "counted: {health}");
 
     // Validate: every finding on its line.
     let r = c.api(

@@ -85,6 +85,25 @@ fn a_car_on_the_network_is_assigned_a_model_from_the_cars_page_and_stopped() {
         .output()
         .unwrap();
     let out = String::from_utf8_lossy(&o.stdout).to_string();
+    // A live race's entry racing now (or else the next) is assigned as a model is.
+    let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_secs_f64();
+    let race = json!({"name": "final", "mode": "live", "track": "reinvent_base", "max_laps": 1, "closes": now + 600.0});
+    assert_eq!(c.api("POST", "/api/v1/races", Some(&race)).code, 201);
+    assert_eq!(c.api("POST", "/api/v1/races/final/entries", Some(&json!({"model": "cam-1"}))).code, 202);
+    let swaps = |v: &serde_json::Value| v[0]["swaps"].as_u64().unwrap_or(0);
+    let before = swaps(&c.api("GET", "/api/v1/cars", None).json());
+    let r = c.api("POST", "/api/v1/cars/car", Some(&json!({"race": "final"})));
+    assert_eq!(r.code, 202, "{}", String::from_utf8_lossy(&r.body));
+    let after = wait_for(20, "the entry's model taken", || {
+        let v = c.api("GET", "/api/v1/cars", None).json();
+        (swaps(&v) > before && v[0]["state"] == "driving").then_some(v)
+    });
+    assert_eq!(
+        (after[0]["model"].as_str(), after[0]["policy_version"].as_u64()),
+        (Some("cam-1"), Some(version)),
+        "{after}"
+    );
+    assert_eq!(c.api("POST", "/api/v1/cars/car", Some(&json!({"race": "nope"}))).code, 404);
     stop.store(true, Ordering::Relaxed);
     let _ = car.kill();
     let _ = car.wait();

@@ -266,6 +266,25 @@ fn users_log_in_and_do_only_what_their_role_and_quota_allow() {
     let minutes_after = rita.call("GET", "/api/v1/quota", None).json()["user"]["used"]["minutes"].as_f64().unwrap();
     assert!(minutes_after > minutes_before, "{minutes_before} → {minutes_after}");
 
+    // The queued jobs start as the cluster frees: rex-1 next.
+    wait_for(60, "rex-1 started", || {
+        (rex.call("GET", "/api/v1/models/rex-1", None).json()["queued"].as_u64().unwrap_or(0) == 0).then_some(())
+    });
+    // Rita's own minutes: none left refuses her evaluation, naming her quota.
+    let r = ada.call("PATCH", "/api/v1/users/rita", Some(json!({"quota": {"models": 2, "minutes": 0.0}})));
+    assert_eq!(r.code, 200, "{}", r.json());
+    let r =
+        rita.call("POST", "/api/v1/models/rita-1/evaluations", Some(json!({"track": "reinvent_base", "trials": 1})));
+    assert_eq!(r.code, 403, "{}", String::from_utf8_lossy(&r.body));
+    assert!(r.json()["error"].as_str().unwrap().contains("your quota of minutes"), "{}", r.json());
+    let r = ada.call("PATCH", "/api/v1/users/rita", Some(json!({"quota": {"models": 2, "minutes": null}})));
+    assert_eq!(r.code, 200, "{}", r.json());
+    // The instance's models: as many as are kept (rita-1, rita-2, rex-1) refuses one more,
+    // whoever asks.
+    assert_eq!(ada.call("PUT", "/api/v1/quota", Some(json!({"models": 3, "minutes": null}))).code, 200);
+    let r = ada.call("POST", "/api/v1/models", Some(new_model("ada-2", 0.1)));
+    assert_eq!(r.code, 403);
+    assert!(r.json()["error"].as_str().unwrap().contains("the instance's quota of models"), "{}", r.json());
     assert_eq!(ada.call("PUT", "/api/v1/quota", Some(json!({"models": null, "minutes": 0.0}))).code, 200);
     let r =
         rita.call("POST", "/api/v1/models/rita-1/evaluations", Some(json!({"track": "reinvent_base", "trials": 1})));
