@@ -16,9 +16,18 @@ use axum::response::{IntoResponse, Response};
 use protocol::CarStatus;
 use serde_json::{Value, json};
 
-/// A car as the API shows it, with the console's model whose job it follows.
-pub fn car_json(app: &App, c: &CarStatus) -> Value {
-    let model = app.store.list().into_iter().find(|m| !c.job_id.is_empty() && m.job_id == c.job_id).map(|m| m.name);
+/// A car as the API shows it to `p`, with the console's model whose job it follows (a model
+/// `p` may not see is not named).
+pub fn car_json(app: &App, p: &Principal, c: &CarStatus) -> Value {
+    let model = app
+        .store
+        .list()
+        .into_iter()
+        .find(|m| !c.job_id.is_empty() && m.job_id == c.job_id)
+        .filter(|m| p.may_see(m.owner.as_deref()))
+        .map(|m| m.name)
+        // A live race's entry, driven on its own channel: the model entered.
+        .or_else(|| app.races.find_entry(&c.job_id).map(|e| e.model));
     json!({
         "car": c.car_id, "job": c.job_id, "model": model, "follow": c.follow, "has_model": c.has_model,
         "policy_version": c.has_model.then_some(c.policy_version), "source": c.model_source, "key": c.model_key,
@@ -30,8 +39,12 @@ pub fn car_json(app: &App, c: &CarStatus) -> Value {
 }
 
 /// `GET /api/v1/cars`: the cars heard from in the last seconds.
-pub async fn list(State(app): State<App>) -> Response {
-    let cars: Vec<Value> = app.hub.cars().iter().map(|c| car_json(&app, c)).collect();
+pub async fn list(State(app): State<App>, Extension(p): Extension<Principal>) -> Response {
+    let cars = tokio::task::spawn_blocking(move || {
+        app.hub.cars().iter().map(|c| car_json(&app, &p, c)).collect::<Vec<Value>>()
+    })
+    .await
+    .unwrap_or_default();
     axum::Json(cars).into_response()
 }
 
@@ -81,49 +94,12 @@ pub async fn order(
     if keys.len() != 1 || !["model", "race", "estop"].contains(&keys[0].as_str()) {
         return field("", "expected one of: {\"model\": NAME}, {\"race\": NAME}, {\"estop\": true|false}");
     }
-    let order = if let Some(hold) = v.get("estop") {
-        let Some(hold) = hold.as_bool() else { return field("estop", "expected true or false") };
-        CarOrder::Estop(hold)
-    } else if let Some(name) = v.get("model") {
-        let Some(name) = name.as_str() else { return field("model", "expected a model's name") };
-        let rec = match app.store.get(name) {
-            Ok(r) if p.may_see(r.owner.as_deref()) => r,
-            _ => {
-                crate::counters::refused("an unknown model");
-                return error(StatusCode::NOT_FOUND, &format!("no model named '{name}'"));
-            }
-        };
-        let dir = app.store.dir(&rec.name).expect("a stored model's name is valid").join("run/model");
-        match update(&rec.job_id, &dir, &format!("model '{name}'")) {
-            Ok(bytes) => CarOrder::Assign(rec.job_id.clone(), bytes),
-            Err(r) => return *r,
-        }
-    } else {
-        let Some(name) = v["race"].as_str() else { return field("race", "expected a live race's name") };
-        let race = match app.races.get(name) {
-            Ok(r) if r.live() => r,
-            _ => {
-                crate::counters::refused("an unknown race");
-                return error(StatusCode::NOT_FOUND, &format!("no live race named '{name}'"));
-            }
-        };
-        let snap = crate::live::snapshot(&app.races, &race, protocol::job::now_unix(), app.live_speed);
-        let Some(entry) = snap["current"]["entry"].as_str().or(snap["up_next"]["entry"].as_str()) else {
-            return error(StatusCode::CONFLICT, &format!("race '{name}' has no entry racing or waiting"));
-        };
-        let Some(e) = app.races.entry(name, entry) else {
-            return error(StatusCode::CONFLICT, &format!("race '{name}' has no entry '{entry}'"));
-        };
-        // The entry's model follows its job (the model's), or the entry alone once the model is gone.
-        let job = app.store.get(&e.model).map(|m| m.job_id).unwrap_or_else(|_| e.id.clone());
-        let dir = match app.races.entry_model(name, entry) {
-            Ok(d) => d,
-            Err(err) => return error(StatusCode::NOT_FOUND, &err.to_string()),
-        };
-        match update(&job, &dir, &format!("{}'s entry '{}'", e.racer, e.model)) {
-            Ok(bytes) => CarOrder::Assign(job, bytes),
-            Err(r) => return *r,
-        }
+    // Reading a model (and a live race's state) is file work: off the web server's threads.
+    let (app2, p2) = (app.clone(), p.clone());
+    let order = match tokio::task::spawn_blocking(move || build(&app2, &p2, &v)).await {
+        Ok(Ok(o)) => o,
+        Ok(Err(r)) => return *r,
+        Err(e) => return error(StatusCode::INTERNAL_SERVER_ERROR, &e.to_string()),
     };
     let what = format!("{order:?}").split('(').next().unwrap_or("").to_string();
     match app.hub.order(&car, order).await {
@@ -133,4 +109,46 @@ pub async fn order(
         }
         Err(e) => error(StatusCode::BAD_GATEWAY, &format!("car '{car}': {e}")),
     }
+}
+
+/// What `v` (checked to have one of `model`, `race`, `estop`) tells the car.
+fn build(app: &App, p: &Principal, v: &Value) -> Result<CarOrder, Box<Response>> {
+    let bad = |name: &str, message: &str| Box::new(field(name, message));
+    if let Some(hold) = v.get("estop") {
+        return hold.as_bool().map(CarOrder::Estop).ok_or_else(|| bad("estop", "expected true or false"));
+    }
+    if let Some(name) = v.get("model") {
+        let name = name.as_str().ok_or_else(|| bad("model", "expected a model's name"))?;
+        let rec = match app.store.get(name) {
+            Ok(r) if p.may_see(r.owner.as_deref()) => r,
+            _ => {
+                crate::counters::refused("an unknown model");
+                return Err(Box::new(error(StatusCode::NOT_FOUND, &format!("no model named '{name}'"))));
+            }
+        };
+        let dir = app.store.dir(&rec.name).expect("a stored model's name is valid").join("run/model");
+        let bytes = update(&rec.job_id, &dir, &format!("model '{name}'"))?;
+        return Ok(CarOrder::Assign(rec.job_id.clone(), bytes));
+    }
+    let name = v["race"].as_str().ok_or_else(|| bad("race", "expected a live race's name"))?;
+    let race = match app.races.get(name) {
+        Ok(r) if r.live() => r,
+        _ => {
+            crate::counters::refused("an unknown race");
+            return Err(Box::new(error(StatusCode::NOT_FOUND, &format!("no live race named '{name}'"))));
+        }
+    };
+    let snap = crate::live::snapshot(&app.races, &race, protocol::job::now_unix(), app.live_speed);
+    let conflict = |m: String| Box::new(error(StatusCode::CONFLICT, &m));
+    let entry = snap["current"]["entry"]
+        .as_str()
+        .or(snap["up_next"]["entry"].as_str())
+        .ok_or_else(|| conflict(format!("race '{name}' has no entry racing or waiting")))?;
+    let e = app.races.entry(name, entry).ok_or_else(|| conflict(format!("race '{name}' has no entry '{entry}'")))?;
+    // The entry is driven as it was entered: on its own channel, which nothing else publishes
+    // on (the model's job, if it still trains, would move the car on to newer versions).
+    let dir =
+        app.races.entry_model(name, entry).map_err(|err| Box::new(error(StatusCode::NOT_FOUND, &err.to_string())))?;
+    let bytes = update(&e.id, &dir, &format!("{}'s entry '{}'", e.racer, e.model))?;
+    Ok(CarOrder::Assign(e.id.clone(), bytes))
 }

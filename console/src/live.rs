@@ -8,7 +8,7 @@
 //! an entry is `pending` until launched, then `in_progress` (being evaluated, then replayed),
 //! then `completed` or `failed`. Only completed entries, launched since the leaderboard was
 //! last cleared, are ranked. The state is `races/NAME/live.json`, each entry's replay
-//! `entries/ID-replay.json` with its camera frames in `entries/ID-frames.bin`.
+//! `entries/ID.replay` (JSON) with its camera frames in `entries/ID-frames.bin`.
 
 use crate::races::{Entry, EntryStatus, Race, RaceError, Races, Row};
 use serde::{Deserialize, Serialize};
@@ -354,16 +354,21 @@ impl Races {
                 let mut e = e.clone();
                 e.resets += 1;
                 e.launched = None;
-                if e.status == EntryStatus::Failed || e.status == EntryStatus::Done {
-                    // Run again, seeded anew.
-                    e.status = EntryStatus::Queued;
-                    e.error = None;
-                    e.laps.clear();
-                    e.path.clear();
-                    e.finished = None;
-                    e.replay_s = None;
-                    after.evaluate.push(e.clone());
+                // Run again, seeded anew (a run still going is superseded: what it finds is
+                // not kept).
+                if let (Some(s), Some(f)) = (e.started, e.finished) {
+                    e.spent_s += (f - s).max(0.0);
+                } else if let Some(s) = e.started {
+                    e.spent_s += (now - s).max(0.0);
                 }
+                e.status = EntryStatus::Queued;
+                e.error = None;
+                e.laps.clear();
+                e.path.clear();
+                e.started = None;
+                e.finished = None;
+                e.replay_s = None;
+                after.evaluate.push(e.clone());
                 self.save_entry(&race.name, &e)?;
             }
             Action::Clear => {
@@ -421,7 +426,7 @@ pub fn snapshot(races: &Races, race: &Race, now: f64, speed: f64) -> Value {
         .enumerate()
         .map(|(i, e)| {
             json!({"place": i + 1, "entry": e.id, "racer": e.racer, "model": e.model, "status": shown(e, now, speed).name(),
-                   "resets": e.resets, "error": e.error})
+                   "resets": e.resets})
         })
         .collect();
     let mut current = Value::Null;
@@ -497,6 +502,8 @@ mod tests {
             launched: None,
             resets: 0,
             replay_s: Some(lap_s),
+            started: Some(created),
+            spent_s: 0.0,
         }
     }
 
@@ -575,6 +582,49 @@ mod tests {
         let snap = snapshot(&races, &race, t + 81.0, 1.0);
         assert_eq!((snap["phase"].as_str(), snap["winner"]["racer"].as_str()), (Some("completed"), Some("cat")));
         refused(Action::Launch, t + 82.0, "completed");
+    }
+
+    /// An evaluation that ends after the facilitator launched, reset or removed its entry keeps
+    /// what the facilitator did: the launch stands, a superseded run is not kept, a removed
+    /// entry stays removed.
+    #[test]
+    fn an_evaluation_ending_late_keeps_the_facilitators_launch_reset_and_removal() {
+        let dir = tempfile::tempdir().unwrap();
+        let races = Races::open(dir.path());
+        let body = serde_json::json!({"name": "final", "mode": "live", "track": "reinvent_base", "max_laps": 1,
+                                      "closes": NOW + 600.0});
+        let race = check(&body, None, NOW, None).unwrap();
+        races.create(&race).unwrap();
+        let model = dir.path().join("model");
+        std::fs::create_dir_all(&model).unwrap();
+        let running = |id: &str, racer: &str| Entry {
+            status: EntryStatus::Running,
+            finished: None,
+            laps: vec![],
+            replay_s: None,
+            ..entry(id, racer, 10.0, NOW)
+        };
+        races.enter(&race, &running("e0", "ann"), &model).unwrap();
+        races.enter(&race, &running("e1", "bob"), &model).unwrap();
+        let t = NOW + 600.0;
+        races.act(&race, &Action::Submissions(false), t, 1.0).unwrap().unwrap();
+        races.act(&race, &Action::Launch, t, 1.0).unwrap().unwrap();
+        assert_eq!(races.entry("final", "e0").unwrap().launched, Some(t));
+        // The evaluation (which began before the launch) ends: the launch stands.
+        races.evaluated("final", &entry("e0", "ann", 10.0, NOW)).unwrap();
+        let e0 = races.entry("final", "e0").unwrap();
+        assert_eq!((e0.launched, e0.status), (Some(t), EntryStatus::Done));
+        // Reset: a run of before the reset ending later is not kept.
+        races.act(&race, &Action::Reset("e0".into()), t + 20.0, 1.0).unwrap().unwrap();
+        races.evaluated("final", &entry("e0", "ann", 10.0, NOW)).unwrap();
+        let e0 = races.entry("final", "e0").unwrap();
+        assert_eq!((e0.resets, e0.status, e0.launched), (1, EntryStatus::Queued, None));
+        // Removed while evaluated: it stays removed, its files too.
+        races.act(&race, &Action::Remove("e1".into()), t + 21.0, 1.0).unwrap().unwrap();
+        races.evaluated("final", &entry("e1", "bob", 9.0, NOW)).unwrap();
+        assert!(races.entry("final", "e1").is_none());
+        assert_eq!(races.entries("final").len(), 1);
+        assert!(!races.entry_model("final", "e1").unwrap().exists());
     }
 
     /// A replay is where the car was at each moment, lap after lap, at the last step once over.

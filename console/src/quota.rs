@@ -42,8 +42,9 @@ pub fn stop_minutes(stop: &toml::Table) -> f64 {
     stop.get("minutes").and_then(|v| v.as_float().or_else(|| v.as_integer().map(|i| i as f64))).unwrap_or(0.0)
 }
 
-/// A model's minutes: its training's (see the module) and its evaluations'.
-pub fn model_minutes(app: &App, rec: &ModelRecord) -> f64 {
+/// A model's minutes: its training's (see the module), its evaluations' and its race entries'
+/// (`entries`: every model's, from [`crate::races::Races::minutes_by_model`]).
+pub fn model_minutes(app: &App, rec: &ModelRecord, entries: &std::collections::HashMap<String, f64>) -> f64 {
     let training = if rec.job_id.is_empty() {
         0.0
     } else {
@@ -65,16 +66,15 @@ pub fn model_minutes(app: &App, rec: &ModelRecord) -> f64 {
             (e["finished"].as_f64().unwrap_or(now) - start).max(0.0) / 60.0
         })
         .sum();
-    training + evaluations + app.races.minutes_of(&rec.name, now)
+    training + evaluations + entries.get(&rec.name).copied().unwrap_or(0.0)
 }
 
 /// What the models of `owner` use (every model: `None`).
 pub fn usage(app: &App, owner: Option<&str>) -> Usage {
-    app.store
-        .list()
-        .iter()
-        .filter(|r| owner.is_none() || r.owner.as_deref() == owner)
-        .fold(Usage::default(), |u, r| Usage { models: u.models + 1, minutes: u.minutes + model_minutes(app, r) })
+    let entries = app.races.minutes_by_model(protocol::job::now_unix());
+    app.store.list().iter().filter(|r| owner.is_none() || r.owner.as_deref() == owner).fold(Usage::default(), |u, r| {
+        Usage { models: u.models + 1, minutes: u.minutes + model_minutes(app, r, &entries) }
+    })
 }
 
 /// Why `ask` does not fit `quota` given `used`, naming whose quota (`whose`: "your", "the

@@ -82,9 +82,17 @@ pub fn summary(app: &App, race: &Race, now: f64) -> Value {
 
 /// `GET /api/v1/races`: every race, the latest to close first.
 pub async fn list(State(app): State<App>) -> Response {
-    let now = now_unix();
-    let out: Vec<Value> = app.races.list().iter().map(|r| summary(&app, r, now)).collect();
-    axum::Json(out).into_response()
+    off_thread(move || {
+        let now = now_unix();
+        let out: Vec<Value> = app.races.list().iter().map(|r| summary(&app, r, now)).collect();
+        axum::Json(out).into_response()
+    })
+    .await
+}
+
+/// A handler's file work on a blocking thread (the pages poll these).
+async fn off_thread(f: impl FnOnce() -> Response + Send + 'static) -> Response {
+    tokio::task::spawn_blocking(f).await.unwrap_or_else(|e| error(StatusCode::INTERNAL_SERVER_ERROR, &e.to_string()))
 }
 
 /// `POST /api/v1/races` (facilitator): make a race (201).
@@ -176,12 +184,16 @@ pub async fn remove(State(app): State<App>, Extension(p): Extension<Principal>, 
 
 /// `GET /api/v1/races/RACE/leaderboard`: one row per racer, fastest first.
 pub async fn board(State(app): State<App>, Path(name): Path<String>) -> Response {
-    match app.races.get(&name) {
+    off_thread(move || board_now(&app, &name)).await
+}
+
+fn board_now(app: &App, name: &str) -> Response {
+    match app.races.get(name) {
         Ok(r) => {
-            let entries = app.races.entries(&name);
+            let entries = app.races.entries(name);
             let running =
                 entries.iter().filter(|e| matches!(e.status, EntryStatus::Queued | EntryStatus::Running)).count();
-            let rows = board_json(&r, &ranked(&app, &r, &entries, now_unix()));
+            let rows = board_json(&r, &ranked(app, &r, &entries, now_unix()));
             axum::Json(json!({"race": name, "ranking": r.ranking.name(), "evaluating": running, "rows": rows}))
                 .into_response()
         }
@@ -197,13 +209,16 @@ fn may_see_entry(p: &Principal, e: &Entry) -> bool {
 /// `GET /api/v1/races/RACE/entries`: the requester's entries (a facilitator's: every one),
 /// oldest first.
 pub async fn entries(State(app): State<App>, Extension(p): Extension<Principal>, Path(name): Path<String>) -> Response {
-    let race = match app.races.get(&name) {
-        Ok(r) => r,
-        Err(e) => return race_error(e),
-    };
-    let out: Vec<Value> =
-        app.races.entries(&name).iter().filter(|e| may_see_entry(&p, e)).map(|e| e.to_json(&race)).collect();
-    axum::Json(out).into_response()
+    off_thread(move || {
+        let race = match app.races.get(&name) {
+            Ok(r) => r,
+            Err(e) => return race_error(e),
+        };
+        let out: Vec<Value> =
+            app.races.entries(&name).iter().filter(|e| may_see_entry(&p, e)).map(|e| e.to_json(&race)).collect();
+        axum::Json(out).into_response()
+    })
+    .await
 }
 
 fn entry_of(app: &App, p: &Principal, race: &str, id: &str) -> Result<(Race, Entry), Box<Response>> {
@@ -342,6 +357,8 @@ pub async fn enter(
         launched: None,
         resets: 0,
         replay_s: None,
+        started: None,
+        spent_s: 0.0,
     };
     let races = app.races.clone();
     let (r2, e2) = (race.clone(), entry.clone());

@@ -288,7 +288,7 @@ pub fn check(body: &Value, base: Option<&Race>, now: f64, creator: Option<&str>)
         number("max_resets", base.map_or(3.0, |b| f64::from(b.max_resets)), 0.0, 10.0, true, &mut errors) as u32;
     let opens = number("opens", base.map_or(now, |b| b.opens), 0.0, 1e11, false, &mut errors);
     if mode == "live" && given("opens").is_some() {
-        errors.push(problem("opens", "a live race takes entries from when it is made until its event time (closes)"));
+        errors.push(problem("opens", "a live race opens when it is made; closes is its event's time"));
     }
     let closes = match (given("closes"), base) {
         (None, Some(b)) => b.closes,
@@ -431,8 +431,14 @@ pub struct Entry {
     pub policy_version: Option<u64>,
     /// When it was entered.
     pub created: f64,
+    /// When its evaluation began (the latest, after a reset).
+    #[serde(default)]
+    pub started: Option<f64>,
     /// When its evaluation ended.
     pub finished: Option<f64>,
+    /// Seconds of evaluation before the latest (a reset entry's earlier runs).
+    #[serde(default)]
+    pub spent_s: f64,
     /// Where it stands.
     pub status: EntryStatus,
     /// Why it failed.
@@ -606,7 +612,7 @@ impl Races {
 
     /// A live race entry's replay.
     pub fn replay(&self, race: &str, id: &str) -> Option<crate::live::Replay> {
-        let text = std::fs::read_to_string(self.entry_file(race, id, "-replay.json").ok()?).ok()?;
+        let text = std::fs::read_to_string(self.entry_file(race, id, ".replay").ok()?).ok()?;
         serde_json::from_str(&text).ok()
     }
 
@@ -617,7 +623,7 @@ impl Races {
 
     /// Remove an entry with its model and replay.
     pub(crate) fn remove_entry(&self, race: &str, id: &str) -> Result<(), RaceError> {
-        for suffix in [".json", "-replay.json", "-frames.bin"] {
+        for suffix in [".json", ".replay", "-frames.bin"] {
             let f = self.entry_file(race, id, suffix)?;
             if f.exists() {
                 std::fs::remove_file(&f).map_err(io(&f))?;
@@ -693,6 +699,26 @@ impl Races {
         out
     }
 
+    /// Keep what an evaluation found, on the entry as it is now on disk: a facilitator's launch,
+    /// reset or removal while it ran stands (a removed entry's leftovers are removed).
+    pub(crate) fn evaluated(&self, race: &str, e: &Entry) -> Result<(), RaceError> {
+        let _held = self.lock.lock().expect("races");
+        let Some(mut now) = self.entry(race, &e.id) else { return self.remove_entry(race, &e.id) };
+        if now.resets != e.resets {
+            // Reset while it ran: the run that counts is the one the reset started.
+            return Ok(());
+        }
+        now.status = e.status;
+        now.error = e.error.clone();
+        now.laps = e.laps.clone();
+        now.path = e.path.clone();
+        now.policy_version = e.policy_version;
+        now.started = e.started;
+        now.finished = e.finished;
+        now.replay_s = e.replay_s;
+        self.save_entry(race, &now)
+    }
+
     /// One entry.
     pub fn entry(&self, race: &str, id: &str) -> Option<Entry> {
         if crate::store::name_problem(id).is_some() {
@@ -745,14 +771,23 @@ impl Races {
         Ok(())
     }
 
-    /// Minutes spent evaluating the entries of `model` (its owner's quota counts them), at `now`.
-    pub fn minutes_of(&self, model: &str, now: f64) -> f64 {
-        self.list()
-            .iter()
-            .flat_map(|r| self.entries(&r.name))
-            .filter(|e| e.model == model && e.status != EntryStatus::Queued)
-            .map(|e| (e.finished.unwrap_or(now) - e.created).max(0.0) / 60.0)
-            .sum()
+    /// Minutes spent evaluating entries (their owners' quotas count them), by model, at `now`:
+    /// each run from its start to its end (or `now`), a reset entry's earlier runs included.
+    pub fn minutes_by_model(&self, now: f64) -> std::collections::HashMap<String, f64> {
+        let mut out = std::collections::HashMap::new();
+        for e in self.list().iter().flat_map(|r| self.entries(&r.name)) {
+            let run = e.started.map_or(0.0, |s| (e.finished.unwrap_or(now) - s).max(0.0));
+            *out.entry(e.model.clone()).or_insert(0.0) += (e.spent_s + run) / 60.0;
+        }
+        out
+    }
+
+    /// The entry `id` of whichever race has it (entries' ids are the console's, made once).
+    pub fn find_entry(&self, id: &str) -> Option<Entry> {
+        if !id.starts_with("entry-") {
+            return None;
+        }
+        self.list().iter().find_map(|r| self.entry(&r.name, id))
     }
 
     /// Every entry still queued or running (to run again after a restart).
@@ -776,7 +811,9 @@ impl Races {
 /// entry failed with the reason.
 pub fn evaluate(races: &Races, race: &Race, mut entry: Entry) {
     entry.status = EntryStatus::Running;
-    if let Err(e) = races.save_entry(&race.name, &entry) {
+    entry.started = Some(protocol::job::now_unix());
+    entry.finished = None;
+    if let Err(e) = races.evaluated(&race.name, &entry) {
         tracing::error!("{e}");
     }
     let control_hz = sim_agent::SimConfig::default().control_hz;
@@ -806,7 +843,7 @@ pub fn evaluate(races: &Races, race: &Race, mut entry: Entry) {
                 let kept = races.frames_file(&race.name, &entry.id).and_then(|frames| {
                     let replay = crate::live::Replay::keep(&trials, control_hz, &frames)
                         .map_err(|e| RaceError::Io { path: frames.clone(), source: e })?;
-                    let path = races.entry_file(&race.name, &entry.id, "-replay.json")?;
+                    let path = races.entry_file(&race.name, &entry.id, ".replay")?;
                     write_whole(&path, serde_json::to_string(&replay).expect("JSON").as_bytes())?;
                     Ok(replay.duration_s())
                 });
@@ -839,7 +876,7 @@ pub fn evaluate(races: &Races, race: &Race, mut entry: Entry) {
         }
     }
     entry.finished = Some(protocol::job::now_unix());
-    if let Err(e) = races.save_entry(&race.name, &entry) {
+    if let Err(e) = races.evaluated(&race.name, &entry) {
         tracing::error!("{e}");
     }
     // The copy of the model is kept: the leaderboard's models can be driven again.
@@ -926,6 +963,8 @@ mod tests {
             launched: None,
             resets: 0,
             replay_s: None,
+            started: None,
+            spent_s: 0.0,
         }
     }
 
@@ -1035,6 +1074,17 @@ mod tests {
                 errors.iter().any(|e| e.field == field && e.message.contains(says)),
                 "{body}: wanted {field} '{says}', got {errors:?}"
             );
+        }
+        // Each race type with its objects or bots, as the simulator's race table takes them.
+        for (race, kind, count) in [
+            (json!({"race_type": "object_avoidance", "number_of_obstacles": 3}), "object_avoidance", 3),
+            (json!({"race_type": "head_to_bot", "number_of_bot_cars": 2, "bot_car_speed": 0.5}), "head_to_bot", 2),
+        ] {
+            let body = json!({"name": "c", "track": "reinvent_base", "closes": now + 60.0, "race": race});
+            let r = check(&body, None, now, None).unwrap();
+            assert_eq!(r.to_json(now)["race_type"], kind);
+            let n = if kind == "head_to_bot" { r.race.number_of_bot_cars } else { r.race.number_of_obstacles };
+            assert_eq!(n, count);
         }
         // DRoA's defaults: total time over 5 laps, 1 s off-track, 99 submissions.
         let r = check(&json!({"name": "c", "track": "reinvent_base", "closes": now + 60.0}), None, now, None).unwrap();

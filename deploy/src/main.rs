@@ -174,6 +174,9 @@ fn run(cli: Cli) -> Result<()> {
     // Models in, verified on the loader thread; the job followed changes with an assignment.
     let (model_tx, model_rx) = channel::<(Vec<u8>, &'static str)>();
     let following = Arc::new(Mutex::new(cli.job.clone().unwrap_or_default()));
+    // One more at each assignment: a model of the job before it, checked while the car was
+    // reassigned, does not drive.
+    let generation = Arc::new(AtomicU64::new(0));
     let model_subs = Arc::new(Mutex::new(Vec::new()));
     if let Some(job) = &cli.job {
         *model_subs.lock().expect("subscriptions") = follow_job(&session, &car.id, job, &cli.follow, &model_tx)?;
@@ -194,7 +197,7 @@ fn run(cli: Cli) -> Result<()> {
         .wait()
         .map_err(|e| anyhow::anyhow!("{e}"))?;
     {
-        let (session, car_id, following, subs, slot, tx, follow) = (
+        let (session, car_id, following, subs, slot, tx, follow, generation) = (
             session.clone(),
             car.id.clone(),
             following.clone(),
@@ -202,11 +205,13 @@ fn run(cli: Cli) -> Result<()> {
             slot.clone(),
             model_tx.clone(),
             cli.follow.clone(),
+            generation.clone(),
         );
         std::thread::spawn(move || {
             while let Ok(a) = assign_rx.recv() {
                 tracing::info!(car = %car_id, job = %a.job_id, "assigned a job's models: the current model stops driving until the new one is checked");
                 *following.lock().expect("the job followed") = a.job_id.clone();
+                generation.fetch_add(1, Ordering::SeqCst);
                 slot.clear();
                 match follow_job(&session, &car_id, &a.job_id, &follow, &tx) {
                     Ok(s) => *subs.lock().expect("subscriptions") = s,
@@ -220,13 +225,19 @@ fn run(cli: Cli) -> Result<()> {
     }
     drop(model_tx);
     let loader = {
-        let (slot, car, dir, job, follow) =
-            (slot.clone(), car.clone(), cli.model_dir.clone(), following.clone(), cli.follow.clone());
+        let (slot, car, dir, job, follow, generation) = (
+            slot.clone(),
+            car.clone(),
+            cli.model_dir.clone(),
+            following.clone(),
+            cli.follow.clone(),
+            generation.clone(),
+        );
         std::thread::spawn(move || {
             if let Err(e) = deploy::driver::background_thread() {
                 tracing::warn!("{e}; models load at the drive loop's priority");
             }
-            load_models(model_rx, &slot, &trust, &car, dir.as_deref(), &job, &follow)
+            load_models(model_rx, &slot, &trust, &car, dir.as_deref(), (&job, &generation), &follow)
         })
     };
 
@@ -356,10 +367,11 @@ fn load_models(
     trust: &TrustedKeys,
     car: &CarConfig,
     dir: Option<&Path>,
-    job: &Mutex<String>,
+    (job, generation): (&Mutex<String>, &AtomicU64),
     follow: &Follow,
 ) {
     while let Ok((bytes, source)) = rx.recv() {
+        let seen = generation.load(Ordering::SeqCst);
         let job = job.lock().map(|j| j.clone()).unwrap_or_default();
         let u = match protocol::decode::<PolicyUpdate>(&bytes) {
             Ok(u) if u.job_id == job => u,
@@ -385,7 +397,13 @@ fn load_models(
         };
         // An assigned model drives whatever its version; the job's own follow as asked.
         let follow = if source == "assigned" { &Follow::Best } else { follow };
-        if let Offer::Taken(v) = slot.offer(parts, trust, car, source, follow)
+        let offered = slot.offer(parts, trust, car, source, follow);
+        if matches!(offered, Offer::Taken(_)) && generation.load(Ordering::SeqCst) != seen {
+            tracing::info!(job, "dropped a model of the job followed before the assignment");
+            slot.clear();
+            continue;
+        }
+        if let Offer::Taken(v) = offered
             && let Some(dir) = dir
             && let Some(m) = slot.current()
         {
