@@ -88,19 +88,10 @@ pub fn check(body: &Value, id: &str, now: f64) -> Result<Checked, Vec<FieldError
     let crash = number("crash_penalty", defaults.collision_penalty_s, 0.0, 60.0, &mut errors);
     let race = match map.get("race") {
         None | Some(Value::Null) => RaceConfig::default(),
-        Some(v) => {
-            use serde::Deserialize;
-            match toml::Value::try_from(v)
-                .map_err(|e| e.to_string())
-                .and_then(|t| RaceConfig::deserialize(t).map_err(|e| e.to_string()))
-            {
-                Ok(r) => r,
-                Err(e) => {
-                    errors.push(problem("race", e.trim().to_string()));
-                    RaceConfig::default()
-                }
-            }
-        }
+        Some(v) => race_table(v).unwrap_or_else(|e| {
+            errors.push(problem("race", e));
+            RaceConfig::default()
+        }),
     };
     if !errors.is_empty() {
         return Err(errors);
@@ -125,6 +116,15 @@ pub fn check(body: &Value, id: &str, now: f64) -> Result<Checked, Vec<FieldError
         all_frames: false,
     };
     Ok(Checked { record, request })
+}
+
+/// The simulator's race table (`race_type`, objects, bots) from JSON, or why not.
+pub fn race_table(v: &Value) -> Result<RaceConfig, String> {
+    use serde::Deserialize;
+    toml::Value::try_from(v)
+        .map_err(|e| e.to_string())
+        .and_then(|t| RaceConfig::deserialize(t).map_err(|e| e.to_string()))
+        .map_err(|e| e.trim().to_string())
 }
 
 /// The folder of a model's evaluations.

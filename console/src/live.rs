@@ -279,17 +279,9 @@ impl Races {
             .unwrap_or_default()
     }
 
-    fn save_live(&self, race: &str, state: &LiveState) -> Result<(), RaceError> {
+    pub(crate) fn save_live(&self, race: &str, state: &LiveState) -> Result<(), RaceError> {
         let path = self.race_file(race, "live.json")?;
         crate::races::write_whole(&path, serde_json::to_string_pretty(state).expect("JSON").as_bytes())
-    }
-
-    /// Put a new entry at the end of a live race's queue.
-    pub fn queue(&self, race: &str, id: &str) -> Result<(), RaceError> {
-        let _held = self.lock.lock().expect("races");
-        let mut s = self.live(race);
-        s.queue.push(id.to_string());
-        self.save_live(race, &s)
     }
 
     /// Apply a facilitator's action at `now` (`speed`: the replays').

@@ -302,8 +302,7 @@ pub async fn model(State(app): State<App>, Extension(p): Extension<Principal>, P
 
 /// A race as the pages show it.
 fn race_view(app: &App, r: &crate::races::Race, now: f64) -> Value {
-    let entries = app.races.entries(&r.name);
-    let mut v = r.to_json(now);
+    let mut v = crate::race_api::summary(app, r, now);
     v["opens_text"] = json!(when(r.opens));
     v["closes_text"] = json!(when(r.closes));
     v["ranking_title"] = json!(r.ranking.title());
@@ -313,9 +312,6 @@ fn race_view(app: &App, r: &crate::races::Race, now: f64) -> Value {
             format!("Object avoidance ({} objects)", r.race.number_of_obstacles),
         sim_agent::race::RaceType::HeadToBot => format!("Head-to-bot ({} bots)", r.race.number_of_bot_cars),
     });
-    v["entries"] = json!(entries.len());
-    let ranked = crate::race_api::ranked(app, r, &entries, now);
-    v["leader"] = crate::race_api::board_json(r, &ranked).into_iter().next().unwrap_or(Value::Null);
     v
 }
 

@@ -221,19 +221,10 @@ pub fn check(body: &Value, base: Option<&Race>, now: f64, creator: Option<&str>)
     };
     let race = match given("race") {
         None => base.map(|b| b.race.clone()).unwrap_or_default(),
-        Some(v) => {
-            use serde::Deserialize as _;
-            match toml::Value::try_from(v)
-                .map_err(|e| e.to_string())
-                .and_then(|t| RaceConfig::deserialize(t).map_err(|e| e.to_string()))
-            {
-                Ok(r) => r,
-                Err(e) => {
-                    errors.push(problem("race", e.trim().to_string()));
-                    RaceConfig::default()
-                }
-            }
-        }
+        Some(v) => crate::evaluations::race_table(v).unwrap_or_else(|e| {
+            errors.push(problem("race", e));
+            RaceConfig::default()
+        }),
     };
     let ranking = match text("ranking", &mut errors) {
         None => base.map(|b| b.ranking).unwrap_or(Ranking::TotalTime),
@@ -762,11 +753,7 @@ impl Races {
         if race.live() {
             let mut s = self.live(&race.name);
             s.queue.push(entry.id.clone());
-            crate::races::write_whole(
-                &self.race_file(&race.name, "live.json").map_err(Err)?,
-                serde_json::to_string_pretty(&s).expect("JSON").as_bytes(),
-            )
-            .map_err(Err)?;
+            self.save_live(&race.name, &s).map_err(Err)?;
         }
         Ok(())
     }
