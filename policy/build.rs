@@ -5,5 +5,7 @@ fn main() {
     println!("cargo:rerun-if-changed=proto/tensorflow");
     let fds = protox::compile(["tensorflow/core/framework/graph.proto"], ["proto"])
         .expect("TensorFlow's graph.proto compiles");
-    prost_build::Config::new().compile_fds(fds).expect("prost-build generates TensorFlow's messages");
+    // Maps as BTreeMap: a node's attributes are encoded in key order, so the same model is
+    // the same graph bytes in every process.
+    prost_build::Config::new().btree_map(["."]).compile_fds(fds).expect("prost-build generates TensorFlow's messages");
 }

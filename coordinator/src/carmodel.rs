@@ -1,9 +1,12 @@
-//! `export --car` and `import`: Paddock models as DeepRacer's model archive, and DeepRacer's
-//! models (an archive, or a bare `model.pb` with its `model_metadata.json`) as Paddock model
-//! folders. The formats are `policy::carpkg` and `policy::tfgraph`; here are the commands.
+//! `export --car`, `export --virtual` and `import`: Paddock models as DeepRacer's model archive
+//! or as DeepRacer's whole model (DRoA's `virtualmodel-NAME.tar.gz`, deepracer-for-cloud's
+//! folder), and DeepRacer's models (an archive, a bare `model.pb` with its
+//! `model_metadata.json`, or a whole model) as Paddock model folders. The formats are
+//! `policy::carpkg`, `policy::tfgraph` and `coordinator::virtual_model`; here are the commands.
 
-use crate::cli::ImportArgs;
+use crate::cli::{ImportArgs, VirtualArgs};
 use anyhow::{Context, Result, bail};
+use coordinator::virtual_model::{self, Choice, ExportOptions};
 use policy::carpkg::{self, Package};
 use policy::folder;
 use policy::metadata::ModelMetadata;
@@ -53,8 +56,103 @@ fn package_of(args: &ImportArgs) -> Result<Package> {
     Ok(carpkg::read(src)?)
 }
 
+/// `export --virtual FILE` and `--virtual-dir DIR`.
+pub fn export_virtual(model: &Path, archive: Option<&Path>, dir: Option<&Path>, args: &VirtualArgs) -> Result<()> {
+    let t = Instant::now();
+    let opts = ExportOptions {
+        reward_function: args.reward_function.clone(),
+        track: args.track.clone(),
+        clockwise: if args.clockwise {
+            Some(true)
+        } else if args.counter_clockwise {
+            Some(false)
+        } else {
+            None
+        },
+        reversed: args.reversed,
+    };
+    let files = virtual_model::export_files(model, &opts).with_context(|| format!("exporting {}", model.display()))?;
+    let checkpoint =
+        files.keys().find_map(|k| k.strip_prefix("model/")?.strip_suffix(".index")).unwrap_or("").to_string();
+    let total: usize = files.values().map(|b| b.len()).sum();
+    if let Some(out) = archive {
+        let bytes = virtual_model::write_archive(&files, out)?;
+        println!(
+            "{}: DeepRacer's whole model ({} files, {:.1} MB packed), checkpoint {checkpoint}; unpack it and pick the folder on DRoA's Import model page",
+            out.display(),
+            files.len(),
+            bytes as f64 / 1e6
+        );
+    }
+    if let Some(out) = dir {
+        if out.exists() {
+            if !args.force {
+                bail!("{} exists (--force replaces it)", out.display());
+            }
+            std::fs::remove_dir_all(out).with_context(|| format!("removing {}", out.display()))?;
+        }
+        virtual_model::write_folder(&files, out)?;
+        println!(
+            "{}: DeepRacer's whole model ({} files, {:.1} MB), checkpoint {checkpoint}: DRoA's Import model page takes the folder; for deepracer-for-cloud copy it to s3://BUCKET/PREFIX/ and set DR_LOCAL_S3_PRETRAINED_PREFIX=PREFIX",
+            out.display(),
+            files.len(),
+            total as f64 / 1e6
+        );
+    }
+    println!("({:.2} s)", t.elapsed().as_secs_f64());
+    Ok(())
+}
+
+/// `import` of DRoA's or deepracer-for-cloud's whole model.
+fn import_virtual(args: &ImportArgs) -> Result<i32> {
+    let t = Instant::now();
+    let choice: Choice = args.checkpoint.parse().map_err(|e: String| anyhow::anyhow!("--checkpoint: {e}"))?;
+    let imported = virtual_model::read(&args.source, &choice)?;
+    if args.out.exists() {
+        if !args.force {
+            bail!("{} exists (--force replaces it)", args.out.display());
+        }
+        std::fs::remove_dir_all(&args.out).with_context(|| format!("removing {}", args.out.display()))?;
+    }
+    virtual_model::save(&imported, &args.out)?;
+    let f = &imported.folder;
+    let discrete = matches!(f.metadata.action_space, policy::metadata::ActionSpace::Discrete(_));
+    let networks = match f.metadata.training_algorithm {
+        policy::TrainingAlgorithm::ClippedPpo => "policy and value networks",
+        policy::TrainingAlgorithm::Sac => "policy, twin Q and V networks",
+    };
+    println!(
+        "{}: {} {} with {} {} from {}, checkpoint {}: {networks} read ({:.2} s); `clone` it to train on",
+        args.out.display(),
+        f.metadata.training_algorithm.name(),
+        f.metadata.neural_network.name(),
+        f.metadata.action_space.dim(),
+        if discrete { "actions" } else { "continuous outputs" },
+        args.source.display(),
+        imported.checkpoint,
+        t.elapsed().as_secs_f64()
+    );
+    if !imported.unused.is_empty() {
+        println!(
+            "{} variables of the checkpoint belong to no network of the model: {}",
+            imported.unused.len(),
+            imported.unused.join(", ")
+        );
+    }
+    if !imported.missing.is_empty() {
+        println!("not in the model folder: {}", imported.missing.join(", "));
+    }
+    Ok(0)
+}
+
 /// `coordinator import`.
 pub fn import(args: ImportArgs) -> Result<i32> {
+    if virtual_model::is_virtual_model(&args.source) {
+        if args.model_metadata.is_some() {
+            bail!("--model-metadata is for a bare .pb; a DeepRacer model folder carries its own model_metadata.json");
+        }
+        return import_virtual(&args);
+    }
     let t = Instant::now();
     let pkg = package_of(&args)?;
     let origin = args.source.display().to_string();

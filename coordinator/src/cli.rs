@@ -80,9 +80,11 @@ pub enum Command {
     },
     /// Render the car's camera view (160x120) to a PNG; --grid for several worlds side by side.
     Render(RenderArgs),
-    /// Write a model's policy tower for a car or another runtime: `export MODEL_DIR --car
-    /// NAME.tar.gz` (DeepRacer's archive, for a car's console or USB stick), `--onnx FILE`.
-    #[command(group(clap::ArgGroup::new("format").required(true).multiple(true).args(["car", "onnx"])))]
+    /// Write a model for a car, another runtime or DeepRacer: `export MODEL_DIR --car
+    /// NAME.tar.gz` (DeepRacer's archive, for a car's console or USB stick), `--onnx FILE`,
+    /// `--virtual virtualmodel-NAME.tar.gz` or `--virtual-dir DIR` (the whole model, both
+    /// networks, for DeepRacer on AWS's import page and deepracer-for-cloud).
+    #[command(group(clap::ArgGroup::new("format").required(true).multiple(true).args(["car", "onnx", "virtual", "virtual_dir"])))]
     Export {
         /// The model folder.
         model: PathBuf,
@@ -95,6 +97,16 @@ pub enum Command {
         /// and, for discrete actions, `probabilities`).
         #[arg(long)]
         onnx: Option<PathBuf>,
+        /// Write DeepRacer on AWS's model archive here (what its export gives and, unpacked,
+        /// its import page takes): rl_coach's checkpoint of every network, the frozen policy,
+        /// the metadata, reward function, hyperparameters, training parameters and metrics.
+        #[arg(long)]
+        r#virtual: Option<PathBuf>,
+        /// Write the same as a folder (DRoA's import page; deepracer-for-cloud's model prefix).
+        #[arg(long)]
+        virtual_dir: Option<PathBuf>,
+        #[command(flatten)]
+        deepracer: VirtualArgs,
     },
     /// Bring a DeepRacer model into Paddock: its archive (`.tar.gz`, as a car or DeepRacer on
     /// AWS takes it) or a bare `model.pb`, into a model folder that evaluate, drive, deploy,
@@ -976,11 +988,40 @@ pub struct CloneArgs {
     pub hyperparameters: Option<PathBuf>,
 }
 
+/// What `export --virtual` needs besides the model folder.
+#[derive(Args, Clone, Debug, Default)]
+pub struct VirtualArgs {
+    /// The reward function (default: the one the model was imported with, or its run's).
+    #[arg(long)]
+    pub reward_function: Option<PathBuf>,
+    /// DRoA's track id (default: the one the model was imported with or trained on).
+    #[arg(long)]
+    pub track: Option<String>,
+    /// Trained clockwise (default: as imported, else DeepRacer's waypoints' direction).
+    #[arg(long, conflicts_with = "counter_clockwise")]
+    pub clockwise: bool,
+    /// Trained counter-clockwise.
+    #[arg(long)]
+    pub counter_clockwise: bool,
+    /// Trained on the track reversed (`train --reversed`).
+    #[arg(long)]
+    pub reversed: bool,
+    /// Replace `--virtual-dir` if it exists.
+    #[arg(long)]
+    pub force: bool,
+}
+
 /// `coordinator import`.
 #[derive(Args)]
 pub struct ImportArgs {
-    /// DeepRacer's model archive (`.tar.gz` or `.tar`) or a frozen graph (`.pb`).
+    /// DeepRacer's model archive for a car (`.tar.gz` or `.tar`), a frozen graph (`.pb`),
+    /// DRoA's `virtualmodel-NAME.tar.gz` or its folder, or a deepracer-for-cloud model folder
+    /// (its prefix copied from the bucket).
     pub source: PathBuf,
+    /// For a DRoA or deepracer-for-cloud model: which checkpoint (`best` or `last` of
+    /// `deepracer_checkpoints.json`, or a name such as `12_Step-3456.ckpt` or a number).
+    #[arg(long, default_value = "last")]
+    pub checkpoint: String,
     /// The model folder to write.
     #[arg(long)]
     pub out: PathBuf,

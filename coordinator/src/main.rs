@@ -107,7 +107,10 @@ fn main() {
             0
         }),
         cli::Command::Cars(args) => cars::cars(args),
-        cli::Command::Export { model, car, onnx } => (|| -> anyhow::Result<i32> {
+        cli::Command::Export { model, car, onnx, r#virtual, virtual_dir, deepracer } => (|| -> anyhow::Result<i32> {
+            if r#virtual.is_some() || virtual_dir.is_some() {
+                carmodel::export_virtual(&model, r#virtual.as_deref(), virtual_dir.as_deref(), &deepracer)?;
+            }
             if let Some(car) = &car {
                 carmodel::export_car(&model, car)?;
             }

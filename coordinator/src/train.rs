@@ -393,8 +393,9 @@ pub fn clone_cmd(args: CloneArgs) -> Result<i32> {
         hyper.lr = lr;
     }
     // A model imported from DeepRacer's graph has a new value tower: it learns alone first,
-    // unless the user's hyperparameters.json says how long.
-    let imported = f.manifest.training.get("imported").is_some();
+    // unless the user's hyperparameters.json says how long. One imported whole (a DRoA or
+    // deepracer-for-cloud checkpoint) brought its own.
+    let imported = f.manifest.training["imported"]["value_tower"].as_str().is_some_and(|v| v.starts_with("new"));
     let said = args
         .hyperparameters
         .as_ref()
@@ -415,6 +416,12 @@ pub fn clone_cmd(args: CloneArgs) -> Result<i32> {
         ..f.manifest.clone()
     };
     folder::save(&run.model_dir(), &meta, &f.model, &manifest)?;
+    // SAC's critics and an imported model's DeepRacer files go along.
+    let critics = args.model_dir.join(learner::sac::trainer::CRITICS_FILE);
+    if critics.is_file() {
+        std::fs::copy(&critics, run.model_dir().join(learner::sac::trainer::CRITICS_FILE))
+            .with_context(|| format!("copying {}", critics.display()))?;
+    }
     run.write_file("model_metadata.json", meta.to_json().as_bytes())?;
     run.write_file("hyperparameters.json", hyper.to_json().as_bytes())?;
     let cfg =

@@ -8,6 +8,8 @@
 //!   name) and its heads.
 //! - [`folder`]: the model folder (safetensors + `model_metadata.json` + manifest).
 //! - [`tfgraph`]: DeepRacer's frozen TensorFlow graph (`model.pb`), written and read.
+//! - [`tfckpt`]: TensorFlow's checkpoint (tensor bundle), written and read.
+//! - [`coach`]: rl_coach's variable names and shapes for every network, and a model as them.
 //! - [`carpkg`]: DeepRacer's model archive (`agent/model.pb` + `model_metadata.json`).
 //! - [`car`]: `car.toml`, what a physical car can run and how actions become servo ratios.
 //! - [`signature`]: ed25519 signatures over a model's files, and the keys a car trusts.
@@ -20,6 +22,7 @@
 
 pub mod car;
 pub mod carpkg;
+pub mod coach;
 pub mod error;
 pub mod exchange;
 pub mod experience;
@@ -29,6 +32,7 @@ pub mod model;
 pub mod nn;
 pub mod signature;
 pub mod simtrace;
+pub mod tfckpt;
 pub mod tfgraph;
 
 pub use error::FileError;

@@ -167,6 +167,16 @@ pub enum TrainingAlgorithm {
     Sac,
 }
 
+impl TrainingAlgorithm {
+    /// Its name in `model_metadata.json`.
+    pub fn name(self) -> &'static str {
+        match self {
+            TrainingAlgorithm::ClippedPpo => "clipped_ppo",
+            TrainingAlgorithm::Sac => "sac",
+        }
+    }
+}
+
 /// A parsed `model_metadata.json`. Unknown keys are kept so that writing it back loses nothing.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ModelMetadata {

@@ -10,7 +10,7 @@ use protocol::{Actions, decode, encode};
 use std::path::{Path, PathBuf};
 
 /// Every target's name (its folder under `fuzz/corpus/` and its `fuzz/fuzz_targets/` file).
-pub const TARGETS: [&str; 12] = [
+pub const TARGETS: [&str; 13] = [
     "protobuf",
     "cdr",
     "npy",
@@ -23,6 +23,7 @@ pub const TARGETS: [&str; 12] = [
     "tf_graph",
     "model_archive",
     "signature",
+    "tf_checkpoint",
 ];
 
 /// Run `target` on `data`; false for a name that is not a target.
@@ -40,6 +41,7 @@ pub fn run(target: &str, data: &[u8]) -> bool {
         "tf_graph" => tf_graph(data),
         "model_archive" => model_archive(data),
         "signature" => signature(data),
+        "tf_checkpoint" => tf_checkpoint(data),
         _ => return false,
     }
     true
@@ -198,6 +200,33 @@ pub fn model_archive(data: &[u8]) {
     }
 }
 
+/// A TensorFlow checkpoint, as `import` reads a DeepRacer model's: the input is the index's
+/// length (4 bytes, little-endian), the index, then the data file; what decodes is read as
+/// rl_coach's variables of a camera model.
+pub fn tf_checkpoint(data: &[u8]) {
+    let Some(n) = data.get(..4).map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize) else { return };
+    let rest = &data[4..];
+    let (index, values) = rest.split_at(n.min(rest.len()));
+    if let Ok(ckpt) = policy::tfckpt::decode(index, values, "fuzz.index", "fuzz.data") {
+        let _ = policy::coach::from_checkpoint(&ckpt, &small_camera());
+    }
+}
+
+/// A checkpoint's fuzz input ([`tf_checkpoint`]): rl_coach's names of a camera model, every
+/// tensor cut to a few values.
+pub fn small_checkpoint() -> Vec<u8> {
+    let Ok(vars) = policy::coach::variables(&small_camera()) else { return vec![] };
+    let ckpt: policy::tfckpt::Checkpoint = vars
+        .into_iter()
+        .map(|(name, shape)| {
+            let n = shape.iter().product::<usize>().min(3);
+            (name, policy::tfckpt::Tensor::float(vec![n], &vec![0.5; n]))
+        })
+        .collect();
+    let (index, data) = policy::tfckpt::encode(&ckpt);
+    [(index.len() as u32).to_le_bytes().to_vec(), index, data].concat()
+}
+
 /// A model's `signature.json` and its check against a trusted key.
 pub fn signature(data: &[u8]) {
     let Some(t) = text(data) else { return };
@@ -274,6 +303,7 @@ pub fn seeds(target: &str) -> Vec<Vec<u8>> {
             }
             vec![tar.into_inner().unwrap_or_default()]
         }
+        "tf_checkpoint" => vec![small_checkpoint()],
         "signature" => {
             let s = policy::signature::Signer::from_seed([9; 32]);
             vec![serde_json::to_vec(&s.sign(b"weights", "{}", "{}")).unwrap_or_default()]

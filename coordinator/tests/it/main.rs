@@ -13,3 +13,4 @@ mod logs;
 mod model_formats;
 mod netns;
 mod train_cli;
+mod virtual_model;

@@ -153,6 +153,8 @@ pub(super) fn algorithm(
             .map_err(RunFailure::Inputs)?;
         if first_iteration > 0 {
             resume_sac(spec, dir, &mut sac)?;
+        } else {
+            critics_beside(spec, dir, &mut sac);
         }
         if let Some(g) = &spec.gpu {
             sac = sac.with_gpu(g.clone());
@@ -185,6 +187,26 @@ fn resume_sac(spec: &RunSpec, dir: &RunDir, sac: &mut SacTrainer) -> Result<(), 
         Err(e) => tracing::warn!(run = %spec.name, "SAC: the replay memory starts empty: {e}"),
     }
     Ok(())
+}
+
+/// A new SAC run's critics from the model it starts from, when that folder keeps them beside
+/// its weights (a DeepRacer model imported whole, or one `clone` copied): the folder it clones,
+/// else the run's own `model/`.
+fn critics_beside(spec: &RunSpec, dir: &RunDir, sac: &mut SacTrainer) {
+    let from = match &spec.start {
+        Start::New { clone_from } | Start::ResumeOrNew { clone_from } => clone_from.clone(),
+        _ => None,
+    };
+    let candidates = from.into_iter().chain([dir.model_dir()]);
+    for d in candidates.filter(|d| d.join(crate::sac::trainer::CRITICS_FILE).is_file()) {
+        match sac.load_state(&d) {
+            Ok(_) => {
+                tracing::info!(run = %spec.name, from = %d.display(), "SAC: the critics go on from the model's");
+                return;
+            }
+            Err(e) => tracing::warn!(run = %spec.name, "SAC: the critics start afresh: {e}"),
+        }
+    }
 }
 
 /// Take over the team's state the spec carries, when it is newer than the run folder's.

@@ -113,6 +113,8 @@ targets! {
     model_archives_never_panic => "model_archive",
     /// Issue 35: signatures, random or mutated, parse or are refused: never a panic.
     signatures_never_panic => "signature",
+    /// Issue 53: TensorFlow checkpoints, random or mutated, parse or are refused: never a panic.
+    tf_checkpoints_never_panic => "tf_checkpoint",
 }
 
 /// The allocator's limit is real: a request beyond it fails (and the run would abort).
