@@ -70,7 +70,11 @@ pub fn export_virtual(model: &Path, archive: Option<&Path>, dir: Option<&Path>, 
             None
         },
         reversed: args.reversed,
+        drfc: args.deepracer_for_cloud,
     };
+    if let Some(out) = dir.filter(|d| d.exists() && !args.force) {
+        bail!("{} exists (--force replaces it)", out.display());
+    }
     let files = virtual_model::export_files(model, &opts).with_context(|| format!("exporting {}", model.display()))?;
     let checkpoint =
         files.keys().find_map(|k| k.strip_prefix("model/")?.strip_suffix(".index")).unwrap_or("").to_string();
@@ -85,13 +89,7 @@ pub fn export_virtual(model: &Path, archive: Option<&Path>, dir: Option<&Path>, 
         );
     }
     if let Some(out) = dir {
-        if out.exists() {
-            if !args.force {
-                bail!("{} exists (--force replaces it)", out.display());
-            }
-            std::fs::remove_dir_all(out).with_context(|| format!("removing {}", out.display()))?;
-        }
-        virtual_model::write_folder(&files, out)?;
+        virtual_model::write_folder(&files, out, args.force)?;
         println!(
             "{}: DeepRacer's whole model ({} files, {:.1} MB), checkpoint {checkpoint}: DRoA's Import model page takes the folder; for deepracer-for-cloud copy it to s3://BUCKET/PREFIX/ and set DR_LOCAL_S3_PRETRAINED_PREFIX=PREFIX",
             out.display(),
@@ -138,6 +136,9 @@ fn import_virtual(args: &ImportArgs) -> Result<i32> {
             imported.unused.len(),
             imported.unused.join(", ")
         );
+    }
+    for n in &imported.notes {
+        println!("note: {n}");
     }
     if !imported.missing.is_empty() {
         println!("not in the model folder: {}", imported.missing.join(", "));

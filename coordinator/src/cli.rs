@@ -1006,6 +1006,10 @@ pub struct VirtualArgs {
     /// Trained on the track reversed (`train --reversed`).
     #[arg(long)]
     pub reversed: bool,
+    /// For deepracer-for-cloud only: DRoA's own rules (its tracks and their directions, its
+    /// races, LEFT_CAMERA, SAC's one episode between trainings) are not applied.
+    #[arg(long)]
+    pub deepracer_for_cloud: bool,
     /// Replace `--virtual-dir` if it exists.
     #[arg(long)]
     pub force: bool,

@@ -416,11 +416,24 @@ pub fn clone_cmd(args: CloneArgs) -> Result<i32> {
         ..f.manifest.clone()
     };
     folder::save(&run.model_dir(), &meta, &f.model, &manifest)?;
-    // SAC's critics and an imported model's DeepRacer files go along.
+    // SAC's critics go along; so do an imported model's DeepRacer files, into the run folder
+    // (its model/ is rewritten as it trains), for `export --virtual` of what it trains.
     let critics = args.model_dir.join(learner::sac::trainer::CRITICS_FILE);
     if critics.is_file() {
         std::fs::copy(&critics, run.model_dir().join(learner::sac::trainer::CRITICS_FILE))
             .with_context(|| format!("copying {}", critics.display()))?;
+    }
+    let kept = args.model_dir.join(coordinator::virtual_model::KEPT);
+    if kept.is_dir() {
+        let to = args.out.join(coordinator::virtual_model::KEPT);
+        std::fs::create_dir_all(&to).with_context(|| format!("writing {}", to.display()))?;
+        for e in std::fs::read_dir(&kept).with_context(|| format!("reading {}", kept.display()))? {
+            let p = e?.path();
+            if p.is_file() {
+                std::fs::copy(&p, to.join(p.file_name().expect("a file")))
+                    .with_context(|| format!("copying {}", p.display()))?;
+            }
+        }
     }
     run.write_file("model_metadata.json", meta.to_json().as_bytes())?;
     run.write_file("hyperparameters.json", hyper.to_json().as_bytes())?;

@@ -31,6 +31,8 @@ use std::path::{Component, Path, PathBuf};
 pub const KEPT: &str = "deepracer";
 /// SAC's critics beside a model (the learner's file: `learner::sac::trainer::CRITICS_FILE`).
 pub const CRITICS_FILE: &str = learner::sac::trainer::CRITICS_FILE;
+/// The kept file naming the checkpoint a model was imported from (`N_Step-M.ckpt`).
+pub const CHECKPOINT_KEPT: &str = "checkpoint";
 /// The most a model folder may hold, unpacked (DRoA's import page's `MAX_FOLDER_SIZE`).
 pub const MAX_FOLDER_BYTES: u64 = 1 << 30;
 
@@ -214,10 +216,11 @@ fn unpack(archive: &Path, into: &Path) -> Result<()> {
             bail!(bad(format!("over {MAX_FOLDER_BYTES} bytes unpacked (DRoA's import takes up to 1 GiB)")));
         }
         let to = into.join(&name);
+        let entry = |err: std::io::Error| bad(format!("entry {}: {err}", name.display()));
         if let Some(p) = to.parent() {
-            std::fs::create_dir_all(p)?;
+            std::fs::create_dir_all(p).map_err(entry)?;
         }
-        let mut out = std::fs::File::create(&to)?;
+        let mut out = std::fs::File::create(&to).map_err(entry)?;
         std::io::copy(&mut e, &mut out).map_err(|err| bad(format!("entry {}: {err}", name.display())))?;
     }
     Ok(())
@@ -239,6 +242,8 @@ pub struct Imported {
     /// What was not found beside the model (files DRoA or deepracer-for-cloud write that this
     /// one lacks).
     pub missing: Vec<String>,
+    /// What the reading had to decide (a checkpoint taken from `.coach_checkpoint`).
+    pub notes: Vec<String>,
 }
 
 fn read_small(path: &Path) -> Result<Option<Vec<u8>>> {
@@ -256,8 +261,10 @@ fn text(path: &Path, bytes: Vec<u8>) -> Result<String> {
     String::from_utf8(bytes).map_err(|_| anyhow!("{}: not UTF-8 text", path.display()))
 }
 
-/// The checkpoint named by `choice` in `model/`: its name (`N_Step-M.ckpt`).
-fn choose_checkpoint(model: &Path, choice: &Choice) -> Result<String> {
+/// The checkpoint named by `choice` in `model/`: its name (`N_Step-M.ckpt`), and a note when
+/// `best` or `last` had to be taken from `.coach_checkpoint` (no `deepracer_checkpoints.json`
+/// naming it).
+fn choose_checkpoint(model: &Path, choice: &Choice) -> Result<(String, Option<String>)> {
     let json_path = model.join("deepracer_checkpoints.json");
     let from_json = |key: &str| -> Result<Option<String>> {
         let Some(bytes) = read_small(&json_path)? else { return Ok(None) };
@@ -288,18 +295,24 @@ fn choose_checkpoint(model: &Path, choice: &Choice) -> Result<String> {
         v.sort_by_key(|n| (n.split('_').next().and_then(|x| x.parse::<u64>().ok()), n.clone()));
         v
     };
+    let mut note = None;
     let name = match choice {
         Choice::Best | Choice::Last => {
             let key = if *choice == Choice::Best { "best_checkpoint" } else { "last_checkpoint" };
             match from_json(key)? {
                 Some(n) => n,
-                None => coach()?.ok_or_else(|| {
+                None => {
+                    note = Some(format!(
+                        "no deepracer_checkpoints.json naming its {key}: the checkpoint .coach_checkpoint names was taken"
+                    ));
+                    coach()?.ok_or_else(|| {
                     anyhow!(
                         "{}: no deepracer_checkpoints.json naming its {key}, nor a .coach_checkpoint (checkpoints there: {})",
                         model.display(),
                         present().join(", ")
                     )
-                })?,
+                    })?
+                }
             }
         }
         Choice::Named(n) if n.chars().all(|c| c.is_ascii_digit()) => {
@@ -325,7 +338,7 @@ fn choose_checkpoint(model: &Path, choice: &Choice) -> Result<String> {
             if present().is_empty() { "none".to_string() } else { present().join(", ") }
         );
     }
-    Ok(name)
+    Ok((name, note))
 }
 
 /// A Paddock `Hyperparameters` from DeepRacer's file (unknown keys ignored, as DeepRacer
@@ -337,21 +350,31 @@ fn hyperparameters(text: &str, origin: &str) -> Result<Hyperparameters> {
 /// Read DeepRacer's model folder (or DRoA's archive of one) at `source`, choosing its
 /// checkpoint by `choice`.
 pub fn read(source: &Path, choice: &Choice) -> Result<Imported> {
-    let scratch;
-    let root = if source.is_dir() {
-        find_root(source).ok_or_else(|| {
+    if source.is_dir() {
+        let root = find_root(source).ok_or_else(|| {
             anyhow!(
                 "{}: not a DeepRacer model folder: no model/.coach_checkpoint, model/deepracer_checkpoints.json or model/checkpoint in it or in its one sub-folder",
                 source.display()
             )
-        })?
-    } else {
-        scratch = tempfile::tempdir().context("a scratch folder")?;
-        unpack(source, scratch.path())?;
-        find_root(scratch.path()).ok_or_else(|| {
-            anyhow!("{}: not a DeepRacer model archive: no model/.coach_checkpoint or model/deepracer_checkpoints.json in it", source.display())
-        })?
-    };
+        })?;
+        return read_root(&root, source, choice);
+    }
+    let scratch = tempfile::tempdir().context("a scratch folder")?;
+    unpack(source, scratch.path())?;
+    let root = find_root(scratch.path()).ok_or_else(|| {
+        anyhow!(
+            "{}: not a DeepRacer model archive: no model/.coach_checkpoint or model/deepracer_checkpoints.json in it",
+            source.display()
+        )
+    })?;
+    // Errors name the archive and the entry, not the scratch folder it was unpacked into.
+    let unpacked = format!("{}/", scratch.path().display());
+    read_root(&root, source, choice)
+        .map_err(|e| anyhow!("{}", format!("{e:#}").replace(&unpacked, &format!("{}: ", source.display()))))
+}
+
+/// [`read`] of the model folder at `root` (`source` as the user named it).
+fn read_root(root: &Path, source: &Path, choice: &Choice) -> Result<Imported> {
     let shown = |rel: &str| format!("{}: {rel}", source.display());
     let model = root.join("model");
     let mut missing = Vec::new();
@@ -366,11 +389,19 @@ pub fn read(source: &Path, choice: &Choice) -> Result<Imported> {
     };
     let meta_text = text(&root.join(meta_rel), meta_bytes)?;
     let metadata = ModelMetadata::parse(&meta_text, &shown(meta_rel))?;
-    let name = choose_checkpoint(&model, choice)?;
+    let (name, note) = choose_checkpoint(&model, choice)?;
+    if let ActionSpace::Continuous { steering_angle: s, speed: v } = &metadata.action_space {
+        ensure!(
+            s.0 < s.1 && v.0 < v.1,
+            "{}: the action space needs low < high for the steering angle and the speed",
+            shown(meta_rel)
+        );
+    }
     let ckpt = tfckpt::read(&model.join(&name))?;
     let restored =
         coach::from_checkpoint(&ckpt, &metadata).map_err(|e| anyhow!("{}: {e}", shown(&format!("model/{name}"))))?;
     let mut kept = BTreeMap::new();
+    kept.insert(CHECKPOINT_KEPT.to_string(), name.clone().into_bytes());
     for (rel, keep) in [
         ("reward_function.py", "reward_function.py"),
         ("training_params.yaml", "training_params.yaml"),
@@ -398,7 +429,11 @@ pub fn read(source: &Path, choice: &Choice) -> Result<Imported> {
     }
     // The training metrics: DRoA's `metrics/training/*training-*.json`, or
     // deepracer-for-cloud's `metrics/TrainingMetrics.json`.
-    let droa_metrics = std::fs::read_dir(root.join("metrics/training")).ok().and_then(|d| {
+    let training_dir = std::fs::read_dir(root.join("metrics"))
+        .ok()
+        .and_then(|d| d.filter_map(|e| e.ok()).find(|e| e.file_name().eq_ignore_ascii_case("training")))
+        .map(|e| e.path());
+    let droa_metrics = training_dir.and_then(|t| std::fs::read_dir(t).ok()).and_then(|d| {
         let mut v: Vec<PathBuf> = d
             .filter_map(|e| e.ok().map(|e| e.path()))
             .filter(|p| {
@@ -476,6 +511,7 @@ pub fn read(source: &Path, choice: &Choice) -> Result<Imported> {
         checkpoint: name,
         unused: restored.unused,
         missing,
+        notes: note.into_iter().collect(),
     })
 }
 
@@ -592,6 +628,9 @@ pub struct ExportOptions {
     pub clockwise: Option<bool>,
     /// Trained on the reversed track.
     pub reversed: bool,
+    /// For deepracer-for-cloud only: DRoA's own rules (its tracks, their directions, its
+    /// races and sensors) are not applied.
+    pub drfc: bool,
 }
 
 /// DeepRacer's hyperparameters file (its keys only) for `h`.
@@ -641,27 +680,55 @@ fn critics_for(model_dir: &Path, f: &folder::ModelFolder) -> Result<Option<(SacC
     Ok(None)
 }
 
+/// The checkpoint `N_Step-M.ckpt`'s number and steps.
+fn checkpoint_numbers(name: &str) -> Option<(u64, u64)> {
+    let (n, rest) = name.split_once("_Step-")?;
+    Some((n.parse().ok()?, rest.trim_end_matches(".ckpt").parse().ok()?))
+}
+
+/// A YAML value as a boolean: `true`/`false`, or the strings Python's writers leave.
+fn yaml_bool(v: &serde_yaml::Value) -> Option<bool> {
+    v.as_bool().or_else(|| match v.as_str()?.to_ascii_lowercase().as_str() {
+        "true" => Some(true),
+        "false" => Some(false),
+        _ => None,
+    })
+}
+
 /// The files of the folder DRoA's import page takes for the model at `model_dir`: relative
 /// path → bytes.
 pub fn export_files(model_dir: &Path, opts: &ExportOptions) -> Result<BTreeMap<String, Vec<u8>>> {
     let f = folder::load(model_dir)?;
     let meta = &f.metadata;
     let shown = model_dir.display();
-    // What DRoA has no form for.
-    policy::tfgraph::Names::of(meta).map_err(|e| anyhow!("{shown}: DRoA cannot take this model: {e}"))?;
+    let target = if opts.drfc { "deepracer-for-cloud" } else { "DRoA" };
+    // What DeepRacer has no form for.
+    policy::tfgraph::Names::of(meta).map_err(|e| anyhow!("{shown}: {target} cannot take this model: {e}"))?;
+    if !opts.drfc && meta.sensor.contains(&policy::Sensor::LeftCamera) {
+        bail!(
+            "{shown}: DRoA's model validator takes FRONT_FACING_CAMERA, observation or STEREO_CAMERAS (with or without a LiDAR), not LEFT_CAMERA; --deepracer-for-cloud writes it for deepracer-for-cloud"
+        );
+    }
     if let (TrainingAlgorithm::Sac, ActionSpace::Discrete(_)) = (meta.training_algorithm, &meta.action_space) {
-        bail!("{shown}: DRoA refuses SAC with a discrete action space");
+        bail!("{shown}: DeepRacer's SAC takes a continuous action space only");
     }
     if let ActionSpace::Continuous { steering_angle: s, speed: v } = &meta.action_space {
-        ensure!(s.0 < s.1 && v.0 < v.1, "{shown}: DRoA needs low < high for the steering angle and the speed");
+        ensure!(s.0 < s.1 && v.0 < v.1, "{shown}: DeepRacer needs low < high for the steering angle and the speed");
     }
-    let kept_dir = model_dir.join(KEPT);
-    let kept = |n: &str| read_small(&kept_dir.join(n));
+    // DeepRacer's files: the model folder's own (imported whole), else its run's (a clone of
+    // an imported model keeps them in RUN/deepracer/ as it trains on).
     let run = run_of(model_dir);
-    let imported = f.manifest.training.get("imported");
-    // The checkpoint's name: as imported, or the run's iteration and steps.
-    let name = match imported.and_then(|i| i.get("checkpoint")).and_then(|c| c.as_str()) {
-        Some(n) => n.to_string(),
+    let here = |n: &str| read_small(&model_dir.join(KEPT).join(n));
+    let kept = |n: &str| -> Result<Option<Vec<u8>>> {
+        match here(n)? {
+            Some(b) => Ok(Some(b)),
+            None => run.as_ref().map(|r| read_small(&r.join(KEPT).join(n))).transpose().map(Option::flatten),
+        }
+    };
+    // The checkpoint's name: as imported; or, trained here, the run's iteration and steps,
+    // counted on from the checkpoint the run's model was imported from.
+    let name = match here(CHECKPOINT_KEPT)? {
+        Some(b) => String::from_utf8_lossy(&b).trim().to_string(),
         None => {
             let t = &f.manifest.training;
             let it = t
@@ -670,7 +737,10 @@ pub fn export_files(model_dir: &Path, opts: &ExportOptions) -> Result<BTreeMap<S
                 .and_then(|v| v.as_u64())
                 .unwrap_or(f.manifest.policy_version);
             let steps = t.get("env_steps").and_then(|v| v.as_u64()).unwrap_or(0);
-            format!("{it}_Step-{steps}.ckpt")
+            let (n0, m0) = kept(CHECKPOINT_KEPT)?
+                .and_then(|b| checkpoint_numbers(String::from_utf8_lossy(&b).trim()))
+                .unwrap_or((0, 0));
+            format!("{}_Step-{}.ckpt", n0 + it, m0 + steps)
         }
     };
     let number = name.split('_').next().unwrap_or("0").to_string();
@@ -682,31 +752,35 @@ pub fn export_files(model_dir: &Path, opts: &ExportOptions) -> Result<BTreeMap<S
             None => match run.as_ref().map(|r| read_small(&r.join("reward_function.py"))).transpose()?.flatten() {
                 Some(b) => b,
                 None => bail!(
-                    "{shown}: DRoA's import needs reward_function.py and neither the model folder nor its run keeps one: pass --reward-function FILE"
+                    "{shown}: {target}'s import needs reward_function.py and neither the model folder nor its run keeps one: pass --reward-function FILE"
                 ),
             },
         },
     };
-    // Hyperparameters.
-    let hyper_json = match kept("hyperparameters.json")? {
+    // Hyperparameters: as imported, else those it was trained with.
+    let hyper_json = match here("hyperparameters.json")? {
         Some(b) => b,
         None => {
             let h = match f.manifest.training.get("hyperparameters") {
                 Some(v) => {
                     hyperparameters(&v.to_string(), &format!("{shown}/manifest.json: training.hyperparameters"))?
                 }
-                None => {
-                    match run.as_ref().map(|r| read_small(&r.join("hyperparameters.json"))).transpose()?.flatten() {
-                        Some(b) => hyperparameters(&String::from_utf8_lossy(&b), "run's hyperparameters.json")?,
+                None => match run
+                    .as_ref()
+                    .map(|r| (r.join("hyperparameters.json"), read_small(&r.join("hyperparameters.json"))))
+                {
+                    Some((p, b)) => match b? {
+                        Some(b) => hyperparameters(&String::from_utf8_lossy(&b), &p.display().to_string())?,
                         None => Hyperparameters::default(),
-                    }
-                }
+                    },
+                    None => Hyperparameters::default(),
+                },
             };
             deepracer_hyperparameters(&h).into_bytes()
         }
     };
     let h = hyperparameters(&String::from_utf8_lossy(&hyper_json), "ip/hyperparameters.json")?;
-    if meta.training_algorithm == TrainingAlgorithm::Sac && h.num_episodes_between_training != 1 {
+    if !opts.drfc && meta.training_algorithm == TrainingAlgorithm::Sac && h.num_episodes_between_training != 1 {
         bail!(
             "{shown}: DRoA takes SAC models with num_episodes_between_training 1; this one's is {}",
             h.num_episodes_between_training
@@ -714,7 +788,8 @@ pub fn export_files(model_dir: &Path, opts: &ExportOptions) -> Result<BTreeMap<S
     }
     // The track, its direction and the race.
     let from_yaml: BTreeMap<String, serde_yaml::Value> = match kept("training_params.yaml")? {
-        Some(b) => serde_yaml::from_slice(&b).map_err(|e| anyhow!("{shown}/{KEPT}/training_params.yaml: {e}"))?,
+        Some(b) => serde_yaml::from_slice(&b)
+            .map_err(|e| anyhow!("{shown}: training_params.yaml kept from its import: {e}"))?,
         None => BTreeMap::new(),
     };
     let track = match (&opts.track, from_yaml.get("WORLD_NAME").and_then(|v| v.as_str())) {
@@ -729,45 +804,45 @@ pub fn export_files(model_dir: &Path, opts: &ExportOptions) -> Result<BTreeMap<S
             .map(str::to_string)
             .ok_or_else(|| anyhow!("{shown}: the model does not say which track it was trained on: pass --track ID"))?,
     };
-    let (track, suffix_cw) = match track.strip_suffix("_cw") {
+    let (bare, suffix_cw) = match track.strip_suffix("_cw") {
         Some(t) => (t.to_string(), Some(true)),
         None => match track.strip_suffix("_ccw") {
             Some(t) => (t.to_string(), Some(false)),
-            None => (track, None),
+            None => (track.clone(), None),
         },
     };
-    let default_cw = DROA_TRACKS.iter().find(|(id, _)| *id == track).is_some_and(|(_, d)| *d == "cw");
+    let default_cw = DROA_TRACKS.iter().find(|(id, _)| *id == bare).is_some_and(|(_, d)| *d == "cw");
     let clockwise = opts
         .clockwise
         .or(suffix_cw)
-        .or_else(|| from_yaml.get("TRACK_DIRECTION_CLOCKWISE").and_then(|v| v.as_bool()))
+        .or_else(|| from_yaml.get("TRACK_DIRECTION_CLOCKWISE").and_then(yaml_bool))
         .unwrap_or(default_cw != opts.reversed);
-    droa_direction_ok(&track, clockwise)
-        .map_err(|e| anyhow!("{shown}: {e}; pass --track ID (and --clockwise/--counter-clockwise) for one DRoA has"))?;
     let race = from_yaml.get("RACE_TYPE").and_then(|v| v.as_str()).unwrap_or("TIME_TRIAL").to_string();
-    if race == "HEAD_TO_BOT" || race == "HEAD_TO_MODEL" {
-        bail!("{shown}: DRoA trains time trials and object avoidance; it has no {race} race to import this model into");
-    }
-    let training_params = if from_yaml.is_empty() || opts.track.is_some() || opts.clockwise.is_some() {
-        let mut y = BTreeMap::new();
-        for (k, v) in &from_yaml {
-            y.insert(k.clone(), v.clone());
+    if !opts.drfc {
+        droa_direction_ok(&bare, clockwise).map_err(|e| {
+            anyhow!("{shown}: {e}; pass --track ID (and --clockwise or --counter-clockwise) for one DRoA has, or --deepracer-for-cloud")
+        })?;
+        if race == "HEAD_TO_BOT" || race == "HEAD_TO_MODEL" {
+            bail!(
+                "{shown}: DRoA trains time trials and object avoidance; it has no {race} race to import this model into (--deepracer-for-cloud writes it for deepracer-for-cloud)"
+            );
         }
-        y.insert("WORLD_NAME".into(), serde_yaml::Value::String(track.clone()));
-        y.insert("TRACK_DIRECTION_CLOCKWISE".into(), serde_yaml::Value::Bool(clockwise));
-        y.entry("RACE_TYPE".into()).or_insert(serde_yaml::Value::String(race.clone()));
-        y.entry("JOB_TYPE".into()).or_insert(serde_yaml::Value::String("TRAINING".into()));
-        y.entry("BODY_SHELL_TYPE".into()).or_insert(serde_yaml::Value::String("deepracer".into()));
-        y.entry("CAR_COLOR".into()).or_insert(serde_yaml::Value::String("Black".into()));
-        serde_yaml::to_string(&y)?.into_bytes()
-    } else {
-        kept("training_params.yaml")?.expect("read above")
-    };
+    }
+    // DRoA's track id without a direction and the direction as a boolean; for
+    // deepracer-for-cloud the world as it names it.
+    let mut y = from_yaml.clone();
+    y.insert("WORLD_NAME".into(), serde_yaml::Value::String(if opts.drfc { track.clone() } else { bare.clone() }));
+    y.insert("TRACK_DIRECTION_CLOCKWISE".into(), serde_yaml::Value::Bool(clockwise));
+    y.insert("RACE_TYPE".into(), serde_yaml::Value::String(race.clone()));
+    y.entry("JOB_TYPE".into()).or_insert(serde_yaml::Value::String("TRAINING".into()));
+    y.entry("BODY_SHELL_TYPE".into()).or_insert(serde_yaml::Value::String("deepracer".into()));
+    y.entry("CAR_COLOR".into()).or_insert(serde_yaml::Value::String("Black".into()));
+    let training_params = serde_yaml::to_string(&y)?.into_bytes();
     // The checkpoint and the frozen policy.
     let critics = match meta.training_algorithm {
         TrainingAlgorithm::Sac => Some(critics_for(model_dir, &f)?.ok_or_else(|| {
             anyhow!(
-                "{shown}: DRoA's checkpoint of a SAC model holds its Q networks, and no sac.safetensors is beside this model or in its run's checkpoint of the same weights: export one of RUN/checkpoints/"
+                "{shown}: DeepRacer's checkpoint of a SAC model holds its Q networks, and no sac.safetensors is beside this model or in its run's checkpoint of the same weights: export one of RUN/checkpoints/"
             )
         })?),
         TrainingAlgorithm::ClippedPpo => None,
@@ -776,21 +851,34 @@ pub fn export_files(model_dir: &Path, opts: &ExportOptions) -> Result<BTreeMap<S
         coach::to_checkpoint(meta, &f.model, critics.as_ref().map(|c| &c.0)).map_err(|e| anyhow!("{shown}: {e}"))?;
     let (index, data) = tfckpt::encode(&ckpt);
     let graph = policy::tfgraph::write(&f.model, meta).map_err(|e| anyhow!("{shown}: {e}"))?;
-    let checkpoints = match kept("deepracer_checkpoints.json")? {
-        Some(b) => b,
-        None => {
-            let t = &f.manifest.training;
-            let rec = serde_json::json!({
-                "name": name,
-                "avg_eval_metric": t.get("best_progress").or_else(|| t.get("avg_eval_metric")).cloned().unwrap_or(serde_json::json!(0.0)),
-                "time_stamp": t.get("seconds").cloned().unwrap_or(serde_json::json!(0.0)),
-            });
-            serde_json::to_vec_pretty(&serde_json::json!({"best_checkpoint": rec, "last_checkpoint": rec}))?
-        }
-    };
-    let metrics = match kept("training_metrics.json")? {
+    // deepracer_checkpoints.json names the one checkpoint written as best and last (as
+    // deepracer-for-cloud's upload does), with its figures when the kept file has them.
+    let kept_record = here("deepracer_checkpoints.json")?
+        .and_then(|b| serde_json::from_slice::<serde_json::Value>(&b).ok())
+        .and_then(|v| {
+            ["last_checkpoint", "best_checkpoint"]
+                .iter()
+                .find_map(|k| v.get(*k).filter(|r| r["name"] == name.as_str()).cloned())
+        });
+    let record = kept_record.unwrap_or_else(|| {
+        let t = &f.manifest.training;
+        serde_json::json!({
+            "name": name,
+            "avg_eval_metric": t.get("best_progress").or_else(|| t.get("avg_eval_metric")).cloned().unwrap_or(serde_json::json!(0.0)),
+            "time_stamp": t.get("seconds").cloned().unwrap_or(serde_json::json!(0.0)),
+        })
+    });
+    let checkpoints =
+        serde_json::to_vec_pretty(&serde_json::json!({"best_checkpoint": record, "last_checkpoint": record}))?;
+    // The training metrics: the run's own when it trained here, else as imported.
+    let metrics = match here("training_metrics.json")? {
         Some(b) => Some(b),
-        None => run.as_ref().map(|r| read_small(&r.join("metrics/TrainingMetrics.json"))).transpose()?.flatten(),
+        None => {
+            match run.as_ref().map(|r| read_small(&r.join("metrics/TrainingMetrics.json"))).transpose()?.flatten() {
+                Some(b) => Some(b),
+                None => kept("training_metrics.json")?,
+            }
+        }
     };
     let meta_json = meta.to_json().into_bytes();
     let mut files = BTreeMap::new();
@@ -830,8 +918,12 @@ pub fn write_archive(files: &BTreeMap<String, Vec<u8>>, out: &Path) -> Result<u6
     Ok(bytes.len() as u64)
 }
 
-/// Write `files` as a folder at `out` (whole or not at all).
-pub fn write_folder(files: &BTreeMap<String, Vec<u8>>, out: &Path) -> Result<()> {
+/// Write `files` as a folder at `out` (whole or not at all); an existing `out` is replaced
+/// once the new one is written, when `replace`.
+pub fn write_folder(files: &BTreeMap<String, Vec<u8>>, out: &Path, replace: bool) -> Result<()> {
+    if out.exists() && !replace {
+        bail!("{} exists (--force replaces it)", out.display());
+    }
     let parent = out.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
     let name = out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "model".into());
     let staging = parent.join(format!(".{name}.exporting-{}", std::process::id()));
@@ -847,6 +939,9 @@ pub fn write_folder(files: &BTreeMap<String, Vec<u8>>, out: &Path) -> Result<()>
     if let Err(e) = written {
         let _ = std::fs::remove_dir_all(&staging);
         return Err(e);
+    }
+    if out.exists() {
+        std::fs::remove_dir_all(out).with_context(|| format!("replacing {}", out.display()))?;
     }
     std::fs::rename(&staging, out).with_context(|| format!("writing {}", out.display()))?;
     Ok(())
@@ -882,15 +977,18 @@ mod tests {
             std::fs::write(m.join(format!("{n}.index")), b"x").unwrap();
         }
         std::fs::write(m.join(".coach_checkpoint"), "12_Step-1200.ckpt").unwrap();
-        assert_eq!(choose_checkpoint(m, &Choice::Last).unwrap(), "12_Step-1200.ckpt");
+        // Without deepracer_checkpoints.json, .coach_checkpoint's, and a note saying so.
+        let (name, note) = choose_checkpoint(m, &Choice::Last).unwrap();
+        assert_eq!(name, "12_Step-1200.ckpt");
+        assert!(note.is_some_and(|n| n.contains(".coach_checkpoint")));
         std::fs::write(
             m.join("deepracer_checkpoints.json"),
             r#"{"best_checkpoint": {"name": "7_Step-700.ckpt"}, "last_checkpoint": {"name": "12_Step-1200.ckpt"}}"#,
         )
         .unwrap();
-        assert_eq!(choose_checkpoint(m, &Choice::Best).unwrap(), "7_Step-700.ckpt");
-        assert_eq!(choose_checkpoint(m, &Choice::Named("3".into())).unwrap(), "3_Step-300.ckpt");
-        assert_eq!(choose_checkpoint(m, &Choice::Named("3_Step-300".into())).unwrap(), "3_Step-300.ckpt");
+        assert_eq!(choose_checkpoint(m, &Choice::Best).unwrap(), ("7_Step-700.ckpt".to_string(), None));
+        assert_eq!(choose_checkpoint(m, &Choice::Named("3".into())).unwrap().0, "3_Step-300.ckpt");
+        assert_eq!(choose_checkpoint(m, &Choice::Named("3_Step-300".into())).unwrap().0, "3_Step-300.ckpt");
         let e = choose_checkpoint(m, &Choice::Named("9".into())).unwrap_err().to_string();
         assert!(
             e.contains("no checkpoint number 9") && e.contains("3_Step-300.ckpt, 7_Step-700.ckpt, 12_Step-1200.ckpt"),

@@ -47,6 +47,11 @@ pub const MAX_DATA_BYTES: u64 = 4 << 30;
 pub const MAX_TENSORS: usize = 100_000;
 /// The most dimensions a tensor may have.
 const MAX_DIMS: usize = 16;
+/// The longest key (a tensor's name) read.
+const MAX_KEY: usize = 1 << 16;
+/// The most bytes of keys and values a table's entries may add up to, rebuilt (each entry
+/// repeats the prefix it shares with the one before).
+const MAX_ENTRY_BYTES: usize = 256 << 20;
 
 /// `BundleHeaderProto` (`core/protobuf/tensor_bundle.proto`).
 #[derive(Clone, PartialEq, Message)]
@@ -447,7 +452,7 @@ fn block<'a>(
 /// A block's entries: (key, value).
 type Entries = Vec<(Vec<u8>, Vec<u8>)>;
 
-fn entries(b: &[u8], what: &str) -> Result<Entries, String> {
+fn entries(b: &[u8], what: &str, budget: &mut usize) -> Result<Entries, String> {
     if b.len() < 4 {
         return Err(format!("{what}: block of {} bytes has no restart count", b.len()));
     }
@@ -482,6 +487,12 @@ fn entries(b: &[u8], what: &str) -> Result<Entries, String> {
         if shared > key.len() {
             return Err(format!("{what}: entry at {at} shares {shared} bytes of a {}-byte key", key.len()));
         }
+        if shared + non_shared > MAX_KEY {
+            return Err(format!("{what}: entry at {at}: a key of {} bytes (over {MAX_KEY})", shared + non_shared));
+        }
+        *budget = budget
+            .checked_sub(shared + non_shared + value_len)
+            .ok_or_else(|| format!("{what}: entries over {MAX_ENTRY_BYTES} bytes of keys and values"))?;
         key.truncate(shared);
         key.extend_from_slice(c.take(non_shared, what)?);
         let value = c.take(value_len, what)?.to_vec();
@@ -523,7 +534,8 @@ pub fn decode(index: &[u8], data: &[u8], index_name: &str, data_name: &str) -> R
     // The metaindex is checked (TensorFlow reads nothing from it).
     block(index, meta, limit, "metaindex block").map_err(&bad)?;
     let ib = block(index, ih, limit, "index block").map_err(&bad)?;
-    let handles = entries(&ib, "index block").map_err(&bad)?;
+    let mut budget = MAX_ENTRY_BYTES;
+    let handles = entries(&ib, "index block", &mut budget).map_err(&bad)?;
     let mut seen: Vec<(u64, u64)> = Vec::new();
     let mut all: Entries = Vec::new();
     for (sep, v) in &handles {
@@ -548,7 +560,7 @@ pub fn decode(index: &[u8], data: &[u8], index_name: &str, data_name: &str) -> R
         }
         seen.push(h);
         let b = block(index, h, limit, "data block").map_err(&bad)?;
-        let es = entries(&b, "data block").map_err(&bad)?;
+        let es = entries(&b, "data block", &mut budget).map_err(&bad)?;
         if let (Some((last, _)), Some((first, _))) = (all.last(), es.first())
             && last >= first
         {
@@ -585,6 +597,8 @@ pub fn decode(index: &[u8], data: &[u8], index_name: &str, data_name: &str) -> R
         return Err(bad(format!("bundle version {v:?}: this reader is TensorFlow's version 1 consumer")));
     }
     let mut out = Checkpoint::new();
+    // The tensors' bytes, all told, fit the data file: no two share a range.
+    let mut left = data.len() as u64;
     for (key, value) in it {
         let name = String::from_utf8(key).map_err(|_| bad("a tensor name is not UTF-8".into()))?;
         let e = BundleEntry::decode(value.as_slice()).map_err(|err| bad(format!("tensor {name}: entry: {err}")))?;
@@ -620,6 +634,12 @@ pub fn decode(index: &[u8], data: &[u8], index_name: &str, data_name: &str) -> R
                 return Err(bad(format!("tensor {name}: {size} bytes for shape {shape:?} of dtype {}", e.dtype)));
             }
         }
+        left = left.checked_sub(size as u64).ok_or_else(|| {
+            FileError::invalid(
+                data_name,
+                format!("tensor {name}: the tensors' ranges overlap (more bytes than the file's {})", data.len()),
+            )
+        })?;
         let bytes = &data[off as usize..(off + size) as usize];
         if mask(crc32c::crc32c(bytes)) != e.crc32c {
             return Err(FileError::invalid(data_name, format!("tensor {name}: checksum mismatch (corrupt)")));
@@ -741,6 +761,41 @@ mod tests {
         looped.extend_from_slice(&footer);
         let e = decode(&looped, &data, "x.index", "x.data").unwrap_err().to_string();
         assert!(e.contains("runs into the metaindex") || e.contains("overlaps"), "{e}");
+    }
+
+    /// Issue 53: entries that share one long key many times over, and tensors that share one
+    /// range of the data file, are refused before they cost memory.
+    #[test]
+    fn amplifying_checkpoints_are_refused() {
+        let mut t = Table { out: vec![], data: Block::new(1 << 30), index: Block::new(1), last: vec![], pending: None };
+        let long = vec![b'a'; 60_000];
+        t.add(b"", b"");
+        for i in 0..6000u32 {
+            let mut k = long.clone();
+            k.extend_from_slice(&i.to_be_bytes());
+            t.add(&k, b"");
+        }
+        let e = decode(&t.finish(), b"", "x.index", "x.data").unwrap_err().to_string();
+        assert!(e.contains("entries over"), "{e}");
+        // Two entries over the same 16 bytes.
+        let data = [0u8; 16];
+        let mut t = Table { out: vec![], data: Block::new(16), index: Block::new(1), last: vec![], pending: None };
+        t.add(b"", &BundleHeader { num_shards: 1, ..Default::default() }.encode_to_vec());
+        for name in [b"a", b"b"] {
+            let e = BundleEntry {
+                dtype: DT_FLOAT,
+                shape: Some(crate::tfgraph::pb::TensorShapeProto {
+                    dim: vec![crate::tfgraph::pb::tensor_shape_proto::Dim { size: 4, name: String::new() }],
+                    unknown_rank: false,
+                }),
+                size: 16,
+                crc32c: mask(crc32c::crc32c(&data)),
+                ..Default::default()
+            };
+            t.add(name, &e.encode_to_vec());
+        }
+        let e = decode(&t.finish(), &data, "x.index", "x.data").unwrap_err().to_string();
+        assert!(e.starts_with("x.data: tensor b: the tensors' ranges overlap"), "{e}");
     }
 
     /// Issue 53: written files are both there or neither, and read back.

@@ -358,6 +358,18 @@ fn checkpoints_tensorflow_writes_import_with_its_outputs() {
     let said = String::from_utf8_lossy(&out.stdout).to_string();
     assert!(said.contains("7_Step-2100.ckpt.meta") && said.contains("7_Step-2100.ckpt.data-00000-of-00001"), "{said}");
     for (name, meta) in cases() {
+        // Paddock's writer gives TensorFlow's files byte for byte: the same table, blocks,
+        // restarts, separators, checksums and footer, and the data in the same order.
+        let prefix = d.join(format!("{name}-drfc/model/7_Step-2100.ckpt"));
+        let (index, data) = policy::tfckpt::encode(&policy::tfckpt::read(&prefix).unwrap());
+        assert!(
+            index == std::fs::read(policy::tfckpt::index_path(&prefix)).unwrap(),
+            "{name}: the index differs from TensorFlow's"
+        );
+        assert!(
+            data == std::fs::read(policy::tfckpt::data_path(&prefix)).unwrap(),
+            "{name}: the data differs from TensorFlow's"
+        );
         let said = ok(&["import", &format!("{name}-drfc"), "--out", &format!("{name}-in")], d);
         assert!(said.contains("checkpoint 7_Step-2100.ckpt"), "{said}");
         let f = policy::folder::load(&d.join(format!("{name}-in"))).unwrap();
@@ -474,6 +486,14 @@ fn a_clone_of_a_whole_import_trains_on_with_its_value_network() {
     let fresh = first(&run.join("metrics.jsonl"))["explained_variance"].as_f64().unwrap();
     let carried = first(&d.join("cloned/metrics.jsonl"))["explained_variance"].as_f64().unwrap();
     println!("explained variance of the first update: the clone's {carried}, a fresh value network's {fresh}");
+    // What the clone trained goes back out with the files it was imported with (the reward
+    // function too) and the checkpoints numbered on from the imported one.
+    let imported = std::fs::read_to_string(d.join("whole/deepracer/checkpoint")).unwrap();
+    ok(&["export", "cloned/model", "--virtual-dir", "again"], d);
+    assert_eq!(droa_import_problem(&d.join("again"), "again"), None);
+    let again = std::fs::read_to_string(d.join("again/model/.coach_checkpoint")).unwrap();
+    let number = |n: &str| n.split('_').next().unwrap().parse::<u64>().unwrap();
+    assert!(number(&again) > number(&imported), "{again} after {imported}");
     assert!(
         carried > 0.15 && carried > fresh + 0.1,
         "explained variance: the clone's first update {carried}, a fresh value network's {fresh}"
@@ -510,47 +530,54 @@ fn export_import_export_is_the_same_bytes() {
 /// (`ImportModel.tsx validateFiles`, `importModel.ts`, `validation.ts validateTrackConfig`,
 /// the model validator's files), written here from DRoA's code: the first problem, if any.
 fn droa_import_problem(root: &Path, model_name: &str) -> Option<String> {
+    droa_import_check(root, model_name).err()
+}
+
+fn droa_import_check(root: &Path, model_name: &str) -> Result<(), String> {
     fn walk(d: &Path, out: &mut Vec<PathBuf>) {
         for e in std::fs::read_dir(d).unwrap() {
             let p = e.unwrap().path();
             if p.is_dir() { walk(&p, out) } else { out.push(p) }
         }
     }
+    let json = |rel: &str| -> Result<serde_json::Value, String> {
+        let b = std::fs::read(root.join(rel)).map_err(|e| format!("{rel}: {e}"))?;
+        serde_json::from_slice(&b).map_err(|e| format!("{rel}: {e}"))
+    };
     let mut files = Vec::new();
     walk(root, &mut files);
     let size: u64 = files.iter().map(|f| f.metadata().unwrap().len()).sum();
     if size > 1 << 30 {
-        return Some("over MAX_FOLDER_SIZE".into());
+        return Err("over MAX_FOLDER_SIZE".into());
     }
     for required in ["model_metadata.json", "reward_function.py", "training_params.yaml", "hyperparameters.json"] {
         if !files.iter().any(|f| f.file_name().unwrap() == required) {
-            return Some(format!("missing {required}"));
+            return Err(format!("missing {required}"));
         }
     }
     if model_name.is_empty()
         || model_name.len() > 64
         || !model_name.chars().all(|c| c.is_ascii_alphanumeric() || c == '-')
     {
-        return Some(format!("model name {model_name}"));
+        return Err(format!("model name {model_name}"));
     }
-    let meta: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(root.join("model_metadata.json")).ok()?).ok()?;
+    let meta = json("model_metadata.json")?;
     let algo = meta["training_algorithm"].as_str().unwrap_or("clipped_ppo");
     let space = &meta["action_space"];
     if algo == "sac" && space.is_array() {
-        return Some("SAC with a discrete action space".into());
+        return Err("SAC with a discrete action space".into());
     }
     if space.is_object() {
         for k in ["speed", "steering_angle"] {
-            if space[k]["low"].as_f64()? >= space[k]["high"].as_f64()? {
-                return Some(format!("{k}: low >= high"));
+            let (lo, hi) = (space[k]["low"].as_f64(), space[k]["high"].as_f64());
+            if !matches!((lo, hi), (Some(l), Some(h)) if l < h) {
+                return Err(format!("{k}: low < high expected"));
             }
         }
+    } else if !space.is_array() {
+        return Err("action_space is neither a list nor a range".into());
     }
-    let Ok(h) = std::fs::read(root.join("ip/hyperparameters.json")) else {
-        return Some("no ip/hyperparameters.json".into());
-    };
-    let h: serde_json::Value = serde_json::from_slice(&h).ok()?;
+    let h = json("ip/hyperparameters.json")?;
     for k in [
         "batch_size",
         "num_epochs",
@@ -566,39 +593,72 @@ fn droa_import_problem(root: &Path, model_name: &str) -> Option<String> {
         "sac_alpha",
     ] {
         if h.get(k).is_none() {
-            return Some(format!("hyperparameters: no {k}"));
+            return Err(format!("hyperparameters: no {k}"));
         }
     }
     if algo == "sac" && h["num_episodes_between_training"] != 1 {
-        return Some("SAC needs num_episodes_between_training 1".into());
+        return Err("SAC needs num_episodes_between_training 1".into());
     }
-    let y: serde_yaml::Value = serde_yaml::from_slice(&std::fs::read(root.join("training_params.yaml")).ok()?).ok()?;
-    let world = y["WORLD_NAME"].as_str()?;
+    let y: serde_yaml::Value =
+        serde_yaml::from_slice(&std::fs::read(root.join("training_params.yaml")).map_err(|e| e.to_string())?)
+            .map_err(|e| format!("training_params.yaml: {e}"))?;
+    let world = y["WORLD_NAME"].as_str().ok_or("training_params.yaml: no WORLD_NAME")?;
     if world.ends_with("_cw") || world.ends_with("_ccw") {
-        return Some(format!("WORLD_NAME {world} carries a direction"));
+        return Err(format!("WORLD_NAME {world} carries a direction"));
     }
-    let clockwise = y["TRACK_DIRECTION_CLOCKWISE"].as_bool()?;
-    if let Err(e) = virtual_model::droa_direction_ok(world, clockwise) {
-        return Some(e);
+    let clockwise = y["TRACK_DIRECTION_CLOCKWISE"]
+        .as_bool()
+        .ok_or("training_params.yaml: TRACK_DIRECTION_CLOCKWISE is not a boolean")?;
+    virtual_model::droa_direction_ok(world, clockwise)?;
+    for (k, allowed) in [
+        ("BODY_SHELL_TYPE", &["deepracer", "f1_2021", "f1_car"][..]),
+        ("CAR_COLOR", &["Black", "Grey", "Blue", "Red", "Orange", "White", "Purple"][..]),
+    ] {
+        if let Some(v) = y.get(k)
+            && !allowed.contains(&v.as_str().unwrap_or(""))
+        {
+            return Err(format!("{k} {v:?}"));
+        }
     }
-    // The model validator: the metadata in model/ with its sensor and version, the checkpoint
-    // .coach_checkpoint names (and deepracer_checkpoints.json's, when there) present.
-    let m: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(root.join("model/model_metadata.json")).ok()?).ok()?;
-    if m.get("sensor").is_none() || m.get("version").is_none() {
-        return Some("model/model_metadata.json without sensor or version".into());
+    // The model validator: the metadata in model/ with its sensor and version, a sensor it
+    // validates, the checkpoint .coach_checkpoint names (and deepracer_checkpoints.json's).
+    let m = json("model/model_metadata.json")?;
+    let sensors: Vec<&str> = m["sensor"]
+        .as_array()
+        .ok_or("model/model_metadata.json: no sensor")?
+        .iter()
+        .filter_map(|s| s.as_str())
+        .collect();
+    if m.get("version").is_none() {
+        return Err("model/model_metadata.json: no version".into());
     }
-    let name = std::fs::read_to_string(root.join("model/.coach_checkpoint")).ok()?;
-    let c: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(root.join("model/deepracer_checkpoints.json")).ok()?).ok()?;
-    for n in [name.as_str(), c["best_checkpoint"]["name"].as_str()?, c["last_checkpoint"]["name"].as_str()?] {
+    for s in &sensors {
+        if ![
+            "FRONT_FACING_CAMERA",
+            "observation",
+            "STEREO_CAMERAS",
+            "LIDAR",
+            "SECTOR_LIDAR",
+            "DISCRETIZED_SECTOR_LIDAR",
+        ]
+        .contains(s)
+        {
+            return Err(format!("sensor {s}: the model validator takes none such"));
+        }
+    }
+    let name = std::fs::read_to_string(root.join("model/.coach_checkpoint"))
+        .map_err(|e| format!("model/.coach_checkpoint: {e}"))?;
+    let c = json("model/deepracer_checkpoints.json")?;
+    let best = c["best_checkpoint"]["name"].as_str().ok_or("no best_checkpoint")?;
+    let last = c["last_checkpoint"]["name"].as_str().ok_or("no last_checkpoint")?;
+    for n in [name.as_str(), best, last] {
         for ext in ["index", "data-00000-of-00001"] {
             if !root.join(format!("model/{n}.{ext}")).is_file() {
-                return Some(format!("no model/{n}.{ext}"));
+                return Err(format!("no model/{n}.{ext}"));
             }
         }
     }
-    None
+    Ok(())
 }
 
 /// Issue 53: the exported folder passes DRoA's import checks, and what DRoA cannot take is
@@ -648,6 +708,13 @@ fn the_exported_folder_passes_droas_import_checks() {
     let (good, text) = coordinator(&["export", "run/model", "--virtual", "h2b.tar.gz"], d);
     assert!(!good && text.contains("no HEAD_TO_BOT race"), "{text}");
     assert!(!d.join("h2b.tar.gz").exists());
+    // An existing folder is refused before anything is written.
+    let (good, text) = coordinator(
+        &["export", "run/model", "--virtual", "x.tar.gz", "--virtual-dir", "my-model", "--deepracer-for-cloud"],
+        d,
+    );
+    assert!(!good && text.contains("my-model exists"), "{text}");
+    assert!(!d.join("x.tar.gz").exists());
 }
 
 /// Issue 53: a damaged checkpoint in a model folder is refused naming the file, and nothing
@@ -668,6 +735,16 @@ fn a_damaged_checkpoint_is_refused_naming_the_file() {
         !good && text.contains("12_Step-4321.ckpt.data-00000-of-00001") && text.contains("checksum mismatch"),
         "{text}"
     );
+    assert!(!d.join("in").exists());
+    // Inside an archive, the archive and the entry are named.
+    let gz =
+        flate2::write::GzEncoder::new(std::fs::File::create(d.join("m.tar.gz")).unwrap(), flate2::Compression::fast());
+    let mut tar = tar::Builder::new(gz);
+    tar.append_dir_all("", d.join("m")).unwrap();
+    tar.into_inner().unwrap().finish().unwrap();
+    let (good, text) = coordinator(&["import", "m.tar.gz", "--out", "in"], d);
+    assert!(!good && text.contains("m.tar.gz: model/12_Step-4321.ckpt.data-00000-of-00001"), "{text}");
+    assert!(text.contains("checksum mismatch") && !text.contains("/tmp/"), "{text}");
     assert!(!d.join("in").exists());
     std::fs::write(d.join("m/model/12_Step-4321.ckpt.index"), b"short").unwrap();
     let (good, text) = coordinator(&["import", "m", "--out", "in"], d);

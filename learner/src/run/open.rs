@@ -154,7 +154,7 @@ pub(super) fn algorithm(
         if first_iteration > 0 {
             resume_sac(spec, dir, &mut sac)?;
         } else {
-            critics_beside(spec, dir, &mut sac);
+            critics_beside(spec, dir, &mut sac)?;
         }
         if let Some(g) = &spec.gpu {
             sac = sac.with_gpu(g.clone());
@@ -192,21 +192,19 @@ fn resume_sac(spec: &RunSpec, dir: &RunDir, sac: &mut SacTrainer) -> Result<(), 
 /// A new SAC run's critics from the model it starts from, when that folder keeps them beside
 /// its weights (a DeepRacer model imported whole, or one `clone` copied): the folder it clones,
 /// else the run's own `model/`.
-fn critics_beside(spec: &RunSpec, dir: &RunDir, sac: &mut SacTrainer) {
+fn critics_beside(spec: &RunSpec, dir: &RunDir, sac: &mut SacTrainer) -> Result<(), RunFailure> {
     let from = match &spec.start {
         Start::New { clone_from } | Start::ResumeOrNew { clone_from } => clone_from.clone(),
         _ => None,
     };
     let candidates = from.into_iter().chain([dir.model_dir()]);
-    for d in candidates.filter(|d| d.join(crate::sac::trainer::CRITICS_FILE).is_file()) {
-        match sac.load_state(&d) {
-            Ok(_) => {
-                tracing::info!(run = %spec.name, from = %d.display(), "SAC: the critics go on from the model's");
-                return;
-            }
-            Err(e) => tracing::warn!(run = %spec.name, "SAC: the critics start afresh: {e}"),
-        }
+    if let Some(d) = candidates.into_iter().find(|d| d.join(crate::sac::trainer::CRITICS_FILE).is_file()) {
+        // Critics that do not fit are refused: training on with fresh ones would silently
+        // drop what the model brought.
+        sac.load_state(&d).map_err(|e| RunFailure::Inputs(format!("SAC's critics beside the model: {e}")))?;
+        tracing::info!(run = %spec.name, from = %d.display(), "SAC: the critics go on from the model's");
     }
+    Ok(())
 }
 
 /// Take over the team's state the spec carries, when it is newer than the run folder's.
