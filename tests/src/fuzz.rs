@@ -207,7 +207,16 @@ pub fn tf_checkpoint(data: &[u8]) {
     let Some(n) = data.get(..4).map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize) else { return };
     let rest = &data[4..];
     let (index, values) = rest.split_at(n.min(rest.len()));
-    if let Ok(ckpt) = policy::tfckpt::decode(index, values, "fuzz.index", "fuzz.data") {
+    let Ok(ckpt) = policy::tfckpt::decode(index, values, "fuzz.index", "fuzz.data") else { return };
+    // The network is built (millions of weights drawn) only for a checkpoint that has every
+    // variable it needs with its shape; the names and shapes are worked out once.
+    static VARIABLES: std::sync::OnceLock<Vec<(String, Vec<usize>)>> = std::sync::OnceLock::new();
+    let vars = VARIABLES.get_or_init(|| policy::coach::variables(&small_camera()).unwrap_or_default());
+    let fits = vars
+        .iter()
+        .filter(|(n, _)| !n.ends_with("_rescalers"))
+        .all(|(n, s)| ckpt.get(n).is_some_and(|t| &t.shape == s));
+    if fits {
         let _ = policy::coach::from_checkpoint(&ckpt, &small_camera());
     }
 }
