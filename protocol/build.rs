@@ -26,6 +26,8 @@ fn main() {
         "AgentRow",
         "AgentList",
         "JobLog",
+        "TokenList",
+        "TokenRow",
     ] {
         cfg.type_attribute(format!("paddock.v1.{t}"), "#[derive(serde::Serialize)]");
     }

@@ -686,7 +686,7 @@ fn interleaved(rounds: usize, mut measure: impl FnMut(bool) -> Result<(f64, f64)
 pub fn wire(seconds: f64, rounds: usize, up_seconds: f64) -> Result<()> {
     let certs = std::env::temp_dir().join(format!("paddock-bench-wire-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&certs);
-    crate::certs::write(&certs, false)?;
+    crate::certs::write(&certs, false, &protocol::secure::DEFAULT_SLOTS)?;
     let batch = |trajectories: usize, steps: usize, obs: usize| {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
         use rand::Rng;

@@ -19,12 +19,14 @@ use std::path::Path;
 /// Years a credential set is valid.
 const YEARS: i32 = 10;
 
-fn this_year() -> i32 {
+/// The current year (UTC), for certificates' validity.
+pub fn this_year() -> i32 {
     let secs = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs()).unwrap_or(0);
     1970 + (secs / 31_556_952) as i32
 }
 
-fn write_file(path: &Path, text: &str, secret: bool) -> Result<()> {
+/// Write a new file (never over one), readable by its owner only when `secret`.
+pub fn write_file(path: &Path, text: &str, secret: bool) -> Result<()> {
     use std::io::Write;
     let mut o = std::fs::OpenOptions::new();
     o.write(true).create_new(true);
@@ -41,7 +43,7 @@ fn write_file(path: &Path, text: &str, secret: bool) -> Result<()> {
 
 /// A node's certificate parameters: common name `cn`, usable for both ends of a mutual-TLS
 /// link (validity left to the caller).
-fn leaf(cn: &str) -> Result<CertificateParams> {
+pub fn leaf(cn: &str) -> Result<CertificateParams> {
     let mut p = CertificateParams::new(vec!["localhost".to_string()]).context("certificate parameters")?;
     p.distinguished_name = DistinguishedName::new();
     p.distinguished_name.push(DnType::CommonName, cn);
@@ -52,7 +54,7 @@ fn leaf(cn: &str) -> Result<CertificateParams> {
 
 /// Write a CA and every role's certificate and key into `dir`. Existing credentials are kept
 /// unless `force` (a new CA makes every certificate already handed out useless).
-pub fn write(dir: &Path, force: bool) -> Result<Vec<String>> {
+pub fn write(dir: &Path, force: bool, slots: &[(Role, u32)]) -> Result<Vec<String>> {
     std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create the folder", dir.display()))?;
     let mut names = vec![CA_FILE.to_string(), "ca.key".to_string()];
     for r in Role::ALL {
@@ -101,11 +103,69 @@ pub fn write(dir: &Path, force: bool) -> Result<Vec<String>> {
     }
     let stem = dir.join(MODEL_KEY_FILE).with_extension("");
     policy::signature::Signer::generate().write_pair(&stem).context("the model-signing key")?;
+    let mut roster = Roster::default();
+    set_slots(&mut roster, slots)?;
+    replace_file(&dir.join(ROSTER_FILE), &roster.to_toml())?;
+    names.push(ROSTER_FILE.to_string());
     Ok(names)
 }
 
+fn set_slots(roster: &mut Roster, slots: &[(Role, u32)]) -> Result<()> {
+    for (role, n) in slots {
+        anyhow::ensure!(
+            protocol::secure::JOIN_ROLES.contains(role),
+            "slots: {} machines do not join with a token (agent, learner or car)",
+            role.name()
+        );
+        anyhow::ensure!(
+            *n <= protocol::secure::MAX_SLOTS,
+            "slots: {n} {} slots is more than {}",
+            role.name(),
+            protocol::secure::MAX_SLOTS
+        );
+        roster.set_slots(*role, *n);
+    }
+    Ok(())
+}
+
+/// `certs slots DIR --agent N …`: how many machines of each role may join with a token.
+/// Growing takes effect on each node when it next starts (give it the new ids.toml);
+/// shrinking below a slot that holds a valid certificate is refused.
+pub fn slots(dir: &Path, slots: &[(Role, u32)]) -> Result<String> {
+    let mut roster = Roster::load(dir)?;
+    let (_, revoked) = revoked_in(dir)?;
+    let now = time::OffsetDateTime::now_utc();
+    for (role, n) in slots {
+        for id in roster.slot_ids(*role).into_iter().skip(*n as usize) {
+            let pem = dir.join(format!("{}.pem", stem(*role, Some(&id))));
+            if pem.exists() {
+                let (serial, _, until) = cert_info(&pem)?;
+                anyhow::ensure!(
+                    until < now || revoked.iter().any(|(s, _)| *s == serial),
+                    "{}: {} {id} holds a valid certificate; revoke it (`coordinator certs revoke {} {}`) before \
+                     shrinking the {} slots below it",
+                    pem.display(),
+                    role.name(),
+                    dir.display(),
+                    stem(*role, Some(&id)),
+                    role.name()
+                );
+            }
+        }
+    }
+    set_slots(&mut roster, slots)?;
+    replace_file(&dir.join(ROSTER_FILE), &roster.to_toml())?;
+    Ok(format!(
+        "{}: {} agent, {} learner and {} car slots; give every node this ids.toml and restart it to cover new slots",
+        dir.join(ROSTER_FILE).display(),
+        roster.slots(Role::Agent),
+        roster.slots(Role::Learner),
+        roster.slots(Role::Car)
+    ))
+}
+
 /// The cluster CA in `dir` (`ca.pem` and `ca.key`), ready to sign.
-fn issuer(dir: &Path) -> Result<Issuer<'static, KeyPair>> {
+pub fn issuer(dir: &Path) -> Result<Issuer<'static, KeyPair>> {
     let read = |n: &str| {
         std::fs::read_to_string(dir.join(n)).with_context(|| {
             format!("{}: cannot read it (the CA's files, made by `coordinator certs new DIR`)", dir.join(n).display())
@@ -119,7 +179,7 @@ fn issuer(dir: &Path) -> Result<Issuer<'static, KeyPair>> {
 
 /// A certificate file's serial number (hex, as a revocation list names it), common name and
 /// expiry.
-fn cert_info(path: &Path) -> Result<(Vec<u8>, String, time::OffsetDateTime)> {
+pub fn cert_info(path: &Path) -> Result<(Vec<u8>, String, time::OffsetDateTime)> {
     let text = std::fs::read(path).with_context(|| format!("{}: cannot read it", path.display()))?;
     let (_, pem) = x509_parser::pem::parse_x509_pem(&text)
         .map_err(|e| anyhow::anyhow!("{}: not a PEM certificate ({e})", path.display()))?;
@@ -129,7 +189,7 @@ fn cert_info(path: &Path) -> Result<(Vec<u8>, String, time::OffsetDateTime)> {
 }
 
 /// Write `text` to `path` in one step (a temporary file renamed over it).
-fn replace_file(path: &Path, text: &str) -> Result<()> {
+pub fn replace_file(path: &Path, text: &str) -> Result<()> {
     let tmp = path.with_extension("tmp");
     let _ = std::fs::remove_file(&tmp);
     write_file(&tmp, text, false)?;
@@ -137,10 +197,10 @@ fn replace_file(path: &Path, text: &str) -> Result<()> {
 }
 
 /// Certificates revoked: serial number, and when.
-type RevokedList = Vec<(Vec<u8>, time::OffsetDateTime)>;
+pub type RevokedList = Vec<(Vec<u8>, time::OffsetDateTime)>;
 
 /// The revocation list in `dir`: its number and what it revokes.
-fn revoked_in(dir: &Path) -> Result<(u64, RevokedList)> {
+pub fn revoked_in(dir: &Path) -> Result<(u64, RevokedList)> {
     let path = dir.join(protocol::revocation::CRL_FILE);
     let bytes = match std::fs::read(&path) {
         Ok(b) => b,

@@ -125,6 +125,17 @@ pub enum Command {
         #[command(subcommand)]
         command: CertsCommand,
     },
+    /// Join tokens: `token create --role agent` prints a token a machine joins the cluster
+    /// with in one command (`sim-agent join TOKEN --certs DIR`); `list`, `revoke`.
+    Token {
+        #[command(subcommand)]
+        command: TokenCommand,
+    },
+    /// Service units: `service print agent` writes a hardened systemd unit for a role.
+    Service {
+        #[command(subcommand)]
+        command: ServiceCommand,
+    },
     /// The cars (`deploy`) on the network: model, frames/s, latencies, refusals, watchdog;
     /// `--estop CAR` holds a car at throttle 0 until `--release CAR`.
     Cars(CarsArgs),
@@ -145,6 +156,17 @@ pub enum CertsCommand {
         /// Replace credentials already there.
         #[arg(long)]
         force: bool,
+        #[command(flatten)]
+        slots: SlotArgs,
+    },
+    /// How many machines of each role may join with a token (DIR/ids.toml's slots). Every
+    /// node's access rules cover the slots from its start; after growing them give every node
+    /// the new ids.toml and restart it.
+    Slots {
+        /// The credentials folder.
+        dir: PathBuf,
+        #[command(flatten)]
+        slots: SlotCounts,
     },
     /// Give machines certificates of their own: DIR/<role>-<id>.pem and .key, common name
     /// paddock-<role>.<id>, bound by the access rules to that id (agent lab-1's certificate
@@ -182,6 +204,119 @@ pub enum CertsCommand {
     List {
         /// The credentials folder.
         dir: PathBuf,
+    },
+}
+
+/// The slots `certs new` makes.
+#[derive(Args, Clone, Debug)]
+pub struct SlotArgs {
+    /// Agents that may join with a token.
+    #[arg(long = "agent-slots", default_value_t = 64)]
+    pub agent: u32,
+    /// Learners that may join with a token.
+    #[arg(long = "learner-slots", default_value_t = 8)]
+    pub learner: u32,
+    /// Cars that may join with a token.
+    #[arg(long = "car-slots", default_value_t = 8)]
+    pub car: u32,
+}
+
+impl SlotArgs {
+    /// As the roster takes them.
+    pub fn list(&self) -> Vec<(protocol::secure::Role, u32)> {
+        use protocol::secure::Role;
+        vec![(Role::Agent, self.agent), (Role::Learner, self.learner), (Role::Car, self.car)]
+    }
+}
+
+/// New slot counts (`certs slots`): only the roles given change.
+#[derive(Args, Clone, Debug)]
+#[group(required = true, multiple = true)]
+pub struct SlotCounts {
+    /// Agent slots.
+    #[arg(long)]
+    pub agent: Option<u32>,
+    /// Learner slots.
+    #[arg(long)]
+    pub learner: Option<u32>,
+    /// Car slots.
+    #[arg(long)]
+    pub car: Option<u32>,
+}
+
+impl SlotCounts {
+    /// The roles given, with their counts.
+    pub fn list(&self) -> Vec<(protocol::secure::Role, u32)> {
+        use protocol::secure::Role;
+        [(Role::Agent, self.agent), (Role::Learner, self.learner), (Role::Car, self.car)]
+            .into_iter()
+            .filter_map(|(r, n)| n.map(|n| (r, n)))
+            .collect()
+    }
+}
+
+/// `coordinator token …`: join tokens, asked of a running coordinator as an operator.
+#[derive(Subcommand)]
+pub enum TokenCommand {
+    /// Make a token a machine joins with (`sim-agent join TOKEN`, `learner join`, `deploy
+    /// join`): single-use and short-lived by default; it carries the CA's hash and the
+    /// coordinator's join door. Only a hash of its secret is kept.
+    Create {
+        /// The role the machine joins as: agent, learner or car.
+        #[arg(long)]
+        role: String,
+        /// How long the token may be used (1h, 30m, 2d; at most 7 days).
+        #[arg(long, default_value = "1h", value_parser = humantime::parse_duration)]
+        ttl: std::time::Duration,
+        /// How many machines may join with it.
+        #[arg(long, default_value_t = 1)]
+        uses: u32,
+        /// The id to join as (a slot, slot-N, or an id in ids.toml); by default the next free slot.
+        #[arg(long)]
+        name: Option<String>,
+        /// How long the certificates it gets are valid (365d, 12h, …).
+        #[arg(long, default_value = "365d", value_parser = humantime::parse_duration)]
+        cert_valid: std::time::Duration,
+        /// The join door's HOST:PORT to write in the token (by default the door's own address
+        /// when it listens on one; none when it listens on every interface: the machine then
+        /// finds it by scouting).
+        #[arg(long)]
+        address: Option<String>,
+        #[command(flatten)]
+        net: NetCli,
+    },
+    /// Every token: role, uses, expiry, state, the machines that joined with it; and the joins
+    /// granted and refused since the coordinator started, by reason.
+    List {
+        #[command(flatten)]
+        net: NetCli,
+    },
+    /// Make a token unusable.
+    Revoke {
+        /// The token's id (8 hex digits, the second part of its text).
+        id: String,
+        #[command(flatten)]
+        net: NetCli,
+    },
+}
+
+#[derive(Subcommand)]
+pub enum ServiceCommand {
+    /// Print a systemd unit that runs ROLE (agent, learner, coordinator or car) as a service:
+    /// restarted on failure (not on a usage error), a dynamic user, a state folder, the file
+    /// system read-only elsewhere, no new privileges, a memory ceiling.
+    Print {
+        /// agent, learner, coordinator or car.
+        role: String,
+        /// The binary's path (by default where this one's sibling is installed).
+        #[arg(long)]
+        bin: Option<PathBuf>,
+        /// The memory ceiling (systemd's MemoryMax).
+        #[arg(long, default_value = "8G")]
+        memory_max: String,
+        /// Arguments after `serve` (e.g. --connect tls/10.0.0.1:7447).
+        #[arg(last = true)]
+        args: Vec<String>,
     },
 }
 
@@ -467,6 +602,12 @@ pub struct ServeCli {
     /// folder beside the database (`console-data`).
     #[arg(long, value_name = "ADDR")]
     pub console: Option<String>,
+    /// Where the join door listens (HOST:PORT): machines join with `coordinator token create`
+    /// tokens (`sim-agent join`, `learner join`, `deploy join`). Open when --certs DIR holds
+    /// the CA's key (ca.key), by default on port 7449 of every interface (if that port is
+    /// free); `none` keeps it shut.
+    #[arg(long, value_name = "ADDR")]
+    pub join_listen: Option<String>,
 }
 
 #[derive(Subcommand)]

@@ -146,3 +146,30 @@ pub fn run(cmd: JobCommand) -> Result<i32> {
         r = request(&session, kind.clone(), Duration::from_secs(10))?;
     }
 }
+
+/// `coordinator token …`: asked of the running coordinator, as `job` commands are.
+pub fn token(cmd: crate::cli::TokenCommand) -> Result<i32> {
+    use crate::cli::TokenCommand;
+    let (net, kind) = match cmd {
+        TokenCommand::Create { role, ttl, uses, name, cert_valid, address, net } => (
+            net,
+            Kind::TokenCreate(protocol::TokenCreate {
+                role,
+                ttl_s: ttl.as_secs(),
+                uses,
+                name: name.unwrap_or_default(),
+                cert_valid_s: cert_valid.as_secs(),
+                address: address.unwrap_or_default(),
+            }),
+        ),
+        TokenCommand::List { net } => (net, Kind::TokenList(true)),
+        TokenCommand::Revoke { id, net } => (net, Kind::TokenRevoke(id)),
+    };
+    let session = net::open(&net_args(&net, true))?;
+    let r = request(&session, kind, Duration::from_secs(10))?;
+    if !r.ok {
+        bail!("{}", r.text);
+    }
+    println!("{}", r.text.trim_end());
+    Ok(0)
+}

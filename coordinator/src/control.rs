@@ -47,6 +47,8 @@ pub fn json_of(r: &JobReply) -> String {
         Some(Body::Jobs(l)) => serde_json::to_value(&l.jobs),
         Some(Body::Agents(l)) => serde_json::to_value(&l.agents),
         Some(Body::Log(l)) => serde_json::to_value(l),
+        Some(Body::Tokens(l)) => serde_json::to_value(l),
+        Some(Body::Token(t)) => Ok(serde_json::Value::String(t.clone())),
         None => Ok(serde_json::Value::Null),
     };
     v.unwrap_or(serde_json::Value::Null).to_string()

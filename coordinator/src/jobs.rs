@@ -40,6 +40,11 @@ impl Db {
         Ok(Db { db })
     }
 
+    /// The database itself (other tables beside the jobs': the join tokens').
+    pub fn database(&self) -> &Database {
+        &self.db
+    }
+
     /// Every job stored; unreadable ones are skipped with a warning.
     pub fn load(&self) -> Result<BTreeMap<String, JobRecord>> {
         let r = self.db.begin_read()?;

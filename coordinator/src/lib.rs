@@ -6,10 +6,12 @@
 //! `serve`); the `console` crate is the web shell over it.
 
 pub mod assign;
+pub mod certs;
 pub mod control;
 pub mod evaluation;
 pub mod jobs;
 pub mod jobspec;
+pub mod join;
 pub mod onnx;
 pub mod supervise;
 pub mod virtual_model;

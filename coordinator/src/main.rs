@@ -8,7 +8,7 @@
 mod bench;
 mod carmodel;
 mod cars;
-mod certs;
+use coordinator::certs;
 mod cli;
 mod client;
 mod drive;
@@ -47,6 +47,7 @@ fn main() {
             serve::serve(serve::ServeArgs {
                 net: client::net_args(&a.net, false).as_role(protocol::secure::Role::Coordinator),
                 db: a.db,
+                join_listen: a.join_listen,
             })?;
             Ok(0)
         })(),
@@ -63,7 +64,22 @@ fn main() {
             Ok(0)
         })(),
         cli::Command::Keys { command: cli::KeysCommand::New { name } } => cars::new_keys(&name),
-        cli::Command::Certs { command: cli::CertsCommand::New { dir, force } } => certs::write(&dir, force).map(|names| {
+        cli::Command::Certs { command: cli::CertsCommand::Slots { dir, slots } } => certs::slots(&dir, &slots.list()).map(|t| {
+            println!("{t}");
+            0
+        }),
+        cli::Command::Token { command } => client::token(command),
+        cli::Command::Service { command: cli::ServiceCommand::Print { role, bin, memory_max, args } } => {
+            (|| -> anyhow::Result<i32> {
+                let bin = match bin {
+                    Some(b) => b,
+                    None => protocol::service::sibling_binary(&role)?,
+                };
+                print!("{}", protocol::service::unit(&role, &bin, &memory_max, &args)?);
+                Ok(0)
+            })()
+        }
+        cli::Command::Certs { command: cli::CertsCommand::New { dir, force, slots } } => certs::write(&dir, force, &slots.list()).map(|names| {
             println!("wrote {} in {}", names.join(", "), dir.display());
             println!("each role takes --certs DIR with ca.pem and its own <role>.pem and <role>.key; endpoints are tls/HOST:PORT");
             println!(

@@ -11,8 +11,10 @@
 use anyhow::{Context, Result};
 use coordinator::assign::{Queued, WorldEval, assign, assignment, capped, queue, weights};
 use coordinator::jobs::{AgentWork, Db, JobRecord, JobState, now_unix};
+use coordinator::join::Office;
 use protocol::job_reply::Body;
 use protocol::net::{self, DropCounters, NetArgs, decode_sample, zenoh};
+use protocol::secure::Role;
 use protocol::{
     AgentInfo, AgentList, AgentReport, AgentRow, AssignmentTable, DropCount, DropCounts, Job, JobList, JobLog,
     JobReply, JobRequest, JobStatus, JobSummary, LearnerStatus, PROTOCOL_VERSION, job_request::Kind, keys,
@@ -112,6 +114,77 @@ pub struct ServeArgs {
     pub net: NetArgs,
     /// The database file.
     pub db: std::path::PathBuf,
+    /// Where the join door listens (with credentials holding the CA's key); `none`: shut;
+    /// unset: port [`protocol::join::DOOR_PORT`] of every interface, if free.
+    pub join_listen: Option<String>,
+}
+
+/// Open the join door when the credentials folder holds the CA's key: machines join with a
+/// token (`protocol::join`), answered by [`coordinator::join::Office`]. Returns the office
+/// and the address a token should carry (none when the door listens on every interface).
+fn open_door(net: &NetArgs, db: &Arc<Db>, listen: &str) -> Result<Option<(Office, Option<String>)>> {
+    use rustls_pki_types::pem::PemObject;
+    let Some(dir) = &net.certs else { return Ok(None) };
+    if !dir.join("ca.key").exists() {
+        tracing::info!("no CA key in {}: this coordinator takes no joins", dir.display());
+        return Ok(None);
+    }
+    let office = Office::new(dir, db.clone(), net.listen.clone())?;
+    let creds =
+        protocol::secure::Credentials::from_dir(dir, Role::Coordinator, net.own_id(Role::Coordinator).as_deref())?;
+    let mut chain: Vec<rustls_pki_types::CertificateDer<'static>> =
+        rustls_pki_types::CertificateDer::pem_file_iter(&creds.cert)
+            .with_context(|| creds.cert.display().to_string())?
+            .collect::<Result<_, _>>()
+            .with_context(|| creds.cert.display().to_string())?;
+    chain.extend(
+        rustls_pki_types::CertificateDer::pem_file_iter(&creds.ca)
+            .with_context(|| creds.ca.display().to_string())?
+            .collect::<Result<Vec<_>, _>>()
+            .with_context(|| creds.ca.display().to_string())?,
+    );
+    let key =
+        rustls_pki_types::PrivateKeyDer::from_pem_file(&creds.key).with_context(|| creds.key.display().to_string())?;
+    let listener =
+        std::net::TcpListener::bind(listen).with_context(|| format!("--join-listen {listen}: cannot listen"))?;
+    let bound = listener.local_addr()?;
+    let handler = {
+        let office = office.clone();
+        Arc::new(move |req, peer| office.answer(req, peer))
+    };
+    protocol::join::serve(listener, chain, key, handler)?;
+    tracing::info!(%bound, "join door open: machines join with `coordinator token create` tokens");
+    let address = (!bound.ip().is_unspecified()).then(|| bound.to_string());
+    Ok(Some((office, address)))
+}
+
+/// A token request (`token create|list|revoke`), answered by the join office.
+fn handle_token(office: Option<&(Office, Option<String>)>, kind: Kind) -> JobReply {
+    let Some((office, address)) = office else {
+        return reply(
+            false,
+            "this coordinator takes no joins: start it with --certs DIR where DIR holds the CA's key (ca.key)".into(),
+            None,
+        );
+    };
+    match kind {
+        Kind::TokenCreate(t) => {
+            let address = if t.address.is_empty() { address.clone() } else { Some(t.address.clone()) };
+            match office.create(&t, address) {
+                Ok(token) => reply(true, token.clone(), Some(Body::Token(token))),
+                Err(e) => reply(false, format!("{e:#}"), None),
+            }
+        }
+        Kind::TokenRevoke(id) => match office.revoke(&id) {
+            Ok(true) => reply(true, format!("token {id} revoked"), None),
+            Ok(false) => reply(true, format!("token {id} was already revoked"), None),
+            Err(e) => reply(false, format!("{e:#}"), None),
+        },
+        _ => match office.list() {
+            Ok(l) => reply(true, coordinator::join::list_text(&l, now_unix()), Some(Body::Tokens(l))),
+            Err(e) => reply(false, format!("{e:#}"), None),
+        },
+    }
 }
 
 /// Run the coordinator until the process is stopped.
@@ -121,6 +194,14 @@ pub fn serve(args: ServeArgs) -> Result<()> {
     for j in jobs.values().filter(|j| matches!(j.state(), JobState::Running | JobState::Stopping)) {
         tracing::info!(job = %j.id(), state = j.state().name(), "job carried over from the database");
     }
+    let door = match args.join_listen.as_deref() {
+        Some("none") => None,
+        Some(listen) => open_door(&args.net, &db, listen)?,
+        None => open_door(&args.net, &db, &format!("[::]:{}", protocol::join::DOOR_PORT)).unwrap_or_else(|e| {
+            tracing::warn!("the join door stays shut: {e:#}");
+            None
+        }),
+    };
     let session = net::open_retrying(&args.net)?;
     let _token =
         session.liveliness().declare_token(keys::COORDINATOR_ALIVE).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
@@ -140,6 +221,10 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         .declare_queryable(keys::CONTROL)
         .callback(move |q| {
             let reply = match q.payload().map(|p| protocol::decode::<JobRequest>(&p.to_bytes())) {
+                Some(Ok(JobRequest {
+                    kind: Some(kind @ (Kind::TokenCreate(_) | Kind::TokenList(_) | Kind::TokenRevoke(_))),
+                    ..
+                })) => handle_token(door.as_ref(), kind),
                 Some(Ok(req)) => handle(&st, &dbc, &sess, req),
                 Some(Err(e)) => {
                     drops_q.refuse("a job request", &e);
@@ -530,6 +615,10 @@ fn validate(doc: &Job) -> std::result::Result<(), String> {
 fn handle(st: &Arc<Mutex<State>>, db: &Db, _session: &zenoh::Session, req: JobRequest) -> JobReply {
     let mut st = st.lock().expect("state lock");
     match req.kind {
+        // The control queryable hands these to the join office before this.
+        Some(Kind::TokenCreate(_) | Kind::TokenList(_) | Kind::TokenRevoke(_)) => {
+            reply(false, "token requests go to the join office".into(), None)
+        }
         Some(Kind::StartJob(job)) => {
             if let Err(e) = protocol::job::check(&job, &job.id) {
                 return reply(false, format!("bad job: {e}"), None);

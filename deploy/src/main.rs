@@ -62,6 +62,10 @@ enum Sub {
         #[arg(long, default_value_t = 5.0)]
         seconds: f64,
     },
+    /// Join a Paddock cluster with a token (`coordinator token create --role car`): make
+    /// this car's key, check the coordinator's CA against the token, write the credentials
+    /// folder (`--certs DIR`), then drive with `deploy --certs DIR --job JOB`.
+    Join(protocol::join::JoinCli),
 }
 
 fn main() {
@@ -69,6 +73,7 @@ fn main() {
     let cli = Cli::parse();
     let result = match cli.command {
         Some(Sub::Bench { seconds }) => bench::run(seconds),
+        Some(Sub::Join(j)) => protocol::join::run_cli(protocol::secure::Role::Car, j).map_err(anyhow::Error::from),
         None => run(cli),
     };
     protocol::exit::exit(result.map(|()| protocol::exit::SUCCESS))

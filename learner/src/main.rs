@@ -26,6 +26,11 @@ struct Cli {
 enum Command {
     /// Serve a coordinator: train its running job over Zenoh.
     Serve(ServeCli),
+    /// Join a Paddock cluster with a token (`coordinator token create --role learner`): make
+    /// this machine's key, check the coordinator's CA against the token, write the
+    /// credentials folder (`--certs DIR`, with the cluster's model-signing key); then
+    /// `serve --certs DIR` (or `--service`).
+    Join(protocol::join::JoinCli),
     /// The network maths' speed: PPO sample-gradients/s and inference latency.
     Bench(BenchCli),
     /// A member of `bench --learners N`'s team (started by the bench itself).
@@ -138,6 +143,7 @@ fn main() {
                 &m.id,
             )
         }
+        Command::Join(j) => protocol::join::run_cli(protocol::secure::Role::Learner, j).map_err(anyhow::Error::from),
         Command::Serve(a) => {
             // With the cluster's credentials, its model-signing key (when that machine has it).
             let credentials_key =

@@ -184,6 +184,14 @@ impl TrustedKeys {
         Ok(t)
     }
 
+    /// Trust a SubjectPublicKeyInfo PEM text (`name`: where it came from, for errors).
+    pub fn add_pem(&mut self, name: &str, text: &str) -> Result<(), SignatureError> {
+        let key = VerifyingKey::from_public_key_pem(text)
+            .map_err(|e| FileError::invalid(name.to_string(), format!("not an ed25519 public key in PEM ({e})")))?;
+        self.keys.push((name.into(), key));
+        Ok(())
+    }
+
     /// Trust one signer's public key (tests, and a learner checking its own folders).
     pub fn add(&mut self, name: &str, signer: &Signer) {
         self.keys.push((name.into(), signer.key.verifying_key()));

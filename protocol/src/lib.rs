@@ -69,10 +69,12 @@ pub use generated::*;
 pub mod exchange;
 pub mod exit;
 pub mod job;
+pub mod join;
 pub mod net;
 pub mod revocation;
 pub mod ros;
 pub mod secure;
+pub mod service;
 
 /// The version every message carries; others are dropped.
 pub const PROTOCOL_VERSION: u32 = 3;
@@ -283,7 +285,9 @@ versioned!(
     CarStatus,
     CarControl,
     CarAssign,
-    JobPromote
+    JobPromote,
+    JoinRequest,
+    JoinReply
 );
 
 /// Encode a message.

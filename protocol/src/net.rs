@@ -204,7 +204,7 @@ pub fn open(args: &NetArgs) -> Result<zenoh::Session, NetError> {
         let c = Credentials::from_dir(dir, role, id.as_deref()).map_err(|x| NetError(x.to_string()))?;
         let roster = crate::secure::Roster::load(dir).map_err(|x| NetError(x.to_string()))?;
         match (&c.id, &id) {
-            (Some(id), _) if !roster.ids(role).contains(id) => tracing::warn!(
+            (Some(id), _) if !roster.covers(role, id) => tracing::warn!(
                 role = role.name(),
                 id,
                 "presenting this machine's own certificate, but {} does not list it: nodes that read that \

@@ -100,6 +100,42 @@ pub struct Roster {
     car: Vec<String>,
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     operator: Vec<String>,
+    /// Slots for machines that join with a token (`slot-1`, `slot-2`, … of each role): every
+    /// node's access rules cover them from its start, so a join needs no restart.
+    #[serde(default, skip_serializing_if = "Slots::is_empty")]
+    slots: Slots,
+}
+
+/// How many machines of each role may join with a token ([`Roster`]'s `[slots]` table).
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Slots {
+    #[serde(default)]
+    agent: u32,
+    #[serde(default)]
+    learner: u32,
+    #[serde(default)]
+    car: u32,
+}
+
+impl Slots {
+    fn is_empty(&self) -> bool {
+        *self == Slots::default()
+    }
+}
+
+/// The roles a machine may join as with a token.
+pub const JOIN_ROLES: [Role; 3] = [Role::Agent, Role::Learner, Role::Car];
+
+/// The slots `certs new` makes: agents, learners, cars.
+pub const DEFAULT_SLOTS: [(Role, u32); 3] = [(Role::Agent, 64), (Role::Learner, 8), (Role::Car, 8)];
+
+/// The most slots of one role (each is a subject in every node's access rules).
+pub const MAX_SLOTS: u32 = 1024;
+
+/// The id of a role's `n`-th slot (from 1).
+pub fn slot_id(n: u32) -> String {
+    format!("slot-{n}")
 }
 
 impl Roster {
@@ -133,6 +169,51 @@ impl Roster {
         }
     }
 
+    /// How many machines of `role` may join with a token (0 for roles that cannot).
+    pub fn slots(&self, role: Role) -> u32 {
+        match role {
+            Role::Agent => self.slots.agent,
+            Role::Learner => self.slots.learner,
+            Role::Car => self.slots.car,
+            Role::Coordinator | Role::Operator => 0,
+        }
+    }
+
+    /// Set how many machines of `role` (agent, learner or car) may join with a token.
+    pub fn set_slots(&mut self, role: Role, n: u32) {
+        match role {
+            Role::Agent => self.slots.agent = n,
+            Role::Learner => self.slots.learner = n,
+            Role::Car => self.slots.car = n,
+            Role::Coordinator | Role::Operator => {}
+        }
+    }
+
+    /// The ids of `role`'s slots, `slot-1` onwards.
+    pub fn slot_ids(&self, role: Role) -> Vec<String> {
+        (1..=self.slots(role)).map(slot_id).collect()
+    }
+
+    /// Every id of `role` the access rules cover: the rostered ones and the slots.
+    pub fn covered(&self, role: Role) -> Vec<String> {
+        let mut v = self.ids(role).to_vec();
+        for s in self.slot_ids(role) {
+            if !v.contains(&s) {
+                v.push(s);
+            }
+        }
+        v
+    }
+
+    /// Whether the access rules cover `role`'s machine `id`.
+    pub fn covers(&self, role: Role, id: &str) -> bool {
+        self.ids(role).iter().any(|x| x == id)
+            || id
+                .strip_prefix("slot-")
+                .and_then(|n| n.parse::<u32>().ok())
+                .is_some_and(|n| n >= 1 && n <= self.slots(role) && slot_id(n) == id)
+    }
+
     /// `DIR/ids.toml`, or an empty roster when the folder has none; every id checked.
     pub fn load(dir: &Path) -> Result<Roster, CredentialError> {
         let path = dir.join(ROSTER_FILE);
@@ -150,6 +231,12 @@ impl Roster {
                     what: format!("{}: id '{bad}' may hold only letters, digits, '-', '_' and '.'", role.name()),
                 });
             }
+            if r.slots(role) > MAX_SLOTS {
+                return Err(CredentialError {
+                    path,
+                    what: format!("slots.{}: {} is more than {MAX_SLOTS}", role.name(), r.slots(role)),
+                });
+            }
         }
         Ok(r)
     }
@@ -157,8 +244,9 @@ impl Roster {
     /// The roster as [`ROSTER_FILE`] holds it.
     pub fn to_toml(&self) -> String {
         format!(
-            "# The machines that hold a certificate of their own (`coordinator certs issue`). Every\n\
-             # node reads this when it joins: copy it with ca.pem to every machine.\n{}",
+            "# The machines that hold a certificate of their own (`coordinator certs issue`), and the\n\
+             # slots machines join with a token (`coordinator token create`). Every node reads this\n\
+             # when it starts: `join` writes it, and after `certs issue` copy it to every machine.\n{}",
             toml::to_string(self).unwrap_or_default()
         )
     }
@@ -395,8 +483,8 @@ pub fn access_control_json(roster: &Roster) -> serde_json::Value {
     };
     for r in Role::ALL {
         add(r.name().to_string(), Some(r.common_name()), role_rules(r, "*"));
-        for id in roster.ids(r) {
-            add(format!("{}.{id}", r.name()), Some(r.common_name_of(id)), role_rules(r, id));
+        for id in roster.covered(r) {
+            add(format!("{}.{id}", r.name()), Some(r.common_name_of(&id)), role_rules(r, &id));
         }
     }
     add(

@@ -29,6 +29,10 @@ struct Cli {
 enum Command {
     /// Serve a coordinator: run the assigned world with the latest policy, stream experience.
     Serve(ServeCli),
+    /// Join a Paddock cluster with a token (`coordinator token create --role agent`): make
+    /// this machine's key, check the coordinator's CA against the token, write the
+    /// credentials folder (`--certs DIR`); then `serve --certs DIR` (or `--service`).
+    Join(protocol::join::JoinCli),
     /// Measure env steps/s (1 and 2 threads, built-in and Python reward) and query cost.
     Bench(BenchArgs),
     /// Play the physical car for `deploy`: camera frames out in the car's layout at 15 Hz,
@@ -105,6 +109,7 @@ fn main() {
     sim_agent::icd::headless_nvidia();
     let result = match cli.command {
         Command::Bench(args) => bench(args),
+        Command::Join(j) => protocol::join::run_cli(protocol::secure::Role::Agent, j).map_err(anyhow::Error::from),
         Command::Car(args) => hil::run(args),
         Command::Handling { config } => handling(config),
         Command::Serve(a) => gate::trust(&a.trust, a.net.certs.as_deref()).and_then(|trust| {

@@ -9,6 +9,7 @@ mod cluster;
 mod docs;
 mod fidelity;
 mod identity;
+mod join;
 mod logs;
 mod model_formats;
 mod netns;
