@@ -406,6 +406,39 @@ pub enum BenchCommand {
         #[arg(long, default_value_t = 3)]
         rounds: usize,
     },
+    /// A cluster run for a long time under churn (issue 54): two worlds from pixels, two
+    /// agents joined with tokens, one killed every --kill-every minutes, one revoked and
+    /// joined again every --rejoin-every, agent 1's certificates living --cert-minutes.
+    /// Samples each role's memory, threads, files and sockets, the step time and steps/s,
+    /// the stale and refused counts into soak.csv and soak.svg; prints a verdict (exit 1 when
+    /// it fails): memory growth ≤ 1 %/h, steps/s drift ≤ 2 %/h, no episode lost, every kill
+    /// recovered.
+    Soak {
+        /// Minutes of the run.
+        #[arg(long, default_value_t = 60.0)]
+        minutes: f64,
+        /// Seconds between samples.
+        #[arg(long, default_value_t = 60.0)]
+        sample_s: f64,
+        /// Minutes between agent kills (0: none).
+        #[arg(long, default_value_t = 15.0)]
+        kill_every: f64,
+        /// Minutes between a machine revoked and joined again (0: none).
+        #[arg(long, default_value_t = 60.0)]
+        rejoin_every: f64,
+        /// Minutes agent 1's certificates live, so they expire during the run (0: a year).
+        #[arg(long, default_value_t = 25.0)]
+        cert_minutes: f64,
+        /// Minutes at the start (and of each process's life) left out of the slopes.
+        #[arg(long, default_value_t = 5.0)]
+        warmup: f64,
+        /// Environments per agent.
+        #[arg(long, default_value_t = 4)]
+        envs: usize,
+        /// The run's folder.
+        #[arg(long, default_value = "runs/bench-soak")]
+        out: PathBuf,
+    },
     /// A quality check of minutes: the README's kind of job (`up`, two worlds, two agents) run
     /// long, then the model of its last update evaluated on both worlds. Prints a verdict
     /// (exit 1 when it fails): the last model still laps every trial, updates went on past

@@ -18,6 +18,7 @@ mod race_cmd;
 mod render_cmd;
 mod report;
 mod serve;
+mod soak;
 mod tracks_cmd;
 mod train;
 mod up;
@@ -147,6 +148,9 @@ fn main() {
         cli::Command::Bench { command } => match command {
             cli::BenchCommand::Cluster { seconds, envs, world } => bench::cluster(seconds, envs, &world).map(|()| 0),
             cli::BenchCommand::LongJob { minutes, trials, out } => bench::long_job(minutes, trials, &out),
+            cli::BenchCommand::Soak { minutes, sample_s, kill_every, rejoin_every, cert_minutes, warmup, envs, out } => {
+                soak::soak(soak::SoakArgs { minutes, sample_s, kill_every, rejoin_every, cert_minutes, warmup, envs, out })
+            }
             cli::BenchCommand::ModelFiles { repeats } => bench::model_files(repeats).map(|()| 0),
             cli::BenchCommand::Publish { repeats } => bench::publish(repeats).map(|()| 0),
             cli::BenchCommand::Races { world, minutes, races, no_up, seed, out } => {

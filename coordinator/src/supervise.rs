@@ -71,6 +71,16 @@ impl Children {
         Ok(events)
     }
 
+    /// Kill the role `name` and start it again at once (a deliberate restart: not counted
+    /// against its restarts).
+    pub fn restart(&mut self, name: &str) -> Result<()> {
+        let r = self.0.iter_mut().find(|r| r.name == name).with_context(|| format!("no role named {name}"))?;
+        let _ = r.child.kill();
+        let _ = r.child.wait();
+        r.child = start(&r.bin, &r.args, &r.log)?;
+        Ok(())
+    }
+
     /// The process id of each role, by name (for `logs/pids.json`).
     pub fn pids(&self) -> serde_json::Value {
         self.0

@@ -207,7 +207,7 @@ fn absolute(flag: &str, p: &Path) -> Result<String> {
 /// The job spec `up`'s flags describe (TOML, as `job start` takes it), with its run folder in
 /// `out/run`. Files (reward, metadata, hyperparameters, a model to clone) are named by absolute
 /// paths; `--sensor camera` writes DeepRacer's default camera metadata into `out`.
-fn job_spec(args: &UpArgs, out: &Path) -> Result<String> {
+pub(crate) fn job_spec(args: &UpArgs, out: &Path) -> Result<String> {
     use toml::Value;
     let mut t = toml::Table::new();
     let worlds = if args.world.is_empty() {

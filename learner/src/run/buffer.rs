@@ -35,6 +35,9 @@ pub(super) struct Buffer {
     pub(super) received: u64,
 }
 
+/// Batch numbers remembered per worker.
+const SEEN_PER_WORKER: usize = 4096;
+
 /// Whether an episode acted by `acted` is too old (or too new) for a learner at `version`.
 pub(super) fn is_stale(acted: u64, version: u64, max_lag: u64) -> bool {
     acted > version || version - acted > max_lag
@@ -46,9 +49,17 @@ impl Buffer {
         Buffer { received, ..Buffer::default() }
     }
 
-    /// Whether batch `seq` of `worker` is new (a repeat is counted as a duplicate).
+    /// Whether batch `seq` of `worker` is new (a repeat is counted as a duplicate). The last
+    /// [`SEEN_PER_WORKER`] numbers of each worker are kept; one below all of those is a
+    /// repeat (a worker numbers its batches upwards, and on past its earlier lives), so a run
+    /// of days holds a bounded set.
     pub(super) fn first_sight(&mut self, worker: &str, seq: u64) -> bool {
-        let new = self.seen.entry(worker.to_string()).or_default().insert(seq);
+        let seen = self.seen.entry(worker.to_string()).or_default();
+        let below = seen.len() >= SEEN_PER_WORKER && seen.first().is_some_and(|f| seq < *f);
+        let new = !below && seen.insert(seq);
+        if seen.len() > SEEN_PER_WORKER {
+            seen.pop_first();
+        }
         if !new {
             self.dup += 1;
         }
@@ -152,6 +163,14 @@ mod tests {
             assert_eq!(b.first_sight(worker, seq), new, "{worker} {seq}");
         }
         assert_eq!(b.dup, 2);
+        // A long run: the set stays bounded, and an old number is still a repeat.
+        for seq in 10..10 + 3 * SEEN_PER_WORKER as u64 {
+            assert!(b.first_sight("c", seq));
+        }
+        assert_eq!(b.seen["c"].len(), SEEN_PER_WORKER);
+        assert!(!b.first_sight("c", 11) && !b.first_sight("c", 10 + 3 * SEEN_PER_WORKER as u64 - 1));
+        // A worker started again numbers on past its earlier life.
+        assert!(b.first_sight("c", 1_000_000_000));
     }
 
     /// Issue 29: the first episodes to arrive are trained on, and an update ages the rest.
