@@ -161,7 +161,7 @@ fn used_samples(run: &std::path::Path) -> Result<(f64, usize)> {
 
 /// A camera model of DeepRacer's `network` (5 discrete actions, seed 1, policy version 1),
 /// as the benches publish and write it.
-fn camera_model(network: &str) -> Result<policy::ModelFolder> {
+pub(crate) fn camera_model(network: &str) -> Result<policy::ModelFolder> {
     let text = format!(
         r#"{{"action_space":[{{"steering_angle":-30,"speed":1}},{{"steering_angle":-15,"speed":1}},{{"steering_angle":0,"speed":1}},{{"steering_angle":15,"speed":1}},{{"steering_angle":30,"speed":1}}],"sensor":["FRONT_FACING_CAMERA"],"neural_network":"{network}","version":"5"}}"#
     );

@@ -17,7 +17,7 @@ use rcgen::{
 use std::path::Path;
 
 /// Years a credential set is valid.
-const YEARS: i32 = 10;
+pub const YEARS: i32 = 10;
 
 /// The current year (UTC), for certificates' validity.
 pub fn this_year() -> i32 {

@@ -439,6 +439,43 @@ pub enum BenchCommand {
         #[arg(long, default_value = "runs/bench-soak")]
         out: PathBuf,
     },
+    /// Machines joining and a model reaching them, against their number (issue 54): N
+    /// machines, each in a network namespace of its own (as root), join with one token; a
+    /// signed model is broadcast to all, over Zenoh's peer mesh and through a router. Prints
+    /// the time until all joined and until all hold the model, per N, and a verdict (every copy
+    /// held and checked, no transport closed).
+    Scale {
+        /// Machine counts (comma-separated).
+        #[arg(long, value_delimiter = ',', default_value = "1,2,4,8,16")]
+        machines: Vec<usize>,
+        /// Models broadcast per run.
+        #[arg(long, default_value_t = 10)]
+        rounds: usize,
+        /// Where the runs go (logs, credentials).
+        #[arg(long, default_value = "runs/bench-scale")]
+        out: PathBuf,
+    },
+    /// One machine of `bench scale`: holds every model broadcast, each checked.
+    #[command(hide = true)]
+    ScaleReceive {
+        #[command(flatten)]
+        net: NetCli,
+        /// Where each model's arrival is written.
+        #[arg(long)]
+        record: PathBuf,
+    },
+    /// The publisher of `bench scale`: signed models, as the learner.
+    #[command(hide = true)]
+    ScaleSend {
+        #[command(flatten)]
+        net: NetCli,
+        /// Models to publish.
+        #[arg(long)]
+        rounds: usize,
+        /// Where each publication is written.
+        #[arg(long)]
+        record: PathBuf,
+    },
     /// A quality check of minutes: the README's kind of job (`up`, two worlds, two agents) run
     /// long, then the model of its last update evaluated on both worlds. Prints a verdict
     /// (exit 1 when it fails): the last model still laps every trial, updates went on past

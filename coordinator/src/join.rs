@@ -11,6 +11,7 @@ use anyhow::{Context, Result};
 use protocol::secure::{CA_FILE, JOIN_ROLES, MODEL_PUB_FILE, ROSTER_FILE, Role, Roster, stem};
 use protocol::{JoinReply, JoinRequest, PROTOCOL_VERSION, TokenCreate, TokenList, TokenRow};
 use redb::{ReadableDatabase, ReadableTable, TableDefinition};
+use sha2::Digest;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use subtle::ConstantTimeEq;
@@ -22,6 +23,8 @@ const TOKENS: TableDefinition<&str, &[u8]> = TableDefinition::new("join_tokens")
 pub const MAX_TTL_S: u64 = 7 * 24 * 3600;
 /// The most machines one token may join.
 pub const MAX_USES: u32 = 1024;
+/// The longest a certificate from a token may live (the CA's own span).
+pub const MAX_CERT_VALID_S: u64 = certs::YEARS as u64 * 365 * 24 * 3600;
 /// Tokens kept (used, expired and revoked ones are dropped oldest first past this).
 const MAX_TOKENS: usize = 4096;
 
@@ -39,6 +42,10 @@ struct Record {
     cert_valid_s: u64,
     revoked: bool,
     joined: Vec<String>,
+    /// SHA-256 (hex) of each joined machine's public key, beside `joined`: a machine that
+    /// asks again with the same token and key (its answer was lost) gets the same grant.
+    #[serde(default)]
+    keys: Vec<String>,
 }
 
 impl Record {
@@ -91,7 +98,11 @@ impl Office {
             .with_context(|| format!("--role '{}': expected agent, learner or car", req.role))?;
         anyhow::ensure!(req.ttl_s > 0 && req.ttl_s <= MAX_TTL_S, "--ttl: expected 1 s to 7 days");
         anyhow::ensure!(req.uses >= 1 && req.uses <= MAX_USES, "--uses: expected 1 to {MAX_USES}");
-        anyhow::ensure!(req.cert_valid_s >= 60, "--cert-valid: expected at least a minute");
+        anyhow::ensure!(
+            req.cert_valid_s >= 60 && req.cert_valid_s <= MAX_CERT_VALID_S,
+            "--cert-valid: expected a minute to {} years",
+            certs::YEARS
+        );
         let roster = Roster::load(&self.dir)?;
         if !req.name.is_empty() {
             anyhow::ensure!(
@@ -117,12 +128,11 @@ impl Office {
             protocol::join::parse_address(a).map_err(anyhow::Error::msg)?;
         }
         let ca_hash = protocol::join::ca_hash_of(&self.dir).map_err(anyhow::Error::msg)?;
-        let (id, secret) = protocol::join::new_id_and_secret();
         let now = now_unix();
         let rec = Record {
             role: role.name().to_string(),
             name: req.name.clone(),
-            hash: hex::encode(protocol::join::secret_hash(&secret)),
+            hash: String::new(),
             uses: req.uses,
             used: 0,
             created: now,
@@ -130,10 +140,19 @@ impl Office {
             cert_valid_s: req.cert_valid_s,
             revoked: false,
             joined: Vec::new(),
+            keys: Vec::new(),
         };
         let w = self.db.database().begin_write()?;
-        {
+        let (id, secret) = {
             let mut t = w.open_table(TOKENS)?;
+            // A new id (32 bits: drawn again should it be taken).
+            let (id, secret) = loop {
+                let (id, secret) = protocol::join::new_id_and_secret();
+                if t.get(id.as_str())?.is_none() {
+                    break (id, secret);
+                }
+            };
+            let rec = Record { hash: hex::encode(protocol::join::secret_hash(&secret)), ..rec };
             // Keep the table bounded: drop the oldest spent tokens.
             let mut all: Vec<(String, Record)> = Vec::new();
             for e in t.iter()? {
@@ -150,7 +169,8 @@ impl Office {
                 }
             }
             t.insert(id.as_str(), serde_json::to_vec(&rec)?.as_slice())?;
-        }
+            (id, secret)
+        };
         w.commit()?;
         tracing::info!(token = %id, role = role.name(), uses = req.uses, ttl_s = req.ttl_s, "join token made");
         Ok(protocol::join::Token { ca_hash, id, secret, address }.to_string())
@@ -221,10 +241,17 @@ impl Office {
         };
         let role = Role::from_name(&req.role)
             .filter(|r| JOIN_ROLES.contains(r))
-            .ok_or_else(|| refused(format!("role: '{}' cannot join (agent, learner or car)", req.role)))?;
+            .ok_or_else(|| refused(format!("role: '{}' cannot join (agent, learner or car)", shown(&req.role))))?;
         // The signing request first (no database work for garbage): only its key is used.
-        let csr = rcgen::CertificateSigningRequestParams::from_der(&req.csr_der.clone().into())
-            .map_err(|e| refused(format!("request: not a signed PKCS#10 request ({e})")))?;
+        let csr = rcgen::CertificateSigningRequestParams::from_der(&req.csr_der.clone().into()).map_err(|e| {
+            refused(match e {
+                rcgen::Error::UnsupportedExtension => {
+                    "request: it asks for an extension Paddock does not sign (ask for nothing but the key)".to_string()
+                }
+                e => format!("request: not a signed PKCS#10 request ({e})"),
+            })
+        })?;
+        let key_hash = hex::encode(sha2::Sha256::digest(rcgen::PublicKeyData::der_bytes(&csr.public_key)));
         if matches!(csr.params.is_ca, rcgen::IsCa::Ca(_)) {
             return Err(refused("request: it asks to be a CA"));
         }
@@ -239,6 +266,13 @@ impl Office {
             let got = protocol::join::secret_hash(&req.secret);
             if !bool::from(got.as_slice().ct_eq(want.as_slice())) {
                 return Err(refused("tampered token: its secret is wrong"));
+            }
+            // The same machine again (same key): its answer was lost; the same grant.
+            if let Some(i) = rec.keys.iter().position(|k| *k == key_hash)
+                && rec.role == role.name()
+                && let Some(id) = rec.joined.get(i)
+            {
+                return self.again(role, id).map_err(|e| internal(&format!("{e:#}")));
             }
             let now = now_unix();
             if rec.revoked {
@@ -265,20 +299,29 @@ impl Office {
                     other => format!("{other:?}"),
                 };
                 if asked != role.common_name() && asked != role.common_name_of(&id) {
-                    return Err(refused(format!("request: it asks for the name '{asked}'")));
+                    return Err(refused(format!("request: it asks for the name '{}'", shown(&asked))));
                 }
             }
-            let reply =
-                self.issue(role, &id, &csr.public_key, rec.cert_valid_s).map_err(|e| internal(&format!("{e:#}")))?;
+            // Everything the machine gets is read before anything is signed.
+            let mut reply = self.gather(role, &id).map_err(|e| internal(&format!("{e:#}")))?;
+            let cert =
+                self.sign(role, &id, &csr.public_key, rec.cert_valid_s).map_err(|e| internal(&format!("{e:#}")))?;
             rec.used += 1;
             rec.joined.push(id.clone());
-            t.insert(req.token_id.as_str(), serde_json::to_vec(&rec).map_err(|e| internal(&e))?.as_slice())
-                .map_err(|e| internal(&e))?;
+            rec.keys.push(key_hash);
+            let bytes = serde_json::to_vec(&rec).map_err(|e| internal(&e))?;
+            t.insert(req.token_id.as_str(), bytes.as_slice()).map_err(|e| internal(&e))?;
+            reply.certificate_pem = cert;
             reply
         };
+        // The certificate file is written last, and taken back unless the token's use is
+        // committed: a slot is never held by a certificate no machine got.
         let pem = self.dir.join(format!("{}.pem", stem(role, Some(&reply.id))));
+        let _ = std::fs::remove_file(&pem);
+        if let Err(e) = certs::write_file(&pem, &reply.certificate_pem, false) {
+            return Err(internal(&format!("{e:#}")));
+        }
         if let Err(e) = w.commit() {
-            // The token stays unused: take back the certificate file the join wrote.
             let _ = std::fs::remove_file(&pem);
             return Err(internal(&e));
         }
@@ -327,18 +370,21 @@ impl Office {
         )))
     }
 
-    /// Sign `key` as `role`'s machine `id` and gather what the machine needs.
-    fn issue(&self, role: Role, id: &str, key: &impl rcgen::PublicKeyData, valid_s: u64) -> Result<JoinReply> {
+    /// Sign `key` as `role`'s machine `id`: the certificate's PEM (not yet written).
+    fn sign(&self, role: Role, id: &str, key: &impl rcgen::PublicKeyData, valid_s: u64) -> Result<String> {
         let issuer = certs::issuer(&self.dir)?;
         let now = time::OffsetDateTime::now_utc();
         let mut p = certs::leaf(&role.common_name_of(id))?;
         p.is_ca = rcgen::IsCa::ExplicitNoCa;
         p.not_before = now - time::Duration::minutes(5);
-        p.not_after = now + time::Duration::seconds(valid_s as i64);
-        let cert = p.signed_by(key, &issuer).context("signing the certificate")?;
-        let pem = self.dir.join(format!("{}.pem", stem(role, Some(id))));
-        let _ = std::fs::remove_file(&pem);
-        certs::write_file(&pem, &cert.pem(), false)?;
+        p.not_after = now
+            .checked_add(time::Duration::seconds(valid_s.min(MAX_CERT_VALID_S) as i64))
+            .context("the certificate's expiry is out of range")?;
+        Ok(p.signed_by(key, &issuer).context("signing the certificate")?.pem())
+    }
+
+    /// What a machine that joined as `role`'s `id` gets beside its certificate.
+    fn gather(&self, role: Role, id: &str) -> Result<JoinReply> {
         let read =
             |n: &str| std::fs::read_to_string(self.dir.join(n)).with_context(|| self.dir.join(n).display().to_string());
         let crl = match std::fs::read_to_string(self.dir.join(protocol::revocation::CRL_FILE)) {
@@ -346,20 +392,39 @@ impl Office {
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => String::new(),
             Err(e) => anyhow::bail!("{}: {e}", self.dir.join(protocol::revocation::CRL_FILE).display()),
         };
+        let models_key = if role == Role::Learner {
+            read(protocol::secure::MODEL_KEY_FILE).context("a learner signs models with the cluster's key")?
+        } else {
+            String::new()
+        };
         Ok(JoinReply {
             protocol_version: PROTOCOL_VERSION,
             ok: true,
             refusal: String::new(),
             id: id.to_string(),
-            certificate_pem: cert.pem(),
+            certificate_pem: String::new(),
             ca_pem: read(CA_FILE)?,
             crl_pem: crl,
             models_pub: read(MODEL_PUB_FILE)?,
             roster_toml: read(ROSTER_FILE)?,
-            models_key: if role == Role::Learner { read(protocol::secure::MODEL_KEY_FILE)? } else { String::new() },
+            models_key,
             connect: self.connect.clone(),
         })
     }
+
+    /// The grant made before to `role`'s `id`, again (its certificate as written).
+    fn again(&self, role: Role, id: &str) -> Result<JoinReply> {
+        let pem = self.dir.join(format!("{}.pem", stem(role, Some(id))));
+        let mut reply = self.gather(role, id)?;
+        reply.certificate_pem = std::fs::read_to_string(&pem).with_context(|| pem.display().to_string())?;
+        tracing::info!(role = role.name(), id, "a machine asked again with the same token and key: the same grant");
+        Ok(reply)
+    }
+}
+
+/// A value from a request as a refusal shows it: 64 characters at most, escaped.
+fn shown(s: &str) -> String {
+    s.chars().take(64).collect::<String>().escape_debug().to_string()
 }
 
 /// `token list`'s table.
@@ -525,13 +590,22 @@ mod tests {
             assert!(!r.ok && r.refusal.contains(want), "{want}: {}", r.refusal);
             assert_eq!(issued(&o), 0, "{want}: a certificate was issued");
         }
+        // A learner's join when the coordinator has no signing key: refused, no slot held.
+        let models_key = o.dir().join(protocol::secure::MODEL_KEY_FILE);
+        std::fs::rename(&models_key, o.dir().join("away")).unwrap();
+        let l = ask(&o, &token(&o, "learner", 60, ""), "learner", csr("paddock-learner", false));
+        assert!(!l.ok && !o.dir().join("learner-slot-1.pem").exists(), "{}", l.refusal);
+        std::fs::rename(o.dir().join("away"), &models_key).unwrap();
         // A good join: the first free slot, for the request's key.
         let t = token(&o, "agent", 60, "");
-        let r = ask(&o, &t, "agent", csr(agent, false));
+        let der = csr(agent, false);
+        let r = ask(&o, &t, "agent", der.clone());
         assert!(r.ok, "{}", r.refusal);
         assert_eq!((r.id.as_str(), r.connect.as_slice()), ("slot-1", &["tls/[::]:7447".to_string()][..]));
         assert!(r.models_key.is_empty(), "an agent gets no signing key");
-        // Used once: refused again.
+        // Its answer lost, the same machine asks again: the same grant; another key is refused.
+        let same = ask(&o, &t, "agent", der);
+        assert_eq!((same.ok, same.id.as_str(), &same.certificate_pem), (true, "slot-1", &r.certificate_pem));
         let again = ask(&o, &t, "agent", csr(agent, false));
         assert!(again.refusal.contains("used token"), "{}", again.refusal);
         // A named slot, then the roster is full and the refusal says how to grow it.
@@ -563,6 +637,15 @@ mod tests {
         assert!(bad("agent", "lab-9").contains("'lab-9': not one of the agent slots"));
         assert!(bad("car", "").contains("no car slots"));
         assert!(bad("operator", "").contains("expected agent, learner or car"));
+        let forever = TokenCreate {
+            role: "agent".into(),
+            ttl_s: 60,
+            uses: 1,
+            name: String::new(),
+            cert_valid_s: u64::MAX,
+            address: String::new(),
+        };
+        assert!(o.create(&forever, None).unwrap_err().to_string().contains("--cert-valid"));
         let list = o.list().unwrap();
         assert_eq!(list.tokens.iter().filter(|t| t.used == 1).count(), 4);
     }

@@ -17,6 +17,7 @@ mod local;
 mod race_cmd;
 mod render_cmd;
 mod report;
+mod scale;
 mod serve;
 mod soak;
 mod tracks_cmd;
@@ -148,6 +149,11 @@ fn main() {
         cli::Command::Bench { command } => match command {
             cli::BenchCommand::Cluster { seconds, envs, world } => bench::cluster(seconds, envs, &world).map(|()| 0),
             cli::BenchCommand::LongJob { minutes, trials, out } => bench::long_job(minutes, trials, &out),
+            cli::BenchCommand::Scale { machines, rounds, out } => scale::scale(&machines, rounds, &out),
+            cli::BenchCommand::ScaleReceive { net, record } => scale::receive(client::net_args(&net, false), &record),
+            cli::BenchCommand::ScaleSend { net, rounds, record } => {
+                scale::send(client::net_args(&net, false), rounds, &record)
+            }
             cli::BenchCommand::Soak { minutes, sample_s, kill_every, rejoin_every, cert_minutes, warmup, envs, out } => {
                 soak::soak(soak::SoakArgs { minutes, sample_s, kill_every, rejoin_every, cert_minutes, warmup, envs, out })
             }

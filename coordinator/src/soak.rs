@@ -66,6 +66,9 @@ fn proc_of(pid: u32) -> Proc {
     Proc { rss_kb: field("VmRSS:"), threads: field("Threads:"), files, sockets }
 }
 
+/// Minutes at the end of a run without churn: the last event's recovery is seen.
+const CHURN_GRACE: f64 = 3.0;
+
 /// The roles sampled, in the CSV's order.
 const ROLES: [&str; 4] = ["coordinator", "learner", "agent-1", "agent-2"];
 
@@ -135,6 +138,7 @@ fn join(session: &net::zenoh::Session, out: &Path, agent: &str, cert_minutes: f6
 /// `bench soak`.
 pub fn soak(a: SoakArgs) -> Result<i32> {
     anyhow::ensure!(a.minutes > a.warmup && a.sample_s >= 5.0, "--minutes must pass --warmup; --sample-s at least 5");
+    anyhow::ensure!(a.cert_minutes == 0.0 || a.cert_minutes >= 1.0, "--cert-minutes: 0 (a year) or at least 1");
     if a.out.exists() {
         bail!("{} exists: pass another --out, or delete it", a.out.display());
     }
@@ -239,7 +243,7 @@ pub fn soak(a: SoakArgs) -> Result<i32> {
         csv.push_str(&format!(",{r}_rss_mb,{r}_threads,{r}_files,{r}_sockets"));
     }
     csv.push_str(
-        ",steps_per_s,step_ms_p50,step_ms_p95,episodes_received,dropped_stale,dropped_bad,dropped_duplicate,refused\n",
+        ",steps_per_s,step_ms_p50,step_ms_p95,episodes_received,dropped_stale,dropped_bad,dropped_duplicate,refused,env_steps\n",
     );
     let mut rows: Vec<Vec<f64>> = Vec::new();
     let mut lives: Vec<Vec<u64>> = Vec::new();
@@ -255,6 +259,7 @@ pub fn soak(a: SoakArgs) -> Result<i32> {
     let start = Instant::now();
     let mut last_status = None;
     let mut steps_now = 0.0;
+    let mut prev_env: Option<(f64, f64)> = None;
     let mut next_poll = Instant::now();
     loop {
         std::thread::sleep(Duration::from_secs(1));
@@ -265,8 +270,9 @@ pub fn soak(a: SoakArgs) -> Result<i32> {
         for e in children.supervise()? {
             bar.suspend(|| println!("{e}"));
         }
-        // Churn.
-        if a.kill_every > 0.0 && now >= next_kill {
+        // Churn, but none in the last minutes (each must have time to recover).
+        let churn_open = now < a.minutes - CHURN_GRACE;
+        if churn_open && a.kill_every > 0.0 && now >= next_kill {
             next_kill += a.kill_every;
             let agent = format!("agent-{}", 1 + kills % 2);
             kills += 1;
@@ -276,7 +282,7 @@ pub fn soak(a: SoakArgs) -> Result<i32> {
         }
         // Agent 2 is revoked and joins again; agent 1's certificate expires and it joins again.
         for expired in [false, true] {
-            let due = if expired { now >= cert_due } else { a.rejoin_every > 0.0 && now >= next_rejoin };
+            let due = churn_open && if expired { now >= cert_due } else { a.rejoin_every > 0.0 && now >= next_rejoin };
             if !due {
                 continue;
             }
@@ -317,16 +323,21 @@ pub fn soak(a: SoakArgs) -> Result<i32> {
                     }
                 }
             }
-            if let Ok(r) = request(&session, Kind::StatusJobId(job.into()), Duration::from_secs(3))
-                && let Some(st) = crate::client::status_of(&r).cloned()
+            match request(&session, Kind::StatusJobId(job.into()), Duration::from_secs(3))
+                .ok()
+                .and_then(|r| crate::client::status_of(&r).cloned())
             {
-                if let Some(l) = st.record.as_ref().and_then(|j| j.learner.as_ref()) {
-                    bar.set_message(format!(
-                        "v{} episodes {} steps/s {steps_now:.0}",
-                        l.policy_version, l.episodes_received
-                    ));
+                Some(st) => {
+                    if let Some(l) = st.record.as_ref().and_then(|j| j.learner.as_ref()) {
+                        bar.set_message(format!(
+                            "v{} episodes {} steps/s {steps_now:.0}",
+                            l.policy_version, l.episodes_received
+                        ));
+                    }
+                    last_status = Some(st);
                 }
-                last_status = Some(st);
+                // Unknown, not stale: the sample leaves the job's figures out.
+                None => last_status = None,
             }
         }
         bar.set_position(start.elapsed().as_secs());
@@ -348,15 +359,25 @@ pub fn soak(a: SoakArgs) -> Result<i32> {
                 .as_ref()
                 .map(|s| s.coordinator_refused.iter().chain(&l.refused).map(|d| d.count).sum())
                 .unwrap_or(0);
+            // Steps/s end to end: the learner's environment steps since the last sample.
+            let env = if last_status.is_some() { l.env_steps as f64 } else { f64::NAN };
+            let steps = match prev_env {
+                Some((t, e)) if env.is_finite() && now > t => (env - e) / ((now - t) * 60.0),
+                _ => f64::NAN,
+            };
+            if env.is_finite() {
+                prev_env = Some((now, env));
+            }
             row.extend([
-                steps_now,
+                steps,
                 quantile(&mut step_ms.clone(), 0.5),
                 quantile(&mut step_ms.clone(), 0.95),
-                l.episodes_received as f64,
+                if last_status.is_some() { l.episodes_received as f64 } else { f64::NAN },
                 l.dropped_stale as f64,
                 l.dropped_bad as f64,
                 l.dropped_duplicate as f64,
                 refused as f64,
+                env,
             ]);
             step_ms.clear();
             csv.push_str(&row.iter().map(|v| format!("{v:.3}")).collect::<Vec<_>>().join(","));
@@ -383,12 +404,22 @@ fn worst_life(a: &SoakArgs, rows: &[Vec<f64>], lives: &[Vec<u64>], k: usize) -> 
             j += 1;
         }
         let born = rows[i][0];
-        let seg: Vec<&Vec<f64>> = rows[i..j].iter().filter(|r| r[0] >= born + a.warmup).collect();
+        let seg: Vec<&Vec<f64>> =
+            rows[i..j].iter().filter(|r| r[0] >= born + a.warmup && r[1 + 4 * k].is_finite()).collect();
         if pid != 0 && seg.len() >= 3 && seg[seg.len() - 1][0] - seg[0][0] >= MIN_LIFE {
-            let xs: Vec<f64> = seg.iter().map(|r| r[0]).collect();
-            let ys: Vec<f64> = seg.iter().map(|r| r[1 + 4 * k]).collect();
-            let g = drift_per_hour(&xs, &ys);
-            worst = Some(worst.map_or(g, |w: f64| w.max(g)));
+            // The floor of each window: what a process holds between its peaks (a training
+            // update's buffers come and go; a leak raises the floor).
+            let (mut xs, mut ys) = (Vec::new(), Vec::new());
+            for w in seg.chunk_by(|p, q| {
+                ((p[0] - seg[0][0]) / FLOOR_WINDOW) as u64 == ((q[0] - seg[0][0]) / FLOOR_WINDOW) as u64
+            }) {
+                xs.push(w.iter().map(|r| r[0]).sum::<f64>() / w.len() as f64);
+                ys.push(w.iter().map(|r| r[1 + 4 * k]).fold(f64::INFINITY, f64::min));
+            }
+            if xs.len() >= 3 {
+                let g = drift_per_hour(&xs, &ys);
+                worst = Some(worst.map_or(g, |w: f64| w.max(g)));
+            }
         }
         i = j;
     }
@@ -397,6 +428,9 @@ fn worst_life(a: &SoakArgs, rows: &[Vec<f64>], lives: &[Vec<u64>], k: usize) -> 
 
 /// Minutes a process's life must run past its warm-up for its memory slope to count.
 const MIN_LIFE: f64 = 10.0;
+/// Minutes of each window whose floor (least resident memory) the memory slope is taken over,
+/// and whose mean the steps/s drift.
+const FLOOR_WINDOW: f64 = 3.0;
 
 /// The verdict from the samples after the warm-up: memory, steps/s, episodes, recoveries.
 fn verdict(a: &SoakArgs, rows: &[Vec<f64>], lives: &[Vec<u64>], churn: &[Churn], out: &Path) -> Result<i32> {
@@ -423,14 +457,28 @@ fn verdict(a: &SoakArgs, rows: &[Vec<f64>], lives: &[Vec<u64>], churn: &[Churn],
             ));
         }
     }
-    let steps = col(base);
-    let d = drift_per_hour(&xs, &steps);
+    // Steps/s over windows: the learner's environment steps across each window, against time.
+    let env: Vec<(f64, f64)> = after.iter().map(|r| (r[0], r[base + 8])).filter(|p| p.1.is_finite()).collect();
+    let (mut wx, mut wy) = (Vec::new(), Vec::new());
+    if let Some(first) = env.first() {
+        for w in env.chunk_by(|p, q| ((p.0 - first.0) / FLOOR_WINDOW) as u64 == ((q.0 - first.0) / FLOOR_WINDOW) as u64)
+        {
+            let (a0, a1) = (w[0], w[w.len() - 1]);
+            if a1.0 > a0.0 {
+                wx.push((a0.0 + a1.0) / 2.0);
+                wy.push((a1.1 - a0.1) / ((a1.0 - a0.0) * 60.0));
+            }
+        }
+    }
+    let d = if wx.len() >= 3 { drift_per_hour(&wx, &wy) } else { f64::NAN };
+    let mean = wy.iter().sum::<f64>() / wy.len().max(1) as f64;
+    let spread = (wy.iter().map(|y| (y - mean).powi(2)).sum::<f64>() / wy.len().max(1) as f64).sqrt() * 100.0 / mean;
     checks.push((
-        "steps/s drift ≤ 2 %/h".into(),
-        format!("{d:+.2} %/h (mean {:.0})", steps.iter().sum::<f64>() / steps.len() as f64),
+        "steps/s drift ≤ 2 %/h (environment steps the learner got, per window)".into(),
+        format!("{d:+.2} %/h (mean {mean:.0} steps/s over {} windows; windows spread ±{spread:.0} %)", wx.len()),
         d.abs() <= 2.0,
     ));
-    let last = rows.last().cloned().unwrap_or_default();
+    let last = rows.iter().rev().find(|r| r[base + 3].is_finite()).cloned().unwrap_or_else(|| vec![f64::NAN; base + 8]);
     let (bad, dup) = (last[base + 5], last[base + 6]);
     // A stall: a minute past the warm-up in which no episode arrived.
     let stalls = rows
@@ -519,14 +567,15 @@ fn chart(rows: &[Vec<f64>], out: &Path) -> Result<()> {
     let base = 1 + 4 * ROLES.len();
     let max_steps = rows.iter().map(|r| r[base]).fold(1.0, f64::max);
     let mut c = ChartBuilder::on(&bottom)
-        .caption("environment steps/s (both agents)", ("sans-serif", 18))
+        .caption("environment steps/s the learner got (both agents)", ("sans-serif", 18))
         .margin(10)
         .x_label_area_size(30)
         .y_label_area_size(50)
         .build_cartesian_2d(0f64..end, 0f64..max_steps * 1.1)
         .map_err(|x| e(&x))?;
     c.configure_mesh().x_desc("minutes").draw().map_err(|x| e(&x))?;
-    c.draw_series(LineSeries::new(rows.iter().map(|r| (r[0], r[base])), BLUE)).map_err(|x| e(&x))?;
+    c.draw_series(LineSeries::new(rows.iter().map(|r| (r[0], r[base])).filter(|p| p.1.is_finite()), BLUE))
+        .map_err(|x| e(&x))?;
     root.present().map_err(|x| e(&x))?;
     Ok(())
 }

@@ -24,12 +24,18 @@ use std::time::Duration;
 
 /// The join door's port when none is given.
 pub const DOOR_PORT: u16 = 7449;
-/// The largest join message either side reads.
+/// The largest request the door reads.
 pub const MAX_FRAME: usize = 64 * 1024;
-/// How long one join may take, from the TCP connection to the reply.
-pub const JOIN_TIMEOUT: Duration = Duration::from_secs(15);
+/// The largest answer a machine reads (the revocation list travels in it).
+pub const MAX_REPLY: usize = 4 * 1024 * 1024;
+/// How long a machine waits for its join, from the TCP connection to the answer.
+pub const JOIN_TIMEOUT: Duration = Duration::from_secs(30);
+/// How long the door waits for a handshake and a request (the answer is then always made).
+pub const REQUEST_TIMEOUT: Duration = Duration::from_secs(5);
 /// Joins the door handles at once; more are refused at once ("busy").
 pub const MAX_IN_FLIGHT: usize = 16;
+/// Joins one address may have in flight at the door.
+pub const MAX_PER_PEER: usize = 4;
 /// Join requests per second the door takes in all; past this each is refused unread.
 pub const MAX_PER_SECOND: u32 = 20;
 
@@ -45,6 +51,9 @@ pub enum JoinError {
     /// The coordinator refused, with its reason.
     #[error("the coordinator refused the join: {0}")]
     Refused(String),
+    /// The command was given something it cannot use.
+    #[error("{0}")]
+    Usage(String),
     /// A file could not be written (nothing else is left behind).
     #[error("{path}: {what}")]
     File {
@@ -56,7 +65,8 @@ pub enum JoinError {
 }
 
 /// A join token: the CA's public-key hash, the token's id and secret, and where the door is.
-#[derive(Clone, Debug, PartialEq, Eq)]
+/// Its `Debug` leaves the secret out.
+#[derive(Clone, PartialEq, Eq)]
 pub struct Token {
     /// SHA-256 of the CA certificate's SubjectPublicKeyInfo.
     pub ca_hash: [u8; 32],
@@ -73,6 +83,12 @@ const TOKEN_PREFIX: &str = "P1";
 
 fn is_hex(s: &str, len: usize) -> bool {
     s.len() == len && s.bytes().all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b))
+}
+
+impl std::fmt::Debug for Token {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Token").field("id", &self.id).field("address", &self.address).finish_non_exhaustive()
+    }
 }
 
 impl std::fmt::Display for Token {
@@ -248,15 +264,15 @@ async fn write_frame<W: tokio::io::AsyncWrite + Unpin>(w: &mut W, bytes: &[u8]) 
     w.flush().await
 }
 
-async fn read_frame<R: tokio::io::AsyncRead + Unpin>(r: &mut R) -> std::io::Result<Vec<u8>> {
+async fn read_frame<R: tokio::io::AsyncRead + Unpin>(r: &mut R, max: usize) -> std::io::Result<Vec<u8>> {
     use tokio::io::AsyncReadExt;
     let mut len = [0u8; 4];
     r.read_exact(&mut len).await?;
     let n = u32::from_be_bytes(len) as usize;
-    if n > MAX_FRAME {
+    if n > max {
         return Err(std::io::Error::new(
             std::io::ErrorKind::InvalidData,
-            format!("a {n}-byte message (at most {MAX_FRAME})"),
+            format!("a {n}-byte message (at most {max})"),
         ));
     }
     let mut buf = vec![0u8; n];
@@ -289,7 +305,7 @@ pub fn ask(addr: &str, pin: [u8; 32], req: &JoinRequest) -> Result<JoinReply, Jo
             .await
             .map_err(|e| format!("refused the door: {e}"))?;
         write_frame(&mut tls, &bytes).await.map_err(|e| format!("sending: {e}"))?;
-        read_frame(&mut tls).await.map_err(|e| format!("reading the answer: {e}"))
+        read_frame(&mut tls, MAX_REPLY).await.map_err(|e| format!("reading the answer: {e}"))
     };
     let reply = rt
         .block_on(async { tokio::time::timeout(JOIN_TIMEOUT, fut).await })
@@ -357,9 +373,10 @@ pub struct Joined {
 }
 
 /// `sim-agent join`, `learner join`, `deploy join`: one definition for every role.
-#[derive(clap::Args, Clone, Debug)]
+#[derive(clap::Args, Clone)]
 pub struct JoinCli {
-    /// The token `coordinator token create` printed.
+    /// The token `coordinator token create` printed (`-`: read it from standard input, out of
+    /// the process list).
     pub token: String,
     /// The credentials folder to write (with --service: /var/lib/paddock-ROLE/certs).
     #[arg(long, value_name = "DIR")]
@@ -381,16 +398,36 @@ pub struct JoinCli {
     pub args: Vec<String>,
 }
 
+impl std::fmt::Debug for JoinCli {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("JoinCli").field("certs", &self.certs).field("service", &self.service).finish_non_exhaustive()
+    }
+}
+
 /// Run a role's `join` command: join, print what was written and how to start the role (or
 /// install and start it as a service).
 pub fn run_cli(role: Role, cli: JoinCli) -> Result<(), JoinError> {
-    let token: Token = cli.token.parse()?;
+    // `-`: the token from standard input (kept out of the process list).
+    let text = if cli.token == "-" {
+        let mut line = String::new();
+        std::io::stdin().read_line(&mut line).map_err(|e| JoinError::Usage(format!("reading the token: {e}")))?;
+        line
+    } else {
+        cli.token.clone()
+    };
+    let token: Token = text.parse()?;
     let service = crate::service::service_role(role);
     let dir = match (&cli.certs, cli.service) {
-        (Some(d), _) => d.clone(),
+        (Some(_), true) => {
+            return Err(JoinError::Usage(format!(
+                "--certs with --service: the service reads {}; leave --certs out",
+                crate::service::certs_dir(service).display()
+            )));
+        }
+        (Some(d), false) => d.clone(),
         (None, true) => crate::service::certs_dir(service),
         (None, false) => {
-            return Err(JoinError::Token("--certs DIR: expected the folder to write the credentials in".into()));
+            return Err(JoinError::Usage("--certs DIR: expected the folder to write the credentials in".into()));
         }
     };
     let plan =
@@ -401,6 +438,20 @@ pub fn run_cli(role: Role, cli: JoinCli) -> Result<(), JoinError> {
     let mut args: Vec<String> = joined.connect.iter().flat_map(|c| ["--connect".to_string(), c.clone()]).collect();
     args.extend(cli.args.iter().cloned());
     if cli.service {
+        // A machine joining again: its state folder belongs to the service's dynamic user, who
+        // must read what root just wrote (systemd re-owns only a folder whose owner differs).
+        #[cfg(unix)]
+        if let Some(state) = dir.parent()
+            && let Ok(meta) = std::fs::metadata(state)
+        {
+            use std::os::unix::fs::MetadataExt;
+            for p in std::iter::once(dir.clone()).chain(joined.files.iter().map(|f| dir.join(f))) {
+                std::os::unix::fs::chown(&p, Some(meta.uid()), Some(meta.gid())).map_err(|e| JoinError::File {
+                    path: p.clone(),
+                    what: format!("cannot give it to the service ({e})"),
+                })?;
+            }
+        }
         let bin = crate::service::sibling_binary(service).map_err(|e| JoinError::Door(e.to_string()))?;
         let unit = crate::service::unit(service, &bin, "8G", &args).map_err(|e| JoinError::Door(e.to_string()))?;
         let path = crate::service::install(service, &unit).map_err(|e| JoinError::Door(e.to_string()))?;
@@ -425,8 +476,16 @@ fn own_files(role: Role, id: &str) -> [String; 2] {
 /// Nothing is written unless the join succeeds.
 pub fn join(plan: &JoinPlan) -> Result<Joined, JoinError> {
     let file_err = |path: &Path, what: String| JoinError::File { path: path.to_path_buf(), what };
-    // Refuse before anything is sent: a folder holding another cluster's CA, or this role's
-    // credentials already.
+    // Refuse before anything is sent: the CA's own folder, a folder holding another
+    // cluster's CA, or this role's credentials already.
+    if plan.dir.join("ca.key").exists() {
+        return Err(file_err(
+            &plan.dir,
+            "holds the CA's key: it is the coordinator's folder, whose machines' certificates a join would replace; \
+             give join a folder of this machine's own"
+                .into(),
+        ));
+    }
     if let Ok(h) = ca_hash_of(&plan.dir)
         && h != plan.token.ca_hash
     {
@@ -479,25 +538,36 @@ pub fn join(plan: &JoinPlan) -> Result<Joined, JoinError> {
     let mut tried = Vec::new();
     let (door, reply) = 'found: {
         for d in &doors {
-            match ask(d, plan.token.ca_hash, &req) {
-                Ok(r) => break 'found (d.clone(), r),
-                Err(e) => {
-                    tracing::info!("{e}");
-                    tried.push(e.to_string());
+            // Once more if the answer was lost: the coordinator sends the same grant again for
+            // the same token and key.
+            for attempt in 0..2 {
+                match ask(d, plan.token.ca_hash, &req) {
+                    Ok(r) => break 'found (d.clone(), r),
+                    Err(e) => {
+                        tracing::info!("{e}");
+                        let pin = is_pin_failure(&e);
+                        tried.push((pin, e.to_string()));
+                        if pin || attempt == 1 {
+                            break;
+                        }
+                        std::thread::sleep(Duration::from_secs(1));
+                    }
                 }
             }
         }
-        return Err(JoinError::Door(format!("no door passed the token's CA check: {}", tried.join("; "))));
+        let all_pins = tried.iter().all(|(pin, _)| *pin);
+        let list = tried.into_iter().map(|(_, e)| e).collect::<Vec<_>>().join("; ");
+        return Err(JoinError::Door(if all_pins {
+            format!("no door passed the token's CA check (not this token's cluster): {list}")
+        } else {
+            format!("could not join through any door: {list}")
+        }));
     };
     if !reply.ok {
         return Err(JoinError::Refused(reply.refusal));
     }
     let id = check_reply(plan, &reply, &key)?;
     std::fs::create_dir_all(&plan.dir).map_err(|e| file_err(&plan.dir, format!("cannot create it ({e})")))?;
-    for old in &existing {
-        std::fs::remove_file(plan.dir.join(old))
-            .map_err(|e| file_err(&plan.dir.join(old), format!("cannot replace it ({e})")))?;
-    }
     let [pem, keyfile] = own_files(plan.role, &id);
     let mut files = vec![
         (keyfile, key.serialize_pem(), true),
@@ -512,8 +582,27 @@ pub fn join(plan: &JoinPlan) -> Result<Joined, JoinError> {
     if plan.role == Role::Learner && !reply.models_key.is_empty() {
         files.push((crate::secure::MODEL_KEY_FILE.to_string(), reply.models_key.clone(), true));
     }
-    for (name, text, secret) in &files {
-        write_atomic(&plan.dir.join(name), text, *secret)?;
+    // Every file written beside its place first; only then the old credentials go and the
+    // new ones take their places.
+    let staged: Vec<PathBuf> = files
+        .iter()
+        .map(|(name, text, secret)| stage(&plan.dir.join(name), text, *secret))
+        .collect::<Result<_, _>>()
+        .inspect_err(|_| {
+            for (name, _, _) in &files {
+                let _ = std::fs::remove_file(staged_name(&plan.dir.join(name)));
+            }
+        })?;
+    for old in existing.iter().filter(|o| !files.iter().any(|(n, _, _)| n == *o)) {
+        std::fs::remove_file(plan.dir.join(old))
+            .map_err(|e| file_err(&plan.dir.join(old), format!("cannot replace it ({e})")))?;
+    }
+    for ((name, _, _), tmp) in files.iter().zip(&staged) {
+        std::fs::rename(tmp, plan.dir.join(name))
+            .map_err(|e| file_err(&plan.dir.join(name), format!("cannot write it ({e})")))?;
+    }
+    if let Ok(d) = std::fs::File::open(&plan.dir) {
+        let _ = d.sync_all();
     }
     let door_host = parse_address(&door).map(|(h, _)| h).unwrap_or_default();
     let connect = reply.connect.iter().map(|ep| endpoint_for(ep, &door_host)).collect();
@@ -564,10 +653,25 @@ fn check_reply(plan: &JoinPlan, reply: &JoinReply, key: &rcgen::KeyPair) -> Resu
     Ok(id)
 }
 
-fn write_atomic(path: &Path, text: &str, secret: bool) -> Result<(), JoinError> {
+/// Where a file is staged before it takes its place (`NAME.joining`).
+fn staged_name(path: &Path) -> PathBuf {
+    let mut s = path.as_os_str().to_owned();
+    s.push(".joining");
+    PathBuf::from(s)
+}
+
+/// Whether a door was refused for failing the token's CA pin (or not naming the coordinator).
+fn is_pin_failure(e: &JoinError) -> bool {
+    let t = e.to_string();
+    t.contains("no CA with the token's hash") || t.contains("not the coordinator's")
+}
+
+/// Write `text` beside `path` (`.joining`), synced, readable by its owner only when `secret`;
+/// returns the staged file.
+fn stage(path: &Path, text: &str, secret: bool) -> Result<PathBuf, JoinError> {
     use std::io::Write;
     let err = |what: String| JoinError::File { path: path.to_path_buf(), what };
-    let tmp = path.with_extension("joining");
+    let tmp = staged_name(path);
     let _ = std::fs::remove_file(&tmp);
     let mut o = std::fs::OpenOptions::new();
     o.write(true).create_new(true);
@@ -578,7 +682,7 @@ fn write_atomic(path: &Path, text: &str, secret: bool) -> Result<(), JoinError> 
     }
     let mut f = o.open(&tmp).map_err(|e| err(format!("cannot create it ({e})")))?;
     f.write_all(text.as_bytes()).and_then(|()| f.sync_all()).map_err(|e| err(format!("cannot write it ({e})")))?;
-    std::fs::rename(&tmp, path).map_err(|e| err(format!("cannot write it ({e})")))
+    Ok(tmp)
 }
 
 /// Joins granted and refused by this process's door, by reason.
@@ -601,12 +705,20 @@ pub fn refusal(reason: impl Into<String>) -> JoinReply {
     JoinReply { protocol_version: PROTOCOL_VERSION, ok: false, refusal: reason.into(), ..Default::default() }
 }
 
+/// When a refusal was last logged (unix seconds): a flood is counted, and logged once a
+/// second.
+static LAST_LOGGED: AtomicU64 = AtomicU64::new(0);
+
 /// Count a refused join (here and in the node's refusals `job status` shows) and log it.
 fn count_refusal(reason: &str, peer: SocketAddr) {
     let short: String = reason.split(':').next().unwrap_or(reason).chars().take(60).collect();
     JOINS.refused.count(short.clone());
     crate::secure::REFUSED.count(format!("join refused: {short}"));
-    tracing::warn!(%peer, "join refused: {reason}");
+    let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs());
+    if LAST_LOGGED.swap(now, Ordering::Relaxed) != now {
+        let reason: String = reason.chars().take(300).collect();
+        tracing::warn!(%peer, "join refused: {}", reason.escape_debug());
+    }
 }
 
 /// The door's admission: at most [`MAX_PER_SECOND`] requests a second in all.
@@ -645,48 +757,90 @@ pub fn serve(
                     Err(e) => return tracing::error!("the join door cannot listen: {e}"),
                 };
                 let slots = Arc::new(tokio::sync::Semaphore::new(MAX_IN_FLIGHT));
+                let peers: Arc<std::sync::Mutex<std::collections::HashMap<std::net::IpAddr, usize>>> = Arc::default();
                 let mut rate = Rate { window: std::time::Instant::now(), n: 0 };
                 loop {
-                    let Ok((tcp, peer)) = listener.accept().await else { continue };
+                    let (tcp, peer) = match listener.accept().await {
+                        Ok(x) => x,
+                        Err(e) => {
+                            // Out of descriptors, say: wait rather than spin.
+                            tracing::warn!("the join door cannot accept: {e}");
+                            tokio::time::sleep(Duration::from_millis(100)).await;
+                            continue;
+                        }
+                    };
                     let Ok(permit) = slots.clone().try_acquire_owned() else {
                         count_refusal("busy: too many joins at once", peer);
                         continue;
                     };
+                    {
+                        let mut p = peers.lock().unwrap_or_else(|e| e.into_inner());
+                        let n = p.entry(peer.ip()).or_default();
+                        if *n >= MAX_PER_PEER {
+                            count_refusal("busy: too many joins from this address at once", peer);
+                            continue;
+                        }
+                        *n += 1;
+                    }
                     if rate.window.elapsed() >= Duration::from_secs(1) {
                         rate = Rate { window: std::time::Instant::now(), n: 0 };
                     }
                     rate.n += 1;
                     let over = rate.n > MAX_PER_SECOND;
-                    let (acceptor, handler) = (acceptor.clone(), handler.clone());
+                    let (acceptor, handler, peers) = (acceptor.clone(), handler.clone(), peers.clone());
                     tokio::spawn(async move {
                         let _permit = permit;
-                        let work = async {
+                        // The handshake and the request have a deadline; once a request is
+                        // read, its answer is made and sent whatever the time (a grant is
+                        // never made and then dropped).
+                        let read = async {
                             let mut tls = acceptor.accept(tcp).await.map_err(|e| format!("handshake: {e}"))?;
-                            let bytes = read_frame(&mut tls).await.map_err(|e| format!("malformed: {e}"))?;
-                            let reply = if over {
-                                refusal("busy: too many join requests this second; try again")
-                            } else {
-                                match crate::decode::<JoinRequest>(&bytes) {
-                                    Ok(req) => {
-                                        let h = handler.clone();
-                                        tokio::task::spawn_blocking(move || h(req, peer))
-                                            .await
-                                            .unwrap_or_else(|_| refusal("the coordinator failed on it"))
-                                    }
-                                    Err(e) => refusal(format!("malformed: {e}")),
-                                }
-                            };
-                            if reply.ok {
-                                JOINS.granted.fetch_add(1, Ordering::Relaxed);
-                            } else {
-                                count_refusal(&reply.refusal, peer);
-                            }
-                            write_frame(&mut tls, &reply.encode_to_vec()).await.map_err(|e| format!("answering: {e}"))
+                            let bytes = read_frame(&mut tls, MAX_FRAME).await.map_err(|e| format!("malformed: {e}"))?;
+                            Ok::<_, String>((tls, bytes))
                         };
-                        match tokio::time::timeout(JOIN_TIMEOUT, work).await {
-                            Ok(Ok(())) => {}
-                            Ok(Err(e)) => count_refusal(&e, peer),
-                            Err(_) => count_refusal("too slow: no request in time", peer),
+                        let result = match tokio::time::timeout(REQUEST_TIMEOUT, read).await {
+                            Err(_) => Err("too slow: no request in time".to_string()),
+                            Ok(Err(e)) => Err(e),
+                            Ok(Ok((mut tls, bytes))) => {
+                                let reply = if over {
+                                    refusal("busy: too many join requests this second; try again")
+                                } else {
+                                    match crate::decode::<JoinRequest>(&bytes) {
+                                        Ok(req) => {
+                                            let h = handler.clone();
+                                            tokio::task::spawn_blocking(move || h(req, peer))
+                                                .await
+                                                .unwrap_or_else(|_| refusal("the coordinator failed on it"))
+                                        }
+                                        Err(e) => refusal(format!("malformed: {e}")),
+                                    }
+                                };
+                                if reply.ok {
+                                    JOINS.granted.fetch_add(1, Ordering::Relaxed);
+                                } else {
+                                    count_refusal(&reply.refusal, peer);
+                                }
+                                let sent =
+                                    tokio::time::timeout(JOIN_TIMEOUT, write_frame(&mut tls, &reply.encode_to_vec()))
+                                        .await;
+                                match sent {
+                                    Ok(Ok(())) => Ok(()),
+                                    // A grant whose answer was lost is sent again when the
+                                    // machine asks again with the same token and key.
+                                    Ok(Err(e)) => Err(format!("answering: {e}")),
+                                    Err(_) => Err("answering: too slow".to_string()),
+                                }
+                            }
+                        };
+                        if let Err(e) = result {
+                            count_refusal(&e, peer);
+                        }
+                        let mut p = peers.lock().unwrap_or_else(|e| e.into_inner());
+                        if let Some(n) = p.get_mut(&peer.ip()) {
+                            *n -= 1;
+                            if *n == 0 {
+                                p.remove(&peer.ip());
+                            }
                         }
                     });
                 }

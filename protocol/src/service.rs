@@ -175,7 +175,8 @@ pub fn install(role: &str, unit_text: &str) -> Result<PathBuf, ServiceError> {
     }
     let path = Path::new("/etc/systemd/system").join(unit_name(role));
     std::fs::write(&path, unit_text).map_err(|e| ServiceError(format!("{}: {e}", path.display())))?;
-    for args in [vec!["daemon-reload"], vec!["enable", "--now", &unit_name(role)]] {
+    // `restart`, not `start`: a machine that joined again runs with its new credentials.
+    for args in [vec!["daemon-reload"], vec!["enable", &unit_name(role)], vec!["restart", &unit_name(role)]] {
         let out = std::process::Command::new("systemctl")
             .args(&args)
             .output()

@@ -94,11 +94,10 @@ pub fn serve(args: ServeArgs) -> Result<()> {
     let mut failed: Option<(String, u64)> = None;
     let mut docs: Vec<Job> = Vec::new();
     let mut next: Option<Assignment> = None;
-    // Batches are numbered from this process's start, in microseconds since the epoch: an
-    // agent started again under its id (killed, joined again) numbers on past its earlier
-    // life, and the learner does not take its batches for repeats.
-    let mut seq =
-        std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_micros() as u64).unwrap_or(0);
+    // Batches are numbered upwards within this process's life, drawn at random into the high
+    // 32 bits: an agent started again under its id (killed, joined again) is a new life to
+    // the learner, whose batches are not taken for its earlier life's repeats.
+    let mut seq = u64::from(rand::random::<u32>()) << 32;
     loop {
         let a = match next.take() {
             Some(a) => a,

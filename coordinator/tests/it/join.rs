@@ -114,8 +114,23 @@ fn a_machine_joins_with_one_command_and_serves_without_a_restart() {
     );
     assert!(!d.join("ca").join("agent-slot-1.key").exists(), "the coordinator kept a key");
     // Refused, with the reason, nothing written: the token again; another role's; a tampered one.
-    let again = run(d, "sim-agent", &["join", &token, "--certs", "m2"]);
+    // (The token on standard input, out of the process list.)
+    let mut child = Command::new(bin("sim-agent"))
+        .args(["join", "-", "--certs", "m2"])
+        .current_dir(d)
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    {
+        use std::io::Write;
+        writeln!(child.stdin.take().unwrap(), "{token}").unwrap();
+    }
+    let again = child.wait_with_output().unwrap();
     assert!(!again.status.success() && text(&again).contains("used token"), "{}", text(&again));
+    let both = run(d, "sim-agent", &["join", &token, "--certs", "m2", "--service"]);
+    assert!(text(&both).contains("--certs with --service"), "{}", text(&both));
     let learner_token = create("learner", &[]);
     let addressed = format!("{learner_token}@127.0.0.1:{jport}");
     let wrong = run(d, "sim-agent", &["join", &addressed, "--certs", "m2"]);

@@ -24,7 +24,9 @@ pub(super) struct Buffer {
     trajs: Vec<Trajectory>,
     /// The worker of each buffered episode.
     from: Vec<String>,
-    seen: HashMap<String, BTreeSet<u64>>,
+    /// Per worker, the batch numbers seen in each of its last lives (a life: the number's
+    /// high 32 bits), the newest last.
+    seen: HashMap<String, Vec<(u64, BTreeSet<u64>)>>,
     /// Batches dropped as duplicates.
     pub(super) dup: u64,
     /// Episodes dropped as stale.
@@ -35,8 +37,10 @@ pub(super) struct Buffer {
     pub(super) received: u64,
 }
 
-/// Batch numbers remembered per worker.
+/// Batch numbers remembered per life of a worker.
 const SEEN_PER_WORKER: usize = 4096;
+/// Lives remembered per worker.
+const LIVES_PER_WORKER: usize = 8;
 
 /// Whether an episode acted by `acted` is too old (or too new) for a learner at `version`.
 pub(super) fn is_stale(acted: u64, version: u64, max_lag: u64) -> bool {
@@ -49,12 +53,26 @@ impl Buffer {
         Buffer { received, ..Buffer::default() }
     }
 
-    /// Whether batch `seq` of `worker` is new (a repeat is counted as a duplicate). The last
-    /// [`SEEN_PER_WORKER`] numbers of each worker are kept; one below all of those is a
-    /// repeat (a worker numbers its batches upwards, and on past its earlier lives), so a run
-    /// of days holds a bounded set.
+    /// Whether batch `seq` of `worker` is new (a repeat is counted as a duplicate). A worker
+    /// numbers its batches upwards within a life of its process, the life in the number's
+    /// high 32 bits (drawn at random when it starts: a worker started again under its id is
+    /// not taken for its earlier life, whatever the clocks say). The last
+    /// [`SEEN_PER_WORKER`] numbers of each of its last [`LIVES_PER_WORKER`] lives are kept;
+    /// one below all of those is a repeat, so a run of days holds a bounded set.
     pub(super) fn first_sight(&mut self, worker: &str, seq: u64) -> bool {
-        let seen = self.seen.entry(worker.to_string()).or_default();
+        let lives = self.seen.entry(worker.to_string()).or_default();
+        let life = seq >> 32;
+        let k = match lives.iter().position(|(l, _)| *l == life) {
+            Some(k) => k,
+            None => {
+                if lives.len() >= LIVES_PER_WORKER {
+                    lives.remove(0);
+                }
+                lives.push((life, BTreeSet::new()));
+                lives.len() - 1
+            }
+        };
+        let seen = &mut lives[k].1;
         let below = seen.len() >= SEEN_PER_WORKER && seen.first().is_some_and(|f| seq < *f);
         let new = !below && seen.insert(seq);
         if seen.len() > SEEN_PER_WORKER {
@@ -167,10 +185,19 @@ mod tests {
         for seq in 10..10 + 3 * SEEN_PER_WORKER as u64 {
             assert!(b.first_sight("c", seq));
         }
-        assert_eq!(b.seen["c"].len(), SEEN_PER_WORKER);
+        assert_eq!(b.seen["c"][0].1.len(), SEEN_PER_WORKER);
         assert!(!b.first_sight("c", 11) && !b.first_sight("c", 10 + 3 * SEEN_PER_WORKER as u64 - 1));
-        // A worker started again numbers on past its earlier life.
-        assert!(b.first_sight("c", 1_000_000_000));
+        // A worker started again (a new life, even one numbered lower) starts afresh; its
+        // earlier life's repeats are still repeats.
+        assert!(b.first_sight("c", 1 << 32) && b.first_sight("c", (1 << 32) + 1));
+        assert!(!b.first_sight("c", 1 << 32));
+        assert!(b.first_sight("d", 5 << 32) && b.first_sight("d", (2 << 32) + 1));
+        assert!(!b.first_sight("c", 12));
+        // Lives are bounded too.
+        for life in 0..3 * LIVES_PER_WORKER as u64 {
+            b.first_sight("e", life << 32);
+        }
+        assert_eq!(b.seen["e"].len(), LIVES_PER_WORKER);
     }
 
     /// Issue 29: the first episodes to arrive are trained on, and an update ages the rest.
