@@ -10,7 +10,7 @@ use crate::jobs::{Db, now_unix};
 use anyhow::{Context, Result};
 use protocol::secure::{CA_FILE, JOIN_ROLES, MODEL_PUB_FILE, ROSTER_FILE, Role, Roster, stem};
 use protocol::{JoinReply, JoinRequest, PROTOCOL_VERSION, TokenCreate, TokenList, TokenRow};
-use redb::{ReadableDatabase, ReadableTable, TableDefinition};
+use redb::{ReadableDatabase, ReadableTable, ReadableTableMetadata, TableDefinition};
 use sha2::Digest;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -91,6 +91,12 @@ impl Office {
         &self.dir
     }
 
+    /// Where `role`'s machine `id`'s certificate is kept (what `certs revoke` and `certs list`
+    /// read, and what marks its slot taken).
+    fn cert_path(&self, role: Role, id: &str) -> PathBuf {
+        self.dir.join(format!("{}.pem", stem(role, Some(id))))
+    }
+
     /// Make a token (`token create`) and return its text; the door's `address` goes in it.
     pub fn create(&self, req: &TokenCreate, address: Option<String>) -> Result<String> {
         let role = Role::from_name(&req.role)
@@ -129,19 +135,6 @@ impl Office {
         }
         let ca_hash = protocol::join::ca_hash_of(&self.dir).map_err(anyhow::Error::msg)?;
         let now = now_unix();
-        let rec = Record {
-            role: role.name().to_string(),
-            name: req.name.clone(),
-            hash: String::new(),
-            uses: req.uses,
-            used: 0,
-            created: now,
-            expires: now + req.ttl_s as f64,
-            cert_valid_s: req.cert_valid_s,
-            revoked: false,
-            joined: Vec::new(),
-            keys: Vec::new(),
-        };
         let w = self.db.database().begin_write()?;
         let (id, secret) = {
             let mut t = w.open_table(TOKENS)?;
@@ -152,16 +145,28 @@ impl Office {
                     break (id, secret);
                 }
             };
-            let rec = Record { hash: hex::encode(protocol::join::secret_hash(&secret)), ..rec };
-            // Keep the table bounded: drop the oldest spent tokens.
-            let mut all: Vec<(String, Record)> = Vec::new();
-            for e in t.iter()? {
-                let (k, v) = e?;
-                if let Ok(r) = serde_json::from_slice::<Record>(v.value()) {
-                    all.push((k.value().to_string(), r));
+            let rec = Record {
+                role: role.name().to_string(),
+                name: req.name.clone(),
+                hash: hex::encode(protocol::join::secret_hash(&secret)),
+                uses: req.uses,
+                used: 0,
+                created: now,
+                expires: now + req.ttl_s as f64,
+                cert_valid_s: req.cert_valid_s,
+                revoked: false,
+                joined: Vec::new(),
+                keys: Vec::new(),
+            };
+            // Keep the table bounded: past its size, drop the oldest spent tokens.
+            if t.len()? as usize >= MAX_TOKENS {
+                let mut all: Vec<(String, Record)> = Vec::new();
+                for e in t.iter()? {
+                    let (k, v) = e?;
+                    if let Ok(r) = serde_json::from_slice::<Record>(v.value()) {
+                        all.push((k.value().to_string(), r));
+                    }
                 }
-            }
-            if all.len() >= MAX_TOKENS {
                 all.retain(|(_, r)| r.spent(now));
                 all.sort_by(|a, b| a.1.created.total_cmp(&b.1.created));
                 for (k, _) in all.iter().take(all.len().saturating_sub(MAX_TOKENS / 2)) {
@@ -316,7 +321,7 @@ impl Office {
         };
         // The certificate file is written last, and taken back unless the token's use is
         // committed: a slot is never held by a certificate no machine got.
-        let pem = self.dir.join(format!("{}.pem", stem(role, Some(&reply.id))));
+        let pem = self.cert_path(role, &reply.id);
         let _ = std::fs::remove_file(&pem);
         if let Err(e) = certs::write_file(&pem, &reply.certificate_pem, false) {
             return Err(internal(&format!("{e:#}")));
@@ -339,7 +344,7 @@ impl Office {
         let (_, revoked) = certs::revoked_in(&self.dir).map_err(internal)?;
         let now = time::OffsetDateTime::now_utc();
         let free = |id: &str| -> Result<bool, Refused> {
-            let pem = self.dir.join(format!("{}.pem", stem(role, Some(id))));
+            let pem = self.cert_path(role, id);
             if !pem.exists() {
                 return Ok(true);
             }
@@ -414,7 +419,7 @@ impl Office {
 
     /// The grant made before to `role`'s `id`, again (its certificate as written).
     fn again(&self, role: Role, id: &str) -> Result<JoinReply> {
-        let pem = self.dir.join(format!("{}.pem", stem(role, Some(id))));
+        let pem = self.cert_path(role, id);
         let mut reply = self.gather(role, id)?;
         reply.certificate_pem = std::fs::read_to_string(&pem).with_context(|| pem.display().to_string())?;
         tracing::info!(role = role.name(), id, "a machine asked again with the same token and key: the same grant");
