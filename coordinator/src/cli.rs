@@ -409,10 +409,10 @@ pub enum BenchCommand {
     /// A cluster run for a long time under churn (issue 54): two worlds from pixels, two
     /// agents joined with tokens, one killed every --kill-every minutes, one revoked and
     /// joined again every --rejoin-every, agent 1's certificates living --cert-minutes.
-    /// Samples each role's memory, threads, files and sockets, the step time and steps/s,
-    /// the stale and refused counts into soak.csv and soak.svg; prints a verdict (exit 1 when
-    /// it fails): memory growth ≤ 1 %/h, steps/s drift ≤ 2 %/h, no episode lost, every kill
-    /// recovered.
+    /// Samples each role's memory, threads, files and sockets, the agents' CPU per step and
+    /// the steps/s, the stale and refused counts into soak.csv and soak.svg; prints a verdict
+    /// (exit 1 unless it passes), each slope weighed with its error: memory growth ≤ 1 %/h,
+    /// steps/s drift ≤ 2 %/h, no episode lost, every kill recovered.
     Soak {
         /// Minutes of the run.
         #[arg(long, default_value_t = 60.0)]
@@ -435,6 +435,11 @@ pub enum BenchCommand {
         /// Environments per agent.
         #[arg(long, default_value_t = 4)]
         envs: usize,
+        /// Steps an episode may last (0: DeepRacer's cap): episodes stop lengthening as the car
+        /// learns soon after the warm-up, so the work per update holds steady and a slope is a
+        /// leak or a drift, not a growing batch.
+        #[arg(long, default_value_t = 200)]
+        episode_steps: u64,
         /// The run's folder.
         #[arg(long, default_value = "runs/bench-soak")]
         out: PathBuf,

@@ -5,6 +5,12 @@
 //! cluster: the coordinator role (`serve`), job control (`job …`, `agents`) and the
 //! one-machine launcher (`up`), reports of a run (`report`, `job report`).
 
+/// mimalloc hands freed pages back to the system about a second after they are freed
+/// (glibc's malloc keeps them in its arenas): a long run's resident memory follows what it
+/// holds, not its highest peak.
+#[global_allocator]
+static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 mod bench;
 mod carmodel;
 mod cars;
@@ -154,9 +160,27 @@ fn main() {
             cli::BenchCommand::ScaleSend { net, rounds, record } => {
                 scale::send(client::net_args(&net, false), rounds, &record)
             }
-            cli::BenchCommand::Soak { minutes, sample_s, kill_every, rejoin_every, cert_minutes, warmup, envs, out } => {
-                soak::soak(soak::SoakArgs { minutes, sample_s, kill_every, rejoin_every, cert_minutes, warmup, envs, out })
-            }
+            cli::BenchCommand::Soak {
+                minutes,
+                sample_s,
+                kill_every,
+                rejoin_every,
+                cert_minutes,
+                warmup,
+                envs,
+                episode_steps,
+                out,
+            } => soak::soak(soak::SoakArgs {
+                minutes,
+                sample_s,
+                kill_every,
+                rejoin_every,
+                cert_minutes,
+                warmup,
+                envs,
+                episode_steps,
+                out,
+            }),
             cli::BenchCommand::ModelFiles { repeats } => bench::model_files(repeats).map(|()| 0),
             cli::BenchCommand::Publish { repeats } => bench::publish(repeats).map(|()| 0),
             cli::BenchCommand::Races { world, minutes, races, no_up, seed, out } => {

@@ -1,6 +1,12 @@
 //! The `learner` binary: `serve` (the learner role over Zenoh) and `bench` (the network
 //! maths' speed).
 
+/// mimalloc hands freed pages back to the system about a second after they are freed
+/// (glibc's malloc keeps them in its arenas): a long run's resident memory follows what it
+/// holds, not its highest peak.
+#[global_allocator]
+static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 mod serve;
 mod team;
 mod team_bench;

@@ -93,6 +93,12 @@ pub struct IterationRecord {
     pub kl_stop: Option<usize>,
     /// The learning rate the update used (`lr` on the job's `lr_schedule`).
     pub lr: f64,
+    /// The learning process's resident memory (MiB) once the update was made and its episodes
+    /// dropped (a soak's floor; mimalloc returns freed pages about a second later, so it also
+    /// holds the batch just freed, which capped episodes keep steady); absent where the
+    /// system does not tell it.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub resident_mb: Option<f64>,
     /// SAC's figures (the Q loss, the temperature, the replay memory); absent for PPO.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub sac: Option<SacFigures>,
@@ -261,9 +267,9 @@ impl Recorder {
         Ok(self.workers.len() - 1)
     }
 
-    /// One update: its episodes' sim-trace (`from[i]` is the worker of `trajs[i]`), metrics
-    /// and MCAP messages, and the update's figures.
-    pub fn iteration(&mut self, rec: &IterationRecord, trajs: &[Trajectory], from: &[String]) -> std::io::Result<()> {
+    /// One update's episodes: their sim-trace (`from[i]` is the worker of `trajs[i]`), metrics
+    /// and MCAP messages; [`Recorder::figures`] then records the update's figures.
+    pub fn episodes(&mut self, rec: &IterationRecord, trajs: &[Trajectory], from: &[String]) -> std::io::Result<()> {
         let mut by_worker: BTreeMap<usize, Vec<&Trajectory>> = BTreeMap::new();
         for (t, w) in trajs.iter().zip(from) {
             if !t.trace.is_empty() && t.trace.len() == t.len() {
@@ -297,11 +303,16 @@ impl Recorder {
             out.flush()?;
         }
         self.metrics_dirty = true;
-        if let Some(mcap) = self.mcap.as_mut() {
-            mcap.figures("/learner/iteration", "paddock.Iteration", self.cursor, &serde_json::to_value(rec)?)?;
-        }
         if self.metrics_written.elapsed() >= Duration::from_secs(5) {
             self.write_metrics()?;
+        }
+        Ok(())
+    }
+
+    /// One update's figures (`metrics.jsonl`'s line) in the MCAP, after its episodes.
+    pub fn figures(&mut self, rec: &IterationRecord) -> std::io::Result<()> {
+        if let Some(mcap) = self.mcap.as_mut() {
+            mcap.figures("/learner/iteration", "paddock.Iteration", self.cursor, &serde_json::to_value(rec)?)?;
         }
         Ok(())
     }

@@ -17,6 +17,7 @@
 
 use bytemuck::{Pod, Zeroable};
 use std::collections::HashMap;
+use std::sync::Mutex;
 use tracks::{Lighting, P2, Surface, Track};
 
 /// Frame width (pixels).
@@ -426,7 +427,46 @@ fn view_proj(pose: [f64; 3], jitter: [f64; 2], origin: [f64; 2]) -> [[f32; 4]; 4
     out
 }
 
+/// Renderers the process's environments used and gave back: each holds a device, its
+/// pipeline and its track meshes, and making one per evaluation would build them again and
+/// again (and the driver may keep what each device allocated).
+static POOL: Mutex<Vec<Renderer>> = Mutex::new(Vec::new());
+
+/// A renderer lent from the process's pool ([`Renderer::pooled`]); it goes back when dropped.
+pub struct Pooled(Option<Renderer>);
+
+impl std::ops::Deref for Pooled {
+    type Target = Renderer;
+    fn deref(&self) -> &Renderer {
+        self.0.as_ref().expect("lent until dropped")
+    }
+}
+
+impl std::ops::DerefMut for Pooled {
+    fn deref_mut(&mut self) -> &mut Renderer {
+        self.0.as_mut().expect("lent until dropped")
+    }
+}
+
+impl Drop for Pooled {
+    fn drop(&mut self) {
+        if let Some(r) = self.0.take() {
+            POOL.lock().unwrap_or_else(|e| e.into_inner()).push(r);
+        }
+    }
+}
+
 impl Renderer {
+    /// A renderer from the process's pool, or a new one when every pooled one is lent: a
+    /// process holds as many as it ever used at once (training and an evaluation: two).
+    pub fn pooled() -> Result<Pooled, RenderError> {
+        let kept = POOL.lock().unwrap_or_else(|e| e.into_inner()).pop();
+        Ok(Pooled(Some(match kept {
+            Some(r) => r,
+            None => Renderer::new()?,
+        })))
+    }
+
     /// Open the best adapter (a GPU if there is one, else lavapipe).
     pub fn new() -> Result<Renderer, RenderError> {
         let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());

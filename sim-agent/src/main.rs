@@ -2,6 +2,12 @@
 //! coordinator and streams experience to a learner over Zenoh), `bench` (the simulator's
 //! speed), `car` (the simulated physical car) and `handling` (the car's figures per surface).
 
+/// mimalloc hands freed pages back to the system about a second after they are freed
+/// (glibc's malloc keeps them in its arenas): a long run's resident memory follows what it
+/// holds, not its highest peak.
+#[global_allocator]
+static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 mod gate;
 mod hil;
 mod serve;

@@ -27,7 +27,7 @@ pub struct VecEnv {
     outcomes: Vec<StepOutcome>,
     rewards: Vec<f64>,
     pool: rayon::ThreadPool,
-    renderer: Option<crate::camera::Renderer>,
+    renderer: Option<crate::camera::Pooled>,
     /// Per environment: (episode the draw is for, its camera randomisation, its RNG).
     camera_draws: Vec<(u64, CameraDraw, rand_chacha::ChaCha8Rng)>,
 }
@@ -74,7 +74,7 @@ impl VecEnv {
             .build()
             .map_err(|e| EnvError::Config(format!("thread pool: {e}")))?;
         let renderer = if cfg.observation.kind.is_camera() {
-            Some(crate::camera::Renderer::new().map_err(|e| EnvError::Config(e.to_string()))?)
+            Some(crate::camera::Renderer::pooled().map_err(|e| EnvError::Config(e.to_string()))?)
         } else {
             None
         };

@@ -78,6 +78,7 @@ fn train_then_evaluate_then_clone_and_resume() {
         "explained_variance",
         "samples_per_s",
         "lr",
+        "resident_mb",
     ] {
         assert!(first.get(k).is_some(), "metrics lack {k}: {first}");
     }

@@ -162,7 +162,7 @@ impl Run<'_> {
         if let Ok(stats) = &result {
             rec.take_figures(stats);
         }
-        self.record_iteration(&rec, &trajs, &from);
+        self.record_iteration(rec, trajs, &from);
         Ok(true)
     }
 
@@ -194,18 +194,24 @@ impl Run<'_> {
         }
     }
 
-    /// Write an update's record (`metrics.jsonl`, the run's logs), tell the observer, and have
-    /// the status reported at the loop's next turn.
-    fn record_iteration(&mut self, rec: &IterationRecord, trajs: &[Trajectory], from: &[String]) {
+    /// Write an update's record (the run's logs, then, its episodes freed, `metrics.jsonl`
+    /// with the memory the learner keeps), tell the observer, and have the status reported at
+    /// the loop's next turn.
+    fn record_iteration(&mut self, mut rec: IterationRecord, trajs: Vec<Trajectory>, from: &[String]) {
+        if let Some(r) = self.recorder.as_mut() {
+            noted(&self.dir, "an update's sim-trace, metrics JSON or MCAP not written", r.episodes(&rec, &trajs, from));
+        }
+        drop(trajs);
+        rec.resident_mb = resident_mb();
+        if let Some(r) = self.recorder.as_mut() {
+            noted(&self.dir, "an update's MCAP figures not written", r.figures(&rec));
+        }
         noted(
             &self.dir,
             "metrics.jsonl: an update's line not written",
-            self.dir.append_metrics(&serde_json::to_value(rec).expect("JSON")),
+            self.dir.append_metrics(&serde_json::to_value(&rec).expect("JSON")),
         );
-        if let Some(r) = self.recorder.as_mut() {
-            noted(&self.dir, "an update's sim-trace, metrics JSON or MCAP not written", r.iteration(rec, trajs, from));
-        }
-        self.observer.iteration(rec);
+        self.observer.iteration(&rec);
         self.windows.last_status = None;
     }
 
@@ -253,6 +259,15 @@ impl Run<'_> {
             None => false,
         }
     }
+}
+
+/// This process's resident memory in MiB (`VmRSS` in `/proc/self/status`), where the system
+/// tells it.
+fn resident_mb() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let kb: f64 =
+        status.lines().find_map(|l| l.strip_prefix("VmRSS:"))?.trim().trim_end_matches("kB").trim().parse().ok()?;
+    Some(kb / 1024.0)
 }
 
 #[cfg(test)]
