@@ -413,37 +413,7 @@ pub enum BenchCommand {
     /// the steps/s, the stale and refused counts into soak.csv and soak.svg; prints a verdict
     /// (exit 1 unless it passes), each slope weighed with its error: memory growth ≤ 1 %/h,
     /// steps/s drift ≤ 2 %/h, no episode lost, every kill recovered.
-    Soak {
-        /// Minutes of the run.
-        #[arg(long, default_value_t = 60.0)]
-        minutes: f64,
-        /// Seconds between samples.
-        #[arg(long, default_value_t = 60.0)]
-        sample_s: f64,
-        /// Minutes between agent kills (0: none).
-        #[arg(long, default_value_t = 15.0)]
-        kill_every: f64,
-        /// Minutes between a machine revoked and joined again (0: none).
-        #[arg(long, default_value_t = 60.0)]
-        rejoin_every: f64,
-        /// Minutes agent 1's certificates live, so they expire during the run (0: a year).
-        #[arg(long, default_value_t = 25.0)]
-        cert_minutes: f64,
-        /// Minutes at the start (and of each process's life) left out of the slopes.
-        #[arg(long, default_value_t = 5.0)]
-        warmup: f64,
-        /// Environments per agent.
-        #[arg(long, default_value_t = 4)]
-        envs: usize,
-        /// Steps an episode may last (0: DeepRacer's cap): episodes stop lengthening as the car
-        /// learns soon after the warm-up, so the work per update holds steady and a slope is a
-        /// leak or a drift, not a growing batch.
-        #[arg(long, default_value_t = 200)]
-        episode_steps: u64,
-        /// The run's folder.
-        #[arg(long, default_value = "runs/bench-soak")]
-        out: PathBuf,
-    },
+    Soak(crate::soak::SoakArgs),
     /// Machines joining and a model reaching them, against their number (issue 54): N
     /// machines, each in a network namespace of its own (as root), join with one token; a
     /// signed model is broadcast to all, over Zenoh's peer mesh and through a router. Prints

@@ -160,27 +160,7 @@ fn main() {
             cli::BenchCommand::ScaleSend { net, rounds, record } => {
                 scale::send(client::net_args(&net, false), rounds, &record)
             }
-            cli::BenchCommand::Soak {
-                minutes,
-                sample_s,
-                kill_every,
-                rejoin_every,
-                cert_minutes,
-                warmup,
-                envs,
-                episode_steps,
-                out,
-            } => soak::soak(soak::SoakArgs {
-                minutes,
-                sample_s,
-                kill_every,
-                rejoin_every,
-                cert_minutes,
-                warmup,
-                envs,
-                episode_steps,
-                out,
-            }),
+            cli::BenchCommand::Soak(args) => soak::soak(args),
             cli::BenchCommand::ModelFiles { repeats } => bench::model_files(repeats).map(|()| 0),
             cli::BenchCommand::Publish { repeats } => bench::publish(repeats).map(|()| 0),
             cli::BenchCommand::Races { world, minutes, races, no_up, seed, out } => {

@@ -22,24 +22,36 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 /// What `bench soak` is given.
+#[derive(clap::Args, Debug)]
 pub struct SoakArgs {
     /// Minutes of the run.
+    #[arg(long, default_value_t = 60.0)]
     pub minutes: f64,
     /// Seconds between samples.
+    #[arg(long, default_value_t = 60.0)]
     pub sample_s: f64,
     /// Minutes between agent kills (0: none).
+    #[arg(long, default_value_t = 15.0)]
     pub kill_every: f64,
     /// Minutes between a machine revoked and joined again (0: none).
+    #[arg(long, default_value_t = 60.0)]
     pub rejoin_every: f64,
-    /// Minutes agent 1's certificates live (0: a year).
+    /// Minutes agent 1's certificates live, so they expire during the run (0: a year).
+    #[arg(long, default_value_t = 25.0)]
     pub cert_minutes: f64,
-    /// Minutes left out of the slopes at the start.
+    /// Minutes at the start (and of each process's life) left out of the slopes.
+    #[arg(long, default_value_t = 5.0)]
     pub warmup: f64,
     /// Environments per agent.
+    #[arg(long, default_value_t = 4)]
     pub envs: usize,
-    /// Steps an episode may last (0: DeepRacer's cap).
+    /// Steps an episode may last (0: DeepRacer's cap): episodes stop lengthening as the car
+    /// learns soon after the warm-up, so the work per update holds steady and a slope is a
+    /// leak or a drift, not a growing batch.
+    #[arg(long, default_value_t = 200)]
     pub episode_steps: u64,
     /// The run's folder.
+    #[arg(long, default_value = "runs/bench-soak")]
     pub out: PathBuf,
 }
 
@@ -476,13 +488,8 @@ fn worst_life(a: &SoakArgs, rows: &[Vec<f64>], lives: &[Vec<u64>], k: usize) -> 
         if pid != 0 && seg.len() >= 3 && seg[seg.len() - 1][0] - seg[0][0] >= MIN_LIFE {
             // The floor of each window: what a process holds between its peaks (a training
             // update's buffers come and go; a leak raises the floor).
-            let (mut xs, mut ys) = (Vec::new(), Vec::new());
-            for w in seg.chunk_by(|p, q| {
-                ((p[0] - seg[0][0]) / FLOOR_WINDOW) as u64 == ((q[0] - seg[0][0]) / FLOOR_WINDOW) as u64
-            }) {
-                xs.push(w.iter().map(|r| r[0]).sum::<f64>() / w.len() as f64);
-                ys.push(w.iter().map(|r| r[1 + 4 * k]).fold(f64::INFINITY, f64::min));
-            }
+            let points: Vec<(f64, f64)> = seg.iter().map(|r| (r[0], r[1 + 4 * k])).collect();
+            let (xs, ys) = windows(&points, 1, |v| v.iter().copied().fold(f64::INFINITY, f64::min));
             if xs.len() >= 3 {
                 let g = (drift_per_hour(&xs, &ys), drift_error(&xs, &ys), seg[seg.len() - 1][0] - seg[0][0]);
                 worst = Some(worst.map_or(g, |w: (f64, f64, f64)| if g.0 > w.0 { g } else { w }));
