@@ -5,9 +5,9 @@
 //! cluster: the coordinator role (`serve`), job control (`job …`, `agents`) and the
 //! one-machine launcher (`up`), reports of a run (`report`, `job report`).
 
-/// mimalloc hands freed pages back to the system about a second after they are freed
-/// (glibc's malloc keeps them in its arenas): a long run's resident memory follows what it
-/// holds, not its highest peak.
+/// mimalloc hands freed pages back to the system soon after they are freed (glibc's malloc
+/// keeps them in its arenas): a long run's resident memory follows what it holds, not its
+/// highest peak. `main` turns transparent huge pages off, which would make them resident again.
 #[global_allocator]
 static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
@@ -36,6 +36,12 @@ fn main() {
     // Paddock's own messages; the libraries' warnings (Zenoh's scouting chatter) only when
     // RUST_LOG asks for them.
     protocol::secure::init_logging("warn,zenoh=error,coordinator=info,sim_agent=info");
+    // No transparent huge pages: the kernel collapsing a range makes the pages the allocator
+    // handed back inside it resident again.
+    #[cfg(target_os = "linux")]
+    if let Err(e) = nix::sys::prctl::set_thp_disable(true) {
+        tracing::warn!("transparent huge pages left on: {e}");
+    }
     let cli = cli::Cli::parse();
     // The camera on a headless NVIDIA server (sim_agent::icd), before any thread starts.
     sim_agent::icd::headless_nvidia();

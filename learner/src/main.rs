@@ -1,11 +1,13 @@
 //! The `learner` binary: `serve` (the learner role over Zenoh) and `bench` (the network
 //! maths' speed).
 
-/// mimalloc hands freed pages back to the system about a second after they are freed
-/// (glibc's malloc keeps them in its arenas): a long run's resident memory follows what it
-/// holds, not its highest peak.
+/// mimalloc hands freed pages back to the system soon after they are freed (glibc's malloc
+/// keeps them in its arenas): a long run's resident memory follows what it holds, not its
+/// highest peak. `main` turns transparent huge pages off, which would make them resident again. `Cap` (no limit) counts the bytes held, which each update's
+/// record carries beside the resident memory: a leak shows there, an allocator's retention
+/// only in the resident memory.
 #[global_allocator]
-static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
+static ALLOCATOR: cap::Cap<mimalloc::MiMalloc> = cap::Cap::new(mimalloc::MiMalloc, usize::MAX);
 
 mod serve;
 mod team;
@@ -126,6 +128,13 @@ struct BenchCli {
 
 fn main() {
     protocol::secure::init_logging("info");
+    learner::record::count_live_bytes_with(|| ALLOCATOR.allocated());
+    // No transparent huge pages: the kernel collapsing a range makes the pages the allocator
+    // handed back inside it resident again.
+    #[cfg(target_os = "linux")]
+    if let Err(e) = nix::sys::prctl::set_thp_disable(true) {
+        tracing::warn!("transparent huge pages left on: {e}");
+    }
     // The maths on a headless NVIDIA server (gpu::icd), before any thread starts.
     gpu::icd::headless_nvidia();
     let result = match Cli::parse().command {

@@ -99,6 +99,15 @@ pub struct IterationRecord {
     /// system does not tell it.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub resident_mb: Option<f64>,
+    /// The bytes the process's allocations hold (MiB) at the same moment: what a leak grows,
+    /// where resident memory also grows with what the allocator keeps back; absent where the
+    /// binary does not count them (`count_live_bytes_with`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub live_mb: Option<f64>,
+    /// Of those, the episodes received and waiting for the next update (MiB): experience in
+    /// flight, which the rounds bound, not kept; present with `live_mb`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub waiting_mb: Option<f64>,
     /// SAC's figures (the Q loss, the temperature, the replay memory); absent for PPO.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub sac: Option<SacFigures>,
@@ -158,6 +167,20 @@ pub struct EvalRecord {
 
 /// The MCAP file of a new run (a resumed run writes `trace-<iteration>.mcap`).
 pub const MCAP_FILE: &str = "trace.mcap";
+
+/// How the binary's allocator counts the bytes held (set once, by `main`).
+static LIVE_BYTES: std::sync::OnceLock<fn() -> usize> = std::sync::OnceLock::new();
+
+/// Have each update's record carry the bytes `probe` says the process's allocations hold (the
+/// binary's global allocator counts them; a library cannot).
+pub fn count_live_bytes_with(probe: fn() -> usize) {
+    let _ = LIVE_BYTES.set(probe);
+}
+
+/// The bytes held (MiB), where the binary counts them.
+pub(crate) fn live_mb() -> Option<f64> {
+    LIVE_BYTES.get().map(|probe| probe() as f64 / (1024.0 * 1024.0))
+}
 
 /// Writes a run's logs. Errors are returned for the caller to note; nothing here stops a run.
 pub struct Recorder {

@@ -159,6 +159,16 @@ impl Trajectory {
     pub fn is_empty(&self) -> bool {
         self.rewards.is_empty()
     }
+
+    /// The bytes its columns hold on the heap (what keeping it costs).
+    pub fn heap_bytes(&self) -> usize {
+        use std::mem::size_of;
+        self.world.capacity()
+            + size_of::<f32>()
+                * (self.obs.capacity() + self.logp.capacity() + self.values.capacity() + self.rewards.capacity())
+            + size_of::<Choice>() * self.choices.capacity()
+            + size_of::<StepTrace>() * self.trace.capacity()
+    }
 }
 
 /// A world's track as lines (centre, inner and outer borders, in the driving direction), for
@@ -175,4 +185,25 @@ pub struct TrackLines {
     pub inner: Vec<[f64; 2]>,
     /// Outer border.
     pub outer: Vec<[f64; 2]>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Issue 54: what keeping an episode costs counts its observations, the largest column,
+    /// and its trace; an empty one costs nothing.
+    #[test]
+    fn an_episodes_heap_bytes_count_its_observations_and_trace() {
+        assert_eq!(Trajectory::default().heap_bytes(), 0);
+        let (n, obs) = (200, 19_200);
+        let t = Trajectory {
+            obs: vec![0.0; n * obs],
+            rewards: vec![0.0; n],
+            trace: vec![StepTrace::default(); n],
+            ..Trajectory::default()
+        };
+        let least = 4 * n * obs + 4 * n + n * std::mem::size_of::<StepTrace>();
+        assert_eq!(t.heap_bytes(), least);
+    }
 }

@@ -2,9 +2,9 @@
 //! coordinator and streams experience to a learner over Zenoh), `bench` (the simulator's
 //! speed), `car` (the simulated physical car) and `handling` (the car's figures per surface).
 
-/// mimalloc hands freed pages back to the system about a second after they are freed
-/// (glibc's malloc keeps them in its arenas): a long run's resident memory follows what it
-/// holds, not its highest peak.
+/// mimalloc hands freed pages back to the system soon after they are freed (glibc's malloc
+/// keeps them in its arenas): a long run's resident memory follows what it holds, not its
+/// highest peak. `main` turns transparent huge pages off, which would make them resident again.
 #[global_allocator]
 static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
@@ -110,6 +110,12 @@ fn handling(config: Option<PathBuf>) -> Result<()> {
 
 fn main() {
     protocol::secure::init_logging("info");
+    // No transparent huge pages: the kernel collapsing a range makes the pages the allocator
+    // handed back inside it resident again.
+    #[cfg(target_os = "linux")]
+    if let Err(e) = nix::sys::prctl::set_thp_disable(true) {
+        tracing::warn!("transparent huge pages left on: {e}");
+    }
     let cli = Cli::parse();
     // The camera on a headless NVIDIA server (sim_agent::icd), before any thread starts.
     sim_agent::icd::headless_nvidia();

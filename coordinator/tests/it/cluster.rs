@@ -292,6 +292,16 @@ fn up_runs_a_job_to_its_stop_and_the_model_improves() {
     let spec = coordinator::jobspec::parse(&job, &dir.path().join("up"), "job.toml", "up").unwrap();
     assert_eq!(spec.seed, 7, "{job}");
     let metrics = std::fs::read_to_string(dir.path().join("up/run/metrics.jsonl")).unwrap();
+    // The learner binary records its memory after each update: resident, and what its
+    // allocations hold (a leak's measure).
+    for l in metrics.lines() {
+        let m: serde_json::Value = serde_json::from_str(l).unwrap();
+        for k in ["resident_mb", "live_mb"] {
+            assert!(m[k].as_f64().is_some_and(|mb| mb > 1.0), "{k} missing or empty: {m}");
+        }
+        let (waiting, live) = (m["waiting_mb"].as_f64(), m["live_mb"].as_f64().unwrap_or(0.0));
+        assert!(waiting.is_some_and(|w| (0.0..live).contains(&w)), "waiting_mb missing or past live_mb: {m}");
+    }
     let progress: Vec<f64> = metrics
         .lines()
         .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["mean_progress"].as_f64().unwrap())

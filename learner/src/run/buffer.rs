@@ -112,6 +112,11 @@ impl Buffer {
         self.trajs.len()
     }
 
+    /// The bytes the episodes waiting hold.
+    pub(super) fn bytes(&self) -> usize {
+        self.trajs.iter().map(Trajectory::heap_bytes).sum()
+    }
+
     /// The first `n` episodes to arrive (fewer if fewer wait), with their workers.
     pub(super) fn take(&mut self, n: usize) -> (Vec<Trajectory>, Vec<String>) {
         let n = n.min(self.trajs.len());

@@ -126,6 +126,10 @@ impl Run<'_> {
         if !self.update_ready() {
             return Ok(false);
         }
+        // The figures before the update holds the loop: the delivery that completed the round
+        // is shown (the per-worker window is 10 s, and an update can outlast it).
+        self.windows.last_status = None;
+        self.report()?;
         let spec = self.spec;
         let off_policy = self.algo.off_policy();
         let n = if off_policy { self.buffer.len() } else { self.want as usize };
@@ -203,6 +207,8 @@ impl Run<'_> {
         }
         drop(trajs);
         rec.resident_mb = resident_mb();
+        rec.live_mb = crate::record::live_mb();
+        rec.waiting_mb = rec.live_mb.map(|_| self.buffer.bytes() as f64 / (1024.0 * 1024.0));
         if let Some(r) = self.recorder.as_mut() {
             noted(&self.dir, "an update's MCAP figures not written", r.figures(&rec));
         }
