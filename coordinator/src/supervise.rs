@@ -105,8 +105,24 @@ pub fn sibling(name: &str) -> Result<PathBuf> {
     Ok(p)
 }
 
-/// A free TCP port on loopback.
+/// A free TCP port on loopback, below the kernel's ephemeral range where it can: a port the
+/// kernel hands out for a bind to port 0 (every Zenoh session listens on one) can be taken
+/// by another process between this pick and the role's own bind, and whoever connects to it
+/// then meets that process (seen: a console connecting to itself).
 pub fn free_port() -> Result<u16> {
+    let ephemeral = std::fs::read_to_string("/proc/sys/net/ipv4/ip_local_port_range")
+        .ok()
+        .and_then(|s| s.split_whitespace().next()?.parse::<u16>().ok())
+        .unwrap_or(32768);
+    let floor = 10_000.min(ephemeral / 2);
+    if ephemeral > floor + 1000 {
+        for _ in 0..100 {
+            let port = rand::random_range(floor..ephemeral);
+            if std::net::TcpListener::bind(("127.0.0.1", port)).is_ok() {
+                return Ok(port);
+            }
+        }
+    }
     Ok(std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?.port())
 }
 

@@ -17,9 +17,9 @@ pub fn bin(name: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_BIN_EXE_coordinator")).with_file_name(name)
 }
 
-/// A loopback port free now (for a role to listen on).
+/// A loopback port free now (for a role to listen on), picked as the launchers pick theirs.
 pub fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
+    coordinator::supervise::free_port().unwrap()
 }
 
 /// The tests' Python environment (`PADDOCK_PYTHON`, made by `./paddock test`), holding `what`.
