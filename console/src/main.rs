@@ -227,7 +227,7 @@ fn users_cmd(args: &UsersArgs) -> Result<i32> {
 }
 
 fn main() {
-    protocol::secure::init_logging("warn,zenoh=error,console=info,coordinator=info");
+    protocol::secure::init_process("warn,zenoh=error,console=info,coordinator=info");
     let cli = Cli::parse();
     let result = match &cli.command {
         Some(Sub::Bench(args)) => paddock_console::bench::run(args),

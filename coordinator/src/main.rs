@@ -35,13 +35,7 @@ use clap::Parser;
 fn main() {
     // Paddock's own messages; the libraries' warnings (Zenoh's scouting chatter) only when
     // RUST_LOG asks for them.
-    protocol::secure::init_logging("warn,zenoh=error,coordinator=info,sim_agent=info");
-    // No transparent huge pages: the kernel collapsing a range makes the pages the allocator
-    // handed back inside it resident again.
-    #[cfg(target_os = "linux")]
-    if let Err(e) = nix::sys::prctl::set_thp_disable(true) {
-        tracing::warn!("transparent huge pages left on: {e}");
-    }
+    protocol::secure::init_process("warn,zenoh=error,coordinator=info,sim_agent=info");
     let cli = cli::Cli::parse();
     // The camera on a headless NVIDIA server (sim_agent::icd), before any thread starts.
     sim_agent::icd::headless_nvidia();

@@ -570,6 +570,16 @@ fn drift_error(xs: &[f64], ys: &[f64]) -> f64 {
     (res / (n - 2.0).max(1.0) / sxx).sqrt() * 60.0 / my * 100.0
 }
 
+/// One figure from each of the learner's update records past the warm-up: (minute, value),
+/// the records without it left out.
+fn updates(
+    metrics: &[serde_json::Value],
+    warmup: f64,
+    figure: impl Fn(&serde_json::Value) -> Option<f64>,
+) -> Vec<(f64, f64)> {
+    metrics.iter().filter_map(|m| Some((m["time_s"].as_f64()? / 60.0, figure(m)?))).filter(|p| p.0 >= warmup).collect()
+}
+
 /// The verdict from the samples after the warm-up (and the learner's `metrics.jsonl`):
 /// memory, steps/s, episodes, recoveries.
 fn verdict(
@@ -587,11 +597,7 @@ fn verdict(
     let base = 1 + 4 * ROLES.len();
     let mut checks: Vec<(String, String, Judged)> = Vec::new();
     // The learner's memory once each update's batch is freed (its own record): what it keeps.
-    let kept: Vec<(f64, f64)> = metrics
-        .iter()
-        .filter_map(|m| Some((m["time_s"].as_f64()? / 60.0, m["resident_mb"].as_f64()?)))
-        .filter(|p| p.0 >= a.warmup)
-        .collect();
+    let kept = updates(metrics, a.warmup, |m| m["resident_mb"].as_f64());
     // One learner life (a learner started again resumes its metrics.jsonl with less memory).
     let learner_kept =
         kept.len() >= 3 && kept[kept.len() - 1].0 - kept[0].0 >= MIN_LIFE && lives.iter().all(|l| l[1] == lives[0][1]);
@@ -613,14 +619,8 @@ fn verdict(
             // What its allocations hold at the same moments (where the binary counts them),
             // less the episodes waiting for the next update (in flight, bounded by the
             // rounds): a leak grows this; the allocator's keeping back only the resident memory.
-            let live: Vec<(f64, f64)> = metrics
-                .iter()
-                .filter_map(|m| {
-                    let held = m["live_mb"].as_f64()? - m["waiting_mb"].as_f64().unwrap_or(0.0);
-                    Some((m["time_s"].as_f64()? / 60.0, held))
-                })
-                .filter(|p| p.0 >= a.warmup)
-                .collect();
+            let live =
+                updates(metrics, a.warmup, |m| Some(m["live_mb"].as_f64()? - m["waiting_mb"].as_f64().unwrap_or(0.0)));
             if live.len() >= 3 {
                 let (lx, ly): (Vec<f64>, Vec<f64>) = live.iter().copied().unzip();
                 let (g, e) = (drift_per_hour(&lx, &ly), drift_error(&lx, &ly));

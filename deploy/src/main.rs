@@ -69,7 +69,7 @@ enum Sub {
 }
 
 fn main() {
-    protocol::secure::init_logging("info");
+    protocol::secure::init_process("info");
     let cli = Cli::parse();
     let result = match cli.command {
         Some(Sub::Bench { seconds }) => bench::run(seconds),

@@ -127,14 +127,8 @@ struct BenchCli {
 }
 
 fn main() {
-    protocol::secure::init_logging("info");
+    protocol::secure::init_process("info");
     learner::record::count_live_bytes_with(|| ALLOCATOR.allocated());
-    // No transparent huge pages: the kernel collapsing a range makes the pages the allocator
-    // handed back inside it resident again.
-    #[cfg(target_os = "linux")]
-    if let Err(e) = nix::sys::prctl::set_thp_disable(true) {
-        tracing::warn!("transparent huge pages left on: {e}");
-    }
     // The maths on a headless NVIDIA server (gpu::icd), before any thread starts.
     gpu::icd::headless_nvidia();
     let result = match Cli::parse().command {

@@ -771,6 +771,17 @@ impl<S: tracing::Subscriber> tracing_subscriber::Layer<S> for RefusalLayer {
     }
 }
 
+/// Set up a role's process: its log ([`init_logging`]), and no transparent huge pages: the
+/// allocator marks its arenas for them, and the kernel collapsing such a range makes the pages
+/// handed back inside it resident again (a learner's memory grew by half over an hour).
+pub fn init_process(default_log: &str) {
+    init_logging(default_log);
+    #[cfg(target_os = "linux")]
+    if let Err(e) = nix::sys::prctl::set_thp_disable(true) {
+        tracing::warn!("transparent huge pages left on: {e}");
+    }
+}
+
 /// Set up every role's log: `RUST_LOG` (or `default`) for what is printed, zenoh-link-tls's
 /// per-connection warnings folded into one line every 10 s (a peer that keeps knocking must not
 /// fill the log), and [`RefusalLayer`] counting refusals.

@@ -109,13 +109,7 @@ fn handling(config: Option<PathBuf>) -> Result<()> {
 }
 
 fn main() {
-    protocol::secure::init_logging("info");
-    // No transparent huge pages: the kernel collapsing a range makes the pages the allocator
-    // handed back inside it resident again.
-    #[cfg(target_os = "linux")]
-    if let Err(e) = nix::sys::prctl::set_thp_disable(true) {
-        tracing::warn!("transparent huge pages left on: {e}");
-    }
+    protocol::secure::init_process("info");
     let cli = Cli::parse();
     // The camera on a headless NVIDIA server (sim_agent::icd), before any thread starts.
     sim_agent::icd::headless_nvidia();
