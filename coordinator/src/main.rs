@@ -8,8 +8,10 @@
 /// mimalloc hands freed pages back to the system soon after they are freed (glibc's malloc
 /// keeps them in its arenas): a long run's resident memory follows what it holds, not its
 /// highest peak. `main` turns transparent huge pages off, which would make them resident again.
+/// mimalloc, counting the bytes allocations hold (no limit): `job status` shows them beside
+/// the resident memory, which also holds what the allocator keeps back.
 #[global_allocator]
-static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
+static ALLOCATOR: cap::Cap<mimalloc::MiMalloc> = cap::Cap::new(mimalloc::MiMalloc, usize::MAX);
 
 mod bench;
 mod carmodel;

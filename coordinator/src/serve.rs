@@ -29,6 +29,10 @@ use zenoh::Wait;
 /// it between updates, which take a minute on a camera model late in a job).
 const GRACE_S: f64 = 120.0;
 const TICK: Duration = Duration::from_millis(500);
+/// How often the coordinator asks every agent who it is: an agent started again under its id
+/// while its old connection lingers (a power or network loss) keeps the id's liveliness token
+/// alive throughout, and only its new life number tells the restart.
+const CENSUS_EVERY: Duration = Duration::from_secs(5);
 
 struct Alive {
     since: Instant,
@@ -268,22 +272,25 @@ pub fn serve(args: ServeArgs) -> Result<()> {
     let status_sub = session.declare_subscriber(keys::ALL_LEARNER_STATUS).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
     let report_sub = session.declare_subscriber(keys::ALL_REPORTS).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
     tracing::info!(db = %args.db.display(), "coordinator up");
+    let mut next_census = Instant::now();
     loop {
         let tick = Instant::now();
-        let mut st = state.lock().expect("state lock");
+        // Agents coming and going, and who each is: asked outside the state lock (the query
+        // waits on the network), when one comes and every few seconds.
+        let mut came_went = Vec::new();
         while let Ok(Some(s)) = agents_sub.try_recv() {
-            let id = keys::last(s.key_expr().as_str()).to_string();
-            if s.kind() == zenoh::sample::SampleKind::Put {
+            came_went.push((keys::last(s.key_expr().as_str()).to_string(), s.kind()));
+        }
+        let census =
+            (tick >= next_census || came_went.iter().any(|(_, k)| *k == zenoh::sample::SampleKind::Put)).then(|| {
+                next_census = tick + CENSUS_EVERY;
+                agent_census(&session, &drops)
+            });
+        let mut st = state.lock().expect("state lock");
+        for (id, kind) in came_went {
+            if kind == zenoh::sample::SampleKind::Put {
                 if !st.agents.contains_key(&id) {
-                    let info = net::query::<AgentInfo>(
-                        &session,
-                        &keys::agent_info(&id),
-                        None,
-                        Duration::from_millis(500),
-                        &drops,
-                    )
-                    .ok()
-                    .and_then(|v| v.into_iter().next());
+                    let info = census.as_ref().and_then(|c| c.get(&id).cloned());
                     for j in st.jobs.values_mut().filter(|j| j.state() == JobState::Running) {
                         j.event(format!(
                             "agent {id} joined{}",
@@ -297,6 +304,17 @@ pub fn serve(args: ServeArgs) -> Result<()> {
             } else if st.agents.remove(&id).is_some() {
                 for j in st.jobs.values_mut().filter(|j| j.state() == JobState::Running) {
                     j.event(format!("agent {id} lost (liveliness dropped)"));
+                }
+            }
+        }
+        for (id, info) in census.into_iter().flatten() {
+            let Some(a) = st.agents.get_mut(&id) else { continue };
+            let again = a.info.as_ref().is_some_and(|old| old.life != info.life);
+            a.info = Some(info);
+            if again {
+                a.since = Instant::now();
+                for j in st.jobs.values_mut().filter(|j| j.state() == JobState::Running) {
+                    j.event(format!("agent {id} started again (its liveliness held over from its last run)"));
                 }
             }
         }
@@ -332,6 +350,16 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         drop(st);
         std::thread::sleep(TICK.saturating_sub(tick.elapsed()));
     }
+}
+
+/// Every live agent's [`AgentInfo`] by id, each answered on its own key (a reply whose id is
+/// not its key's is dropped).
+fn agent_census(session: &zenoh::Session, drops: &DropCounters) -> BTreeMap<String, AgentInfo> {
+    net::query_keyed::<AgentInfo>(session, &keys::agent_info("*"), None, Duration::from_millis(500), drops)
+        .unwrap_or_default()
+        .into_iter()
+        .filter_map(|(key, info)| (keys::agent_info(&info.agent_id) == key).then(|| (info.agent_id.clone(), info)))
+        .collect()
 }
 
 /// Agents whose refusals a job keeps.
@@ -718,7 +746,13 @@ fn handle(st: &Arc<Mutex<State>>, db: &Db, _session: &zenoh::Session, req: JobRe
             Some(j) => {
                 let coordinator_refused = protocol::secure::drop_counts(protocol::secure::REFUSED.reasons());
                 let coordinator_hostile_peers = protocol::secure::drop_counts(protocol::secure::HOSTILE.named());
-                let status = JobStatus { record: Some(j.clone()), coordinator_refused, coordinator_hostile_peers };
+                let coordinator_live_mb = crate::ALLOCATOR.allocated() as f64 / (1024.0 * 1024.0);
+                let status = JobStatus {
+                    record: Some(j.clone()),
+                    coordinator_refused,
+                    coordinator_hostile_peers,
+                    coordinator_live_mb,
+                };
                 reply(true, status_text(j, &st), Some(Body::Status(status)))
             }
             None => reply(false, format!("no job '{id}'"), None),

@@ -2,10 +2,12 @@
 //! README's kind of job (two worlds from pixels, two agents) on loopback with the cluster's
 //! credentials: the agents join with tokens; agent 1 is killed every `--kill-every` minutes and
 //! its certificate lives `--cert-minutes` (it expires during the run and the machine joins
-//! again); agent 2 is revoked and joins again every `--rejoin-every`, and lives long between. Each role's
-//! resident memory, threads, open files and sockets, the steps/s the learner got, the agents'
-//! step time (their CPU per environment step), the policy version, the stale and refused
-//! counts go to `soak.csv` each sample and to `soak.svg`; the verdict comes from the slopes
+//! again); agent 2 is revoked and joins again every `--rejoin-every`, and lives long between.
+//! Each role's private resident memory (its binary's pages apart: they are read in as code
+//! first runs), threads, open files and sockets, the steps/s the learner got, the agents' step
+//! time (their CPU per environment step), the policy version, the stale and refused counts,
+//! and the bytes the coordinator's allocations hold go to `soak.csv` each sample and to
+//! `soak.svg`; the verdict comes from the slopes
 //! after the warm-up, each weighed with its standard error, and from the learner's own record
 //! of its memory after each update. Episodes are capped (`--episode-steps`), so that the work
 //! per update holds steady once the car drives. The agents' CPU includes their evaluations,
@@ -58,7 +60,11 @@ pub struct SoakArgs {
 /// One process's figures from /proc.
 #[derive(Clone, Copy, Default)]
 struct Proc {
-    rss_kb: f64,
+    /// Private resident memory (`RssAnon`): the heap and the stacks, where a leak shows.
+    anon_kb: f64,
+    /// Resident pages of files (`RssFile`): the binary's code and data, read in as code first
+    /// runs (a churn's paths) and dropped under pressure; bounded by the binary's size.
+    file_kb: f64,
     threads: f64,
     files: f64,
     sockets: f64,
@@ -93,7 +99,8 @@ fn proc_of(pid: u32) -> Proc {
         Some(f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?)
     });
     Proc {
-        rss_kb: field("VmRSS:"),
+        anon_kb: field("RssAnon:"),
+        file_kb: field("RssFile:"),
         threads: field("Threads:"),
         files,
         sockets,
@@ -103,6 +110,9 @@ fn proc_of(pid: u32) -> Proc {
 
 /// Minutes at the end of a run without churn: the last event's recovery is seen.
 const CHURN_GRACE: f64 = 3.0;
+
+/// Columns per role in the CSV: private memory, threads, open files, sockets, file pages.
+const PER_ROLE: usize = 5;
 
 /// The roles sampled, in the CSV's order.
 const ROLES: [&str; 4] = ["coordinator", "learner", "agent-1", "agent-2"];
@@ -289,10 +299,10 @@ pub fn soak(a: SoakArgs) -> Result<i32> {
     let csv_path = out.join("soak.csv");
     let mut csv = String::from("minute");
     for r in ROLES {
-        csv.push_str(&format!(",{r}_rss_mb,{r}_threads,{r}_files,{r}_sockets"));
+        csv.push_str(&format!(",{r}_anon_mb,{r}_threads,{r}_files,{r}_sockets,{r}_file_mb"));
     }
     csv.push_str(
-        ",steps_per_s,agent_cpu_ms_per_step,episodes_received,dropped_stale,dropped_bad,dropped_duplicate,refused,env_steps,policy_version\n",
+        ",steps_per_s,agent_cpu_ms_per_step,episodes_received,dropped_stale,dropped_bad,dropped_duplicate,refused,env_steps,policy_version,coordinator_live_mb\n",
     );
     let mut rows: Vec<Vec<f64>> = Vec::new();
     let mut lives: Vec<Vec<u64>> = Vec::new();
@@ -403,7 +413,7 @@ pub fn soak(a: SoakArgs) -> Result<i32> {
             for r in ROLES {
                 let pid = pids[r].as_u64().unwrap_or(0);
                 let p = if pid > 0 { proc_of(pid as u32) } else { Proc::default() };
-                row.extend([p.rss_kb / 1024.0, p.threads, p.files, p.sockets]);
+                row.extend([p.anon_kb / 1024.0, p.threads, p.files, p.sockets, p.file_kb / 1024.0]);
                 if r.starts_with("agent") {
                     cpu.push((pid, p.cpu_s));
                 }
@@ -448,6 +458,7 @@ pub fn soak(a: SoakArgs) -> Result<i32> {
                 refused as f64,
                 env,
                 if known { l.policy_version as f64 } else { f64::NAN },
+                last_status.as_ref().map(|s| s.coordinator_live_mb).filter(|mb| *mb > 0.0).unwrap_or(f64::NAN),
             ]);
             csv.push_str(&row.iter().map(|v| format!("{v:.3}")).collect::<Vec<_>>().join(","));
             csv.push('\n');
@@ -485,11 +496,11 @@ fn worst_life(a: &SoakArgs, rows: &[Vec<f64>], lives: &[Vec<u64>], k: usize) -> 
         }
         let born = rows[i][0];
         let seg: Vec<&Vec<f64>> =
-            rows[i..j].iter().filter(|r| r[0] >= born + a.warmup && r[1 + 4 * k].is_finite()).collect();
+            rows[i..j].iter().filter(|r| r[0] >= born + a.warmup && r[1 + PER_ROLE * k].is_finite()).collect();
         if pid != 0 && seg.len() >= 3 && seg[seg.len() - 1][0] - seg[0][0] >= MIN_LIFE {
             // The floor of each window: what a process holds between its peaks (a training
             // update's buffers come and go; a leak raises the floor).
-            let points: Vec<(f64, f64)> = seg.iter().map(|r| (r[0], r[1 + 4 * k])).collect();
+            let points: Vec<(f64, f64)> = seg.iter().map(|r| (r[0], r[1 + PER_ROLE * k])).collect();
             let (xs, ys) = windows(&points, 1, |v| v.iter().copied().fold(f64::INFINITY, f64::min));
             if xs.len() >= 3 {
                 let g = (drift_per_hour(&xs, &ys), drift_error(&xs, &ys), seg[seg.len() - 1][0] - seg[0][0]);
@@ -594,7 +605,7 @@ fn verdict(
     anyhow::ensure!(after.len() >= 3, "too few samples after the warm-up ({}) for a slope", after.len());
     let xs: Vec<f64> = after.iter().map(|r| r[0]).collect();
     let col = |i: usize| after.iter().map(|r| r[i]).collect::<Vec<f64>>();
-    let base = 1 + 4 * ROLES.len();
+    let base = 1 + PER_ROLE * ROLES.len();
     let mut checks: Vec<(String, String, Judged)> = Vec::new();
     // The learner's memory once each update's batch is freed (its own record): what it keeps.
     let kept = updates(metrics, a.warmup, |m| m["resident_mb"].as_f64());
@@ -635,7 +646,7 @@ fn verdict(
             // life (one process id) past its warm-up, the worst life reported.
             match worst_life(a, rows, lives, k) {
                 Some((g, e, span)) => checks.push((
-                    format!("{r}: resident memory growth ≤ 1 %/h (worst life, 3-minute floors)"),
+                    format!("{r}: private memory growth ≤ 1 %/h (worst life, 3-minute floors)"),
                     format!("{g:+.2} ± {e:.2} %/h over {span:.0} min"),
                     judge(g, e, 1.0, span, false),
                 )),
@@ -643,14 +654,26 @@ fn verdict(
             }
         }
         if lives.iter().all(|l| l[k] == lives[0][k]) {
-            let th = slope(&xs, &col(2 + 4 * k)) * 60.0;
-            let fd = slope(&xs, &col(3 + 4 * k)) * 60.0;
+            let th = slope(&xs, &col(2 + PER_ROLE * k)) * 60.0;
+            let fd = slope(&xs, &col(3 + PER_ROLE * k)) * 60.0;
             checks.push((
                 format!("{r}: threads and open files do not grow"),
                 format!("{th:+.1}/h threads, {fd:+.1}/h files"),
                 (th <= 1.0 && fd <= 2.0).into(),
             ));
         }
+    }
+    // What the coordinator's allocations hold (its job status), each window's floor past
+    // the warm-up: a leak raises it; the allocator's keeping back only the resident memory.
+    let held: Vec<(f64, f64)> = after.iter().map(|r| (r[0], r[base + 9])).filter(|p| p.1.is_finite()).collect();
+    let (hx, hy) = windows(&held, 1, |v| v.iter().copied().fold(f64::INFINITY, f64::min));
+    if hx.len() >= 3 {
+        let (g, e) = (drift_per_hour(&hx, &hy), drift_error(&hx, &hy));
+        checks.push((
+            "coordinator: bytes held grow ≤ 1 %/h (no leak; 3-minute floors)".into(),
+            format!("{g:+.2} ± {e:.2} %/h ({:.1} → {:.1} MB)", hy[0], hy[hy.len() - 1]),
+            judge(g, e, 1.0, hx[hx.len() - 1] - hx[0], false),
+        ));
     }
     // Steps/s: the simulation's own rate, environment steps per second of the agents' CPU
     // (the median of each window), whatever share of the time the learner's updates take.
@@ -713,7 +736,8 @@ fn verdict(
             third(2)
         );
     }
-    let last = rows.iter().rev().find(|r| r[base + 2].is_finite()).cloned().unwrap_or_else(|| vec![f64::NAN; base + 9]);
+    let last =
+        rows.iter().rev().find(|r| r[base + 2].is_finite()).cloned().unwrap_or_else(|| vec![f64::NAN; base + 10]);
     let (bad, dup) = (last[base + 4], last[base + 5]);
     // A stall: a window past the warm-up in which no episode arrived and no update was made
     // (an update takes minutes as episodes grow, and no episode is asked for meanwhile).
@@ -781,7 +805,7 @@ fn verdict(
     Ok(if pass { 0 } else { 1 })
 }
 
-/// `soak.svg`: each role's resident memory, and the steps/s, against minutes.
+/// `soak.svg`: each role's private memory, and the steps/s, against minutes.
 fn chart(rows: &[Vec<f64>], out: &Path) -> Result<()> {
     use plotters::prelude::*;
     let _ = plotters::style::register_font("sans-serif", FontStyle::Normal, dejavu::sans::regular());
@@ -793,11 +817,11 @@ fn chart(rows: &[Vec<f64>], out: &Path) -> Result<()> {
     let end = rows.last().map_or(1.0, |r| r[0]).max(1.0);
     let max_mb = rows
         .iter()
-        .flat_map(|r| (0..ROLES.len()).map(move |k| r[1 + 4 * k]))
+        .flat_map(|r| (0..ROLES.len()).map(move |k| r[1 + PER_ROLE * k]))
         .filter(|v| v.is_finite())
         .fold(1.0, f64::max);
     let mut c = ChartBuilder::on(&top)
-        .caption("resident memory (MB)", ("sans-serif", 18))
+        .caption("private resident memory (MB)", ("sans-serif", 18))
         .margin(10)
         .x_label_area_size(30)
         .y_label_area_size(50)
@@ -807,7 +831,7 @@ fn chart(rows: &[Vec<f64>], out: &Path) -> Result<()> {
     for (k, r) in ROLES.iter().enumerate() {
         let color = Palette99::pick(k).to_rgba();
         c.draw_series(LineSeries::new(
-            rows.iter().map(|row| (row[0], row[1 + 4 * k])).filter(|p| p.1.is_finite()),
+            rows.iter().map(|row| (row[0], row[1 + PER_ROLE * k])).filter(|p| p.1.is_finite()),
             color,
         ))
         .map_err(|x| e(&x))?
@@ -815,7 +839,7 @@ fn chart(rows: &[Vec<f64>], out: &Path) -> Result<()> {
         .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], color));
     }
     c.configure_series_labels().border_style(BLACK).background_style(WHITE).draw().map_err(|x| e(&x))?;
-    let base = 1 + 4 * ROLES.len();
+    let base = 1 + PER_ROLE * ROLES.len();
     // The agents' steps per CPU-second, on the same axis.
     let per_cpu = |r: &Vec<f64>| 1000.0 / r[base + 1];
     let max_steps = rows.iter().flat_map(|r| [r[base], per_cpu(r)]).filter(|v| v.is_finite()).fold(1.0, f64::max);

@@ -9,7 +9,8 @@
 //! - DeepRacer's metrics JSON (simapp's `metrics/s3_metrics.py`):
 //!   `metrics/TrainingMetrics[_<i>].json` (training and evaluation episodes; Paddock adds each
 //!   episode's `world` and `paddock_iteration`) and `metrics/evaluation/evaluation-<ts>.json`
-//!   per evaluation; `tracks.json`, the worlds' lines;
+//!   per evaluation; `tracks.json`, the worlds' lines. A training metrics file is appended to
+//!   in place ([`MetricsFile`]): a run of days writes each entry once and holds none;
 //! - `metrics.jsonl`'s and `evaluations.jsonl`'s lines: [`IterationRecord`] (each update)
 //!   and [`EvalRecord`] (each evaluation), which the run writes and its observers hear;
 //! - `trace.mcap` for Foxglove: the tracks (`foxglove.SceneUpdate`), each step's pose
@@ -189,14 +190,121 @@ pub struct Recorder {
     workers: Vec<String>,
     /// Per worker: training episodes written (DeepRacer's 0-based episode counter).
     episodes: Vec<u64>,
-    /// Per worker: its metrics JSON entries.
-    metrics: Vec<Vec<Value>>,
-    metrics_dirty: bool,
+    /// Per worker: its metrics JSON.
+    metrics: Vec<MetricsFile>,
     metrics_written: Instant,
     mcap: Option<Mcap>,
     /// The next free instant on the MCAP timeline (ns since the Unix epoch).
     cursor: u64,
     last_eval_stamp: String,
+}
+
+/// A worker's metrics JSON (`{"version": 2.0, "best_model_metric": "progress", "metrics":
+/// [...]}`), its `metrics` array last: new entries overwrite the closing `]}` with `,` and
+/// themselves and `]}` again, one write, so the file stays whole JSON after each and a run of
+/// days neither holds its entries nor rewrites them.
+struct MetricsFile {
+    path: PathBuf,
+    /// Entries in the file.
+    written: u64,
+    /// Entries still to be written.
+    pending: Vec<Value>,
+}
+
+const METRICS_HEAD: &str = r#"{"version":2.0,"best_model_metric":"progress","metrics":["#;
+const METRICS_TAIL: &str = "]}";
+
+impl MetricsFile {
+    fn new(path: PathBuf) -> MetricsFile {
+        MetricsFile { path, written: 0, pending: Vec::new() }
+    }
+
+    /// A resumed run's file: its entries read (a legacy layout or a last write cut short
+    /// mended, the file written again whole); returns it and its training episodes.
+    fn resume(path: PathBuf) -> std::io::Result<(MetricsFile, u64)> {
+        let text = match std::fs::read_to_string(&path) {
+            Ok(t) => t,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok((MetricsFile::new(path), 0)),
+            Err(e) => return Err(e),
+        };
+        let entries = metrics_entries(&text).ok_or_else(|| {
+            std::io::Error::new(
+                std::io::ErrorKind::InvalidData,
+                format!("{}: expected DeepRacer's metrics JSON, an object with a `metrics` array", path.display()),
+            )
+        })?;
+        let training = entries.iter().filter(|e| e["phase"] == "training").count() as u64;
+        let mut whole = String::from(METRICS_HEAD);
+        for (i, e) in entries.iter().enumerate() {
+            if i > 0 {
+                whole.push(',');
+            }
+            whole.push_str(&serde_json::to_string(e)?);
+        }
+        whole.push_str(METRICS_TAIL);
+        if whole != text {
+            write_whole(&path, whole.as_bytes())?;
+        }
+        Ok((MetricsFile { path, written: entries.len() as u64, pending: Vec::new() }, training))
+    }
+
+    /// Write the pending entries: the file made whole the first time, appended to after.
+    fn flush(&mut self) -> std::io::Result<()> {
+        use std::os::unix::fs::FileExt;
+        if self.pending.is_empty() {
+            return Ok(());
+        }
+        let mut add = String::new();
+        for (i, e) in self.pending.iter().enumerate() {
+            if i > 0 || self.written > 0 {
+                add.push(',');
+            }
+            add.push_str(&serde_json::to_string(e)?);
+        }
+        add.push_str(METRICS_TAIL);
+        if self.written == 0 {
+            std::fs::create_dir_all(self.path.parent().expect("has a parent"))?;
+            write_whole(&self.path, format!("{METRICS_HEAD}{add}").as_bytes())?;
+        } else {
+            let f = std::fs::OpenOptions::new().read(true).write(true).open(&self.path)?;
+            let len = f.metadata()?.len();
+            let mut tail = [0u8; METRICS_TAIL.len()];
+            let at = len.checked_sub(tail.len() as u64).filter(|_| len >= (METRICS_HEAD.len() + tail.len()) as u64);
+            let at = match at {
+                Some(at) => {
+                    f.read_exact_at(&mut tail, at)?;
+                    at
+                }
+                None => u64::MAX,
+            };
+            if at == u64::MAX || tail != METRICS_TAIL.as_bytes() {
+                return Err(std::io::Error::new(
+                    std::io::ErrorKind::InvalidData,
+                    format!("{}: changed under the learner (it does not end in `]}}`)", self.path.display()),
+                ));
+            }
+            f.write_all_at(add.as_bytes(), at)?;
+        }
+        self.written += self.pending.len() as u64;
+        self.pending.clear();
+        Ok(())
+    }
+}
+
+/// The `metrics` entries of a metrics JSON's text; a text whose last write was cut short
+/// (the file ends inside the array) gives the entries before the cut.
+fn metrics_entries(text: &str) -> Option<Vec<Value>> {
+    if let Ok(v) = serde_json::from_str::<Value>(text) {
+        return v["metrics"].as_array().cloned();
+    }
+    // Entries are flat objects: the whole ones end at a `}` the array can close after.
+    let open = text.find('[')?;
+    let mut ends: Vec<usize> = text[open..].rmatch_indices('}').map(|(i, _)| open + i + 1).take(64).collect();
+    ends.push(open + 1);
+    ends.into_iter().find_map(|end| {
+        let v: Value = serde_json::from_str(&format!("{}{METRICS_TAIL}", &text[..end])).ok()?;
+        v["metrics"].as_array().cloned()
+    })
 }
 
 /// Write `bytes` to `path` whole (a temporary file, then a rename).
@@ -242,7 +350,6 @@ impl Recorder {
             workers: Vec::new(),
             episodes: Vec::new(),
             metrics: Vec::new(),
-            metrics_dirty: false,
             metrics_written: Instant::now(),
             mcap: None,
             cursor: ns(crate::record::unix_now()),
@@ -253,13 +360,9 @@ impl Recorder {
                 r.workers = serde_json::from_str(&text).unwrap_or_default();
             }
             for i in 0..r.workers.len() {
-                let entries: Vec<Value> = std::fs::read_to_string(r.metrics_path(i))
-                    .ok()
-                    .and_then(|t| serde_json::from_str::<Value>(&t).ok())
-                    .and_then(|v| v["metrics"].as_array().cloned())
-                    .unwrap_or_default();
-                r.episodes.push(entries.iter().filter(|e| e["phase"] == "training").count() as u64);
-                r.metrics.push(entries);
+                let (file, training) = MetricsFile::resume(r.metrics_path(i))?;
+                r.episodes.push(training);
+                r.metrics.push(file);
             }
         }
         if !tracks.is_empty() {
@@ -285,7 +388,7 @@ impl Recorder {
         }
         self.workers.push(worker.to_string());
         self.episodes.push(0);
-        self.metrics.push(Vec::new());
+        self.metrics.push(MetricsFile::new(self.metrics_path(self.workers.len() - 1)));
         write_whole(&self.dir.join("metrics/workers.json"), serde_json::to_string(&self.workers)?.as_bytes())?;
         Ok(self.workers.len() - 1)
     }
@@ -318,14 +421,13 @@ impl Recorder {
                 // Paddock's additions (deepracer-utils ignores them): which world, which update.
                 m["world"] = json!(t.world);
                 m["paddock_iteration"] = json!(rec.iteration);
-                self.metrics[*i].push(m);
+                self.metrics[*i].pending.push(m);
                 if let Some(mcap) = self.mcap.as_mut() {
                     self.cursor = mcap.episode(self.cursor, "/training", &self.workers[*i], episode, t, &self.space)?;
                 }
             }
             out.flush()?;
         }
-        self.metrics_dirty = true;
         if self.metrics_written.elapsed() >= Duration::from_secs(5) {
             self.write_metrics()?;
         }
@@ -394,7 +496,7 @@ impl Recorder {
                 if self.metrics.is_empty() {
                     self.worker_index("evaluation")?;
                 }
-                self.metrics[0].push(m);
+                self.metrics[0].pending.push(m);
                 if let Some(mcap) = self.mcap.as_mut() {
                     let as_traj = Trajectory {
                         world: world.clone(),
@@ -423,7 +525,6 @@ impl Recorder {
         if let Some(mcap) = self.mcap.as_mut() {
             mcap.figures("/learner/evaluation", "paddock.Evaluation", self.cursor, &serde_json::to_value(e)?)?;
         }
-        self.metrics_dirty = true;
         self.write_metrics()?;
         Ok(written)
     }
@@ -441,16 +542,11 @@ impl Recorder {
         }
     }
 
-    /// Rewrite every worker's metrics JSON (when something changed).
+    /// Write every worker's pending metrics entries.
     pub fn write_metrics(&mut self) -> std::io::Result<()> {
-        if !self.metrics_dirty {
-            return Ok(());
+        for m in &mut self.metrics {
+            m.flush()?;
         }
-        for i in 0..self.metrics.len() {
-            let doc = json!({"metrics": self.metrics[i], "version": 2.0, "best_model_metric": "progress"});
-            write_whole(&self.metrics_path(i), serde_json::to_string(&doc)?.as_bytes())?;
-        }
-        self.metrics_dirty = false;
         self.metrics_written = Instant::now();
         Ok(())
     }
@@ -664,6 +760,86 @@ mod tests {
     use super::*;
     use crate::ppo::PpoStats;
     use crate::sac::SacStats;
+
+    fn entry(episode: u64, phase: &str) -> Value {
+        json!({"episode": episode, "phase": phase, "completion_percentage": 100, "episode_status": "Lap complete"})
+    }
+
+    fn read_entries(path: &Path) -> Vec<Value> {
+        let v: Value = serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
+        assert_eq!(v["version"], json!(2.0));
+        assert_eq!(v["best_model_metric"], "progress");
+        v["metrics"].as_array().unwrap().clone()
+    }
+
+    /// Issue 54: a metrics JSON is appended to in place, whole JSON after every write, and a
+    /// resumed run goes on with its entries and its training episodes counted.
+    #[test]
+    fn a_metrics_file_is_appended_in_place_and_a_resumed_run_goes_on_with_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("metrics/TrainingMetrics.json");
+        let mut m = MetricsFile::new(path.clone());
+        m.pending.extend([entry(1, "training"), entry(2, "training")]);
+        m.flush().unwrap();
+        assert_eq!(read_entries(&path).len(), 2);
+        m.pending.push(entry(2, "evaluation"));
+        m.flush().unwrap();
+        m.flush().unwrap();
+        let entries = read_entries(&path);
+        assert_eq!(entries, vec![entry(1, "training"), entry(2, "training"), entry(2, "evaluation")]);
+        let (mut again, training) = MetricsFile::resume(path.clone()).unwrap();
+        assert_eq!((again.written, training), (3, 2));
+        again.pending.push(entry(3, "training"));
+        again.flush().unwrap();
+        assert_eq!(read_entries(&path)[3], entry(3, "training"));
+        // A file changed under the learner is refused, by name, and left as it was.
+        std::fs::write(&path, "{}").unwrap();
+        again.pending.push(entry(4, "training"));
+        let e = again.flush().unwrap_err().to_string();
+        assert!(e.contains("TrainingMetrics.json") && e.contains("does not end in"), "{e}");
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), "{}");
+    }
+
+    /// Issue 54: a file whose last write was cut short (the machine lost power) resumes with
+    /// the entries before the cut, and an older Paddock's layout (the array in the middle)
+    /// resumes whole; each is written again whole in the appendable layout.
+    #[test]
+    fn a_metrics_file_cut_short_or_in_the_older_layout_resumes_with_its_whole_entries() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("TrainingMetrics.json");
+        let whole = format!(
+            "{METRICS_HEAD}{},{},{}{METRICS_TAIL}",
+            entry(1, "training"),
+            entry(2, "training"),
+            entry(3, "training")
+        );
+        let cases: [(&str, String, usize); 4] = [
+            ("cut inside the third entry", whole[..whole.len() - 20].to_string(), 2),
+            ("cut after a comma", whole[..whole.rfind(",{").unwrap() + 1].to_string(), 2),
+            ("cut before its first entry", METRICS_HEAD.to_string(), 0),
+            (
+                "the older layout",
+                format!(
+                    r#"{{"best_model_metric":"progress","metrics":[{},{}],"version":2.0}}"#,
+                    entry(1, "training"),
+                    entry(2, "evaluation")
+                ),
+                2,
+            ),
+        ];
+        for (what, text, kept) in cases {
+            std::fs::write(&path, &text).unwrap();
+            let (mut m, _) = MetricsFile::resume(path.clone()).unwrap();
+            assert_eq!(m.written as usize, kept, "{what}");
+            assert_eq!(read_entries(&path).len(), kept, "{what}");
+            m.pending.push(entry(9, "training"));
+            m.flush().unwrap();
+            assert_eq!(read_entries(&path).len(), kept + 1, "{what}");
+        }
+        std::fs::write(&path, "not JSON at all").unwrap();
+        let e = MetricsFile::resume(path.clone()).err().unwrap().to_string();
+        assert!(e.contains("TrainingMetrics.json") && e.contains("expected DeepRacer's metrics JSON"), "{e}");
+    }
 
     /// Issue 50: an update's line in `metrics.jsonl` takes PPO's figures into PPO's columns
     /// and SAC's into the shared columns and `sac`; what the algorithm does not have stays

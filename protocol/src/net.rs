@@ -420,6 +420,17 @@ pub fn query<M: Versioned>(
     timeout: std::time::Duration,
     drops: &DropCounters,
 ) -> Result<Vec<M>, NetError> {
+    Ok(query_keyed(session, key, request, timeout, drops)?.into_iter().map(|(_, m)| m).collect())
+}
+
+/// [`query`], each reply with the key it came on (a query on a wildcard: who answered).
+pub fn query_keyed<M: Versioned>(
+    session: &zenoh::Session,
+    key: &str,
+    request: Option<Vec<u8>>,
+    timeout: std::time::Duration,
+    drops: &DropCounters,
+) -> Result<Vec<(String, M)>, NetError> {
     let mut get = session.get(key).timeout(timeout);
     if let Some(r) = request {
         get = get.payload(r);
@@ -430,7 +441,7 @@ pub fn query<M: Versioned>(
         if let Ok(sample) = reply.result()
             && let Some(m) = decode_sample::<M>(sample, drops)
         {
-            out.push(m);
+            out.push((sample.key_expr().as_str().to_string(), m));
         }
     }
     Ok(out)

@@ -68,6 +68,10 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         .unwrap_or_else(|| format!("{}-{}", host(), std::process::id()));
     anyhow::ensure!(keys::is_valid_name(&id), "agent id '{id}' may hold only letters, digits, '-', '_' and '.'");
     let session = net::open_retrying(&args.net.clone().as_machine(Role::Agent, &id))?;
+    // This process's life, drawn at random: the coordinator tells an agent started again
+    // under its id by it (its liveliness token may outlast the process it came from), and
+    // the learner its batches from its earlier life's.
+    let life = rand::random::<u32>();
     let info = AgentInfo {
         protocol_version: PROTOCOL_VERSION,
         agent_id: id.clone(),
@@ -75,12 +79,15 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         cores: std::thread::available_parallelism().map(|n| n.get() as u32).unwrap_or(1),
         renderer: "none".into(),
         envs: args.envs as u32,
+        life,
     };
     let info_bytes = protocol::encode(&info);
+    // Answered on its own key, whatever the query's (the coordinator asks every agent at once).
+    let info_key = keys::agent_info(&id);
     let _info_q = session
-        .declare_queryable(keys::agent_info(&id))
+        .declare_queryable(info_key.clone())
         .callback(move |q| {
-            let _ = q.reply(q.key_expr().clone(), info_bytes.clone()).wait();
+            let _ = q.reply(info_key.clone(), info_bytes.clone()).wait();
         })
         .wait()
         .map_err(|e| anyhow::anyhow!("{e}"))?;
@@ -94,10 +101,10 @@ pub fn serve(args: ServeArgs) -> Result<()> {
     let mut failed: Option<(String, u64)> = None;
     let mut docs: Vec<Job> = Vec::new();
     let mut next: Option<Assignment> = None;
-    // Batches are numbered upwards within this process's life, drawn at random into the high
-    // 32 bits: an agent started again under its id (killed, joined again) is a new life to
-    // the learner, whose batches are not taken for its earlier life's repeats.
-    let mut seq = u64::from(rand::random::<u32>()) << 32;
+    // Batches are numbered upwards within this process's life, its number in the high 32
+    // bits: an agent started again under its id (killed, joined again) is a new life to the
+    // learner, whose batches are not taken for its earlier life's repeats.
+    let mut seq = u64::from(life) << 32;
     loop {
         let a = match next.take() {
             Some(a) => a,

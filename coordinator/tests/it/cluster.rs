@@ -35,6 +35,10 @@ impl Procs {
         self.0.push((name.into(), child));
     }
 
+    fn pid(&self, name: &str) -> u32 {
+        self.0.iter().find(|(n, _)| n == name).unwrap().1.id()
+    }
+
     fn kill(&mut self, name: &str) {
         let i = self.0.iter().position(|(n, _)| n == name).unwrap();
         let (_, mut c) = self.0.remove(i);
@@ -129,9 +133,14 @@ impl Cluster {
     }
 
     fn agent(&mut self, id: &str) {
-        let (ep, log) = (self.endpoint.clone(), self.path(&format!("{id}.log")));
+        self.agent_as(id, id);
+    }
+
+    /// An agent process called `name` that serves as `id`.
+    fn agent_as(&mut self, name: &str, id: &str) {
+        let (ep, log) = (self.endpoint.clone(), self.path(&format!("{name}.log")));
         self.procs.spawn(
-            id,
+            name,
             Command::new(bin("sim-agent"))
                 .args(["serve", "--connect", &ep, "--id", id, "--envs", "8", "--threads", "1"])
                 .args(&self.certs)
@@ -415,6 +424,56 @@ fn a_killed_agents_world_is_reassigned_and_a_restarted_learner_and_coordinator_c
     assert!(c.path("run/model/model.safetensors").exists());
     let list = String::from_utf8_lossy(&c.cli(&["job", "list"]).stdout).to_string();
     assert!(list.contains("job1") && list.contains("finished"), "{list}");
+}
+
+/// `coordinator agents`: each agent's row (its seconds up), by id.
+fn agents_up(c: &Cluster) -> Vec<(String, f64)> {
+    let o = c.cli(&["agents"]);
+    String::from_utf8_lossy(&o.stdout)
+        .lines()
+        .filter_map(|l| {
+            let up = l.rsplit_once("(up ")?.1.strip_suffix(" s)")?.parse().ok()?;
+            Some((l.split_whitespace().next()?.to_string(), up))
+        })
+        .collect()
+}
+
+/// A machine that loses power or its network leaves its connection open until Zenoh's lease
+/// runs out, and its liveliness token with it: started again under its id meanwhile, the
+/// agent's new token is the same key, and no leave or join is seen. Its new life is.
+#[test]
+fn an_agent_started_again_while_its_old_connection_lingers_is_seen_as_started_again() {
+    let mut c = Cluster::new();
+    c.coordinator();
+    c.agent("agent-1");
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while !agents_up(&c).iter().any(|(id, up)| id == "agent-1" && *up >= 8.0) {
+        assert!(Instant::now() < deadline, "agent-1 not up 8 s: {:?}\n{}", agents_up(&c), c.logs());
+        std::thread::sleep(Duration::from_millis(500));
+    }
+    // Frozen, as a machine without power: its connection stays open, it answers nothing.
+    let frozen = c.procs.pid("agent-1").to_string();
+    assert!(Command::new("kill").args(["-STOP", &frozen]).status().unwrap().success());
+    c.agent_as("agent-1-again", "agent-1");
+    let again = Instant::now();
+    let deadline = again + Duration::from_secs(30);
+    loop {
+        let rows = agents_up(&c);
+        if rows.iter().any(|(id, up)| id == "agent-1" && *up <= again.elapsed().as_secs_f64() + 1.0) {
+            break;
+        }
+        assert!(Instant::now() < deadline, "the new life not seen: {rows:?}\n{}", c.logs());
+        std::thread::sleep(Duration::from_millis(500));
+    }
+    // The old connection's lease runs out (10 s): the id stays, up since its new life.
+    std::thread::sleep(Duration::from_secs(15).saturating_sub(again.elapsed()));
+    c.procs.kill("agent-1");
+    let rows = agents_up(&c);
+    assert!(
+        rows.iter().any(|(id, up)| id == "agent-1" && *up <= again.elapsed().as_secs_f64() + 1.0),
+        "agent-1 gone or not up since its new life after the old lease ran out: {rows:?}\n{}",
+        c.logs()
+    );
 }
 
 /// Issue 4: bad input is counted and dropped and bad jobs are refused.
@@ -1173,6 +1232,8 @@ fn only_the_clusters_roles_connect_and_each_does_only_its_part() {
             && s["learner"]["refused"].to_string().contains("agent may not put on paddock/v1/jobs")
     });
     let coordinator = s["coordinator_refused"].to_string();
+    // Beside them, what the coordinator's allocations hold (counted by its binary).
+    assert!(s["coordinator_live_mb"].as_f64().is_some_and(|mb| mb > 1.0 && mb < 1024.0), "coordinator_live_mb: {s}");
     for want in [
         "TLS: a connection refused",
         "access control: agent may not query on paddock/v1/control",
