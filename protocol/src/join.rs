@@ -425,7 +425,12 @@ pub fn run_cli(role: Role, cli: JoinCli) -> Result<(), JoinError> {
             )));
         }
         (Some(d), false) => d.clone(),
-        (None, true) => crate::service::certs_dir(service),
+        // Before the door is asked: a token spent on a machine that cannot run the service
+        // would be lost.
+        (None, true) => {
+            crate::service::require_systemd().map_err(|e| JoinError::Usage(e.to_string()))?;
+            crate::service::certs_dir(service)
+        }
         (None, false) => {
             return Err(JoinError::Usage("--certs DIR: expected the folder to write the credentials in".into()));
         }

@@ -163,16 +163,23 @@ pub fn systemd_runs() -> bool {
     Path::new("/run/systemd/system").is_dir()
 }
 
+/// Whether a service can be installed here: refused, with what to do instead, where systemd
+/// does not run.
+pub fn require_systemd() -> Result<(), ServiceError> {
+    if systemd_runs() {
+        return Ok(());
+    }
+    Err(ServiceError(
+        "systemd does not run this machine (no /run/systemd/system): join with --certs DIR and start \
+         the role by hand with `serve --certs DIR`, or print a unit with `coordinator service print ROLE`"
+            .into(),
+    ))
+}
+
 /// `join --service`: write the unit into /etc/systemd/system, reload systemd, and enable and
 /// start it. The credentials must already be in [`certs_dir`].
 pub fn install(role: &str, unit_text: &str) -> Result<PathBuf, ServiceError> {
-    if !systemd_runs() {
-        return Err(ServiceError(
-            "systemd does not run this machine (no /run/systemd/system): start the role by hand with \
-             `serve --certs DIR`, or print a unit with `coordinator service print ROLE`"
-                .into(),
-        ));
-    }
+    require_systemd()?;
     let path = Path::new("/etc/systemd/system").join(unit_name(role));
     std::fs::write(&path, unit_text).map_err(|e| ServiceError(format!("{}: {e}", path.display())))?;
     // `restart`, not `start`: a machine that joined again runs with its new credentials.

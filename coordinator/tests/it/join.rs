@@ -143,6 +143,18 @@ fn a_machine_joins_with_one_command_and_serves_without_a_restart() {
     assert!(!d.join("m2").exists(), "a refused join wrote files");
     // Without an address the learner finds the door by scouting; it gets the signing key.
     assert!(!learner_token.contains('@'), "a door on every interface puts no address in the token");
+    // A service needs systemd: where it does not run (as here), the join is refused before the
+    // door is asked, and the token stays unused (the learner joins with it next).
+    if !Path::new("/run/systemd/system").is_dir() {
+        let port = jport.to_string();
+        let no_systemd =
+            run(d, "learner", &["join", &learner_token, "--service", "--multicast", "lo", "--port", &port]);
+        assert!(
+            !no_systemd.status.success() && text(&no_systemd).contains("systemd does not run this machine"),
+            "{}",
+            text(&no_systemd)
+        );
+    }
     let out =
         ok(d, "learner", &["join", &learner_token, "--certs", "l1", "--multicast", "lo", "--port", &jport.to_string()]);
     assert!(out.contains("joined as learner slot-1"), "{out}");
