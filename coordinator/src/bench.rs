@@ -159,6 +159,42 @@ fn used_samples(run: &std::path::Path) -> Result<(f64, usize)> {
     Ok((used, updates))
 }
 
+/// Where a run's verified model was made: its checkpoint's iteration, the environment steps
+/// the learner had received and the seconds since the run's start then (the model's
+/// manifest), and the updates and samples trained on up to it (`metrics.jsonl`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Verified {
+    iteration: u64,
+    env_steps: u64,
+    made_s: f64,
+    updates: usize,
+    samples: u64,
+}
+
+/// The run's verified model (`model/manifest.json` with `verified_trials`); None when its
+/// best model was not verified.
+fn verified_point(run: &std::path::Path) -> Result<Option<Verified>> {
+    let path = run.join("model/manifest.json");
+    let Ok(text) = std::fs::read_to_string(&path) else { return Ok(None) };
+    let m: serde_json::Value = serde_json::from_str(&text).with_context(|| format!("{}", path.display()))?;
+    let t = &m["training"];
+    if t["verified_trials"].is_null() {
+        return Ok(None);
+    }
+    let field = |k: &str| t[k].as_f64().with_context(|| format!("{}: training.{k} missing", path.display()));
+    let iteration = field("iteration")? as u64;
+    let metrics = std::fs::read_to_string(run.join("metrics.jsonl")).with_context(|| format!("{}", run.display()))?;
+    let (mut updates, mut samples) = (0, 0);
+    for line in metrics.lines() {
+        let v: serde_json::Value = serde_json::from_str(line)?;
+        if v["iteration"].as_u64().is_some_and(|i| i <= iteration) {
+            updates += 1;
+            samples += v["steps"].as_u64().unwrap_or(0);
+        }
+    }
+    Ok(Some(Verified { iteration, env_steps: field("env_steps")? as u64, made_s: field("seconds")?, updates, samples }))
+}
+
 /// A camera model of DeepRacer's `network` (5 discrete actions, seed 1, policy version 1),
 /// as the benches publish and write it.
 pub(crate) fn camera_model(network: &str) -> Result<policy::ModelFolder> {
@@ -434,6 +470,9 @@ struct PixelsRun {
     /// [`after_first_lap`] of each.
     train_after: Option<(u64, usize, usize)>,
     up_after: Option<(u64, usize, usize)>,
+    /// [`verified_point`] of each.
+    train_verified: Option<Verified>,
+    up_verified: Option<Verified>,
 }
 
 /// `bench pixels`: `train` and `up` from pixels on several worlds, per seed, to the verified
@@ -496,6 +535,8 @@ pub fn pixels(args: &crate::cli::PixelsArgs) -> Result<()> {
             up_times: iteration_times(&here.join("up/run"))?,
             train_after: after_first_lap(&here.join("train"))?,
             up_after: after_first_lap(&here.join("up/run"))?,
+            train_verified: verified_point(&here.join("train"))?,
+            up_verified: verified_point(&here.join("up/run"))?,
         });
     }
     println!(
@@ -545,6 +586,48 @@ pub fn pixels(args: &crate::cli::PixelsArgs) -> Result<()> {
         let n = v.len();
         if n % 2 == 1 { v[n / 2] } else { (v[n / 2 - 1] + v[n / 2]) / 2.0 }
     };
+    // What the verified model took: a change that makes each step cheaper shows in the seconds
+    // alone, one that makes fewer steps suffice in the steps and updates too.
+    println!(
+        "The verified model: when its checkpoint was made (s from the learner's start), the updates, environment steps and samples trained on up to it."
+    );
+    println!();
+    println!(
+        "| seed | setup | made at s | stopped at s (process) | iteration | updates | env steps | samples trained on |"
+    );
+    println!("|---|---|---|---|---|---|---|---|");
+    let mut made: [Vec<f64>; 2] = [Vec::new(), Vec::new()];
+    let mut steps: [Vec<f64>; 2] = [Vec::new(), Vec::new()];
+    for r in &runs {
+        for (k, (setup, v, stop)) in
+            [("`train`", r.train_verified, r.train_s), ("`up`", r.up_verified, r.up_s)].into_iter().enumerate()
+        {
+            match v {
+                Some(v) => {
+                    println!(
+                        "| {} | {setup} | {:.0} | {stop:.0} | {} | {} | {} | {} |",
+                        r.seed, v.made_s, v.iteration, v.updates, v.env_steps, v.samples
+                    );
+                    made[k].push(v.made_s);
+                    steps[k].push(v.env_steps as f64);
+                }
+                None => println!("| {} | {setup} | no verified model | {stop:.0} | | | | |", r.seed),
+            }
+        }
+    }
+    for (k, setup) in ["`train`", "`up`"].iter().enumerate() {
+        if !made[k].is_empty() {
+            println!();
+            println!(
+                "{setup}: median made at {:.0} s, after {:.0} environment steps ({} of {} seeds verified).",
+                median(made[k].clone()),
+                median(steps[k].clone()),
+                made[k].len(),
+                runs.len()
+            );
+        }
+    }
+    println!();
     let (mt, mu) = (median(runs.iter().map(|r| r.train_s).collect()), median(runs.iter().map(|r| r.up_s).collect()));
     let (st, su) = (runs.iter().map(|r| r.train_s).sum::<f64>(), runs.iter().map(|r| r.up_s).sum::<f64>());
     let mut ratios: Vec<f64> = runs.iter().map(|r| r.up_s / r.train_s).collect();
@@ -1358,4 +1441,35 @@ pub fn generated(
         return Ok(1);
     }
     Ok(verdict(&failed, "trained on generated tracks only, the model laps 3/3 on every catalog track it never saw"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Issue 55: the verified model's point is read from its manifest, and the updates and
+    /// samples up to its iteration from `metrics.jsonl`; a best model never verified has none.
+    #[test]
+    fn the_verified_models_point_counts_what_came_before_it() {
+        let run = tempfile::tempdir().unwrap();
+        std::fs::create_dir_all(run.path().join("model")).unwrap();
+        let lines: Vec<String> = (1..=5)
+            .map(|i| serde_json::json!({"iteration": i, "steps": 100 * i, "time_s": 10.0 * i as f64}).to_string())
+            .collect();
+        std::fs::write(run.path().join("metrics.jsonl"), lines.join("\n")).unwrap();
+        let manifest = |verified: bool| {
+            let mut t = serde_json::json!({"iteration": 3, "env_steps": 777, "seconds": 31.5});
+            if verified {
+                t["verified_trials"] = 10.into();
+            }
+            serde_json::json!({"training": t}).to_string()
+        };
+        std::fs::write(run.path().join("model/manifest.json"), manifest(true)).unwrap();
+        let v = verified_point(run.path()).unwrap();
+        assert_eq!(v, Some(Verified { iteration: 3, env_steps: 777, made_s: 31.5, updates: 3, samples: 600 }));
+        std::fs::write(run.path().join("model/manifest.json"), manifest(false)).unwrap();
+        assert_eq!(verified_point(run.path()).unwrap(), None);
+        std::fs::remove_dir_all(run.path().join("model")).unwrap();
+        assert_eq!(verified_point(run.path()).unwrap(), None);
+    }
 }

@@ -22,7 +22,8 @@ pub struct Trajectory {
     pub choices: Vec<Choice>,
     /// log π(choice | obs) at acting time (the behaviour log-probabilities).
     pub logp: Vec<f32>,
-    /// V(obs) at acting time.
+    /// V(obs) at acting time, where the acting computed it: a sim agent on the CPU acts with
+    /// the policy tower alone and sends 0 (PPO's update computes the values as it begins).
     pub values: Vec<f32>,
     /// Rewards.
     pub rewards: Vec<f32>,

@@ -65,7 +65,7 @@ pub struct ActOutput {
     pub choice: Choice,
     /// log π(choice | obs).
     pub logp: f32,
-    /// V(obs).
+    /// V(obs); 0 from [`ActorCritic::act_policy`], which does not compute it.
     pub value: f32,
 }
 
@@ -274,6 +274,22 @@ impl ActorCritic {
         let out = tape.output().to_vec();
         self.v.forward(obs, batch, &mut tape, par);
         self.choose(&out, tape.output(), batch, deterministic, rng)
+    }
+
+    /// [`ActorCritic::act`] from the policy tower alone, every value 0: what acting needs, at
+    /// half the maths. An evaluation takes the choice alone, and PPO's update computes the
+    /// values it needs from the network as it begins (`make_batch_for`), not from acting time.
+    pub fn act_policy(
+        &self,
+        obs: &[f32],
+        batch: usize,
+        deterministic: bool,
+        rng: &mut impl Rng,
+        par: Par,
+    ) -> Vec<ActOutput> {
+        let mut tape = Tape::default();
+        self.pi.forward(obs, batch, &mut tape, par);
+        self.choose(tape.output(), &vec![0.0; batch], batch, deterministic, rng)
     }
 
     /// [`ActorCritic::act`] from the towers' outputs over the batch, computed elsewhere (on a

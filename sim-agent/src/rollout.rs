@@ -86,14 +86,15 @@ impl Collector {
     fn act(&mut self, model: &Arc<ActorCritic>, x: &[f32], batch: usize) -> Vec<policy::ActOutput> {
         if let Some(g) = &mut self.gpu {
             match g.outputs(model, x, batch) {
-                Ok((out, values)) => return model.choose(&out, &values, batch, false, &mut self.rng),
+                // The policy's outputs alone, as on the CPU (`act_policy`): nothing uses the values.
+                Ok((out, _)) => return model.choose(&out, &vec![0.0; batch], batch, false, &mut self.rng),
                 Err(e) => {
                     tracing::warn!("the policy acts on the CPU from now on: {e}");
                     self.gpu = None;
                 }
             }
         }
-        model.act(x, batch, false, &mut self.rng, Par::Seq)
+        model.act_policy(x, batch, false, &mut self.rng, Par::Seq)
     }
 
     /// The environments.
@@ -293,9 +294,9 @@ pub fn evaluate(
             Some(Err(e)) => {
                 tracing::warn!("the evaluation acts on the CPU from now on: {e}");
                 gpu = None;
-                model.act(obs, trials, true, &mut rng, Par::Seq)
+                model.act_policy(obs, trials, true, &mut rng, Par::Seq)
             }
-            None => model.act(obs, trials, true, &mut rng, Par::Seq),
+            None => model.act_policy(obs, trials, true, &mut rng, Par::Seq),
         };
         let actions: Vec<policy::Action> = acts.iter().map(|a| a.choice.to_action(space)).collect();
         let outcomes = vec.step(&actions)?;

@@ -139,3 +139,49 @@ fn camera_and_lidar_networks_concatenate_embedders_in_deepracers_order() {
         assert_eq!(net.params.len(), convs + lidar_embedder(lidar) + merged * 512 + 512 + head, "{sensors}");
     }
 }
+
+/// Issue 55: acting with the policy tower alone chooses as acting with both towers does, from
+/// the same random stream (sampled and deterministic, for each head), and says no value.
+#[test]
+fn acting_with_the_policy_tower_alone_chooses_as_both_towers_do() {
+    use rand::SeedableRng;
+    let camera =
+        r#""sensor":["FRONT_FACING_CAMERA"],"neural_network":"DEEP_CONVOLUTIONAL_NETWORK_SHALLOW","version":"5""#;
+    for (head, meta) in [
+        (
+            "discrete",
+            format!(
+                r#"{{"action_space":[{{"steering_angle":-30,"speed":1}},{{"steering_angle":0,"speed":2}},{{"steering_angle":30,"speed":1}}],{camera}}}"#
+            ),
+        ),
+        (
+            "continuous",
+            format!(
+                r#"{{"action_space":{{"steering_angle":{{"low":-30,"high":30}},"speed":{{"low":0.5,"high":2}}}},"action_space_type":"continuous",{camera}}}"#
+            ),
+        ),
+        (
+            "SAC",
+            format!(
+                r#"{{"action_space":{{"steering_angle":{{"low":-30,"high":30}},"speed":{{"low":0.5,"high":2}}}},"action_space_type":"continuous","training_algorithm":"sac",{camera}}}"#
+            ),
+        ),
+    ] {
+        let meta = ModelMetadata::parse(&meta, "m.json").unwrap();
+        let model = policy::ActorCritic::new(&meta, 0, &mut rand_chacha::ChaCha8Rng::seed_from_u64(2));
+        let batch = 3;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let obs: Vec<f32> = (0..batch * model.obs_size()).map(|_| rand::Rng::random::<f32>(&mut rng)).collect();
+        for deterministic in [false, true] {
+            let (mut a, mut b) = (rand_chacha::ChaCha8Rng::seed_from_u64(4), rand_chacha::ChaCha8Rng::seed_from_u64(4));
+            let both = model.act(&obs, batch, deterministic, &mut a, faer::Par::Seq);
+            let alone = model.act_policy(&obs, batch, deterministic, &mut b, faer::Par::Seq);
+            assert_eq!(both.len(), batch);
+            for (x, y) in both.iter().zip(&alone) {
+                assert_eq!((x.choice, x.logp), (y.choice, y.logp), "{head}, deterministic {deterministic}");
+                assert_eq!(y.value, 0.0, "{head}");
+            }
+            assert!(both.iter().any(|x| x.value != 0.0), "{head}: both towers give values");
+        }
+    }
+}
