@@ -202,11 +202,14 @@ pub struct Recorder {
 /// A worker's metrics JSON (`{"version": 2.0, "best_model_metric": "progress", "metrics":
 /// [...]}`), its `metrics` array last: new entries overwrite the closing `]}` with `,` and
 /// themselves and `]}` again, one write, so the file stays whole JSON after each and a run of
-/// days neither holds its entries nor rewrites them.
+/// days neither holds its entries nor rewrites them. A write cut short (a full disk) is
+/// written again from the same place by the next flush, and the file cut to its end.
 struct MetricsFile {
     path: PathBuf,
     /// Entries in the file.
     written: u64,
+    /// Where the closing `]}` of the last whole write begins.
+    end: u64,
     /// Entries still to be written.
     pending: Vec<Value>,
 }
@@ -216,23 +219,30 @@ const METRICS_TAIL: &str = "]}";
 
 impl MetricsFile {
     fn new(path: PathBuf) -> MetricsFile {
-        MetricsFile { path, written: 0, pending: Vec::new() }
+        MetricsFile { path, written: 0, end: 0, pending: Vec::new() }
     }
 
     /// A resumed run's file: its entries read (a legacy layout or a last write cut short
-    /// mended, the file written again whole); returns it and its training episodes.
+    /// mended, the file written again whole); returns it and its training episodes. A file
+    /// that is not a metrics JSON at all (empty after a power loss, say) is moved aside to
+    /// `<name>.unreadable`, with a warning, and the worker's metrics start again.
     fn resume(path: PathBuf) -> std::io::Result<(MetricsFile, u64)> {
-        let text = match std::fs::read_to_string(&path) {
-            Ok(t) => t,
+        let bytes = match std::fs::read(&path) {
+            Ok(b) => b,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok((MetricsFile::new(path), 0)),
             Err(e) => return Err(e),
         };
-        let entries = metrics_entries(&text).ok_or_else(|| {
-            std::io::Error::new(
-                std::io::ErrorKind::InvalidData,
-                format!("{}: expected DeepRacer's metrics JSON, an object with a `metrics` array", path.display()),
-            )
-        })?;
+        let text = String::from_utf8_lossy(&bytes);
+        let Some(entries) = metrics_entries(&text) else {
+            let aside = path.with_extension("json.unreadable");
+            std::fs::rename(&path, &aside)?;
+            tracing::warn!(
+                "{}: expected DeepRacer's metrics JSON, an object with a `metrics` array; moved to {} and started again",
+                path.display(),
+                aside.display()
+            );
+            return Ok((MetricsFile::new(path), 0));
+        };
         let training = entries.iter().filter(|e| e["phase"] == "training").count() as u64;
         let mut whole = String::from(METRICS_HEAD);
         for (i, e) in entries.iter().enumerate() {
@@ -242,10 +252,11 @@ impl MetricsFile {
             whole.push_str(&serde_json::to_string(e)?);
         }
         whole.push_str(METRICS_TAIL);
-        if whole != text {
+        if whole.as_bytes() != bytes {
             write_whole(&path, whole.as_bytes())?;
         }
-        Ok((MetricsFile { path, written: entries.len() as u64, pending: Vec::new() }, training))
+        let end = (whole.len() - METRICS_TAIL.len()) as u64;
+        Ok((MetricsFile { path, written: entries.len() as u64, end, pending: Vec::new() }, training))
     }
 
     /// Write the pending entries: the file made whole the first time, appended to after.
@@ -262,29 +273,19 @@ impl MetricsFile {
             add.push_str(&serde_json::to_string(e)?);
         }
         add.push_str(METRICS_TAIL);
-        if self.written == 0 {
+        let end = if self.written == 0 {
             std::fs::create_dir_all(self.path.parent().expect("has a parent"))?;
-            write_whole(&self.path, format!("{METRICS_HEAD}{add}").as_bytes())?;
+            let whole = format!("{METRICS_HEAD}{add}");
+            write_whole(&self.path, whole.as_bytes())?;
+            whole.len()
         } else {
-            let f = std::fs::OpenOptions::new().read(true).write(true).open(&self.path)?;
-            let len = f.metadata()?.len();
-            let mut tail = [0u8; METRICS_TAIL.len()];
-            let at = len.checked_sub(tail.len() as u64).filter(|_| len >= (METRICS_HEAD.len() + tail.len()) as u64);
-            let at = match at {
-                Some(at) => {
-                    f.read_exact_at(&mut tail, at)?;
-                    at
-                }
-                None => u64::MAX,
-            };
-            if at == u64::MAX || tail != METRICS_TAIL.as_bytes() {
-                return Err(std::io::Error::new(
-                    std::io::ErrorKind::InvalidData,
-                    format!("{}: changed under the learner (it does not end in `]}}`)", self.path.display()),
-                ));
-            }
-            f.write_all_at(add.as_bytes(), at)?;
-        }
+            let f = std::fs::OpenOptions::new().write(true).open(&self.path)?;
+            f.write_all_at(add.as_bytes(), self.end)?;
+            // What a write cut short had left past the end goes.
+            f.set_len(self.end + add.len() as u64)?;
+            self.end as usize + add.len()
+        };
+        self.end = (end - METRICS_TAIL.len()) as u64;
         self.written += self.pending.len() as u64;
         self.pending.clear();
         Ok(())
@@ -525,7 +526,11 @@ impl Recorder {
         if let Some(mcap) = self.mcap.as_mut() {
             mcap.figures("/learner/evaluation", "paddock.Evaluation", self.cursor, &serde_json::to_value(e)?)?;
         }
-        self.write_metrics()?;
+        // The folders are written: a metrics file that could not be is noted, tried again
+        // on the clock, and does not hide them.
+        if let Err(e) = self.write_metrics() {
+            tracing::warn!("the metrics JSON not written (tried again later): {e}");
+        }
         Ok(written)
     }
 
@@ -544,20 +549,26 @@ impl Recorder {
 
     /// Write every worker's pending metrics entries.
     pub fn write_metrics(&mut self) -> std::io::Result<()> {
-        for m in &mut self.metrics {
-            m.flush()?;
-        }
+        // Every worker's file, whatever another's write met; the first error is returned, and
+        // what failed is tried again on the clock.
         self.metrics_written = Instant::now();
-        Ok(())
+        let mut first = Ok(());
+        for m in &mut self.metrics {
+            if let Err(e) = m.flush() {
+                first = first.and(Err(e));
+            }
+        }
+        first
     }
 
     /// Write what is pending and close the MCAP file (its summary and index).
     pub fn finish(&mut self) -> std::io::Result<()> {
-        self.write_metrics()?;
+        // The MCAP is closed (its summary and index) whatever the metrics met.
+        let metrics = self.write_metrics();
         if let Some(mut m) = self.mcap.take() {
             m.finish()?;
         }
-        Ok(())
+        metrics
     }
 }
 
@@ -792,12 +803,16 @@ mod tests {
         again.pending.push(entry(3, "training"));
         again.flush().unwrap();
         assert_eq!(read_entries(&path)[3], entry(3, "training"));
-        // A file changed under the learner is refused, by name, and left as it was.
-        std::fs::write(&path, "{}").unwrap();
+        // A write cut short (a full disk) left part of an entry past the end: the next flush
+        // writes from the same place and cuts the file to its end.
+        let whole = std::fs::read(&path).unwrap();
+        let mut torn = whole[..whole.len() - METRICS_TAIL.len()].to_vec();
+        torn.extend_from_slice(br#",{"episode":4,"pha"#);
+        std::fs::write(&path, &torn).unwrap();
         again.pending.push(entry(4, "training"));
-        let e = again.flush().unwrap_err().to_string();
-        assert!(e.contains("TrainingMetrics.json") && e.contains("does not end in"), "{e}");
-        assert_eq!(std::fs::read_to_string(&path).unwrap(), "{}");
+        again.flush().unwrap();
+        let entries = read_entries(&path);
+        assert_eq!((entries.len(), &entries[4]), (5, &entry(4, "training")));
     }
 
     /// Issue 54: a file whose last write was cut short (the machine lost power) resumes with
@@ -836,9 +851,17 @@ mod tests {
             m.flush().unwrap();
             assert_eq!(read_entries(&path).len(), kept + 1, "{what}");
         }
-        std::fs::write(&path, "not JSON at all").unwrap();
-        let e = MetricsFile::resume(path.clone()).err().unwrap().to_string();
-        assert!(e.contains("TrainingMetrics.json") && e.contains("expected DeepRacer's metrics JSON"), "{e}");
+        // Not a metrics JSON at all (empty after a power loss, or anything else): moved aside,
+        // and the worker's metrics start again.
+        for junk in ["", "not JSON at all"] {
+            std::fs::write(&path, junk).unwrap();
+            let (mut m, training) = MetricsFile::resume(path.clone()).unwrap();
+            assert_eq!((m.written, training), (0, 0));
+            assert_eq!(std::fs::read_to_string(path.with_extension("json.unreadable")).unwrap(), junk);
+            m.pending.push(entry(1, "training"));
+            m.flush().unwrap();
+            assert_eq!(read_entries(&path), vec![entry(1, "training")]);
+        }
     }
 
     /// Issue 50: an update's line in `metrics.jsonl` takes PPO's figures into PPO's columns
