@@ -5,9 +5,9 @@
 //! cluster: the coordinator role (`serve`), job control (`job …`, `agents`) and the
 //! one-machine launcher (`up`), reports of a run (`report`, `job report`).
 
-/// mimalloc hands freed pages back to the system soon after they are freed (glibc's malloc
-/// keeps them in its arenas): a long run's resident memory follows what it holds, not its
-/// highest peak. `main` turns transparent huge pages off, which would make them resident again.
+/// mimalloc hands freed pages back to the system (glibc's malloc keeps them in its arenas),
+/// at once in `serve` ([`protocol::secure::purge_freed_memory_after`]): a long run's resident
+/// memory follows what it holds, not its highest peak. `main` turns transparent huge pages off, which would make them resident again.
 /// mimalloc, counting the bytes allocations hold (no limit): `job status` shows them beside
 /// the resident memory, which also holds what the allocator keeps back.
 #[global_allocator]
@@ -37,8 +37,12 @@ use clap::Parser;
 fn main() {
     // Paddock's own messages; the libraries' warnings (Zenoh's scouting chatter) only when
     // RUST_LOG asks for them.
-    protocol::secure::init_process("warn,zenoh=error,coordinator=info,sim_agent=info");
     let cli = cli::Cli::parse();
+    if matches!(cli.command, cli::Command::Serve(_)) {
+        // The coordinator role runs for days and computes little: freed memory goes back at once.
+        protocol::secure::purge_freed_memory_after(0);
+    }
+    protocol::secure::init_process("warn,zenoh=error,coordinator=info,sim_agent=info");
     // The camera on a headless NVIDIA server (sim_agent::icd), before any thread starts.
     sim_agent::icd::headless_nvidia();
     let result = match cli.command {

@@ -353,13 +353,47 @@ pub fn serve(args: ServeArgs) -> Result<()> {
 }
 
 /// Every live agent's [`AgentInfo`] by id, each answered on its own key (a reply whose id is
-/// not its key's is dropped).
+/// not its key's is dropped), less the ids two processes answer for ([`census_of`]), each
+/// counted as refused.
 fn agent_census(session: &zenoh::Session, drops: &DropCounters) -> BTreeMap<String, AgentInfo> {
-    net::query_keyed::<AgentInfo>(session, &keys::agent_info("*"), None, Duration::from_millis(500), drops)
-        .unwrap_or_default()
-        .into_iter()
-        .filter_map(|(key, info)| (keys::agent_info(&info.agent_id) == key).then(|| (info.agent_id.clone(), info)))
-        .collect()
+    let answers =
+        net::query_keyed::<AgentInfo>(session, &keys::agent_info("*"), None, Duration::from_millis(500), drops)
+            .unwrap_or_default();
+    let (census, twice) = census_of(answers);
+    for id in twice {
+        drops.refuse(
+            "an agent's info",
+            &protocol::DecodeError::Invalid(format!("two processes answer as agent {id:?} (one id started twice?)")),
+        );
+    }
+    census
+}
+
+/// The census from the answers (key, info): each agent's info by id, an answer whose id is
+/// not its key's left out; and the ids answered with two life numbers at once. Those are left
+/// out too: the two lives would take turns in the census and tell a restart every time.
+fn census_of(answers: Vec<(String, AgentInfo)>) -> (BTreeMap<String, AgentInfo>, Vec<String>) {
+    let mut census: BTreeMap<String, AgentInfo> = BTreeMap::new();
+    let mut twice = Vec::new();
+    for (key, info) in answers {
+        if keys::agent_info(&info.agent_id) != key {
+            continue;
+        }
+        match census.get(&info.agent_id) {
+            Some(seen) if seen.life != info.life => {
+                if !twice.contains(&info.agent_id) {
+                    twice.push(info.agent_id.clone());
+                }
+            }
+            _ => {
+                census.insert(info.agent_id.clone(), info);
+            }
+        }
+    }
+    for id in &twice {
+        census.remove(id);
+    }
+    (census, twice)
 }
 
 /// Agents whose refusals a job keeps.
@@ -905,4 +939,29 @@ fn status_text(j: &JobRecord, st: &State) -> String {
         t.push_str(&format!("    {line}\n"));
     }
     t
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Issue 54: the census keeps each agent's info answered on its own key; an id two
+    /// processes answer for with different lives (one id started twice) is left out and named,
+    /// so that the two lives do not take turns telling a restart.
+    #[test]
+    fn an_id_two_processes_answer_for_is_left_out_of_the_census() {
+        let info = |id: &str, life: u32| AgentInfo { agent_id: id.into(), life, ..AgentInfo::default() };
+        let on_key = |i: AgentInfo| (keys::agent_info(&i.agent_id), i);
+        // (answers, ids in the census, ids answered twice)
+        for (answers, kept, twice) in [
+            (vec![on_key(info("a", 1)), on_key(info("b", 2))], vec!["a", "b"], vec![]),
+            (vec![on_key(info("a", 1)), on_key(info("a", 1))], vec!["a"], vec![]),
+            (vec![on_key(info("a", 1)), on_key(info("b", 2)), on_key(info("a", 3))], vec!["b"], vec!["a"]),
+            (vec![(keys::agent_info("b"), info("a", 1))], vec![], vec![]),
+        ] {
+            let (census, both) = census_of(answers.clone());
+            assert_eq!(census.keys().map(String::as_str).collect::<Vec<_>>(), kept, "{answers:?}");
+            assert_eq!(both, twice, "{answers:?}");
+        }
+    }
 }

@@ -1,9 +1,9 @@
 //! The `learner` binary: `serve` (the learner role over Zenoh) and `bench` (the network
 //! maths' speed).
 
-/// mimalloc hands freed pages back to the system soon after they are freed (glibc's malloc
-/// keeps them in its arenas): a long run's resident memory follows what it holds, not its
-/// highest peak. `main` turns transparent huge pages off, which would make them resident again. `Cap` (no limit) counts the bytes held, which each update's
+/// mimalloc hands freed pages back to the system (glibc's malloc keeps them in its arenas),
+/// at once in `serve` ([`protocol::secure::purge_freed_memory_after`]): a long run's resident
+/// memory follows what it holds, not its highest peak. `main` turns transparent huge pages off, which would make them resident again. `Cap` (no limit) counts the bytes held, which each update's
 /// record carries beside the resident memory: a leak shows there, an allocator's retention
 /// only in the resident memory.
 #[global_allocator]
@@ -127,11 +127,17 @@ struct BenchCli {
 }
 
 fn main() {
+    let cli = Cli::parse();
+    if matches!(cli.command, Command::Serve(_)) {
+        // An update's buffers go back as it ends (its steps reuse theirs through a workspace:
+        // `learner bench`'s training step is as fast either way).
+        protocol::secure::purge_freed_memory_after(0);
+    }
     protocol::secure::init_process("info");
     learner::record::count_live_bytes_with(|| ALLOCATOR.allocated());
     // The maths on a headless NVIDIA server (gpu::icd), before any thread starts.
     gpu::icd::headless_nvidia();
-    let result = match Cli::parse().command {
+    let result = match cli.command {
         Command::Bench(b) => (|| {
             let threads = learner::use_threads(b.threads);
             if !b.team_only {

@@ -92,6 +92,41 @@ pub struct EvalRequest {
     pub trials: u32,
     /// Seed of the trials' actuator noise.
     pub seed: u64,
+    /// The verification to run at once, on the same version and world, when these trials lap
+    /// enough: the learner would ask for it as soon as every world's evaluation is in, and
+    /// running it here saves that round trip (a round of episodes and an update).
+    pub then_verify: Option<ChainedVerify>,
+}
+
+/// A verification chained to an evaluation ([`EvalRequest::then_verify`]): its own request id,
+/// trials and noise; run when the evaluation lapped `laps` of its trials or more.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ChainedVerify {
+    /// The verification's request id (its report answers this id).
+    pub id: u64,
+    /// Trials.
+    pub trials: u32,
+    /// Seed of the trials' actuator noise.
+    pub seed: u64,
+    /// Laps the evaluation's trials must make for the verification to run.
+    pub laps: u32,
+}
+
+impl EvalRequest {
+    /// The verification chained to this evaluation, as a request of its own (`None` without
+    /// one, or when `trials` did not lap enough for it).
+    pub fn chained(&self, trials: &[Trial]) -> Option<EvalRequest> {
+        let v = self.then_verify?;
+        (summarise(trials).2 >= v.laps as usize).then(|| EvalRequest {
+            id: v.id,
+            worker: self.worker.clone(),
+            version: self.version,
+            world: self.world.clone(),
+            trials: v.trials,
+            seed: v.seed,
+            then_verify: None,
+        })
+    }
 }
 
 /// One evaluation trial.

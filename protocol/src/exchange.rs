@@ -72,6 +72,10 @@ pub fn eval_request_to_wire(job: &str, r: &ex::EvalRequest) -> crate::EvalReques
         world: r.world.clone(),
         trials: r.trials,
         seed: r.seed,
+        verify_id: r.then_verify.map_or(0, |v| v.id),
+        verify_trials: r.then_verify.map_or(0, |v| v.trials),
+        verify_seed: r.then_verify.map_or(0, |v| v.seed),
+        verify_laps: r.then_verify.map_or(0, |v| v.laps),
     }
 }
 
@@ -91,6 +95,18 @@ pub fn eval_request_from_wire(
     if w.trials == 0 || w.trials as u64 > SANITY_LIMIT {
         return invalid(format!("{} evaluation trials", w.trials));
     }
+    if w.verify_trials as u64 > SANITY_LIMIT || w.verify_laps > w.trials {
+        return invalid(format!("a chained verification of {} trials needing {} laps", w.verify_trials, w.verify_laps));
+    }
+    if w.verify_trials > 0 && w.verify_id == w.id {
+        return invalid(format!("a chained verification with its evaluation's id {}", w.id));
+    }
+    let then_verify = (w.verify_trials > 0).then_some(ex::ChainedVerify {
+        id: w.verify_id,
+        trials: w.verify_trials,
+        seed: w.verify_seed,
+        laps: w.verify_laps,
+    });
     Ok(ex::EvalRequest {
         id: w.id,
         worker: w.agent_id,
@@ -98,6 +114,7 @@ pub fn eval_request_from_wire(
         world: w.world,
         trials: w.trials,
         seed: w.seed,
+        then_verify,
     })
 }
 
@@ -923,10 +940,24 @@ mod tests {
             world: "reinvent_carpet".into(),
             trials: 3,
             seed: 9,
+            then_verify: None,
         };
         assert_eq!(eval_request_from_wire(eval_request_to_wire(&id, &r), &view, "a1").unwrap(), r);
         let elsewhere = ex::EvalRequest { world: "Vegas_track".into(), ..r.clone() };
         assert!(eval_request_from_wire(eval_request_to_wire(&id, &elsewhere), &view, "a1").is_err());
+        // A chained verification travels whole; one needing more laps than the evaluation has
+        // trials, past the sanity limit, or answering under the evaluation's own id is refused.
+        let chain = ex::ChainedVerify { id: 8, trials: 10, seed: 11, laps: 3 };
+        let chained = ex::EvalRequest { then_verify: Some(chain), ..r.clone() };
+        assert_eq!(eval_request_from_wire(eval_request_to_wire(&id, &chained), &view, "a1").unwrap(), chained);
+        for bad in [
+            ex::ChainedVerify { laps: 4, ..chain },
+            ex::ChainedVerify { trials: u32::MAX, ..chain },
+            ex::ChainedVerify { id: 7, ..chain },
+        ] {
+            let w = eval_request_to_wire(&id, &ex::EvalRequest { then_verify: Some(bad), ..r.clone() });
+            assert!(eval_request_from_wire(w, &view, "a1").is_err(), "{bad:?}");
+        }
 
         let rep = ex::EvalReport {
             id: 7,

@@ -425,10 +425,15 @@ pub fn run_cli(role: Role, cli: JoinCli) -> Result<(), JoinError> {
             )));
         }
         (Some(d), false) => d.clone(),
-        // Before the door is asked: a token spent on a machine that cannot run the service
-        // would be lost.
+        // Before the door is asked: a token spent on a machine that cannot install the
+        // service would be lost. The unit is written once with these arguments (the
+        // coordinator's address, which only the door gives, is added to it after).
         (None, true) => {
-            crate::service::require_systemd().map_err(|e| JoinError::Usage(e.to_string()))?;
+            let usage = |e: crate::service::ServiceError| JoinError::Usage(e.to_string());
+            let bin = crate::service::sibling_binary(service).map_err(usage)?;
+            crate::service::unit(service, &bin, "8G", &cli.args).map_err(usage)?;
+            crate::service::require_systemd().map_err(usage)?;
+            crate::service::require_root().map_err(usage)?;
             crate::service::certs_dir(service)
         }
         (None, false) => {

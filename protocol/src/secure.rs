@@ -782,6 +782,46 @@ pub fn init_process(default_log: &str) {
     }
 }
 
+/// mimalloc's option for how long (ms) memory freed stays resident before it is handed back.
+pub const PURGE_DELAY_VAR: &str = "MIMALLOC_PURGE_DELAY";
+
+/// A long-running role's memory follows what it holds: freed memory is handed back to the
+/// system `ms` milliseconds after it is freed (mimalloc's own default is 10 ms, but a purge
+/// waits for the thread's next allocation after that, so a learner between updates kept up to
+/// 370 MB of an update's freed buffers resident, which made its memory's slope over a soak
+/// noise). mimalloc reads its options as the program loads, before `main`, and the workspace
+/// writes no `unsafe` to call it: unless the variable is already set (a user's choice is kept),
+/// this runs the program again in place (the same process id) with it set. Call it before any
+/// thread starts; if the program cannot be run again, it goes on as it is, with a warning. A
+/// program started through a loader or a tool that does not follow `exec` is best started
+/// with the variable set, which skips this.
+#[cfg(target_os = "linux")]
+pub fn purge_freed_memory_after(ms: u32) {
+    use std::os::unix::process::CommandExt;
+    // mimalloc 2 still reads the option's older name too.
+    if std::env::var_os(PURGE_DELAY_VAR).is_some() || std::env::var_os("MIMALLOC_RESET_DELAY").is_some() {
+        return;
+    }
+    let mut args = std::env::args_os();
+    let err = match std::env::current_exe() {
+        Ok(exe) => {
+            let mut again = std::process::Command::new(exe);
+            if let Some(arg0) = args.next() {
+                again.arg0(arg0);
+            }
+            again.args(args).env(PURGE_DELAY_VAR, ms.to_string()).exec()
+        }
+        Err(e) => e,
+    };
+    eprintln!(
+        "warning: freed memory is handed back on the allocator's own terms: could not run again with {PURGE_DELAY_VAR}={ms} ({err})"
+    );
+}
+
+/// Elsewhere the allocator keeps its own terms.
+#[cfg(not(target_os = "linux"))]
+pub fn purge_freed_memory_after(_ms: u32) {}
+
 /// Set up every role's log: `RUST_LOG` (or `default`) for what is printed, zenoh-link-tls's
 /// per-connection warnings folded into one line every 10 s (a peer that keeps knocking must not
 /// fill the log), and [`RefusalLayer`] counting refusals.

@@ -176,6 +176,17 @@ pub fn require_systemd() -> Result<(), ServiceError> {
     ))
 }
 
+/// Installing a service takes root (the unit goes into /etc/systemd/system).
+pub fn require_root() -> Result<(), ServiceError> {
+    #[cfg(unix)]
+    if !nix::unistd::geteuid().is_root() {
+        return Err(ServiceError(
+            "--service installs into /etc/systemd/system, which takes root: run the join with sudo".into(),
+        ));
+    }
+    Ok(())
+}
+
 /// `join --service`: write the unit into /etc/systemd/system, reload systemd, and enable and
 /// start it. The credentials must already be in [`certs_dir`].
 pub fn install(role: &str, unit_text: &str) -> Result<PathBuf, ServiceError> {

@@ -209,11 +209,11 @@ impl Worker {
                 }
             }
             WorkerInbound::Eval(r) => {
-                if r.worker != self.id || self.evals.iter().any(|(e, _)| e.id == r.id) {
+                if r.worker != self.id || self.evals.iter().any(|(e, _)| same_request(e, &r)) {
                     return;
                 }
                 tracing::debug!(id = r.id, version = r.version, world = %r.world, "evaluation requested");
-                match self.reports.iter().find(|d| d.id == r.id && d.version == r.version) {
+                match self.reports.iter().find(|d| d.id == r.id && d.version == r.version && d.world == r.world) {
                     Some(done) => self.resend = Some(done.clone()),
                     None => self.evals.push_back((r, false)),
                 }
@@ -311,12 +311,51 @@ impl Worker {
             }
             None => Err(format!("policy v{} is no longer held by {}", r.version, self.id)),
         };
+        self.chain(&r, trials.as_deref().ok());
         let report = EvalReport { id: r.id, worker: self.id.clone(), version: r.version, world: r.world, trials };
         self.reports.push_back(report.clone());
         while self.reports.len() > KEEP_REPORTS {
             self.reports.pop_front();
         }
         Some(report)
+    }
+
+    /// After evaluation `r` (its `trials`, if it ran): the verification chained to it, when
+    /// they lapped enough, runs once this worker's other evaluations of the version are done,
+    /// before any episodes (the learner stops the run as soon as it holds). When they did not,
+    /// the version's chained verifications already queued here are dropped: the learner
+    /// verifies only a checkpoint that met the target on every world.
+    fn chain(&mut self, r: &EvalRequest, trials: Option<&[Trial]>) {
+        let Some(c) = r.then_verify else { return };
+        match trials.and_then(|t| r.chained(t)) {
+            Some(v) => {
+                if self.evals.iter().any(|(e, _)| same_request(e, &v))
+                    || self.reports.iter().any(|d| d.id == v.id && d.version == v.version && d.world == v.world)
+                {
+                    return;
+                }
+                tracing::debug!(id = v.id, version = v.version, world = %v.world, "verification chained to evaluation {}", r.id);
+                let mut at = 0;
+                for (i, (e, waited)) in self.evals.iter_mut().enumerate() {
+                    if e.version == v.version {
+                        *waited = true;
+                        at = i + 1;
+                    }
+                }
+                self.evals.insert(at, (v, true));
+            }
+            None => {
+                let before = self.evals.len();
+                self.evals.retain(|(e, _)| !(e.version == r.version && e.seed == c.seed && e.then_verify.is_none()));
+                if self.evals.len() < before {
+                    tracing::debug!(
+                        version = r.version,
+                        "chained verifications dropped: {} missed its target",
+                        r.world
+                    );
+                }
+            }
+        }
     }
 
     /// What environment 0's camera sees now, at most once a second (camera jobs only).
@@ -400,6 +439,11 @@ impl Worker {
             }
         }
     }
+}
+
+/// The same request: its id, version and world (ids start again with a learner's new run).
+fn same_request(a: &EvalRequest, b: &EvalRequest) -> bool {
+    a.id == b.id && a.version == b.version && a.world == b.world
 }
 
 impl From<TrialResult> for Trial {

@@ -31,6 +31,8 @@ impl Drop for Procs {
 impl Procs {
     fn spawn(&mut self, name: &str, cmd: &mut Command, log: &Path) {
         let f = std::fs::File::create(log).unwrap();
+        // The roles' own allocator settings, whatever the test's environment says.
+        cmd.env_remove("MIMALLOC_PURGE_DELAY").env_remove("MIMALLOC_RESET_DELAY");
         let child = cmd.stdin(Stdio::null()).stdout(f.try_clone().unwrap()).stderr(f).spawn().unwrap();
         self.0.push((name.into(), child));
     }
@@ -372,6 +374,13 @@ fn a_killed_agents_world_is_reassigned_and_a_restarted_learner_and_coordinator_c
         version(s) >= 3 && worlds_of(s, "agent-1").len() == 1 && worlds_of(s, "agent-2").len() == 1
     });
     let lost_world = world_of(&s, "agent-2").expect("agent-2 has a world");
+    // Each role runs for days, so it hands freed memory back to the system soon: the process
+    // the test started (the same id: run again in place) carries mimalloc's purge delay.
+    for (name, ms) in [("coordinator", "0"), ("learner", "0"), ("agent-1", "100")] {
+        let env = std::fs::read(format!("/proc/{}/environ", c.procs.pid(name))).unwrap();
+        let want = format!("MIMALLOC_PURGE_DELAY={ms}");
+        assert!(env.split(|b| *b == 0).any(|v| v == want.as_bytes()), "{name} runs without {want}");
+    }
     // `coordinator agents`: both agents, their worlds and throughput.
     let deadline = Instant::now() + Duration::from_secs(20);
     loop {

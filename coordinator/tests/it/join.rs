@@ -143,6 +143,10 @@ fn a_machine_joins_with_one_command_and_serves_without_a_restart() {
     assert!(!d.join("m2").exists(), "a refused join wrote files");
     // Without an address the learner finds the door by scouting; it gets the signing key.
     assert!(!learner_token.contains('@'), "a door on every interface puts no address in the token");
+    // A unit the service could not be written with (an argument systemd would read as a
+    // specifier) is refused before the door is asked too: the token stays unused.
+    let bad_arg = run(d, "learner", &["join", &learner_token, "--service", "--", "--id", "a%b"]);
+    assert!(!bad_arg.status.success() && text(&bad_arg).contains("'a%b'"), "{}", text(&bad_arg));
     // A service needs systemd: where it does not run (as here), the join is refused before the
     // door is asked, and the token stays unused (the learner joins with it next).
     if !Path::new("/run/systemd/system").is_dir() {

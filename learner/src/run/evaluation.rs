@@ -27,6 +27,8 @@ pub(super) struct Evaluations {
     pub(super) best: Option<CheckpointRecord>,
     /// When the last checkpoint was due.
     pub(super) last: Option<Instant>,
+    /// The last checkpoint due was not evaluated (another evaluation was under way).
+    pub(super) owed: bool,
     /// The iteration of the last checkpoint written.
     pub(super) saved_iteration: Option<u64>,
     /// The version of the last evaluation closed.
@@ -61,6 +63,7 @@ impl Evaluations {
         Evaluations {
             best,
             last: None,
+            owed: false,
             saved_iteration: None,
             evaluated_version: None,
             figures: (0.0, 0),
@@ -93,15 +96,20 @@ struct CheckpointClock {
     pending: bool,
     /// A worker is alive.
     workers: bool,
+    /// The clock fell while an evaluation was under way: the checkpoint was written, and its
+    /// evaluation is owed.
+    owed: bool,
 }
 
 impl CheckpointClock {
-    /// A checkpoint every `eval_seconds` while training; when stopping, the last version's,
-    /// unless it is evaluated, an evaluation is under way or nobody is left to evaluate it.
+    /// A checkpoint every `eval_seconds` while training, and the evaluation owed as soon as
+    /// the one under way is closed; when stopping, the last version's, unless it is evaluated,
+    /// an evaluation is under way or nobody is left to evaluate it.
     fn due(self) -> bool {
         let on_the_clock = self.updated && !self.stopping && !self.saved && self.elapsed;
+        let owed = self.owed && self.updated && !self.stopping && !self.pending && self.workers;
         let last = self.stopping && self.updated && !self.evaluated && !self.pending && self.workers;
-        on_the_clock || last
+        on_the_clock || owed || last
     }
 }
 
@@ -174,6 +182,7 @@ impl Run<'_> {
             evaluated: self.evals.evaluated_version == Some(self.algo.version()),
             pending: self.evals.pending.is_some(),
             workers: !workers.is_empty(),
+            owed: self.evals.owed,
         };
         if !clock.due() {
             return Ok(());
@@ -189,15 +198,30 @@ impl Run<'_> {
             self.evals.saved_iteration = Some(iteration);
         }
         self.evals.last = Some(Instant::now());
+        self.evals.owed = self.evals.pending.is_some() && self.stop_reason.is_none();
         if self.evals.pending.is_none() && !workers.is_empty() {
             let mut p =
                 PendingEval::new(spec, iteration, self.algo.version(), self.algo.model().clone(), manifest, name);
+            if let Some((trials, laps)) = self.chained_verification() {
+                p.chain_verification(&mut self.evals.turns, &spec.worlds, trials, laps);
+            }
             for world in &spec.worlds {
                 self.evals.turns.ask(&mut p, &mut *self.link, workers, world.clone(), 1)?;
             }
             self.evals.pending = Some(p);
         }
         Ok(())
+    }
+
+    /// The verification (trials, and laps each world's evaluation must make for it) that a
+    /// checkpoint's evaluation meeting the lap target would call for now, to be chained to it.
+    fn chained_verification(&self) -> Option<(u32, u32)> {
+        let t = self.spec.stop.target_laps.filter(|t| t.laps > 0)?;
+        let eval_trials = self.spec.eval_trials as usize;
+        let needed = t.needed(eval_trials, eval_trials);
+        let stopping = self.stop_reason.is_some();
+        let (_, verify) = lap_streak(self.evals.lap_streak, &t, needed, eval_trials, stopping);
+        verify.map(|trials| (trials, needed as u32))
     }
 
     /// Write checkpoint `name`. One that cannot be written (a full disk) is reported and
@@ -233,7 +257,14 @@ impl Run<'_> {
 
     /// Trials for the evaluation under way (a failed request is asked of another worker).
     pub(super) fn evaluated(&mut self, r: EvalReport) -> Result<(), LinkError> {
-        let Some(p) = self.evals.pending.as_mut().filter(|p| p.asked.contains_key(&r.id) && p.version == r.version)
+        if let Some(p) = self.evals.pending.as_mut().filter(|p| p.is_chained(&r)) {
+            p.early.push(r);
+            return Ok(());
+        }
+        let Some(p) =
+            self.evals.pending.as_mut().filter(|p| {
+                p.version == r.version && p.asked.get(&r.id).is_some_and(|(world, _, _, _)| *world == r.world)
+            })
         else {
             return Ok(());
         };
@@ -320,9 +351,12 @@ impl Run<'_> {
         };
         self.record_evaluation(e, &p.done);
         let workers = self.link.workers();
-        if let (Some(trials), false) = (verify, workers.is_empty()) {
+        // Chained verifications all in need no worker.
+        let covered = self.spec.worlds.iter().all(|w| p.chained_report(w).is_some());
+        if let (Some(trials), true) = (verify, covered || !workers.is_empty()) {
             self.verify(p, trials, &workers)?;
-            return Ok(false);
+            // Chained verifications may all be in already.
+            return self.close_evaluation();
         }
         // The final evaluation (of the last version) closes a stopping run.
         Ok(self.stop_reason.is_some() && p.version == self.algo.version())
@@ -430,20 +464,33 @@ impl Run<'_> {
 
     /// Verify the checkpoint `p` that met the lap target at once, with `trials` trials per
     /// world, each world asked of the worker that evaluated it (it keeps that version) while
-    /// it is alive, else of the next in turn.
+    /// it is alive, else of the next in turn. A world whose verification was chained to its
+    /// evaluation is not asked again: its worker ran it or is running it (the request is
+    /// repeated while unanswered), and a report already in is taken.
     fn verify(&mut self, mut p: PendingEval, trials: u32, workers: &[String]) -> Result<(), LinkError> {
         let spec = self.spec;
         let by = std::mem::take(&mut p.by);
+        let chain = std::mem::take(&mut p.chain);
+        let early = std::mem::take(&mut p.early);
         let mut v = p.verification(trials);
         tracing::info!(run = %spec.name, checkpoint = %v.name, trials, "verifying the checkpoint that met the lap target");
         for world in &spec.worlds {
-            match by.get(world).filter(|w| workers.contains(w)) {
-                Some(w) => self.evals.turns.ask_of(&mut v, &mut *self.link, w.clone(), world.clone(), 1)?,
-                None => self.evals.turns.ask(&mut v, &mut *self.link, workers, world.clone(), 1)?,
+            let chained = chain.get(world).filter(|c| c.trials == trials && c.seed == v.seed);
+            // Its report in hand counts whoever sent it and wherever they are now.
+            let sent = chained.and_then(|c| early.iter().find(|r| r.id == c.id && r.world == *world));
+            match (chained, sent.map(|r| &r.worker).or(by.get(world).filter(|w| workers.contains(w)))) {
+                (Some(c), Some(w)) => {
+                    v.asked.insert(c.id, (world.clone(), w.clone(), Instant::now(), 1));
+                }
+                (None, Some(w)) => self.evals.turns.ask_of(&mut v, &mut *self.link, w.clone(), world.clone(), 1)?,
+                (_, None) => self.evals.turns.ask(&mut v, &mut *self.link, workers, world.clone(), 1)?,
             }
         }
         self.evals.last_ask = Instant::now();
         self.evals.pending = Some(v);
+        for r in early {
+            self.evaluated(r)?;
+        }
         Ok(())
     }
 }
@@ -458,24 +505,32 @@ mod tests {
 
     /// Issue 50: a checkpoint is due every `eval_seconds` once this process has updated and
     /// the iteration is not saved yet; when stopping, the last version's is due unless it is
-    /// evaluated, an evaluation is under way, or no worker is left.
+    /// evaluated, an evaluation is under way, or no worker is left. Issue 55: a checkpoint
+    /// written while another evaluation was under way has its evaluation owed, due as soon as
+    /// that one is closed, whatever the clock says.
     #[test]
     fn a_checkpoint_is_due_on_the_clock_and_once_more_when_stopping() {
-        // (updated, stopping, saved, elapsed, evaluated, pending, workers, due)
-        for (updated, stopping, saved, elapsed, evaluated, pending, workers, due) in [
-            (true, false, false, true, false, false, true, true),
-            (true, false, false, true, false, true, false, true),
-            (false, false, false, true, false, false, true, false),
-            (true, false, true, true, false, false, true, false),
-            (true, false, false, false, false, false, true, false),
-            (true, true, false, true, false, false, true, true),
-            (true, true, true, false, false, false, true, true),
-            (true, true, false, true, true, false, true, false),
-            (true, true, false, true, false, true, true, false),
-            (true, true, false, true, false, false, false, false),
-            (false, true, false, true, false, false, true, false),
+        // (updated, stopping, saved, elapsed, evaluated, pending, workers, owed, due)
+        for (updated, stopping, saved, elapsed, evaluated, pending, workers, owed, due) in [
+            (true, false, false, true, false, false, true, false, true),
+            (true, false, false, true, false, true, false, false, true),
+            (false, false, false, true, false, false, true, false, false),
+            (true, false, true, true, false, false, true, false, false),
+            (true, false, false, false, false, false, true, false, false),
+            (true, true, false, true, false, false, true, false, true),
+            (true, true, true, false, false, false, true, false, true),
+            (true, true, false, true, true, false, true, false, false),
+            (true, true, false, true, false, true, true, false, false),
+            (true, true, false, true, false, false, false, false, false),
+            (false, true, false, true, false, false, true, false, false),
+            (true, false, true, false, false, false, true, true, true),
+            (true, false, false, false, false, false, true, true, true),
+            (true, false, true, false, false, true, true, true, false),
+            (true, false, true, false, false, false, false, true, false),
+            (true, true, true, false, true, false, true, true, false),
+            (false, false, false, false, false, false, true, true, false),
         ] {
-            let c = CheckpointClock { updated, stopping, saved, elapsed, evaluated, pending, workers };
+            let c = CheckpointClock { updated, stopping, saved, elapsed, evaluated, pending, workers, owed };
             assert_eq!(c.due(), due, "{c:?}");
         }
     }

@@ -70,6 +70,14 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
             // update, and a long one (SAC from pixels) makes it look lost.
             r.drain()?;
         }
+        // An evaluation or verification whose reports are in is judged before another update
+        // holds the loop: a verification that holds ends the run now, not an update later.
+        // (The other stop rules wait for the update: the episodes that met a budget are
+        // trained on.)
+        let workers = r.link.workers();
+        if r.close_evaluation()? || (r.evals.verified.is_some() && r.should_stop(&workers)) {
+            break;
+        }
         if r.update_if_ready()? {
             // And what arrived during the update, before an evaluation is judged lost.
             r.drain()?;

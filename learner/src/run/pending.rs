@@ -1,12 +1,15 @@
 //! Evaluations under way: one request per world of a checkpoint, asked of the workers in
 //! turn, repeated while unanswered and moved to another worker when one goes away. A
 //! verification is the same checkpoint evaluated again with more trials and fresh noise, asked
-//! of the worker that evaluated each world (it keeps the versions it evaluated).
+//! of the worker that evaluated each world (it keeps the versions it evaluated). When meeting
+//! the lap target would call for a verification, each world's request carries it chained: the
+//! worker runs it as soon as that world's trials lap enough, and its report waits here until
+//! the evaluation closes and the verification is asked for.
 
 use super::link::{Link, LinkError};
 use super::spec::RunSpec;
 use policy::ActorCritic;
-use policy::exchange::{EvalRequest, Trial};
+use policy::exchange::{ChainedVerify, EvalReport, EvalRequest, Trial};
 use policy::folder::Manifest;
 use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
@@ -33,6 +36,11 @@ pub(super) struct PendingEval {
     pub(super) seed: u64,
     /// This is the verification of a checkpoint that met the lap target.
     pub(super) verifying: bool,
+    /// Per world, the verification chained to its request (none when meeting the target would
+    /// not call for one).
+    pub(super) chain: BTreeMap<String, ChainedVerify>,
+    /// Reports of chained verifications that came before this evaluation closed.
+    pub(super) early: Vec<EvalReport>,
 }
 
 /// What makes a verification's noise differ from its checkpoint's first evaluation.
@@ -60,7 +68,30 @@ impl PendingEval {
             trials: spec.eval_trials,
             seed: spec.seed ^ iteration,
             verifying: false,
+            chain: BTreeMap::new(),
+            early: Vec::new(),
         }
+    }
+
+    /// Chain to each world's request the verification of `trials` trials that this
+    /// checkpoint's [`verification`](Self::verification) would ask for, run once that
+    /// world's trials lap `laps`.
+    pub(super) fn chain_verification(&mut self, turns: &mut EvalTurns, worlds: &[String], trials: u32, laps: u32) {
+        let seed = self.seed ^ VERIFY_SEED;
+        for world in worlds {
+            self.chain.insert(world.clone(), ChainedVerify { id: turns.next_id(), trials, seed, laps });
+        }
+    }
+
+    /// The report in hand of `world`'s chained verification.
+    pub(super) fn chained_report(&self, world: &str) -> Option<&EvalReport> {
+        let c = self.chain.get(world)?;
+        self.early.iter().find(|r| r.id == c.id && r.world == world)
+    }
+
+    /// A chained verification's report, come before this evaluation closed.
+    pub(super) fn is_chained(&self, r: &EvalReport) -> bool {
+        !self.verifying && r.version == self.version && self.chain.get(&r.world).is_some_and(|c| c.id == r.id)
     }
 
     /// The verification of this (finished) evaluation's checkpoint: `trials` trials per world.
@@ -72,6 +103,8 @@ impl PendingEval {
             trials,
             seed: self.seed ^ VERIFY_SEED,
             verifying: true,
+            chain: BTreeMap::new(),
+            early: Vec::new(),
             ..self
         }
     }
@@ -85,18 +118,32 @@ impl PendingEval {
             world: world.into(),
             trials: self.trials,
             seed: self.seed,
+            then_verify: self.chain.get(world).copied(),
         }
     }
 }
 
 /// Who is asked next, and the next request id.
-#[derive(Default)]
 pub(super) struct EvalTurns {
     turn: usize,
     ids: u64,
 }
 
+impl Default for EvalTurns {
+    /// Ids start at random: a worker keeps the reports it sent by id, and a restarted
+    /// learner's requests must not be answered with the last run's.
+    fn default() -> Self {
+        EvalTurns { turn: 0, ids: rand::random::<u64>() >> 8 }
+    }
+}
+
 impl EvalTurns {
+    /// A request id not used before in this run.
+    pub(super) fn next_id(&mut self) -> u64 {
+        self.ids += 1;
+        self.ids
+    }
+
     /// Ask the next worker in turn for `world`'s trials (this is attempt `attempts`).
     pub(super) fn ask(
         &mut self,
@@ -120,9 +167,9 @@ impl EvalTurns {
         world: String,
         attempts: u32,
     ) -> Result<(), LinkError> {
-        self.ids += 1;
-        link.request_eval(&p.request(self.ids, &worker, &world))?;
-        p.asked.insert(self.ids, (world, worker, Instant::now(), attempts));
+        let id = self.next_id();
+        link.request_eval(&p.request(id, &worker, &world))?;
+        p.asked.insert(id, (world, worker, Instant::now(), attempts));
         Ok(())
     }
 

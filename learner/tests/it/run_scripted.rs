@@ -47,8 +47,10 @@ struct Scripted {
     seq: u64,
     evals: u64,
     verifications: u64,
-    /// Every evaluation request, in order.
+    /// Every evaluation run, in order: those asked for and those chained to them.
     asked: Vec<EvalRequest>,
+    /// Every evaluation request the learner sent, in order.
+    sent: Vec<EvalRequest>,
 }
 
 impl Scripted {
@@ -63,6 +65,7 @@ impl Scripted {
             evals: 0,
             verifications: 0,
             asked: Vec::new(),
+            sent: Vec::new(),
         }
     }
 
@@ -120,6 +123,34 @@ impl Link for Scripted {
     }
 
     fn request_eval(&mut self, req: &EvalRequest) -> Result<(), LinkError> {
+        self.sent.push(req.clone());
+        self.answer(req);
+        Ok(())
+    }
+
+    fn next(&mut self, timeout: Duration) -> Result<Option<Inbound>, LinkError> {
+        match self.inbox.pop_front() {
+            Some(m) => Ok(Some(m)),
+            None => {
+                std::thread::sleep(timeout.min(Duration::from_millis(5)));
+                Ok(None)
+            }
+        }
+    }
+
+    fn status(&mut self, _: &RunStatus) -> Result<(), LinkError> {
+        Ok(())
+    }
+
+    fn workers(&mut self) -> Vec<String> {
+        vec![WORKER.into()]
+    }
+}
+
+impl Scripted {
+    /// Run `req` and report; then, as a sim worker does, the verification chained to it when
+    /// its trials lapped enough.
+    fn answer(&mut self, req: &EvalRequest) {
         self.asked.push(req.clone());
         // A checkpoint's evaluation has the spec's 3 trials; its verification more.
         let lapping = if req.trials == 3 {
@@ -145,32 +176,18 @@ impl Link for Scripted {
                 ..Default::default()
             }
         };
+        let trials: Vec<Trial> = (0..req.trials).map(trial).collect();
+        let chained = req.chained(&trials);
         self.inbox.push_back(Inbound::Eval(EvalReport {
             id: req.id,
             worker: req.worker.clone(),
             version: req.version,
             world: req.world.clone(),
-            trials: Ok((0..req.trials).map(trial).collect()),
+            trials: Ok(trials),
         }));
-        Ok(())
-    }
-
-    fn next(&mut self, timeout: Duration) -> Result<Option<Inbound>, LinkError> {
-        match self.inbox.pop_front() {
-            Some(m) => Ok(Some(m)),
-            None => {
-                std::thread::sleep(timeout.min(Duration::from_millis(5)));
-                Ok(None)
-            }
+        if let Some(v) = chained {
+            self.answer(&v);
         }
-    }
-
-    fn status(&mut self, _: &RunStatus) -> Result<(), LinkError> {
-        Ok(())
-    }
-
-    fn workers(&mut self) -> Vec<String> {
-        vec![WORKER.into()]
     }
 }
 
@@ -219,12 +236,12 @@ fn run_asked(
     stop: StopRules,
     hyper: Hyperparameters,
     script: Script,
-) -> (Summary, Vec<EvalRequest>) {
+) -> (Summary, Vec<EvalRequest>, Vec<EvalRequest>) {
     let out = dir.join(name);
     let mut link = Scripted::new(script);
     let s =
         learner::run::run(&spec(&out, stop, hyper), &mut link, &mut Quiet).unwrap_or_else(|e| panic!("{name}: {e:#}"));
-    (s, link.asked)
+    (s, link.asked, link.sent)
 }
 
 fn lines(path: &Path) -> Vec<serde_json::Value> {
@@ -387,11 +404,16 @@ fn the_run_stops_at_the_first_checkpoint_that_holds_its_verification_and_that_is
     let stop = StopRules { target_laps: Some(TargetLaps { laps: 3, evaluations: 1, verify_trials: 10 }), ..never() };
     let script =
         Script { eval: |n| if n >= 1 { 100.0 } else { 40.0 }, verify: |k| if k == 0 { 9 } else { 10 }, ..HALFWAY };
-    let (s, asked) = run_asked(dir.path(), "verify", stop, quick(), script);
+    let (s, asked, sent) = run_asked(dir.path(), "verify", stop, quick(), script);
     assert!(s.stop_reason.contains("target laps reached and verified"), "{}", s.stop_reason);
-    // Asked, in order: evaluation, evaluation, its verification, evaluation, its verification.
+    // Run, in order: evaluation, evaluation, its verification, evaluation, its verification.
     let trials: Vec<u32> = asked.iter().map(|r| r.trials).collect();
     assert_eq!(trials, [3, 3, 10, 3, 10], "{asked:?}");
+    // Issue 55: each verification came chained to its evaluation, run by the worker as soon as
+    // that lapped, and the learner took its report (come before the evaluation closed) without
+    // asking for it again.
+    assert_eq!(sent.iter().map(|r| r.trials).collect::<Vec<_>>(), [3, 3, 3], "{sent:?}");
+    assert!(sent.iter().all(|r| r.then_verify.is_some_and(|v| v.trials == 10 && v.laps == 3)), "{sent:?}");
     for (eval, verify) in [(&asked[1], &asked[2]), (&asked[3], &asked[4])] {
         assert_eq!(verify.version, eval.version, "the same checkpoint is verified");
         assert_eq!(verify.worker, eval.worker, "by the worker that evaluated it");

@@ -1,7 +1,7 @@
 //! The sim worker simulates only what the learner granted, runs evaluations when
 //! asked, and follows a restarted learner back to an older version.
 
-use policy::exchange::{Credit, EvalRequest, PolicyVersion};
+use policy::exchange::{ChainedVerify, Credit, EvalRequest, PolicyVersion};
 use policy::{ActorCritic, ModelMetadata};
 use rand::SeedableRng;
 use sim_agent::worker::{Worker, WorkerInbound, WorkerOutbound, WorkerSetup};
@@ -39,7 +39,15 @@ fn policy(version: u64) -> WorkerInbound {
 
 /// Request `id`: `trials` evaluation trials of `version` on `world`, with noise `seed`.
 fn eval(id: u64, version: u64, world: &str, trials: u32, seed: u64) -> WorkerInbound {
-    WorkerInbound::Eval(EvalRequest { id, worker: "w1".into(), version, world: world.into(), trials, seed })
+    WorkerInbound::Eval(EvalRequest {
+        id,
+        worker: "w1".into(),
+        version,
+        world: world.into(),
+        trials,
+        seed,
+        then_verify: None,
+    })
 }
 
 fn credit(version: u64, round: u64, episodes: u64) -> WorkerInbound {
@@ -126,6 +134,81 @@ fn an_evaluation_waits_through_one_round_of_episodes_at_most() {
     assert_eq!((r.id, r.version), (3, 1));
     let Some(WorkerOutbound::Experience(e)) = w.work().unwrap() else { panic!("experience expected") };
     assert_eq!(e.credit, (1, 2));
+}
+
+/// Issue 55: a verification chained to an evaluation runs as soon as the evaluation lapped
+/// enough, before the round of episodes granted meanwhile, and gives the trials the same
+/// request asked alone gives; one whose evaluation did not lap enough never runs.
+#[test]
+fn a_chained_verification_runs_at_once_when_its_evaluation_lapped_enough() {
+    let chained = |laps: u32| {
+        let WorkerInbound::Eval(r) = eval(5, 1, "reinvent_base", 2, 3) else { unreachable!() };
+        WorkerInbound::Eval(EvalRequest { then_verify: Some(ChainedVerify { id: 6, trials: 3, seed: 77, laps }), ..r })
+    };
+    // No laps needed: the verification follows the evaluation, before the grant.
+    let mut w = worker(2, &["reinvent_base"]);
+    w.take(policy(1));
+    w.take(chained(0));
+    let Some(WorkerOutbound::Eval(r)) = w.work().unwrap() else { panic!("the evaluation expected") };
+    assert_eq!((r.id, r.trials.as_ref().map(Vec::len)), (5, Ok(2)));
+    w.take(credit(1, 1, 2));
+    let steps = w.env_steps();
+    let Some(WorkerOutbound::Eval(v)) = w.work().unwrap() else { panic!("the chained verification expected") };
+    assert_eq!((v.id, v.version, v.world.as_str()), (6, 1, "reinvent_base"));
+    assert_eq!(w.env_steps(), steps, "no episode before the verification");
+    // The same trials as the verification asked for alone (its noise, its count).
+    let mut alone = worker(2, &["reinvent_base"]);
+    alone.take(policy(1));
+    alone.take(eval(6, 1, "reinvent_base", 3, 77));
+    let Some(WorkerOutbound::Eval(a)) = alone.work().unwrap() else { panic!("report expected") };
+    // (The sim-trace's wall clock aside.)
+    let driven = |r: &policy::exchange::EvalReport| -> Vec<(f64, u64, String, Vec<f32>)> {
+        r.trials.as_ref().unwrap().iter().map(|t| (t.progress, t.steps, t.status.clone(), t.rewards.clone())).collect()
+    };
+    assert_eq!((v.id, driven(&v).len()), (a.id, 3));
+    assert_eq!(driven(&v), driven(&a));
+    // The learner asking for it again is answered from what was run.
+    w.take(eval(6, 1, "reinvent_base", 3, 77));
+    let Some(WorkerOutbound::Eval(again)) = w.work().unwrap() else { panic!("report expected") };
+    assert_eq!(again, v);
+    let Some(WorkerOutbound::Experience(_)) = w.work().unwrap() else { panic!("experience expected") };
+
+    // Every trial must lap, and an untrained policy laps none: no verification.
+    let mut w = worker(2, &["reinvent_base"]);
+    w.take(policy(1));
+    w.take(chained(2));
+    let Some(WorkerOutbound::Eval(r)) = w.work().unwrap() else { panic!("the evaluation expected") };
+    w.take(credit(1, 1, 2));
+    assert_eq!(r.trials.as_ref().map(|t| t.iter().filter(|t| t.lap_time.is_some()).count()), Ok(0));
+    let Some(WorkerOutbound::Experience(_)) = w.work().unwrap() else { panic!("experience, no verification") };
+
+    // Two worlds of one checkpoint on this worker: both evaluations first, then the
+    // verifications; and when the second world misses its target, the first world's chained
+    // verification is dropped (the learner verifies only a checkpoint that met it everywhere).
+    let on = |id: u64, world: &str, laps: u32| {
+        let WorkerInbound::Eval(r) = eval(id, 1, world, 2, 3) else { unreachable!() };
+        WorkerInbound::Eval(EvalRequest {
+            then_verify: Some(ChainedVerify { id: id + 100, trials: 2, seed: 77, laps }),
+            ..r
+        })
+    };
+    for (second, want) in [(0, vec![1, 2, 101, 102]), (2, vec![1, 2])] {
+        let mut w = worker(2, &["reinvent_base"]);
+        w.take(policy(1));
+        w.take(on(1, "reinvent_base", 0));
+        w.take(on(2, "reinvent_wood", second));
+        let Some(WorkerOutbound::Eval(first)) = w.work().unwrap() else { panic!("the first evaluation expected") };
+        w.take(credit(1, 1, 2));
+        let mut ran = vec![first.id];
+        loop {
+            match w.work().unwrap() {
+                Some(WorkerOutbound::Eval(r)) => ran.push(r.id),
+                Some(WorkerOutbound::Experience(_)) => break,
+                other => panic!("{other:?}"),
+            }
+        }
+        assert_eq!(ran, want, "the second world needing {second} laps");
+    }
 }
 
 /// Issue 33: a checkpoint that met the lap target is verified by the worker that evaluated it,
