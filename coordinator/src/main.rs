@@ -7,7 +7,8 @@
 
 /// mimalloc hands freed pages back to the system (glibc's malloc keeps them in its arenas),
 /// at once in `serve` ([`protocol::secure::purge_freed_memory_after`]): a long run's resident
-/// memory follows what it holds, not its highest peak. `main` turns transparent huge pages off, which would make them resident again.
+/// memory follows what it holds, not its highest peak. `main` turns transparent huge pages
+/// off, which would make them resident again.
 /// mimalloc, counting the bytes allocations hold (no limit): `job status` shows them beside
 /// the resident memory, which also holds what the allocator keeps back.
 #[global_allocator]
@@ -35,13 +36,13 @@ mod up;
 use clap::Parser;
 
 fn main() {
-    // Paddock's own messages; the libraries' warnings (Zenoh's scouting chatter) only when
-    // RUST_LOG asks for them.
     let cli = cli::Cli::parse();
     if matches!(cli.command, cli::Command::Serve(_)) {
         // The coordinator role runs for days and computes little: freed memory goes back at once.
         protocol::secure::purge_freed_memory_after(0);
     }
+    // Paddock's own messages; the libraries' warnings (Zenoh's scouting chatter) only when
+    // RUST_LOG asks for them.
     protocol::secure::init_process("warn,zenoh=error,coordinator=info,sim_agent=info");
     // The camera on a headless NVIDIA server (sim_agent::icd), before any thread starts.
     sim_agent::icd::headless_nvidia();

@@ -3,7 +3,8 @@
 
 /// mimalloc hands freed pages back to the system (glibc's malloc keeps them in its arenas),
 /// at once in `serve` ([`protocol::secure::purge_freed_memory_after`]): a long run's resident
-/// memory follows what it holds, not its highest peak. `main` turns transparent huge pages off, which would make them resident again. `Cap` (no limit) counts the bytes held, which each update's
+/// memory follows what it holds, not its highest peak. `main` turns transparent huge pages
+/// off, which would make them resident again. `Cap` (no limit) counts the bytes held, which each update's
 /// record carries beside the resident memory: a leak shows there, an allocator's retention
 /// only in the resident memory.
 #[global_allocator]

@@ -417,14 +417,15 @@ pub fn run_cli(role: Role, cli: JoinCli) -> Result<(), JoinError> {
     };
     let token: Token = text.parse()?;
     let service = crate::service::service_role(role);
-    let dir = match (&cli.certs, cli.service) {
+    // The credentials folder, and with --service the binary the unit runs.
+    let (dir, service_bin) = match (&cli.certs, cli.service) {
         (Some(_), true) => {
             return Err(JoinError::Usage(format!(
                 "--certs with --service: the service reads {}; leave --certs out",
                 crate::service::certs_dir(service).display()
             )));
         }
-        (Some(d), false) => d.clone(),
+        (Some(d), false) => (d.clone(), None),
         // Before the door is asked: a token spent on a machine that cannot install the
         // service would be lost. The unit is written once with these arguments (the
         // coordinator's address, which only the door gives, is added to it after).
@@ -434,7 +435,7 @@ pub fn run_cli(role: Role, cli: JoinCli) -> Result<(), JoinError> {
             crate::service::unit(service, &bin, "8G", &cli.args).map_err(usage)?;
             crate::service::require_systemd().map_err(usage)?;
             crate::service::require_root().map_err(usage)?;
-            crate::service::certs_dir(service)
+            (crate::service::certs_dir(service), Some(bin))
         }
         (None, false) => {
             return Err(JoinError::Usage("--certs DIR: expected the folder to write the credentials in".into()));
@@ -447,7 +448,7 @@ pub fn run_cli(role: Role, cli: JoinCli) -> Result<(), JoinError> {
     println!("wrote {} in {}", joined.files.join(", "), dir.display());
     let mut args: Vec<String> = joined.connect.iter().flat_map(|c| ["--connect".to_string(), c.clone()]).collect();
     args.extend(cli.args.iter().cloned());
-    if cli.service {
+    if let Some(bin) = service_bin {
         // A machine joining again: its state folder belongs to the service's dynamic user, who
         // must read what root just wrote (systemd re-owns only a folder whose owner differs).
         #[cfg(unix)]
@@ -462,7 +463,6 @@ pub fn run_cli(role: Role, cli: JoinCli) -> Result<(), JoinError> {
                 })?;
             }
         }
-        let bin = crate::service::sibling_binary(service).map_err(|e| JoinError::Door(e.to_string()))?;
         let unit = crate::service::unit(service, &bin, "8G", &args).map_err(|e| JoinError::Door(e.to_string()))?;
         let path = crate::service::install(service, &unit).map_err(|e| JoinError::Door(e.to_string()))?;
         println!("installed {} and started it", path.display());

@@ -213,7 +213,7 @@ impl Worker {
                     return;
                 }
                 tracing::debug!(id = r.id, version = r.version, world = %r.world, "evaluation requested");
-                match self.reports.iter().find(|d| d.id == r.id && d.version == r.version && d.world == r.world) {
+                match self.reports.iter().find(|d| answers(d, &r)) {
                     Some(done) => self.resend = Some(done.clone()),
                     None => self.evals.push_back((r, false)),
                 }
@@ -329,9 +329,7 @@ impl Worker {
         let Some(c) = r.then_verify else { return };
         match trials.and_then(|t| r.chained(t)) {
             Some(v) => {
-                if self.evals.iter().any(|(e, _)| same_request(e, &v))
-                    || self.reports.iter().any(|d| d.id == v.id && d.version == v.version && d.world == v.world)
-                {
+                if self.evals.iter().any(|(e, _)| same_request(e, &v)) || self.reports.iter().any(|d| answers(d, &v)) {
                     return;
                 }
                 tracing::debug!(id = v.id, version = v.version, world = %v.world, "verification chained to evaluation {}", r.id);
@@ -441,9 +439,15 @@ impl Worker {
     }
 }
 
-/// The same request: its id, version and world (ids start again with a learner's new run).
+/// The same request: its id, version and world (a learner's new run draws its ids afresh, and
+/// two runs' may meet).
 fn same_request(a: &EvalRequest, b: &EvalRequest) -> bool {
     a.id == b.id && a.version == b.version && a.world == b.world
+}
+
+/// `report` answers `request` (the same id, version and world).
+fn answers(report: &EvalReport, request: &EvalRequest) -> bool {
+    report.id == request.id && report.version == request.version && report.world == request.world
 }
 
 impl From<TrialResult> for Trial {

@@ -32,7 +32,7 @@ impl Procs {
     fn spawn(&mut self, name: &str, cmd: &mut Command, log: &Path) {
         let f = std::fs::File::create(log).unwrap();
         // The roles' own allocator settings, whatever the test's environment says.
-        cmd.env_remove("MIMALLOC_PURGE_DELAY").env_remove("MIMALLOC_RESET_DELAY");
+        cmd.env_remove(protocol::secure::PURGE_DELAY_VAR).env_remove("MIMALLOC_RESET_DELAY");
         let child = cmd.stdin(Stdio::null()).stdout(f.try_clone().unwrap()).stderr(f).spawn().unwrap();
         self.0.push((name.into(), child));
     }

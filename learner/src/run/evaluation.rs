@@ -469,16 +469,16 @@ impl Run<'_> {
     /// repeated while unanswered), and a report already in is taken.
     fn verify(&mut self, mut p: PendingEval, trials: u32, workers: &[String]) -> Result<(), LinkError> {
         let spec = self.spec;
+        // A chained report in hand counts whoever sent it and wherever they are now.
+        let sent: BTreeMap<String, String> =
+            spec.worlds.iter().filter_map(|w| Some((w.clone(), p.chained_report(w)?.worker.clone()))).collect();
         let by = std::mem::take(&mut p.by);
         let chain = std::mem::take(&mut p.chain);
         let early = std::mem::take(&mut p.early);
         let mut v = p.verification(trials);
         tracing::info!(run = %spec.name, checkpoint = %v.name, trials, "verifying the checkpoint that met the lap target");
         for world in &spec.worlds {
-            let chained = chain.get(world).filter(|c| c.trials == trials && c.seed == v.seed);
-            // Its report in hand counts whoever sent it and wherever they are now.
-            let sent = chained.and_then(|c| early.iter().find(|r| r.id == c.id && r.world == *world));
-            match (chained, sent.map(|r| &r.worker).or(by.get(world).filter(|w| workers.contains(w)))) {
+            match (chain.get(world), sent.get(world).or(by.get(world).filter(|w| workers.contains(w)))) {
                 (Some(c), Some(w)) => {
                     v.asked.insert(c.id, (world.clone(), w.clone(), Instant::now(), 1));
                 }
