@@ -81,6 +81,7 @@ pub const SAMPLES: &[(&str, &str)] = &[
     ("Point in the right direction", include_str!("../../examples/rewards/point_in_the_right_direction.py")),
     ("Paddock: the racing line (built in)", "builtin:race_line"),
     ("Paddock: the center line (built in)", "builtin:center_line"),
+    ("Paddock: object avoidance and head-to-bot, clear of the next object (built in)", "builtin:clearance"),
 ];
 
 fn render(name: &str, ctx: Value) -> Response {

@@ -454,8 +454,12 @@ fn held_share(a: Option<(u64, usize, usize)>) -> String {
     }
 }
 
-/// One seed's two runs.
+/// One seed's two runs of one variant.
 struct PixelsRun {
+    /// The variant's name (`today` for the setup as it is).
+    variant: String,
+    /// Its folder.
+    here: std::path::PathBuf,
     seed: u64,
     train_s: f64,
     up_s: f64,
@@ -479,12 +483,37 @@ struct PixelsRun {
 /// model (or, with `keep_training`, for the whole time, to see whether a policy that lapped
 /// everywhere stays good), then both models on those worlds and on unseen ones.
 pub fn pixels(args: &crate::cli::PixelsArgs) -> Result<()> {
-    let crate::cli::PixelsArgs { worlds, unseen, minutes, envs, evals, verify_trials, keep_training, seeds, out } =
-        args;
+    let crate::cli::PixelsArgs {
+        worlds,
+        unseen,
+        minutes,
+        envs,
+        evals,
+        verify_trials,
+        keep_training,
+        seeds,
+        variants,
+        out,
+    } = args;
     let (minutes, envs, evals, verify_trials, keep_training) =
         (*minutes, *envs, *evals, *verify_trials, *keep_training);
     if seeds.is_empty() {
         bail!("--seeds: give at least one seed");
+    }
+    // Today's setup first, then each variant with its arguments.
+    let mut setups: Vec<(String, Vec<String>)> = vec![("today".into(), vec![])];
+    for v in variants {
+        let (name, more) = v.split_once('=').unwrap_or((v.as_str(), ""));
+        if name.is_empty()
+            || !name.chars().all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_')
+            || setups.iter().any(|(n, _)| n == name)
+        {
+            bail!(
+                "--variant '{v}': expected NAME=ARGS, NAME of letters, digits, '-' and '_', each name once (not 'today')"
+            );
+        }
+        // The runs start in their own folders: a file named here is passed as its full path.
+        setups.push((name.to_string(), more.split_whitespace().map(full_path).collect()));
     }
     let me = std::env::current_exe()?;
     std::fs::create_dir_all(out)?;
@@ -510,20 +539,29 @@ pub fn pixels(args: &crate::cli::PixelsArgs) -> Result<()> {
         Ok((t0.elapsed().as_secs_f64(), text))
     };
     let (envs_s, agent_envs) = (envs.to_string(), (envs / 2).max(1).to_string());
-    let mut runs = Vec::new();
-    for &seed in seeds {
-        let here = dir.join(format!("seed-{seed}"));
+    let mut all_runs = Vec::new();
+    // Seed by seed, every variant in turn: whatever the machine does over the hours falls
+    // on all of them alike.
+    for (&seed, (variant, more)) in seeds.iter().flat_map(|s| setups.iter().map(move |v| (s, v))) {
+        let here = match setups.len() {
+            1 => dir.join(format!("seed-{seed}")),
+            _ => dir.join(format!("seed-{seed}")).join(variant),
+        };
         std::fs::create_dir_all(&here)?;
-        let train = command(&["train", "--envs", &envs_s, "--out", "train", "--force"], seed);
+        let mut train = command(&["train", "--envs", &envs_s, "--out", "train", "--force"], seed);
+        train.extend(more.iter().cloned());
         let (train_s, text) = timed(&here, &train)?;
         let train_reason = text.lines().find(|l| l.starts_with("stopped after")).unwrap_or("").to_string();
-        let up = command(&["up", "--agents", "2", "--envs", &agent_envs, "--out", "up", "--force"], seed);
+        let mut up = command(&["up", "--agents", "2", "--envs", &agent_envs, "--out", "up", "--force"], seed);
+        up.extend(more.iter().cloned());
         let (up_s, text) = timed(&here, &up)?;
         let up_reason =
             text.lines().find(|l| l.contains(": Finished") || l.contains(": Failed")).unwrap_or("").trim().to_string();
         let (ts, tu) = used_samples(&here.join("train"))?;
         let (us, uu) = used_samples(&here.join("up/run"))?;
-        runs.push(PixelsRun {
+        all_runs.push(PixelsRun {
+            variant: variant.clone(),
+            here: here.clone(),
             seed,
             train_s,
             up_s,
@@ -543,148 +581,196 @@ pub fn pixels(args: &crate::cli::PixelsArgs) -> Result<()> {
         "# coordinator bench pixels: {} from pixels, domain randomisation on, {envs} environments, seeds {seeds:?}",
         worlds.join(", ")
     );
-    println!();
-    println!(
-        "| seed | setup | wall-clock s (process start to model) | updates | samples trained on | how it stopped | evaluations after the first that lapped everywhere, lapping everywhere |"
-    );
-    println!("|---|---|---|---|---|---|---|");
-    for r in &runs {
-        println!(
-            "| {} | `train` in one process | {:.0} | {} | {:.0} | {} | {} |",
-            r.seed,
-            r.train_s,
-            r.train.0,
-            r.train.1,
-            r.train_reason,
-            held_share(r.train_after)
-        );
-        println!(
-            "| {} | `up`, 2 agents × {agent_envs} envs (+ coordinator + learner) | {:.0} | {} | {:.0} | {} | {} |",
-            r.seed,
-            r.up_s,
-            r.up.0,
-            r.up.1,
-            r.up_reason,
-            held_share(r.up_after)
-        );
-    }
-    let (n, h) = runs
-        .iter()
-        .flat_map(|r| [r.train_after, r.up_after])
-        .flatten()
-        .fold((0, 0), |(n, h), (_, a, b)| (n + a, h + b));
-    if n > 0 {
-        println!();
-        println!(
-            "After their first evaluation that lapped everywhere, {h} of the runs' {n} later evaluations lapped everywhere ({:.0} %).",
-            100.0 * h as f64 / n as f64
-        );
-    }
-    println!();
     let median = |mut v: Vec<f64>| {
         v.sort_by(f64::total_cmp);
         let n = v.len();
+        if n == 0 {
+            return f64::NAN;
+        }
         if n % 2 == 1 { v[n / 2] } else { (v[n / 2 - 1] + v[n / 2]) / 2.0 }
     };
-    // What the verified model took: a change that makes each step cheaper shows in the seconds
-    // alone, one that makes fewer steps suffice in the steps and updates too.
-    println!(
-        "The verified model: when its checkpoint was made (s from the learner's start), the updates, environment steps and samples trained on up to it."
-    );
-    println!();
-    println!(
-        "| seed | setup | made at s | stopped at s (process) | iteration | updates | env steps | samples trained on |"
-    );
-    println!("|---|---|---|---|---|---|---|---|");
-    let mut made: [Vec<f64>; 2] = [Vec::new(), Vec::new()];
-    let mut steps: [Vec<f64>; 2] = [Vec::new(), Vec::new()];
-    for r in &runs {
-        for (k, (setup, v, stop)) in
-            [("`train`", r.train_verified, r.train_s), ("`up`", r.up_verified, r.up_s)].into_iter().enumerate()
-        {
-            match v {
-                Some(v) => {
-                    println!(
-                        "| {} | {setup} | {:.0} | {stop:.0} | {} | {} | {} | {} |",
-                        r.seed, v.made_s, v.iteration, v.updates, v.env_steps, v.samples
-                    );
-                    made[k].push(v.made_s);
-                    steps[k].push(v.env_steps as f64);
-                }
-                None => println!("| {} | {setup} | no verified model | {stop:.0} | | | | |", r.seed),
-            }
-        }
-    }
-    for (k, setup) in ["`train`", "`up`"].iter().enumerate() {
-        if !made[k].is_empty() {
+    for (variant, more) in &setups {
+        let runs: Vec<&PixelsRun> = all_runs.iter().filter(|r| &r.variant == variant).collect();
+        if setups.len() > 1 {
             println!();
             println!(
-                "{setup}: median made at {:.0} s, after {:.0} environment steps ({} of {} seeds verified).",
-                median(made[k].clone()),
-                median(steps[k].clone()),
-                made[k].len(),
-                runs.len()
+                "## {variant}{}",
+                if more.is_empty() { " (the setup as it is)".to_string() } else { format!(": {}", more.join(" ")) }
             );
         }
-    }
-    println!();
-    let (mt, mu) = (median(runs.iter().map(|r| r.train_s).collect()), median(runs.iter().map(|r| r.up_s).collect()));
-    let (st, su) = (runs.iter().map(|r| r.train_s).sum::<f64>(), runs.iter().map(|r| r.up_s).sum::<f64>());
-    let mut ratios: Vec<f64> = runs.iter().map(|r| r.up_s / r.train_s).collect();
-    ratios.sort_by(f64::total_cmp);
-    let ratios: Vec<String> = ratios.iter().map(|r| format!("{r:.2}")).collect();
-    println!(
-        "Time to the stop over {} seed(s): summed, `train` {st:.0} s, `up` {su:.0} s ({:.2}×); medians {mt:.0} s and {mu:.0} s ({:.2}×); `up` was faster in {} of them; per seed `up` / `train` {}.",
-        runs.len(),
-        su / st,
-        mu / mt,
-        runs.iter().filter(|r| r.up_s < r.train_s).count(),
-        ratios.join(", ")
-    );
-    println!();
-    // The pace of learning, apart from when the stop rule fires: the wall-clock at which each
-    // setup finished the same PPO iteration (the same number of episodes trained on).
-    println!("Pace: wall-clock (s from the run's start) at the end of the same PPO iteration.");
-    println!();
-    println!("| seed | iteration | `train` s | `up` s | `up` / `train` |");
-    println!("|---|---|---|---|---|");
-    let mut paces = Vec::new();
-    for r in &runs {
-        let common = r.train_times.len().min(r.up_times.len());
-        let mut marks = vec![common / 4, common / 2, common];
-        marks.retain(|&k| k > 0);
-        marks.dedup();
-        for k in marks {
-            let (t, u) = (r.train_times[k - 1], r.up_times[k - 1]);
-            println!("| {} | {k} | {t:.0} | {u:.0} | {:.2} |", r.seed, u / t);
-            if k == common {
-                paces.push(u / t);
+        println!();
+        println!(
+            "| seed | setup | wall-clock s (process start to model) | updates | samples trained on | how it stopped | evaluations after the first that lapped everywhere, lapping everywhere |"
+        );
+        println!("|---|---|---|---|---|---|---|");
+        for r in &runs {
+            println!(
+                "| {} | `train` in one process | {:.0} | {} | {:.0} | {} | {} |",
+                r.seed,
+                r.train_s,
+                r.train.0,
+                r.train.1,
+                r.train_reason,
+                held_share(r.train_after)
+            );
+            println!(
+                "| {} | `up`, 2 agents × {agent_envs} envs (+ coordinator + learner) | {:.0} | {} | {:.0} | {} | {} |",
+                r.seed,
+                r.up_s,
+                r.up.0,
+                r.up.1,
+                r.up_reason,
+                held_share(r.up_after)
+            );
+        }
+        let (n, h) = runs
+            .iter()
+            .flat_map(|r| [r.train_after, r.up_after])
+            .flatten()
+            .fold((0, 0), |(n, h), (_, a, b)| (n + a, h + b));
+        if n > 0 {
+            println!();
+            println!(
+                "After their first evaluation that lapped everywhere, {h} of the runs' {n} later evaluations lapped everywhere ({:.0} %).",
+                100.0 * h as f64 / n as f64
+            );
+        }
+        println!();
+        // What the verified model took: a change that makes each step cheaper shows in the seconds
+        // alone, one that makes fewer steps suffice in the steps and updates too.
+        println!(
+            "The verified model: when its checkpoint was made (s from the learner's start), the updates, environment steps and samples trained on up to it."
+        );
+        println!();
+        println!(
+            "| seed | setup | made at s | stopped at s (process) | iteration | updates | env steps | samples trained on |"
+        );
+        println!("|---|---|---|---|---|---|---|---|");
+        let mut made: [Vec<f64>; 2] = [Vec::new(), Vec::new()];
+        let mut steps: [Vec<f64>; 2] = [Vec::new(), Vec::new()];
+        for r in &runs {
+            for (k, (setup, v, stop)) in
+                [("`train`", r.train_verified, r.train_s), ("`up`", r.up_verified, r.up_s)].into_iter().enumerate()
+            {
+                match v {
+                    Some(v) => {
+                        println!(
+                            "| {} | {setup} | {:.0} | {stop:.0} | {} | {} | {} | {} |",
+                            r.seed, v.made_s, v.iteration, v.updates, v.env_steps, v.samples
+                        );
+                        made[k].push(v.made_s);
+                        steps[k].push(v.env_steps as f64);
+                    }
+                    None => println!("| {} | {setup} | no verified model | {stop:.0} | | | | |", r.seed),
+                }
+            }
+        }
+        for (k, setup) in ["`train`", "`up`"].iter().enumerate() {
+            if !made[k].is_empty() {
+                println!();
+                println!(
+                    "{setup}: median made at {:.0} s, after {:.0} environment steps ({} of {} seeds verified).",
+                    median(made[k].clone()),
+                    median(steps[k].clone()),
+                    made[k].len(),
+                    runs.len()
+                );
+            }
+        }
+        println!();
+        let (mt, mu) =
+            (median(runs.iter().map(|r| r.train_s).collect()), median(runs.iter().map(|r| r.up_s).collect()));
+        let (st, su) = (runs.iter().map(|r| r.train_s).sum::<f64>(), runs.iter().map(|r| r.up_s).sum::<f64>());
+        let mut ratios: Vec<f64> = runs.iter().map(|r| r.up_s / r.train_s).collect();
+        ratios.sort_by(f64::total_cmp);
+        let ratios: Vec<String> = ratios.iter().map(|r| format!("{r:.2}")).collect();
+        println!(
+            "Time to the stop over {} seed(s): summed, `train` {st:.0} s, `up` {su:.0} s ({:.2}×); medians {mt:.0} s and {mu:.0} s ({:.2}×); `up` was faster in {} of them; per seed `up` / `train` {}.",
+            runs.len(),
+            su / st,
+            mu / mt,
+            runs.iter().filter(|r| r.up_s < r.train_s).count(),
+            ratios.join(", ")
+        );
+        println!();
+        // The pace of learning, apart from when the stop rule fires: the wall-clock at which each
+        // setup finished the same PPO iteration (the same number of episodes trained on).
+        println!("Pace: wall-clock (s from the run's start) at the end of the same PPO iteration.");
+        println!();
+        println!("| seed | iteration | `train` s | `up` s | `up` / `train` |");
+        println!("|---|---|---|---|---|");
+        let mut paces = Vec::new();
+        for r in &runs {
+            let common = r.train_times.len().min(r.up_times.len());
+            let mut marks = vec![common / 4, common / 2, common];
+            marks.retain(|&k| k > 0);
+            marks.dedup();
+            for k in marks {
+                let (t, u) = (r.train_times[k - 1], r.up_times[k - 1]);
+                println!("| {} | {k} | {t:.0} | {u:.0} | {:.2} |", r.seed, u / t);
+                if k == common {
+                    paces.push(u / t);
+                }
+            }
+        }
+        if !paces.is_empty() {
+            println!();
+            println!(
+                "Pace at the last iteration both reached, median over seeds: `up` / `train` = {:.2}.",
+                median(paces)
+            );
+        }
+        println!();
+        // Both models on the training worlds and on tracks they never saw.
+        let all: Vec<String> = worlds.iter().chain(unseen).cloned().collect();
+        for r in &runs {
+            let here = &r.here;
+            for (name, model) in [("train", "train/model"), ("up", "up/run/model")] {
+                let mut args = vec!["evaluate".to_string(), model.into(), "--trials".into(), "3".into()];
+                for w in &all {
+                    args.extend(["--world".into(), w.clone()]);
+                }
+                let text = child(&me, here, &args)?;
+                println!("seed {}, {name} model ({}):", r.seed, here.join(model).display());
+                println!();
+                println!("```");
+                for l in text.lines().skip_while(|l| !l.starts_with("WORLD")) {
+                    println!("{l}");
+                }
+                println!("```");
+                println!();
             }
         }
     }
-    if !paces.is_empty() {
+    if setups.len() > 1 {
+        // Medians over the seeds, per variant: a variant that makes steps cheaper shows in
+        // the seconds alone, one that makes fewer suffice in the steps and updates too.
         println!();
-        println!("Pace at the last iteration both reached, median over seeds: `up` / `train` = {:.2}.", median(paces));
-    }
-    println!();
-    // Both models on the training worlds and on tracks they never saw.
-    let all: Vec<String> = worlds.iter().chain(unseen).cloned().collect();
-    for r in &runs {
-        let here = dir.join(format!("seed-{}", r.seed));
-        for (name, model) in [("train", "train/model"), ("up", "up/run/model")] {
-            let mut args = vec!["evaluate".to_string(), model.into(), "--trials".into(), "3".into()];
-            for w in &all {
-                args.extend(["--world".into(), w.clone()]);
-            }
-            let text = child(&me, &here, &args)?;
-            println!("seed {}, {name} model ({}):", r.seed, here.join(model).display());
-            println!();
-            println!("```");
-            for l in text.lines().skip_while(|l| !l.starts_with("WORLD")) {
-                println!("{l}");
-            }
-            println!("```");
-            println!();
+        println!("## The variants side by side (medians over seeds {seeds:?})");
+        println!();
+        println!(
+            "| variant | `train` stop s | `up` stop s | `train` model made at s | `up` model made at s | env steps to it (`train`, `up`) | updates to it (`train`, `up`) | verified (`train`, `up`) |"
+        );
+        println!("|---|---|---|---|---|---|---|---|");
+        for (variant, _) in &setups {
+            let runs: Vec<&PixelsRun> = all_runs.iter().filter(|r| &r.variant == variant).collect();
+            let of = |f: &dyn Fn(&PixelsRun) -> Option<f64>| median(runs.iter().filter_map(|r| f(r)).collect());
+            let shown = |x: f64| if x.is_finite() { format!("{x:.0}") } else { "-".into() };
+            println!(
+                "| {variant} | {} | {} | {} | {} | {}, {} | {}, {} | {} of {}, {} of {} |",
+                shown(of(&|r| Some(r.train_s))),
+                shown(of(&|r| Some(r.up_s))),
+                shown(of(&|r| r.train_verified.map(|v| v.made_s))),
+                shown(of(&|r| r.up_verified.map(|v| v.made_s))),
+                shown(of(&|r| r.train_verified.map(|v| v.env_steps as f64))),
+                shown(of(&|r| r.up_verified.map(|v| v.env_steps as f64))),
+                shown(of(&|r| r.train_verified.map(|v| v.updates as f64))),
+                shown(of(&|r| r.up_verified.map(|v| v.updates as f64))),
+                runs.iter().filter(|r| r.train_verified.is_some()).count(),
+                runs.len(),
+                runs.iter().filter(|r| r.up_verified.is_some()).count(),
+                runs.len()
+            );
         }
     }
     Ok(())
@@ -997,13 +1083,23 @@ pub fn long_job(minutes: f64, trials: u32, out: &std::path::Path) -> Result<i32>
     Ok(if pass { 0 } else { 1 })
 }
 
-/// One race of `bench races`: its name, the flags that make it (sensor, race, reward).
+/// `arg` as given, or its full path when it names a file or folder here (a bench's runs start
+/// in folders of their own).
+fn full_path(arg: &str) -> String {
+    match std::path::Path::new(arg).canonicalize() {
+        Ok(p) if !arg.starts_with('-') => p.display().to_string(),
+        _ => arg.to_string(),
+    }
+}
+
+/// One race of `bench races`: its name, the flags that make it (sensor, race, reward). The
+/// head-to-bot race is issue 55's: 3 bots at 0.3 m/s, which every lap from the start line meets.
 const RACES: [(&str, &[&str]); 5] = [
     ("time_trial", &["--sensor", "camera"]),
     ("object_avoidance", &["--sensor", "camera", "--obstacles", "3", "--reward", "builtin:object_avoidance"]),
     (
         "head_to_bot",
-        &["--sensor", "camera", "--bots", "2", "--bot-speed", "0.5", "--reward", "builtin:object_avoidance"],
+        &["--sensor", "camera", "--bots", "3", "--bot-speed", "0.3", "--reward", "builtin:object_avoidance"],
     ),
     ("stereo", &["--sensor", "stereo"]),
     ("camera_sector_lidar", &["--sensor", "camera+lidar", "--obstacles", "3", "--reward", "builtin:object_avoidance"]),
@@ -1037,64 +1133,216 @@ fn train_then_evaluate(
     Ok((secs, stop, line, laps))
 }
 
-/// `bench races`: every race trained from pixels and evaluated under its rules.
-pub fn races(world: &str, minutes: f64, which: &[String], up: bool, seed: u64, out: &std::path::Path) -> Result<i32> {
-    for w in which {
+/// The `--set`s that make an evaluation place head-to-bot's bots as the run's checks do (at
+/// random, changing lanes: `RaceConfig::for_checks`).
+const CHECKED_BOTS: [&str; 4] = ["--set", "race.randomize_bot_car_locations=true", "--set", "race.is_lane_change=true"];
+
+/// The verification that let a run stop at its verified model (`evaluations.jsonl`'s record of
+/// that iteration): "laps/trials, crashes[, overtakes]".
+fn verification_of(run: &std::path::Path, iteration: u64) -> Result<Option<String>> {
+    let path = run.join("evaluations.jsonl");
+    let text = std::fs::read_to_string(&path).with_context(|| format!("{}", path.display()))?;
+    let mut found = None;
+    for line in text.lines() {
+        let e: serde_json::Value = serde_json::from_str(line).with_context(|| format!("{}", path.display()))?;
+        if e["verification"].as_bool() == Some(true) && e["iteration"].as_u64() == Some(iteration) {
+            found = Some(format!(
+                "{}/{} laps, {} crashes{}",
+                e["min_laps"].as_u64().unwrap_or(0),
+                e["trials"].as_u64().unwrap_or(0),
+                e["crashes"].as_u64().unwrap_or(0),
+                e["overtakes"].as_u64().map(|o| format!(", {o} overtakes")).unwrap_or_default()
+            ));
+        }
+    }
+    Ok(found)
+}
+
+/// An evaluation's trials (`coordinator evaluate`'s output): (laps, crashes, the trials that
+/// overtook no bot where it counts overtakes).
+fn trial_counts(text: &str) -> (usize, u32, usize) {
+    let (mut laps, mut crashes, mut none) = (0, 0, 0);
+    for l in text.lines().filter(|l| l.starts_with("trial ")) {
+        let after =
+            |k: &str| l.split(k).nth(1).and_then(|r| r.split_whitespace().next()).and_then(|n| n.parse::<u32>().ok());
+        laps += usize::from(l.contains("lap_complete"));
+        crashes += after("crashes ").unwrap_or(0);
+        none += usize::from(after("overtakes ") == Some(0));
+    }
+    (laps, crashes, none)
+}
+
+/// One training of `bench races` and what it gave.
+struct RaceRow {
+    race: String,
+    seed: u64,
+    setup: &'static str,
+    secs: f64,
+    stop: String,
+    verified: Option<Verified>,
+    verification: Option<String>,
+    evaluation: String,
+    ok: bool,
+}
+
+/// `bench races`: every race trained from pixels per seed, to a verified model; each model
+/// then evaluated again with seeds the run never drew (head-to-bot's bots placed as the
+/// run's checks place them).
+pub fn races(a: &crate::cli::RacesArgs) -> Result<i32> {
+    for w in &a.races {
         if !RACES.iter().any(|(n, _)| n == w) {
             bail!("--race {w}: expected one of {:?}", RACES.map(|r| r.0));
         }
     }
+    if a.seeds.is_empty() {
+        bail!("--seeds: give at least one seed");
+    }
     let me = std::env::current_exe()?;
-    std::fs::create_dir_all(out)?;
-    let dir = out.canonicalize()?;
+    std::fs::create_dir_all(&a.out)?;
+    let dir = a.out.canonicalize()?;
+    let world = a.world.as_str();
+    let sets: Vec<String> = a.sets.iter().flat_map(|s| ["--set".to_string(), s.clone()]).collect();
     let mut rows = Vec::new();
-    let mut failed = Vec::new();
-    for (name, flags) in RACES.iter().filter(|(n, _)| which.is_empty() || which.iter().any(|w| w == n)) {
-        let flags: Vec<String> = flags.iter().map(|s| s.to_string()).collect();
-        // The race alone, for `evaluate` (no sensor or reward there).
-        let race: Vec<String> = flags
+    for (name, flags) in RACES.iter().filter(|(n, _)| a.races.is_empty() || a.races.iter().any(|w| w == n)) {
+        let mut flags: Vec<String> = flags.iter().map(|s| s.to_string()).collect();
+        // The reward given replaces the race's (a time trial's too, which has none here).
+        if let Some(r) = &a.reward {
+            let r = full_path(r);
+            match flags.iter().position(|f| f == "--reward") {
+                Some(i) => flags[i + 1] = r,
+                None => flags.extend(["--reward".to_string(), r]),
+            }
+        }
+        // The race alone, for `evaluate` (no sensor or reward there), and the settings given.
+        let mut race: Vec<String> = flags
             .chunks(2)
             .filter(|kv| !matches!(kv[0].as_str(), "--sensor" | "--reward"))
             .flat_map(|kv| kv.to_vec())
             .collect();
-        let mut setups = vec![("train", "train".to_string(), format!("{name}-train"), format!("{name}-train/model"))];
-        if up {
-            setups.push(("up, 2 agents", "up".into(), format!("{name}-up"), format!("{name}-up/run/model")));
+        // `evaluate` takes the race's keys.
+        race.extend(a.sets.iter().filter(|s| s.starts_with("race.")).flat_map(|s| ["--set".to_string(), s.clone()]));
+        let bots = flags.iter().any(|f| f == "--bots");
+        if bots {
+            race.extend(CHECKED_BOTS.map(String::from));
         }
-        for (label, cmd, folder, model) in setups {
-            let mut args = vec![cmd.clone(), "--world".into(), world.into(), "--out".into(), folder, "--force".into()];
-            args.extend(flags.iter().cloned());
-            args.extend(
-                ["--target-laps", "3", "--minutes", &minutes.to_string(), "--seed", &seed.to_string()]
-                    .map(String::from),
-            );
-            if cmd == "up" {
-                args.extend(["--agents", "2", "--envs", "8"].map(String::from));
+        for &seed in &a.seeds {
+            let mut setups = vec![("train", "train", format!("{name}-{seed}-train"), String::new())];
+            if !a.no_up {
+                setups.push(("up, 2 agents", "up", format!("{name}-{seed}-up"), "/run".to_string()));
             }
-            let (secs, stop, line, laps) = train_then_evaluate(&me, &dir, &args, model, world, &race)?;
-            let crashes = line
-                .split(", ")
-                .find_map(|p| p.strip_suffix(" crashes"))
-                .and_then(|n| n.trim().parse::<u32>().ok())
-                .unwrap_or(u32::MAX);
-            let ok = laps == 3 && crashes == 0;
-            if !ok {
-                failed.push(format!("{name} ({label})"));
+            for (setup, cmd, folder, inner) in setups {
+                let mut args = vec![
+                    cmd.to_string(),
+                    "--world".into(),
+                    world.into(),
+                    "--out".into(),
+                    folder.clone(),
+                    "--force".into(),
+                ];
+                args.extend(flags.iter().cloned());
+                args.extend(sets.iter().cloned());
+                args.extend(
+                    ["--target-laps", "3", "--minutes", &a.minutes.to_string(), "--seed", &seed.to_string()]
+                        .map(String::from),
+                );
+                if cmd == "up" {
+                    args.extend(["--agents", "2", "--envs", "8"].map(String::from));
+                }
+                let t0 = Instant::now();
+                let text = child(&me, &dir, &args)?;
+                let secs = t0.elapsed().as_secs_f64();
+                let stop = text
+                    .lines()
+                    .find(|l| l.starts_with("stopped after") || l.contains(": Finished") || l.contains(": Failed"))
+                    .unwrap_or("")
+                    .trim()
+                    .to_string();
+                let run = dir.join(format!("{folder}{inner}"));
+                let verified = verified_point(&run)?;
+                let verification = match verified {
+                    Some(v) => verification_of(&run, v.iteration)?,
+                    None => None,
+                };
+                // Seeds the run never drew: 1000 + the run's.
+                let mut eval = vec!["evaluate".to_string(), format!("{folder}{inner}/model"), "--world".into()];
+                eval.extend([world.to_string(), "--trials".into(), a.eval_trials.to_string()]);
+                eval.extend(["--seed".to_string(), (1000 + seed).to_string()]);
+                eval.extend(race.iter().cloned());
+                let out = child(&me, &dir, &eval)?;
+                let (laps, crashes, no_overtake) = trial_counts(&out);
+                let line = out.lines().find(|l| l.contains("laps completed")).unwrap_or("").to_string();
+                let ok = verified.is_some() && laps == a.eval_trials && crashes == 0 && no_overtake == 0;
+                rows.push(RaceRow {
+                    race: name.to_string(),
+                    seed,
+                    setup,
+                    secs,
+                    stop,
+                    verified,
+                    verification,
+                    evaluation: line,
+                    ok,
+                });
             }
-            rows.push((name.to_string(), label, secs, stop, line, ok));
         }
     }
-    println!("# coordinator bench races: {world}, from pixels, seed {seed}, {minutes} min budget each");
+    let seeds: Vec<String> = a.seeds.iter().map(u64::to_string).collect();
+    println!(
+        "# coordinator bench races: {world}, from pixels, seeds {}, {} min budget each{}{}",
+        seeds.join(","),
+        a.minutes,
+        a.reward.as_ref().map(|r| format!(", reward {r}")).unwrap_or_default(),
+        if a.sets.is_empty() { String::new() } else { format!(", --set {}", a.sets.join(" --set ")) }
+    );
     println!();
     println!(
-        "| race | setup | wall-clock s (start to model) | how it stopped | evaluation (3 trials, the race's rules) | verdict |"
+        "| race | seed | setup | wall-clock s | how it stopped | verified model made at s (updates, env steps) | \
+         its verification | evaluation ({} trials, seed 1000 + the run's) | verdict |",
+        a.eval_trials
     );
-    println!("|---|---|---|---|---|---|");
-    for (name, label, secs, stop, line, ok) in &rows {
-        println!("| {name} | {label} | {secs:.0} | {stop} | {line} | {} |", if *ok { "pass" } else { "FAIL" });
+    println!("|---|---|---|---|---|---|---|---|---|");
+    for r in &rows {
+        let made = r
+            .verified
+            .map_or("none".to_string(), |v| format!("{:.0} ({} updates, {} steps)", v.made_s, v.updates, v.env_steps));
+        println!(
+            "| {} | {} | {} | {:.0} | {} | {made} | {} | {} | {} |",
+            r.race,
+            r.seed,
+            r.setup,
+            r.secs,
+            r.stop,
+            r.verification.as_deref().unwrap_or("-"),
+            r.evaluation,
+            if r.ok { "pass" } else { "FAIL" }
+        );
     }
     println!();
-    Ok(verdict(&failed, "every model lapped 3/3 with no crash"))
+    // Per race and setup over the seeds: the median time to the verified model.
+    let mut groups: Vec<(&str, &str)> = rows.iter().map(|r| (r.race.as_str(), r.setup)).collect();
+    groups.sort();
+    groups.dedup();
+    for (race, setup) in groups {
+        let mut made: Vec<f64> = rows
+            .iter()
+            .filter(|r| r.race == race && r.setup == setup)
+            .map(|r| r.verified.map_or(f64::INFINITY, |_| r.secs))
+            .collect();
+        made.sort_by(f64::total_cmp);
+        let median = made[made.len() / 2];
+        println!(
+            "{race} ({setup}): median wall-clock to the stop at a verified model (a seed not verified counts as never) {}",
+            if median.is_finite() { format!("{median:.0} s") } else { "none (most seeds not verified)".into() }
+        );
+    }
+    let failed: Vec<String> =
+        rows.iter().filter(|r| !r.ok).map(|r| format!("{} seed {} ({})", r.race, r.seed, r.setup)).collect();
+    let pass = format!(
+        "every run stopped at a verified model and lapped {0}/{0} again with no crash{1}",
+        a.eval_trials,
+        if rows.iter().any(|r| r.race == "head_to_bot") { ", overtaking in every head-to-bot trial" } else { "" }
+    );
+    Ok(verdict(&failed, &pass))
 }
 
 /// deepracer-for-cloud's `defaults/model_metadata_sac.json` (speed 1–2 m/s, steering ±30°),
@@ -1471,5 +1719,43 @@ mod tests {
         assert_eq!(verified_point(run.path()).unwrap(), None);
         std::fs::remove_dir_all(run.path().join("model")).unwrap();
         assert_eq!(verified_point(run.path()).unwrap(), None);
+    }
+
+    /// Issue 55: `bench races` reads an evaluation's laps, crashes and the trials that overtook
+    /// no bot from `evaluate`'s own lines, and the verification of the verified iteration from
+    /// `evaluations.jsonl`.
+    #[test]
+    fn bench_races_reads_the_trials_and_the_verification_it_judges() {
+        use policy::exchange::Trial;
+        let trial = |status: &str, crashes: u32, overtakes: Option<u32>| Trial {
+            status: status.into(),
+            progress: 100.0,
+            lap_time: (status == "lap_complete").then_some(12.5),
+            crashes,
+            overtakes,
+            steps: 190,
+            ..Trial::default()
+        };
+        let text = |trials: &[Trial]| -> String {
+            let mut lines: Vec<String> =
+                trials.iter().enumerate().map(|(i, t)| crate::train::trial_line(i, "reinvent_base", t)).collect();
+            lines.push("2 of 3 laps completed, mean progress 90.0 %, 1 crashes".into());
+            lines.join("\n")
+        };
+        let bots = [trial("lap_complete", 0, Some(2)), trial("crashed", 1, Some(0)), trial("lap_complete", 0, Some(1))];
+        assert_eq!(trial_counts(&text(&bots)), (2, 1, 1));
+        let boxes = [trial("lap_complete", 0, None), trial("lap_complete", 0, None)];
+        assert_eq!(trial_counts(&text(&boxes)), (2, 0, 0), "no overtakes counted where there are no bots");
+        let run = tempfile::tempdir().unwrap();
+        let lines = [
+            serde_json::json!({"iteration": 4, "verification": false, "min_laps": 3, "trials": 3, "crashes": 0}),
+            serde_json::json!({"iteration": 4, "verification": true, "min_laps": 10, "trials": 10, "crashes": 0, "overtakes": 17}),
+            serde_json::json!({"iteration": 6, "verification": true, "min_laps": 8, "trials": 10, "crashes": 2}),
+        ];
+        let body: Vec<String> = lines.iter().map(|l| l.to_string()).collect();
+        std::fs::write(run.path().join("evaluations.jsonl"), body.join("\n")).unwrap();
+        assert_eq!(verification_of(run.path(), 4).unwrap().as_deref(), Some("10/10 laps, 0 crashes, 17 overtakes"));
+        assert_eq!(verification_of(run.path(), 6).unwrap().as_deref(), Some("8/10 laps, 2 crashes"));
+        assert_eq!(verification_of(run.path(), 5).unwrap(), None);
     }
 }

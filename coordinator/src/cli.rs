@@ -471,27 +471,7 @@ pub enum BenchCommand {
     /// console's LiDAR (SECTOR_LIDAR) among 3 boxes, each trained by `train` and by `up` with 2
     /// agents, then evaluated under the race's rules. Prints a table and a
     /// verdict (exit 1 when a model fails: fewer laps than trials, or a crash).
-    Races {
-        /// The track.
-        #[arg(long, default_value = "reinvent_base")]
-        world: String,
-        /// Budget per training (minutes).
-        #[arg(long, default_value_t = 10.0)]
-        minutes: f64,
-        /// Which races (time_trial, object_avoidance, head_to_bot, stereo, camera_sector_lidar;
-        /// default all).
-        #[arg(long = "race")]
-        races: Vec<String>,
-        /// Skip `up` (train in one process only).
-        #[arg(long)]
-        no_up: bool,
-        /// Random seed.
-        #[arg(long, default_value_t = 1)]
-        seed: u64,
-        /// Where the runs go (kept).
-        #[arg(long, default_value = "runs/bench-races")]
-        out: PathBuf,
-    },
+    Races(RacesArgs),
     /// Generalisation (issue 34): a model trained only on generated tracks (`generated:N`, a
     /// new track every few episodes, either way round), its last checkpoint evaluated on
     /// catalog tracks it never saw. Prints a table and a verdict (exit 1 unless it laps 3/3 on
@@ -626,6 +606,12 @@ pub struct PixelsArgs {
     /// compared seed by seed and by their medians.
     #[arg(long, default_value = "1", value_delimiter = ',')]
     pub seeds: Vec<u64>,
+    /// A variant run beside today's setup for every seed, in the same run: `NAME=ARGS`, its
+    /// arguments (split at spaces) added to both `train` and `up`, e.g.
+    /// `--variant 'epochs3=--hyperparameters hp3.json'` (repeatable). Each gets its tables and
+    /// a line in the comparison.
+    #[arg(long = "variant", value_name = "NAME=ARGS")]
+    pub variants: Vec<String>,
     /// Where the runs go (kept, with their models).
     #[arg(long, default_value = "runs/bench-pixels")]
     pub out: PathBuf,
@@ -1097,6 +1083,43 @@ pub struct TrainArgs {
     pub race: RaceArgs,
 }
 
+/// `bench races`: every race from pixels, per seed, to a verified model, then each model
+/// evaluated again with seeds its run never drew. Prints a table and a verdict (exit 1 unless
+/// every run stopped at a verified model that then lapped every trial with no crash and, in
+/// head-to-bot, overtook in each).
+#[derive(Args)]
+pub struct RacesArgs {
+    /// The track.
+    #[arg(long, default_value = "reinvent_base")]
+    pub world: String,
+    /// Budget per training (minutes).
+    #[arg(long, default_value_t = 15.0)]
+    pub minutes: f64,
+    /// Which races (time_trial, object_avoidance, head_to_bot, stereo, camera_sector_lidar;
+    /// default all).
+    #[arg(long = "race")]
+    pub races: Vec<String>,
+    /// Skip `up` (train in one process only).
+    #[arg(long)]
+    pub no_up: bool,
+    /// Seeds, comma-separated: each race is trained once a seed.
+    #[arg(long, value_delimiter = ',', default_value = "1")]
+    pub seeds: Vec<u64>,
+    /// The reward every race trains with instead of its own (a built-in or a .py file).
+    #[arg(long)]
+    pub reward: Option<String>,
+    /// A simulator configuration key for training (`key=value`, repeatable), e.g.
+    /// race.min_distance_between_obstacles=8; the `race.` ones for the evaluation after too.
+    #[arg(long = "set")]
+    pub sets: Vec<String>,
+    /// Trials of each model's evaluation after its run.
+    #[arg(long, default_value_t = 5)]
+    pub eval_trials: usize,
+    /// Where the runs go (kept).
+    #[arg(long, default_value = "runs/bench-races")]
+    pub out: PathBuf,
+}
+
 #[derive(Args)]
 pub struct EvaluateArgs {
     /// A model folder (e.g. RUN/model).
@@ -1114,11 +1137,20 @@ pub struct EvaluateArgs {
     /// Drive the track in reverse.
     #[arg(long)]
     pub reversed: bool,
-    /// Random seed (actuator noise).
+    /// Random seed (actuator noise, and the race's boxes and bots where they are placed at
+    /// random).
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
     #[command(flatten)]
     pub race: RaceArgs,
+    /// A simulator configuration (TOML) whose `[race]` table the evaluation drives (the race
+    /// flags override it).
+    #[arg(long, value_name = "FILE")]
+    pub config: Option<PathBuf>,
+    /// Override a key of the race (`race.KEY=VALUE`, repeatable), e.g.
+    /// `race.randomize_bot_car_locations=true`.
+    #[arg(long = "set")]
+    pub sets: Vec<String>,
 }
 
 #[derive(Args)]
@@ -1307,7 +1339,8 @@ pub enum RewardCommand {
     /// Write a built-in reward as a DeepRacer reward file (Python) that gives the same
     /// rewards; race_line's carries the world's racing lines, both directions.
     Export {
-        /// The built-in: builtin:NAME (center_line, stay_inside, object_avoidance, race_line).
+        /// The built-in: builtin:NAME (center_line, stay_inside, object_avoidance, race_line,
+        /// clearance).
         reward: String,
         /// The world whose racing line race_line follows (built-in name or .npy path).
         #[arg(long, default_value = "reinvent_base")]

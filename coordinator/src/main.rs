@@ -170,9 +170,7 @@ fn main() {
             cli::BenchCommand::Soak(args) => soak::soak(args),
             cli::BenchCommand::ModelFiles { repeats } => bench::model_files(repeats).map(|()| 0),
             cli::BenchCommand::Publish { repeats } => bench::publish(repeats).map(|()| 0),
-            cli::BenchCommand::Races { world, minutes, races, no_up, seed, out } => {
-                bench::races(&world, minutes, &races, !no_up, seed, &out)
-            }
+            cli::BenchCommand::Races(args) => bench::races(&args),
             cli::BenchCommand::Generated { family, unseen, sensor, minutes, seed, out } => {
                 bench::generated(family, &unseen, &sensor, minutes, seed, &out)
             }

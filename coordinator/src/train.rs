@@ -110,11 +110,12 @@ impl Observer for Terminal {
             .collect();
         self.bar.suspend(|| {
             println!(
-                "     {} v{}: {}{} {}",
+                "     {} v{}: {}{}{} {}",
                 if e.verification { "verify" } else { "eval" },
                 e.policy_version,
                 worlds.join(" | "),
                 if e.crashes > 0 { format!(" | {} crashes", e.crashes) } else { String::new() },
+                e.overtakes.map(|o| format!(" | {o} overtakes")).unwrap_or_default(),
                 if e.best { "(best so far)" } else { "" }
             );
             if !e.trend.is_empty() {
@@ -301,8 +302,29 @@ pub fn train(mut args: TrainArgs) -> Result<i32> {
     Ok(0)
 }
 
+/// `evaluate`'s line for trial `i` (from 0) on `world` (`bench races` reads it back).
+pub(crate) fn trial_line(i: usize, world: &str, t: &Trial) -> String {
+    format!(
+        "trial {}: {:<20} {:<12} progress {:>6.1} %  lap time {:>8}  off-track {:>2}  crashes {:>2}  steps {:>5}{}",
+        i + 1,
+        world,
+        t.status,
+        t.progress,
+        t.lap_time.map(|l| format!("{l:.2} s")).unwrap_or_else(|| "-".into()),
+        t.off_track,
+        t.crashes,
+        t.steps,
+        t.overtakes.map(|o| format!("  overtakes {o}")).unwrap_or_default()
+    )
+}
+
 pub fn evaluate_cmd(args: EvaluateArgs) -> Result<i32> {
-    let race: SimConfig = args.race.sim_config(None, &[])?;
+    // The evaluation drives its own car, camera and noise (the model's): only the race is
+    // taken from a configuration.
+    if let Some(s) = args.sets.iter().find(|s| !s.starts_with("race.")) {
+        anyhow::bail!("--set {s}: evaluate takes the race's keys only (race.KEY=VALUE)");
+    }
+    let race: SimConfig = args.race.sim_config(args.config.as_deref(), &args.sets)?;
     let rules =
         if args.reset_rules { EvalRules { max_resets: 100, ..EvalRules::default() } } else { EvalRules::default() };
     let names = if args.world.is_empty() { vec!["reinvent_base".to_string()] } else { args.world.clone() };
@@ -327,23 +349,17 @@ pub fn evaluate_cmd(args: EvaluateArgs) -> Result<i32> {
     let done = coordinator::evaluation::run(&args.model_dir, &req)?;
     let mut table = Vec::new();
     let mut crashes = 0;
+    let mut overtakes: Option<u32> = None;
     for w in done.worlds {
         let trials: Vec<Trial> = w.trials.into_iter().map(Trial::from).collect();
         for (i, t) in trials.iter().enumerate() {
-            println!(
-                "trial {}: {:<20} {:<12} progress {:>6.1} %  lap time {:>8}  off-track {:>2}  crashes {:>2}  steps {:>5}",
-                i + 1,
-                w.world,
-                t.status,
-                t.progress,
-                t.lap_time.map(|l| format!("{l:.2} s")).unwrap_or_else(|| "-".into()),
-                t.off_track,
-                t.crashes,
-                t.steps
-            );
+            println!("{}", trial_line(i, &w.world, t));
         }
         let (progress, lap, laps) = summarise(&trials);
         crashes += trials.iter().map(|t| t.crashes).sum::<u32>();
+        if let Some(o) = trials.iter().filter_map(|t| t.overtakes).reduce(|a, b| a + b) {
+            *overtakes.get_or_insert(0) += o;
+        }
         table.push((w.world.clone(), laps, trials.len(), progress, lap));
     }
     println!();
@@ -359,7 +375,10 @@ pub fn evaluate_cmd(args: EvaluateArgs) -> Result<i32> {
     let laps: usize = table.iter().map(|t| t.1).sum();
     let n: usize = table.iter().map(|t| t.2).sum();
     let progress = table.iter().map(|t| t.3).sum::<f64>() / table.len().max(1) as f64;
-    println!("{laps} of {n} laps completed, mean progress {progress:.1} %, {crashes} crashes");
+    println!(
+        "{laps} of {n} laps completed, mean progress {progress:.1} %, {crashes} crashes{}",
+        overtakes.map(|o| format!(", {o} overtakes")).unwrap_or_default()
+    );
     Ok(0)
 }
 

@@ -161,6 +161,9 @@ pub struct EvalRecord {
     pub trend: String,
     /// Crashes in all its trials (obstacles, bots).
     pub crashes: u32,
+    /// Bots overtaken in all its trials, in a race with bots.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub overtakes: Option<u32>,
     /// This is the verification of a checkpoint that met the lap target (its own trials, with
     /// fresh noise), not a new checkpoint's evaluation.
     pub verification: bool,

@@ -140,6 +140,9 @@ pub struct Trial {
     pub off_track: u32,
     /// Times the car crashed into an obstacle or a bot.
     pub crashes: u32,
+    /// Bots the car overtook (per bot, the times it went past it less the times the bot went
+    /// past the car, when more), in a race with bots.
+    pub overtakes: Option<u32>,
     /// The trial's reward: its steps' summed (whether or not the job records).
     pub reward: f64,
     /// Steps taken.

@@ -130,6 +130,7 @@ pub fn eval_report_to_wire(job: &str, r: &ex::EvalReport) -> crate::EvalReport {
                         lap_time: t.lap_time,
                         off_track: t.off_track,
                         crashes: t.crashes,
+                        overtakes: t.overtakes,
                         reward: t.reward,
                         steps: t.steps,
                         status: t.status.clone(),
@@ -176,9 +177,14 @@ pub fn eval_report_from_wire(
             && crate::limits::PROGRESS.contains(&t.progress)
             && t.lap_time.is_none_or(|l| l.is_finite() && l >= 0.0)
             && t.reward.is_finite()
+            && t.overtakes.is_none_or(|o| u64::from(o) <= t.steps)
     };
     if w.trials.len() as u64 > SANITY_LIMIT || !w.trials.iter().all(ok) {
-        return invalid("evaluation trials out of range (progress -100–100 %, finite lap times and rewards)".into());
+        return invalid(
+            "evaluation trials out of range (progress -100–100 %, finite lap times and rewards, overtakes at most \
+             one a step)"
+                .into(),
+        );
     }
     let trials = if w.error.is_empty() {
         let mut trials = Vec::with_capacity(w.trials.len());
@@ -206,6 +212,7 @@ pub fn eval_report_from_wire(
                 lap_time: t.lap_time,
                 off_track: t.off_track,
                 crashes: t.crashes,
+                overtakes: t.overtakes,
                 reward: t.reward,
                 steps: t.steps,
                 status: t.status,
@@ -969,6 +976,7 @@ mod tests {
                 lap_time: Some(9.5),
                 off_track: 0,
                 crashes: 2,
+                overtakes: Some(1),
                 reward: 1.5,
                 steps: 2,
                 status: "lap_complete".into(),
@@ -1010,7 +1018,8 @@ mod tests {
         assert_eq!(eval_report_from_wire(backed, &view, "a1").unwrap().trials.unwrap()[0].progress, -1.5);
         // The trial's sim-trace rows are checked like experience.
         type Lie = (&'static str, fn(&mut crate::EvalTrial));
-        let lies: [Lie; 6] = [
+        let lies: [Lie; 7] = [
+            ("more overtakes than steps", |t| t.overtakes = Some(3)),
             ("a frame whose pixels are not its size", |t| t.frames[0].gray.push(9)),
             ("a column short", |t| {
                 t.trace.as_mut().unwrap().x.pop();

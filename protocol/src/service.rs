@@ -47,9 +47,9 @@ pub fn unit(role: &str, bin: &Path, memory_max: &str, args: &[String]) -> Result
         return Err(ServiceError(format!("--memory-max '{memory_max}': expected a size like 8G or 50%")));
     }
     for a in args {
-        if a.chars().any(|c| c.is_control() || c == '%' || c == '"' || c == '\\') {
+        if a.is_empty() || a == ";" || a.chars().any(|c| c.is_control() || c == '"' || c == '\'' || c == '\\') {
             return Err(ServiceError(format!(
-                "argument '{}': control characters, %, \" and \\ are not allowed",
+                "argument '{}': an empty argument, a lone ';', control characters, quotes and \\ are not allowed",
                 a.escape_debug()
             )));
         }
@@ -62,7 +62,9 @@ pub fn unit(role: &str, bin: &Path, memory_max: &str, args: &[String]) -> Result
         exec.push("--db".into());
         exec.push(format!("%S/{state}/coordinator.redb"));
     }
-    exec.extend(args.iter().cloned());
+    // systemd reads `%` as a specifier and `$` as a variable in ExecStart: doubled, they stand
+    // for themselves (an IPv6 address's zone, `fe80::1%eth0`, reaches the role as written).
+    exec.extend(args.iter().map(|a| a.replace('%', "%%").replace('$', "$$")));
     let quoted: Vec<String> =
         exec.iter().map(|a| if a.contains(' ') { format!("\"{a}\"") } else { a.clone() }).collect();
     // The camera's software renderer (lavapipe) and a GPU's driver compile code at run time:

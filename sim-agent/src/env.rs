@@ -96,6 +96,9 @@ pub struct StepOutcome {
     pub crashes: u32,
     /// Laps completed in the episode so far.
     pub laps: u32,
+    /// Bots overtaken in the episode so far (see [`crate::objects::Traffic::overtakes`]), in
+    /// a race with bots.
+    pub overtakes: Option<u32>,
     /// The step's sim-trace fields (`wall_clock` is left 0: the caller stamps it).
     pub trace: policy::StepTrace,
 }
@@ -283,7 +286,10 @@ impl Env {
         self.place_on_centre_line(start);
         if let Some(traffic) = self.traffic.as_mut() {
             let track = &self.spec.track;
-            traffic.reset(track, &mut self.rng);
+            match self.mode {
+                Mode::Training => traffic.reset(track, &mut self.rng),
+                Mode::Evaluation(_) => traffic.reset_passable(track, &mut self.rng),
+            }
             // DeepRacer's training start beside an object: the other lane. Evaluation too,
             // where DeepRacer starts on the centre line whatever stands there, so that a box
             // placed at random just past the start line makes the trial a crash at its first
@@ -375,8 +381,10 @@ impl Env {
             let track = &self.spec.track;
             let t = self.clock.sim_time - self.episode_start;
             traffic.update(track, t, &mut self.rng);
+            let lap_progress = (params.progress + self.start_ndist * 100.0).rem_euclid(100.0);
+            // Every step, held ones too: bots drive on past a car that waits out a penalty.
+            traffic.track_passes(track, lap_progress / 100.0 * track.length());
             if !held {
-                let lap_progress = (params.progress + self.start_ndist * 100.0).rem_euclid(100.0);
                 let car = tracks::P2::new(self.pose.x, self.pose.y);
                 contact = traffic.contact(track, car, self.pose.yaw, lap_progress);
                 if let Some(Contact::HitByBot(_)) = contact {
@@ -543,6 +551,7 @@ impl Env {
             resets: self.resets,
             crashes: self.crashes,
             laps: self.laps,
+            overtakes: self.traffic.as_ref().and_then(Traffic::overtakes),
             trace,
         }
     }

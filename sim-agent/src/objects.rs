@@ -77,7 +77,21 @@ struct Bot {
     lane: Lane,
     /// When its current lane change ends (episode seconds); `None` before the first draw.
     change_end: Option<f64>,
+    /// The car's centre-line metres ahead of this bot at the last step (wrapped to half a
+    /// lap either way); `None` before the first.
+    lead: Option<f64>,
+    /// Times the car went past this bot less times this bot went past the car.
+    passes: i32,
 }
+
+/// Draws of a random layout an evaluation trial makes at most to find one a car can pass (the
+/// last is kept: a crowded race may have none).
+pub const REDRAWS: usize = 64;
+
+/// The most the car's lead on a bot may change in one step and still count as driving past
+/// it (m): more is a jump (the car put back after a reset, or half a lap away, where the
+/// lead wraps from one side to the other).
+const PASS_JUMP: f64 = 1.0;
 
 /// The obstacles and bots of one environment.
 #[derive(Clone, Debug)]
@@ -151,12 +165,33 @@ impl Traffic {
 
     /// A new episode: obstacles placed (anew, when random), bots at their starts.
     pub fn reset(&mut self, track: &Track, rng: &mut impl Rng) {
+        self.reset_drawn(track, rng, false);
+    }
+
+    /// A new evaluation trial: as [`Traffic::reset`], but obstacles placed at random are drawn
+    /// again (up to [`REDRAWS`] times) while two in opposite lanes stand too near for any car
+    /// to weave between them ([`objects::passable`]). A trial no model can finish tells
+    /// nothing about the model; training still meets every draw.
+    pub fn reset_passable(&mut self, track: &Track, rng: &mut impl Rng) {
+        self.reset_drawn(track, rng, true);
+    }
+
+    fn reset_drawn(&mut self, track: &Track, rng: &mut impl Rng, passable: bool) {
         let place = |p: &Placement, rng: &mut _| objects::place(track, p, rng).expect("checked by Traffic::new");
-        let obstacles = self.obstacles.as_ref().map(|p| place(p, rng)).unwrap_or_default();
-        self.bots = match &self.bot_placement {
-            Some(p) => {
-                place(p, rng).into_iter().map(|o| Bot { start: o.along, lane: o.lane, change_end: None }).collect()
+        let mut obstacles = self.obstacles.as_ref().map(|p| place(p, rng)).unwrap_or_default();
+        if let Some(p @ Placement::Spaced { random: true, .. }) = self.obstacles.as_ref().filter(|_| passable) {
+            for _ in 0..REDRAWS {
+                if objects::passable(track, &obstacles) {
+                    break;
+                }
+                obstacles = place(p, rng);
             }
+        }
+        self.bots = match &self.bot_placement {
+            Some(p) => place(p, rng)
+                .into_iter()
+                .map(|o| Bot { start: o.along, lane: o.lane, change_end: None, lead: None, passes: 0 })
+                .collect(),
             None => vec![],
         };
         self.bot_hits = 0;
@@ -226,6 +261,33 @@ impl Traffic {
             let d = ahead - here;
             obj.pose = ObjectPose { position: here, heading: d.y.atan2(d.x), along: s, lane: bot.lane };
         }
+    }
+
+    /// Count the car, at `car_along` centre-line metres, going past the bots (after
+    /// [`Traffic::update`] each step): a bot the car passes counts one, one that passes the car
+    /// takes it back.
+    pub fn track_passes(&mut self, track: &Track, car_along: f64) {
+        let len = track.length();
+        let first = self.objects.len() - self.bots.len();
+        for (bot, obj) in self.bots.iter_mut().zip(&self.objects[first..]) {
+            let lead = (car_along - obj.pose.along + len / 2.0).rem_euclid(len) - len / 2.0;
+            if let Some(before) = bot.lead
+                && (lead - before).abs() < PASS_JUMP
+            {
+                if before < 0.0 && lead >= 0.0 {
+                    bot.passes += 1;
+                } else if before >= 0.0 && lead < 0.0 {
+                    bot.passes -= 1;
+                }
+            }
+            bot.lead = Some(lead);
+        }
+    }
+
+    /// Bots the car overtook this episode (per bot, the times the car went past it less the
+    /// times it went past the car, when more), when the race has bots.
+    pub fn overtakes(&self) -> Option<u32> {
+        (!self.bots.is_empty()).then(|| self.bots.iter().map(|b| b.passes.max(0) as u32).sum())
     }
 
     /// The objects now: obstacles, then bots (DeepRacer's object order).

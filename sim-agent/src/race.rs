@@ -154,6 +154,19 @@ pub fn parse_env(text: &str, origin: &str) -> Result<Vec<(String, String)>, Race
 }
 
 impl RaceConfig {
+    /// The race a run's evaluations and verifications drive, when it differs from this one:
+    /// head-to-bot with the bots placed at random and changing lanes, whatever training does.
+    /// A model checked against bots that stand where they stood in training, in lanes it
+    /// learnt, can lap without ever having to get past one; these it must overtake.
+    pub fn for_checks(&self) -> Option<RaceConfig> {
+        let bots = self.race_type == RaceType::HeadToBot && self.number_of_bot_cars > 0 && self.bot_car_speed > 0.0;
+        (bots && !(self.randomize_bot_car_locations && self.is_lane_change)).then(|| RaceConfig {
+            randomize_bot_car_locations: true,
+            is_lane_change: true,
+            ..self.clone()
+        })
+    }
+
     /// The race a deepracer-for-cloud `run.env` configures (its other keys are not read
     /// here). Every DR_OA_ and DR_H2B_ key is read, as deepracer-for-cloud passes them all.
     pub fn from_run_env(text: &str, origin: &str) -> Result<RaceConfig, RaceError> {

@@ -29,15 +29,29 @@ pub enum BuiltinReward {
     ObjectAvoidance,
     /// Follow the racing line at its speeds, with progress ([`crate::race_line`]).
     RaceLine,
+    /// Paddock's own for object avoidance and head-to-bot: 1 a step on the track, less the
+    /// nearer the car's centre stands across from the next object's within 2.5 m ahead (and
+    /// from the one it is passing, up to 0.5 m past it), so the signal comes while a swerve
+    /// still helps; 0.001 off the track or crashed. At most 1 a step.
+    Clearance,
 }
+
+/// [`BuiltinReward::Clearance`]: how far ahead an object starts to count (m)…
+const CLEARANCE_AHEAD: f64 = 2.5;
+/// …how far behind the car's reference point it still counts (m: the car is beside it)…
+const CLEARANCE_BESIDE: f64 = 0.5;
+/// …and the centre-to-centre distance across the track that clears it (half a box, 0.2 m,
+/// half the car, 0.098 m, and a margin).
+const CLEARANCE_ACROSS: f64 = 0.35;
 
 impl BuiltinReward {
     /// All built-ins with their names.
-    pub const ALL: [(BuiltinReward, &'static str); 4] = [
+    pub const ALL: [(BuiltinReward, &'static str); 5] = [
         (BuiltinReward::CenterLine, "center_line"),
         (BuiltinReward::StayInside, "stay_inside"),
         (BuiltinReward::ObjectAvoidance, "object_avoidance"),
         (BuiltinReward::RaceLine, "race_line"),
+        (BuiltinReward::Clearance, "clearance"),
     ];
 
     /// The built-in's name.
@@ -64,6 +78,7 @@ impl BuiltinReward {
             BuiltinReward::CenterLine => PY_CENTER_LINE,
             BuiltinReward::StayInside => PY_STAY_INSIDE,
             BuiltinReward::ObjectAvoidance => PY_OBJECT_AVOIDANCE,
+            BuiltinReward::Clearance => PY_CLEARANCE,
             BuiltinReward::RaceLine => return None,
         })
     }
@@ -105,6 +120,35 @@ impl BuiltinReward {
                     }
                 }
                 1e-3 + lane + 4.0 * avoid
+            }
+            BuiltinReward::Clearance => {
+                if !p.all_wheels_on_track || p.is_crashed {
+                    return 1e-3;
+                }
+                let o = &p.objects;
+                let side = |left: bool, d: f64| if left { d } else { -d };
+                let car = side(p.is_left_of_center, p.distance_from_center);
+                // 1 when clear across of object `i`, less by `weight` × the share not cleared.
+                let cleared = |i: usize, weight: f64| {
+                    let across = (car - side(o.objects_left_of_center[i], o.objects_distance_from_center[i])).abs();
+                    1.0 - weight * (1.0 - (across / CLEARANCE_ACROSS).min(1.0))
+                };
+                let mut r = 1.0;
+                let [prev, next] = o.closest_objects;
+                if next < o.objects_distance.len() {
+                    let ahead = (o.objects_distance[next] - p.projection_distance).rem_euclid(p.track_length);
+                    if ahead < CLEARANCE_AHEAD {
+                        r *= cleared(next, 1.0 - ahead / CLEARANCE_AHEAD);
+                    }
+                }
+                // With one object both are it: at most one of the two holds on any lap over 3 m.
+                if prev < o.objects_distance.len() {
+                    let behind = (p.projection_distance - o.objects_distance[prev]).rem_euclid(p.track_length);
+                    if behind < CLEARANCE_BESIDE {
+                        r *= cleared(prev, 1.0);
+                    }
+                }
+                r.max(1e-3)
             }
             BuiltinReward::RaceLine => unreachable!("race_line reads its line"),
         }
@@ -158,6 +202,44 @@ def reward_function(params):
         elif gap < 0.3:
             avoid = 1e-3
     return 1e-3 + lane + 4.0 * avoid
+"#;
+
+const PY_CLEARANCE: &str = r#""""Paddock's built-in clearance reward for object avoidance and head-to-bot: 1 a step on the
+track, less the nearer the car's centre stands across from the next object's within 2.5 m ahead
+(and from the one it is passing, up to 0.5 m past it); 0.001 off the track or crashed."""
+
+AHEAD = 2.5
+BESIDE = 0.5
+ACROSS = 0.35
+
+
+def reward_function(params):
+    if not params['all_wheels_on_track'] or params['is_crashed']:
+        return 1e-3
+
+    def side(left, d):
+        return d if left else -d
+
+    car = side(params['is_left_of_center'], params['distance_from_center'])
+    left = params['objects_left_of_center']
+    across_of = params['objects_distance_from_center']
+    distances = params['objects_distance']
+
+    def cleared(i, weight):
+        across = abs(car - side(left[i], across_of[i]))
+        return 1.0 - weight * (1.0 - min(across / ACROSS, 1.0))
+
+    r = 1.0
+    prev, nxt = params['closest_objects']
+    if nxt < len(distances):
+        ahead = (distances[nxt] - params['projection_distance']) % params['track_length']
+        if ahead < AHEAD:
+            r *= cleared(nxt, 1.0 - ahead / AHEAD)
+    if prev < len(distances):
+        behind = (params['projection_distance'] - distances[prev]) % params['track_length']
+        if behind < BESIDE:
+            r *= cleared(prev, 1.0)
+    return max(r, 1e-3)
 "#;
 
 /// A reward function of either kind.

@@ -197,6 +197,8 @@ pub struct TrialResult {
     pub off_track: u32,
     /// Times the car crashed (resets, plus a final crash).
     pub crashes: u32,
+    /// Bots overtaken, in a race with bots.
+    pub overtakes: Option<u32>,
     /// The trial's reward (its steps' summed).
     pub reward: f64,
     /// Steps taken.
@@ -313,6 +315,7 @@ pub fn evaluate(
                     lap_time: o.lap_time,
                     off_track: o.off_track(),
                     crashes: o.crashes,
+                    overtakes: o.overtakes,
                     reward: o.episode_reward,
                     steps: o.steps,
                     status: o.status,

@@ -303,6 +303,7 @@ fn placeholder() -> StepOutcome {
         resets: 0,
         crashes: 0,
         laps: 0,
+        overtakes: None,
         trace: policy::StepTrace::default(),
     }
 }

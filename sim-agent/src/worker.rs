@@ -111,7 +111,9 @@ const KEEP_EVALUATED: usize = 2;
 pub struct Worker {
     id: String,
     collector: Collector,
-    cfg: Arc<SimConfig>,
+    /// The configuration evaluations and verifications run with (see
+    /// [`crate::race::RaceConfig::for_checks`]).
+    check_cfg: Arc<SimConfig>,
     worlds: Vec<EnvSpec>,
     /// The world each environment drives, or will once its episode ends.
     plan: Vec<usize>,
@@ -148,13 +150,24 @@ impl Worker {
         };
         let specs: Vec<EnvSpec> = plan.iter().map(|&w| s.worlds[w].clone()).collect();
         let vec = VecEnv::new(specs, s.cfg.clone(), s.seed, s.reward, s.threads)?;
+        let check_cfg = match s.cfg.race.for_checks() {
+            Some(race) => {
+                tracing::info!(
+                    "evaluations and verifications place the {} bots at random and let them change lanes \
+                     (race.randomize_bot_car_locations and race.is_lane_change hold for training only)",
+                    race.number_of_bot_cars
+                );
+                Arc::new(SimConfig { race, ..(*s.cfg).clone() })
+            }
+            None => s.cfg,
+        };
         Ok(Worker {
             id: s.id,
             collector: match s.gpu {
                 Some(g) => Collector::new(vec, s.space, s.seed).with_gpu(g),
                 None => Collector::new(vec, s.space, s.seed),
             },
-            cfg: s.cfg,
+            check_cfg,
             worlds: s.worlds,
             plan,
             threads: s.threads,
@@ -401,7 +414,8 @@ impl Worker {
             threads: self.threads,
             all_frames: false,
         };
-        let trials = evaluate(&p.model, &p.metadata.action_space, &spec, &self.cfg, &plan, self.collector.gpu_mut())?;
+        let trials =
+            evaluate(&p.model, &p.metadata.action_space, &spec, &self.check_cfg, &plan, self.collector.gpu_mut())?;
         let track_len = spec.track.length();
         Ok(trials
             .into_iter()
@@ -457,6 +471,7 @@ impl From<TrialResult> for Trial {
             lap_time: t.lap_time,
             off_track: t.off_track,
             crashes: t.crashes,
+            overtakes: t.overtakes,
             reward: t.reward,
             steps: t.steps,
             status: t.status.label().to_string(),

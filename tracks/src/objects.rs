@@ -28,6 +28,12 @@ pub const CAR_FOOTPRINT: (f64, f64) = (0.1961, 0.32352);
 pub const START_GAP: f64 = 1.0;
 /// Obstacles end this far before the end of the centre line (m).
 const END_MARGIN: f64 = 1.0;
+/// The least centre-line distance between neighbouring obstacles in opposite lanes that a car
+/// can weave through (m). A car clear of a box stands 0.11 m past the centre line on the other
+/// side (the box covers the centre line by 0.01 m, half the car is 0.098 m): from one side to
+/// the other is 0.22 m across, which at the tightest steering (0.28 m radius) takes 0.45 m
+/// along, after the first box's 0.5 m footprint and the car's own 0.32 m: 1.27 m.
+pub const PASSABLE_GAP: f64 = 1.3;
 
 /// A lane.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -168,6 +174,20 @@ pub fn place(track: &Track, placement: &Placement, rng: &mut impl Rng) -> Result
     }
 }
 
+/// Whether a car can get past every obstacle of `poses`: no two neighbours along the lap
+/// (the last and the first included) stand in opposite lanes under [`PASSABLE_GAP`] apart.
+pub fn passable(track: &Track, poses: &[ObjectPose]) -> bool {
+    let len = track.length();
+    let mut sorted: Vec<&ObjectPose> = poses.iter().collect();
+    sorted.sort_by(|a, b| a.along.total_cmp(&b.along));
+    let n = sorted.len();
+    n < 2
+        || (0..n).all(|i| {
+            let (a, b) = (sorted[i], sorted[(i + 1) % n]);
+            a.lane == b.lane || (b.along - a.along).rem_euclid(len) >= PASSABLE_GAP
+        })
+}
+
 /// The four corners of a footprint (`across` × `along` metres) centred at `at`, facing
 /// `heading`.
 pub fn corners(at: P2, heading: f64, footprint: (f64, f64)) -> [P2; 4] {
@@ -228,6 +248,27 @@ mod tests {
 
     fn base() -> Track {
         crate::world("reinvent_base").unwrap().track(Direction::Forward)
+    }
+
+    /// Issue 55: a layout is passable unless neighbours in opposite lanes (across the start line
+    /// too) stand under 1.3 m apart.
+    #[test]
+    fn a_layout_is_passable_unless_neighbours_in_opposite_lanes_stand_too_near() {
+        let t = base();
+        let len = t.length();
+        let (i, o) = (Lane::Inner, Lane::Outer);
+        for (at, want) in [
+            (vec![(5.0, i), (6.0, o)], false),
+            (vec![(5.0, i), (6.4, o)], true),
+            (vec![(5.0, i), (5.5, i)], true),
+            (vec![(9.0, o), (5.0, i), (6.2, o)], false),
+            (vec![(0.5, i), (len - 0.4, o)], false),
+            (vec![(2.0, i), (len - 0.4, o)], true),
+            (vec![(5.0, i)], true),
+        ] {
+            let poses: Vec<ObjectPose> = at.iter().map(|&(a, l)| t.lane_pose(l, a)).collect();
+            assert_eq!(passable(&t, &poses), want, "{at:?}");
+        }
     }
 
     /// Issue 31: fixed positions are fractions of the length in DeepRacer's lanes.

@@ -143,10 +143,10 @@ fn a_machine_joins_with_one_command_and_serves_without_a_restart() {
     assert!(!d.join("m2").exists(), "a refused join wrote files");
     // Without an address the learner finds the door by scouting; it gets the signing key.
     assert!(!learner_token.contains('@'), "a door on every interface puts no address in the token");
-    // A unit the service could not be written with (an argument systemd would read as a
-    // specifier) is refused before the door is asked too: the token stays unused.
-    let bad_arg = run(d, "learner", &["join", &learner_token, "--service", "--", "--id", "a%b"]);
-    assert!(!bad_arg.status.success() && text(&bad_arg).contains("'a%b'"), "{}", text(&bad_arg));
+    // A unit the service could not be written with (an argument holding a quote) is refused
+    // before the door is asked too: the token stays unused.
+    let bad_arg = run(d, "learner", &["join", &learner_token, "--service", "--", "--id", "a\"b"]);
+    assert!(!bad_arg.status.success() && text(&bad_arg).contains("'a\\\"b'"), "{}", text(&bad_arg));
     // A service needs systemd: where it does not run (as here), the join is refused before the
     // door is asked, and the token stays unused (the learner joins with it next).
     if !Path::new("/run/systemd/system").is_dir() {
@@ -203,8 +203,15 @@ fn each_role_runs_as_a_hardened_systemd_unit() {
     let d = t.path();
     let analyze = |file: &str, args: &[&str]| run_analyze(d, file, args);
     for role in ["agent", "learner", "coordinator", "car"] {
-        let unit = ok(d, "coordinator", &["service", "print", role, "--", "--connect", "tls/10.0.0.1:7447"]);
+        // An IPv6 link-local address names its interface after `%`, which systemd would read
+        // as a specifier (verify fails on `%e`) unless it is doubled.
+        let unit = ok(
+            d,
+            "coordinator",
+            &["service", "print", role, "--", "--connect", "tls/10.0.0.1:7447", "--connect", "tls/[fe80::1%eth0]:7447"],
+        );
         assert!(unit.contains("RestartPreventExitStatus=2") && unit.contains("DynamicUser=yes"), "{unit}");
+        assert!(unit.contains("tls/[fe80::1%%eth0]:7447"), "{unit}");
         let file = format!("paddock-{role}.service");
         std::fs::write(d.join(&file), &unit).unwrap();
         let v = analyze(&file, &["verify"]);

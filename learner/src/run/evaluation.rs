@@ -347,6 +347,7 @@ impl Run<'_> {
             simtrace: Vec::new(),
             trend: self.evals.verdict.describe(),
             crashes: all.iter().map(|t| t.crashes).sum(),
+            overtakes: all.iter().filter_map(|t| t.overtakes).reduce(|a, b| a + b),
             verification: p.verifying,
         };
         self.record_evaluation(e, &p.done);

@@ -280,7 +280,11 @@ fn every_builtin_exported_as_python_gives_the_builtins_rewards() {
     let space = policy::ModelMetadata::default_state_vector().action_space;
     for (b, name) in BuiltinReward::ALL {
         let source = b.python_source().map(str::to_string).unwrap_or_else(|| race_line_py.clone());
-        let race = if b == BuiltinReward::ObjectAvoidance { obstacles.clone() } else { RaceConfig::default() };
+        let race = if matches!(b, BuiltinReward::ObjectAvoidance | BuiltinReward::Clearance) {
+            obstacles.clone()
+        } else {
+            RaceConfig::default()
+        };
         for d in [Direction::Forward, Direction::Reversed] {
             let track = world.track(d);
             let run = |mut r: RewardFn| validate_reward(&mut r, &track, world.surface, &space, 12, &race).unwrap();

@@ -380,3 +380,105 @@ fn a_camera_and_lidar_observation_holds_the_pixels_and_the_filtered_scan_in_deep
         assert!(near < 1.0, "{sensor:?}: the box is seen behind, {near} m");
     }
 }
+
+/// Issue 55: the run's evaluations and verifications place head-to-bot's bots at random and
+/// let them change lanes, and the bots a car overtakes are counted. A car blind to the bots,
+/// keeping to the outer lane, gets past bots standing where training put them (inner lane
+/// first) on every lap; bots placed at random catch it out.
+#[test]
+fn a_car_blind_to_the_bots_passes_the_fixed_bots_but_not_the_checks() {
+    use rand::SeedableRng;
+    use tracks::objects::Lane;
+    let track = square();
+    let len = track.length();
+    let fixed = bots(false);
+    let check = fixed.for_checks().expect("bots where training put them are checked at random");
+    assert!(check.randomize_bot_car_locations && check.is_lane_change);
+    assert_eq!(check.for_checks(), None, "already random");
+    assert_eq!(RaceConfig::default().for_checks(), None, "a time trial has no bots");
+    // One lap in the outer lane at 1 m/s, 15 steps a second: whether it crashed, overtakes.
+    let lap = |race: &RaceConfig, seed: u64| -> (bool, u32) {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        let mut t = Traffic::new(&track, race, "test").unwrap().expect("bots");
+        t.reset(&track, &mut rng);
+        for step in 1..=(15.0 * len) as usize {
+            let along = step as f64 / 15.0;
+            t.update(&track, along, &mut rng);
+            t.track_passes(&track, along);
+            let pose = track.lane_pose(Lane::Outer, along.rem_euclid(len));
+            let contact = t.contact(&track, pose.position, pose.heading, 100.0 * along / len);
+            if contact.is_some_and(Contact::is_crash) {
+                return (true, t.overtakes().unwrap());
+            }
+        }
+        (false, t.overtakes().unwrap())
+    };
+    for seed in 1..=5 {
+        // Bot 0 at 2 m in the inner lane is overtaken; bot 1, a metre behind the start line,
+        // never catches up.
+        assert_eq!(lap(&fixed, seed), (false, 1), "seed {seed}");
+    }
+    let checked: Vec<(bool, u32)> = (1..=20).map(|seed| lap(&check, seed)).collect();
+    let crashed = checked.iter().filter(|c| c.0).count();
+    assert!(crashed >= 5, "{crashed} of 20 random layouts crashed a car blind to the bots: {checked:?}");
+    assert!(checked.iter().any(|&(c, o)| !c && o >= 1), "some lap got past a bot: {checked:?}");
+}
+
+/// Issue 55: Paddock's clearance reward pays 1 a step until the next object is 2.5 m ahead,
+/// then less as the car closes in on it without getting clear across of it, and 0.001 when it
+/// crashes.
+#[test]
+fn the_clearance_reward_falls_as_the_car_closes_in_on_an_object_it_is_not_clear_of() {
+    // A box at 4 m in the outer lane (0.15 m right of the centre line); the car drives the
+    // centre line: 0.15 of the 0.35 m across that clears it.
+    let mut env = Env::new(spec(), boxes(&["0.05,-1"]), Mode::Training, 1, 0.0).unwrap();
+    let (mut last, mut fell, mut crashed) = (1.0, 0, false);
+    loop {
+        env.advance(STRAIGHT);
+        let p = env.params().clone();
+        let r = BuiltinReward::Clearance.reward(&p, env.line()).unwrap();
+        if p.is_crashed {
+            assert_eq!(r, 1e-3);
+            crashed = true;
+        } else {
+            let ahead = 4.0 - p.projection_distance;
+            let want = if ahead >= 2.5 { 1.0 } else { 1.0 - (1.0 - ahead / 2.5) * (1.0 - 0.15 / 0.35) };
+            assert!((r - want).abs() < 1e-6, "{ahead} m ahead: {r}, expected {want}");
+            assert!(r <= last, "the reward rose while closing in");
+            fell += usize::from(r < last);
+            last = r;
+        }
+        if env.finish(r).done {
+            break;
+        }
+    }
+    assert!(crashed && fell > 10 && last < 0.75, "{fell} steps fell, to {last}");
+}
+
+/// Issue 55: an evaluation trial draws random boxes again while two in opposite lanes stand
+/// too near for a car to weave between them; training meets every draw, DeepRacer's.
+#[test]
+fn evaluation_trials_draw_box_layouts_a_car_can_pass_and_training_draws_all() {
+    use tracks::objects::passable;
+    let world = tracks::world("reinvent_base").unwrap();
+    let spec = EnvSpec::from_world(&world, Direction::Forward);
+    let cfg = Arc::new(SimConfig {
+        race: RaceConfig { race_type: RaceType::ObjectAvoidance, number_of_obstacles: 3, ..RaceConfig::default() },
+        ..SimConfig::default()
+    });
+    let blocked = |mode: Mode| {
+        (0..200)
+            .filter(|&seed| {
+                let env = Env::new(spec.clone(), cfg.clone(), mode.clone(), seed, 0.0).unwrap();
+                let poses: Vec<_> = env.objects().iter().map(|o| o.pose).collect();
+                assert_eq!(poses.len(), 3);
+                !passable(&spec.track, &poses)
+            })
+            .count()
+    };
+    // At DeepRacer's 2 % (0.35 m) gap, about one layout in five has two boxes in opposite lanes
+    // under 1.3 m apart.
+    let training = blocked(Mode::Training);
+    assert!((10..=80).contains(&training), "{training} of 200 training layouts blocked");
+    assert_eq!(blocked(Mode::Evaluation(EvalRules::default())), 0);
+}
