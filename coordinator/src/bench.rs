@@ -1116,6 +1116,18 @@ fn train_then_evaluate(
     world: &str,
     race: &[String],
 ) -> Result<(f64, String, String, u32)> {
+    let (secs, stop) = train_to_stop(me, dir, args)?;
+    let mut eval = vec!["evaluate".to_string(), model, "--world".into(), world.into(), "--trials".into(), "3".into()];
+    eval.extend(race.iter().cloned());
+    let verdict = child(me, dir, &eval)?;
+    let line = verdict.lines().find(|l| l.contains("laps completed")).unwrap_or("").to_string();
+    let laps = line.split_whitespace().next().and_then(|n| n.parse::<u32>().ok()).unwrap_or(0);
+    Ok((secs, stop, line, laps))
+}
+
+/// Run the training `args` (`train` or `up`): its wall-clock and the line that says how it
+/// stopped.
+fn train_to_stop(me: &std::path::Path, dir: &std::path::Path, args: &[String]) -> Result<(f64, String)> {
     let t0 = Instant::now();
     let text = child(me, dir, args)?;
     let secs = t0.elapsed().as_secs_f64();
@@ -1125,12 +1137,7 @@ fn train_then_evaluate(
         .unwrap_or("")
         .trim()
         .to_string();
-    let mut eval = vec!["evaluate".to_string(), model, "--world".into(), world.into(), "--trials".into(), "3".into()];
-    eval.extend(race.iter().cloned());
-    let verdict = child(me, dir, &eval)?;
-    let line = verdict.lines().find(|l| l.contains("laps completed")).unwrap_or("").to_string();
-    let laps = line.split_whitespace().next().and_then(|n| n.parse::<u32>().ok()).unwrap_or(0);
-    Ok((secs, stop, line, laps))
+    Ok((secs, stop))
 }
 
 /// The `--set`s that make an evaluation place head-to-bot's bots as the run's checks do (at
@@ -1248,15 +1255,7 @@ pub fn races(a: &crate::cli::RacesArgs) -> Result<i32> {
                 if cmd == "up" {
                     args.extend(["--agents", "2", "--envs", "8"].map(String::from));
                 }
-                let t0 = Instant::now();
-                let text = child(&me, &dir, &args)?;
-                let secs = t0.elapsed().as_secs_f64();
-                let stop = text
-                    .lines()
-                    .find(|l| l.starts_with("stopped after") || l.contains(": Finished") || l.contains(": Failed"))
-                    .unwrap_or("")
-                    .trim()
-                    .to_string();
+                let (secs, stop) = train_to_stop(&me, &dir, &args)?;
                 let run = dir.join(format!("{folder}{inner}"));
                 let verified = verified_point(&run)?;
                 let verification = match verified {
