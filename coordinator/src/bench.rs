@@ -491,12 +491,13 @@ pub fn pixels(args: &crate::cli::PixelsArgs) -> Result<()> {
         evals,
         verify_trials,
         keep_training,
+        checkpoint_seconds,
         seeds,
         variants,
         out,
     } = args;
-    let (minutes, envs, evals, verify_trials, keep_training) =
-        (*minutes, *envs, *evals, *verify_trials, *keep_training);
+    let (minutes, envs, evals, verify_trials, keep_training, checkpoint_seconds) =
+        (*minutes, *envs, *evals, *verify_trials, *keep_training, *checkpoint_seconds);
     if seeds.is_empty() {
         bail!("--seeds: give at least one seed");
     }
@@ -524,9 +525,8 @@ pub fn pixels(args: &crate::cli::PixelsArgs) -> Result<()> {
         for w in worlds {
             v.extend(["--world".into(), w.clone()]);
         }
-        v.extend(
-            ["--sensor", "camera", "--set", "camera.randomize=true", "--checkpoint-seconds", "20"].map(String::from),
-        );
+        v.extend(["--sensor", "camera", "--set", "camera.randomize=true"].map(String::from));
+        v.extend(["--checkpoint-seconds".into(), checkpoint_seconds.to_string()]);
         let laps = if keep_training { "0" } else { "3" };
         v.extend(["--target-laps".into(), laps.into(), "--target-evals".into(), evals.to_string()]);
         v.extend(["--verify-trials".into(), verify_trials.to_string(), "--minutes".into(), minutes.to_string()]);

@@ -84,8 +84,9 @@ struct ServeCli {
     /// Threads for the update (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
-    /// Where the network maths run: auto (a hardware GPU when there is one, else the CPU),
-    /// cpu (faer) or gpu (the GPU, a software one included, or an error).
+    /// Where the network maths run: auto (today the CPU: on the GPU measured,
+    /// faer on its cores trained faster), cpu (faer) or gpu (the GPU, a software one included,
+    /// or an error).
     #[arg(long, default_value = "auto")]
     device: learner::DeviceChoice,
 }
@@ -101,8 +102,8 @@ struct BenchCli {
     /// Threads for the threaded row (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
-    /// Also time whole updates with the maths on the GPU (auto: a hardware GPU if there is
-    /// one; gpu: any adapter, lavapipe included), against the same updates on faer.
+    /// gpu: also time whole updates with the maths on the GPU (any adapter, lavapipe
+    /// included), against the same updates on faer; auto and cpu: faer alone.
     #[arg(long, default_value = "auto")]
     device: learner::DeviceChoice,
     /// Also measure whole updates shared by this many learner processes of one thread each
@@ -440,7 +441,66 @@ fn gpu_rows(
         "| whole updates on the GPU, {adapter} (16 minibatches of 64, Adam, upload and readback) | {g:.0} ({r:.2}× faer's, the median of the rounds' ratios) |"
     );
     println!("| the same updates on faer, {threads} thread(s) | {c:.0} |");
+    // What the updates' products amount to, against the kernel's own rate on one big
+    // product: how far the step is from what the GEMM kernel can do.
+    let flops = step_flops_per_sample(&model.pi, mb);
+    let (side, tflops) = gpu_gemm_rate(&gpu, seconds)?;
+    println!(
+        "| the updates' matrix products on the GPU ({:.3} MFLOP a sample-gradient, both towers, forward and backward) | {:.1} GFLOP/s |",
+        flops / 1e6,
+        g * flops / 1e9
+    );
+    println!(
+        "| the GEMM kernel alone, one {side}×{side}×{side} f32 product at a time, checked | {:.1} GFLOP/s |",
+        tflops * 1e3
+    );
     sac_gpu_rows(model, meta, &gpu, threads, seconds, rng, frame)
+}
+
+/// Floating-point operations of one sample's forward and backward pass through both towers'
+/// matrix products (each tower shaped as `net`), at minibatch `batch`: 2·m·n·k a product.
+fn step_flops_per_sample(net: &policy::nn::Net, batch: usize) -> f64 {
+    let one: f64 = gemm_shapes(net, batch, 1, false).iter().map(|s| 2.0 * (s.m * s.n * s.k) as f64).sum();
+    2.0 * one / batch as f64
+}
+
+/// The GPU's GEMM kernel alone: square f32 products (4096 on a hardware GPU, 512 on a
+/// software one), eight to a submission, timed for about `seconds` after one untimed
+/// submission; each result is checked. Returns the side and the median TFLOP/s.
+fn gpu_gemm_rate(gpu: &gpu::Gpu, seconds: f64) -> anyhow::Result<(usize, f64)> {
+    use gpu::kernels::{Gemm, Operand};
+    let side = if gpu::device::is_hardware(gpu.device_type) { 4096 } else { 512 };
+    let len = side * side;
+    let (a, b, c) = (gpu.buffer("bench a", len)?, gpu.buffer("bench b", len)?, gpu.buffer("bench c", len)?);
+    gpu.upload(&a, 0, &vec![0.5; len]);
+    gpu.upload(&b, 0, &vec![0.25; len]);
+    let g = Gemm {
+        mnk: [side; 3],
+        a: Operand { buf: &a, at: 0, t: false },
+        b: Operand { buf: &b, at: 0, t: true },
+        c: (&c, 0),
+        add: false,
+    };
+    let reps = 8;
+    let mut scratch = None;
+    let mut submission = || -> anyhow::Result<f64> {
+        let t = Instant::now();
+        let mut enc = gpu.device.create_command_encoder(&Default::default());
+        for _ in 0..reps {
+            gpu.gemm(&mut enc, &g, &mut scratch);
+        }
+        gpu.queue.submit([enc.finish()]);
+        let out = gpu.download(&c, len - 1, 1)?;
+        // Every product sums `side` terms of 0.125, exactly representable.
+        anyhow::ensure!(out[0] == 0.125 * side as f32, "the GEMM kernel gave {} for {}", out[0], 0.125 * side as f32);
+        Ok(t.elapsed().as_secs_f64())
+    };
+    submission()?;
+    let (mut rates, t) = (Vec::new(), Instant::now());
+    while rates.len() < 3 || t.elapsed().as_secs_f64() < seconds {
+        rates.push(2.0 * (len * side * reps) as f64 / submission()? / 1e12);
+    }
+    Ok((side, median(rates)))
 }
 
 /// SAC's gradient steps (DeepRacer's SAC networks for the bench's network: the policy, the

@@ -66,8 +66,9 @@ struct ServeCli {
     /// Agent id (default: HOST-PID).
     #[arg(long)]
     id: Option<String>,
-    /// Where the policy acts over the environments: auto (a hardware GPU when there is one,
-    /// else the CPU), cpu or gpu (the GPU, a software one included, or an error).
+    /// Where the policy acts over the environments: auto (today the CPU: on the GPU
+    /// measured, acting there was slower), cpu or gpu (the GPU, a software one included, or an
+    /// error).
     #[arg(long, default_value = "auto")]
     device: gpu::DeviceChoice,
     /// A public key whose policies this agent runs (the learner's `.pub`, from `coordinator

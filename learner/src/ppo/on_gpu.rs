@@ -1,5 +1,4 @@
-//! PPO's update with the network maths on the GPU (`--device gpu`, or `auto` on a machine
-//! with one): the same epochs, shuffles, minibatches, losses, Adam steps and KL stop as
+//! PPO's update with the network maths on the GPU (`--device gpu`): the same epochs, shuffles, minibatches, losses, Adam steps and KL stop as
 //! [`Ppo::train`](super::Ppo) on faer, for a learner alone. Both towers' weights, Adam's
 //! moments, the iteration's batch and each minibatch stay on the GPU for the whole update;
 //! what crosses over per minibatch is its indices going in and its loss figures (a few

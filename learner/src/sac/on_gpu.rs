@@ -1,5 +1,4 @@
-//! SAC's gradient steps with the network maths on the GPU (`--device gpu`, or `auto` on a
-//! machine with one), for a learner alone: the same batches, noise, losses, Adam steps and
+//! SAC's gradient steps with the network maths on the GPU (`--device gpu`), for a learner alone: the same batches, noise, losses, Adam steps and
 //! target update as [`Sac::step`] on faer. An iteration puts the six networks (policy, the
 //! critics' embedder and two heads, V and its target) and their optimisers' moments on the
 //! GPU once ([`SacGpu::begin`]); each gradient step then sends its batch and noise in and
