@@ -44,6 +44,12 @@ pub struct SoakArgs {
     /// Minutes at the start (and of each process's life) left out of the slopes.
     #[arg(long, default_value_t = 5.0)]
     pub warmup: f64,
+    /// Rounds of churn inside the warm-up, each an agent killed and a machine revoked and
+    /// joined again, spread evenly from its first minute. The coordinator's allocator grows at
+    /// each kind of event until it has seen about a dozen (docs/benchmarks.md, "A cluster for
+    /// days"), so the slopes after judge what each further event costs.
+    #[arg(long, default_value_t = 0)]
+    pub warmup_churn: usize,
     /// Environments per agent.
     #[arg(long, default_value_t = 4)]
     pub envs: usize,
@@ -180,10 +186,27 @@ fn join(session: &net::zenoh::Session, out: &Path, agent: &str, cert_minutes: f6
         .with_context(|| format!("join printed no id: {text}"))
 }
 
+/// The warm-up's churn: the next event due at minute `now` once `done` of its `2·rounds` are
+/// done, one every `gap` minutes from minute 1, a kill (`true`) and a revocation and join
+/// (`false`) in turn.
+fn warm_event(now: f64, done: usize, rounds: usize, gap: f64) -> Option<bool> {
+    (done < 2 * rounds && now >= 1.0 + done as f64 * gap).then_some(done.is_multiple_of(2))
+}
+
 /// `bench soak`.
 pub fn soak(a: SoakArgs) -> Result<i32> {
     anyhow::ensure!(a.minutes > a.warmup && a.sample_s >= 5.0, "--minutes must pass --warmup; --sample-s at least 5");
     anyhow::ensure!(a.cert_minutes == 0.0 || a.cert_minutes >= 1.0, "--cert-minutes: 0 (a year) or at least 1");
+    // The warm-up's events, from its first minute to half a minute before its end, each given
+    // a quarter of a minute at least to recover.
+    let warm_gap = (a.warmup - 1.5) / (2 * a.warmup_churn.max(1)) as f64;
+    anyhow::ensure!(
+        a.warmup_churn == 0 || warm_gap >= 0.25,
+        "--warmup-churn {}: its {} events need at least {:.1} minutes of --warmup (a quarter of a minute each, after the first minute)",
+        a.warmup_churn,
+        2 * a.warmup_churn,
+        1.5 + 0.5 * a.warmup_churn as f64
+    );
     if a.out.exists() {
         bail!("{} exists: pass another --out, or delete it", a.out.display());
     }
@@ -282,7 +305,8 @@ pub fn soak(a: SoakArgs) -> Result<i32> {
     anyhow::ensure!(r.ok, "job start: {}", r.text);
     println!(
         "soak: {} min, a sample every {} s, an agent killed every {} min, a machine revoked and joined again every {} \
-         min, agent-1's certificates living {} min, {} environments an agent, {}; folder {}",
+         min, agent-1's certificates living {} min, {} environments an agent, {}, {} rounds of churn in the {}-minute \
+         warm-up; folder {}",
         a.minutes,
         a.sample_s,
         a.kill_every,
@@ -294,6 +318,8 @@ pub fn soak(a: SoakArgs) -> Result<i32> {
         } else {
             format!("episodes capped at {} steps", a.episode_steps)
         },
+        a.warmup_churn,
+        a.warmup,
         out.display()
     );
     let csv_path = out.join("soak.csv");
@@ -317,6 +343,7 @@ pub fn soak(a: SoakArgs) -> Result<i32> {
     // expired (its links closed meanwhile).
     let (mut next_sample, mut next_kill, mut next_rejoin) = (a.sample_s / 60.0, a.kill_every, a.rejoin_every * 0.6);
     let mut cert_due = if a.cert_minutes > 0.0 { a.cert_minutes + 0.5 } else { f64::INFINITY };
+    let mut warm_done = 0usize;
     let bar = indicatif::ProgressBar::new((a.minutes * 60.0) as u64)
         .with_style(indicatif::ProgressStyle::with_template("{elapsed_precise} [{bar:25}] {msg}").expect("template"));
     let start = Instant::now();
@@ -335,8 +362,14 @@ pub fn soak(a: SoakArgs) -> Result<i32> {
         }
         // Churn, but none in the last minutes (each must have time to recover).
         let churn_open = now < a.minutes - CHURN_GRACE;
-        if churn_open && a.kill_every > 0.0 && now >= next_kill {
+        // The warm-up's rounds: a kill, then a revocation and join, in turn.
+        let warm = warm_event(now, warm_done, a.warmup_churn, warm_gap);
+        warm_done += usize::from(warm.is_some());
+        let regular_kill = churn_open && a.kill_every > 0.0 && now >= next_kill;
+        if regular_kill {
             next_kill += a.kill_every;
+        }
+        if regular_kill || warm == Some(true) {
             // Always agent 1: agent 2's lives, broken only by its revocations, are long enough
             // to judge an agent's memory over.
             let agent = "agent-1".to_string();
@@ -346,7 +379,8 @@ pub fn soak(a: SoakArgs) -> Result<i32> {
         }
         // Agent 2 is revoked and joins again; agent 1's certificate expires and it joins again.
         for expired in [false, true] {
-            let due = churn_open && if expired { now >= cert_due } else { a.rejoin_every > 0.0 && now >= next_rejoin };
+            let regular = a.rejoin_every > 0.0 && now >= next_rejoin;
+            let due = churn_open && if expired { now >= cert_due } else { regular || warm == Some(false) };
             if !due {
                 continue;
             }
@@ -356,7 +390,9 @@ pub fn soak(a: SoakArgs) -> Result<i32> {
                 cert_due = now + a.cert_minutes + 0.5;
                 a.cert_minutes
             } else {
-                next_rejoin += a.rejoin_every;
+                if regular {
+                    next_rejoin += a.rejoin_every;
+                }
                 coordinator::certs::revoke(&ca, &[format!("agent-{}", ids[i])])?;
                 365.0 * 24.0 * 60.0
             };
@@ -910,5 +946,20 @@ mod tests {
         // Drift either way.
         assert_eq!(judge(-5.0, 0.3, 2.0, 60.0, true), Judged::Fail);
         assert_eq!(judge(f64::NAN, 0.3, 2.0, 60.0, true), Judged::Fail);
+    }
+
+    #[test]
+    fn the_warm_ups_churn_kills_and_rejoins_in_turn_from_its_first_minute() {
+        // Two rounds, half a minute apart, sampled each second as the soak's loop does.
+        let (mut done, mut seen) = (0, Vec::new());
+        for s in 0..600 {
+            let now = f64::from(s) / 60.0;
+            if let Some(kill) = warm_event(now, done, 2, 0.5) {
+                done += 1;
+                seen.push((s, kill));
+            }
+        }
+        assert_eq!(seen, [(60, true), (90, false), (120, true), (150, false)]);
+        assert_eq!(warm_event(30.0, 0, 0, 0.5), None);
     }
 }

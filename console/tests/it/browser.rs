@@ -171,6 +171,7 @@ import json, sys, time
 from selenium import webdriver
 from selenium.webdriver.chrome.service import Service
 from selenium.webdriver.common.by import By
+from selenium.common.exceptions import StaleElementReferenceException
 
 addr, tmp = sys.argv[1], sys.argv[-1]
 opts = webdriver.ChromeOptions()
@@ -185,7 +186,11 @@ out = {}
 def wait(what, f, secs=60):
     end = time.time() + secs
     while time.time() < end:
-        v = f()
+        try:
+            v = f()
+        except StaleElementReferenceException:
+            # A live update replaced the element between finding it and reading it: look again.
+            v = None
         if v:
             return v
         time.sleep(0.3)
