@@ -26,6 +26,13 @@ pub enum LossType {
 /// job's final model can miss laps.
 pub const DEFAULT_TARGET_KL: f64 = 0.05;
 
+/// `value_epochs` when the file does not set it (see [`Hyperparameters::value_epochs`]).
+/// The value tower is Paddock's own business (the car's archive holds the policy alone), and
+/// its later epochs bought nothing measurable: from pixels on three surfaces, a third of the
+/// gradient steps came after the third epoch, and with the value tower left out of them the
+/// verified model came no later (docs/benchmarks.md).
+pub const DEFAULT_VALUE_EPOCHS: Option<usize> = Some(3);
+
 /// How the learning rate moves over a job (Paddock's addition, key `lr_schedule`).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
 #[serde(rename_all = "snake_case")]
@@ -89,6 +96,11 @@ pub struct Hyperparameters {
     /// `clone` sets this for it, so that the advantages are worth following before the
     /// policy moves.
     pub value_warmup_updates: u64,
+    /// Paddock's addition (DeepRacer has no such key, and a file without it gets this
+    /// default): the value tower takes gradient steps in the first this-many epochs of each
+    /// update and the policy tower in all of them; `null`: both in every epoch, as in
+    /// DeepRacer. The updates of the value warm-up train it in every epoch.
+    pub value_epochs: Option<usize>,
     /// SAC's temperature α (`sac_alpha`): fixed, as in DeepRacer, unless `sac_target_entropy`
     /// is set, when it is where the tuning starts.
     pub sac_alpha: f64,
@@ -122,6 +134,7 @@ impl Default for Hyperparameters {
             target_kl: Some(DEFAULT_TARGET_KL),
             lr_schedule: LrSchedule::Cooldown,
             value_warmup_updates: 0,
+            value_epochs: DEFAULT_VALUE_EPOCHS,
             sac_alpha: 0.2,
             sac_target_entropy: None,
             sac_tau: 1.0,
@@ -159,6 +172,7 @@ impl Parsed {
                     | "num_epochs"
                     | "target_kl"
                     | "value_warmup_updates"
+                    | "value_epochs"
                     | "exploration_type"
                     | "e_greedy_value"
                     | "epsilon_steps",
@@ -268,6 +282,20 @@ impl Hyperparameters {
                     }
                 }
                 "value_warmup_updates" => h.value_warmup_updates = int(k, v)?,
+                "value_epochs" => {
+                    h.value_epochs = if v.is_null() {
+                        None
+                    } else {
+                        match int(k, v) {
+                            Ok(n) if n >= 1 => Some(n as usize),
+                            _ => {
+                                return Err(err(format!(
+                                    "key 'value_epochs' is {v}, expected a whole number of at least 1 or null"
+                                )));
+                            }
+                        }
+                    };
+                }
                 "stack_size" => {
                     int(k, v)?;
                 }
@@ -342,6 +370,7 @@ impl Hyperparameters {
             "term_cond_avg_score": self.term_cond_avg_score,
             "term_cond_max_episodes": self.term_cond_max_episodes,
             "value_warmup_updates": self.value_warmup_updates,
+            "value_epochs": self.value_epochs,
             "sac_alpha": self.sac_alpha,
             "sac_target_entropy": self.sac_target_entropy,
             "sac_tau": self.sac_tau,
@@ -385,6 +414,32 @@ mod tests {
             let back = Hyperparameters::parse(&h.to_json(), "back.json").unwrap().hyperparameters;
             assert_eq!(back, h, "{text}");
         }
+    }
+
+    /// Issue 55: `value_epochs` is a whole number of at least 1 or null, Paddock's default
+    /// without it, and survives the round trip; SAC says it does not use it.
+    #[test]
+    fn value_epochs_is_a_whole_number_or_null_and_survives_the_round_trip() {
+        for (text, want) in
+            [(r#"{"value_epochs": 3}"#, Some(3)), (r#"{"value_epochs": null}"#, None), ("{}", DEFAULT_VALUE_EPOCHS)]
+        {
+            let p = Hyperparameters::parse(text, "h.json").unwrap();
+            assert_eq!(p.hyperparameters.value_epochs, want, "{text}");
+            let back = Hyperparameters::parse(&p.hyperparameters.to_json(), "back.json").unwrap().hyperparameters;
+            assert_eq!(back, p.hyperparameters, "{text}");
+        }
+        for bad in [
+            r#"{"value_epochs": 0}"#,
+            r#"{"value_epochs": -2}"#,
+            r#"{"value_epochs": 2.5}"#,
+            r#"{"value_epochs": "x"}"#,
+        ] {
+            let e = Hyperparameters::parse(bad, "h.json").unwrap_err().to_string();
+            assert!(e.starts_with("h.json: key 'value_epochs'") && e.contains("at least 1 or null"), "{bad}: {e}");
+        }
+        let p = Hyperparameters::parse(r#"{"value_epochs": 3}"#, "h.json").unwrap();
+        assert!(p.ignored_for(TrainingAlgorithm::Sac).iter().any(|k| k.starts_with("value_epochs")));
+        assert!(p.ignored_for(TrainingAlgorithm::ClippedPpo).is_empty());
     }
 
     /// Issue 30: `value_warmup_updates` is read and written, and zero without it.

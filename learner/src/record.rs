@@ -881,6 +881,7 @@ mod tests {
             clip_fraction: 0.25,
             explained_variance: 0.75,
             gradient_steps: 4,
+            value_steps: 4,
             policy_version: 3,
             kl_stop: Some(4),
         };

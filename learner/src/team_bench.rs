@@ -50,6 +50,7 @@ fn learner_of(network: &str, epochs: usize, sac: bool) -> Result<(Box<dyn Shared
         num_epochs: epochs,
         batch_size: 64,
         target_kl: None,
+        value_epochs: None,
         sac_gradient_steps_per_transition: 1.0 / 64.0,
         ..Hyperparameters::default()
     };

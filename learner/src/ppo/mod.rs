@@ -258,7 +258,25 @@ pub fn loss_and_grad_factored(
     par: Par,
     defer: (&[usize], &[usize]),
 ) -> LossGrad {
-    loss_and_grad_of(ws, Minibatch { model, batch, idx }, h, par, defer, None)
+    loss_and_grad_of(ws, Minibatch { model, batch, idx }, h, par, defer, Towers::BOTH)
+}
+
+/// Which towers a gradient step computes: a team member trains one, and once an update's
+/// `value_epochs` have passed its steps leave the value tower alone.
+#[derive(Clone, Copy, PartialEq, Debug)]
+struct Towers {
+    policy: bool,
+    value: bool,
+}
+
+impl Towers {
+    const BOTH: Towers = Towers { policy: true, value: true };
+
+    /// The towers that a step computes for a member with `part` (`None`: alone), when the
+    /// value tower trains in this step or not.
+    fn of(part: Option<Part>, value_trains: bool) -> Towers {
+        Towers { policy: part != Some(Part::Value), value: part != Some(Part::Policy) && value_trains }
+    }
 }
 
 /// What a loss is taken of: `model`'s towers on the samples `idx` of `batch`.
@@ -269,15 +287,15 @@ struct Minibatch<'a> {
     idx: &'a [usize],
 }
 
-/// [`loss_and_grad_factored`] of both towers (`only` none) or of one: a team member trains
-/// one tower, and the other's loss figures and gradient stay zero.
+/// [`loss_and_grad_factored`] of the `towers` named: a tower left out keeps its loss
+/// figures and gradient at zero.
 fn loss_and_grad_of(
     ws: &mut Workspace,
     on: Minibatch<'_>,
     h: &Hyperparameters,
     par: Par,
     defer: (&[usize], &[usize]),
-    only: Option<Part>,
+    towers: Towers,
 ) -> LossGrad {
     let Minibatch { model, batch, idx } = on;
     let n = idx.len();
@@ -308,10 +326,10 @@ fn loss_and_grad_of(
     let beta = h.beta_entropy as f32;
     let inv_n = 1.0 / n as f32;
     let mut out_stats = LossGrad { grad_pi, grad_v, ..Default::default() };
-    if only != Some(Part::Value) {
+    if towers.policy {
         policy_loss_and_grad(on, beta, par, defer.0, (&obs[..], tape_pi), &mut out_stats);
     }
-    if only != Some(Part::Policy) {
+    if towers.value {
         model.v.forward(obs, n, tape_v, par);
         let values = tape_v.output().to_vec();
         let mut d_v = vec![0.0f32; n];
@@ -453,6 +471,9 @@ pub struct PpoStats {
     pub explained_variance: f64,
     /// Gradient steps taken.
     pub gradient_steps: usize,
+    /// Of those, the steps that trained the value tower (fewer once `value_epochs` ends its
+    /// part of the update); `value_loss` is their mean.
+    pub value_steps: usize,
     /// Policy version after the update.
     pub policy_version: u64,
     /// The update stopped before its last epoch: this gradient step's approximate KL passed
@@ -585,11 +606,12 @@ impl Ppo {
         }
         let mut stats = PpoStats { samples: n, explained_variance: explained_variance(batch), ..Default::default() };
         let mut shuffle = ChaCha8Rng::seed_from_u64(seed);
+        let value_epochs = self.value_epochs();
         if let (Some(g), 1) = (&mut self.gpu, group.shard().1) {
             let hold = self.version < self.hyper.value_warmup_updates;
             let opts = [&mut self.opt_pi, &mut self.opt_v, &mut self.opt_log_std];
             let order = |o: &mut Vec<usize>| o.shuffle(&mut shuffle);
-            let epochs = on_gpu::Epochs { batch, bs, hold_policy: hold, version };
+            let epochs = on_gpu::Epochs { batch, bs, hold_policy: hold, value_epochs, version };
             g.train(&mut self.model, opts, &self.hyper, epochs, order, &mut stats)?;
             return Ok(self.finish(stats));
         }
@@ -599,12 +621,15 @@ impl Ppo {
         let defer = (self.model.pi.factorable(bs), self.model.v.factorable(bs));
         let (rank, size) = group.shard();
         let role = (size > 1).then(|| Role::of(rank, size));
-        'epochs: for _ in 0..self.hyper.num_epochs {
+        'epochs: for epoch in 0..self.hyper.num_epochs {
             order.shuffle(&mut shuffle);
+            let value = epoch < value_epochs;
             for mb in order.chunks_exact(bs) {
-                let lg = self.minibatch(batch, mb, (&defer.0, &defer.1), group, role.as_ref(), stats.gradient_steps)?;
+                let at = (stats.gradient_steps, value);
+                let lg = self.minibatch(batch, mb, (&defer.0, &defer.1), group, role.as_ref(), at)?;
                 stats.policy_loss += lg.policy_loss;
                 stats.value_loss += lg.value_loss;
+                stats.value_steps += usize::from(value);
                 stats.entropy += lg.entropy;
                 stats.approx_kl += lg.approx_kl;
                 stats.clip_fraction += lg.clip_fraction;
@@ -629,7 +654,7 @@ impl Ppo {
     fn finish(&mut self, mut stats: PpoStats) -> PpoStats {
         let k = stats.gradient_steps as f64;
         stats.policy_loss /= k;
-        stats.value_loss /= k;
+        stats.value_loss /= (stats.value_steps as f64).max(1.0);
         stats.entropy /= k;
         stats.approx_kl /= k;
         stats.clip_fraction /= k;
@@ -638,9 +663,10 @@ impl Ppo {
         stats
     }
 
-    /// Gradient step `step` on the minibatch `mb`: the loss and its gradient (in a team, of
-    /// this member's share and tower), then the optimiser step (in a team, on the members'
-    /// sum). Returns the loss figures (a team's sums), or why the update must be refused.
+    /// Gradient step `step` on the minibatch `mb`, `at` = (`step`, whether the value tower
+    /// trains in it): the loss and its gradient (in a team, of this member's share and
+    /// tower), then the optimiser step (in a team, on the members' sum). Returns the loss
+    /// figures (a team's sums), or why the update must be refused.
     fn minibatch(
         &mut self,
         batch: &Batch,
@@ -648,20 +674,21 @@ impl Ppo {
         defer: (&[usize], &[usize]),
         group: &mut dyn Reducer,
         role: Option<&Role>,
-        step: usize,
+        at: (usize, bool),
     ) -> Result<LossGrad, Refused> {
+        let (step, value) = at;
         let (mine, shares) = role.map_or((mb, vec![mb.len()]), |r| r.share(mb));
         let t0 = std::time::Instant::now();
         let mut ws = std::mem::take(&mut self.ws);
-        let only = role.map(|r| r.part);
+        let towers = Towers::of(role.map(|r| r.part), value);
         let on = Minibatch { model: &self.model, batch, idx: mine };
-        let mut lg = loss_and_grad_of(&mut ws, on, &self.hyper, self.par, defer, only);
+        let mut lg = loss_and_grad_of(&mut ws, on, &self.hyper, self.par, defer, towers);
         self.ws = ws;
         let t1 = std::time::Instant::now();
         let finite = match role {
-            None => self.apply(&lg),
+            None => self.apply(&lg, value),
             Some(role) => self
-                .step_in_team(group, step as u64, role, &mut lg, &shares)
+                .step_in_team(group, (step as u64, value), role, &mut lg, &shares)
                 .map_err(|error| Refused::Group { error, version: self.version })?,
         };
         tracing::trace!(
@@ -676,10 +703,10 @@ impl Ppo {
     }
 
     /// The optimiser step of one minibatch of a learner alone: Adam on both towers (the
-    /// factored layers' gradients multiplied out from this learner's factors) and on the
-    /// log-std. Returns whether the loss and every gradient value were finite; when not, the
-    /// caller restores the state it saved.
-    fn apply(&mut self, lg: &LossGrad) -> bool {
+    /// factored layers' gradients multiplied out from this learner's factors; the value
+    /// tower's only when `value`) and on the log-std. Returns whether the loss and every
+    /// gradient value were finite; when not, the caller restores the state it saved.
+    fn apply(&mut self, lg: &LossGrad, value: bool) -> bool {
         let mut finite = lg.total.is_finite() && lg.grad_log_std.iter().all(|g| g.is_finite());
         if !self.holds_policy() {
             finite &= self.opt_pi.step_factored(
@@ -690,13 +717,23 @@ impl Ppo {
             );
             self.step_log_std(lg);
         }
-        finite &= self.opt_v.step_factored(
-            &mut self.model.v.params,
-            &lg.grad_v,
-            &factored_grads(&lg.factors_v, None),
-            self.par,
-        );
+        if value {
+            finite &= self.opt_v.step_factored(
+                &mut self.model.v.params,
+                &lg.grad_v,
+                &factored_grads(&lg.factors_v, None),
+                self.par,
+            );
+        }
         finite
+    }
+
+    /// The epochs of this update in which the value tower trains: `value_epochs` of them
+    /// (every one without it, and in the value warm-up, where the value tower is all that
+    /// trains).
+    pub(super) fn value_epochs(&self) -> usize {
+        let all = self.hyper.num_epochs;
+        if self.holds_policy() { all } else { self.hyper.value_epochs.map_or(all, |k| k.min(all)) }
     }
 
     /// The value tower's warm-up: an update that starts below `value_warmup_updates` holds
@@ -718,7 +755,7 @@ impl Ppo {
         let defer = (self.model.pi.factorable(idx.len()), self.model.v.factorable(idx.len()));
         let mut ws = std::mem::take(&mut self.ws);
         let lg = loss_and_grad_factored(&mut ws, &self.model, batch, idx, &self.hyper, self.par, (&defer.0, &defer.1));
-        let ok = self.apply(&lg);
+        let ok = self.apply(&lg, true);
         ws.recycle(lg);
         self.ws = ws;
         ok

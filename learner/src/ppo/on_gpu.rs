@@ -18,22 +18,25 @@ use policy::nn::Adam;
 use policy::{ActorCritic, Choice, Head, Trajectory};
 use std::sync::Arc;
 
-/// One update's epochs on the GPU: the batch, its minibatch size, and whether the policy is
-/// held (the value warm-up); `version` names the update in a refusal.
+/// One update's epochs on the GPU: the batch, its minibatch size, whether the policy is
+/// held (the value warm-up), and the epochs in which the value tower trains; `version` names
+/// the update in a refusal.
 pub(super) struct Epochs<'a> {
     pub batch: &'a Batch,
     pub bs: usize,
     pub hold_policy: bool,
+    pub value_epochs: usize,
     pub version: u64,
 }
 
 /// One gradient step: `len` samples from `at` in the epoch's order, the Gaussian head's
-/// log-stds, and whether the policy is held.
+/// log-stds, whether the policy is held, and whether the value tower trains.
 struct Step {
     at: usize,
     len: usize,
     log_std: [f32; 2],
     hold_policy: bool,
+    value: bool,
 }
 
 /// A learner's GPU: the device, and the model's state on it once the first update put it
@@ -181,7 +184,7 @@ impl GpuTrainer {
         mut order: impl FnMut(&mut Vec<usize>),
         stats: &mut PpoStats,
     ) -> Result<(), Refused> {
-        let Epochs { batch, bs, hold_policy, version } = epochs;
+        let Epochs { batch, bs, hold_policy, value_epochs, version } = epochs;
         let n = batch.len();
         let [opt_pi, opt_v, opt_log_std] = opts;
         let lost = |e: GpuError| Refused::Device { error: e.to_string(), version };
@@ -205,7 +208,8 @@ impl GpuTrainer {
         let mut idx: Vec<usize> = (0..n).collect();
         let steps_per_epoch = n / bs;
         let result = (|| {
-            for _ in 0..hyper.num_epochs {
+            for epoch in 0..hyper.num_epochs {
+                let value = epoch < value_epochs;
                 order(&mut idx);
                 let bits: Vec<f32> = idx.iter().map(|&i| f32::from_bits(i as u32)).collect();
                 gpu.upload(&r.idx, 0, &bits);
@@ -214,7 +218,7 @@ impl GpuTrainer {
                         Head::Gaussian { log_std } => log_std,
                         _ => [0.0; 2],
                     };
-                    let step = Step { at: mb * bs, len: bs, log_std, hold_policy };
+                    let step = Step { at: mb * bs, len: bs, log_std, hold_policy, value };
                     let f = r.minibatch(&gpu, model, hyper, step, [opt_pi, opt_v]).map_err(lost)?;
                     let mut g_log_std = f.grad_log_std;
                     if let Head::Gaussian { log_std } = &mut model.head {
@@ -234,6 +238,7 @@ impl GpuTrainer {
                     }
                     stats.policy_loss += f.policy_loss;
                     stats.value_loss += f.value_loss;
+                    stats.value_steps += usize::from(value);
                     stats.entropy += f.entropy;
                     stats.approx_kl += f.approx_kl;
                     stats.clip_fraction += f.clip_fraction;
@@ -350,7 +355,7 @@ impl Resident {
         step: Step,
         opts: [&mut Adam; 2],
     ) -> Result<Figures, GpuError> {
-        let Step { at, len, log_std, hold_policy } = step;
+        let Step { at, len, log_std, hold_policy, value } = step;
         let os = model.pi.in_size() as u32;
         let inv_n = 1.0 / len as f32;
         let mut enc = gpu.device.create_command_encoder(&Default::default());
@@ -388,31 +393,35 @@ impl Resident {
         gpu.loss(&mut enc, false, args, bufs);
         self.pi.zero_grad(&mut enc);
         self.pi.backward(gpu, &mut enc, &self.mb_obs, &self.d_pi, len);
-        // The value tower.
-        self.v.forward(gpu, &mut enc, &self.mb_obs, len);
-        let kind = match hyper.loss_type {
-            LossType::Huber => 0,
-            LossType::MeanSquaredError => 1,
-        };
-        let args = LossArgs { dim: 1, kind, ..args };
-        let bufs = LossBuffers {
-            out: self.v.output(),
-            samples: &self.samples,
-            idx: &self.idx,
-            d: &self.d_v,
-            stats: &self.stats_v,
-        };
-        gpu.loss(&mut enc, true, args, bufs);
-        self.v.zero_grad(&mut enc);
-        self.v.backward(gpu, &mut enc, &self.mb_obs, &self.d_v, len);
-        // Adam on both towers (the policy's held while the value tower warms up).
+        // The value tower, in the update's value epochs.
+        if value {
+            self.v.forward(gpu, &mut enc, &self.mb_obs, len);
+            let kind = match hyper.loss_type {
+                LossType::Huber => 0,
+                LossType::MeanSquaredError => 1,
+            };
+            let args = LossArgs { dim: 1, kind, ..args };
+            let bufs = LossBuffers {
+                out: self.v.output(),
+                samples: &self.samples,
+                idx: &self.idx,
+                d: &self.d_v,
+                stats: &self.stats_v,
+            };
+            gpu.loss(&mut enc, true, args, bufs);
+            self.v.zero_grad(&mut enc);
+            self.v.backward(gpu, &mut enc, &self.mb_obs, &self.d_v, len);
+        }
+        // Adam on the towers that trained (the policy's held while the value tower warms up).
         let [opt_pi, opt_v] = opts;
         if !hold_policy {
             self.t[0] += 1;
             adam(gpu, &mut enc, &self.pi, opt_pi, self.t[0], &self.flag);
         }
-        self.t[1] += 1;
-        adam(gpu, &mut enc, &self.v, opt_v, self.t[1], &self.flag);
+        if value {
+            self.t[1] += 1;
+            adam(gpu, &mut enc, &self.v, opt_v, self.t[1], &self.flag);
+        }
         let n = len * STATS;
         enc.copy_buffer_to_buffer(&self.stats_pi, 0, &self.staging, 0, (n * 4) as u64);
         enc.copy_buffer_to_buffer(&self.stats_v, 0, &self.staging, (n * 4) as u64, (n * 4) as u64);
@@ -428,7 +437,7 @@ impl Resident {
             entropy: col(p, 1) / nf,
             approx_kl: col(p, 2) / nf,
             clip_fraction: col(p, 3) / nf,
-            value_loss: col(v, 0) / nf,
+            value_loss: if value { col(v, 0) / nf } else { 0.0 },
             grad_log_std: [sum32(4), sum32(5)],
             finite_grads: out[2 * n].to_bits() == 0,
         })

@@ -124,22 +124,27 @@ impl Ppo {
         })
     }
 
-    /// The optimiser step of one minibatch in a team: the Adam step of the tower this member
-    /// trains, as [`Ppo::apply`] takes it, on the sum of the shares of the members that train
-    /// it (exchange `2k + 1`, made when there are two or more), then the step's loss figures
-    /// summed over the team (exchange `2k + 2`). Returns whether every member's step was
-    /// finite; `lg` then holds the team's figures.
+    /// The optimiser step of one minibatch in a team, `at` = (`k`, whether the value tower
+    /// trains in this step): the Adam step of the tower this member trains, as
+    /// [`Ppo::apply`] takes it, on the sum of the shares of the members that train it
+    /// (exchange `2k + 1`, made when there are two or more), then the step's loss figures
+    /// summed over the team (exchange `2k + 2`). In a step where the value tower does not
+    /// train, its members make neither its exchange nor its step (every member knows which
+    /// steps those are). Returns whether every member's step was finite; `lg` then holds the
+    /// team's figures.
     pub(super) fn step_in_team(
         &mut self,
         group: &mut dyn Reducer,
-        step: u64,
+        at: (u64, bool),
         role: &Role,
         lg: &mut LossGrad,
         shares: &[usize],
     ) -> Result<bool, GroupError> {
+        let (step, value) = at;
         let size = group.shard().1;
         let part = role.part;
-        let every = if role.ranks.len() > 1 {
+        let idle = part == Part::Value && !value;
+        let every = if role.ranks.len() > 1 && !idle {
             let (mut values, factors) = share_of(lg, part, shares, role.index);
             let every = group.all_reduce(2 * step + 1, &role.ranks, &mut values, factors)?;
             check_factors(&every, part.of(lg).1.iter().map(|f| f.n_in + f.n_out).sum(), shares)?;
@@ -151,6 +156,7 @@ impl Ppo {
         let every: Option<Vec<&[f32]>> = every.as_ref().map(|e| e.iter().map(|v| &v[..]).collect());
         let factored = factored_grads(part.of(lg).1, every.as_deref().map(|e| (e, shares)));
         let finite = match part {
+            Part::Value if idle => true,
             Part::Policy if self.holds_policy() => lg.grad_log_std.iter().all(|g| g.is_finite()),
             Part::Policy => {
                 let ok = self.opt_pi.step_factored(&mut self.model.pi.params, &lg.grad_pi, &factored, self.par);

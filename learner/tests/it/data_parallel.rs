@@ -53,11 +53,12 @@ fn episodes(model: &ActorCritic, n: usize, rng: &mut ChaCha8Rng) -> Vec<Trajecto
 #[test]
 fn two_learners_make_one_learners_update() {
     // Teams of two (a member a tower) and four (two a tower, each with half of every
-    // minibatch); every epoch, and an update that stops early on `target_kl`: the members
-    // stop together, at the single learner's step.
+    // minibatch); every epoch, an update that stops early on `target_kl` (the members stop
+    // together, at the single learner's step), and one whose value tower trains in its first
+    // epoch alone (the value members sit out the later steps together).
     for size in [2, 4] {
-        for target_kl in [None, Some(0.001)] {
-            let stops = team_against_one(size, target_kl);
+        for (target_kl, value_epochs) in [(None, None), (Some(0.001), None), (None, Some(1))] {
+            let stops = team_against_one(size, target_kl, value_epochs);
             assert_eq!(stops > 0, target_kl.is_some(), "{size}, {target_kl:?}: {stops} updates stopped early");
         }
     }
@@ -65,11 +66,11 @@ fn two_learners_make_one_learners_update() {
 
 /// Three updates by one learner and by a team of `size` from the same start; returns how
 /// many of them stopped early.
-fn team_against_one(size: usize, target_kl: Option<f64>) -> usize {
+fn team_against_one(size: usize, target_kl: Option<f64>, value_epochs: Option<usize>) -> usize {
     let meta = ModelMetadata::default_state_vector();
     let mut rng = ChaCha8Rng::seed_from_u64(11);
     let model = ActorCritic::new(&meta, 27, &mut rng);
-    let h = Hyperparameters { num_epochs: 3, target_kl, ..Hyperparameters::default() };
+    let h = Hyperparameters { num_epochs: 3, target_kl, value_epochs, ..Hyperparameters::default() };
     let mut alone = Ppo::new(model.clone(), h.clone(), 0, 5, Par::Seq);
     let mut group: Vec<Ppo> = (0..size).map(|_| Ppo::new(model.clone(), h.clone(), 0, 5, Par::Seq)).collect();
     let mut stopped = 0;
@@ -83,11 +84,14 @@ fn team_against_one(size: usize, target_kl: Option<f64>) -> usize {
             assert!(m.state() == group[0].state(), "{size}: member {r}, iteration {iteration}");
         }
         for st in &stats {
-            assert_eq!(st.gradient_steps, one.gradient_steps);
+            assert_eq!((st.gradient_steps, st.value_steps), (one.gradient_steps, one.value_steps));
             assert_eq!(st.kl_stop, one.kl_stop, "iteration {iteration}");
             assert_eq!(st.policy_version, one.policy_version);
         }
         stopped += usize::from(one.kl_stop.is_some());
+        if value_epochs == Some(1) {
+            assert_eq!(3 * one.value_steps, one.gradient_steps, "{one:?}");
+        }
         // ...and it is one learner's, to float rounding.
         for (a, b) in
             [(&alone.model.pi.params, &group[0].model.pi.params), (&alone.model.v.params, &group[0].model.v.params)]

@@ -73,15 +73,16 @@ fn same_learner(what: &str, g: &Ppo, c: &Ppo) {
 fn a_ppo_update_on_the_gpu_matches_faer() {
     let gpu = gpu();
     let mut rng = ChaCha8Rng::seed_from_u64(33);
+    // The last column: `value_epochs` (the value tower in the first epoch alone, or in both).
     let cases = [
-        ("discrete state", state_meta(false), 13, 96, 32, LossType::Huber),
-        ("continuous state", state_meta(true), 13, 96, 32, LossType::MeanSquaredError),
+        ("discrete state", state_meta(false), 13, 96, 32, LossType::Huber, Some(1)),
+        ("continuous state", state_meta(true), 13, 96, 32, LossType::MeanSquaredError, None),
         // A camera network, DeepRacer's layer kinds at a size lavapipe runs in moments.
-        ("camera", state_meta(false), 30 * 40, 48, 16, LossType::Huber),
+        ("camera", state_meta(false), 30 * 40, 48, 16, LossType::Huber, Some(1)),
         // A camera + LiDAR network: an embedder per input, then the rest.
-        ("camera + lidar", state_meta(true), 12 * 16 + 8, 48, 16, LossType::MeanSquaredError),
+        ("camera + lidar", state_meta(true), 12 * 16 + 8, 48, 16, LossType::MeanSquaredError, None),
     ];
-    for (name, meta, obs, samples, batch_size, loss_type) in cases {
+    for (name, meta, obs, samples, batch_size, loss_type, value_epochs) in cases {
         let mut model = ActorCritic::new(&meta, obs, &mut rng);
         if name == "camera" {
             use policy::nn::{InputShape::Image, LayerSpec::*, Net};
@@ -108,16 +109,21 @@ fn a_ppo_update_on_the_gpu_matches_faer() {
             loss_type,
             target_kl: None,
             value_warmup_updates: 1,
+            value_epochs,
             ..Hyperparameters::default()
         };
         let mut cpu = Ppo::new(model.clone(), h.clone(), 0, 9, Par::Seq);
         let mut on_gpu = Ppo::new(model.clone(), h, 0, 9, Par::Seq).with_gpu(gpu.clone());
         assert!(on_gpu.device().is_some());
-        // The first update holds the policy (the value tower's warm-up); two more train both.
+        // The first update holds the policy (the value tower's warm-up) and trains the value
+        // tower in both epochs; two more train both, the value tower in `value_epochs`.
         for u in 0..3 {
             let trajs = episodes(&cpu.model, cpu.version, samples / 8, 8, &mut rng);
             let (a, b) = (cpu.update(&trajs).unwrap(), on_gpu.update(&trajs).unwrap());
             assert_eq!((a.gradient_steps, a.samples), (b.gradient_steps, b.samples), "{name} {u}");
+            assert_eq!(a.value_steps, b.value_steps, "{name} {u}");
+            let value_share = if u > 0 && value_epochs == Some(1) { 2 } else { 1 };
+            assert_eq!(a.value_steps * value_share, a.gradient_steps, "{name} {u}");
             for (x, y, f) in [
                 (a.policy_loss, b.policy_loss, "policy loss"),
                 (a.value_loss, b.value_loss, "value loss"),

@@ -230,6 +230,43 @@ fn the_old_policy_is_the_network_as_the_update_begins() {
     assert!(loss_and_grad(&model, &stale, &(0..32).collect::<Vec<_>>(), &h, Par::Seq).clip_fraction > 0.5);
 }
 
+/// Issue 55: with `value_epochs` the value tower trains in the update's first epochs alone:
+/// its weights are those of an update of that many epochs, and the policy's those of an
+/// update that trains the value tower in every epoch (the policy's loss does not read the
+/// value tower within an update), bit for bit.
+#[test]
+fn the_value_tower_trains_in_the_first_value_epochs_and_the_policy_in_all() {
+    let mut rng = ChaCha8Rng::seed_from_u64(55);
+    let model = ActorCritic::new(&meta(false), 6, &mut rng);
+    let (trajs, _) = bandit_episodes(&model, 0, 128, &mut rng);
+    let h = |num_epochs, value_epochs| Hyperparameters {
+        lr: 3e-3,
+        num_epochs,
+        value_epochs,
+        batch_size: 32,
+        target_kl: None,
+        ..Hyperparameters::default()
+    };
+    let run = |num_epochs, value_epochs| {
+        let mut p = Ppo::new(model.clone(), h(num_epochs, value_epochs), 0, 1, Par::Seq);
+        let s = p.update(&trajs).unwrap();
+        (p.model, s)
+    };
+    // 128 samples in minibatches of 32: 4 gradient steps an epoch.
+    let (cut, s) = run(4, Some(1));
+    let (all, s_all) = run(4, None);
+    let (first, s_first) = run(1, None);
+    assert_eq!((s.gradient_steps, s.value_steps), (16, 4), "{s:?}");
+    assert_eq!((s_all.gradient_steps, s_all.value_steps), (16, 16), "{s_all:?}");
+    assert_eq!(cut.v, first.v, "the value tower: one epoch's training");
+    assert_eq!(cut.pi, all.pi, "the policy tower: every epoch's");
+    assert_ne!(cut.v, all.v, "the later epochs would have moved the value tower");
+    // The value loss is the mean over the steps that trained it.
+    assert!((s.value_loss - s_first.value_loss).abs() < 1e-12, "{} vs {}", s.value_loss, s_first.value_loss);
+    // More value epochs than epochs: every epoch.
+    assert_eq!(run(2, Some(5)).0, run(2, None).0);
+}
+
 /// Issue 8: an update stops its epochs once the policy moved past the target KL.
 #[test]
 fn an_update_stops_its_epochs_once_the_policy_moved_past_target_kl() {
