@@ -606,9 +606,8 @@ impl Ppo {
         }
         let mut stats = PpoStats { samples: n, explained_variance: explained_variance(batch), ..Default::default() };
         let mut shuffle = ChaCha8Rng::seed_from_u64(seed);
-        let value_epochs = self.value_epochs();
+        let (hold, value_epochs) = (self.holds_policy(), self.value_epochs());
         if let (Some(g), 1) = (&mut self.gpu, group.shard().1) {
-            let hold = self.version < self.hyper.value_warmup_updates;
             let opts = [&mut self.opt_pi, &mut self.opt_v, &mut self.opt_log_std];
             let order = |o: &mut Vec<usize>| o.shuffle(&mut shuffle);
             let epochs = on_gpu::Epochs { batch, bs, hold_policy: hold, value_epochs, version };
