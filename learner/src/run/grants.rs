@@ -2,7 +2,8 @@
 //! the episodes the next update still needs ([`Credit`]), in rounds. A round is spent when
 //! every worker it granted delivered its share or went away; then the shortfall, if any, is
 //! granted anew to those alive. A round is void when nothing came for much longer than rounds
-//! take (a batch lost while a peer's subscription was still on its way, say). The current
+//! take and than episodes have come apart (a batch lost while a peer's subscription was still
+//! on its way, say); lap-long episodes leave long silences that are not stalls. The current
 //! round's grant is announced again every second (workers treat it as idempotent). Pure: the
 //! caller passes the time, so the rules are tested on tables.
 
@@ -19,6 +20,10 @@ struct Round {
     delivered: BTreeMap<String, u64>,
     started: Instant,
     last_delivery: Instant,
+    /// The longest silence so far between the round's start or a delivery and the next delivery.
+    longest_gap: f64,
+    /// Every worker delivered its share, and the round's time was taken.
+    timed: bool,
 }
 
 /// The rounds of one run.
@@ -29,14 +34,20 @@ pub(super) struct Grants {
     /// new round of the same version for a repeat of the last).
     number: u64,
     last_announced: Option<Instant>,
-    /// How long rounds take to be delivered (a moving average).
+    /// How long rounds take to be delivered in full (a moving average).
     round_seconds: Option<f64>,
+    /// The longest silence between deliveries in recent rounds: it follows a longer one at
+    /// once and a shorter one slowly, as episodes grow from a few steps to whole laps.
+    gap_seconds: Option<f64>,
 }
+
+/// How much of the longest silence so far a round that saw shorter ones keeps.
+const GAP_KEEP: f64 = 0.9;
 
 impl Grants {
     /// No round yet; round numbers start above `base`.
     pub(super) fn new(base: u64) -> Grants {
-        Grants { round: None, number: base, last_announced: None, round_seconds: None }
+        Grants { round: None, number: base, last_announced: None, round_seconds: None, gap_seconds: None }
     }
 
     /// Round numbers above the wall clock's milliseconds × 1000 when the run starts.
@@ -52,17 +63,40 @@ impl Grants {
     pub(super) fn delivered(&mut self, credit: (u64, u64), worker: &str, n: u64, now: Instant) {
         let Some(r) = self.round.as_mut().filter(|r| (r.credit.version, r.credit.round) == credit) else { return };
         *r.delivered.entry(worker.to_string()).or_default() += n;
+        r.longest_gap = r.longest_gap.max(now.duration_since(r.last_delivery).as_secs_f64());
         r.last_delivery = now;
-        if self.round_seconds.is_none() || r.delivered.len() == r.credit.episodes.len() {
+        let full = r.credit.episodes.iter().all(|(w, n)| r.delivered.get(w).copied().unwrap_or(0) >= *n);
+        if full && !r.timed {
+            r.timed = true;
             let took = now.duration_since(r.started).as_secs_f64();
             self.round_seconds = Some(self.round_seconds.map_or(took, |s| 0.8 * s + 0.2 * took));
+        }
+        let gap = r.longest_gap;
+        self.gap_seconds = Some(self.gap_seconds.map_or(gap, |g| g.max(gap)));
+    }
+
+    /// The silence after which a round is taken for stalled: twice a round's time and three
+    /// times the longest silence between deliveries lately, at least 10 s (30 s before any
+    /// came).
+    fn stall_after(&self) -> f64 {
+        match (self.round_seconds, self.gap_seconds) {
+            (None, None) => 30.0,
+            (r, g) => (2.0 * r.unwrap_or(0.0)).max(3.0 * g.unwrap_or(0.0)).max(10.0),
+        }
+    }
+
+    /// The round in progress ends: the next one starts from its silences, a shorter longest
+    /// one fading in slowly.
+    fn end_round(&mut self) {
+        if let Some(r) = self.round.take() {
+            self.gap_seconds = Some(self.gap_seconds.map_or(r.longest_gap, |g| r.longest_gap.max(GAP_KEEP * g)));
         }
     }
 
     /// No round in progress (after an update, or when the run stops): the next call of
     /// [`Grants::due`] grants afresh, at once.
     pub(super) fn clear(&mut self) {
-        self.round = None;
+        self.end_round();
         self.last_announced = None;
     }
 
@@ -70,7 +104,7 @@ impl Grants {
     /// `version` when the current one is spent (or void, or there is none), split evenly over
     /// `workers`; else the current round's, once a second.
     pub(super) fn due(&mut self, version: u64, shortfall: u64, workers: &[String], now: Instant) -> Option<Credit> {
-        let stall_after = self.round_seconds.map_or(30.0, |s| (4.0 * s).max(10.0));
+        let stall_after = self.stall_after();
         let spent = self.round.as_ref().is_none_or(|r| {
             let delivered = (r.credit.episodes.iter())
                 .all(|(w, n)| r.delivered.get(w).copied().unwrap_or(0) >= *n || !workers.contains(w));
@@ -85,11 +119,14 @@ impl Grants {
         });
         if shortfall > 0 && spent {
             self.number += 1;
+            self.end_round();
             self.round = split(version, self.number, shortfall, workers).map(|credit| Round {
                 credit,
                 delivered: BTreeMap::new(),
                 started: now,
                 last_delivery: now,
+                longest_gap: 0.0,
+                timed: false,
             });
             tracing::debug!(version, shortfall, workers = ?workers, granted = self.round.is_some(), "grant round");
             self.last_announced = None;
@@ -186,7 +223,8 @@ mod tests {
             // second still (harmless: a worker has nothing left of it to start).
             (2.4, 1, 0, &ab[..1], &[("a", 5)], None),
             (3.2, 1, 0, &ab[..1], &[], Some((1002, &[("a", 5)]))),
-            // Nothing came for 30 s (the first round took 1.5 s: void after 10 s): granted anew.
+            // The round was delivered in full; a shortfall again (episodes dropped, say) is
+            // granted anew to the workers alive.
             (14.0, 1, 3, &ab, &[], Some((1003, &[("a", 2), ("b", 1)]))),
         ];
         for (i, (s, version, short, workers, deliveries, want)) in table.into_iter().enumerate() {
@@ -207,6 +245,39 @@ mod tests {
         g.delivered((1, 1001), "a", 4, at(15.0));
         g.delivered((2, 1003), "a", 4, at(15.0));
         assert_eq!(g.round.as_ref().unwrap().delivered, before);
+    }
+
+    /// Issue 55: lap-long episodes leave silences of many seconds between deliveries; a round
+    /// is taken for stalled only after a silence well beyond those its last rounds saw, and a
+    /// round is timed when delivered in full, not at its first episode.
+    #[test]
+    fn silences_like_the_last_rounds_are_waited_out_and_a_longer_one_is_a_stall() {
+        let t0 = Instant::now();
+        let at = |s: f64| t0 + Duration::from_secs_f64(s);
+        let a = names(&["a"]);
+        let mut g = Grants::new(0);
+        // Round 1: one short episode at once, the other 19 a lap later.
+        let r1 = g.due(1, 20, &a, at(0.0)).unwrap().round;
+        g.delivered((1, r1), "a", 1, at(0.5));
+        g.delivered((1, r1), "a", 19, at(12.5));
+        assert_eq!(g.round_seconds, Some(12.5), "timed when delivered in full");
+        assert_eq!(g.stall_after(), 36.0, "three times the 12 s silence");
+        // The update; round 2 starts, one episode comes at once, then silence.
+        g.clear();
+        let r2 = g.due(2, 20, &a, at(13.0)).unwrap().round;
+        assert!(r2 > r1);
+        g.delivered((2, r2), "a", 1, at(13.5));
+        // (seconds, the round announced: None when within the second)
+        for (s, want) in [(30.0, Some(r2)), (49.0, Some(r2)), (49.6, Some(r2 + 1))] {
+            assert_eq!(g.due(2, 19, &a, at(s)).map(|c| c.round), want, "at {s} s");
+        }
+        // Rounds of short episodes bring the threshold down slowly, to 10 s at the least.
+        for v in 3..40 {
+            g.clear();
+            let r = g.due(v, 20, &a, at(100.0 * v as f64)).unwrap().round;
+            g.delivered((v, r), "a", 20, at(100.0 * v as f64 + 0.5));
+        }
+        assert_eq!(g.stall_after(), 10.0);
     }
 
     /// Issue 29: after an update the next version is granted at once, in a new round.
