@@ -337,6 +337,9 @@ pub struct LossArgs {
     pub inv_n: f32,
     /// PPO's clip range.
     pub clip: f32,
+    /// Dual-clip PPO's bound on a negative advantage's surrogate, in advantages (0: none; a
+    /// shader may not meet infinities).
+    pub dual_clip: f32,
     /// The Gaussian head's log-stds.
     pub log_std: [f32; 2],
 }
@@ -506,7 +509,7 @@ impl Gpu {
             args.clip.to_bits(),
             args.log_std[0].to_bits(),
             args.log_std[1].to_bits(),
-            0,
+            args.dual_clip.to_bits(),
             0,
             0,
         ]);

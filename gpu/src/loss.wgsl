@@ -15,7 +15,8 @@ struct Loss {
     clip: f32,
     log_std0: f32,
     log_std1: f32,
-    _pad0: u32,
+    // Dual clip: a negative advantage's surrogate is at least this many advantages (0: none).
+    dual_clip: f32,
     _pad1: u32,
     _pad2: u32,
 }
@@ -83,15 +84,16 @@ fn policy_loss(@builtin(global_invocation_id) gid: vec3<u32>) {
     let clipped = clamp(ratio, 1.0 - q.clip, 1.0 + q.clip);
     let s1 = ratio * a;
     let s2 = clipped * a;
+    let floored = q.dual_clip > 0.0 && a < 0.0 && min(s1, s2) < q.dual_clip * a;
     let at = k * STATS;
-    stats[at] = -min(s1, s2);
+    stats[at] = -select(min(s1, s2), q.dual_clip * a, floored);
     stats[at + 1u] = entropy;
     stats[at + 2u] = (ratio - 1.0) - (logp - logp_old);
     stats[at + 3u] = select(0.0, 1.0, abs(ratio - 1.0) > q.clip);
     stats[at + 4u] = 0.0;
     stats[at + 5u] = 0.0;
     var g_logp = 0.0;
-    if (s1 <= s2) {
+    if (s1 <= s2 && !floored) {
         g_logp = -a * ratio * q.inv_n;
     }
     if (q.kind == 0u) {

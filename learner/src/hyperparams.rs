@@ -33,6 +33,13 @@ pub const DEFAULT_TARGET_KL: f64 = 0.05;
 /// verified model came no later (docs/benchmarks.md).
 pub const DEFAULT_VALUE_EPOCHS: Option<usize> = Some(3);
 
+/// `dual_clip` when the file does not set it (see [`Hyperparameters::dual_clip`]): the
+/// dual-clip PPO of Ye et al. (2020), whose c is 3. Paddock's updates train on episodes acted
+/// a few versions back; once the policy is nearly sure of its actions, such an episode can
+/// hold actions it now all but rules out, and without the bound a gradient step on their
+/// ratios wrecked an object-avoidance policy for good (docs/benchmarks.md).
+pub const DEFAULT_DUAL_CLIP: Option<f64> = Some(3.0);
+
 /// How the learning rate moves over a job (Paddock's addition, key `lr_schedule`).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
 #[serde(rename_all = "snake_case")]
@@ -101,6 +108,11 @@ pub struct Hyperparameters {
     /// update and the policy tower in all of them; `null`: both in every epoch, as in
     /// DeepRacer. The updates of the value warm-up train it in every epoch.
     pub value_epochs: Option<usize>,
+    /// Paddock's addition (DeepRacer has no such key, and a file without it gets this
+    /// default): PPO's surrogate for a sample whose advantage is negative is bounded below by
+    /// this many times its advantage, so a ratio above it carries no gradient (dual-clip
+    /// PPO); `null`: the clipped surrogate alone, as in DeepRacer.
+    pub dual_clip: Option<f64>,
     /// SAC's temperature α (`sac_alpha`): fixed, as in DeepRacer, unless `sac_target_entropy`
     /// is set, when it is where the tuning starts.
     pub sac_alpha: f64,
@@ -135,6 +147,7 @@ impl Default for Hyperparameters {
             lr_schedule: LrSchedule::Cooldown,
             value_warmup_updates: 0,
             value_epochs: DEFAULT_VALUE_EPOCHS,
+            dual_clip: DEFAULT_DUAL_CLIP,
             sac_alpha: 0.2,
             sac_target_entropy: None,
             sac_tau: 1.0,
@@ -173,6 +186,7 @@ impl Parsed {
                     | "target_kl"
                     | "value_warmup_updates"
                     | "value_epochs"
+                    | "dual_clip"
                     | "exploration_type"
                     | "e_greedy_value"
                     | "epsilon_steps",
@@ -296,6 +310,13 @@ impl Hyperparameters {
                         }
                     };
                 }
+                "dual_clip" => {
+                    h.dual_clip = match v.as_f64() {
+                        _ if v.is_null() => None,
+                        Some(c) if c > 1.0 && c.is_finite() => Some(c),
+                        _ => return Err(err(format!("key 'dual_clip' is {v}, expected a number above 1 or null"))),
+                    };
+                }
                 "stack_size" => {
                     int(k, v)?;
                 }
@@ -371,6 +392,7 @@ impl Hyperparameters {
             "term_cond_max_episodes": self.term_cond_max_episodes,
             "value_warmup_updates": self.value_warmup_updates,
             "value_epochs": self.value_epochs,
+            "dual_clip": self.dual_clip,
             "sac_alpha": self.sac_alpha,
             "sac_target_entropy": self.sac_target_entropy,
             "sac_tau": self.sac_tau,
@@ -439,6 +461,30 @@ mod tests {
         }
         let p = Hyperparameters::parse(r#"{"value_epochs": 3}"#, "h.json").unwrap();
         assert!(p.ignored_for(TrainingAlgorithm::Sac).iter().any(|k| k.starts_with("value_epochs")));
+        assert!(p.ignored_for(TrainingAlgorithm::ClippedPpo).is_empty());
+    }
+
+    /// Issue 55: `dual_clip` is a number above 1 or null, Paddock's default without it, and
+    /// survives the round trip; SAC does not use it.
+    #[test]
+    fn dual_clip_is_a_number_above_one_or_null_and_survives_the_round_trip() {
+        for (text, want) in [
+            (r#"{"dual_clip": 3}"#, Some(3.0)),
+            (r#"{"dual_clip": 1.5}"#, Some(1.5)),
+            (r#"{"dual_clip": null}"#, None),
+            ("{}", DEFAULT_DUAL_CLIP),
+        ] {
+            let p = Hyperparameters::parse(text, "h.json").unwrap();
+            assert_eq!(p.hyperparameters.dual_clip, want, "{text}");
+            let back = Hyperparameters::parse(&p.hyperparameters.to_json(), "back.json").unwrap().hyperparameters;
+            assert_eq!(back, p.hyperparameters, "{text}");
+        }
+        for bad in [r#"{"dual_clip": 1}"#, r#"{"dual_clip": 0.5}"#, r#"{"dual_clip": -3}"#, r#"{"dual_clip": "3"}"#] {
+            let e = Hyperparameters::parse(bad, "h.json").unwrap_err().to_string();
+            assert!(e.starts_with("h.json: key 'dual_clip'") && e.contains("above 1 or null"), "{bad}: {e}");
+        }
+        let p = Hyperparameters::parse(r#"{"dual_clip": 3}"#, "h.json").unwrap();
+        assert!(p.ignored_for(TrainingAlgorithm::Sac).iter().any(|k| k.starts_with("dual_clip")));
         assert!(p.ignored_for(TrainingAlgorithm::ClippedPpo).is_empty());
     }
 

@@ -4,8 +4,11 @@
 //! (ε 1e-5, β2 0.999) without gradient clipping, `num_epochs` epochs of shuffled
 //! minibatches of `batch_size` (the remainder dropped). As in DeepRacer, the old policy's
 //! log-probabilities and the values behind GAE are the network's as the update begins
-//! ([`make_batch_for`]), not those the experience was acted with. Paddock's one addition:
-//! the epochs stop early once a minibatch's approximate KL passes 1.5 × `target_kl`.
+//! ([`make_batch_for`]), not those the experience was acted with. Paddock's additions:
+//! the epochs stop early once a minibatch's approximate KL passes 1.5 × `target_kl`; and a
+//! sample with a negative advantage counts at most `dual_clip` × its advantage (dual-clip
+//! PPO), so a ratio far above 1 on an action the policy has all but ruled out since it was
+//! acted cannot make one step's gradient explode.
 //!
 //! A non-finite loss or gradient refuses the whole update: the weights and the optimiser
 //! state go back to where the iteration began, and the update returns why ([`Refused`]).
@@ -324,10 +327,11 @@ fn loss_and_grad_of(
         obs.extend_from_slice(&batch.obs[i * os..(i + 1) * os]);
     }
     let beta = h.beta_entropy as f32;
+    let dual = h.dual_clip.map_or(f32::INFINITY, |c| c as f32);
     let inv_n = 1.0 / n as f32;
     let mut out_stats = LossGrad { grad_pi, grad_v, ..Default::default() };
     if towers.policy {
-        policy_loss_and_grad(on, beta, par, defer.0, (&obs[..], tape_pi), &mut out_stats);
+        policy_loss_and_grad(on, (beta, dual), par, defer.0, (&obs[..], tape_pi), &mut out_stats);
     }
     if towers.value {
         model.v.forward(obs, n, tape_v, par);
@@ -357,11 +361,12 @@ fn loss_and_grad_of(
     out_stats
 }
 
-/// The policy tower's part of [`loss_and_grad_of`]: the clipped surrogate and entropy
-/// (summed over `idx`, not yet divided), the tower's gradient and the log-std's.
+/// The policy tower's part of [`loss_and_grad_of`]: the clipped surrogate (bounded below by
+/// `dual` × a negative advantage; infinite: no bound) and entropy (summed over `idx`, not yet
+/// divided), the tower's gradient and the log-std's.
 fn policy_loss_and_grad(
     on: Minibatch<'_>,
-    beta: f32,
+    (beta, dual): (f32, f32),
     par: Par,
     defer: &[usize],
     (obs, tape_pi): (&[f32], &mut Tape),
@@ -393,14 +398,16 @@ fn policy_loss_and_grad(
         let ratio = (logp - batch.logp_old[i]).exp();
         let clipped = ratio.clamp(1.0 - CLIP_EPSILON, 1.0 + CLIP_EPSILON);
         let (s1, s2) = (ratio * a, clipped * a);
-        out_stats.policy_loss -= s1.min(s2) as f64;
+        // Dual clip: past `dual`, a negative advantage's surrogate is a constant.
+        let floored = a < 0.0 && s1.min(s2) < dual * a;
+        out_stats.policy_loss -= if floored { dual * a } else { s1.min(s2) } as f64;
         out_stats.entropy += entropy as f64;
         out_stats.approx_kl += ((ratio - 1.0) - (logp - batch.logp_old[i])) as f64;
         if (ratio - 1.0).abs() > CLIP_EPSILON {
             out_stats.clip_fraction += 1.0;
         }
         // d(loss)/d(logp): only the unclipped term carries a gradient.
-        let g_logp = if s1 <= s2 { -a * ratio * inv_n } else { 0.0 };
+        let g_logp = if s1 <= s2 && !floored { -a * ratio * inv_n } else { 0.0 };
         let d = &mut d_out[k * dim..(k + 1) * dim];
         match (&model.head, batch.choices[i]) {
             (Head::Categorical(_), Choice::Discrete(c)) => {

@@ -381,6 +381,7 @@ impl Resident {
             beta: hyper.beta_entropy as f32,
             inv_n,
             clip: CLIP_EPSILON,
+            dual_clip: hyper.dual_clip.map_or(0.0, |c| c as f32),
             log_std,
         };
         let bufs = LossBuffers {

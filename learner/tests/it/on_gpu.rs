@@ -140,6 +140,41 @@ fn a_ppo_update_on_the_gpu_matches_faer() {
     }
 }
 
+/// Issue 55: the dual clip binds alike on the GPU and on faer: a third of a batch's samples
+/// acted with e^-2.5 of their probability now (a ratio of 12), their advantages negative.
+#[test]
+fn the_dual_clip_binds_alike_on_the_gpu_and_on_faer() {
+    let gpu = gpu();
+    let mut rng = ChaCha8Rng::seed_from_u64(55);
+    let model = ActorCritic::new(&state_meta(false), 13, &mut rng);
+    let trajs = episodes(&model, 0, 8, 8, &mut rng);
+    let mut batch = learner::ppo::make_batch_for(&trajs, &model, 0.99, Par::Seq);
+    for i in (0..batch.len()).step_by(3) {
+        batch.logp_old[i] -= 2.5;
+        batch.adv[i] = -batch.adv[i].abs() - 0.5;
+    }
+    let h = |dual_clip| Hyperparameters {
+        batch_size: 16,
+        num_epochs: 2,
+        target_kl: None,
+        dual_clip,
+        ..Hyperparameters::default()
+    };
+    let mut after = Vec::new();
+    for dual in [Some(3.0), None] {
+        let mut cpu = Ppo::new(model.clone(), h(dual), 0, 3, Par::Seq);
+        let mut on_gpu = Ppo::new(model.clone(), h(dual), 0, 3, Par::Seq).with_gpu(gpu.clone());
+        let (a, b) = (cpu.update_on_batch(&batch, 5).unwrap(), on_gpu.update_on_batch(&batch, 5).unwrap());
+        let (x, y) = (a.policy_loss, b.policy_loss);
+        assert!((x - y).abs() <= 1e-4 * x.abs().max(1e-2), "dual clip {dual:?}: faer {x}, GPU {y}");
+        same_learner(&format!("dual clip {dual:?}"), &on_gpu, &cpu);
+        after.push((cpu.model.pi.params.clone(), x));
+    }
+    assert_ne!(after[0].0, after[1].0, "the bound changed the steps");
+    // A floored sample's loss is 3 × |A|, not its ratio (≈ 12) × |A|.
+    assert!(after[0].1 < after[1].1, "the bounded loss is the smaller: {} vs {}", after[0].1, after[1].1);
+}
+
 /// Issue 33: a refused update leaves the GPU state and a restored one is trained from.
 #[test]
 fn a_refused_update_leaves_the_gpu_state_and_a_restored_one_is_trained_from() {

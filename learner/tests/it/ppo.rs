@@ -2,7 +2,7 @@
 //! is known (it fails if the gradient's sign or the advantage is wrong).
 
 use faer::Par;
-use learner::ppo::{Batch, gae, loss_and_grad, make_batch, make_batch_for};
+use learner::ppo::{Batch, gae, logp_and_values, loss_and_grad, make_batch, make_batch_for};
 use learner::{Hyperparameters, LossType, Ppo};
 use policy::{ActorCritic, Choice, ModelMetadata, Trajectory};
 use rand::{Rng, SeedableRng};
@@ -265,6 +265,40 @@ fn the_value_tower_trains_in_the_first_value_epochs_and_the_policy_in_all() {
     assert!((s.value_loss - s_first.value_loss).abs() < 1e-12, "{} vs {}", s.value_loss, s_first.value_loss);
     // More value epochs than epochs: every epoch.
     assert_eq!(run(2, Some(5)).0, run(2, None).0);
+}
+
+/// Issue 55: with `dual_clip` c, a sample whose advantage is negative and whose ratio is
+/// above c (an action the policy has all but ruled out since it was acted) counts c × its
+/// advantage in the loss and adds nothing to the gradient; without it, it adds the most.
+#[test]
+fn a_negative_advantage_far_above_the_dual_clip_adds_no_gradient() {
+    let mut rng = ChaCha8Rng::seed_from_u64(56);
+    let model = ActorCritic::new(&meta(false), 6, &mut rng);
+    let mut batch = random_batch(&model, 32, &mut rng);
+    // Samples 0..8: acted with e^-4 of the probability the policy gives them now (ratio ≈ 55),
+    // advantage negative.
+    let (fresh, _) = logp_and_values(&model, &batch.obs, &batch.choices, Par::Seq);
+    for (i, lp) in fresh.iter().enumerate().take(8) {
+        batch.logp_old[i] = lp - 4.0;
+        batch.adv[i] = -1.0 - i as f32 * 0.1;
+    }
+    let h = |dual_clip| Hyperparameters { beta_entropy: 0.0, dual_clip, ..Hyperparameters::default() };
+    let all: Vec<usize> = (0..32).collect();
+    let rest: Vec<usize> = (8..32).collect();
+    let dual = loss_and_grad(&model, &batch, &all, &h(Some(3.0)), Par::Seq);
+    let plain = loss_and_grad(&model, &batch, &all, &h(None), Par::Seq);
+    let others = loss_and_grad(&model, &batch, &rest, &h(Some(3.0)), Par::Seq);
+    // The gradient is the other 24 samples' (their mean over 32, not 24).
+    let scale = 24.0 / 32.0;
+    let size = |g: &[f32]| g.iter().map(|x| (*x as f64).powi(2)).sum::<f64>().sqrt();
+    let diff: Vec<f32> = dual.grad_pi.iter().zip(&others.grad_pi).map(|(a, b)| a - b * scale).collect();
+    assert!(size(&diff) <= 1e-5 * size(&dual.grad_pi), "{} of {}", size(&diff), size(&dual.grad_pi));
+    // The loss: theirs, plus −3 × each floored advantage.
+    let floored: f64 = (0..8).map(|i| -3.0 * batch.adv[i] as f64).sum::<f64>() / 32.0;
+    let want = others.policy_loss * scale as f64 + floored;
+    assert!((dual.policy_loss - want).abs() < 1e-5, "{} vs {want}", dual.policy_loss);
+    // Without the bound those eight samples dominate the step.
+    assert!(size(&plain.grad_pi) > 5.0 * size(&dual.grad_pi), "{} vs {}", size(&plain.grad_pi), size(&dual.grad_pi));
 }
 
 /// Issue 8: an update stops its epochs once the policy moved past the target KL.
