@@ -36,8 +36,9 @@ pub(super) struct Grants {
     last_announced: Option<Instant>,
     /// How long rounds take to be delivered in full (a moving average).
     round_seconds: Option<f64>,
-    /// The longest silence between deliveries in recent rounds: it follows a longer one at
-    /// once and a shorter one slowly, as episodes grow from a few steps to whole laps.
+    /// The longest silence between deliveries in the rounds that ended: it follows a longer
+    /// one at once and a shorter one slowly, as episodes grow from a few steps to whole laps
+    /// (the round in progress counts too, in [`Grants::stall_after`]).
     gap_seconds: Option<f64>,
 }
 
@@ -71,15 +72,15 @@ impl Grants {
             let took = now.duration_since(r.started).as_secs_f64();
             self.round_seconds = Some(self.round_seconds.map_or(took, |s| 0.8 * s + 0.2 * took));
         }
-        let gap = r.longest_gap;
-        self.gap_seconds = Some(self.gap_seconds.map_or(gap, |g| g.max(gap)));
     }
 
     /// The silence after which a round is taken for stalled: twice a round's time and three
     /// times the longest silence between deliveries lately, at least 10 s (30 s before any
     /// came).
     fn stall_after(&self) -> f64 {
-        match (self.round_seconds, self.gap_seconds) {
+        let now = self.round.as_ref().map(|r| r.longest_gap).filter(|g| *g > 0.0);
+        let gap = [self.gap_seconds, now].into_iter().flatten().reduce(f64::max);
+        match (self.round_seconds, gap) {
             (None, None) => 30.0,
             (r, g) => (2.0 * r.unwrap_or(0.0)).max(3.0 * g.unwrap_or(0.0)).max(10.0),
         }
