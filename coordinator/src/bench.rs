@@ -482,6 +482,20 @@ struct PixelsRun {
 /// `bench pixels`: `train` and `up` from pixels on several worlds, per seed, to the verified
 /// model (or, with `keep_training`, for the whole time, to see whether a policy that lapped
 /// everywhere stays good), then both models on those worlds and on unseen ones.
+/// A setup's command line `base` with a variant's arguments `more` added; a flag of `more` that
+/// `base` gives too (`--checkpoint-seconds 2`, `--force`) replaces `base`'s, with its value.
+fn with_variant(mut base: Vec<String>, more: &[String]) -> Vec<String> {
+    let valued = |args: &[String], i: usize| args.get(i + 1).is_some_and(|v| !v.starts_with("--"));
+    for (k, flag) in more.iter().enumerate().filter(|(_, a)| a.starts_with("--")) {
+        if let Some(i) = base.iter().position(|a| a == flag) {
+            let n = if valued(more, k) && valued(&base, i) { 2 } else { 1 };
+            base.drain(i..i + n);
+        }
+    }
+    base.extend(more.iter().cloned());
+    base
+}
+
 pub fn pixels(args: &crate::cli::PixelsArgs) -> Result<()> {
     let crate::cli::PixelsArgs {
         worlds,
@@ -548,12 +562,13 @@ pub fn pixels(args: &crate::cli::PixelsArgs) -> Result<()> {
             _ => dir.join(format!("seed-{seed}")).join(variant),
         };
         std::fs::create_dir_all(&here)?;
-        let mut train = command(&["train", "--envs", &envs_s, "--out", "train", "--force"], seed);
-        train.extend(more.iter().cloned());
+        let train = with_variant(command(&["train", "--envs", &envs_s, "--out", "train", "--force"], seed), more);
         let (train_s, text) = timed(&here, &train)?;
         let train_reason = text.lines().find(|l| l.starts_with("stopped after")).unwrap_or("").to_string();
-        let mut up = command(&["up", "--agents", "2", "--envs", &agent_envs, "--out", "up", "--force"], seed);
-        up.extend(more.iter().cloned());
+        let up = with_variant(
+            command(&["up", "--agents", "2", "--envs", &agent_envs, "--out", "up", "--force"], seed),
+            more,
+        );
         let (up_s, text) = timed(&here, &up)?;
         let up_reason =
             text.lines().find(|l| l.contains(": Finished") || l.contains(": Failed")).unwrap_or("").trim().to_string();
@@ -1718,6 +1733,25 @@ mod tests {
         assert_eq!(verified_point(run.path()).unwrap(), None);
         std::fs::remove_dir_all(run.path().join("model")).unwrap();
         assert_eq!(verified_point(run.path()).unwrap(), None);
+    }
+
+    /// Issue 55: a variant's arguments follow the setup's, and a flag the setup already gives
+    /// with a value takes the variant's value instead of appearing twice.
+    #[test]
+    fn a_variants_flag_replaces_the_benchs_own() {
+        let v = |x: &str| x.split_whitespace().map(String::from).collect::<Vec<_>>();
+        let cases = [
+            (
+                "train --checkpoint-seconds 20 --seed 1",
+                "--checkpoint-seconds 2",
+                "train --seed 1 --checkpoint-seconds 2",
+            ),
+            ("train --seed 1", "--hyperparameters h.json", "train --seed 1 --hyperparameters h.json"),
+            ("up --force --seed 1", "--force", "up --seed 1 --force"),
+        ];
+        for (base, more, want) in cases {
+            assert_eq!(with_variant(v(base), &v(more)), v(want), "{base} + {more}");
+        }
     }
 
     /// Issue 55: `bench races` reads an evaluation's laps, crashes and the trials that overtook

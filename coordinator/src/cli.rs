@@ -613,8 +613,9 @@ pub struct PixelsArgs {
     pub seeds: Vec<u64>,
     /// A variant run beside today's setup for every seed, in the same run: `NAME=ARGS`, its
     /// arguments (split at spaces) added to both `train` and `up`, e.g.
-    /// `--variant 'epochs3=--hyperparameters hp3.json'` (repeatable). Each gets its tables and
-    /// a line in the comparison.
+    /// `--variant 'epochs3=--hyperparameters hp3.json'` (repeatable); a flag the bench sets
+    /// itself (`--checkpoint-seconds 2`, say) takes the variant's value. Each gets its tables
+    /// and a line in the comparison.
     #[arg(long = "variant", value_name = "NAME=ARGS")]
     pub variants: Vec<String>,
     /// Where the runs go (kept, with their models).

@@ -79,6 +79,7 @@ pub fn run(model_dir: &Path, req: &Request) -> Result<Evaluation> {
             seed: req.seed,
             threads,
             all_frames: req.all_frames,
+            spread: true,
         };
         let trials = evaluate(&model, &f.metadata.action_space, &spec, &cfg, &plan, None)?;
         worlds.push(WorldTrials { world: world.name.clone(), trials });

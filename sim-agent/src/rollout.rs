@@ -26,7 +26,7 @@ pub struct Collector {
     pub episodes: u64,
     /// Keep each step's sim-trace fields in the trajectories (`SimConfig::record_trace`).
     pub record: bool,
-    /// The GPU the policy acts on (`None`: faer on this thread).
+    /// The GPU the policy acts on (`None`: faer on the environments' threads).
     gpu: Option<gpu::Acting>,
     /// Worlds environments move to when their running episode ends.
     moves: Vec<Option<EnvSpec>>,
@@ -94,7 +94,8 @@ impl Collector {
                 }
             }
         }
-        model.act_policy(x, batch, false, &mut self.rng, Par::Seq)
+        let (par, rng) = (self.vec.acting_par(), &mut self.rng);
+        self.vec.install(|| model.act_policy(x, batch, false, rng, par))
     }
 
     /// The environments.
@@ -235,6 +236,11 @@ pub struct EvalPlan {
     pub seed: u64,
     /// Threads stepping the environments.
     pub threads: usize,
+    /// The policy's forward pass on those threads too ([`VecEnv::acting_par`]), for trials
+    /// nothing else is computing beside; else on one thread, as when a worker evaluates while
+    /// its learner updates in the same process (a forward pass on every core slowed a `train`
+    /// run's updates by 30 %, docs/benchmarks.md).
+    pub spread: bool,
     /// With a recording configuration, keep what the car saw in every trial (a live race
     /// replays each lap's); otherwise in the first only.
     pub all_frames: bool,
@@ -242,7 +248,8 @@ pub struct EvalPlan {
 
 /// Run `plan.count` evaluation trials in parallel from the start line, with the policy's
 /// most likely action at every step; its forward passes on `gpu` when one is given (a GPU
-/// that fails leaves the rest of the trials on the CPU, and the log says so).
+/// that fails leaves the rest of the trials on the CPU, and the log says so), else on faer
+/// as `plan.spread` says.
 pub fn evaluate(
     model: &Arc<ActorCritic>,
     space: &ActionSpace,
@@ -251,7 +258,7 @@ pub fn evaluate(
     plan: &EvalPlan,
     mut gpu: Option<&mut gpu::Acting>,
 ) -> Result<Vec<TrialResult>, RewardError> {
-    let EvalPlan { ref rules, count: trials, seed, threads, all_frames } = *plan;
+    let EvalPlan { ref rules, count: trials, seed, threads, all_frames, spread } = *plan;
     let reward = RewardFn::Builtin(crate::BuiltinReward::CenterLine);
     let mut vec = VecEnv::with_mode(
         vec![spec.clone(); trials],
@@ -268,6 +275,7 @@ pub fn evaluate(
     let cap = cfg.episode.max_steps;
     let mut steps = 0u64;
     let dim = vec.obs_dim();
+    let par = if spread { vec.acting_par() } else { Par::Seq };
     // What the car saw, for the log: the frame, or the stereo pair's left one.
     let pixels = (crate::camera::WIDTH * crate::camera::HEIGHT) as usize;
     let channels = dim / pixels;
@@ -296,9 +304,9 @@ pub fn evaluate(
             Some(Err(e)) => {
                 tracing::warn!("the evaluation acts on the CPU from now on: {e}");
                 gpu = None;
-                model.act_policy(obs, trials, true, &mut rng, Par::Seq)
+                vec.install(|| model.act_policy(obs, trials, true, &mut rng, par))
             }
-            None => model.act_policy(obs, trials, true, &mut rng, Par::Seq),
+            None => vec.install(|| model.act_policy(obs, trials, true, &mut rng, par)),
         };
         let actions: Vec<policy::Action> = acts.iter().map(|a| a.choice.to_action(space)).collect();
         let outcomes = vec.step(&actions)?;

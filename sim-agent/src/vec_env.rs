@@ -278,6 +278,21 @@ impl VecEnv {
     pub fn renderer(&self) -> Option<&str> {
         self.renderer.as_ref().map(|r| r.adapter())
     }
+
+    /// How the policy's forward pass over these environments may split: over the
+    /// environments' threads for a camera network (its convolutions split the samples), on one
+    /// thread for the state vector's small network, which is slower split.
+    pub fn acting_par(&self) -> faer::Par {
+        let n = self.pool.current_num_threads();
+        if self.renderer.is_some() && n > 1 { faer::Par::rayon(n) } else { faer::Par::Seq }
+    }
+
+    /// Run `f` on the environments' threads: the policy's forward pass (with
+    /// [`VecEnv::acting_par`]) then shares the cores that step the environments, between steps,
+    /// and not the pool of the learner that may run in the same process.
+    pub fn install<R: Send>(&self, f: impl FnOnce() -> R + Send) -> R {
+        self.pool.install(f)
+    }
 }
 
 fn close(e: &mut Env, reward: f64, obs: &mut [f32]) -> StepOutcome {

@@ -413,6 +413,9 @@ impl Worker {
             seed: r.seed,
             threads: self.threads,
             all_frames: false,
+            // With a round granted and not yet collected, the learner is waiting for this
+            // worker, not updating: the trials may have every core.
+            spread: self.grant.is_some_and(|(_, _, left)| left > 0),
         };
         let trials =
             evaluate(&p.model, &p.metadata.action_space, &spec, &self.check_cfg, &plan, self.collector.gpu_mut())?;

@@ -1,7 +1,8 @@
-//! A sim agent's policy acting with its forward passes on the GPU (lavapipe in the suite),
-//! collecting and in evaluation trials, against the same on faer: the same seed gives the
-//! same episodes, actions for actions, their log-probabilities to float tolerance (and no
-//! values: both act with the policy tower alone), and the same trials.
+//! Where a sim agent's policy acts. On the GPU (lavapipe in the suite), collecting and in
+//! evaluation trials, against the same on faer: the same seed gives the same episodes, actions
+//! for actions, their log-probabilities to float tolerance (and no values: both act with the
+//! policy tower alone), and the same trials. On faer, a camera network acts on the
+//! environments' threads, and gives the episodes and trials it gives on one, bit for bit.
 
 use policy::{ActorCritic, ModelMetadata};
 use rand::SeedableRng;
@@ -55,12 +56,62 @@ fn evaluation_trials_on_the_gpu_are_the_ones_on_faer() {
     let model = Arc::new(ActorCritic::new(&meta, obs, &mut rand_chacha::ChaCha8Rng::seed_from_u64(9)));
     let rules = sim_agent::EvalRules::default();
     let space = &meta.action_space;
-    let plan = EvalPlan { rules, count: 3, seed: 4, threads: 1, all_frames: false };
+    let plan = EvalPlan { rules, count: 3, seed: 4, threads: 1, all_frames: false, spread: false };
     let cpu = evaluate(&model, space, &spec, &cfg, &plan, None).unwrap();
     let mut acting = gpu::Acting::new(gpu);
     let on_gpu = evaluate(&model, space, &spec, &cfg, &plan, Some(&mut acting)).unwrap();
     assert!(cpu.iter().map(|t| t.steps).sum::<u64>() > 30);
     for (a, b) in cpu.iter().zip(&on_gpu) {
         assert_eq!((a.progress, a.lap_time, a.steps, a.off_track), (b.progress, b.lap_time, b.steps, b.off_track));
+    }
+}
+
+/// Issue 55: a camera policy collects, and evaluates when told to spread, on every thread the
+/// environments have (its convolutions split the samples), and the episodes and trials are those
+/// acted on one thread, bit for bit; the state vector's small network stays on one thread.
+#[test]
+fn a_camera_policy_acts_on_the_environments_threads_and_gives_the_same_episodes() {
+    let meta = ModelMetadata::default_camera();
+    let mut cfg = SimConfig::default();
+    cfg.observation.kind = sim_agent::config::ObservationKind::Camera;
+    let cfg = Arc::new(cfg);
+    let spec = EnvSpec::from_world(&tracks::world("reinvent_base").unwrap(), tracks::Direction::Forward);
+    let vec = |threads| {
+        VecEnv::new(vec![spec.clone(); 4], cfg.clone(), 5, RewardFn::Builtin(BuiltinReward::CenterLine), threads)
+            .expect("lavapipe or a GPU")
+    };
+    let (one, two) = (vec(1), vec(2));
+    assert_eq!((one.acting_par().degree(), two.acting_par().degree()), (1, 2), "a camera network splits");
+    let state = VecEnv::new(
+        vec![spec.clone(); 4],
+        Arc::new(SimConfig::default()),
+        5,
+        RewardFn::Builtin(BuiltinReward::CenterLine),
+        2,
+    )
+    .unwrap();
+    assert_eq!(state.acting_par().degree(), 1, "the state vector's network acts on one thread");
+    let model = Arc::new(ActorCritic::new(&meta, one.obs_dim(), &mut rand_chacha::ChaCha8Rng::seed_from_u64(3)));
+    let (mut a, mut b) =
+        (Collector::new(one, meta.action_space.clone(), 5), Collector::new(two, meta.action_space.clone(), 5));
+    let (x, y) = (a.collect(&model, 0, 6).unwrap(), b.collect(&model, 0, 6).unwrap());
+    assert!(x.iter().map(|t| t.choices.len()).sum::<usize>() > 20);
+    for (p, q) in x.iter().zip(&y) {
+        assert_eq!(p.choices, q.choices, "the same actions");
+        assert_eq!(p.logp, q.logp, "the same log-probabilities, bit for bit");
+        assert_eq!(p.rewards, q.rewards, "the same episodes");
+    }
+    // Evaluation trials spread over the threads when nothing computes beside them: the same
+    // trials as on one.
+    use sim_agent::rollout::{EvalPlan, evaluate};
+    let trials = |threads, spread| {
+        let rules = sim_agent::EvalRules::default();
+        let plan = EvalPlan { rules, count: 2, seed: 4, threads, all_frames: false, spread };
+        evaluate(&model, &meta.action_space, &spec, &cfg, &plan, None).unwrap()
+    };
+    let (t1, t2) = (trials(1, false), trials(2, true));
+    assert!(t1.iter().map(|t| t.steps).sum::<u64>() > 10);
+    for (p, q) in t1.iter().zip(&t2) {
+        assert_eq!((p.progress, p.lap_time, p.steps, p.off_track), (q.progress, q.lap_time, q.steps, q.off_track));
     }
 }
