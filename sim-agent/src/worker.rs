@@ -413,8 +413,9 @@ impl Worker {
             seed: r.seed,
             threads: self.threads,
             all_frames: false,
-            // With a round granted and not yet collected, the learner is waiting for this
-            // worker, not updating: the trials may have every core.
+            // With a round granted and not yet collected, a PPO learner is waiting for this
+            // worker, not updating: the trials may have every core. (SAC updates while its next
+            // round is collected, and these trials then share the cores as collection does.)
             spread: self.grant.is_some_and(|(_, _, left)| left > 0),
         };
         let trials =
