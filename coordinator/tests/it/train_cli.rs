@@ -243,15 +243,21 @@ fn sac_trains_to_laps_and_a_resumed_run_goes_on_with_its_critics_and_memory() {
         .unwrap();
     assert!(last_ckpt.join("sac.safetensors").exists(), "the critics beside the checkpoint's model");
     assert!(run.join("replay.safetensors").exists(), "the replay memory kept at the end");
-    // The resumed run's first update finds the memory it left (the next iteration's episodes
-    // on top), and trains with its critics.
+    // The run stops on its verified checkpoint; an update made while that was being verified
+    // has a record but no checkpoint, and the resumed run makes it again.
+    let at: usize = last_ckpt.file_name().unwrap().to_str().unwrap()["ckpt_".len()..].parse().unwrap();
+    assert!(at >= 1 && at <= first.len(), "checkpoint {at} of {} updates", first.len());
+    // The resumed run's first update finds the whole memory the run kept at its end (the new
+    // episodes on top), and trains with its critics.
     let o = coordinator(
         d,
         &[&["train"][..], &files[..], &["--resume", "--max-episodes", "20", "--minutes", "1", "--out", "run"]].concat(),
     );
     assert!(o.status.success(), "{}", text(&o));
     let resumed = metrics(&run.join("metrics.jsonl"));
-    let next = &resumed[first.len()]["sac"];
+    assert_eq!(resumed[..at], first[..at], "the records up to the checkpoint are kept as they were");
+    assert_eq!(resumed[at]["iteration"], at as u64 + 1, "{}", resumed[at]);
+    let next = &resumed[at]["sac"];
     assert_eq!(next["replay"].as_u64().unwrap(), kept + next["new_transitions"].as_u64().unwrap(), "{next}");
 }
 

@@ -9,9 +9,11 @@
 //! A checkpoint keeps the critics (`sac.safetensors` beside the model) and the transitions
 //! stored since the last checkpoint (a part in the run folder's `replay/`); the whole replay
 //! memory is written to the run folder (`replay.safetensors`) when the run ends, or when the
-//! parts have grown as large as the memory, and the parts are then let go. A resumed run,
-//! after a clean end or a crash, continues with the critics and the memory of its last
-//! checkpoint, or says which it starts without.
+//! parts have grown as large as the memory, and the parts are then let go. A resumed run
+//! continues with the critics of its last checkpoint and the memory the run kept: after a
+//! clean end every transition, those of updates after the last checkpoint too (the updates
+//! are made again; the experience is not thrown away), after a crash those up to its last
+//! checkpoint; or it says which it starts without.
 //!
 //! In a learner team every member holds a copy of the replay memory: each plan
 //! brings the iteration's episodes, which every member stores in the same order, and its
