@@ -637,7 +637,18 @@ impl Renderer {
     /// Render the views; returns `views.len()` frames of 160×120, row-major, top row first:
     /// grayscale (1 byte per pixel) or RGB (3 bytes) when `rgb`.
     pub fn render(&mut self, views: &[View<'_>], rgb: bool) -> Vec<u8> {
+        self.render_some(views, None, rgb)
+    }
+
+    /// [`Renderer::render`], drawing only the views `drawn` marks (every one with `None`): each
+    /// view keeps its place in the atlas, and so the bits it would have drawn with the others;
+    /// the frames of the views not drawn are black.
+    pub fn render_some(&mut self, views: &[View<'_>], drawn: Option<&[bool]>, rgb: bool) -> Vec<u8> {
         let n = views.len() as u32;
+        if let Some(d) = drawn {
+            assert_eq!(d.len(), views.len(), "one mark per view");
+        }
+        let on = |i: usize| drawn.is_none_or(|d| d[i]);
         self.ensure(n);
         let keys: Vec<String> = views.iter().map(|v| self.mesh_for(v.track)).collect();
         // Generated worlds bring a new track every few episodes: meshes no view uses go.
@@ -647,16 +658,20 @@ impl Renderer {
         // Only what each camera can see: most of a track is behind or beside the car.
         let mut indices: Vec<u32> = Vec::new();
         let mut ranges = Vec::with_capacity(views.len());
-        for (v, key) in views.iter().zip(&keys) {
+        for (i, (v, key)) in views.iter().zip(&keys).enumerate() {
             let start = indices.len() as u32;
-            visible(&self.meshes[key].1, v.pose, &mut indices);
+            if on(i) {
+                visible(&self.meshes[key].1, v.pose, &mut indices);
+            }
             ranges.push(start..indices.len() as u32);
         }
         let mut object_vertices: Vec<Vertex> = Vec::new();
         let mut object_ranges = Vec::with_capacity(views.len());
-        for v in views {
+        for (i, v) in views.iter().enumerate() {
             let start = object_vertices.len() as u32;
-            object_triangles(v.objects, v.pose, v.jitter, &mut object_vertices);
+            if on(i) {
+                object_triangles(v.objects, v.pose, v.jitter, &mut object_vertices);
+            }
             object_ranges.push(start..object_vertices.len() as u32);
         }
         if !object_vertices.is_empty() {
@@ -712,7 +727,7 @@ impl Renderer {
             pass.set_pipeline(&self.pipeline);
             pass.set_stencil_reference(0);
             pass.set_index_buffer(ibuf.slice(..), wgpu::IndexFormat::Uint32);
-            for (i, key) in keys.iter().enumerate() {
+            for (i, key) in keys.iter().enumerate().filter(|(i, _)| on(*i)) {
                 let (buf, _) = &self.meshes[key];
                 let (col, row) = (i as u32 % ATLAS_COLUMNS, i as u32 / ATLAS_COLUMNS);
                 pass.set_viewport((col * WIDTH) as f32, (row * HEIGHT) as f32, WIDTH as f32, HEIGHT as f32, 0.0, 1.0);
@@ -757,22 +772,24 @@ impl Renderer {
             let mapped = slice.get_mapped_range().expect("mapped after the poll");
             let src: &[u8] = &mapped;
             // One view per task: pick its viewport out of the atlas, convert to luma or RGB.
-            out.par_chunks_mut((WIDTH * HEIGHT) as usize * px).enumerate().for_each(|(i, frame)| {
-                let (col, row) = (i as u32 % ATLAS_COLUMNS, i as u32 / ATLAS_COLUMNS);
-                for y in 0..HEIGHT {
-                    let at = ((row * HEIGHT + y) * padded + col * WIDTH * 4) as usize;
-                    let line = &src[at..at + 4 * WIDTH as usize];
-                    let dst = &mut frame[(y * WIDTH) as usize * px..((y + 1) * WIDTH) as usize * px];
-                    for (x, p) in line.chunks_exact(4).enumerate() {
-                        if rgb {
-                            dst[3 * x..3 * x + 3].copy_from_slice(&p[..3]);
-                        } else {
-                            let yl = 0.2989 * p[0] as f32 + 0.5870 * p[1] as f32 + 0.1140 * p[2] as f32;
-                            dst[x] = yl.round().clamp(0.0, 255.0) as u8;
+            out.par_chunks_mut((WIDTH * HEIGHT) as usize * px).enumerate().filter(|(i, _)| on(*i)).for_each(
+                |(i, frame)| {
+                    let (col, row) = (i as u32 % ATLAS_COLUMNS, i as u32 / ATLAS_COLUMNS);
+                    for y in 0..HEIGHT {
+                        let at = ((row * HEIGHT + y) * padded + col * WIDTH * 4) as usize;
+                        let line = &src[at..at + 4 * WIDTH as usize];
+                        let dst = &mut frame[(y * WIDTH) as usize * px..((y + 1) * WIDTH) as usize * px];
+                        for (x, p) in line.chunks_exact(4).enumerate() {
+                            if rgb {
+                                dst[3 * x..3 * x + 3].copy_from_slice(&p[..3]);
+                            } else {
+                                let yl = 0.2989 * p[0] as f32 + 0.5870 * p[1] as f32 + 0.1140 * p[2] as f32;
+                                dst[x] = yl.round().clamp(0.0, 255.0) as u8;
+                            }
                         }
                     }
-                }
-            });
+                },
+            );
         }
         readback.unmap();
         out

@@ -247,7 +247,7 @@ pub struct EvalPlan {
 }
 
 /// Run `plan.count` evaluation trials in parallel from the start line, with the policy's
-/// most likely action at every step; its forward passes on `gpu` when one is given (a GPU
+/// most likely action at every step (a trial that has ended is not simulated further); its forward passes on `gpu` when one is given (a GPU
 /// that fails leaves the rest of the trials on the CPU, and the log says so), else on faer
 /// as `plan.spread` says.
 pub fn evaluate(
@@ -309,7 +309,9 @@ pub fn evaluate(
             None => vec.install(|| model.act_policy(obs, trials, true, &mut rng, par)),
         };
         let actions: Vec<policy::Action> = acts.iter().map(|a| a.choice.to_action(space)).collect();
-        let outcomes = vec.step(&actions)?;
+        // A trial that has ended stands still (not simulated or rendered) while the rest finish.
+        let running: Vec<bool> = results.iter().map(Option::is_none).collect();
+        let outcomes = vec.step_some(&actions, Some(&running))?;
         let wall_clock = if cfg.record_trace { unix_now() } else { 0.0 };
         for (((r, o), log), a) in results.iter_mut().zip(outcomes).zip(&mut logs).zip(&acts) {
             if r.is_none() && cfg.record_trace {

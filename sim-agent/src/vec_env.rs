@@ -144,7 +144,20 @@ impl VecEnv {
 
     /// Step every environment with its action. A reward error stops the batch.
     pub fn step(&mut self, actions: &[Action]) -> Result<&[StepOutcome], RewardError> {
+        self.step_some(actions, None)
+    }
+
+    /// Step the environments `active` marks (every one with `None`); the others stand still:
+    /// not simulated, rewarded or rendered, their observations as they were and their
+    /// outcomes empty (`done` false, no steps). What an active environment does is the same
+    /// bits either way: each has its own seed. Evaluation trials that have ended stand still
+    /// while the rest finish.
+    pub fn step_some(&mut self, actions: &[Action], active: Option<&[bool]>) -> Result<&[StepOutcome], RewardError> {
         assert_eq!(actions.len(), self.envs.len(), "one action per environment");
+        if let Some(a) = active {
+            assert_eq!(a.len(), self.envs.len(), "one mark per environment");
+        }
+        let on = |i: usize| active.is_none_or(|a| a[i]);
         let VecEnv { envs, reward, dim, obs, outcomes, rewards, pool, .. } = self;
         let dim = (*dim).max(1);
         outcomes.clear();
@@ -157,7 +170,9 @@ impl VecEnv {
                         .zip(actions)
                         .zip(outcomes.par_iter_mut())
                         .zip(obs.par_chunks_mut(dim))
-                        .try_for_each(|(((e, a), out), o)| {
+                        .enumerate()
+                        .filter(|(i, _)| on(*i))
+                        .try_for_each(|(_, (((e, a), out), o))| {
                             e.advance(*a);
                             let r = if e.needs_reward() { b.reward(e.params(), e.line())? } else { 0.0 };
                             *out = close(e, r, o);
@@ -165,41 +180,55 @@ impl VecEnv {
                         })
                 }
                 RewardFn::Python(py) => {
-                    envs.par_iter_mut().zip(actions).for_each(|(e, a)| e.advance(*a));
+                    envs.par_iter_mut().zip(actions).enumerate().filter(|(i, _)| on(*i)).for_each(|(_, (e, a))| {
+                        e.advance(*a);
+                    });
+                    let asks = |(i, e): &(usize, &Env)| on(*i) && e.needs_reward();
                     rewards.clear();
                     py.call_batch(
-                        envs.iter()
-                            .enumerate()
-                            .filter(|(_, e)| e.needs_reward())
-                            .map(|(i, e)| (i, e.episode(), &**e.track(), e.params())),
+                        envs.iter().enumerate().filter(asks).map(|(i, e)| (i, e.episode(), &**e.track(), e.params())),
                         rewards,
                     )?;
                     let mut next = rewards.iter();
                     let per_env: Vec<f64> = envs
                         .iter()
-                        .map(|e| if e.needs_reward() { *next.next().expect("one per call") } else { 0.0 })
+                        .enumerate()
+                        .map(|ie| if asks(&ie) { *next.next().expect("one per call") } else { 0.0 })
                         .collect();
                     envs.par_iter_mut()
                         .zip(per_env)
                         .zip(outcomes.par_iter_mut())
                         .zip(obs.par_chunks_mut(dim))
-                        .for_each(|(((e, r), out), o)| *out = close(e, r, o));
+                        .enumerate()
+                        .filter(|(i, _)| on(*i))
+                        .for_each(|(_, (((e, r), out), o))| *out = close(e, r, o));
                     Ok(())
                 }
             }
         })?;
-        self.render();
+        self.render_some(active);
         Ok(&self.outcomes)
     }
 
     /// Camera observations: every environment's frame in one batch (with the episode's
     /// domain randomisation, and image noise, when configured).
     fn render(&mut self) {
+        self.render_some(None)
+    }
+
+    /// The frames of the environments `active` marks (every one with `None`), in one batch.
+    fn render_some(&mut self, active: Option<&[bool]>) {
+        let on = |i: usize| active.is_none_or(|a| a[i]);
         let Some(r) = self.renderer.as_mut() else { return };
+        if !(0..self.envs.len()).any(on) {
+            return;
+        }
         use rand::Rng;
         use rand_distr::{Distribution, Normal};
         let cfg = self.envs.first().map(|e| e.config().camera.clone()).unwrap_or_default();
-        for (e, (episode, draw, rng)) in self.envs.iter().zip(self.camera_draws.iter_mut()) {
+        for (_, (e, (episode, draw, rng))) in
+            self.envs.iter().zip(self.camera_draws.iter_mut()).enumerate().filter(|(i, _)| on(*i))
+        {
             if *episode != e.episode() {
                 *episode = e.episode();
                 let l = e.spec().lighting;
@@ -252,15 +281,25 @@ impl VecEnv {
                 })
             })
             .collect();
-        let frames = r.render(&views, false);
+        // Every environment keeps its own place in the renderer's atlas (a frame's bits depend
+        // on where it is drawn); those standing still are not drawn.
+        let drawn: Option<Vec<bool>> =
+            active.map(|a| a.iter().flat_map(|&on| std::iter::repeat_n(on, lateral.len())).collect());
+        let frames = r.render_some(&views, drawn.as_deref(), false);
         let frame = frames.len() / self.envs.len().max(1);
         let channels = lateral.len();
         let noise = if cfg.randomize && cfg.image_noise > 0.0 { Normal::new(0.0, cfg.image_noise).ok() } else { None };
         // The pixels' place in each observation (a LiDAR's values may come first).
         let at = self.envs.first().map_or(0, |e| crate::obs::camera_offset(&e.config().observation));
-        for ((o, px), (_, _, rng)) in
-            self.obs.chunks_mut(self.dim.max(1)).zip(frames.chunks(frame)).zip(self.camera_draws.iter_mut())
-        {
+        let rendered = self
+            .obs
+            .chunks_mut(self.dim.max(1))
+            .zip(frames.chunks(frame))
+            .zip(self.camera_draws.iter_mut())
+            .enumerate()
+            .filter(|(i, _)| on(*i))
+            .map(|(_, both)| both);
+        for ((o, px), (_, _, rng)) in rendered {
             let o = &mut o[at..at + frame];
             // The frames of one environment, one after the other, to its channels (HWC).
             let plane = frame / channels;

@@ -86,3 +86,52 @@ fn observation_layout_is_as_documented() {
     assert!((side(-90.0) - 0.38).abs() < 0.06 && (side(90.0) - 0.38).abs() < 0.06, "{} {}", side(-90.0), side(90.0));
     assert!(lidar.iter().all(|&d| (0.0..=1.0).contains(&d)));
 }
+
+/// Issue 55: an environment marked to stand still is not simulated or rendered (its pose,
+/// episode and observation stay as they were, its outcome is empty), and the others step
+/// the same bits as when every environment steps: evaluation trials that have ended stand
+/// still while the rest finish. Table: the state vector, one camera and the stereo pair.
+#[test]
+fn environments_that_stand_still_are_not_simulated_and_the_others_are_the_same_bits() {
+    for kind in [ObservationKind::State, ObservationKind::Camera, ObservationKind::Stereo] {
+        let mut cfg = SimConfig::default();
+        cfg.observation.kind = kind;
+        let make = || {
+            VecEnv::new(specs(4), Arc::new(cfg.clone()), 7, RewardFn::Builtin(BuiltinReward::CenterLine), 2).unwrap()
+        };
+        let (mut all, mut some) = (make(), make());
+        let dim = all.obs_dim();
+        let driver = PurePursuit::default();
+        let mut still: Option<(Vec<u32>, f64, u64)> = None;
+        for k in 0..60 {
+            let actions: Vec<Action> = all.envs().iter().map(|e| driver.act(e)).collect();
+            // Environment 1 stops after 20 steps.
+            let active = [true, k < 20, true, true];
+            let a: Vec<(u64, bool, u64)> =
+                all.step(&actions).unwrap().iter().map(|o| (o.reward.to_bits(), o.done, o.steps)).collect();
+            let s: Vec<(u64, bool, u64)> = some
+                .step_some(&actions, Some(&active))
+                .unwrap()
+                .iter()
+                .map(|o| (o.reward.to_bits(), o.done, o.steps))
+                .collect();
+            let bits = |v: &VecEnv, i: usize| -> Vec<u32> {
+                v.observations()[i * dim..(i + 1) * dim].iter().map(|x| x.to_bits()).collect()
+            };
+            for i in [0, 2, 3] {
+                assert_eq!(a[i], s[i], "{kind:?}: environment {i} at step {k}");
+                assert!(bits(&all, i) == bits(&some, i), "{kind:?}: environment {i}'s observation at step {k}");
+            }
+            if k < 20 {
+                assert_eq!(a[1], s[1], "{kind:?}: environment 1 at step {k}, while it steps");
+            } else {
+                assert_eq!((s[1].1, s[1].2), (false, 0), "{kind:?}: a standing environment's outcome is empty");
+                let e = &some.envs()[1];
+                let now = (bits(&some, 1), e.pose().x, e.episode());
+                let then = still.get_or_insert_with(|| now.clone());
+                assert!(*then == now, "{kind:?}: environment 1 moved at step {k}");
+            }
+        }
+        assert!(all.envs()[1].pose().x != some.envs()[1].pose().x, "{kind:?}: the other vector's car drove on");
+    }
+}
