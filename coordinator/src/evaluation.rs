@@ -80,6 +80,7 @@ pub fn run(model_dir: &Path, req: &Request) -> Result<Evaluation> {
             threads,
             all_frames: req.all_frames,
             spread: true,
+            give_up_after_misses: None,
         };
         let trials = evaluate(&model, &f.metadata.action_space, &spec, &cfg, &plan, None)?;
         worlds.push(WorldTrials { world: world.name.clone(), trials });

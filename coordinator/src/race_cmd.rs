@@ -162,7 +162,15 @@ pub fn run(args: &RaceCmdArgs) -> Result<Vec<Standing>> {
         let mut trials = Vec::new();
         for t in 0..args.trials {
             let seed = args.seed.wrapping_add(t as u64);
-            let plan = EvalPlan { rules: rules.clone(), count: 1, seed, threads, all_frames: false, spread: true };
+            let plan = EvalPlan {
+                rules: rules.clone(),
+                count: 1,
+                seed,
+                threads,
+                all_frames: false,
+                spread: true,
+                give_up_after_misses: None,
+            };
             let mut one = evaluate(&model, &f.metadata.action_space, &spec, &cfg, &plan, None)?;
             let r = one.remove(0);
             println!(

@@ -178,6 +178,14 @@ pub struct EvalReport {
     pub trials: Result<Vec<Trial>, String>,
 }
 
+/// Laps of `trials` trials that keep the share of `laps` in `of` (3 of 3 → every trial; 2 of
+/// 3 → 7 of 10), never more than there are: what a verification needs, on the learner that
+/// judges it and on the worker that runs it.
+pub fn laps_needed(laps: usize, of: usize, trials: usize) -> usize {
+    let share = laps.min(of) as f64 / of.max(1) as f64;
+    ((share * trials as f64) - 1e-9).ceil().clamp(0.0, trials as f64) as usize
+}
+
 /// Mean progress, mean lap time (when every trial completed), laps completed.
 pub fn summarise(trials: &[Trial]) -> (f64, Option<f64>, usize) {
     let n = trials.len().max(1) as f64;

@@ -244,10 +244,14 @@ pub struct EvalPlan {
     /// With a recording configuration, keep what the car saw in every trial (a live race
     /// replays each lap's); otherwise in the first only.
     pub all_frames: bool,
+    /// Stop once more trials than this have ended without a lap (a verification that can no
+    /// longer hold): the trials still running are dropped, and fewer trials come back.
+    pub give_up_after_misses: Option<usize>,
 }
 
 /// Run `plan.count` evaluation trials in parallel from the start line, with the policy's
-/// most likely action at every step (a trial that has ended is not simulated further); its forward passes on `gpu` when one is given (a GPU
+/// most likely action at every step (a trial that has ended is not simulated further; with
+/// `plan.give_up_after_misses`, the trials end once that many and one more have missed); its forward passes on `gpu` when one is given (a GPU
 /// that fails leaves the rest of the trials on the CPU, and the log says so), else on faer
 /// as `plan.spread` says.
 pub fn evaluate(
@@ -258,7 +262,7 @@ pub fn evaluate(
     plan: &EvalPlan,
     mut gpu: Option<&mut gpu::Acting>,
 ) -> Result<Vec<TrialResult>, RewardError> {
-    let EvalPlan { ref rules, count: trials, seed, threads, all_frames, spread } = *plan;
+    let EvalPlan { ref rules, count: trials, seed, threads, all_frames, spread, give_up_after_misses } = *plan;
     let reward = RewardFn::Builtin(crate::BuiltinReward::CenterLine);
     let mut vec = VecEnv::with_mode(
         vec![spec.clone(); trials],
@@ -334,6 +338,10 @@ pub fn evaluate(
             }
         }
         steps += 1;
+        let missed = || results.iter().flatten().filter(|r| r.lap_time.is_none()).count();
+        if give_up_after_misses.is_some_and(|k| missed() > k) {
+            return Ok(results.into_iter().flatten().collect());
+        }
     }
     Ok(results.into_iter().map(|r| r.expect("every trial ends by the step cap")).collect())
 }

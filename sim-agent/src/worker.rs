@@ -128,6 +128,9 @@ pub struct Worker {
     evals: VecDeque<(EvalRequest, bool)>,
     /// The last reports sent, answered again when their request is repeated.
     reports: VecDeque<EvalReport>,
+    /// The verifications chained here, each with the misses it can take and still hold: its
+    /// trials stop at one more (the learner would not verify the checkpoint).
+    may_miss: Vec<(EvalRequest, usize)>,
     /// A report to send again.
     resend: Option<EvalReport>,
     seq: u64,
@@ -176,6 +179,7 @@ impl Worker {
             grant: None,
             evals: VecDeque::new(),
             reports: VecDeque::new(),
+            may_miss: Vec::new(),
             resend: None,
             seq: s.first_seq,
             steps_reported: 0,
@@ -346,6 +350,10 @@ impl Worker {
                     return;
                 }
                 tracing::debug!(id = v.id, version = v.version, world = %v.world, "verification chained to evaluation {}", r.id);
+                // The verification needs the evaluation's share of laps (3 of 3 → 10 of 10).
+                let needed = policy::exchange::laps_needed(c.laps as usize, r.trials as usize, v.trials as usize);
+                self.may_miss.retain(|(e, _)| self.evals.iter().any(|(q, _)| same_request(q, e)));
+                self.may_miss.push((v.clone(), v.trials as usize - needed));
                 let mut at = 0;
                 for (i, (e, waited)) in self.evals.iter_mut().enumerate() {
                     if e.version == v.version {
@@ -417,6 +425,7 @@ impl Worker {
             // worker, not updating: the trials may have every core. (SAC updates while its next
             // round is collected, and these trials then share the cores as collection does.)
             spread: self.grant.is_some_and(|(_, _, left)| left > 0),
+            give_up_after_misses: self.may_miss.iter().find(|(e, _)| same_request(e, r)).map(|(_, k)| *k),
         };
         let trials =
             evaluate(&p.model, &p.metadata.action_space, &spec, &self.check_cfg, &plan, self.collector.gpu_mut())?;

@@ -405,13 +405,17 @@ impl Run<'_> {
     fn verification_held(&mut self, p: &PendingEval, t: &TargetLaps, per_world: &[WorldEval]) -> bool {
         let needed = t.needed(self.spec.eval_trials as usize, p.trials as usize);
         let held = verification_holds(per_world, needed, p.trials as usize);
-        let what = format!(
+        let mut what = format!(
             "{} (v{}) lapped {} of {} trials on every world in its verification ({needed} needed)",
             p.name,
             p.version,
             min_laps(per_world),
             p.trials
         );
+        // A worker stops a verification's trials once it can no longer hold.
+        for (world, .., laps, ran) in per_world.iter().filter(|w| w.4 < p.trials as usize) {
+            what += &format!("; on {world} {ran} trials ran, {laps} lapped, and it could no longer hold");
+        }
         if held {
             tracing::info!(run = %self.spec.name, "verified: {what}");
             self.evals.verified = Some(what);

@@ -30,8 +30,7 @@ impl TargetLaps {
     /// Laps an evaluation of `trials` trials needs on every world: the target's share of
     /// them (3 of 3 trials → every trial; 2 of 3 → 7 of 10), and never more than there are.
     pub fn needed(&self, eval_trials: usize, trials: usize) -> usize {
-        let share = self.laps.min(eval_trials) as f64 / eval_trials.max(1) as f64;
-        ((share * trials as f64) - 1e-9).ceil().clamp(0.0, trials as f64) as usize
+        policy::exchange::laps_needed(self.laps, eval_trials, trials)
     }
 }
 

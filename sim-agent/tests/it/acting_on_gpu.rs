@@ -56,7 +56,8 @@ fn evaluation_trials_on_the_gpu_are_the_ones_on_faer() {
     let model = Arc::new(ActorCritic::new(&meta, obs, &mut rand_chacha::ChaCha8Rng::seed_from_u64(9)));
     let rules = sim_agent::EvalRules::default();
     let space = &meta.action_space;
-    let plan = EvalPlan { rules, count: 3, seed: 4, threads: 1, all_frames: false, spread: false };
+    let plan =
+        EvalPlan { rules, count: 3, seed: 4, threads: 1, all_frames: false, spread: false, give_up_after_misses: None };
     let cpu = evaluate(&model, space, &spec, &cfg, &plan, None).unwrap();
     let mut acting = gpu::Acting::new(gpu);
     let on_gpu = evaluate(&model, space, &spec, &cfg, &plan, Some(&mut acting)).unwrap();
@@ -106,7 +107,8 @@ fn a_camera_policy_acts_on_the_environments_threads_and_gives_the_same_episodes(
     use sim_agent::rollout::{EvalPlan, evaluate};
     let trials = |threads, spread| {
         let rules = sim_agent::EvalRules::default();
-        let plan = EvalPlan { rules, count: 2, seed: 4, threads, all_frames: false, spread };
+        let plan =
+            EvalPlan { rules, count: 2, seed: 4, threads, all_frames: false, spread, give_up_after_misses: None };
         evaluate(&model, &meta.action_space, &spec, &cfg, &plan, None).unwrap()
     };
     let (t1, t2) = (trials(1, false), trials(2, true));

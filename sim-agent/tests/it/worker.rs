@@ -276,3 +276,47 @@ fn the_schedules_weights_move_environments_at_their_episodes_ends_and_none_is_lo
     let on = |world: &str| last.iter().filter(|w| **w == world).count();
     assert_eq!((on("reinvent_base"), on("reinvent_wood"), on("Oval_track")), (6, 1, 1), "{last:?}");
 }
+
+/// Issue 55: a verification's trials stop once more have missed than it can take and still
+/// hold. What comes back is exactly the trials that had ended by then, the same bits as in the
+/// whole run; the share a chained verification needs is the evaluation's (3 of 3 → 10 of 10,
+/// 2 of 3 → 7 of 10).
+#[test]
+fn a_verification_stops_once_it_can_no_longer_hold() {
+    use policy::exchange::laps_needed;
+    use sim_agent::rollout::{EvalPlan, evaluate};
+    for (laps, of, trials, needed) in [(3, 3, 10, 10), (2, 3, 10, 7), (1, 3, 10, 4), (0, 3, 10, 0), (5, 3, 10, 10)] {
+        assert_eq!(laps_needed(laps, of, trials), needed, "{laps} of {of} → of {trials}");
+    }
+    let meta = ModelMetadata::default_state_vector();
+    let cfg = Arc::new(SimConfig::default());
+    let obs = sim_agent::obs::obs_dim(&cfg.observation);
+    // An untrained policy whose trials leave the track between steps 39 and 48.
+    let model = Arc::new(ActorCritic::new(&meta, obs, &mut rand_chacha::ChaCha8Rng::seed_from_u64(9)));
+    let spec = EnvSpec::from_world(&tracks::world("reinvent_base").unwrap(), tracks::Direction::Forward);
+    let run = |give_up_after_misses| {
+        let plan = EvalPlan {
+            rules: sim_agent::EvalRules::default(),
+            count: 8,
+            seed: 11,
+            threads: 1,
+            all_frames: false,
+            spread: false,
+            give_up_after_misses,
+        };
+        let t = evaluate(&model, &meta.action_space, &spec, &cfg, &plan, None).unwrap();
+        t.into_iter().map(|t| (t.steps, t.progress.to_bits(), t.lap_time, t.off_track)).collect::<Vec<_>>()
+    };
+    let whole = run(None);
+    assert_eq!(whole.len(), 8);
+    assert!(whole.iter().all(|t| t.2.is_none()), "an untrained policy laps nothing: {whole:?}");
+    let mut ends: Vec<u64> = whole.iter().map(|t| t.0).collect();
+    ends.sort();
+    for k in [0, 3, 7] {
+        // The trials end on the step the (k+1)th miss came; those that ended by then come back.
+        let stop = ends[k];
+        let want: Vec<_> = whole.iter().filter(|t| t.0 <= stop).cloned().collect();
+        assert_eq!(run(Some(k)), want, "giving up after {k} misses");
+    }
+    assert!(run(Some(0)).len() < 8, "the trials end apart, so giving up at once leaves some out: {ends:?}");
+}
