@@ -414,7 +414,10 @@ impl Run<'_> {
         );
         // A worker stops a verification's trials once it can no longer hold.
         for (world, .., laps, ran) in per_world.iter().filter(|w| w.4 < p.trials as usize) {
-            what += &format!("; on {world} {ran} trials ran, {laps} lapped, and it could no longer hold");
+            what += &format!(
+                "; on {world} it ran {ran} of its {} trials, lapped {laps}, and could no longer hold",
+                p.trials
+            );
         }
         if held {
             tracing::info!(run = %self.spec.name, "verified: {what}");
