@@ -251,9 +251,9 @@ pub struct EvalPlan {
 
 /// Run `plan.count` evaluation trials in parallel from the start line, with the policy's
 /// most likely action at every step (a trial that has ended is not simulated further; with
-/// `plan.give_up_after_misses`, the trials end once that many and one more have missed); its forward passes on `gpu` when one is given (a GPU
-/// that fails leaves the rest of the trials on the CPU, and the log says so), else on faer
-/// as `plan.spread` says.
+/// `plan.give_up_after_misses`, the trials end once that many and one more have missed); its
+/// forward passes on `gpu` when one is given (a GPU that fails leaves the rest of the trials
+/// on the CPU, and the log says so), else on faer as `plan.spread` says.
 pub fn evaluate(
     model: &Arc<ActorCritic>,
     space: &ActionSpace,
