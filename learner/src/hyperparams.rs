@@ -7,6 +7,7 @@
 //! type is refused naming the key. Defaults are the DeepRacer console's PPO defaults.
 
 use policy::TrainingAlgorithm;
+use policy::nn::Precision;
 use serde_json::Value;
 use std::path::Path;
 
@@ -129,6 +130,12 @@ pub struct Hyperparameters {
     /// collected): gradient steps per new transition, the bound flow control keeps on the
     /// replay's intake.
     pub sac_gradient_steps_per_transition: f64,
+    /// Paddock's addition for PPO (default `"f32"`): `"bf16"` makes the update's matrix
+    /// products with operands rounded to bf16 and f32 sums, twice the multiply-adds a cycle
+    /// on a CPU with AVX-512 BF16 (AMD Zen 4 and later, Intel Sapphire Rapids and later); a
+    /// learner on a CPU without it refuses the run. The weights, Adam's moments and every sum
+    /// stay f32.
+    pub precision: Precision,
 }
 
 impl Default for Hyperparameters {
@@ -153,6 +160,7 @@ impl Default for Hyperparameters {
             sac_tau: 1.0,
             sac_replay_size: 1_000_000,
             sac_gradient_steps_per_transition: 1.0,
+            precision: Precision::F32,
         }
     }
 }
@@ -187,6 +195,7 @@ impl Parsed {
                     | "value_warmup_updates"
                     | "value_epochs"
                     | "dual_clip"
+                    | "precision"
                     | "exploration_type"
                     | "e_greedy_value"
                     | "epsilon_steps",
@@ -317,6 +326,13 @@ impl Hyperparameters {
                         _ => return Err(err(format!("key 'dual_clip' is {v}, expected a number above 1 or null"))),
                     };
                 }
+                "precision" => {
+                    h.precision = match v.as_str() {
+                        Some("f32") => Precision::F32,
+                        Some("bf16") => Precision::Bf16,
+                        _ => return Err(err(format!("key 'precision' is {v}, expected \"f32\" or \"bf16\""))),
+                    };
+                }
                 "stack_size" => {
                     int(k, v)?;
                 }
@@ -398,6 +414,7 @@ impl Hyperparameters {
             "sac_tau": self.sac_tau,
             "sac_replay_size": self.sac_replay_size,
             "sac_gradient_steps_per_transition": self.sac_gradient_steps_per_transition,
+            "precision": match self.precision { Precision::F32 => "f32", Precision::Bf16 => "bf16" },
         }))
         .expect("JSON")
     }
@@ -485,6 +502,32 @@ mod tests {
         }
         let p = Hyperparameters::parse(r#"{"dual_clip": 3}"#, "h.json").unwrap();
         assert!(p.ignored_for(TrainingAlgorithm::Sac).iter().any(|k| k.starts_with("dual_clip")));
+        assert!(p.ignored_for(TrainingAlgorithm::ClippedPpo).is_empty());
+    }
+
+    /// Issue 55: `precision` is "f32" (without it) or "bf16", survives the round trip, and
+    /// is PPO's alone.
+    #[test]
+    fn precision_is_f32_or_bf16_and_survives_the_round_trip() {
+        for (text, want) in [
+            (r#"{"precision": "bf16"}"#, Precision::Bf16),
+            (r#"{"precision": "f32"}"#, Precision::F32),
+            ("{}", Precision::F32),
+        ] {
+            let p = Hyperparameters::parse(text, "h.json").unwrap();
+            assert_eq!(p.hyperparameters.precision, want, "{text}");
+            let back = Hyperparameters::parse(&p.hyperparameters.to_json(), "back.json").unwrap().hyperparameters;
+            assert_eq!(back, p.hyperparameters, "{text}");
+        }
+        for bad in [r#"{"precision": "fp16"}"#, r#"{"precision": 16}"#, r#"{"precision": null}"#] {
+            let e = Hyperparameters::parse(bad, "h.json").unwrap_err().to_string();
+            assert!(
+                e.starts_with("h.json: key 'precision'") && e.contains(r#"expected "f32" or "bf16""#),
+                "{bad}: {e}"
+            );
+        }
+        let p = Hyperparameters::parse(r#"{"precision": "bf16"}"#, "h.json").unwrap();
+        assert!(p.ignored_for(TrainingAlgorithm::Sac).iter().any(|k| k.starts_with("precision")));
         assert!(p.ignored_for(TrainingAlgorithm::ClippedPpo).is_empty());
     }
 

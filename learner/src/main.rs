@@ -212,20 +212,23 @@ fn bench(network: &str, seconds: f64, threads: usize, device: learner::DeviceCho
     let batch = random_batch(&model, n, &mut rng, &frame);
     let idx: Vec<usize> = (0..n).collect();
     let h = Hyperparameters::default();
+    // The same step with bf16 products, where the CPU makes them.
+    let h_bf16 = policy::nn::Precision::bf16_available()
+        .then(|| Hyperparameters { precision: policy::nn::Precision::Bf16, ..h.clone() });
     // What one minibatch costs in training: forward + backward of both towers (the big dense
     // layers' weight gradients left as factors), and (`adam`) the whole gradient step as
     // `Ppo::update` takes it: those gradients multiplied out and Adam applied over every
     // parameter. Returns the work, set up once and run once untimed.
-    let step = |par: Par, adam: bool| {
+    let step = |par: Par, adam: bool, h: &Hyperparameters| {
         let mut ws = Workspace::default();
         let mut ppo = learner::ppo::Ppo::new(model.clone(), h.clone(), 0, 1, par);
         let defer = (model.pi.factorable(n), model.v.factorable(n));
-        let (batch, idx, model, h) = (&batch, &idx, &model, &h);
+        let (batch, idx, model, h) = (&batch, &idx, &model, h.clone());
         let mut once = move || {
             if adam {
                 std::hint::black_box(ppo.gradient_step(batch, idx));
             } else {
-                let lg = loss_and_grad_factored(&mut ws, model, batch, idx, h, par, (&defer.0, &defer.1));
+                let lg = loss_and_grad_factored(&mut ws, model, batch, idx, &h, par, (&defer.0, &defer.1));
                 ws.recycle(std::hint::black_box(lg));
             }
         };
@@ -296,15 +299,18 @@ fn bench(network: &str, seconds: f64, threads: usize, device: learner::DeviceCho
         // taken side by side on a machine whose speed drifts (a shared VM's does, by 3-5 %
         // from one measurement to the next).
         let secs = seconds / ROUNDS as f64;
-        let mut work: [Box<dyn FnMut()>; 4] = [
-            Box::new(step(par, false)),
-            Box::new(step(par, true)),
+        let mut work: Vec<Box<dyn FnMut()>> = vec![
+            Box::new(step(par, false, &h)),
+            Box::new(step(par, true, &h)),
             Box::new(gemm_only(par, true)),
             Box::new(gemm_only(par, false)),
         ];
-        let rounds: Vec<[f64; 4]> = (0..ROUNDS)
+        if let Some(hb) = &h_bf16 {
+            work.push(Box::new(step(par, true, hb)));
+        }
+        let rounds: Vec<[f64; 5]> = (0..ROUNDS)
             .map(|_| {
-                let mut r = [0.0; 4];
+                let mut r = [0.0; 5];
                 for (r, w) in r.iter_mut().zip(work.iter_mut()) {
                     *r = samples_per_second(n, secs, w);
                 }
@@ -312,7 +318,7 @@ fn bench(network: &str, seconds: f64, threads: usize, device: learner::DeviceCho
             })
             .collect();
         drop(work);
-        let [fb, full, ceiling, whole] = [0, 1, 2, 3].map(|i| median(rounds.iter().map(|r| r[i]).collect()));
+        let [fb, full, ceiling, whole, bf16] = [0, 1, 2, 3, 4].map(|i| median(rounds.iter().map(|r| r[i]).collect()));
         let reach: Vec<f64> = rounds.iter().map(|r| 100.0 * r[1] / r[2]).collect();
         let (lo, hi) = (reach.iter().copied().fold(f64::MAX, f64::min), reach.iter().copied().fold(0.0, f64::max));
         let reach = median(reach);
@@ -328,6 +334,14 @@ fn bench(network: &str, seconds: f64, threads: usize, device: learner::DeviceCho
             "| {t} thread(s): the same GEMMs alone, each conv product over the whole batch | {whole:.0} (the training step {:.0} % of it) |",
             100.0 * full / whole
         );
+        if h_bf16.is_some() {
+            let ratio = median(rounds.iter().map(|r| r[4] / r[1]).collect());
+            println!(
+                "| {t} thread(s): one training step with bf16 products (`\"precision\": \"bf16\"`) | {bf16:.0} ({ratio:.2}× the f32 step: the median of the rounds' ratios) |"
+            );
+        } else {
+            println!("| {t} thread(s): one training step with bf16 products | — (this CPU has no AVX-512 BF16) |");
+        }
         // Adam alone over every parameter (a memory-bound pass: weights, both moments read
         // and written, the gradient read): what a step costs beyond its GEMMs at the least.
         let adam_ms = adam_alone(&model, par, seconds.min(3.0));

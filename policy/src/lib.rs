@@ -4,6 +4,7 @@
 //!   are wrong, naming the file.
 //! - [`metadata`]: DeepRacer's `model_metadata.json` and action spaces.
 //! - [`nn`]: layers on faer, forward and backward, Adam.
+//! - `bf16`: matrix products with bf16 operands and f32 sums (x86-64 with AVX-512 BF16).
 //! - [`model`]: the actor-critic (separate policy and value towers, DeepRacer's networks by
 //!   name) and its heads.
 //! - [`folder`]: the model folder (safetensors + `model_metadata.json` + manifest).
@@ -20,6 +21,8 @@
 //!
 //! Architecture invariant: no physics, no transport, no Python here.
 
+#[cfg(target_arch = "x86_64")]
+pub mod bf16;
 pub mod car;
 pub mod carpkg;
 pub mod coach;

@@ -63,6 +63,40 @@ pub fn gemm(dst: &mut [f32], a: &[f32], b: &[f32], p: Product, par: Par) {
     faer::linalg::matmul::matmul(out, beta, lhs, rhs, 1.0f32, par);
 }
 
+/// The precision of a network's matrix products in a pass.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Precision {
+    /// f32 operands and sums (faer).
+    #[default]
+    F32,
+    /// Operands rounded to bf16, f32 sums, on a CPU with AVX-512 BF16 (twice the multiply-adds
+    /// a cycle); where the CPU lacks it, f32 (a caller that asks for it checks
+    /// [`Precision::bf16_available`] first and says so).
+    Bf16,
+}
+
+impl Precision {
+    /// Whether this CPU makes bf16 products.
+    pub fn bf16_available() -> bool {
+        #[cfg(target_arch = "x86_64")]
+        return crate::bf16::available();
+        #[cfg(not(target_arch = "x86_64"))]
+        return false;
+    }
+}
+
+/// [`gemm`] in `precision`.
+pub fn gemm_in(precision: Precision, dst: &mut [f32], a: &[f32], b: &[f32], p: Product, par: Par) {
+    #[cfg(target_arch = "x86_64")]
+    if precision == Precision::Bf16 && crate::bf16::available() {
+        let Product { m, n, k, a_t, b_t, add } = p;
+        return crate::bf16::gemm(dst, a, b, m, n, k, a_t, b_t, add, par);
+    }
+    let _ = precision;
+    gemm(dst, a, b, p, par)
+}
+
 /// Whether a dense layer's forward pass over `batch` samples is made as `outᵀ (out × batch)
 /// = b + W · xᵀ` and then turned into `out`, rather than as `out = b + x · Wᵀ`: over more
 /// than one sample. faer makes the product in that orientation faster for the camera
@@ -232,6 +266,8 @@ pub struct Tape {
     out_t: Vec<f32>,
     /// A multi-input network's gradient wrt its concatenated embeddings.
     merged: Vec<f32>,
+    /// The precision of the passes' matrix products (f32 unless a learner asks otherwise).
+    pub precision: Precision,
 }
 
 impl Tape {
@@ -463,7 +499,7 @@ impl Net {
                         let out_t = &mut tape.out_t;
                         out_t.clear();
                         out_t.extend(b.iter().flat_map(|&v| std::iter::repeat_n(v, batch)));
-                        gemm(out_t, w, inp, Product::new(n_out, batch, n_in).b_t().add(), par);
+                        gemm_in(tape.precision, out_t, w, inp, Product::new(n_out, batch, n_in).b_t().add(), par);
                         for (o, col) in out_t.chunks_exact(batch).enumerate() {
                             for (row, v) in out.chunks_exact_mut(n_out).zip(col) {
                                 row[o] = *v;
@@ -473,7 +509,7 @@ impl Net {
                         for row in out.chunks_mut(n_out) {
                             row.copy_from_slice(b);
                         }
-                        gemm(out, inp, w, Product::new(batch, n_out, n_in).b_t().add(), par);
+                        gemm_in(tape.precision, out, inp, w, Product::new(batch, n_out, n_in).b_t().add(), par);
                     }
                 }
                 Layer::Conv2d { filters, offset, .. } => {
@@ -489,7 +525,7 @@ impl Net {
                         }
                         _ => None,
                     };
-                    Conv { layer, w, b, par }.forward(inp, out, relu, &mut tape.conv);
+                    Conv { layer, w, b, par, precision: tape.precision }.forward(inp, out, relu, &mut tape.conv);
                 }
             }
         }
@@ -621,7 +657,7 @@ impl Net {
     ) {
         let Backward { tape, grad, par, defer, factors, want_input } = pass;
         let (par, defer, want_input) = (*par, *defer, *want_input);
-        let batch = tape.batch;
+        let (batch, precision) = (tape.batch, tape.precision);
         for i in range.clone().rev() {
             let layer = &self.layers[i];
             let inp = &tape.acts[i + shift];
@@ -655,7 +691,7 @@ impl Net {
                         factors.push(Factors { offset, n_in, n_out, batch, x, d: d.clone() });
                     } else {
                         // dW (out × in) += dᵀ (out × batch) · x (batch × in)
-                        gemm(gw, d, inp, Product::new(n_out, n_in, batch).a_t().add(), par);
+                        gemm_in(precision, gw, d, inp, Product::new(n_out, n_in, batch).a_t().add(), par);
                     }
                     for row in d.chunks(n_out) {
                         for (g, v) in gb.iter_mut().zip(row) {
@@ -665,7 +701,7 @@ impl Net {
                     if need_dx {
                         d_prev.resize(batch * n_in, 0.0);
                         let w = &self.params[offset..offset + n_in * n_out];
-                        gemm(d_prev, d, w, Product::new(batch, n_in, n_out), par);
+                        gemm_in(precision, d_prev, d, w, Product::new(batch, n_in, n_out), par);
                     }
                 }
                 Layer::Conv2d { filters, offset, .. } => {
@@ -684,7 +720,7 @@ impl Net {
                     } else {
                         None
                     };
-                    Conv { layer, w, b, par }.backward(inp, d, relu_in, dx, sums, &mut tape.conv);
+                    Conv { layer, w, b, par, precision }.backward(inp, d, relu_in, dx, sums, &mut tape.conv);
                 }
             }
             if !need_dx {
@@ -805,6 +841,7 @@ struct Conv<'a> {
     w: &'a [f32],
     b: &'a [f32],
     par: Par,
+    precision: Precision,
 }
 
 impl Conv<'_> {
@@ -813,7 +850,7 @@ impl Conv<'_> {
     /// the next layer is a ReLU (`relu`, its output), `relu = max(0, out)` while the chunk is in
     /// cache.
     fn forward(&self, x: &[f32], out: &mut [f32], relu: Option<&mut [f32]>, scratch: &mut Vec<ConvScratch>) {
-        let Conv { layer, w, b, par } = *self;
+        let Conv { layer, w, b, par, precision } = *self;
         let ConvPlan { filters, kkc, oh, ow, per_in, per_out, share, chunk, shares } =
             ConvPlan::new(layer, x, par, scratch);
         let run = |x: &[f32], out: &mut [f32], mut relu: Option<&mut [f32]>, s: &mut ConvScratch| {
@@ -823,7 +860,7 @@ impl Conv<'_> {
                 for row in oc.chunks_mut(filters) {
                     row.copy_from_slice(b);
                 }
-                gemm(oc, &s.cols, w, Product::new(n * oh * ow, filters, kkc).b_t().add(), Par::Seq);
+                gemm_in(precision, oc, &s.cols, w, Product::new(n * oh * ow, filters, kkc).b_t().add(), Par::Seq);
                 if let Some(relu) = relu.as_deref_mut() {
                     for (r, v) in relu[c * chunk * per_out..][..oc.len()].iter_mut().zip(oc.iter()) {
                         *r = v.max(0.0);
@@ -858,7 +895,7 @@ impl Conv<'_> {
         (gw, gb): (&mut [f32], &mut [f32]),
         scratch: &mut Vec<ConvScratch>,
     ) {
-        let Conv { layer, w, par, .. } = *self;
+        let Conv { layer, w, par, precision, .. } = *self;
         let ConvPlan { filters, kkc, oh, ow, per_in, per_out, share, chunk, shares } =
             ConvPlan::new(layer, x, par, scratch);
         let run = |x: &[f32],
@@ -895,10 +932,10 @@ impl Conv<'_> {
                     }
                 }
                 im2col(layer, &x[first * per_in..(first + n) * per_in], n, cols);
-                gemm(gw, dc, cols, Product::new(filters, kkc, rows).a_t().add(), Par::Seq);
+                gemm_in(precision, gw, dc, cols, Product::new(filters, kkc, rows).a_t().add(), Par::Seq);
                 if let Some(dx) = dx.as_deref_mut() {
                     d_cols.resize(rows * kkc, 0.0);
-                    gemm(&mut d_cols[..rows * kkc], dc, w, Product::new(rows, kkc, filters), Par::Seq);
+                    gemm_in(precision, &mut d_cols[..rows * kkc], dc, w, Product::new(rows, kkc, filters), Par::Seq);
                     col2im(layer, &d_cols[..rows * kkc], n, &mut dx[first * per_in..(first + n) * per_in]);
                 }
             }

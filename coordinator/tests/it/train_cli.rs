@@ -144,6 +144,22 @@ fn a_device_that_is_not_one_is_refused_before_training() {
     assert!(!dir.path().join("run").exists(), "nothing was trained or written");
 }
 
+/// Issue 55: bf16 products are the CPU's: a run that asks for them is refused before training
+/// on the GPU, and on a CPU without AVX-512 BF16.
+#[test]
+fn bf16_products_are_refused_where_they_cannot_be_made() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("bf16.json"), r#"{"precision": "bf16"}"#).unwrap();
+    let o = coordinator(dir.path(), &["train", "--out", "run", "--hyperparameters", "bf16.json", "--device", "gpu"]);
+    let want = if policy::nn::Precision::bf16_available() {
+        "precision \"bf16\" is the CPU's (faer's products in bf16); the GPU's update is f32"
+    } else {
+        "precision \"bf16\" needs a CPU with AVX-512 BF16"
+    };
+    assert!(!o.status.success() && text(&o).contains(want), "{}", text(&o));
+    assert!(!dir.path().join("run/checkpoints").exists(), "nothing was trained");
+}
+
 #[test]
 fn train_refuses_a_raising_reward_before_training() {
     let dir = tempfile::tempdir().unwrap();

@@ -32,7 +32,7 @@ use crate::hyperparams::{Hyperparameters, LossType};
 use crate::update::{LearnerState, Refused, StateMismatch};
 use faer::Par;
 use policy::model::{LOG_STD_RANGE, clip_log_std, gaussian_entropy, gaussian_logp, log_softmax};
-use policy::nn::{Adam, Deferral, Factors, Tape};
+use policy::nn::{Adam, Deferral, Factors, Precision, Tape};
 use policy::{ActorCritic, Choice, Head, Trajectory};
 use rand::SeedableRng;
 use rand::seq::SliceRandom;
@@ -114,8 +114,15 @@ pub fn make_batch(trajs: &[Trajectory], obs_size: usize, gamma: f64) -> Batch {
 /// time. Experience acted a version or two back (the lag flow control allows) is then clipped
 /// around the policy being trained, and its advantages rest on that policy's value estimates.
 pub fn make_batch_for(trajs: &[Trajectory], model: &ActorCritic, gamma: f64, par: Par) -> Batch {
-    let mine =
-        |obs: &[f32], choices: &[Choice]| Ok::<_, std::convert::Infallible>(logp_and_values(model, obs, choices, par));
+    make_batch_in(trajs, model, gamma, par, Precision::F32)
+}
+
+/// [`make_batch_for`] with the network's products in `precision` (the update's own, so that
+/// an update's first ratios are 1 whatever the precision).
+pub fn make_batch_in(trajs: &[Trajectory], model: &ActorCritic, gamma: f64, par: Par, precision: Precision) -> Batch {
+    let mine = |obs: &[f32], choices: &[Choice]| {
+        Ok::<_, std::convert::Infallible>(logp_and_values_in(model, obs, choices, par, precision))
+    };
     let Ok(b) = batch_with(trajs, model.obs_size(), gamma, mine);
     b
 }
@@ -155,10 +162,22 @@ fn batch_with<E>(
 
 /// log π(choice | obs) and V(obs) by `model` for every row of `obs`.
 pub fn logp_and_values(model: &ActorCritic, obs: &[f32], choices: &[Choice], par: Par) -> (Vec<f32>, Vec<f32>) {
+    logp_and_values_in(model, obs, choices, par, Precision::F32)
+}
+
+/// [`logp_and_values`] with the network's products in `precision`.
+pub fn logp_and_values_in(
+    model: &ActorCritic,
+    obs: &[f32],
+    choices: &[Choice],
+    par: Par,
+    precision: Precision,
+) -> (Vec<f32>, Vec<f32>) {
     let os = model.obs_size();
     let dim = model.pi.out_size();
     let (mut logp, mut values) = (Vec::with_capacity(choices.len()), Vec::with_capacity(choices.len()));
     let mut tape = Tape::default();
+    tape.precision = precision;
     for (rows, picked) in obs.chunks(RELABEL_ROWS * os).zip(choices.chunks(RELABEL_ROWS)) {
         let n = picked.len();
         model.pi.forward(rows, n, &mut tape, par);
@@ -304,6 +323,7 @@ fn loss_and_grad_of(
     let n = idx.len();
     let os = batch.obs_size;
     let Workspace { tape_pi, tape_v, obs, grad_pi, grad_v } = ws;
+    (tape_pi.precision, tape_v.precision) = (h.precision, h.precision);
     // Zeroed but for the deferred layers' weights, which the backward pass leaves alone
     // (46 MB for SHALLOW's two towers, not written on every minibatch).
     let take_zeroed = |buf: &mut Vec<f32>, net: &policy::nn::Net, defer: &[usize]| {

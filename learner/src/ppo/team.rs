@@ -23,7 +23,7 @@
 //!   value tower's to those that train the policy tower, so every member ends the update
 //!   with the same state, bit for bit, and any of them can lead or go on alone.
 
-use super::{Batch, LossGrad, Ppo, batch_with, logp_and_values, make_batch_for};
+use super::{Batch, LossGrad, Ppo, batch_with, logp_and_values_in, make_batch_in};
 use crate::group::{GroupError, Reducer, check_factors, factored_grads, kept, skipped};
 use policy::nn::{Adam, Factors};
 use policy::{Head, Trajectory};
@@ -105,15 +105,15 @@ impl Ppo {
     /// pass is split like the gradients.
     pub(super) fn batch_in(&self, trajs: &[Trajectory], group: &mut dyn Reducer) -> Result<Batch, GroupError> {
         let (rank, size) = group.shard();
-        let (model, par, gamma) = (&self.model, self.par, self.hyper.discount_factor);
+        let (model, par, gamma, precision) = (&self.model, self.par, self.hyper.discount_factor, self.hyper.precision);
         if size == 1 {
-            return Ok(make_batch_for(trajs, model, gamma, par));
+            return Ok(make_batch_in(trajs, model, gamma, par, precision));
         }
         let os = model.obs_size();
         batch_with(trajs, os, gamma, |obs, choices| {
             let n = choices.len();
             let (a, b) = (n * rank / size, n * (rank + 1) / size);
-            let (logp, values) = logp_and_values(model, &obs[a * os..b * os], &choices[a..b], par);
+            let (logp, values) = logp_and_values_in(model, &obs[a * os..b * os], &choices[a..b], par, precision);
             let mut both = vec![0.0f32; 2 * n];
             both[a..b].copy_from_slice(&logp);
             both[n + a..n + b].copy_from_slice(&values);

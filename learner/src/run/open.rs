@@ -43,6 +43,20 @@ fn open_mode(start: &Start, exists: bool, model: bool, manifest: bool) -> (OpenM
 
 /// Open the run folder and the model.
 pub(super) fn open(spec: &RunSpec) -> Result<Opened, RunFailure> {
+    if spec.hyper.precision == policy::nn::Precision::Bf16 && !policy::nn::Precision::bf16_available() {
+        return Err(RunFailure::Inputs(
+            "hyperparameters: precision \"bf16\" needs a CPU with AVX-512 BF16 (AMD Zen 4 or later, Intel Sapphire \
+             Rapids or later), and this learner's has none; set \"f32\""
+                .into(),
+        ));
+    }
+    if spec.hyper.precision == policy::nn::Precision::Bf16 && spec.gpu.is_some() {
+        return Err(RunFailure::Inputs(
+            "hyperparameters: precision \"bf16\" is the CPU's (faer's products in bf16); the GPU's update \
+             is f32: train with --device cpu, or set \"f32\""
+                .into(),
+        ));
+    }
     let model = spec.out.join("model");
     let (mode, clone_from) =
         open_mode(&spec.start, spec.out.exists(), model.exists(), model.join("manifest.json").exists());

@@ -2,7 +2,7 @@
 //! is known (it fails if the gradient's sign or the advantage is wrong).
 
 use faer::Par;
-use learner::ppo::{Batch, gae, logp_and_values, loss_and_grad, make_batch, make_batch_for};
+use learner::ppo::{Batch, gae, logp_and_values, loss_and_grad, make_batch, make_batch_for, make_batch_in};
 use learner::{Hyperparameters, LossType, Ppo};
 use policy::{ActorCritic, Choice, ModelMetadata, Trajectory};
 use rand::{Rng, SeedableRng};
@@ -199,6 +199,42 @@ fn a_nan_never_reaches_the_weights() {
     ppo.update(&good).unwrap();
     assert_eq!(ppo.version, 4);
     assert_ne!(ppo.model, before);
+}
+
+/// Issue 55: with `"precision": "bf16"` PPO still learns the bandit; its batch's figures come
+/// from the same bf16 products as its gradient steps, so the first minibatch's ratios are 1;
+/// and on a CPU with AVX-512 BF16 it is not the f32 update (elsewhere it is, bit for bit).
+#[test]
+fn a_bf16_update_learns_and_clips_around_its_own_figures() {
+    use policy::nn::Precision;
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    let model = ActorCritic::new(&meta(false), 6, &mut rng);
+    let h = Hyperparameters {
+        lr: 3e-3,
+        num_epochs: 4,
+        batch_size: 32,
+        precision: Precision::Bf16,
+        ..Hyperparameters::default()
+    };
+    let (trajs, first) = bandit_episodes(&model, 0, 128, &mut rng);
+    let batch = make_batch_in(&trajs, &model, h.discount_factor, Par::Seq, Precision::Bf16);
+    let lg = loss_and_grad(&model, &batch, &(0..32).collect::<Vec<_>>(), &h, Par::Seq);
+    assert!(lg.approx_kl.abs() < 1e-6 && lg.clip_fraction == 0.0, "{} {}", lg.approx_kl, lg.clip_fraction);
+    let mut ppo = Ppo::new(model.clone(), h.clone(), 0, 1, Par::Seq);
+    let mut in_f32 = Ppo::new(model, Hyperparameters { precision: Precision::F32, ..h }, 0, 1, Par::Seq);
+    ppo.update(&trajs).unwrap();
+    in_f32.update(&trajs).unwrap();
+    if Precision::bf16_available() {
+        assert_ne!(ppo.model, in_f32.model, "the bf16 update made the f32 products");
+    } else {
+        assert_eq!(ppo.model, in_f32.model);
+    }
+    for _ in 0..24 {
+        let (trajs, _) = bandit_episodes(&ppo.model, ppo.version, 128, &mut rng);
+        ppo.update(&trajs).unwrap();
+    }
+    let (_, last) = bandit_episodes(&ppo.model, ppo.version, 400, &mut rng);
+    assert!(first < 0.5 && last > 0.9, "PPO in bf16 finds the rewarded action: {first} -> {last}");
 }
 
 /// Issue 8: the old policy is the network as the update begins.
