@@ -63,21 +63,10 @@ thread_local! {
     static PACKS: RefCell<(Vec<u32>, Vec<u32>)> = const { RefCell::new((Vec::new(), Vec::new())) };
 }
 
-/// `dst (m×n) = op(a) (m×k) · op(b) (k×n)`, plus `dst` when `add`; all row-major, `a_t`: `a`
-/// stored `k×m`, `b_t`: `b` stored `n×k`. Panics unless [`available`].
-#[allow(clippy::too_many_arguments)]
-pub fn gemm(
-    dst: &mut [f32],
-    a: &[f32],
-    b: &[f32],
-    m: usize,
-    n: usize,
-    k: usize,
-    a_t: bool,
-    b_t: bool,
-    add: bool,
-    par: Par,
-) {
+/// `dst = op(a) · op(b)` (+ `dst`) as `p` describes, all row-major as [`crate::nn::gemm`]
+/// takes them. Panics unless [`available`].
+pub fn gemm(dst: &mut [f32], a: &[f32], b: &[f32], p: crate::nn::Product, par: Par) {
+    let crate::nn::Product { m, n, k, a_t, b_t, add } = p;
     assert!(available(), "bf16 products need AVX-512 BF16");
     assert_eq!(dst.len(), m * n);
     assert_eq!(a.len(), m * k);
@@ -139,18 +128,18 @@ pub fn gemm(
                             let c0 = j0 + p * NR;
                             let nr = (j1 - c0).min(NR);
                             let c = (dst_addr as *mut f32).add(i0 * n + c0);
-                            kernel(
+                            kernel(Tile {
                                 pairs,
-                                ap.as_ptr(),
+                                a: ap.as_ptr(),
                                 rs,
                                 ks,
-                                bp.as_ptr().add(p * pairs * NR),
+                                b: bp.as_ptr().add(p * pairs * NR),
                                 c,
-                                n,
-                                i1 - i0,
+                                ldc: n,
+                                mr: i1 - i0,
                                 nr,
                                 accumulate,
-                            );
+                            });
                         }
                     }
                 }
@@ -319,11 +308,9 @@ unsafe fn pack_b(b: &View, k0: usize, k1: usize, j0: usize, j1: usize, out: &mut
     }
 }
 
-/// `c (mr×nr, row stride ldc) (+)= Σ over `pairs` of a's pair (row r: `a[r·rs + q·ks]`) times
-/// the panel's row `q`.
-#[allow(clippy::too_many_arguments)]
-#[target_feature(enable = "avx512f,avx512bw,avx512vl,avx512bf16")]
-unsafe fn kernel(
+/// One micro-kernel call: `c (mr×nr, row stride ldc) (+)= Σ over `pairs` of a's pair (row r:
+/// `a[r·rs + q·ks]`) times the panel `b`'s row `q`; `accumulate`: add into `c`.
+struct Tile {
     pairs: usize,
     a: *const u32,
     rs: usize,
@@ -334,7 +321,12 @@ unsafe fn kernel(
     mr: usize,
     nr: usize,
     accumulate: bool,
-) {
+}
+
+/// Run `t` (see [`Tile`]).
+#[target_feature(enable = "avx512f,avx512bw,avx512vl,avx512bf16")]
+unsafe fn kernel(t: Tile) {
+    let Tile { pairs, a, rs, ks, b, c, ldc, mr, nr, accumulate } = t;
     // SAFETY: the caller checked the CPU's features; pointers stay within the slices
     // they come from (bounds above, masks at the edges).
     unsafe {
@@ -414,9 +406,9 @@ mod tests {
                 let b: Vec<f32> = (0..k * n).map(|_| rnd()).collect();
                 let c0: Vec<f32> = (0..m * n).map(|_| rnd()).collect();
                 let mut one = c0.clone();
-                gemm(&mut one, &a, &b, m, n, k, a_t, b_t, add, Par::Seq);
+                gemm(&mut one, &a, &b, crate::nn::Product { m, n, k, a_t, b_t, add }, Par::Seq);
                 let mut two = c0.clone();
-                gemm(&mut two, &a, &b, m, n, k, a_t, b_t, add, Par::rayon(2));
+                gemm(&mut two, &a, &b, crate::nn::Product { m, n, k, a_t, b_t, add }, Par::rayon(2));
                 let what = format!("{m}×{n}×{k}, a_t {a_t}, b_t {b_t}, add {add}");
                 assert!(one.iter().zip(&two).all(|(x, y)| x.to_bits() == y.to_bits()), "{what}: threads differ");
                 for i in 0..m {

@@ -90,8 +90,7 @@ impl Precision {
 pub fn gemm_in(precision: Precision, dst: &mut [f32], a: &[f32], b: &[f32], p: Product, par: Par) {
     #[cfg(target_arch = "x86_64")]
     if precision == Precision::Bf16 && crate::bf16::available() {
-        let Product { m, n, k, a_t, b_t, add } = p;
-        return crate::bf16::gemm(dst, a, b, m, n, k, a_t, b_t, add, par);
+        return crate::bf16::gemm(dst, a, b, p, par);
     }
     let _ = precision;
     gemm(dst, a, b, p, par)
