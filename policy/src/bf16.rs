@@ -40,12 +40,7 @@ pub fn available() -> bool {
 
 /// `x` rounded to bf16, to nearest with ties to even (NaN stays NaN), as its 16 bits.
 pub fn round(x: f32) -> u16 {
-    let b = x.to_bits();
-    if x.is_nan() {
-        return ((b >> 16) | 0x40) as u16;
-    }
-    let lsb = (b >> 16) & 1;
-    ((b.wrapping_add(0x7FFF + lsb)) >> 16) as u16
+    half::bf16::from_f32(x).to_bits()
 }
 
 /// A matrix operand: row-major storage, possibly transposed.
@@ -244,7 +239,7 @@ fn interleave(lo: __m512, hi: __m512) -> __m512i {
 }
 
 /// Pack rows `k0..k1` and columns `j0..j1` of `b` as panels of NR columns, each pair of k a
-/// row of NR bf16 pairs, zero-padded.
+/// row of NR bf16 pairs, into `out` as the caller zeroed it (the padding past `j1` stays zero).
 #[target_feature(enable = "avx512f,avx512bw,avx512vl,avx512bf16")]
 unsafe fn pack_b(b: &View, k0: usize, k1: usize, j0: usize, j1: usize, out: &mut [u32]) {
     // SAFETY: the caller checked the CPU's features; pointers stay within the slices
@@ -279,8 +274,8 @@ unsafe fn pack_b(b: &View, k0: usize, k1: usize, j0: usize, j1: usize, out: &mut
                 }
             } else {
                 // Column by column: a column's k run is contiguous in the storage; 32 values at a
-                // time become 16 pairs, scattered down the panel's column.
-                panel.fill(0);
+                // time become 16 pairs, scattered down the panel's column (the columns past `nr`
+                // stay as the caller zeroed them).
                 let idx = _mm512_mullo_epi32(
                     _mm512_set_epi32(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0),
                     _mm512_set1_epi32(NR as i32),
@@ -380,13 +375,9 @@ mod tests {
             // Nothing to check here: `nn::gemm_in`'s test checks that such a CPU is given f32.
             return;
         }
-        let mut s = 7u64;
-        let mut rnd = move || {
-            s ^= s << 13;
-            s ^= s >> 7;
-            s ^= s << 17;
-            ((s >> 40) as f32 / (1u64 << 24) as f32) - 0.5
-        };
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        let mut rnd = move || rng.random_range(-0.5f32..0.5);
         // (m, n, k)
         let shapes = [
             (1, 1, 1),
