@@ -119,8 +119,8 @@ struct BenchCli {
     #[arg(long)]
     team_only: bool,
     /// With --learners: epochs of each whole update (PPO's passes over the iteration's
-    /// experience, which the leader sends the team once per update); default: training's.
-    #[arg(long, default_value_t = learner::Hyperparameters::default().num_epochs)]
+    /// experience, which the leader sends the team once per update); DeepRacer's 10 by default.
+    #[arg(long, default_value_t = 10)]
     epochs: usize,
     /// With --learners: the team shares SAC's updates (DeepRacer's continuous SAC networks,
     /// 8 gradient steps of 64 transitions an update) instead of PPO's.

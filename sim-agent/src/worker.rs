@@ -131,8 +131,9 @@ pub struct Worker {
     /// The verifications chained here, each with the misses it can take and still hold: its
     /// trials stop at one more (the learner would not verify the checkpoint).
     may_miss: Vec<(EvalRequest, usize)>,
-    /// A report to send again.
-    resend: Option<EvalReport>,
+    /// Reports to send before any work: a repeated request's answer, and the chained
+    /// verifications dropped once another of their version's could no longer hold.
+    outbox: VecDeque<EvalReport>,
     seq: u64,
     steps_reported: u64,
     last_frame: Option<Instant>,
@@ -180,7 +181,7 @@ impl Worker {
             evals: VecDeque::new(),
             reports: VecDeque::new(),
             may_miss: Vec::new(),
-            resend: None,
+            outbox: VecDeque::new(),
             seq: s.first_seq,
             steps_reported: 0,
             last_frame: None,
@@ -231,7 +232,7 @@ impl Worker {
                 }
                 tracing::debug!(id = r.id, version = r.version, world = %r.world, "evaluation requested");
                 match self.reports.iter().find(|d| answers(d, &r)) {
-                    Some(done) => self.resend = Some(done.clone()),
+                    Some(done) => self.outbox.push_back(done.clone()),
                     None => self.evals.push_back((r, false)),
                 }
             }
@@ -260,7 +261,7 @@ impl Worker {
     /// Do one piece of work: collect the granted episodes, or run one evaluation. `None`
     /// when there is nothing to do until the next message.
     pub fn work(&mut self) -> Result<Option<WorkerOutbound>, WorkerError> {
-        if let Some(r) = self.resend.take() {
+        if let Some(r) = self.outbox.pop_front() {
             return Ok(Some(WorkerOutbound::Eval(r)));
         }
         // An evaluation that waited through a round of episodes goes first: an off-policy
@@ -329,12 +330,57 @@ impl Worker {
             None => Err(format!("policy v{} is no longer held by {}", r.version, self.id)),
         };
         self.chain(&r, trials.as_deref().ok());
+        if let Ok(t) = &trials {
+            self.drop_if_missed(&r, t);
+        }
         let report = EvalReport { id: r.id, worker: self.id.clone(), version: r.version, world: r.world, trials };
+        self.keep_report(&report);
+        Some(report)
+    }
+
+    /// Keep `report` to answer its request again.
+    fn keep_report(&mut self, report: &EvalReport) {
         self.reports.push_back(report.clone());
         while self.reports.len() > KEEP_REPORTS {
             self.reports.pop_front();
         }
-        Some(report)
+    }
+
+    /// After chained verification `r` ran `trials`: when it can no longer hold, the
+    /// verifications of its version still queued here are dropped, each answered with no
+    /// trials. The learner verifies a checkpoint only when every world holds, so their trials
+    /// could not change its verdict; dropping them hands the cores back to training, and the
+    /// learner closes the verification and evaluates its next checkpoint sooner.
+    fn drop_if_missed(&mut self, r: &EvalRequest, trials: &[Trial]) {
+        let Some(&(_, may_miss)) = self.may_miss.iter().find(|(e, _)| same_request(e, r)) else { return };
+        if !cannot_hold(r.trials, may_miss, trials) {
+            return;
+        }
+        let chained = |e: &EvalRequest, may: &[(EvalRequest, usize)]| {
+            e.version == r.version && e.then_verify.is_none() && may.iter().any(|(m, _)| same_request(m, e))
+        };
+        let (dropped, kept): (VecDeque<_>, VecDeque<_>) =
+            std::mem::take(&mut self.evals).into_iter().partition(|(e, _)| chained(e, &self.may_miss));
+        self.evals = kept;
+        for (e, _) in dropped {
+            tracing::debug!(
+                id = e.id,
+                version = e.version,
+                world = %e.world,
+                "chained verification dropped: the one on {} can no longer hold",
+                r.world
+            );
+            self.may_miss.retain(|(m, _)| !same_request(m, &e));
+            let report = EvalReport {
+                id: e.id,
+                worker: self.id.clone(),
+                version: e.version,
+                world: e.world,
+                trials: Ok(Vec::new()),
+            };
+            self.keep_report(&report);
+            self.outbox.push_back(report);
+        }
     }
 
     /// After evaluation `r` (its `trials`, if it ran): the verification chained to it, when
@@ -466,6 +512,14 @@ impl Worker {
     }
 }
 
+/// Whether a verification of `asked` trials that may miss `may_miss` of them can no longer
+/// hold after `trials` (those that ran: a verification stops once it cannot hold, so the
+/// trials that did not run count as missed).
+pub fn cannot_hold(asked: u32, may_miss: usize, trials: &[Trial]) -> bool {
+    let laps = trials.iter().filter(|t| t.lap_time.is_some()).count();
+    (asked as usize).saturating_sub(laps) > may_miss
+}
+
 /// The same request: its id, version and world (a learner's new run draws its ids afresh, and
 /// two runs' may meet).
 fn same_request(a: &EvalRequest, b: &EvalRequest) -> bool {
@@ -546,4 +600,101 @@ pub fn replan(current: &[usize], counts: &[usize]) -> Vec<usize> {
         *o = short.next().or(Some(current.first().copied().unwrap_or(0)));
     }
     out.into_iter().map(|o| o.expect("filled")).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use policy::exchange::ChainedVerify;
+    use policy::{ActorCritic, ModelMetadata};
+    use rand::SeedableRng;
+
+    fn trial(lapped: bool) -> Trial {
+        Trial { progress: if lapped { 100.0 } else { 40.0 }, lap_time: lapped.then_some(12.0), ..Trial::default() }
+    }
+
+    /// Issue 55: a verification can no longer hold once it missed more of its trials than it
+    /// may; the trials a stopped verification did not run count as missed.
+    #[test]
+    fn a_verification_cannot_hold_once_it_missed_more_than_it_may() {
+        // (asked, may miss, trials that ran: lapped or not, cannot hold)
+        for (asked, may_miss, ran, want) in [
+            (10, 0, vec![true; 10], false),
+            (10, 0, vec![true, true, false], true),
+            (10, 0, vec![true; 9], true),
+            (10, 3, vec![true, true, true, true, true, true, true, false, false, false], false),
+            (10, 3, vec![false, false, false, false], true),
+            (10, 10, vec![], false),
+            (3, 0, vec![], true),
+        ] {
+            let t: Vec<Trial> = ran.iter().map(|&l| trial(l)).collect();
+            assert_eq!(cannot_hold(asked, may_miss, &t), want, "{asked} asked, {may_miss} may miss, {ran:?}");
+        }
+    }
+
+    /// Issue 55: once one world's chained verification can no longer hold, the version's
+    /// verifications still queued on the worker are dropped, each answered at once with no
+    /// trials, and the worker goes back to its episodes; one that can still hold leaves the
+    /// others to run.
+    #[test]
+    fn a_verification_that_cannot_hold_drops_its_versions_queued_verifications() {
+        let meta = ModelMetadata::default_state_vector();
+        let cfg = Arc::new(SimConfig::default());
+        let spec = |w: &str| EnvSpec::from_world(&tracks::world(w).unwrap(), tracks::Direction::Forward);
+        let obs = crate::obs::obs_dim(&cfg.observation);
+        // An untrained policy: its trials leave the track within 50 steps, and lap nothing.
+        let model = ActorCritic::new(&meta, obs, &mut rand_chacha::ChaCha8Rng::seed_from_u64(9));
+        // (misses each verification may take, the reports in order: id and whether it ran)
+        for (may_miss, want) in [(0, [(11, true), (12, false), (13, false)]), (2, [(11, true), (12, true), (13, true)])]
+        {
+            let mut w = Worker::new(WorkerSetup {
+                id: "w1".into(),
+                worlds: vec![spec("reinvent_base")],
+                offset: 0,
+                weights: Vec::new(),
+                envs: 2,
+                threads: 1,
+                cfg: cfg.clone(),
+                reward: RewardFn::Builtin(crate::BuiltinReward::CenterLine),
+                space: meta.action_space.clone(),
+                seed: 3,
+                first_seq: 0,
+                gpu: None,
+            })
+            .unwrap();
+            w.take(WorkerInbound::Policy(PolicyVersion {
+                version: 1,
+                model: Arc::new(model.clone()),
+                metadata: Arc::new(meta.clone()),
+            }));
+            // Three worlds' verifications of v1, chained here, and another version's evaluation.
+            let request = |id: u64, version: u64, world: &str, then_verify: Option<ChainedVerify>| EvalRequest {
+                id,
+                worker: "w1".into(),
+                version,
+                world: world.into(),
+                trials: 2,
+                seed: 77,
+                then_verify,
+            };
+            for (id, world) in [(11, "reinvent_base"), (12, "reinvent_wood"), (13, "reinvent_concrete")] {
+                let v = request(id, 1, world, None);
+                w.may_miss.push((v.clone(), may_miss));
+                w.evals.push_back((v, true));
+            }
+            let other = request(21, 1, "reinvent_base", Some(ChainedVerify { id: 22, trials: 2, seed: 5, laps: 3 }));
+            w.evals.push_back((other, true));
+            let mut got = Vec::new();
+            while got.len() < 3 {
+                let Some(WorkerOutbound::Eval(r)) = w.work().unwrap() else { panic!("a report expected") };
+                assert_eq!(r.version, 1);
+                got.push((r.id, !r.trials.unwrap().is_empty()));
+            }
+            assert_eq!(got, want, "each verification may miss {may_miss}");
+            // The evaluation that is not a chained verification still runs.
+            let Some(WorkerOutbound::Eval(r)) = w.work().unwrap() else { panic!("the evaluation expected") };
+            assert_eq!((r.id, r.trials.map(|t| t.len())), (21, Ok(2)));
+            assert!(w.work().unwrap().is_none());
+        }
+    }
 }

@@ -412,12 +412,14 @@ impl Run<'_> {
             min_laps(per_world),
             p.trials
         );
-        // A worker stops a verification's trials once it can no longer hold.
+        // A worker stops a verification's trials once it can no longer hold, and drops the
+        // checkpoint's other verifications it had queued.
         for (world, .., laps, ran) in per_world.iter().filter(|w| w.4 < p.trials as usize) {
-            what += &format!(
-                "; on {world} it ran {ran} of its {} trials, lapped {laps}, and could no longer hold",
-                p.trials
-            );
+            what += &if *ran == 0 {
+                format!("; on {world} it ran none of its {} trials (another world's could no longer hold)", p.trials)
+            } else {
+                format!("; on {world} it ran {ran} of its {} trials, lapped {laps}, and could no longer hold", p.trials)
+            };
         }
         if held {
             tracing::info!(run = %self.spec.name, "verified: {what}");
