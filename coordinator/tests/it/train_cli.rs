@@ -340,12 +340,12 @@ fn a_deepracer_for_cloud_run_env_trains_its_race_with_its_custom_files() {
 /// Issue 5: a camera model learns to lap from pixels.
 #[test]
 fn a_camera_model_learns_to_lap_from_pixels() {
-    // DeepRacer's SHALLOW network on 160x120 grayscale frames rendered on lavapipe, DeepRacer's
-    // default hyperparameters; training stops after two consecutive 3/3 evaluations (the
-    // streak rule, without a verification). The run is the one the car-in-the-loop test drives
-    // with (support::camera_run).
+    // DeepRacer's SHALLOW network on 160x120 grayscale frames rendered on lavapipe, Paddock's
+    // default hyperparameters; training stops at the second of two checkpoints in a row that
+    // lapped 3/3, once it laps 10 of 10 in its verification. The run is the one the car-in-the-loop test drives with
+    // (support::camera_run).
     let (run, log) = support::camera_run();
-    assert!(log.contains("target laps reached: 3 laps in 2 consecutive evaluations"), "{log}");
+    assert!(log.contains("target laps reached and verified"), "{log}");
     let meta = std::fs::read_to_string(run.join("model/model_metadata.json")).unwrap();
     assert!(meta.contains("FRONT_FACING_CAMERA") && meta.contains("DEEP_CONVOLUTIONAL_NETWORK_SHALLOW"), "{meta}");
     // An independent evaluation: the model raced against its own DeepRacer archive (issue 34),
