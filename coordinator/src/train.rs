@@ -104,8 +104,10 @@ impl Observer for Terminal {
         let worlds: Vec<String> = e
             .worlds
             .iter()
-            .map(|(w, p, lap, laps, n)| {
-                format!("{w} {p:.1}% {laps}/{n}{}", lap.map(|t| format!(" lap {t:.2}s")).unwrap_or_default())
+            .map(|(w, p, lap, laps, n)| match n {
+                // A verification the worker dropped once another world's could no longer hold.
+                0 => format!("{w} not run"),
+                _ => format!("{w} {p:.1}% {laps}/{n}{}", lap.map(|t| format!(" lap {t:.2}s")).unwrap_or_default()),
             })
             .collect();
         self.bar.suspend(|| {
