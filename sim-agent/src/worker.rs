@@ -356,11 +356,10 @@ impl Worker {
         if !cannot_hold(r.trials, may_miss, trials) {
             return;
         }
-        let chained = |e: &EvalRequest, may: &[(EvalRequest, usize)]| {
-            e.version == r.version && e.then_verify.is_none() && may.iter().any(|(m, _)| same_request(m, e))
-        };
+        // The version's chained verifications (those `may_miss` lists) still queued.
+        let chained = |e: &EvalRequest| e.version == r.version && self.may_miss.iter().any(|(m, _)| same_request(m, e));
         let (dropped, kept): (VecDeque<_>, VecDeque<_>) =
-            std::mem::take(&mut self.evals).into_iter().partition(|(e, _)| chained(e, &self.may_miss));
+            std::mem::take(&mut self.evals).into_iter().partition(|(e, _)| chained(e));
         self.evals = kept;
         for (e, _) in dropped {
             tracing::debug!(
@@ -516,8 +515,7 @@ impl Worker {
 /// hold after `trials` (those that ran: a verification stops once it cannot hold, so the
 /// trials that did not run count as missed).
 pub fn cannot_hold(asked: u32, may_miss: usize, trials: &[Trial]) -> bool {
-    let laps = trials.iter().filter(|t| t.lap_time.is_some()).count();
-    (asked as usize).saturating_sub(laps) > may_miss
+    (asked as usize).saturating_sub(policy::exchange::summarise(trials).2) > may_miss
 }
 
 /// The same request: its id, version and world (a learner's new run draws its ids afresh, and

@@ -342,8 +342,8 @@ fn a_deepracer_for_cloud_run_env_trains_its_race_with_its_custom_files() {
 fn a_camera_model_learns_to_lap_from_pixels() {
     // DeepRacer's SHALLOW network on 160x120 grayscale frames rendered on lavapipe, Paddock's
     // default hyperparameters; training stops at the second of two checkpoints in a row that
-    // lapped 3/3, once it laps 10 of 10 in its verification. The run is the one the car-in-the-loop test drives with
-    // (support::camera_run).
+    // lapped 3/3, once it laps 10 of 10 in its verification. The run is the one the
+    // car-in-the-loop test drives with (support::camera_run).
     let (run, log) = support::camera_run();
     assert!(log.contains("target laps reached and verified"), "{log}");
     let meta = std::fs::read_to_string(run.join("model/model_metadata.json")).unwrap();
