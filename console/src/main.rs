@@ -341,6 +341,8 @@ fn start_roles(
         &checkpoint,
         "--device",
         &cli.device,
+        // The agents run on this machine.
+        "--checks-first",
     ]);
     if let Some(k) = &cli.signing_key {
         let k = k.canonicalize().with_context(|| format!("--signing-key {}", k.display()))?;

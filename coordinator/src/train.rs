@@ -237,6 +237,8 @@ pub fn train(mut args: TrainArgs) -> Result<i32> {
         eval_trials: args.trials.max(1) as u32,
         eval_seconds: args.checkpoint_seconds,
         stop: stop_rules(&args),
+        // The worker runs in this process, on the same cores.
+        checks_first: true,
         // The camera networks are big enough to split over the cores; the MLP is not.
         par: if camera { Par::rayon(threads) } else { Par::Seq },
         gpu: gpu.clone(),

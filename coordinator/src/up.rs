@@ -80,6 +80,8 @@ pub fn up(mut args: UpArgs) -> Result<i32> {
             args.checkpoint_seconds.to_string(),
             "--device".into(),
             args.device.to_string(),
+            // The agents run on this machine.
+            "--checks-first".into(),
         ]
         .into_iter()
         .chain(args.signing_key.iter().flat_map(|k| ["--signing-key".into(), k.display().to_string()]))

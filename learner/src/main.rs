@@ -89,6 +89,12 @@ struct ServeCli {
     /// or an error).
     #[arg(long, default_value = "auto")]
     device: learner::DeviceChoice,
+    /// The agents run on this machine (`coordinator up` and the console pass it): an update
+    /// waits while an evaluation that may stop the run, or a verification, is under way, so
+    /// that the agents' trials have the cores. Without it, a learner on a machine of its own
+    /// trains on through them.
+    #[arg(long)]
+    checks_first: bool,
 }
 
 #[derive(clap::Args)]
@@ -172,6 +178,7 @@ fn main() {
                 checkpoint_seconds: a.checkpoint_seconds,
                 signing_key: a.signing_key.or(credentials_key),
                 device: a.device,
+                checks_first: a.checks_first,
             })
         }
     };

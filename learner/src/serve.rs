@@ -45,6 +45,8 @@ pub struct ServeArgs {
     pub signing_key: Option<PathBuf>,
     /// Where the network maths run.
     pub device: learner::DeviceChoice,
+    /// The agents share this machine's cores ([`learner::run::RunSpec::checks_first`]).
+    pub checks_first: bool,
 }
 
 /// Run the learner until the process is stopped.
@@ -261,6 +263,7 @@ fn spec_of(doc: &Job, args: &ServeArgs, device: &Device) -> Result<RunSpec> {
         eval_trials: doc.eval_trials.max(1),
         eval_seconds: args.checkpoint_seconds,
         stop: stop_rules(&doc.stop()),
+        checks_first: args.checks_first,
         par: if camera { Par::rayon(args.threads) } else { Par::Seq },
         gpu,
         adopt: None,

@@ -66,7 +66,13 @@ impl Ending {
 impl Run<'_> {
     /// The episodes for an update are in, and the run is not stopping.
     pub(super) fn update_ready(&self) -> bool {
-        self.buffer.len() as u64 >= self.want && self.stop_reason.is_none()
+        self.buffer.len() as u64 >= self.want && self.stop_reason.is_none() && !self.check_goes_first()
+    }
+
+    /// An update, and the grant of its episodes, wait for the evaluation under way when the
+    /// workers share these cores and it may stop the run ([`crate::run::RunSpec::checks_first`]).
+    pub(super) fn check_goes_first(&self) -> bool {
+        self.spec.checks_first && self.evals.pending.as_ref().is_some_and(|p| p.verifying || !p.chain.is_empty())
     }
 
     /// A message from the workers (or whoever may stop the run).

@@ -83,8 +83,10 @@ pub fn run(spec: &RunSpec, link: &mut dyn Link, observer: &mut dyn Observer) -> 
             r.drain()?;
         }
         let workers = r.link.workers();
-        r.grant(&workers)?;
+        // The checkpoint before the grant: an evaluation that goes first
+        // (`RunSpec::checks_first`) is asked for before any episodes.
         r.checkpoint_if_due(&workers)?;
+        r.grant(&workers)?;
         r.chase_evaluation(&workers)?;
         if r.close_evaluation()? || r.should_stop(&workers) {
             break;

@@ -42,9 +42,10 @@ impl Run<'_> {
         self.link.best(&best, manifest, &self.signer)
     }
 
-    /// Flow control: grant what the next update still needs (see `grants.rs`).
+    /// Flow control: grant what the next update still needs (see `grants.rs`); nothing while
+    /// a check that may stop the run goes first (the workers run it before any episodes).
     pub(super) fn grant(&mut self, workers: &[String]) -> Result<(), LinkError> {
-        if self.stop_reason.is_some() {
+        if self.stop_reason.is_some() || self.check_goes_first() {
             return Ok(());
         }
         let shortfall = self.want.saturating_sub(self.buffer.len() as u64);

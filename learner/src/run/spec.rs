@@ -86,6 +86,11 @@ pub struct RunSpec {
     pub eval_seconds: f64,
     /// When to stop.
     pub stop: StopRules,
+    /// The workers share this machine's cores (`coordinator train`, and `up`'s learner): an
+    /// update waits while an evaluation that may stop the run (one chaining a verification)
+    /// or a verification is under way, so that its trials run on every core and the run
+    /// stops as soon as they hold. A learner on a machine of its own trains on.
+    pub checks_first: bool,
     /// Cores for the update (the camera networks split over them; the MLP does not).
     pub par: Par,
     /// The GPU PPO's update runs on, when it trains alone (`crate::device::open`); `None`:

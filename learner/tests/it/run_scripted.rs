@@ -51,6 +51,13 @@ struct Scripted {
     asked: Vec<EvalRequest>,
     /// Every evaluation request the learner sent, in order.
     sent: Vec<EvalRequest>,
+    /// Calls to `next` an evaluation's report waits for (0: at once), as trials take time.
+    hold: usize,
+    /// Evaluations whose trials are still running, with the calls they have left.
+    held: Vec<(usize, EvalRequest)>,
+    /// Versions published and grants made while an evaluation's trials were running.
+    published_while_checking: u64,
+    granted_while_checking: u64,
 }
 
 impl Scripted {
@@ -66,6 +73,10 @@ impl Scripted {
             verifications: 0,
             asked: Vec::new(),
             sent: Vec::new(),
+            hold: 0,
+            held: Vec::new(),
+            published_while_checking: 0,
+            granted_while_checking: 0,
         }
     }
 
@@ -95,11 +106,13 @@ impl Scripted {
 
 impl Link for Scripted {
     fn publish(&mut self, policy: &PolicyVersion, _: &Manifest, _: &Signer) -> Result<(), LinkError> {
+        self.published_while_checking += u64::from(!self.held.is_empty());
         self.policy = Some(policy.clone());
         Ok(())
     }
 
     fn grant(&mut self, credit: &Credit) -> Result<(), LinkError> {
+        self.granted_while_checking += u64::from(!self.held.is_empty());
         let want = credit.episodes.get(WORKER).copied().unwrap_or(0);
         let done = self.delivered.entry((credit.version, credit.round)).or_default();
         let more = want.saturating_sub(*done);
@@ -124,11 +137,23 @@ impl Link for Scripted {
 
     fn request_eval(&mut self, req: &EvalRequest) -> Result<(), LinkError> {
         self.sent.push(req.clone());
-        self.answer(req);
+        if self.hold == 0 {
+            self.answer(req);
+        } else if !self.held.iter().any(|(_, r)| r.id == req.id) {
+            self.held.push((self.hold, req.clone()));
+        }
         Ok(())
     }
 
     fn next(&mut self, timeout: Duration) -> Result<Option<Inbound>, LinkError> {
+        for (left, _) in &mut self.held {
+            *left -= 1;
+        }
+        let (done, running): (Vec<_>, Vec<_>) = std::mem::take(&mut self.held).into_iter().partition(|(l, _)| *l == 0);
+        self.held = running;
+        for (_, req) in done {
+            self.answer(&req);
+        }
         match self.inbox.pop_front() {
             Some(m) => Ok(Some(m)),
             None => {
@@ -207,6 +232,7 @@ fn spec(out: &Path, stop: StopRules, hyper: Hyperparameters) -> RunSpec {
         eval_trials: 3,
         eval_seconds: 0.0,
         stop,
+        checks_first: false,
         par: Par::Seq,
         gpu: None,
         adopt: None,
@@ -439,4 +465,29 @@ fn the_run_stops_at_the_first_checkpoint_that_holds_its_verification_and_that_is
             .unwrap();
     assert_eq!(index["best_checkpoint"]["policy_version"], verified, "{index}");
     assert!(s.policy_version >= verified);
+}
+
+/// Issue 55: where the workers share the learner's cores (`coordinator train`, `up`), an
+/// evaluation that may stop the run goes first: no update and no grant while its trials run,
+/// so they have the cores. A learner on a machine of its own trains on through them.
+#[test]
+fn an_update_waits_for_a_check_that_may_stop_the_run_only_where_the_workers_share_its_cores() {
+    let dir = tempfile::tempdir().unwrap();
+    let stop = StopRules { target_laps: Some(TargetLaps { laps: 3, evaluations: 1, verify_trials: 10 }), ..never() };
+    let script = Script { eval: |n| if n >= 1 { 100.0 } else { 40.0 }, verify: |_| 10, ..HALFWAY };
+    for checks_first in [true, false] {
+        let out = dir.path().join(format!("checks-first-{checks_first}"));
+        let mut link = Scripted::new(script);
+        link.hold = 40;
+        let spec = RunSpec { checks_first, ..spec(&out, stop.clone(), quick()) };
+        let s = learner::run::run(&spec, &mut link, &mut Quiet).unwrap_or_else(|e| panic!("{checks_first}: {e:#}"));
+        assert!(s.stop_reason.contains("target laps reached and verified"), "{checks_first}: {}", s.stop_reason);
+        assert_eq!(link.evals, 2, "{checks_first}: the second checkpoint's evaluation laps and is verified");
+        let during = (link.published_while_checking, link.granted_while_checking);
+        if checks_first {
+            assert_eq!(during, (0, 0), "nothing published or granted while trials ran");
+        } else {
+            assert!(during.0 > 0 && during.1 > 0, "a learner of its own trained on: {during:?}");
+        }
+    }
 }
