@@ -341,8 +341,9 @@ fn start_roles(
         &checkpoint,
         "--device",
         &cli.device,
-        // The agents run on this machine.
+        // The agents run on this machine, and no other learner reaches its coordinator.
         "--checks-first",
+        "--alone",
     ]);
     if let Some(k) = &cli.signing_key {
         let k = k.canonicalize().with_context(|| format!("--signing-key {}", k.display()))?;

@@ -80,8 +80,9 @@ pub fn up(mut args: UpArgs) -> Result<i32> {
             args.checkpoint_seconds.to_string(),
             "--device".into(),
             args.device.to_string(),
-            // The agents run on this machine.
+            // The agents run on this machine, and no other learner reaches its coordinator.
             "--checks-first".into(),
+            "--alone".into(),
         ]
         .into_iter()
         .chain(args.signing_key.iter().flat_map(|k| ["--signing-key".into(), k.display().to_string()]))

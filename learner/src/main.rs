@@ -95,6 +95,12 @@ struct ServeCli {
     /// trains on through them.
     #[arg(long)]
     checks_first: bool,
+    /// This is the coordinator's only learner (`coordinator up` and the console pass it: each
+    /// starts one, on a coordinator of its own on loopback): lead a job as soon as it arrives.
+    /// Without it a new learner first waits 3 s to hear the others, so that a team gets one
+    /// leader.
+    #[arg(long)]
+    alone: bool,
 }
 
 #[derive(clap::Args)]
@@ -179,6 +185,7 @@ fn main() {
                 signing_key: a.signing_key.or(credentials_key),
                 device: a.device,
                 checks_first: a.checks_first,
+                alone: a.alone,
             })
         }
     };

@@ -47,6 +47,9 @@ pub struct ServeArgs {
     pub device: learner::DeviceChoice,
     /// The agents share this machine's cores ([`learner::run::RunSpec::checks_first`]).
     pub checks_first: bool,
+    /// No other learner can reach this coordinator: lead a job at once, without first
+    /// waiting to hear the others.
+    pub alone: bool,
 }
 
 /// Run the learner until the process is stopped.
@@ -67,7 +70,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
     // milliseconds; no job is led before they had the time to (two leaders would split it).
     let roster = team::Roster::new(&session)?;
     let born = Instant::now();
-    const HEAR_OTHERS: Duration = Duration::from_secs(3);
+    let hear_others = if args.alone { Duration::ZERO } else { Duration::from_secs(3) };
     tracing::info!(learner = %id, "learner up; waiting for a job");
     let mut finished: BTreeSet<String> = BTreeSet::new();
     let mut docs: std::collections::HashMap<String, Job> = Default::default();
@@ -100,8 +103,8 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         };
         // The lowest id among the live learners leads the job; the others join its team and
         // share every update (and one of them leads if it goes away).
-        if born.elapsed() < HEAR_OTHERS {
-            std::thread::sleep(HEAR_OTHERS - born.elapsed());
+        if born.elapsed() < hear_others {
+            std::thread::sleep(hear_others - born.elapsed());
         }
         let ids = roster.ids();
         match ids {
