@@ -450,6 +450,7 @@ impl Worker {
     }
 
     fn evaluate(&mut self, p: &PolicyVersion, r: &EvalRequest) -> Result<Vec<Trial>, WorkerError> {
+        let chained = self.may_miss.iter().any(|(e, _)| same_request(e, r));
         let spec = match self.worlds.iter().find(|w| w.name == r.world) {
             Some(s) => s.clone(),
             None => {
@@ -469,7 +470,10 @@ impl Worker {
             // With a round granted and not yet collected, a PPO learner is waiting for this
             // worker, not updating: the trials may have every core. (SAC updates while its next
             // round is collected, and these trials then share the cores as collection does.)
-            spread: self.grant.is_some_and(|(_, _, left)| left > 0),
+            // A check that may stop the run (an evaluation chaining a verification, or the
+            // verification) has them too: a learner sharing these cores waits for it
+            // (`checks_first`), and one on a machine of its own is not on them.
+            spread: self.grant.is_some_and(|(_, _, left)| left > 0) || r.then_verify.is_some() || chained,
             give_up_after_misses: self.may_miss.iter().find(|(e, _)| same_request(e, r)).map(|(_, k)| *k),
         };
         let trials =
