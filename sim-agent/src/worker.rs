@@ -450,7 +450,8 @@ impl Worker {
     }
 
     fn evaluate(&mut self, p: &PolicyVersion, r: &EvalRequest) -> Result<Vec<Trial>, WorkerError> {
-        let chained = self.may_miss.iter().any(|(e, _)| same_request(e, r));
+        // A chained verification's misses it may take (`None`: not a chained verification).
+        let may_miss = self.may_miss.iter().find(|(e, _)| same_request(e, r)).map(|(_, k)| *k);
         let spec = match self.worlds.iter().find(|w| w.name == r.world) {
             Some(s) => s.clone(),
             None => {
@@ -473,8 +474,8 @@ impl Worker {
             // A check that may stop the run (an evaluation chaining a verification, or the
             // verification) has them too: a learner sharing these cores waits for it
             // (`checks_first`), and one on a machine of its own is not on them.
-            spread: self.grant.is_some_and(|(_, _, left)| left > 0) || r.then_verify.is_some() || chained,
-            give_up_after_misses: self.may_miss.iter().find(|(e, _)| same_request(e, r)).map(|(_, k)| *k),
+            spread: self.grant.is_some_and(|(_, _, left)| left > 0) || r.then_verify.is_some() || may_miss.is_some(),
+            give_up_after_misses: may_miss,
         };
         let trials =
             evaluate(&p.model, &p.metadata.action_space, &spec, &self.check_cfg, &plan, self.collector.gpu_mut())?;
