@@ -260,36 +260,75 @@ pub fn evaluate(
     spec: &EnvSpec,
     cfg: &Arc<SimConfig>,
     plan: &EvalPlan,
-    mut gpu: Option<&mut gpu::Acting>,
+    gpu: Option<&mut gpu::Acting>,
 ) -> Result<Vec<TrialResult>, RewardError> {
-    let EvalPlan { ref rules, count: trials, seed, threads, all_frames, spread, give_up_after_misses } = *plan;
+    let mut groups = evaluate_groups(model, space, &[(spec.clone(), plan.clone())], cfg, gpu)?;
+    Ok(groups.pop().map(|g| g.trials).unwrap_or_default())
+}
+
+/// One evaluation's trials from a batch ([`evaluate_groups`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct GroupTrials {
+    /// The trials that ended, in order.
+    pub trials: Vec<TrialResult>,
+    /// Every trial the plan asked for ended (false when a group gave up, and for the groups
+    /// it stopped).
+    pub complete: bool,
+}
+
+/// Several evaluations as one batch: each `(world, plan)` group's trials are stepped side by
+/// side with the others', so that small evaluations fill the cores together (three worlds'
+/// 3 trials each take about what one world's 9 take, not three times one world's 3). Each
+/// trial is the same as in [`evaluate`] of its group alone: its own seed, the same forward
+/// pass row by row. The batch runs on the most threads a group asks for, and acts on them
+/// when any group may (`spread`). A group that gives up (`give_up_after_misses`) stops the
+/// batch: a batch holds the checks of one checkpoint, and one that can no longer hold decides
+/// them all. The groups' trials still running are then dropped.
+pub fn evaluate_groups(
+    model: &Arc<ActorCritic>,
+    space: &ActionSpace,
+    groups: &[(EnvSpec, EvalPlan)],
+    cfg: &Arc<SimConfig>,
+    mut gpu: Option<&mut gpu::Acting>,
+) -> Result<Vec<GroupTrials>, RewardError> {
     let reward = RewardFn::Builtin(crate::BuiltinReward::CenterLine);
-    let mut vec = VecEnv::with_mode(
-        vec![spec.clone(); trials],
-        cfg.clone(),
-        seed,
-        reward,
-        threads,
-        Mode::Evaluation(rules.clone()),
-    )
-    .map_err(|e| RewardError::Load { origin: "evaluation".into(), msg: e.to_string() })?;
-    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    // Each group's environments, seeded as a vector of its own would seed them.
+    let counts: Vec<usize> = groups.iter().map(|(_, p)| p.count).collect();
+    let members: Vec<(EnvSpec, Mode, u64)> = groups
+        .iter()
+        .flat_map(|(spec, p)| {
+            (0..p.count).map(|i| (spec.clone(), Mode::Evaluation(p.rules.clone()), crate::vec_env::env_seed(p.seed, i)))
+        })
+        .collect();
+    let trials = members.len();
+    // The group each environment belongs to, and its place in it.
+    let owner: Vec<(usize, usize)> =
+        counts.iter().enumerate().flat_map(|(g, &n)| (0..n).map(move |i| (g, i))).collect();
+    let threads = groups.iter().map(|(_, p)| p.threads).max().unwrap_or(1);
+    let mut vec = VecEnv::with_members(members, cfg.clone(), reward, threads)
+        .map_err(|e| RewardError::Load { origin: "evaluation".into(), msg: e.to_string() })?;
+    // Greedy choices draw nothing from it.
+    let mut rng = ChaCha8Rng::seed_from_u64(groups.first().map_or(0, |(_, p)| p.seed));
     let mut results: Vec<Option<TrialResult>> = vec![None; trials];
     let mut logs: Vec<TrialLog> = vec![TrialLog::default(); trials];
     let cap = cfg.episode.max_steps;
     let mut steps = 0u64;
     let dim = vec.obs_dim();
-    let par = if spread { vec.acting_par() } else { Par::Seq };
-    // What the car saw, for the log: the frame, or the stereo pair's left one.
+    let par = if groups.iter().any(|(_, p)| p.spread) { vec.acting_par() } else { Par::Seq };
+    // What the car saw, for the log: the frame, or the stereo pair's left one; in each group's
+    // first trial, or in all of a group's that asks.
     let pixels = (crate::camera::WIDTH * crate::camera::HEIGHT) as usize;
     let channels = dim / pixels;
     let camera = cfg.record_trace && vec.renderer().is_some() && dim.is_multiple_of(pixels) && channels >= 1;
+    let kept: Vec<bool> = owner.iter().map(|&(g, i)| i == 0 || groups[g].1.all_frames).collect();
+    let missed = |results: &[Option<TrialResult>], g: usize| {
+        results.iter().zip(&owner).filter(|(r, o)| o.0 == g && r.as_ref().is_some_and(|r| r.lap_time.is_none())).count()
+    };
     while results.iter().any(|r| r.is_none()) && steps < cap {
         if camera && steps.is_multiple_of(2) {
-            let kept = if all_frames { trials } else { 1 };
-            for (i, log) in logs.iter_mut().enumerate().take(kept).filter(|(i, _)| results[*i].is_none()) {
+            for (i, log) in logs.iter_mut().enumerate().filter(|(i, _)| kept[*i] && results[*i].is_none()) {
                 log.frames.push(policy::exchange::Frame {
-                    world: spec.name.clone(),
+                    world: groups[owner[i].0].0.name.clone(),
                     width: crate::camera::WIDTH,
                     height: crate::camera::HEIGHT,
                     gray: vec.observations()[i * dim..(i + 1) * dim]
@@ -338,10 +377,20 @@ pub fn evaluate(
             }
         }
         steps += 1;
-        let missed = || results.iter().flatten().filter(|r| r.lap_time.is_none()).count();
-        if give_up_after_misses.is_some_and(|k| missed() > k) {
-            return Ok(results.into_iter().flatten().collect());
+        let gave_up = groups
+            .iter()
+            .enumerate()
+            .any(|(g, (_, p))| p.give_up_after_misses.is_some_and(|k| missed(&results, g) > k));
+        if gave_up {
+            break;
         }
     }
-    Ok(results.into_iter().map(|r| r.expect("every trial ends by the step cap")).collect())
+    let mut out: Vec<GroupTrials> = counts.iter().map(|_| GroupTrials { trials: Vec::new(), complete: true }).collect();
+    for (r, &(g, _)) in results.into_iter().zip(&owner) {
+        match r {
+            Some(r) => out[g].trials.push(r),
+            None => out[g].complete = false,
+        }
+    }
+    Ok(out)
 }

@@ -62,11 +62,25 @@ impl VecEnv {
         threads: usize,
         mode: Mode,
     ) -> Result<VecEnv, EnvError> {
-        let n = specs.len();
-        let envs = specs
+        let members = specs.into_iter().enumerate().map(|(i, spec)| (spec, mode.clone(), env_seed(seed, i))).collect();
+        VecEnv::with_members(members, cfg, reward, threads)
+    }
+
+    /// Environments each with its own world, rules and seed (`env_seed` of its own vector's
+    /// seed and its place there): several evaluations' trials stepped as one batch, each
+    /// trial the same bits as in a vector of its own.
+    pub fn with_members(
+        members: Vec<(EnvSpec, Mode, u64)>,
+        cfg: Arc<SimConfig>,
+        reward: RewardFn,
+        threads: usize,
+    ) -> Result<VecEnv, EnvError> {
+        let n = members.len();
+        let seeds: Vec<u64> = members.iter().map(|m| m.2).collect();
+        let envs = members
             .into_iter()
             .enumerate()
-            .map(|(i, spec)| Env::new(spec, cfg.clone(), mode.clone(), env_seed(seed, i), i as f64 / n as f64))
+            .map(|(i, (spec, mode, seed))| Env::new(spec, cfg.clone(), mode, seed, i as f64 / n as f64))
             .collect::<Result<Vec<_>, _>>()?;
         let dim = obs_dim(&cfg.observation);
         let pool = rayon::ThreadPoolBuilder::new()
@@ -87,12 +101,13 @@ impl VecEnv {
             rewards: Vec::with_capacity(n),
             pool,
             renderer,
-            camera_draws: (0..n)
-                .map(|i| {
+            camera_draws: seeds
+                .iter()
+                .map(|&s| {
                     (
                         0,
                         CameraDraw::default(),
-                        <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(env_seed(seed, i) ^ 0x00CA_3E7A),
+                        <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(s ^ 0x00CA_3E7A),
                     )
                 })
                 .collect(),

@@ -15,7 +15,7 @@
 
 use crate::config::SimConfig;
 use crate::reward::{RewardError, RewardFn};
-use crate::rollout::{Collector, EvalPlan, TrialResult, evaluate};
+use crate::rollout::{Collector, EvalPlan, TrialResult, evaluate_groups};
 use crate::vec_env::VecEnv;
 use crate::{EnvError, EnvSpec, EvalRules};
 use policy::exchange::{Credit, EvalReport, EvalRequest, Experience, PolicyVersion, Trial};
@@ -98,6 +98,10 @@ pub struct WorkerSetup {
     /// The GPU the policy acts on over the environments (`None`: faer).
     pub gpu: Option<Arc<gpu::Gpu>>,
 }
+
+/// One request's part of a batch of checks: its trials and whether all of them ran, or why
+/// they could not.
+type Ran = Result<(Vec<Trial>, bool), String>;
 
 /// Policy versions kept for evaluation requests that arrive late.
 const KEEP_VERSIONS: usize = 4;
@@ -309,33 +313,94 @@ impl Worker {
     }
 
     /// Run the first evaluation whose version we hold (or can no longer hold), of those that
-    /// waited through a round of episodes when `waited_only`.
+    /// waited through a round of episodes when `waited_only`, and with it, as one batch, the
+    /// same checkpoint's other requests of its kind queued here (evaluations, or chained
+    /// verifications): three worlds' few trials each fill the cores together. The first
+    /// report is returned, the others wait in the outbox.
     fn evaluate_ready(&mut self, waited_only: bool) -> Option<EvalReport> {
         let newest = self.version();
         let ready = self.evals.iter().position(|(r, w)| (*w || !waited_only) && newest.is_some_and(|v| r.version <= v));
-        let (r, _) = self.evals.remove(ready?).expect("found");
-        tracing::debug!(id = r.id, version = r.version, world = %r.world, "evaluating");
-        let held = self.versions.iter().chain(&self.evaluated).find(|p| p.version == r.version).cloned();
-        let trials = match held {
+        let (first, _) = self.evals.remove(ready?).expect("found");
+        let chained =
+            |may_miss: &[(EvalRequest, usize)], e: &EvalRequest| may_miss.iter().any(|(m, _)| same_request(m, e));
+        let kind = chained(&self.may_miss, &first);
+        let (mates, rest): (VecDeque<_>, VecDeque<_>) = std::mem::take(&mut self.evals)
+            .into_iter()
+            .partition(|(e, _)| e.version == first.version && chained(&self.may_miss, e) == kind);
+        self.evals = rest;
+        let batch: Vec<EvalRequest> = std::iter::once(first).chain(mates.into_iter().map(|(e, _)| e)).collect();
+        for r in &batch {
+            tracing::debug!(id = r.id, version = r.version, world = %r.world, "evaluating");
+        }
+        let held = self.versions.iter().chain(&self.evaluated).find(|p| p.version == batch[0].version).cloned();
+        let results: Vec<Ran> = match held {
             Some(p) => {
-                let trials = self.evaluate(&p, &r).map_err(|e| format!("{e:#}"));
+                let results = self.evaluate(&p, &batch);
                 if !self.evaluated.iter().any(|e| e.version == p.version) {
                     self.evaluated.push_back(p);
                     while self.evaluated.len() > KEEP_EVALUATED {
                         self.evaluated.pop_front();
                     }
                 }
-                trials
+                results
             }
-            None => Err(format!("policy v{} is no longer held by {}", r.version, self.id)),
+            None => {
+                let why = format!("policy v{} is no longer held by {}", batch[0].version, self.id);
+                batch.iter().map(|_| Err(why.clone())).collect()
+            }
         };
-        self.chain(&r, trials.as_deref().ok());
-        if let Ok(t) = &trials {
-            self.drop_if_missed(&r, t);
+        // Verifications are chained only when every world evaluated here lapped enough: the
+        // learner verifies a checkpoint only when all of them did.
+        let missed = batch
+            .iter()
+            .zip(&results)
+            .find(|(r, t)| r.then_verify.is_some() && t.as_ref().ok().and_then(|(t, _)| r.chained(t)).is_none());
+        match missed {
+            Some((r, t)) => self.chain(r, t.as_ref().ok().map(|(t, _)| t.as_slice())),
+            None => {
+                for (r, t) in batch.iter().zip(&results) {
+                    self.chain(r, t.as_ref().ok().map(|(t, _)| t.as_slice()));
+                }
+            }
         }
-        let report = EvalReport { id: r.id, worker: self.id.clone(), version: r.version, world: r.world, trials };
-        self.keep_report(&report);
-        Some(report)
+        let mut reports: Vec<EvalReport> = Vec::new();
+        for (r, t) in batch.into_iter().zip(results) {
+            let trials = match t {
+                // Stopped by another world's verification, which can no longer hold.
+                Ok((t, false)) if !self.gave_up(&r, &t) => {
+                    tracing::debug!(
+                        id = r.id,
+                        version = r.version,
+                        world = %r.world,
+                        "chained verification dropped: another world's can no longer hold"
+                    );
+                    self.may_miss.retain(|(m, _)| !same_request(m, &r));
+                    Ok(Vec::new())
+                }
+                Ok((t, _)) => {
+                    self.drop_if_missed(&r, &t);
+                    Ok(t)
+                }
+                Err(e) => Err(e),
+            };
+            let report = EvalReport { id: r.id, worker: self.id.clone(), version: r.version, world: r.world, trials };
+            self.keep_report(&report);
+            reports.push(report);
+        }
+        let mut reports = reports.into_iter();
+        let first = reports.next();
+        // The batch's other reports go before anything a drop queued.
+        for (i, r) in reports.enumerate() {
+            self.outbox.insert(i, r);
+        }
+        first
+    }
+
+    /// Whether chained verification `r` gave up: its `trials` missed more than it may miss
+    /// (false for a request that is not a chained verification).
+    fn gave_up(&self, r: &EvalRequest, trials: &[Trial]) -> bool {
+        let missed = trials.len().saturating_sub(policy::exchange::summarise(trials).2);
+        self.may_miss.iter().find(|(e, _)| same_request(e, r)).is_some_and(|&(_, k)| missed > k)
     }
 
     /// Keep `report` to answer its request again.
@@ -449,47 +514,82 @@ impl Worker {
         })
     }
 
-    fn evaluate(&mut self, p: &PolicyVersion, r: &EvalRequest) -> Result<Vec<Trial>, WorkerError> {
-        // A chained verification's misses it may take (`None`: not a chained verification).
-        let may_miss = self.may_miss.iter().find(|(e, _)| same_request(e, r)).map(|(_, k)| *k);
-        let spec = match self.worlds.iter().find(|w| w.name == r.world) {
-            Some(s) => s.clone(),
-            None => {
-                let world = tracks::world(&r.world)
-                    .map_err(|e| WorkerError::Env(EnvError::Config(format!("evaluation world: {e}"))))?;
-                // A job drives all its worlds one way round: this worker's show which.
-                let direction = self.worlds.first().map_or(tracks::Direction::Forward, |w| w.track.direction());
-                EnvSpec::from_world(&world, direction)
-            }
-        };
-        let plan = EvalPlan {
-            rules: EvalRules::default(),
-            count: r.trials.max(1) as usize,
-            seed: r.seed,
-            threads: self.threads,
-            all_frames: false,
-            // With a round granted and not yet collected, a PPO learner is waiting for this
-            // worker, not updating: the trials may have every core. (SAC updates while its next
-            // round is collected, and these trials then share the cores as collection does.)
-            // A check that may stop the run (an evaluation chaining a verification, or the
-            // verification) has them too: a learner sharing these cores waits for it
-            // (`checks_first`), and one on a machine of its own is not on them.
-            spread: self.grant.is_some_and(|(_, _, left)| left > 0) || r.then_verify.is_some() || may_miss.is_some(),
-            give_up_after_misses: may_miss,
-        };
-        let trials =
-            evaluate(&p.model, &p.metadata.action_space, &spec, &self.check_cfg, &plan, self.collector.gpu_mut())?;
-        let track_len = spec.track.length();
-        Ok(trials
-            .into_iter()
-            .map(|t| {
-                let mut t = Trial { track_len, ..Trial::from(t) };
-                for f in &mut t.frames {
-                    f.policy_version = p.version;
+    /// Run `batch`'s trials (one checkpoint's) side by side: per request, its trials and
+    /// whether all of them ran (a chained verification that can no longer hold stops the
+    /// batch), or why they could not.
+    fn evaluate(&mut self, p: &PolicyVersion, batch: &[EvalRequest]) -> Vec<Ran> {
+        let mut out: Vec<Option<Ran>> = vec![None; batch.len()];
+        let mut groups: Vec<(EnvSpec, EvalPlan)> = Vec::new();
+        let mut runs: Vec<usize> = Vec::new();
+        for (i, r) in batch.iter().enumerate() {
+            // A chained verification's misses it may take (`None`: not a chained verification).
+            let may_miss = self.may_miss.iter().find(|(e, _)| same_request(e, r)).map(|(_, k)| *k);
+            let spec = match self.worlds.iter().find(|w| w.name == r.world) {
+                Some(s) => s.clone(),
+                None => match tracks::world(&r.world) {
+                    Ok(world) => {
+                        // A job drives all its worlds one way round: this worker's show which.
+                        let direction = self.worlds.first().map_or(tracks::Direction::Forward, |w| w.track.direction());
+                        EnvSpec::from_world(&world, direction)
+                    }
+                    Err(e) => {
+                        let e = WorkerError::Env(EnvError::Config(format!("evaluation world: {e}")));
+                        out[i] = Some(Err(format!("{e:#}")));
+                        continue;
+                    }
+                },
+            };
+            let plan = EvalPlan {
+                rules: EvalRules::default(),
+                count: r.trials.max(1) as usize,
+                seed: r.seed,
+                threads: self.threads,
+                all_frames: false,
+                // With a round granted and not yet collected, a PPO learner is waiting for
+                // this worker, not updating: the trials may have every core. (SAC updates
+                // while its next round is collected, and these trials then share the cores as
+                // collection does.) A check that may stop the run (an evaluation chaining a
+                // verification, or the verification) has them too: a learner sharing these
+                // cores waits for it (`checks_first`), and one on a machine of its own is not
+                // on them.
+                spread: self.grant.is_some_and(|(_, _, left)| left > 0)
+                    || r.then_verify.is_some()
+                    || may_miss.is_some(),
+                give_up_after_misses: may_miss,
+            };
+            groups.push((spec, plan));
+            runs.push(i);
+        }
+        if !groups.is_empty() {
+            let ran =
+                evaluate_groups(&p.model, &p.metadata.action_space, &groups, &self.check_cfg, self.collector.gpu_mut());
+            match ran {
+                Ok(ran) => {
+                    for ((g, (spec, _)), &i) in ran.into_iter().zip(&groups).zip(&runs) {
+                        let track_len = spec.track.length();
+                        let trials = g
+                            .trials
+                            .into_iter()
+                            .map(|t| {
+                                let mut t = Trial { track_len, ..Trial::from(t) };
+                                for f in &mut t.frames {
+                                    f.policy_version = p.version;
+                                }
+                                t
+                            })
+                            .collect();
+                        out[i] = Some(Ok((trials, g.complete)));
+                    }
                 }
-                t
-            })
-            .collect())
+                Err(e) => {
+                    let e = format!("{:#}", WorkerError::from(e));
+                    for &i in &runs {
+                        out[i] = Some(Err(e.clone()));
+                    }
+                }
+            }
+        }
+        out.into_iter().map(|o| o.expect("every request answered")).collect()
     }
 
     /// The worker's loop: take messages, work, send, until the link says [`WorkerInbound::End`]
@@ -635,10 +735,10 @@ mod tests {
         }
     }
 
-    /// Issue 55: once one world's chained verification can no longer hold, the version's
-    /// verifications still queued on the worker are dropped, each answered at once with no
-    /// trials, and the worker goes back to its episodes; one that can still hold leaves the
-    /// others to run.
+    /// Issue 55: a checkpoint's chained verifications run as one batch, and once one world's
+    /// can no longer hold the batch stops: the worlds whose trials were still running are
+    /// answered with none, and the worker goes back to its episodes; verifications that can
+    /// still hold all run to the end.
     #[test]
     fn a_verification_that_cannot_hold_drops_its_versions_queued_verifications() {
         let meta = ModelMetadata::default_state_vector();
@@ -647,9 +747,9 @@ mod tests {
         let obs = crate::obs::obs_dim(&cfg.observation);
         // An untrained policy: its trials leave the track within 50 steps, and lap nothing.
         let model = ActorCritic::new(&meta, obs, &mut rand_chacha::ChaCha8Rng::seed_from_u64(9));
-        // (misses each verification may take, the reports in order: id and whether it ran)
-        for (may_miss, want) in [(0, [(11, true), (12, false), (13, false)]), (2, [(11, true), (12, true), (13, true)])]
-        {
+        // (misses each verification may take, the reports in order: id and the trials that
+        // came back; the untrained policy's trials end at different steps)
+        for (may_miss, want) in [(0, [(11, 1), (12, 0), (13, 1)]), (2, [(11, 2), (12, 2), (13, 2)])] {
             let mut w = Worker::new(WorkerSetup {
                 id: "w1".into(),
                 worlds: vec![spec("reinvent_base")],
@@ -691,7 +791,11 @@ mod tests {
             while got.len() < 3 {
                 let Some(WorkerOutbound::Eval(r)) = w.work().unwrap() else { panic!("a report expected") };
                 assert_eq!(r.version, 1);
-                got.push((r.id, !r.trials.unwrap().is_empty()));
+                let trials = r.trials.unwrap();
+                if !trials.is_empty() && may_miss == 0 {
+                    assert!(cannot_hold(2, 0, &trials), "{}: only a verification that cannot hold comes back", r.id);
+                }
+                got.push((r.id, trials.len()));
             }
             assert_eq!(got, want, "each verification may miss {may_miss}");
             // The evaluation that is not a chained verification still runs.

@@ -2,7 +2,8 @@
 //! evaluation trials, against the same on faer: the same seed gives the same episodes, actions
 //! for actions, their log-probabilities to float tolerance (and no values: both act with the
 //! policy tower alone), and the same trials. On faer, a camera network acts on the
-//! environments' threads, and gives the episodes and trials it gives on one, bit for bit.
+//! environments' threads, and gives the episodes and trials it gives on one, bit for bit; and
+//! several worlds' trials stepped as one batch are each world's trials alone.
 
 use policy::{ActorCritic, ModelMetadata};
 use rand::SeedableRng;
@@ -115,5 +116,70 @@ fn a_camera_policy_acts_on_the_environments_threads_and_gives_the_same_episodes(
     assert!(t1.iter().map(|t| t.steps).sum::<u64>() > 10);
     for (p, q) in t1.iter().zip(&t2) {
         assert_eq!((p.progress, p.lap_time, p.steps, p.off_track), (q.progress, q.lap_time, q.steps, q.off_track));
+    }
+}
+
+/// Issue 55: several worlds' evaluations stepped as one batch (a worker's checks of one
+/// checkpoint, `coordinator evaluate` over its worlds) give each world the trials it gets
+/// evaluated alone: every trial keeps its own seed, and the policy's forward pass gives each
+/// row what it gives in a smaller batch. From the state vector, bit for bit; from the camera,
+/// bit for bit where a trial keeps its place in the renderer's atlas (the first world's), and
+/// elsewhere the rasteriser may round a few edge pixels differently, so the batch is held to
+/// giving the same bits each time it runs.
+#[test]
+fn a_batch_of_evaluations_gives_each_world_the_trials_it_gets_alone() {
+    use sim_agent::rollout::{EvalPlan, GroupTrials, TrialResult, evaluate, evaluate_groups};
+    let spec = |w: &str| EnvSpec::from_world(&tracks::world(w).unwrap(), tracks::Direction::Forward);
+    let plan = |count, seed| EvalPlan {
+        rules: sim_agent::EvalRules::default(),
+        count,
+        seed,
+        threads: 2,
+        all_frames: false,
+        spread: true,
+        give_up_after_misses: None,
+    };
+    let groups =
+        [(spec("reinvent_base"), plan(2, 4)), (spec("reinvent_wood"), plan(3, 9)), (spec("Oval_track"), plan(1, 4))];
+    // Each step's wall clock aside: the same choices, trace, frames and outcome.
+    let bare = |mut t: Vec<TrialResult>| {
+        for s in t.iter_mut().flat_map(|t| &mut t.log.trace) {
+            s.wall_clock = 0.0;
+        }
+        t
+    };
+    let fields = |t: &[TrialResult]| t.iter().map(|t| (t.steps, t.progress)).collect::<Vec<_>>();
+    for (meta, camera) in [(ModelMetadata::default_state_vector(), false), (ModelMetadata::default_camera(), true)] {
+        let mut cfg = SimConfig::default();
+        if camera {
+            cfg.observation.kind = sim_agent::config::ObservationKind::Camera;
+            cfg.camera.randomize = true;
+        }
+        let cfg = Arc::new(cfg);
+        let obs = sim_agent::obs::obs_dim(&cfg.observation);
+        let model = Arc::new(ActorCritic::new(&meta, obs, &mut rand_chacha::ChaCha8Rng::seed_from_u64(3)));
+        let batch =
+            || -> Vec<GroupTrials> { evaluate_groups(&model, &meta.action_space, &groups, &cfg, None).unwrap() };
+        let first = batch();
+        assert_eq!(first.len(), 3);
+        let mut steps = Vec::new();
+        for (k, ((spec, plan), got)) in groups.iter().zip(&first).enumerate() {
+            assert!(got.complete, "{}: every trial ran", spec.name);
+            let got = bare(got.trials.clone());
+            assert!(got.iter().all(|t| !t.log.choices.is_empty()));
+            assert_eq!(got[0].log.frames.is_empty(), !camera, "the first trial keeps what the car saw");
+            steps.extend(got.iter().map(|t| t.steps));
+            if !camera || k == 0 {
+                let one = EvalPlan { threads: 1, ..plan.clone() };
+                let alone = bare(evaluate(&model, &meta.action_space, spec, &cfg, &one, None).unwrap());
+                assert!(got == alone, "{}: {:?} batched, {:?} alone", spec.name, fields(&got), fields(&alone));
+            }
+        }
+        // Trials of different lengths: a batch whose rows stand still once ended.
+        assert!(steps.iter().min() < steps.iter().max(), "trials of {steps:?} steps");
+        let again = batch();
+        for (a, b) in first.into_iter().zip(again) {
+            assert!(bare(a.trials) == bare(b.trials), "the batch gives the same bits each time (camera {camera})");
+        }
     }
 }
