@@ -306,26 +306,32 @@ impl VecEnv {
         let noise = if cfg.randomize && cfg.image_noise > 0.0 { Normal::new(0.0, cfg.image_noise).ok() } else { None };
         // The pixels' place in each observation (a LiDAR's values may come first).
         let at = self.envs.first().map_or(0, |e| crate::obs::camera_offset(&e.config().observation));
-        let rendered = self
-            .obs
-            .chunks_mut(self.dim.max(1))
+        let dim = self.dim.max(1);
+        let VecEnv { obs, camera_draws, pool, .. } = self;
+        let rendered: Vec<_> = obs
+            .chunks_mut(dim)
             .zip(frames.chunks(frame))
-            .zip(self.camera_draws.iter_mut())
+            .zip(camera_draws.iter_mut())
             .enumerate()
             .filter(|(i, _)| on(*i))
-            .map(|(_, both)| both);
-        for ((o, px), (_, _, rng)) in rendered {
-            let o = &mut o[at..at + frame];
-            // The frames of one environment, one after the other, to its channels (HWC).
-            let plane = frame / channels;
-            for (k, o) in o.iter_mut().enumerate() {
-                let p = px[(k % channels) * plane + k / channels] as f64;
-                *o = match &noise {
-                    Some(n) => (p + n.sample(rng)).round().clamp(0.0, 255.0) as f32,
-                    None => p as f32,
-                };
-            }
-        }
+            .map(|(_, both)| both)
+            .collect();
+        // Each environment's pixels on the environments' threads (its noise from its own RNG:
+        // the same bits on any number of them).
+        pool.install(|| {
+            rendered.into_par_iter().for_each(|((o, px), (_, _, rng))| {
+                let o = &mut o[at..at + frame];
+                // The frames of one environment, one after the other, to its channels (HWC).
+                let plane = frame / channels;
+                for (k, o) in o.iter_mut().enumerate() {
+                    let p = px[(k % channels) * plane + k / channels] as f64;
+                    *o = match &noise {
+                        Some(n) => (p + n.sample(rng)).round().clamp(0.0, 255.0) as f32,
+                        None => p as f32,
+                    };
+                }
+            })
+        });
     }
 
     /// The renderer's adapter, when the observation is the camera.
