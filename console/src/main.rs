@@ -350,9 +350,7 @@ fn start_roles(
         learner.extend(["--signing-key".to_string(), k.display().to_string()]);
     }
     spawn(children, "learner", &sibling("learner")?, &learner, &common, &logs.join("learner.log"))?;
-    // The agents split the cores for their episodes; a check the learner waits for has them all.
-    let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
-    let threads = (cores / cli.agents.max(1)).max(1);
+    let threads = (std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1) / cli.agents.max(1)).max(1);
     for i in 1..=cli.agents {
         let id = format!("agent-{i}");
         spawn(
@@ -369,8 +367,6 @@ fn start_roles(
                 &cli.envs.to_string(),
                 "--threads",
                 &threads.to_string(),
-                "--check-threads",
-                &cores.to_string(),
                 "--device",
                 &cli.device,
             ]),

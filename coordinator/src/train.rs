@@ -253,7 +253,6 @@ pub fn train(mut args: TrainArgs) -> Result<i32> {
         weights: Vec::new(),
         envs: args.envs.max(1),
         threads,
-        check_threads: threads,
         cfg: Arc::new(cfg),
         reward,
         space: meta.action_space.clone(),

@@ -90,9 +90,7 @@ pub fn up(mut args: UpArgs) -> Result<i32> {
         &common,
         &logs.join("learner.log"),
     )?;
-    // The agents split the cores for their episodes; a check the learner waits for has them all.
-    let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
-    let threads = (cores / args.agents.max(1)).max(1);
+    let threads = (std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1) / args.agents.max(1)).max(1);
     for i in 1..=args.agents {
         spawn(
             &mut children,
@@ -108,8 +106,6 @@ pub fn up(mut args: UpArgs) -> Result<i32> {
                 args.envs.to_string(),
                 "--threads".into(),
                 threads.to_string(),
-                "--check-threads".into(),
-                cores.to_string(),
                 "--device".into(),
                 args.device.to_string(),
             ],

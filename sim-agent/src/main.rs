@@ -63,11 +63,6 @@ struct ServeCli {
     /// Threads for the environments (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
-    /// Threads for a check the learner waits for: an evaluation that may stop the run, and its
-    /// verification (default: --threads). Agents that share a machine's cores with each other
-    /// and the learner (`coordinator up`, the console) pass all of them: nothing else runs then.
-    #[arg(long)]
-    check_threads: Option<usize>,
     /// Agent id (default: HOST-PID).
     #[arg(long)]
     id: Option<String>,
@@ -130,14 +125,13 @@ fn main() {
         Command::Car(args) => hil::run(args),
         Command::Handling { config } => handling(config),
         Command::Serve(a) => gate::trust(&a.trust, a.net.certs.as_deref()).and_then(|trust| {
-            let threads =
-                a.threads.unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1));
             serve::serve(serve::ServeArgs {
                 net: protocol::net::NetArgs::from(a.net).as_role(protocol::secure::Role::Agent),
                 envs: a.envs,
                 id: a.id,
-                threads,
-                check_threads: a.check_threads.unwrap_or(threads),
+                threads: a
+                    .threads
+                    .unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)),
                 device: a.device,
                 trust,
             })

@@ -42,8 +42,6 @@ pub struct ServeArgs {
     pub id: Option<String>,
     /// Threads for the environments.
     pub threads: usize,
-    /// Threads for a check the learner waits for ([`crate::worker::WorkerSetup::check_threads`]).
-    pub check_threads: usize,
     /// Where the policy acts: a GPU (`gpu::Gpu::open`'s rules) or the CPU.
     pub device: gpu::DeviceChoice,
     /// Whose policies it runs.
@@ -227,7 +225,6 @@ fn start(
         weights: a.weights.clone(),
         envs,
         threads: args.threads,
-        check_threads: args.check_threads,
         cfg: Arc::new(cfg),
         reward,
         space: meta.action_space.clone(),

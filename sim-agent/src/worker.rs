@@ -84,10 +84,6 @@ pub struct WorkerSetup {
     pub envs: usize,
     /// Threads for them.
     pub threads: usize,
-    /// Threads for the checks a learner sharing these cores waits for (an evaluation that may
-    /// stop the run, and its verification): agents that split a machine's cores for their
-    /// episodes have them all for such a check, since nothing else runs then.
-    pub check_threads: usize,
     /// The simulator configuration (observation included).
     pub cfg: Arc<SimConfig>,
     /// The reward function.
@@ -126,7 +122,6 @@ pub struct Worker {
     /// The world each environment drives, or will once its episode ends.
     plan: Vec<usize>,
     threads: usize,
-    check_threads: usize,
     versions: VecDeque<PolicyVersion>,
     /// The versions evaluated last.
     evaluated: VecDeque<PolicyVersion>,
@@ -184,7 +179,6 @@ impl Worker {
             worlds: s.worlds,
             plan,
             threads: s.threads,
-            check_threads: s.check_threads.max(1),
             versions: VecDeque::new(),
             evaluated: VecDeque::new(),
             grant: None,
@@ -545,13 +539,11 @@ impl Worker {
                     }
                 },
             };
-            // A check that may stop the run: the learner waits for it.
-            let decisive = r.then_verify.is_some() || may_miss.is_some();
             let plan = EvalPlan {
                 rules: EvalRules::default(),
                 count: r.trials.max(1) as usize,
                 seed: r.seed,
-                threads: if decisive { self.check_threads } else { self.threads },
+                threads: self.threads,
                 all_frames: false,
                 // With a round granted and not yet collected, a PPO learner is waiting for
                 // this worker, not updating: the trials may have every core. (SAC updates
@@ -560,7 +552,9 @@ impl Worker {
                 // verification, or the verification) has them too: a learner sharing these
                 // cores waits for it (`checks_first`), and one on a machine of its own is not
                 // on them.
-                spread: self.grant.is_some_and(|(_, _, left)| left > 0) || decisive,
+                spread: self.grant.is_some_and(|(_, _, left)| left > 0)
+                    || r.then_verify.is_some()
+                    || may_miss.is_some(),
                 give_up_after_misses: may_miss,
             };
             groups.push((spec, plan));
@@ -763,7 +757,6 @@ mod tests {
                 weights: Vec::new(),
                 envs: 2,
                 threads: 1,
-                check_threads: 1,
                 cfg: cfg.clone(),
                 reward: RewardFn::Builtin(crate::BuiltinReward::CenterLine),
                 space: meta.action_space.clone(),

@@ -20,7 +20,6 @@ fn worker(envs: usize, worlds: &[&str]) -> Worker {
         weights: Vec::new(),
         envs,
         threads: 1,
-        check_threads: 1,
         cfg: Arc::new(SimConfig::default()),
         reward: RewardFn::Builtin(BuiltinReward::CenterLine),
         space: meta.action_space.clone(),
