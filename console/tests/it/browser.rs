@@ -204,7 +204,12 @@ const RACER: &str = r###"
 token = sys.argv[2]
 
 def click(css):
-    d.find_element(By.CSS_SELECTOR, css).click()
+    # Once it shows and takes clicks: a page still settling (a busy machine) is waited for,
+    # and a control that never shows fails with a screenshot and its name.
+    def ready():
+        e = d.find_element(By.CSS_SELECTOR, css)
+        return e.is_displayed() and e.is_enabled() and e
+    wait("%s to take a click" % css, ready, 30).click()
 
 BAD = '''def reward_function(params):
     track_width = params["track_width"]
