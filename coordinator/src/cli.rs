@@ -602,9 +602,9 @@ pub struct PixelsArgs {
     /// everywhere stays good.
     #[arg(long)]
     pub keep_training: bool,
-    /// Seconds between a training's evaluations (its checkpoints): the earliest a model can
-    /// be judged. 20 suits two cores, where an update takes seconds; a GPU machine's
-    /// updates come far sooner.
+    /// Seconds between a training's evaluations (its checkpoints) until the lap target is in
+    /// sight (then every version is evaluated). 20 suits two cores, where an update takes
+    /// seconds; a GPU machine's updates come far sooner.
     #[arg(long, default_value_t = 20.0)]
     pub checkpoint_seconds: f64,
     /// Seeds: both setups are run once per seed (`train --seed S`, `up --seed S`) and
@@ -953,7 +953,8 @@ pub struct UpArgs {
     pub sets: Vec<String>,
     #[command(flatten)]
     pub race: RaceArgs,
-    /// Seconds between the learner's evaluations (and checkpoints).
+    /// Seconds between the learner's evaluations (and checkpoints); once an evaluation laps a
+    /// trial on every world, while a lap target is set, every version is evaluated.
     #[arg(long, default_value_t = 2.0)]
     pub checkpoint_seconds: f64,
     /// The key that signs every model the run writes and publishes (PKCS#8 PEM, from
@@ -1060,7 +1061,8 @@ pub struct TrainArgs {
     /// Stop once this many environment steps have been simulated (a compute budget).
     #[arg(long)]
     pub env_steps: Option<u64>,
-    /// Seconds between evaluations and checkpoints.
+    /// Seconds between evaluations and checkpoints; once an evaluation laps a trial on every
+    /// world, while a lap target is set, every version is evaluated.
     #[arg(long, default_value_t = 2.0)]
     pub checkpoint_seconds: f64,
     /// The key that signs every model the run writes and publishes (PKCS#8 PEM, from

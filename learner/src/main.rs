@@ -72,7 +72,8 @@ struct ServeCli {
     /// Learner id (default: learner-PID).
     #[arg(long)]
     id: Option<String>,
-    /// Seconds between evaluations (and checkpoints).
+    /// Seconds between evaluations (and checkpoints); once an evaluation laps a trial on every
+    /// world, while the job's lap target is set, every version is evaluated.
     #[arg(long, default_value_t = 5.0)]
     checkpoint_seconds: f64,
     /// The key that signs every model (PKCS#8 PEM, from `coordinator keys new NAME`); default:

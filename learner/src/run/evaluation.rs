@@ -99,17 +99,23 @@ struct CheckpointClock {
     /// The clock fell while an evaluation was under way: the checkpoint was written, and its
     /// evaluation is owed.
     owed: bool,
+    /// The run stops at a lap target, and the last evaluation lapped at least one trial on
+    /// every world: the target is in sight.
+    in_sight: bool,
 }
 
 impl CheckpointClock {
     /// A checkpoint every `eval_seconds` while training, and the evaluation owed as soon as
-    /// the one under way is closed; when stopping, the last version's, unless it is evaluated,
+    /// the one under way is closed; while the lap target is in sight, every new version as
+    /// soon as no evaluation is under way, whatever the clock says (the first version that
+    /// would hold is not skipped); when stopping, the last version's, unless it is evaluated,
     /// an evaluation is under way or nobody is left to evaluate it.
     fn due(self) -> bool {
         let on_the_clock = self.updated && !self.stopping && !self.saved && self.elapsed;
         let owed = self.owed && self.updated && !self.stopping && !self.pending && self.workers;
+        let in_sight = self.in_sight && self.updated && !self.stopping && !self.saved && !self.pending && self.workers;
         let last = self.stopping && self.updated && !self.evaluated && !self.pending && self.workers;
-        on_the_clock || owed || last
+        on_the_clock || owed || in_sight || last
     }
 }
 
@@ -169,8 +175,9 @@ fn evaluated_manifest(p: &PendingEval, progress: f64, lap_time: Option<f64>, per
 }
 
 impl Run<'_> {
-    /// A checkpoint when due (every `eval_seconds`, and the last version when stopping), each
-    /// evaluated on the workers unless an evaluation is still under way.
+    /// A checkpoint when due (every `eval_seconds`, every version while the lap target is in
+    /// sight, and the last version when stopping), each evaluated on the workers unless an
+    /// evaluation is still under way.
     pub(super) fn checkpoint_if_due(&mut self, workers: &[String]) -> Result<(), LinkError> {
         let spec = self.spec;
         let every = Duration::from_secs_f64(spec.eval_seconds.max(0.0));
@@ -183,6 +190,7 @@ impl Run<'_> {
             pending: self.evals.pending.is_some(),
             workers: !workers.is_empty(),
             owed: self.evals.owed,
+            in_sight: spec.stop.target_laps.is_some_and(|t| t.laps > 0) && self.evals.figures.1 >= 1,
         };
         if !clock.due() {
             return Ok(());
@@ -540,8 +548,50 @@ mod tests {
             (true, true, true, false, true, false, true, true, false),
             (false, false, false, false, false, false, true, true, false),
         ] {
-            let c = CheckpointClock { updated, stopping, saved, elapsed, evaluated, pending, workers, owed };
+            let c = CheckpointClock {
+                updated,
+                stopping,
+                saved,
+                elapsed,
+                evaluated,
+                pending,
+                workers,
+                owed,
+                in_sight: false,
+            };
             assert_eq!(c.due(), due, "{c:?}");
+        }
+    }
+
+    /// Issue 55: while the lap target is in sight, every new version's checkpoint is due as
+    /// soon as no evaluation is under way, before the clock falls; a version already saved, an
+    /// evaluation under way, no worker or a stopping run (whose last version has its own rule)
+    /// waits as before.
+    #[test]
+    fn every_version_is_due_while_the_lap_target_is_in_sight() {
+        let base = CheckpointClock {
+            updated: true,
+            stopping: false,
+            saved: false,
+            elapsed: false,
+            evaluated: false,
+            pending: false,
+            workers: true,
+            owed: false,
+            in_sight: true,
+        };
+        // (what differs from `base`, due)
+        let table: [(&str, CheckpointClock, bool); 7] = [
+            ("in sight, a new version", base, true),
+            ("not in sight", CheckpointClock { in_sight: false, ..base }, false),
+            ("this version saved", CheckpointClock { saved: true, ..base }, false),
+            ("an evaluation under way", CheckpointClock { pending: true, ..base }, false),
+            ("no worker", CheckpointClock { workers: false, ..base }, false),
+            ("no update here yet", CheckpointClock { updated: false, ..base }, false),
+            ("stopping, the version evaluated", CheckpointClock { stopping: true, evaluated: true, ..base }, false),
+        ];
+        for (what, c, due) in table {
+            assert_eq!(c.due(), due, "{what}: {c:?}");
         }
     }
 

@@ -32,6 +32,8 @@ struct Script {
     progress: f64,
     /// Progress of evaluation `n` (from 0): trials of 100 % lap.
     eval: fn(u64) -> f64,
+    /// Trials of evaluation `n` that lap when its progress is under 100 %.
+    eval_laps: fn(u64) -> u32,
     /// Trials of verification `n` (from 0) that lap (the rest end at 60 %).
     verify: fn(u64) -> u32,
 }
@@ -180,13 +182,14 @@ impl Scripted {
         // A checkpoint's evaluation has the spec's 3 trials; its verification more.
         let lapping = if req.trials == 3 {
             self.evals += 1;
-            if (self.script.eval)(self.evals - 1) >= 100.0 { 3 } else { 0 }
+            let n = self.evals - 1;
+            if (self.script.eval)(n) >= 100.0 { 3 } else { (self.script.eval_laps)(n) }
         } else {
             self.verifications += 1;
             (self.script.verify)(self.verifications - 1)
         };
         let progress_of = |i: u32| match req.trials {
-            3 => (self.script.eval)(self.evals - 1),
+            3 if i >= lapping => (self.script.eval)(self.evals - 1),
             _ if i < lapping => 100.0,
             _ => 60.0,
         };
@@ -278,7 +281,7 @@ fn lines(path: &Path) -> Vec<serde_json::Value> {
         .collect()
 }
 
-const HALFWAY: Script = Script { steps: 20, progress: 30.0, eval: |_| 50.0, verify: |_| 10 };
+const HALFWAY: Script = Script { steps: 20, progress: 30.0, eval: |_| 50.0, eval_laps: |_| 0, verify: |_| 10 };
 
 /// Issue 29: every stop condition ends the run with its reason, an evaluation and a model.
 #[test]
@@ -465,6 +468,36 @@ fn the_run_stops_at_the_first_checkpoint_that_holds_its_verification_and_that_is
             .unwrap();
     assert_eq!(index["best_checkpoint"]["policy_version"], verified, "{index}");
     assert!(s.policy_version >= verified);
+}
+
+/// Issue 55: once an evaluation laps a trial on every world, the lap target is in sight and
+/// every new version is evaluated, whatever the clock says; before that, the clock decides.
+#[test]
+fn every_version_is_evaluated_once_the_lap_target_is_in_sight() {
+    let dir = tempfile::tempdir().unwrap();
+    let target = Some(TargetLaps { laps: 3, evaluations: 1, verify_trials: 10 });
+    // The clock falls at the first update only; the run ends at 60 episodes (6 updates).
+    let stop = StopRules { target_laps: target, max_episodes: Some(60), ..never() };
+    let hourly = |out: &Path| RunSpec { eval_seconds: 3600.0, ..spec(out, stop.clone(), quick()) };
+    // (row, laps of the first evaluation, the trials asked in order, their versions)
+    type Row = (&'static str, fn(u64) -> u32, &'static [u32], &'static [u64]);
+    let table: [Row; 2] = [
+        // The first evaluation lapped 1 of 3: the next version is evaluated at once, laps
+        // 3 of 3 and is verified; the run stops there.
+        ("in sight", |n| u32::from(n == 0), &[3, 3, 10], &[1, 2, 2]),
+        // It lapped none: nothing more until the run stops, and then the last version.
+        ("not in sight", |_| 0, &[3, 3], &[1, 6]),
+    ];
+    for (row, eval_laps, trials, versions) in table {
+        let out = dir.path().join(row.replace(' ', "-"));
+        let script = Script { eval: |n| if n >= 1 { 100.0 } else { 40.0 }, eval_laps, ..HALFWAY };
+        let mut link = Scripted::new(script);
+        let s = learner::run::run(&hourly(&out), &mut link, &mut Quiet).unwrap_or_else(|e| panic!("{row}: {e:#}"));
+        assert_eq!(link.asked.iter().map(|r| r.trials).collect::<Vec<_>>(), trials, "{row}: {:?}", link.asked);
+        assert_eq!(link.asked.iter().map(|r| r.version).collect::<Vec<_>>(), versions, "{row}: {:?}", link.asked);
+        let verified = s.stop_reason.contains("target laps reached and verified");
+        assert_eq!(verified, row == "in sight", "{row}: {}", s.stop_reason);
+    }
 }
 
 /// Issue 55: where the workers share the learner's cores (`coordinator train`, `up`), an
