@@ -76,8 +76,12 @@ fn watchdog(flight: Arc<Flight>, epoch: Instant, limit: Duration, helpers: Py<Py
             // Still the same call, now that the caller is paused (it holds the GIL between calls).
             if flight.call.load(Ordering::Acquire) == call {
                 let ident = flight.ident.load(Ordering::Relaxed);
-                if helpers.bind(py).getattr("fire").and_then(|f| f.call1((ident,))).is_ok() {
-                    flight.fired.store(call, Ordering::Release);
+                // Marked before it is raised: CPython may hand the GIL back to the caller
+                // while `fire` is still running, and the caller, stopped by the exception,
+                // must already see that the limit struck this call.
+                flight.fired.store(call, Ordering::Release);
+                if helpers.bind(py).getattr("fire").and_then(|f| f.call1((ident,))).is_err() {
+                    flight.fired.store(0, Ordering::Release);
                 }
             }
         });
