@@ -83,7 +83,7 @@ pub fn run(model_dir: &Path, req: &Request) -> Result<Evaluation> {
     };
     let groups: Vec<(EnvSpec, EvalPlan)> =
         req.worlds.iter().map(|w| (EnvSpec::from_world(w, direction), plan.clone())).collect();
-    let ran = evaluate_groups(&model, &f.metadata.action_space, &groups, &cfg, None)?;
+    let ran = evaluate_groups(&model, &f.metadata.action_space, &groups, &cfg, None, &mut || true)?;
     let worlds =
         req.worlds.iter().zip(ran).map(|(w, g)| WorldTrials { world: w.name.clone(), trials: g.trials }).collect();
     Ok(Evaluation { policy_version: f.manifest.policy_version, worlds })

@@ -37,6 +37,10 @@ pub struct Credit {
     pub round: u64,
     /// Worker id → episodes granted in this round.
     pub episodes: BTreeMap<String, u64>,
+    /// The learner has closed every evaluation and verification of the policy versions up to
+    /// this one (0: none said): trials of them still queued or running are wasted, and a
+    /// worker drops them.
+    pub checks_closed_through: u64,
 }
 
 /// Experience from one worker: complete episodes, and what producing them cost.

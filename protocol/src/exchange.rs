@@ -45,6 +45,7 @@ pub fn credit_to_wire(job: &str, c: &ex::Credit) -> crate::Credit {
         policy_version: c.version,
         round: c.round,
         grants: c.episodes.iter().map(|(a, n)| crate::Grant { agent_id: a.clone(), episodes: *n }).collect(),
+        checks_closed_through: c.checks_closed_through,
     }
 }
 
@@ -58,7 +59,12 @@ pub fn credit_from_wire(w: crate::Credit, job: &str) -> Result<ex::Credit, Decod
         }
         episodes.insert(g.agent_id, g.episodes);
     }
-    Ok(ex::Credit { version: w.policy_version, round: w.round, episodes })
+    Ok(ex::Credit {
+        version: w.policy_version,
+        round: w.round,
+        episodes,
+        checks_closed_through: w.checks_closed_through,
+    })
 }
 
 /// An evaluation request on the wire.
@@ -934,7 +940,8 @@ mod tests {
         assert!(experience_from_wire(wire.clone(), &JobView { job_id: "job2", ..view }, "a1").is_err());
         assert!(experience_from_wire(wire, &view, "a2").is_err());
 
-        let c = ex::Credit { version: 4, round: 2, episodes: [("a1".to_string(), 10u64)].into() };
+        let c =
+            ex::Credit { version: 4, round: 2, episodes: [("a1".to_string(), 10u64)].into(), checks_closed_through: 3 };
         assert_eq!(credit_from_wire(credit_to_wire(&id, &c), &id).unwrap(), c);
         let mut huge = credit_to_wire(&id, &c);
         huge.grants[0].episodes = u64::MAX;

@@ -27,7 +27,7 @@
 //! | `camera`, `cameras` | `job/{job}/camera/{agent}` | [`CameraFrame`] (camera jobs, ≤ 1 a second; for watchers) | sim agent |
 //! | `eval_report`, `eval_reports` | `job/{job}/eval/report/{agent}` | [`EvalReport`] | sim agent |
 //! | `agent_report`, `ALL_REPORTS` | `job/{job}/report/{agent}` | [`AgentReport`] (a failure) | sim agent |
-//! | `credit` | `job/{job}/credit` | [`Credit`] (re-sent every second during a grant round) | learner |
+//! | `credit` | `job/{job}/credit` | [`Credit`] (re-sent every second during a grant round; says through which version the checks are closed) | learner |
 //! | `eval_request` | `job/{job}/eval/request/{agent}` | [`EvalRequest`] | learner |
 //! | `policy` | `job/{job}/policy` | [`PolicyUpdate`] (publication and "latest" queryable) | learner |
 //! | `best` | `job/{job}/best` | [`PolicyUpdate`] of the best model (publication and queryable) | learner |

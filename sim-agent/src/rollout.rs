@@ -262,7 +262,7 @@ pub fn evaluate(
     plan: &EvalPlan,
     gpu: Option<&mut gpu::Acting>,
 ) -> Result<Vec<TrialResult>, RewardError> {
-    let mut groups = evaluate_groups(model, space, &[(spec.clone(), plan.clone())], cfg, gpu)?;
+    let mut groups = evaluate_groups(model, space, &[(spec.clone(), plan.clone())], cfg, gpu, &mut || true)?;
     Ok(groups.pop().map(|g| g.trials).unwrap_or_default())
 }
 
@@ -283,13 +283,16 @@ pub struct GroupTrials {
 /// pass row by row. The batch runs on the most threads a group asks for, and acts on them
 /// when any group may (`spread`). A group that gives up (`give_up_after_misses`) stops the
 /// batch: a batch holds the checks of one checkpoint, and one that can no longer hold decides
-/// them all. The groups' trials still running are then dropped.
+/// them all. The groups' trials still running are then dropped. `go_on` is asked before every
+/// step: false stops the batch the same way (a worker whose learner no longer needs the
+/// trials).
 pub fn evaluate_groups(
     model: &Arc<ActorCritic>,
     space: &ActionSpace,
     groups: &[(EnvSpec, EvalPlan)],
     cfg: &Arc<SimConfig>,
     mut gpu: Option<&mut gpu::Acting>,
+    go_on: &mut dyn FnMut() -> bool,
 ) -> Result<Vec<GroupTrials>, RewardError> {
     let reward = RewardFn::Builtin(crate::BuiltinReward::CenterLine);
     // Each group's environments, seeded as a vector of its own would seed them.
@@ -324,7 +327,7 @@ pub fn evaluate_groups(
     let missed = |results: &[Option<TrialResult>], g: usize| {
         results.iter().zip(&owner).filter(|(r, o)| o.0 == g && r.as_ref().is_some_and(|r| r.lap_time.is_none())).count()
     };
-    while results.iter().any(|r| r.is_none()) && steps < cap {
+    while results.iter().any(|r| r.is_none()) && steps < cap && go_on() {
         if camera && steps.is_multiple_of(2) {
             for (i, log) in logs.iter_mut().enumerate().filter(|(i, _)| kept[*i] && results[*i].is_none()) {
                 log.frames.push(policy::exchange::Frame {

@@ -138,6 +138,8 @@ pub struct Worker {
     /// Reports to send before any work: a repeated request's answer, and the chained
     /// verifications dropped once another of their version's could no longer hold.
     outbox: VecDeque<EvalReport>,
+    /// Messages that arrived while a batch of checks ran, taken before any more work.
+    deferred: VecDeque<WorkerInbound>,
     seq: u64,
     steps_reported: u64,
     last_frame: Option<Instant>,
@@ -186,6 +188,7 @@ impl Worker {
             reports: VecDeque::new(),
             may_miss: Vec::new(),
             outbox: VecDeque::new(),
+            deferred: VecDeque::new(),
             seq: s.first_seq,
             steps_reported: 0,
             last_frame: None,
@@ -223,6 +226,7 @@ impl Worker {
                 }
             }
             WorkerInbound::Credit(c) => {
+                self.drop_closed(c.checks_closed_through);
                 // Repeats of the grant in hand are ignored; a new version or a later round replaces it.
                 let newer = self.grant.is_none_or(|(v, r, _)| c.version != v || c.round > r);
                 if newer {
@@ -265,14 +269,27 @@ impl Worker {
     /// Do one piece of work: collect the granted episodes, or run one evaluation. `None`
     /// when there is nothing to do until the next message.
     pub fn work(&mut self) -> Result<Option<WorkerOutbound>, WorkerError> {
+        self.work_with(&mut || None)
+    }
+
+    /// [`Worker::work`], reading `inbox` while a batch of checks runs: a grant saying the
+    /// learner closed the batch's version's checks (or the end) stops it, and what came is
+    /// taken before any more work (`None` then, with those messages waiting).
+    pub fn work_with(
+        &mut self,
+        inbox: &mut dyn FnMut() -> Option<WorkerInbound>,
+    ) -> Result<Option<WorkerOutbound>, WorkerError> {
         if let Some(r) = self.outbox.pop_front() {
             return Ok(Some(WorkerOutbound::Eval(r)));
         }
         // An evaluation that waited through a round of episodes goes first: an off-policy
         // learner grants the next round while it updates, so a worker always holding a grant
         // would never evaluate.
-        if let Some(report) = self.evaluate_ready(true) {
+        if let Some(report) = self.evaluate_ready(true, inbox) {
             return Ok(Some(WorkerOutbound::Eval(report)));
+        }
+        if !self.deferred.is_empty() {
+            return Ok(None);
         }
         // Granted episodes next: the learner is waiting for them.
         if let Some((version, round, left)) = self.grant.filter(|g| g.2 > 0) {
@@ -309,7 +326,23 @@ impl Worker {
                 self.grant = Some((version, round, 0)); // a grant for a version we moved past
             }
         }
-        Ok(self.evaluate_ready(false).map(WorkerOutbound::Eval))
+        Ok(self.evaluate_ready(false, inbox).map(WorkerOutbound::Eval))
+    }
+
+    /// Messages that arrived while a batch of checks ran, oldest first.
+    pub fn take_deferred(&mut self) -> Option<WorkerInbound> {
+        self.deferred.pop_front()
+    }
+
+    /// The learner closed every check of the versions up to `through`: their evaluations and
+    /// verifications still queued here are dropped, unanswered (it asks no more of them).
+    fn drop_closed(&mut self, through: u64) {
+        let before = self.evals.len();
+        self.evals.retain(|(e, _)| e.version > through);
+        self.may_miss.retain(|(e, _)| e.version > through);
+        if self.evals.len() < before {
+            tracing::debug!(through, dropped = before - self.evals.len(), "checks closed by the learner: dropped");
+        }
     }
 
     /// Run the first evaluation whose version we hold (or can no longer hold), of those that
@@ -317,7 +350,11 @@ impl Worker {
     /// same checkpoint's other requests of its kind queued here (evaluations, or chained
     /// verifications): three worlds' few trials each fill the cores together. The first
     /// report is returned, the others wait in the outbox.
-    fn evaluate_ready(&mut self, waited_only: bool) -> Option<EvalReport> {
+    fn evaluate_ready(
+        &mut self,
+        waited_only: bool,
+        inbox: &mut dyn FnMut() -> Option<WorkerInbound>,
+    ) -> Option<EvalReport> {
         let newest = self.version();
         let ready = self.evals.iter().position(|(r, w)| (*w || !waited_only) && newest.is_some_and(|v| r.version <= v));
         let (first, _) = self.evals.remove(ready?).expect("found");
@@ -335,14 +372,22 @@ impl Worker {
         let held = self.versions.iter().chain(&self.evaluated).find(|p| p.version == batch[0].version).cloned();
         let results: Vec<Ran> = match held {
             Some(p) => {
-                let results = self.evaluate(&p, &batch);
+                let results = self.evaluate(&p, &batch, inbox);
                 if !self.evaluated.iter().any(|e| e.version == p.version) {
                     self.evaluated.push_back(p);
                     while self.evaluated.len() > KEEP_EVALUATED {
                         self.evaluated.pop_front();
                     }
                 }
-                results
+                match results {
+                    Some(results) => results,
+                    None => {
+                        // The learner closed this version's checks: nobody waits for them.
+                        tracing::debug!(version = batch[0].version, "checks closed by the learner: stopped");
+                        self.may_miss.retain(|(m, _)| !batch.iter().any(|r| same_request(m, r)));
+                        return None;
+                    }
+                }
             }
             None => {
                 let why = format!("policy v{} is no longer held by {}", batch[0].version, self.id);
@@ -516,8 +561,15 @@ impl Worker {
 
     /// Run `batch`'s trials (one checkpoint's) side by side: per request, its trials and
     /// whether all of them ran (a chained verification that can no longer hold stops the
-    /// batch), or why they could not.
-    fn evaluate(&mut self, p: &PolicyVersion, batch: &[EvalRequest]) -> Vec<Ran> {
+    /// batch), or why they could not. `inbox` is read before every step, what it brings kept
+    /// for later; `None` when a grant in it said the learner closed the version's checks, or
+    /// the run ended (the batch stopped there).
+    fn evaluate(
+        &mut self,
+        p: &PolicyVersion,
+        batch: &[EvalRequest],
+        inbox: &mut dyn FnMut() -> Option<WorkerInbound>,
+    ) -> Option<Vec<Ran>> {
         let mut out: Vec<Option<Ran>> = vec![None; batch.len()];
         let mut groups: Vec<(EnvSpec, EvalPlan)> = Vec::new();
         let mut runs: Vec<usize> = Vec::new();
@@ -561,8 +613,32 @@ impl Worker {
             runs.push(i);
         }
         if !groups.is_empty() {
-            let ran =
-                evaluate_groups(&p.model, &p.metadata.action_space, &groups, &self.check_cfg, self.collector.gpu_mut());
+            let version = p.version;
+            let mut arrived: Vec<WorkerInbound> = Vec::new();
+            let mut closed = false;
+            let mut go_on = || {
+                while !closed && let Some(m) = inbox() {
+                    closed = match &m {
+                        WorkerInbound::Credit(c) => c.checks_closed_through >= version,
+                        WorkerInbound::End => true,
+                        _ => false,
+                    };
+                    arrived.push(m);
+                }
+                !closed
+            };
+            let ran = evaluate_groups(
+                &p.model,
+                &p.metadata.action_space,
+                &groups,
+                &self.check_cfg,
+                self.collector.gpu_mut(),
+                &mut go_on,
+            );
+            self.deferred.extend(arrived);
+            if closed {
+                return None;
+            }
             match ran {
                 Ok(ran) => {
                     for ((g, (spec, _)), &i) in ran.into_iter().zip(&groups).zip(&runs) {
@@ -589,7 +665,7 @@ impl Worker {
                 }
             }
         }
-        out.into_iter().map(|o| o.expect("every request answered")).collect()
+        Some(out.into_iter().map(|o| o.expect("every request answered")).collect())
     }
 
     /// The worker's loop: take messages, work, send, until the link says [`WorkerInbound::End`]
@@ -598,14 +674,21 @@ impl Worker {
         loop {
             // Everything that is waiting, then work; block only when idle.
             loop {
-                match link.next(Duration::ZERO, self.versions.is_empty())? {
+                let m = match self.deferred.pop_front() {
+                    Some(m) => Some(m),
+                    None => link.next(Duration::ZERO, self.versions.is_empty())?,
+                };
+                match m {
                     Some(WorkerInbound::End) => return Ok(()),
                     Some(m) => self.take(m),
                     None => break,
                 }
             }
-            match self.work()? {
+            // A batch of checks reads the link as it runs (a link error shows at the next read).
+            let out = self.work_with(&mut || link.next(Duration::ZERO, false).ok().flatten())?;
+            match out {
                 Some(out) => link.send(out)?,
+                None if !self.deferred.is_empty() => {}
                 None => match link.next(Duration::from_millis(100), self.versions.is_empty())? {
                     Some(WorkerInbound::End) => return Ok(()),
                     Some(m) => self.take(m),

@@ -366,7 +366,12 @@ fn message_seeds() -> Vec<Vec<u8>> {
         seconds: 0.5,
         frame: None,
     };
-    let c = policy::exchange::Credit { version: 4, round: 2, episodes: [("a1".to_string(), 10u64)].into() };
+    let c = policy::exchange::Credit {
+        version: 4,
+        round: 2,
+        episodes: [("a1".to_string(), 10u64)].into(),
+        checks_closed_through: 3,
+    };
     let parts = model_parts();
     vec![
         encode(&ex::experience_to_wire("job1", &e, 3)),

@@ -160,6 +160,12 @@ fn verification_holds(per_world: &[WorldEval], needed: usize, trials: usize) -> 
     per_world.iter().all(|w| w.3 >= needed && w.4 == trials)
 }
 
+/// Whether a verification can no longer hold, whatever the worlds still out bring: a world
+/// whose trials are in (`done`) lapped fewer than `needed` of them.
+fn verification_lost(done: &BTreeMap<String, Vec<Trial>>, needed: usize) -> bool {
+    done.values().any(|t| summarise(t).2 < needed)
+}
+
 /// The checkpoint's manifest with its evaluation's figures (and a verification's trials).
 fn evaluated_manifest(p: &PendingEval, progress: f64, lap_time: Option<f64>, per_world: &[WorldEval]) -> Manifest {
     let mut manifest = p.manifest.clone();
@@ -315,14 +321,27 @@ impl Run<'_> {
         Ok(())
     }
 
-    /// Once every world's trials are in: record the evaluation, keep the model if it is the
-    /// best, follow the lap streak and the trend, and verify a checkpoint that met the lap
-    /// target. True when this was the final evaluation of a stopping run (the run is over).
+    /// Once every world's trials are in, or a verification can no longer hold: record the
+    /// evaluation, keep the model if it is the best, follow the lap streak and the trend, and
+    /// verify a checkpoint that met the lap target. True when this was the final evaluation of
+    /// a stopping run (the run is over). A verification lost on one world closes at once: the
+    /// worlds still out count as run none, the next grant tells their workers the checks are
+    /// closed (they drop the trials), and training goes on without waiting for them.
     pub(super) fn close_evaluation(&mut self) -> Result<bool, LinkError> {
-        if !self.evals.pending.as_ref().is_some_and(|p| p.asked.is_empty()) {
+        let lost = |p: &PendingEval| {
+            let needed = self
+                .spec
+                .stop
+                .target_laps
+                .filter(|t| t.laps > 0)
+                .map(|t| t.needed(self.spec.eval_trials as usize, p.trials as usize));
+            p.verifying && needed.is_some_and(|n| verification_lost(&p.done, n))
+        };
+        if !self.evals.pending.as_ref().is_some_and(|p| p.asked.is_empty() || lost(p)) {
             return Ok(false);
         }
-        let p = self.evals.pending.take().expect("checked");
+        let mut p = self.evals.pending.take().expect("checked");
+        p.asked.clear();
         let all: Vec<Trial> = p.done.values().flatten().cloned().collect();
         let (progress, lap_time, _) = summarise(&all);
         let per_world = per_world(&self.spec.worlds, &p.done);
@@ -660,6 +679,29 @@ mod tests {
         ] {
             let per: Vec<WorldEval> = worlds.iter().map(|&(l, t)| world(l, t)).collect();
             assert_eq!(verification_holds(&per, needed, trials), holds, "{worlds:?}");
+        }
+    }
+
+    /// A verification is lost as soon as one world whose trials are in lapped fewer than
+    /// needed (a worker that gave up sends the trials it ran), whatever the worlds still out.
+    #[test]
+    fn a_verification_is_lost_once_one_world_in_lapped_too_few() {
+        let trials = |laps: usize, ran: usize| -> Vec<Trial> {
+            (0..ran).map(|i| if i < laps { trial(100.0, Some(12.0)) } else { trial(40.0, None) }).collect()
+        };
+        // (worlds in (laps, trials ran), needed, lost)
+        for (worlds, needed, lost) in [
+            (vec![], 10, false),
+            (vec![(10, 10)], 10, false),
+            (vec![(10, 10), (0, 1)], 10, true),
+            (vec![(0, 1)], 10, true),
+            (vec![(7, 10), (8, 10)], 7, false),
+            (vec![(6, 10)], 7, true),
+            (vec![(0, 0)], 1, true),
+        ] {
+            let done: BTreeMap<String, Vec<Trial>> =
+                worlds.iter().enumerate().map(|(i, &(l, r))| (format!("w{i}"), trials(l, r))).collect();
+            assert_eq!(verification_lost(&done, needed), lost, "{worlds:?}");
         }
     }
 }

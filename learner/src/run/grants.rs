@@ -150,7 +150,7 @@ fn split(version: u64, number: u64, need: u64, workers: &[String]) -> Option<Cre
     let n = workers.len() as u64;
     let episodes =
         workers.iter().enumerate().map(|(i, w)| (w.clone(), need / n + u64::from((i as u64) < need % n))).collect();
-    Some(Credit { version, round: number, episodes })
+    Some(Credit { version, round: number, episodes, checks_closed_through: 0 })
 }
 
 #[cfg(test)]
@@ -238,6 +238,7 @@ mod tests {
                 version,
                 round,
                 episodes: shares.iter().map(|(w, n)| (w.to_string(), *n)).collect(),
+                checks_closed_through: 0,
             });
             assert_eq!(got, want, "row {i} at {s} s");
         }

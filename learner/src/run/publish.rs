@@ -44,14 +44,29 @@ impl Run<'_> {
 
     /// Flow control: grant what the next update still needs (see `grants.rs`); nothing while
     /// a check that may stop the run goes first (the workers run it before any episodes).
+    /// Each grant says which versions' checks are closed, so that a worker still running a
+    /// verification that can no longer matter (another world's missed) drops it.
     pub(super) fn grant(&mut self, workers: &[String]) -> Result<(), LinkError> {
         if self.stop_reason.is_some() || self.check_goes_first() {
             return Ok(());
         }
         let shortfall = self.want.saturating_sub(self.buffer.len() as u64);
         match self.grants.due(self.algo.version(), shortfall, workers, Instant::now()) {
-            Some(credit) => self.link.grant(&credit),
+            Some(mut credit) => {
+                credit.checks_closed_through = self.checks_closed_through();
+                self.link.grant(&credit)
+            }
             None => Ok(()),
+        }
+    }
+
+    /// The newest version whose checks are all closed: below the evaluation under way, else
+    /// the last one closed (checkpoints are evaluated in the order they were written, each
+    /// once, and a verification is its evaluation's sequel).
+    pub(super) fn checks_closed_through(&self) -> u64 {
+        match &self.evals.pending {
+            Some(p) => p.version.saturating_sub(1),
+            None => self.evals.evaluated_version.unwrap_or(0),
         }
     }
 }

@@ -55,6 +55,10 @@ struct Scripted {
     sent: Vec<EvalRequest>,
     /// Calls to `next` an evaluation's report waits for (0: at once), as trials take time.
     hold: usize,
+    /// A world whose evaluations and verifications take this many calls instead.
+    slow_world: Option<(&'static str, usize)>,
+    /// Every grant announced, in order.
+    credits: Vec<Credit>,
     /// Evaluations whose trials are still running, with the calls they have left.
     held: Vec<(usize, EvalRequest)>,
     /// Versions published and grants made while an evaluation's trials were running.
@@ -76,6 +80,8 @@ impl Scripted {
             asked: Vec::new(),
             sent: Vec::new(),
             hold: 0,
+            slow_world: None,
+            credits: Vec::new(),
             held: Vec::new(),
             published_while_checking: 0,
             granted_while_checking: 0,
@@ -115,6 +121,7 @@ impl Link for Scripted {
 
     fn grant(&mut self, credit: &Credit) -> Result<(), LinkError> {
         self.granted_while_checking += u64::from(!self.held.is_empty());
+        self.credits.push(credit.clone());
         let want = credit.episodes.get(WORKER).copied().unwrap_or(0);
         let done = self.delivered.entry((credit.version, credit.round)).or_default();
         let more = want.saturating_sub(*done);
@@ -139,11 +146,7 @@ impl Link for Scripted {
 
     fn request_eval(&mut self, req: &EvalRequest) -> Result<(), LinkError> {
         self.sent.push(req.clone());
-        if self.hold == 0 {
-            self.answer(req);
-        } else if !self.held.iter().any(|(_, r)| r.id == req.id) {
-            self.held.push((self.hold, req.clone()));
-        }
+        self.run(req);
         Ok(())
     }
 
@@ -175,6 +178,19 @@ impl Link for Scripted {
 }
 
 impl Scripted {
+    /// Run `req`: report at once, or after the calls its trials take.
+    fn run(&mut self, req: &EvalRequest) {
+        let hold = match self.slow_world {
+            Some((world, calls)) if req.world == world => calls,
+            _ => self.hold,
+        };
+        if hold == 0 {
+            self.answer(req);
+        } else if !self.held.iter().any(|(_, r)| r.id == req.id) {
+            self.held.push((hold, req.clone()));
+        }
+    }
+
     /// Run `req` and report; then, as a sim worker does, the verification chained to it when
     /// its trials lapped enough.
     fn answer(&mut self, req: &EvalRequest) {
@@ -214,7 +230,10 @@ impl Scripted {
             trials: Ok(trials),
         }));
         if let Some(v) = chained {
-            self.answer(&v);
+            match self.slow_world {
+                Some(_) => self.run(&v),
+                None => self.answer(&v),
+            }
         }
     }
 }
@@ -498,6 +517,42 @@ fn every_version_is_evaluated_once_the_lap_target_is_in_sight() {
         let verified = s.stop_reason.contains("target laps reached and verified");
         assert_eq!(verified, row == "in sight", "{row}: {}", s.stop_reason);
     }
+}
+
+/// Issue 55: a verification lost on one world (it lapped too few) closes at once: training goes
+/// on without waiting for the other worlds' trials, and the next grant tells the workers that
+/// version's checks are closed, so that the worker still verifying another world drops them.
+#[test]
+fn a_verification_lost_on_one_world_closes_without_waiting_for_the_others() {
+    let dir = tempfile::tempdir().unwrap();
+    let stop = StopRules { target_laps: Some(TargetLaps { laps: 3, evaluations: 1, verify_trials: 10 }), ..never() };
+    // Every evaluation laps. The first verification laps none on reinvent_base, answered at
+    // once; reinvent_wood's checks take 40 calls. The next checkpoint's verification holds.
+    let script = Script { eval: |_| 100.0, verify: |k| if k == 0 { 0 } else { 10 }, ..HALFWAY };
+    let out = dir.path().join("lost");
+    let mut link = Scripted::new(script);
+    link.slow_world = Some(("reinvent_wood", 40));
+    let spec =
+        RunSpec { checks_first: true, worlds: vec![WORLD.into(), "reinvent_wood".into()], ..spec(&out, stop, quick()) };
+    let s = learner::run::run(&spec, &mut link, &mut Quiet).unwrap_or_else(|e| panic!("{e:#}"));
+    assert!(s.stop_reason.contains("target laps reached and verified: ckpt_000002"), "{}", s.stop_reason);
+    let evals = lines(&out.join("evaluations.jsonl"));
+    let first = evals.iter().find(|e| e["verification"] == true).expect("the first verification's record");
+    assert_eq!(first["policy_version"], 1, "{first}");
+    // reinvent_wood's trials were not waited for: none counted.
+    let worlds: Vec<(String, u64, u64)> = first["worlds"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|w| (w[0].as_str().unwrap().to_string(), w[3].as_u64().unwrap(), w[4].as_u64().unwrap()))
+        .collect();
+    assert_eq!(worlds, [(WORLD.to_string(), 0, 10), ("reinvent_wood".to_string(), 0, 0)]);
+    // Granted while reinvent_wood's verification of v1 still ran, saying v1's checks are closed.
+    assert!(link.granted_while_checking > 0, "the learner waited for the verification's every world");
+    let after = link.credits.iter().find(|c| c.version == 1).expect("a grant for v1's episodes");
+    assert_eq!(after.checks_closed_through, 1, "{after:?}");
+    // Grants before any check closed say none is.
+    assert_eq!(link.credits[0].checks_closed_through, 0, "{:?}", link.credits[0]);
 }
 
 /// Issue 55: where the workers share the learner's cores (`coordinator train`, `up`), an

@@ -158,8 +158,9 @@ fn a_batch_of_evaluations_gives_each_world_the_trials_it_gets_alone() {
         let cfg = Arc::new(cfg);
         let obs = sim_agent::obs::obs_dim(&cfg.observation);
         let model = Arc::new(ActorCritic::new(&meta, obs, &mut rand_chacha::ChaCha8Rng::seed_from_u64(3)));
-        let batch =
-            || -> Vec<GroupTrials> { evaluate_groups(&model, &meta.action_space, &groups, &cfg, None).unwrap() };
+        let batch = || -> Vec<GroupTrials> {
+            evaluate_groups(&model, &meta.action_space, &groups, &cfg, None, &mut || true).unwrap()
+        };
         let first = batch();
         assert_eq!(first.len(), 3);
         let mut steps = Vec::new();

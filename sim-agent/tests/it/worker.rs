@@ -51,7 +51,17 @@ fn eval(id: u64, version: u64, world: &str, trials: u32, seed: u64) -> WorkerInb
 }
 
 fn credit(version: u64, round: u64, episodes: u64) -> WorkerInbound {
-    WorkerInbound::Credit(Credit { version, round, episodes: [("w1".to_string(), episodes)].into() })
+    closing(version, round, episodes, 0)
+}
+
+/// A grant that also says the learner closed the checks of every version up to `through`.
+fn closing(version: u64, round: u64, episodes: u64, through: u64) -> WorkerInbound {
+    WorkerInbound::Credit(Credit {
+        version,
+        round,
+        episodes: [("w1".to_string(), episodes)].into(),
+        checks_closed_through: through,
+    })
 }
 
 /// Issue 8: a worker simulates only what it was granted.
@@ -82,7 +92,12 @@ fn a_worker_simulates_only_what_it_was_granted() {
     // Episodes that were running when the grant ran out finish under the next one.
     assert!(e.trajectories.iter().all(|t| t.policy_version <= 1));
     // Someone else's grant is not ours.
-    w.take(WorkerInbound::Credit(Credit { version: 1, round: 2, episodes: [("w2".to_string(), 5)].into() }));
+    w.take(WorkerInbound::Credit(Credit {
+        version: 1,
+        round: 2,
+        episodes: [("w2".to_string(), 5)].into(),
+        checks_closed_through: 0,
+    }));
     assert!(w.work().unwrap().is_none());
 }
 
@@ -208,6 +223,64 @@ fn a_chained_verification_runs_at_once_when_its_evaluation_lapped_enough() {
             }
         }
         assert_eq!(ran, want, "the second world needing {second} laps");
+    }
+}
+
+/// Issue 55: a grant saying the learner closed a version's checks (another worker's world
+/// missed, so the checkpoint cannot be verified) drops that version's verification queued
+/// here, and stops one running at the step the grant is read, with nothing reported; a grant
+/// that closes older versions only leaves it running. What came meanwhile is taken after.
+#[test]
+fn a_worker_drops_the_checks_of_versions_its_learner_closed() {
+    let chained = || {
+        let WorkerInbound::Eval(r) = eval(5, 1, "reinvent_base", 2, 3) else { unreachable!() };
+        WorkerInbound::Eval(EvalRequest {
+            then_verify: Some(ChainedVerify { id: 6, trials: 3, seed: 77, laps: 0 }),
+            ..r
+        })
+    };
+    let evaluated = || {
+        let mut w = worker(2, &["reinvent_base"]);
+        w.take(policy(1));
+        w.take(chained());
+        let Some(WorkerOutbound::Eval(r)) = w.work().unwrap() else { panic!("the evaluation expected") };
+        assert_eq!(r.id, 5);
+        w
+    };
+    // Queued: dropped when the grant comes.
+    let mut w = evaluated();
+    w.take(closing(1, 1, 2, 1));
+    let Some(WorkerOutbound::Experience(_)) = w.work().unwrap() else { panic!("episodes, the verification dropped") };
+
+    // Running: stopped at the fifth step, or not at all when the grant closes older versions.
+    for (through, stops) in [(1, true), (0, false)] {
+        let mut w = evaluated();
+        let steps = w.env_steps();
+        let mut polls = 0;
+        let out = w
+            .work_with(&mut || {
+                polls += 1;
+                (polls == 5).then(|| closing(1, 1, 2, through))
+            })
+            .unwrap();
+        assert_eq!(w.env_steps(), steps, "no episode during the check");
+        match out {
+            None => {
+                assert!(stops, "closing v{through}");
+                assert_eq!(polls, 5, "the batch stops at the step the grant is read");
+            }
+            Some(WorkerOutbound::Eval(v)) => {
+                assert!(!stops, "closing v{through}");
+                assert_eq!((v.id, v.trials.as_ref().map(Vec::len)), (6, Ok(3)));
+                assert!(polls > 5);
+            }
+            other => panic!("{other:?}"),
+        }
+        let m = w.take_deferred().expect("the grant, kept for later");
+        assert!(w.take_deferred().is_none());
+        w.take(m);
+        let Some(WorkerOutbound::Experience(e)) = w.work().unwrap() else { panic!("the granted episodes expected") };
+        assert_eq!(e.credit, (1, 1));
     }
 }
 
