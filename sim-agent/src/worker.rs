@@ -171,6 +171,20 @@ impl Worker {
             }
             None => s.cfg,
         };
+        // The checks see what `coordinator evaluate` and DeepRacer's evaluation see: the
+        // camera's nominal light, texture and pose, without image noise. A model verified only
+        // under randomised frames can miss laps in the nominal ones.
+        let check_cfg = match check_cfg.camera.randomize {
+            true => {
+                tracing::info!(
+                    "evaluations and verifications see the camera's nominal light, texture and pose \
+                     (camera.randomize holds for training only)"
+                );
+                let camera = crate::config::CameraConfig { randomize: false, ..check_cfg.camera.clone() };
+                Arc::new(SimConfig { camera, ..(*check_cfg).clone() })
+            }
+            false => check_cfg,
+        };
         Ok(Worker {
             id: s.id,
             collector: match s.gpu {

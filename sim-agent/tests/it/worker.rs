@@ -284,6 +284,69 @@ fn a_worker_drops_the_checks_of_versions_its_learner_closed() {
     }
 }
 
+/// Issue 55: a run that trains with the camera randomised checks its models as `coordinator
+/// evaluate`, the console and DeepRacer's evaluation see them: the camera's nominal light,
+/// texture and pose, without image noise. The worker's trials are the nominal camera's, frame
+/// for frame, not the randomised one's.
+#[test]
+fn a_workers_checks_see_the_nominal_camera_when_training_randomises_it() {
+    use sim_agent::rollout::{EvalPlan, evaluate};
+    let meta = ModelMetadata::default_camera();
+    let mut cfg = SimConfig::default();
+    cfg.observation.kind = sim_agent::config::ObservationKind::Camera;
+    cfg.camera.randomize = true;
+    let obs = sim_agent::obs::obs_dim(&cfg.observation);
+    let model = Arc::new(ActorCritic::new(&meta, obs, &mut rand_chacha::ChaCha8Rng::seed_from_u64(3)));
+    let spec = EnvSpec::from_world(&tracks::world("reinvent_base").unwrap(), tracks::Direction::Forward);
+    let mut w = Worker::new(WorkerSetup {
+        id: "w1".into(),
+        worlds: vec![spec.clone()],
+        offset: 0,
+        weights: Vec::new(),
+        envs: 1,
+        threads: 1,
+        cfg: Arc::new(cfg.clone()),
+        reward: RewardFn::Builtin(BuiltinReward::CenterLine),
+        space: meta.action_space.clone(),
+        seed: 3,
+        first_seq: 0,
+        gpu: None,
+    })
+    .expect("lavapipe or a GPU");
+    w.take(WorkerInbound::Policy(PolicyVersion { version: 1, model: model.clone(), metadata: Arc::new(meta.clone()) }));
+    w.take(eval(5, 1, "reinvent_base", 2, 3));
+    let Some(WorkerOutbound::Eval(r)) = w.work().unwrap() else { panic!("the evaluation expected") };
+    let got: Vec<(u64, u64, Vec<Vec<u8>>)> = r
+        .trials
+        .unwrap()
+        .iter()
+        .map(|t| (t.steps, t.progress.to_bits(), t.frames.iter().map(|f| f.gray.clone()).collect()))
+        .collect();
+    let alone = |randomize: bool| {
+        let cfg = Arc::new(SimConfig {
+            camera: sim_agent::config::CameraConfig { randomize, ..cfg.camera.clone() },
+            ..cfg.clone()
+        });
+        let plan = EvalPlan {
+            rules: sim_agent::EvalRules::default(),
+            count: 2,
+            seed: 3,
+            threads: 1,
+            all_frames: false,
+            spread: false,
+            give_up_after_misses: None,
+        };
+        let t = evaluate(&model, &meta.action_space, &spec, &cfg, &plan, None).unwrap();
+        t.iter()
+            .map(|t| (t.steps, t.progress.to_bits(), t.log.frames.iter().map(|f| f.gray.clone()).collect()))
+            .collect::<Vec<(u64, u64, Vec<Vec<u8>>)>>()
+    };
+    let nominal = alone(false);
+    assert!(!nominal[0].2.is_empty(), "the first trial keeps what the car saw");
+    assert!(got == nominal, "the worker's checks are the nominal camera's");
+    assert!(nominal != alone(true), "a randomised camera sees other frames");
+}
+
 /// Issue 33: a checkpoint that met the lap target is verified by the worker that evaluated it,
 /// however many versions training has published since (a worker keeps only the newest few).
 #[test]
