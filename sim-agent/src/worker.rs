@@ -160,30 +160,33 @@ impl Worker {
         };
         let specs: Vec<EnvSpec> = plan.iter().map(|&w| s.worlds[w].clone()).collect();
         let vec = VecEnv::new(specs, s.cfg.clone(), s.seed, s.reward, s.threads)?;
-        let check_cfg = match s.cfg.race.for_checks() {
-            Some(race) => {
-                tracing::info!(
-                    "evaluations and verifications place the {} bots at random and let them change lanes \
-                     (race.randomize_bot_car_locations and race.is_lane_change hold for training only)",
-                    race.number_of_bot_cars
-                );
-                Arc::new(SimConfig { race, ..(*s.cfg).clone() })
-            }
-            None => s.cfg,
-        };
-        // The checks see what `coordinator evaluate` and DeepRacer's evaluation see: the
-        // camera's nominal light, texture and pose, without image noise. A model verified only
-        // under randomised frames can miss laps in the nominal ones.
-        let check_cfg = match check_cfg.camera.randomize {
-            true => {
-                tracing::info!(
-                    "evaluations and verifications see the camera's nominal light, texture and pose \
-                     (camera.randomize holds for training only)"
-                );
-                let camera = crate::config::CameraConfig { randomize: false, ..check_cfg.camera.clone() };
-                Arc::new(SimConfig { camera, ..(*check_cfg).clone() })
-            }
-            false => check_cfg,
+        // What the checks see, where it differs from training: head-to-bot's bots at random,
+        // changing lanes; and the camera as `coordinator evaluate` and DeepRacer's evaluation
+        // see it, nominal light, texture and pose without image noise (a model verified only
+        // under randomised frames can miss laps in the nominal ones).
+        let race = s.cfg.race.for_checks();
+        let camera =
+            s.cfg.camera.randomize.then(|| crate::config::CameraConfig { randomize: false, ..s.cfg.camera.clone() });
+        if let Some(race) = &race {
+            tracing::info!(
+                "evaluations and verifications place the {} bots at random and let them change lanes \
+                 (race.randomize_bot_car_locations and race.is_lane_change hold for training only)",
+                race.number_of_bot_cars
+            );
+        }
+        if camera.is_some() {
+            tracing::info!(
+                "evaluations and verifications see the camera's nominal light, texture and pose \
+                 (camera.randomize holds for training only)"
+            );
+        }
+        let check_cfg = match (race, camera) {
+            (None, None) => s.cfg,
+            (race, camera) => Arc::new(SimConfig {
+                race: race.unwrap_or_else(|| s.cfg.race.clone()),
+                camera: camera.unwrap_or_else(|| s.cfg.camera.clone()),
+                ..(*s.cfg).clone()
+            }),
         };
         Ok(Worker {
             id: s.id,
@@ -351,6 +354,9 @@ impl Worker {
     /// The learner closed every check of the versions up to `through`: their evaluations and
     /// verifications still queued here are dropped, unanswered (it asks no more of them).
     fn drop_closed(&mut self, through: u64) {
+        if through == 0 {
+            return; // none said (version 0 is never checked)
+        }
         let before = self.evals.len();
         self.evals.retain(|(e, _)| e.version > through);
         self.may_miss.retain(|(e, _)| e.version > through);
