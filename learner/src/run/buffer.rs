@@ -42,6 +42,19 @@ const SEEN_PER_WORKER: usize = 4096;
 /// Lives remembered per worker.
 const LIVES_PER_WORKER: usize = 8;
 
+/// An order of episodes by what they hold: the version that acted, the world, the
+/// environment and its episode counter (both local to a worker), then the behaviour
+/// log-probabilities and rewards bit for bit, which two workers' episodes share only if they
+/// are the same episode. No worker's name enters it: agents that swap names between runs
+/// (the coordinator numbers them as they register) still give the same order.
+pub(super) fn canonical(a: &Trajectory, b: &Trajectory) -> std::cmp::Ordering {
+    let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<u32>>();
+    (a.policy_version, &a.world, a.env, a.episode)
+        .cmp(&(b.policy_version, &b.world, b.env, b.episode))
+        .then_with(|| bits(&a.logp).cmp(&bits(&b.logp)))
+        .then_with(|| bits(&a.rewards).cmp(&bits(&b.rewards)))
+}
+
 /// Whether an episode acted by `acted` is too old (or too new) for a learner at `version`.
 pub(super) fn is_stale(acted: u64, version: u64, max_lag: u64) -> bool {
     acted > version || version - acted > max_lag
@@ -117,10 +130,15 @@ impl Buffer {
         self.trajs.iter().map(Trajectory::heap_bytes).sum()
     }
 
-    /// The first `n` episodes to arrive (fewer if fewer wait), with their workers.
+    /// The first `n` episodes to arrive (fewer if fewer wait), with their workers, in the
+    /// order of their content ([`canonical`]), not of their arrival: the update shuffles its
+    /// minibatches over that order, so a run whose workers deliver the same episodes makes
+    /// the same update however their deliveries interleave.
     pub(super) fn take(&mut self, n: usize) -> (Vec<Trajectory>, Vec<String>) {
         let n = n.min(self.trajs.len());
-        (self.trajs.drain(..n).collect(), self.from.drain(..n).collect())
+        let mut taken: Vec<(Trajectory, String)> = self.trajs.drain(..n).zip(self.from.drain(..n)).collect();
+        taken.sort_by(|a, b| canonical(&a.0, &b.0));
+        taken.into_iter().unzip()
     }
 
     /// After an update to `version`: the episodes still waiting that it made too old are

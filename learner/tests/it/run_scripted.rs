@@ -44,7 +44,7 @@ struct Scripted {
     rng: ChaCha8Rng,
     policy: Option<PolicyVersion>,
     /// Episodes already delivered per (version, round): a grant is announced again and again.
-    delivered: BTreeMap<(u64, u64), u64>,
+    delivered: BTreeMap<(&'static str, u64, u64), u64>,
     inbox: VecDeque<Inbound>,
     seq: u64,
     evals: u64,
@@ -64,7 +64,13 @@ struct Scripted {
     /// Versions published and grants made while an evaluation's trials were running.
     published_while_checking: u64,
     granted_while_checking: u64,
+    /// Two workers instead of one, each episode drawn from its worker, version and number
+    /// alone; `true` delivers the second worker's share of each grant first.
+    pair: Option<bool>,
 }
+
+/// The workers of a scripted worker with [`Scripted::pair`].
+const PAIR: [&str; 2] = ["agent-1", "agent-2"];
 
 impl Scripted {
     fn new(script: Script) -> Scripted {
@@ -85,14 +91,22 @@ impl Scripted {
             held: Vec::new(),
             published_while_checking: 0,
             granted_while_checking: 0,
+            pair: None,
         }
     }
 
     fn episode(&mut self, version: u64, n: u64) -> Trajectory {
+        let mut rng = self.rng.clone();
+        let t = self.episode_from(version, n, &mut rng);
+        self.rng = rng;
+        t
+    }
+
+    fn episode_from(&self, version: u64, n: u64, rng: &mut ChaCha8Rng) -> Trajectory {
         let p = self.policy.as_ref().expect("a policy is published before any grant");
         let steps = self.script.steps;
-        let obs: Vec<f32> = (0..steps * OBS).map(|_| self.rng.random_range(-1.0..1.0)).collect();
-        let acts = p.model.act(&obs, steps, false, &mut self.rng, Par::Seq);
+        let obs: Vec<f32> = (0..steps * OBS).map(|_| rng.random_range(-1.0..1.0)).collect();
+        let acts = p.model.act(&obs, steps, false, rng, Par::Seq);
         Trajectory {
             world: WORLD.into(),
             env: 0,
@@ -122,8 +136,39 @@ impl Link for Scripted {
     fn grant(&mut self, credit: &Credit) -> Result<(), LinkError> {
         self.granted_while_checking += u64::from(!self.held.is_empty());
         self.credits.push(credit.clone());
+        if let Some(second_first) = self.pair {
+            let mut order = PAIR;
+            if second_first {
+                order.reverse();
+            }
+            for worker in order {
+                let want = credit.episodes.get(worker).copied().unwrap_or(0);
+                let done = self.delivered.entry((worker, credit.version, credit.round)).or_default();
+                let more = want.saturating_sub(*done);
+                *done = want;
+                if more == 0 {
+                    continue;
+                }
+                let seed = credit.version * 1000 + u64::from(worker == PAIR[1]);
+                let mut rng = ChaCha8Rng::seed_from_u64(seed);
+                let trajectories: Vec<Trajectory> =
+                    (0..more).map(|i| self.episode_from(credit.version, i, &mut rng)).collect();
+                self.seq += 1;
+                let env_steps = trajectories.iter().map(|t| t.rewards.len() as u64).sum();
+                self.inbox.push_back(Inbound::Experience(Experience {
+                    worker: worker.into(),
+                    seq: self.seq,
+                    credit: (credit.version, credit.round),
+                    trajectories,
+                    env_steps,
+                    seconds: 0.01,
+                    frame: None,
+                }));
+            }
+            return Ok(());
+        }
         let want = credit.episodes.get(WORKER).copied().unwrap_or(0);
-        let done = self.delivered.entry((credit.version, credit.round)).or_default();
+        let done = self.delivered.entry((WORKER, credit.version, credit.round)).or_default();
         let more = want.saturating_sub(*done);
         *done = want;
         if more == 0 {
@@ -173,7 +218,10 @@ impl Link for Scripted {
     }
 
     fn workers(&mut self) -> Vec<String> {
-        vec![WORKER.into()]
+        match self.pair {
+            Some(_) => PAIR.map(String::from).to_vec(),
+            None => vec![WORKER.into()],
+        }
     }
 }
 
@@ -578,4 +626,24 @@ fn an_update_waits_for_a_check_that_may_stop_the_run_only_where_the_workers_shar
             assert!(during.0 > 0 && during.1 > 0, "a learner of its own trained on: {during:?}");
         }
     }
+}
+
+/// Issue 55: two workers that deliver the same episodes make the same updates whichever
+/// delivers first (under `up` the agents' batches cross the network in either order), and
+/// other episodes make other updates.
+#[test]
+fn the_same_episodes_make_the_same_update_whichever_worker_delivers_first() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = |name: &str, second_first: bool, steps: usize| {
+        let out = dir.path().join(name);
+        let mut link = Scripted::new(Script { steps, ..HALFWAY });
+        link.pair = Some(second_first);
+        let stop = StopRules { max_episodes: Some(40), ..never() };
+        let s = learner::run::run(&spec(&out, stop, quick()), &mut link, &mut Quiet).unwrap();
+        assert_eq!((s.iterations, s.episodes), (4, 40), "{name}");
+        std::fs::read(out.join("model/model.safetensors")).unwrap()
+    };
+    let first = model("first", false, 20);
+    assert_eq!(first, model("second", true, 20), "the same episodes in the other order");
+    assert_ne!(first, model("longer", false, 21), "other episodes");
 }
