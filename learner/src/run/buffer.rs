@@ -48,11 +48,11 @@ const LIVES_PER_WORKER: usize = 8;
 /// are the same episode. No worker's name enters it: agents that swap names between runs
 /// (the coordinator numbers them as they register) still give the same order.
 pub(super) fn canonical(a: &Trajectory, b: &Trajectory) -> std::cmp::Ordering {
-    let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<u32>>();
+    let bits = |x: &f32| x.to_bits();
     (a.policy_version, &a.world, a.env, a.episode)
         .cmp(&(b.policy_version, &b.world, b.env, b.episode))
-        .then_with(|| bits(&a.logp).cmp(&bits(&b.logp)))
-        .then_with(|| bits(&a.rewards).cmp(&bits(&b.rewards)))
+        .then_with(|| a.logp.iter().map(bits).cmp(b.logp.iter().map(bits)))
+        .then_with(|| a.rewards.iter().map(bits).cmp(b.rewards.iter().map(bits)))
 }
 
 /// Whether an episode acted by `acted` is too old (or too new) for a learner at `version`.
