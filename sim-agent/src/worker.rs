@@ -256,6 +256,10 @@ impl Worker {
                     return;
                 }
                 tracing::debug!(id = r.id, version = r.version, world = %r.world, "evaluation requested");
+                // The learner checks one checkpoint at a time, in the order they were written:
+                // asking for a version says the checks of every older one are closed, even
+                // where no grant came to say so (a stopping learner grants nothing).
+                self.drop_closed(r.version.saturating_sub(1));
                 match self.reports.iter().find(|d| answers(d, &r)) {
                     Some(done) => self.outbox.push_back(done.clone()),
                     None => self.evals.push_back((r, false)),
@@ -633,13 +637,14 @@ impl Worker {
             runs.push(i);
         }
         if !groups.is_empty() {
-            let version = p.version;
+            let (version, me) = (p.version, self.id.clone());
             let mut arrived: Vec<WorkerInbound> = Vec::new();
             let mut closed = false;
             let mut go_on = || {
                 while !closed && let Some(m) = inbox() {
                     closed = match &m {
                         WorkerInbound::Credit(c) => c.checks_closed_through >= version,
+                        WorkerInbound::Eval(r) => r.worker == me && r.version > version,
                         WorkerInbound::End => true,
                         _ => false,
                     };

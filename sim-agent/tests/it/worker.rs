@@ -284,6 +284,51 @@ fn a_worker_drops_the_checks_of_versions_its_learner_closed() {
     }
 }
 
+/// Issue 55: a request for a newer version closes the older checks, queued or running: the
+/// learner checks one checkpoint at a time, and a stopping learner sends no grant to say so.
+#[test]
+fn a_request_for_a_newer_version_closes_the_older_checks() {
+    let evaluated = || {
+        let mut w = worker(2, &["reinvent_base"]);
+        w.take(policy(1));
+        let WorkerInbound::Eval(r) = eval(5, 1, "reinvent_base", 2, 3) else { unreachable!() };
+        w.take(WorkerInbound::Eval(EvalRequest {
+            then_verify: Some(ChainedVerify { id: 6, trials: 3, seed: 77, laps: 0 }),
+            ..r
+        }));
+        let Some(WorkerOutbound::Eval(r)) = w.work().unwrap() else { panic!("the evaluation expected") };
+        assert_eq!(r.id, 5);
+        w.take(policy(2));
+        w
+    };
+    let next_report = |w: &mut Worker| match w.work().unwrap() {
+        Some(WorkerOutbound::Eval(r)) => r.id,
+        other => panic!("a report expected, got {other:?}"),
+    };
+    // Queued: v1's verification is dropped, v2's evaluation runs.
+    let mut w = evaluated();
+    w.take(eval(9, 2, "reinvent_base", 2, 4));
+    assert_eq!(next_report(&mut w), 9);
+    // A request for the same version closes nothing: the verification runs first.
+    let mut w = evaluated();
+    w.take(eval(9, 1, "reinvent_wood", 2, 4));
+    assert_eq!(next_report(&mut w), 6);
+    // Running: the batch stops at the step the request is read; the request is kept.
+    let mut w = evaluated();
+    let mut polls = 0;
+    let out = w
+        .work_with(&mut || {
+            polls += 1;
+            (polls == 5).then(|| eval(9, 2, "reinvent_base", 2, 4))
+        })
+        .unwrap();
+    assert!(out.is_none(), "stopped, got {out:?}");
+    assert_eq!(polls, 5);
+    let m = w.take_deferred().expect("the request, kept for later");
+    w.take(m);
+    assert_eq!(next_report(&mut w), 9);
+}
+
 /// Issue 55: a run that trains with the camera randomised checks its models as `coordinator
 /// evaluate`, the console and DeepRacer's evaluation see them: the camera's nominal light,
 /// texture and pose, without image noise. The worker's trials are the nominal camera's, frame
