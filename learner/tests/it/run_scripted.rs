@@ -136,56 +136,39 @@ impl Link for Scripted {
     fn grant(&mut self, credit: &Credit) -> Result<(), LinkError> {
         self.granted_while_checking += u64::from(!self.held.is_empty());
         self.credits.push(credit.clone());
-        if let Some(second_first) = self.pair {
-            let mut order = PAIR;
-            if second_first {
-                order.reverse();
+        let order: Vec<&'static str> = match self.pair {
+            Some(true) => PAIR.iter().rev().copied().collect(),
+            Some(false) => PAIR.to_vec(),
+            None => vec![WORKER],
+        };
+        for worker in order {
+            let want = credit.episodes.get(worker).copied().unwrap_or(0);
+            let done = self.delivered.entry((worker, credit.version, credit.round)).or_default();
+            let more = want.saturating_sub(*done);
+            *done = want;
+            if more == 0 {
+                continue;
             }
-            for worker in order {
-                let want = credit.episodes.get(worker).copied().unwrap_or(0);
-                let done = self.delivered.entry((worker, credit.version, credit.round)).or_default();
-                let more = want.saturating_sub(*done);
-                *done = want;
-                if more == 0 {
-                    continue;
+            let trajectories: Vec<Trajectory> = match self.pair {
+                // Each worker's episodes from its own stream, whatever order they go in.
+                Some(_) => {
+                    let mut rng = ChaCha8Rng::seed_from_u64(credit.version * 1000 + u64::from(worker == PAIR[1]));
+                    (0..more).map(|i| self.episode_from(credit.version, i, &mut rng)).collect()
                 }
-                let seed = credit.version * 1000 + u64::from(worker == PAIR[1]);
-                let mut rng = ChaCha8Rng::seed_from_u64(seed);
-                let trajectories: Vec<Trajectory> =
-                    (0..more).map(|i| self.episode_from(credit.version, i, &mut rng)).collect();
-                self.seq += 1;
-                let env_steps = trajectories.iter().map(|t| t.rewards.len() as u64).sum();
-                self.inbox.push_back(Inbound::Experience(Experience {
-                    worker: worker.into(),
-                    seq: self.seq,
-                    credit: (credit.version, credit.round),
-                    trajectories,
-                    env_steps,
-                    seconds: 0.01,
-                    frame: None,
-                }));
-            }
-            return Ok(());
+                None => (0..more).map(|i| self.episode(credit.version, i)).collect(),
+            };
+            self.seq += 1;
+            let env_steps = trajectories.iter().map(|t| t.rewards.len() as u64).sum();
+            self.inbox.push_back(Inbound::Experience(Experience {
+                worker: worker.into(),
+                seq: self.seq,
+                credit: (credit.version, credit.round),
+                trajectories,
+                env_steps,
+                seconds: 0.01,
+                frame: None,
+            }));
         }
-        let want = credit.episodes.get(WORKER).copied().unwrap_or(0);
-        let done = self.delivered.entry((WORKER, credit.version, credit.round)).or_default();
-        let more = want.saturating_sub(*done);
-        *done = want;
-        if more == 0 {
-            return Ok(());
-        }
-        let trajectories: Vec<Trajectory> = (0..more).map(|i| self.episode(credit.version, i)).collect();
-        self.seq += 1;
-        let env_steps = trajectories.iter().map(|t| t.rewards.len() as u64).sum();
-        self.inbox.push_back(Inbound::Experience(Experience {
-            worker: WORKER.into(),
-            seq: self.seq,
-            credit: (credit.version, credit.round),
-            trajectories,
-            env_steps,
-            seconds: 0.01,
-            frame: None,
-        }));
         Ok(())
     }
 
