@@ -19,6 +19,7 @@ use anyhow::{Context, Result, bail};
 use protocol::net::{self, NetArgs, zenoh};
 use protocol::{PROTOCOL_VERSION, PolicyUpdate, keys};
 use rand::SeedableRng;
+use std::collections::BTreeMap;
 use std::process::Command;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -479,6 +480,55 @@ struct PixelsRun {
     up_verified: Option<Verified>,
 }
 
+/// Laps out of trials.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+struct Laps {
+    laps: u32,
+    trials: u32,
+}
+
+impl Laps {
+    fn describe(&self) -> String {
+        format!("{} of {}", self.laps, self.trials)
+    }
+}
+
+/// The laps of a setup's models at the end, on the worlds trained on and on the others.
+#[derive(Default)]
+struct LapTally {
+    training: Laps,
+    unseen: Laps,
+    by_world: BTreeMap<String, Laps>,
+}
+
+impl LapTally {
+    /// Count one model's table; worlds in `training` were trained on.
+    fn add(&mut self, rows: &[(String, Laps)], training: &[String]) {
+        for (world, l) in rows {
+            let part = if training.contains(world) { &mut self.training } else { &mut self.unseen };
+            for c in [part, self.by_world.entry(world.clone()).or_default()] {
+                c.laps += l.laps;
+                c.trials += l.trials;
+            }
+        }
+    }
+}
+
+/// The rows of `coordinator evaluate`'s table (`WORLD  LAPS  PROGRESS  MEAN LAP`): each
+/// world's laps out of its trials.
+fn table_laps(text: &str) -> Vec<(String, Laps)> {
+    text.lines()
+        .skip_while(|l| !l.starts_with("WORLD"))
+        .skip(1)
+        .map_while(|l| {
+            let mut cols = l.split_whitespace();
+            let world = cols.next()?;
+            let (laps, trials) = cols.next()?.split_once('/')?;
+            Some((world.to_string(), Laps { laps: laps.parse().ok()?, trials: trials.parse().ok()? }))
+        })
+        .collect()
+}
+
 /// `bench pixels`: `train` and `up` from pixels on several worlds, per seed, to the verified
 /// model (or, with `keep_training`, for the whole time, to see whether a policy that lapped
 /// everywhere stays good), then both models on those worlds and on unseen ones.
@@ -500,6 +550,7 @@ pub fn pixels(args: &crate::cli::PixelsArgs) -> Result<()> {
     let crate::cli::PixelsArgs {
         worlds,
         unseen,
+        trials,
         minutes,
         envs,
         evals,
@@ -604,6 +655,7 @@ pub fn pixels(args: &crate::cli::PixelsArgs) -> Result<()> {
         }
         if n % 2 == 1 { v[n / 2] } else { (v[n / 2 - 1] + v[n / 2]) / 2.0 }
     };
+    let mut lap_rows: Vec<(String, LapTally)> = Vec::new();
     for (variant, more) in &setups {
         let runs: Vec<&PixelsRun> = all_runs.iter().filter(|r| &r.variant == variant).collect();
         if setups.len() > 1 {
@@ -738,14 +790,16 @@ pub fn pixels(args: &crate::cli::PixelsArgs) -> Result<()> {
         println!();
         // Both models on the training worlds and on tracks they never saw.
         let all: Vec<String> = worlds.iter().chain(unseen).cloned().collect();
+        let mut laps = LapTally::default();
         for r in &runs {
             let here = &r.here;
             for (name, model) in [("train", "train/model"), ("up", "up/run/model")] {
-                let mut args = vec!["evaluate".to_string(), model.into(), "--trials".into(), "3".into()];
+                let mut args = vec!["evaluate".to_string(), model.into(), "--trials".into(), trials.to_string()];
                 for w in &all {
                     args.extend(["--world".into(), w.clone()]);
                 }
                 let text = child(&me, here, &args)?;
+                laps.add(&table_laps(&text), worlds);
                 println!("seed {}, {name} model ({}):", r.seed, here.join(model).display());
                 println!();
                 println!("```");
@@ -756,6 +810,15 @@ pub fn pixels(args: &crate::cli::PixelsArgs) -> Result<()> {
                 println!();
             }
         }
+        println!(
+            "Laps of both models of every seed, {trials} trials a world: the training worlds {}; the unseen tracks {}.",
+            laps.training.describe(),
+            laps.unseen.describe()
+        );
+        let by_world: Vec<String> = laps.by_world.iter().map(|(w, c)| format!("{w} {}", c.describe())).collect();
+        println!();
+        println!("By world: {}.", by_world.join(", "));
+        lap_rows.push((variant.clone(), laps));
     }
     if setups.len() > 1 {
         // Medians over the seeds, per variant: a variant that makes steps cheaper shows in
@@ -764,15 +827,15 @@ pub fn pixels(args: &crate::cli::PixelsArgs) -> Result<()> {
         println!("## The variants side by side (medians over seeds {seeds:?})");
         println!();
         println!(
-            "| variant | `train` stop s | `up` stop s | `train` model made at s | `up` model made at s | env steps to it (`train`, `up`) | updates to it (`train`, `up`) | verified (`train`, `up`) |"
+            "| variant | `train` stop s | `up` stop s | `train` model made at s | `up` model made at s | env steps to it (`train`, `up`) | updates to it (`train`, `up`) | verified (`train`, `up`) | laps, {trials} trials a world (training worlds; unseen) |"
         );
-        println!("|---|---|---|---|---|---|---|---|");
+        println!("|---|---|---|---|---|---|---|---|---|");
         for (variant, _) in &setups {
             let runs: Vec<&PixelsRun> = all_runs.iter().filter(|r| &r.variant == variant).collect();
             let of = |f: &dyn Fn(&PixelsRun) -> Option<f64>| median(runs.iter().filter_map(|r| f(r)).collect());
             let shown = |x: f64| if x.is_finite() { format!("{x:.0}") } else { "-".into() };
             println!(
-                "| {variant} | {} | {} | {} | {} | {}, {} | {}, {} | {} of {}, {} of {} |",
+                "| {variant} | {} | {} | {} | {} | {}, {} | {}, {} | {} of {}, {} of {} | {} |",
                 shown(of(&|r| Some(r.train_s))),
                 shown(of(&|r| Some(r.up_s))),
                 shown(of(&|r| r.train_verified.map(|v| v.made_s))),
@@ -784,7 +847,12 @@ pub fn pixels(args: &crate::cli::PixelsArgs) -> Result<()> {
                 runs.iter().filter(|r| r.train_verified.is_some()).count(),
                 runs.len(),
                 runs.iter().filter(|r| r.up_verified.is_some()).count(),
-                runs.len()
+                runs.len(),
+                lap_rows
+                    .iter()
+                    .find(|(v, _)| v == variant)
+                    .map(|(_, l)| format!("{}; {}", l.training.describe(), l.unseen.describe()))
+                    .unwrap_or_default()
             );
         }
     }
@@ -1708,6 +1776,29 @@ pub fn generated(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_closing_tables_laps_are_counted_by_world_and_by_whether_it_was_trained_on() {
+        // `coordinator evaluate`'s output, as the bench reads it.
+        let text = "trial 10: Oval_track  off_track  progress  40.7 %  lap time  -  off-track  1\n\
+                    WORLD                      LAPS   PROGRESS   MEAN LAP\n\
+                    reinvent_wood              3/3      100.0%    14.10 s\n\
+                    Oval_track                 0/3       39.6%          -\n\
+                    generated:2               20/20     100.0%    19.19 s\n\
+                    23 of 26 laps completed, mean progress 82.1 %, 0 crashes\n";
+        let rows = table_laps(text);
+        let names: Vec<&str> = rows.iter().map(|(w, _)| w.as_str()).collect();
+        assert_eq!(names, ["reinvent_wood", "Oval_track", "generated:2"]);
+        assert_eq!(rows[1].1, Laps { laps: 0, trials: 3 });
+        let mut tally = LapTally::default();
+        tally.add(&rows, &["reinvent_wood".to_string()]);
+        tally.add(&rows, &["reinvent_wood".to_string()]);
+        assert_eq!(tally.training, Laps { laps: 6, trials: 6 });
+        assert_eq!(tally.unseen, Laps { laps: 40, trials: 46 });
+        assert_eq!(tally.by_world["Oval_track"].describe(), "0 of 6");
+        // No table (a failed evaluation's text): nothing counted.
+        assert!(table_laps("error: no such model").is_empty());
+    }
 
     /// Issue 55: the verified model's point is read from its manifest, and the updates and
     /// samples up to its iteration from `metrics.jsonl`; a best model never verified has none.

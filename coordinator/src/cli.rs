@@ -585,6 +585,11 @@ pub struct PixelsArgs {
     /// Worlds never trained on, for the generalisation table.
     #[arg(long, default_value = "reinvent_base,reInvent2019_track,Oval_track", value_delimiter = ',')]
     pub unseen: Vec<String>,
+    /// Trials per world when both models are driven on the training worlds and the unseen
+    /// ones at the end. 3 gives the laps the issues' goals count; 20 or more tells a model
+    /// that laps a track every time from one that laps it half the time.
+    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=MAX_VERIFY_TRIALS))]
+    pub trials: u32,
     /// Time limit of each training (minutes).
     #[arg(long, default_value_t = 20.0)]
     pub minutes: f64,
