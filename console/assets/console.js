@@ -203,7 +203,7 @@ var Paddock = (function () {
     }
     function stop() {
       var kind = val("stop_kind"), s = { minutes: num("minutes") };
-      if (kind === "verified") { s.target_laps = 3; s.target_evals = 1; s.verify_trials = 10; }
+      if (kind === "verified") { s.target_laps = 3; s.target_evals = 2; s.verify_trials = 10; }
       if (kind === "steps") s.env_steps_budget = num("env_steps_budget");
       return s;
     }

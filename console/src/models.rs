@@ -66,13 +66,13 @@ pub const FIELDS: [&str; 11] = [
     "clone_from",
 ];
 
-/// The stop when the request names none: the verified model (3 of 3 laps in an evaluation,
-/// then 10 trials a world without a failure), or 10 minutes, DeepRacer's shortest run.
+/// The stop when the request names none: the verified model (3 of 3 laps in two evaluations
+/// in a row, then 10 trials a world without a failure), or 10 minutes, DeepRacer's shortest run.
 pub fn default_stop() -> toml::Table {
     let mut t = toml::Table::new();
     t.insert("minutes".into(), toml::Value::Float(10.0));
     t.insert("target_laps".into(), toml::Value::Integer(3));
-    t.insert("target_evals".into(), toml::Value::Integer(1));
+    t.insert("target_evals".into(), toml::Value::Integer(2));
     t.insert("verify_trials".into(), toml::Value::Integer(10));
     t
 }

@@ -499,7 +499,7 @@ mod tests {
         // The run's stop rules are tested through a whole run in learner/tests/it/run_scripted.rs;
         // here, that each flag of `train` reaches its rule.
         let base = rules(&[]);
-        assert_eq!(base.target_laps, Some(TargetLaps { laps: 3, evaluations: 1, verify_trials: 10 }), "{base:?}");
+        assert_eq!(base.target_laps, Some(TargetLaps { laps: 3, evaluations: 2, verify_trials: 10 }), "{base:?}");
         let table: Vec<(&[&str], StopRules)> = vec![
             (&["--max-episodes", "60"], StopRules { max_episodes: Some(60), ..base.clone() }),
             (&["--env-steps", "15000"], StopRules { env_steps_budget: Some(15000), ..base.clone() }),
@@ -516,9 +516,9 @@ mod tests {
                 },
             ),
             (
-                &["--verify-trials", "0", "--target-evals", "2"],
+                &["--verify-trials", "0", "--target-evals", "1"],
                 StopRules {
-                    target_laps: Some(TargetLaps { laps: 3, evaluations: 2, verify_trials: 0 }),
+                    target_laps: Some(TargetLaps { laps: 3, evaluations: 1, verify_trials: 0 }),
                     ..base.clone()
                 },
             ),

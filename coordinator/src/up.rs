@@ -373,11 +373,11 @@ mod tests {
         assert!(job.sim_config_toml.contains("record_trace = false"), "{}", job.sim_config_toml);
         assert_eq!(job.out, d.join("run").display().to_string());
         // The defaults: two worlds, the state vector, DeepRacer's hyperparameters, and the stop
-        // at the verified model (3/3 once, then 10 trials a world), 5 minutes at most.
+        // at the verified model (3/3 in two evaluations in a row, then 10 trials a world), 5 minutes at most.
         let plain = spec(&[], d);
         assert_eq!(plain.worlds, ["reinvent_carpet", "reinvent_concrete"]);
         let stop = plain.stop();
-        assert_eq!((stop.minutes, stop.target_laps, stop.target_evals, stop.verify_trials), (5.0, Some(3), 1, 10));
+        assert_eq!((stop.minutes, stop.target_laps, stop.target_evals, stop.verify_trials), (5.0, Some(3), 2, 10));
         // `--target-laps 0`: no lap target, the job trains to its time limit.
         assert_eq!(spec(&["--target-laps", "0"], d).stop().target_laps, None);
         // A spec file instead: the flags that describe a job are refused beside it.

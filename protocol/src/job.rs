@@ -21,7 +21,7 @@ pub fn default_stop() -> JobStop {
         window: 20,
         env_steps_budget: None,
         target_laps: None,
-        target_evals: 1,
+        target_evals: 2,
         plateau_evals: 0,
         stop_on_collapse: false,
         verify_trials: 10,

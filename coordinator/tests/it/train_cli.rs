@@ -46,7 +46,8 @@ fn train_then_evaluate_then_clone_and_resume() {
     let o = coordinator(d, &["train", "--world", "reinvent_base", "--minutes", "2", "--out", "run1"]);
     assert!(o.status.success(), "{}", text(&o));
     let out = text(&o);
-    // The default stop: 3/3 in an evaluation, then 10 of 10 in its checkpoint's verification.
+    // The default stop: 3/3 in two evaluations in a row, then 10 of 10 in the second's
+    // checkpoint's verification.
     assert!(out.contains("target laps reached and verified"), "{out}");
     assert!(out.contains("verify v") && out.contains("10/10"), "{out}");
     assert!(out.contains("evaluation progress 100.0 %"), "{out}");
