@@ -646,15 +646,15 @@ mod tests {
                 StopRules { env_steps_budget: Some(15000), max_episodes: Some(1_000_000), ..StopRules::default() },
             ),
             (
-                JobStop { target_laps: Some(3), target_evals: 2, ..base },
+                JobStop { target_laps: Some(3), target_evals: 3, ..base },
                 StopRules {
-                    target_laps: Some(TargetLaps { laps: 3, evaluations: 2, verify_trials: 10 }),
+                    target_laps: Some(TargetLaps { laps: 3, evaluations: 3, verify_trials: 10 }),
                     max_episodes: Some(1_000_000),
                     ..StopRules::default()
                 },
             ),
             (
-                JobStop { target_laps: Some(3), verify_trials: 0, ..base },
+                JobStop { target_laps: Some(3), target_evals: 1, verify_trials: 0, ..base },
                 StopRules {
                     target_laps: Some(TargetLaps { laps: 3, evaluations: 1, verify_trials: 0 }),
                     max_episodes: Some(1_000_000),
