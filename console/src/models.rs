@@ -72,7 +72,7 @@ pub fn default_stop() -> toml::Table {
     let mut t = toml::Table::new();
     t.insert("minutes".into(), toml::Value::Float(10.0));
     t.insert("target_laps".into(), toml::Value::Integer(3));
-    t.insert("target_evals".into(), toml::Value::Integer(2));
+    t.insert("target_evals".into(), toml::Value::Integer(protocol::job::TARGET_EVALS.into()));
     t.insert("verify_trials".into(), toml::Value::Integer(10));
     t
 }

@@ -597,7 +597,7 @@ pub struct PixelsArgs {
     #[arg(long, default_value_t = 16)]
     pub envs: usize,
     /// Consecutive 3/3 evaluations (on every world) before the checkpoint is verified.
-    #[arg(long, default_value_t = 2)]
+    #[arg(long, default_value_t = protocol::job::TARGET_EVALS)]
     pub evals: u32,
     /// Trials per world of the verification that ends a training (0: none; the streak
     /// of --evals ends it).
@@ -932,7 +932,7 @@ pub struct UpArgs {
     pub target_laps: u32,
     /// ...in this many consecutive evaluations (two by default: the second version that
     /// laps everywhere laps unseen tracks far more often than the first)...
-    #[arg(long, default_value_t = 2)]
+    #[arg(long, default_value_t = protocol::job::TARGET_EVALS)]
     pub target_evals: u32,
     /// ...and the last one's checkpoint, evaluated again with this many trials per world
     /// (fresh noise), laps as often: that checkpoint is the model (0: no verification).
@@ -1039,7 +1039,7 @@ pub struct TrainArgs {
     pub trials: usize,
     /// Consecutive evaluations that must reach --target-laps (two by default: the second
     /// version that laps everywhere laps unseen tracks far more often than the first)...
-    #[arg(long, default_value_t = 2)]
+    #[arg(long, default_value_t = protocol::job::TARGET_EVALS as usize)]
     pub target_evals: usize,
     /// ...before the last one's checkpoint is evaluated again with this many trials per world
     /// (fresh noise); training stops if it laps as often, with that checkpoint as the model

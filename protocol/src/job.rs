@@ -10,6 +10,11 @@
 pub use crate::{AgentWork, Job, JobRecord, JobState, JobStop};
 use std::sync::LazyLock;
 
+/// Evaluations in a row that must lap everywhere before a lap target verifies a checkpoint,
+/// when the user names none: the second version that laps everywhere laps tracks it never
+/// saw far more often than the first (docs/benchmarks.md, "Twenty trials a world").
+pub const TARGET_EVALS: u32 = 2;
+
 /// The stop conditions a job has when its spec names none: ten minutes, or a million
 /// episodes, whichever comes first.
 pub fn default_stop() -> JobStop {
@@ -21,7 +26,7 @@ pub fn default_stop() -> JobStop {
         window: 20,
         env_steps_budget: None,
         target_laps: None,
-        target_evals: 2,
+        target_evals: TARGET_EVALS,
         plateau_evals: 0,
         stop_on_collapse: false,
         verify_trials: 10,
